@@ -1,0 +1,282 @@
+//! The ISM data model: one serde type per object of `spec/ism-format.md`.
+//!
+//! Field order matters: the binary encoding (§7.3 of the spec) writes fields in declaration order.
+
+use std::collections::BTreeMap;
+
+use bincode::{Decode, Encode};
+use schemars::JsonSchema;
+use serde::{Deserialize, Serialize};
+
+/// The format version this crate writes, and the newest it reads.
+pub const FORMAT_VERSION: Version = Version { major: 1, minor: 0 };
+
+/// `major.minor` format version (spec §3).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Hash)]
+pub struct Version {
+    /// Incompatible revisions.
+    pub major: u16,
+    /// Backward-compatible additions.
+    pub minor: u16,
+}
+
+impl Version {
+    /// Parses `"1.0"`; `None` when the text is not two decimal integers separated by a dot.
+    pub fn parse(text: &str) -> Option<Version> {
+        let (a, b) = text.split_once('.')?;
+        let digits = |s: &str| !s.is_empty() && s.len() <= 5 && s.bytes().all(|c| c.is_ascii_digit());
+        if !digits(a) || !digits(b) {
+            return None;
+        }
+        Some(Version { major: a.parse().ok()?, minor: b.parse().ok()? })
+    }
+}
+
+impl std::fmt::Display for Version {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{}.{}", self.major, self.minor)
+    }
+}
+
+/// Any JSON value, carried verbatim by every encoding (spec §2.9: `extras`, `extensions`).
+///
+/// The binary encoding stores it as its compact JSON text, so all three encodings keep it exactly.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, JsonSchema, Default)]
+#[serde(transparent)]
+pub struct JsonValue(pub serde_json::Value);
+
+impl Encode for JsonValue {
+    fn encode<E: bincode::enc::Encoder>(&self, encoder: &mut E) -> Result<(), bincode::error::EncodeError> {
+        let text = serde_json::to_string(&self.0)
+            .map_err(|e| bincode::error::EncodeError::OtherString(e.to_string()))?;
+        text.encode(encoder)
+    }
+}
+
+impl<C> Decode<C> for JsonValue {
+    fn decode<D: bincode::de::Decoder<Context = C>>(decoder: &mut D) -> Result<Self, bincode::error::DecodeError> {
+        let text = String::decode(decoder)?;
+        serde_json::from_str(&text)
+            .map(JsonValue)
+            .map_err(|e| bincode::error::DecodeError::OtherString(format!("embedded JSON: {e}")))
+    }
+}
+bincode::impl_borrow_decode!(JsonValue);
+
+/// A complete Iso-Simplicial Model (spec §2).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, JsonSchema, Encode, Decode)]
+#[serde(rename_all = "camelCase")]
+#[schemars(title = "ISM model", description = "An Iso-Simplicial Model, JSON encoding of spec/ism-format.md version 1.0")]
+pub struct Model {
+    /// Format version `"major.minor"`; this specification is `"1.0"`.
+    pub version: String,
+    /// Space dimension `n`: 2 (curves in the plane) or 3 (surfaces in space).
+    pub dimension: u8,
+    /// Descriptive metadata.
+    #[serde(default)]
+    pub metadata: Metadata,
+    /// Vertex coordinates, flat: `n` numbers per vertex.
+    pub vertices: Vec<f64>,
+    /// Top simplices, flat: `n + 1` vertex indices each, positively oriented.
+    pub simplices: Vec<u32>,
+    /// The vertex function `f`: one nonzero number per vertex.
+    pub values: Vec<f64>,
+    /// The level `c` of the shape `F = c`.
+    #[serde(default)]
+    pub level: f64,
+    /// Diffeomorphism stages; `stages[0]` is applied first (spec §5).
+    #[serde(default)]
+    pub stages: Vec<Stage>,
+    /// Names of the extensions this file uses.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub extensions_used: Vec<String>,
+    /// Names of the extensions a reader must understand to read this file.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub extensions_required: Vec<String>,
+    /// Extension payloads keyed by extension name.
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
+    pub extensions: BTreeMap<String, JsonValue>,
+    /// Application-specific data; readers carry it through untouched.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub extras: Option<JsonValue>,
+}
+
+/// Descriptive metadata (spec §2.8). Every member is optional.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize, JsonSchema, Encode, Decode)]
+#[serde(rename_all = "camelCase")]
+pub struct Metadata {
+    /// A short human-readable name.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub name: Option<String>,
+    /// The program that wrote the file.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub generator: Option<String>,
+    /// Length unit of the vertex coordinates, e.g. `"m"` or `"mm"`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub units: Option<String>,
+    /// Free text.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub description: Option<String>,
+}
+
+/// Kind of a stage's map (spec §5.2–5.4).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize, JsonSchema, Encode, Decode)]
+#[serde(rename_all = "lowercase")]
+pub enum StageKind {
+    /// Polynomial Bernstein–Bézier map of degree `d`.
+    Bezier,
+    /// Rational Bernstein–Bézier map of degree `d` with positive weights.
+    Rational,
+    /// Monotonic map: one increasing 1-D Bernstein polynomial of degree `d` per vertex.
+    Monotonic,
+}
+
+impl StageKind {
+    /// The spelling used in JSON and in messages.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            StageKind::Bezier => "bezier",
+            StageKind::Rational => "rational",
+            StageKind::Monotonic => "monotonic",
+        }
+    }
+}
+
+/// Which way a stage's stored map points (spec §5.1).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Serialize, Deserialize, JsonSchema, Encode, Decode)]
+#[serde(rename_all = "lowercase")]
+pub enum Direction {
+    /// The stored map is the stage `X_k` itself: point coordinates → function coordinates.
+    #[default]
+    Implicit,
+    /// The stored map is `X_k⁻¹`: function coordinates → point coordinates.
+    Parametric,
+}
+
+/// One simplicial diffeomorphism stage (spec §5).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, JsonSchema, Encode, Decode)]
+#[serde(rename_all = "camelCase")]
+pub struct Stage {
+    /// The map kind.
+    pub kind: StageKind,
+    /// Polynomial degree `d ≥ 1`.
+    pub degree: u32,
+    /// Direction of the stored map.
+    #[serde(default)]
+    pub direction: Direction,
+    /// Optional label.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub name: Option<String>,
+    /// Moved control points (and weights) of Bézier and rational stages, one record per face.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub faces: Vec<FaceRecord>,
+    /// Per-vertex 1-D functions of a monotonic stage.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub vertex_maps: Vec<VertexMap>,
+    /// Application-specific data.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub extras: Option<JsonValue>,
+}
+
+/// The control points (and weights) that a face owns (spec §5.2).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, JsonSchema, Encode, Decode)]
+#[serde(rename_all = "camelCase")]
+pub struct FaceRecord {
+    /// The face: its `k + 1` global vertex ids, strictly increasing.
+    pub face: Vec<u32>,
+    /// Control points, flat: `k + 1` barycentric coordinates (w.r.t. `face`) per owned multi-index,
+    /// in canonical order.
+    #[serde(default)]
+    pub points: Vec<f64>,
+    /// Rational stages only: one weight per owned multi-index, in canonical order.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub weights: Vec<f64>,
+}
+
+/// A monotonic stage's function `g_v` for one vertex (spec §5.4).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, JsonSchema, Encode, Decode)]
+#[serde(rename_all = "camelCase")]
+pub struct VertexMap {
+    /// Global vertex id.
+    pub vertex: u32,
+    /// The `d + 1` Bernstein coefficients `a_0 = 0 < a_1 < … < a_d`.
+    pub coefficients: Vec<f64>,
+}
+
+impl Model {
+    /// An empty model of the given dimension at the current format version.
+    pub fn new(dimension: u8) -> Model {
+        Model {
+            version: FORMAT_VERSION.to_string(),
+            dimension,
+            metadata: Metadata::default(),
+            vertices: Vec::new(),
+            simplices: Vec::new(),
+            values: Vec::new(),
+            level: 0.0,
+            stages: Vec::new(),
+            extensions_used: Vec::new(),
+            extensions_required: Vec::new(),
+            extensions: BTreeMap::new(),
+            extras: None,
+        }
+    }
+
+    /// `n`, as a `usize`.
+    pub fn dim(&self) -> usize {
+        usize::from(self.dimension)
+    }
+
+    /// Number of vertices (`vertices.len() / n`).
+    pub fn num_vertices(&self) -> usize {
+        self.vertices.len() / self.dim().max(1)
+    }
+
+    /// Number of top simplices.
+    pub fn num_simplices(&self) -> usize {
+        self.simplices.len() / (self.dim() + 1)
+    }
+
+    /// Coordinates of vertex `v`.
+    pub fn vertex(&self, v: usize) -> &[f64] {
+        let n = self.dim();
+        &self.vertices[v * n..(v + 1) * n]
+    }
+
+    /// Vertex ids of top simplex `s`, in stored (positive) order.
+    pub fn simplex(&self, s: usize) -> &[u32] {
+        let m = self.dim() + 1;
+        &self.simplices[s * m..(s + 1) * m]
+    }
+
+    /// Iterator over the top simplices.
+    pub fn simplex_iter(&self) -> std::slice::ChunksExact<'_, u32> {
+        self.simplices.chunks_exact(self.dim() + 1)
+    }
+
+    /// The declared version, if it parses.
+    pub fn parsed_version(&self) -> Option<Version> {
+        Version::parse(&self.version)
+    }
+}
+
+impl Stage {
+    /// A stage of the given kind and degree with every control point fixed (the identity map).
+    pub fn identity(kind: StageKind, degree: u32) -> Stage {
+        Stage {
+            kind,
+            degree,
+            direction: Direction::Implicit,
+            name: None,
+            faces: Vec::new(),
+            vertex_maps: Vec::new(),
+            extras: None,
+        }
+    }
+
+    /// Number of stored real parameters (coordinates, weights, coefficients).
+    pub fn parameter_count(&self) -> usize {
+        self.faces.iter().map(|f| f.points.len() + f.weights.len()).sum::<usize>()
+            + self.vertex_maps.iter().map(|m| m.coefficients.len()).sum::<usize>()
+    }
+}

@@ -1,0 +1,444 @@
+//! Structural requirements every reader enforces (spec §2–5): what makes a file well-formed.
+//!
+//! Positivity of the maps is not structural; the validator certifies it (spec §6).
+
+use std::collections::{HashMap, HashSet};
+
+use crate::model::{Model, StageKind};
+use crate::multi_index::owned_count;
+use crate::rules::{Diagnostic, Location, Rule};
+
+/// Highest stage degree a conforming reader must accept and may refuse beyond (spec §5).
+///
+/// 16 keeps the largest dense control net (`C(19, 3) = 969` points in 3D) and the certificate
+/// polynomials of the validator small, while leaving ample room above the degrees in use (≤ 8).
+pub const MAX_DEGREE: u32 = 16;
+
+/// A simplex is degenerate when `|det[v1−v0 … vn−v0]| ≤ DEGENERACY_TOLERANCE · L^n`, with `L` its
+/// longest edge (spec §3.2).
+///
+/// The ratio is scale-free; below 1e-12 barycentric coordinates computed in f64 keep fewer than four
+/// significant digits, which no later computation can recover.
+pub const DEGENERACY_TOLERANCE: f64 = 1e-12;
+
+/// Default cap on the number of diagnostics one check collects, so hostile files cannot make the
+/// report itself unbounded.
+pub const DEFAULT_MAX_DIAGNOSTICS: usize = 1000;
+
+/// Signed `det[v1−v0 … vn−v0]` and longest edge length of simplex `s`. Indices must be in range.
+pub fn orientation(model: &Model, s: usize) -> (f64, f64) {
+    let n = model.dim();
+    let ids = model.simplex(s);
+    let v0 = model.vertex(ids[0] as usize);
+    let mut e = [[0.0f64; 3]; 3];
+    for (k, &id) in ids[1..].iter().enumerate() {
+        let v = model.vertex(id as usize);
+        for c in 0..n {
+            e[k][c] = v[c] - v0[c];
+        }
+    }
+    let det = if n == 2 {
+        e[0][0] * e[1][1] - e[0][1] * e[1][0]
+    } else {
+        e[0][0] * (e[1][1] * e[2][2] - e[1][2] * e[2][1]) - e[0][1] * (e[1][0] * e[2][2] - e[1][2] * e[2][0])
+            + e[0][2] * (e[1][0] * e[2][1] - e[1][1] * e[2][0])
+    };
+    let mut longest = 0.0f64;
+    for a in 0..=n {
+        for b in (a + 1)..=n {
+            let (pa, pb) = (model.vertex(ids[a] as usize), model.vertex(ids[b] as usize));
+            let d2: f64 = (0..n).map(|c| (pa[c] - pb[c]).powi(2)).sum();
+            longest = longest.max(d2.sqrt());
+        }
+    }
+    (det, longest)
+}
+
+struct Collector {
+    out: Vec<Diagnostic>,
+    max: usize,
+}
+
+impl Collector {
+    fn push(&mut self, rule: Rule, location: Location, message: String) {
+        if self.out.len() < self.max {
+            self.out.push(Diagnostic::new(rule, location, message));
+        }
+    }
+    fn full(&self) -> bool {
+        self.out.len() >= self.max
+    }
+}
+
+/// Checks every structural requirement; returns errors and warnings, at most `max` of them.
+pub fn check(model: &Model, max: usize) -> Vec<Diagnostic> {
+    let mut c = Collector { out: Vec::new(), max };
+    check_arrays(model, &mut c);
+    if c.out.iter().any(|d| matches!(d.rule, Rule::Dimension | Rule::VertexArray | Rule::SimplexArray | Rule::IndexRange)) {
+        // Later checks index vertices through simplices; stop before they would misread.
+        return c.out;
+    }
+    check_simplices(model, &mut c);
+    check_values(model, &mut c);
+    check_extensions(model, &mut c);
+    if !c.full() {
+        check_stages(model, &mut c);
+    }
+    c.out
+}
+
+fn check_arrays(model: &Model, c: &mut Collector) {
+    let n = model.dim();
+    if !(2..=3).contains(&n) {
+        c.push(Rule::Dimension, Location::pointer("/dimension"), format!("dimension is {n}; expected 2 or 3"));
+        return;
+    }
+    if model.vertices.len() % n != 0 {
+        c.push(
+            Rule::VertexArray,
+            Location::pointer("/vertices"),
+            format!("{} numbers is not a multiple of dimension {n}", model.vertices.len()),
+        );
+    }
+    for (i, x) in model.vertices.iter().enumerate() {
+        if !x.is_finite() {
+            let loc = Location { vertex: Some(i / n), ..Location::pointer(format!("/vertices/{i}")) };
+            c.push(Rule::VertexArray, loc, format!("coordinate {x} is not finite"));
+        }
+    }
+    let m = n + 1;
+    if model.simplices.len() % m != 0 || model.simplices.is_empty() {
+        c.push(
+            Rule::SimplexArray,
+            Location::pointer("/simplices"),
+            format!("{} indices; expected a positive multiple of {m}", model.simplices.len()),
+        );
+        return;
+    }
+    let nv = model.num_vertices();
+    for (i, &id) in model.simplices.iter().enumerate() {
+        if id as usize >= nv {
+            let loc = Location { simplex: Some(i / m), ..Location::pointer(format!("/simplices/{i}")) };
+            c.push(Rule::IndexRange, loc, format!("vertex index {id} out of range (model has {nv} vertices)"));
+        }
+    }
+}
+
+fn simplex_location(s: usize, m: usize) -> Location {
+    Location { simplex: Some(s), ..Location::pointer(format!("/simplices/{}", s * m)) }
+}
+
+fn check_simplices(model: &Model, c: &mut Collector) {
+    let n = model.dim();
+    let m = n + 1;
+    let mut repeated = vec![false; model.num_simplices()];
+    for (s, ids) in model.simplex_iter().enumerate() {
+        let mut sorted = ids.to_vec();
+        sorted.sort_unstable();
+        if sorted.windows(2).any(|w| w[0] == w[1]) {
+            repeated[s] = true;
+            c.push(Rule::RepeatedIndex, simplex_location(s, m), format!("vertices {ids:?} repeat an index"));
+            continue;
+        }
+        let (det, longest) = orientation(model, s);
+        let tol = DEGENERACY_TOLERANCE * longest.powi(n as i32);
+        if det.abs() <= tol || !det.is_finite() {
+            c.push(
+                Rule::Degenerate,
+                simplex_location(s, m),
+                format!("det = {det:e}, longest edge {longest:e}: relative volume at most {DEGENERACY_TOLERANCE:e}"),
+            );
+        } else if det < 0.0 {
+            c.push(
+                Rule::Inverted,
+                simplex_location(s, m),
+                format!("det = {det:e} < 0; expected positive orientation (swap two vertices)"),
+            );
+        }
+    }
+    if c.full() {
+        return;
+    }
+    // Duplicate simplices and facet sharing: sort keys instead of hashing, which keeps memory flat
+    // and is faster on millions of simplices.
+    let mut keys: Vec<([u32; 4], u32)> = model
+        .simplex_iter()
+        .enumerate()
+        .filter(|(s, _)| !repeated[*s])
+        .map(|(s, ids)| {
+            let mut k = [u32::MAX; 4];
+            k[..m].copy_from_slice(ids);
+            k[..m].sort_unstable();
+            (k, s as u32)
+        })
+        .collect();
+    keys.sort_unstable();
+    for w in keys.windows(2) {
+        if w[0].0 == w[1].0 {
+            c.push(
+                Rule::DuplicateSimplex,
+                simplex_location(w[1].1 as usize, m),
+                format!("same vertex set as simplex {}", w[0].1),
+            );
+        }
+    }
+    drop(keys);
+    // Each facet with the side its simplex lies on: opposite vertex i gets sign (-1)^i times the
+    // parity of the permutation that sorts the remaining ids. Two positively oriented simplices that
+    // share a facet properly see it with opposite signs.
+    let mut facets: Vec<([u32; 3], bool, u32)> = Vec::with_capacity(model.num_simplices() * m);
+    for (s, ids) in model.simplex_iter().enumerate() {
+        if repeated[s] {
+            continue;
+        }
+        for skip in 0..m {
+            let mut k = [u32::MAX; 3];
+            let mut len = 0;
+            for (j, &id) in ids.iter().enumerate() {
+                if j != skip {
+                    k[len] = id;
+                    len += 1;
+                }
+            }
+            let mut odd = skip % 2 == 1;
+            // Insertion sort counting swaps gives the permutation parity.
+            for a in 1..len {
+                let mut b = a;
+                while b > 0 && k[b - 1] > k[b] {
+                    k.swap(b - 1, b);
+                    odd = !odd;
+                    b -= 1;
+                }
+            }
+            facets.push((k, odd, s as u32));
+        }
+    }
+    facets.sort_unstable();
+    let mut i = 0;
+    while i < facets.len() {
+        let mut j = i + 1;
+        while j < facets.len() && facets[j].0 == facets[i].0 {
+            j += 1;
+        }
+        let group = &facets[i..j];
+        let face: Vec<u32> = group[0].0.iter().copied().filter(|&x| x != u32::MAX).collect();
+        if group.len() > 2 {
+            let sims: Vec<u32> = group.iter().map(|g| g.2).collect();
+            let loc = Location { face: Some(face), ..simplex_location(group[2].2 as usize, m) };
+            c.push(Rule::FacetOvershared, loc, format!("facet shared by {} simplices {sims:?}; at most 2 allowed", group.len()));
+        } else if group.len() == 2 && group[0].1 == group[1].1 && group[0].2 != group[1].2 {
+            let loc = Location { face: Some(face), ..simplex_location(group[1].2 as usize, m) };
+            c.push(
+                Rule::Overlap,
+                loc,
+                format!("simplices {} and {} lie on the same side of their shared facet", group[0].2, group[1].2),
+            );
+        }
+        if c.full() {
+            return;
+        }
+        i = j;
+    }
+    let mut used = vec![false; model.num_vertices()];
+    for &id in &model.simplices {
+        used[id as usize] = true;
+    }
+    for (v, u) in used.iter().enumerate() {
+        if !u {
+            let loc = Location { vertex: Some(v), ..Location::pointer(format!("/vertices/{}", v * n)) };
+            c.push(Rule::UnusedVertex, loc, "vertex belongs to no simplex".into());
+        }
+    }
+}
+
+fn check_values(model: &Model, c: &mut Collector) {
+    if !model.level.is_finite() {
+        c.push(Rule::Level, Location::pointer("/level"), format!("level {} is not finite", model.level));
+    }
+    let nv = model.num_vertices();
+    if model.values.len() != nv {
+        c.push(
+            Rule::ValueArray,
+            Location::pointer("/values"),
+            format!("{} values for {nv} vertices; expected one per vertex", model.values.len()),
+        );
+    }
+    for (v, &x) in model.values.iter().enumerate() {
+        let loc = || Location { vertex: Some(v), ..Location::pointer(format!("/values/{v}")) };
+        if !x.is_finite() {
+            c.push(Rule::ValueArray, loc(), format!("value {x} is not finite"));
+        } else if x == 0.0 {
+            c.push(Rule::ValueZero, loc(), "value is zero; vertex values must be nonzero".into());
+        } else if x == model.level {
+            c.push(Rule::ValueAtLevel, loc(), format!("value equals the level {}", model.level));
+        }
+    }
+}
+
+fn check_extensions(model: &Model, c: &mut Collector) {
+    for (i, name) in model.extensions_required.iter().enumerate() {
+        if !model.extensions_used.contains(name) {
+            c.push(
+                Rule::ExtensionsListed,
+                Location::pointer(format!("/extensionsRequired/{i}")),
+                format!("required extension {name:?} is not in extensionsUsed"),
+            );
+        }
+    }
+    for name in model.extensions.keys() {
+        if !model.extensions_used.contains(name) {
+            c.push(
+                Rule::ExtensionsListed,
+                Location::pointer(format!("/extensions/{}", escape_pointer(name))),
+                format!("extension {name:?} has data but is not in extensionsUsed"),
+            );
+        }
+    }
+}
+
+/// Escapes a JSON-pointer reference token (RFC 6901 §4).
+pub fn escape_pointer(token: &str) -> String {
+    token.replace('~', "~0").replace('/', "~1")
+}
+
+/// Vertex → incident simplices, compressed rows.
+struct Incidence {
+    start: Vec<usize>,
+    simplices: Vec<u32>,
+}
+
+impl Incidence {
+    fn new(model: &Model) -> Incidence {
+        let nv = model.num_vertices();
+        let mut start = vec![0usize; nv + 1];
+        for &id in &model.simplices {
+            start[id as usize + 1] += 1;
+        }
+        for v in 0..nv {
+            start[v + 1] += start[v];
+        }
+        let mut fill = start.clone();
+        let mut simplices = vec![0u32; model.simplices.len()];
+        for (s, ids) in model.simplex_iter().enumerate() {
+            for &id in ids {
+                simplices[fill[id as usize]] = s as u32;
+                fill[id as usize] += 1;
+            }
+        }
+        Incidence { start, simplices }
+    }
+
+    fn is_face(&self, model: &Model, face: &[u32]) -> bool {
+        let v = face[0] as usize;
+        self.simplices[self.start[v]..self.start[v + 1]]
+            .iter()
+            .any(|&s| face.iter().all(|id| model.simplex(s as usize).contains(id)))
+    }
+}
+
+fn check_stages(model: &Model, c: &mut Collector) {
+    let n = model.dim();
+    let nv = model.num_vertices();
+    let incidence = if model.stages.iter().any(|s| !s.faces.is_empty()) { Some(Incidence::new(model)) } else { None };
+    for (k, stage) in model.stages.iter().enumerate() {
+        let base = format!("/stages/{k}");
+        let at = |suffix: String| Location { stage: Some(k), ..Location::pointer(format!("{base}{suffix}")) };
+        let d = stage.degree;
+        if d == 0 || d > crate::structure::MAX_DEGREE {
+            c.push(Rule::StageDegree, at("/degree".into()), format!("degree {d}; expected 1 to {MAX_DEGREE}"));
+            continue;
+        }
+        match stage.kind {
+            StageKind::Monotonic => {
+                if !stage.faces.is_empty() {
+                    c.push(Rule::KindMismatch, at("/faces".into()), "a monotonic stage has vertexMaps, not faces".into());
+                }
+                let mut seen = HashSet::new();
+                for (r, map) in stage.vertex_maps.iter().enumerate() {
+                    let loc = |suffix: &str| Location {
+                        vertex: Some(map.vertex as usize),
+                        ..at(format!("/vertexMaps/{r}{suffix}"))
+                    };
+                    if map.vertex as usize >= nv {
+                        c.push(Rule::VertexMapIndex, loc("/vertex"), format!("vertex {} out of range ({nv} vertices)", map.vertex));
+                    } else if !seen.insert(map.vertex) {
+                        c.push(Rule::VertexMapIndex, loc("/vertex"), format!("vertex {} has two maps in this stage", map.vertex));
+                    }
+                    if map.coefficients.len() != d as usize + 1 {
+                        c.push(
+                            Rule::CoefficientCount,
+                            loc("/coefficients"),
+                            format!("{} coefficients; degree {d} needs {}", map.coefficients.len(), d + 1),
+                        );
+                    }
+                    if let Some(j) = map.coefficients.iter().position(|x| !x.is_finite()) {
+                        c.push(Rule::NonFinite, loc(&format!("/coefficients/{j}")), "coefficient is not finite".into());
+                    }
+                }
+            }
+            StageKind::Bezier | StageKind::Rational => {
+                if !stage.vertex_maps.is_empty() {
+                    c.push(
+                        Rule::KindMismatch,
+                        at("/vertexMaps".into()),
+                        format!("a {} stage has faces, not vertexMaps", stage.kind.as_str()),
+                    );
+                }
+                let incidence = incidence.as_ref().expect("built when any stage has faces");
+                let mut seen: HashMap<&[u32], usize> = HashMap::new();
+                for (r, rec) in stage.faces.iter().enumerate() {
+                    let loc = |suffix: &str| Location { face: Some(rec.face.clone()), ..at(format!("/faces/{r}{suffix}")) };
+                    let kdim = rec.face.len();
+                    if kdim == 0 || kdim > n + 1 {
+                        c.push(Rule::NotAFace, loc("/face"), format!("{kdim} vertex ids; a face has 1 to {}", n + 1));
+                        continue;
+                    }
+                    if rec.face.windows(2).any(|w| w[0] >= w[1]) {
+                        c.push(Rule::FaceSorted, loc("/face"), format!("{:?} is not strictly increasing", rec.face));
+                        continue;
+                    }
+                    if rec.face.iter().any(|&v| v as usize >= nv) || !incidence.is_face(model, &rec.face) {
+                        c.push(Rule::NotAFace, loc("/face"), format!("{:?} is not a face of any simplex", rec.face));
+                        continue;
+                    }
+                    if let Some(first) = seen.insert(&rec.face, r) {
+                        c.push(Rule::DuplicateFace, loc("/face"), format!("face already recorded at /stages/{k}/faces/{first}"));
+                    }
+                    let owned = owned_count(kdim, d);
+                    if owned == 0 {
+                        c.push(
+                            Rule::PointCount,
+                            loc("/points"),
+                            format!("a face with {kdim} vertices owns no control point at degree {d} (needs degree ≥ {kdim})"),
+                        );
+                        continue;
+                    }
+                    if rec.points.len() != owned * kdim {
+                        c.push(
+                            Rule::PointCount,
+                            loc("/points"),
+                            format!(
+                                "{} coordinates; expected {} ({owned} point(s) × {kdim} coordinates)",
+                                rec.points.len(),
+                                owned * kdim
+                            ),
+                        );
+                    }
+                    let expect_w = if stage.kind == StageKind::Rational { owned } else { 0 };
+                    if rec.weights.len() != expect_w {
+                        c.push(Rule::WeightCount, loc("/weights"), format!("{} weights; expected {expect_w}", rec.weights.len()));
+                    }
+                    if let Some(j) = rec.points.iter().position(|x| !x.is_finite()) {
+                        c.push(Rule::NonFinite, loc(&format!("/points/{j}")), "coordinate is not finite".into());
+                    }
+                    if let Some(j) = rec.weights.iter().position(|x| !x.is_finite()) {
+                        c.push(Rule::NonFinite, loc(&format!("/weights/{j}")), "weight is not finite".into());
+                    }
+                    if c.full() {
+                        return;
+                    }
+                }
+            }
+        }
+    }
+}
