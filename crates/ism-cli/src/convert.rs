@@ -1,0 +1,50 @@
+//! `ism convert`: re-encode a model; the numbers are carried bit for bit.
+
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+use anyhow::Context;
+use ism_format::{io, Encoding};
+
+const AFTER_HELP: &str = "\
+The output encoding follows --to, else the output extension (.ism.json, .ism.msgpack, .ismb).
+The input encoding is detected from its content, whatever its name. The output is written to a
+temporary file and renamed, so a failure leaves no partial file.
+
+Examples:
+  ism convert sphere.ism.json sphere.ismb
+  ism convert sphere.ismb sphere.ism.json --pretty
+  ism convert in.dat out.dat --to msgpack
+
+Exit status: 0 on success, 2 when the input is unreadable or the output cannot be written.";
+
+/// Arguments of `ism convert`.
+#[derive(clap::Args)]
+#[command(after_help = AFTER_HELP)]
+pub struct Args {
+    /// Input model.
+    input: PathBuf,
+    /// Output file.
+    output: PathBuf,
+    /// Output encoding: json, msgpack or binary.
+    #[arg(long)]
+    to: Option<Encoding>,
+    /// Indent JSON output.
+    #[arg(long)]
+    pretty: bool,
+    /// Put JSON output inside the checksummed container.
+    #[arg(long)]
+    container: bool,
+}
+
+pub fn run(args: Args) -> anyhow::Result<ExitCode> {
+    let doc = io::read_path(&args.input).with_context(|| format!("cannot read {}", args.input.display()))?;
+    let encoding = args.to.or_else(|| Encoding::from_path(&args.output)).with_context(|| {
+        format!("cannot tell the encoding of {}: use --to json|msgpack|binary", args.output.display())
+    })?;
+    let options = io::WriteOptions { pretty: args.pretty, json_in_container: args.container };
+    io::write_path(&doc.model, &args.output, Some(encoding), options)
+        .with_context(|| format!("cannot write {}", args.output.display()))?;
+    eprintln!("{} ({}) -> {} ({})", args.input.display(), doc.encoding.name(), args.output.display(), encoding.name());
+    Ok(ExitCode::SUCCESS)
+}

@@ -1,0 +1,2 @@
+//! ISM sampler: exact surface, volume and near-surface point sets; point queries
+#![deny(missing_docs)]

@@ -1,0 +1,2 @@
+//! ISM validator: structure, invariance and certified positivity of every stage
+#![deny(missing_docs)]

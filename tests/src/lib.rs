@@ -1,0 +1,14 @@
+//! Shared helpers of the workspace-level tests: where the repository, the spec and the `ism` binary are.
+#![deny(missing_docs)]
+
+use std::path::PathBuf;
+
+/// The repository root.
+pub fn repo_root() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).parent().expect("tests/ sits in the repository").to_path_buf()
+}
+
+/// `spec/` in the repository.
+pub fn spec_dir() -> PathBuf {
+    repo_root().join("spec")
+}
