@@ -63,14 +63,23 @@ impl<C> Decode<C> for JsonValue {
 }
 bincode::impl_borrow_decode!(JsonValue);
 
+impl JsonValue {
+    /// Whether this is JSON `null` (how an absent `extras` reads).
+    pub fn is_null(&self) -> bool {
+        self.0.is_null()
+    }
+}
+
 /// A complete Iso-Simplicial Model (spec §2).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, JsonSchema, Encode, Decode)]
 #[serde(rename_all = "camelCase")]
 #[schemars(title = "ISM model", description = "An Iso-Simplicial Model, JSON encoding of spec/ism-format.md version 1.0")]
 pub struct Model {
     /// Format version `"major.minor"`; this specification is `"1.0"`.
+    #[schemars(regex(pattern = r"^[0-9]{1,5}\.[0-9]{1,5}$"))]
     pub version: String,
     /// Space dimension `n`: 2 (curves in the plane) or 3 (surfaces in space).
+    #[schemars(range(min = 2, max = 3))]
     pub dimension: u8,
     /// Descriptive metadata.
     #[serde(default)]
@@ -96,9 +105,9 @@ pub struct Model {
     /// Extension payloads keyed by extension name.
     #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
     pub extensions: BTreeMap<String, JsonValue>,
-    /// Application-specific data; readers carry it through untouched.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub extras: Option<JsonValue>,
+    /// Application-specific data; readers carry it through untouched. `null` means none.
+    #[serde(default, skip_serializing_if = "JsonValue::is_null")]
+    pub extras: JsonValue,
 }
 
 /// Descriptive metadata (spec §2.8). Every member is optional.
@@ -159,7 +168,8 @@ pub enum Direction {
 pub struct Stage {
     /// The map kind.
     pub kind: StageKind,
-    /// Polynomial degree `d ≥ 1`.
+    /// Polynomial degree `d ≥ 1` (at most 16, spec §5).
+    #[schemars(range(min = 1, max = 16))]
     pub degree: u32,
     /// Direction of the stored map.
     #[serde(default)]
@@ -173,9 +183,9 @@ pub struct Stage {
     /// Per-vertex 1-D functions of a monotonic stage.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub vertex_maps: Vec<VertexMap>,
-    /// Application-specific data.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub extras: Option<JsonValue>,
+    /// Application-specific data. `null` means none.
+    #[serde(default, skip_serializing_if = "JsonValue::is_null")]
+    pub extras: JsonValue,
 }
 
 /// The control points (and weights) that a face owns (spec §5.2).
@@ -218,7 +228,7 @@ impl Model {
             extensions_used: Vec::new(),
             extensions_required: Vec::new(),
             extensions: BTreeMap::new(),
-            extras: None,
+            extras: JsonValue::default(),
         }
     }
 
@@ -270,7 +280,7 @@ impl Stage {
             name: None,
             faces: Vec::new(),
             vertex_maps: Vec::new(),
-            extras: None,
+            extras: JsonValue::default(),
         }
     }
 
