@@ -1,0 +1,348 @@
+//! Stage generators, each one a construction that the theorems of `ism-math.md` §3 certify as a
+//! simplicial diffeomorphism for every parameter they accept.
+
+use ism_format::multi_index::{owned, owned_count};
+use ism_format::{FaceRecord, Model, Stage, StageKind, VertexMap};
+use rayon::prelude::*;
+
+use crate::faces::{faces_of_dimension, FaceRng};
+
+/// Largest accepted move amplitude. Solitary points stay strictly inside their open face for any
+/// amplitude below 1 (see [`solitary_point`]); 0.9 keeps every coordinate at least a tenth of the
+/// centre's, so generated models stay well conditioned for the numerical tools downstream.
+pub const MAX_AMPLITUDE: f64 = 0.9;
+
+fn clamp_amplitude(amplitude: f64) -> f64 {
+    if amplitude.is_finite() {
+        amplitude.clamp(0.0, MAX_AMPLITUDE)
+    } else {
+        0.0
+    }
+}
+
+/// The centre `(1/(k+1), …)` of a face with `k + 1` vertices, moved: coordinate `i` is
+/// `(1 + a·rᵢ)/(k+1)` with `rᵢ ∈ [−1, 1)` drawn from the face's stream, then renormalized to sum 1.
+/// With `a < 1` every coordinate stays positive, so the point lies in the open face.
+pub fn solitary_point(seed: u64, face: &[u32], amplitude: f64) -> Vec<f64> {
+    let a = clamp_amplitude(amplitude);
+    let mut rng = FaceRng::new(seed, face);
+    let raw: Vec<f64> = face.iter().map(|_| 1.0 + a * rng.symmetric()).collect();
+    let total: f64 = raw.iter().sum();
+    raw.iter().map(|x| x / total).collect()
+}
+
+/// A Bézier stage of degree `j + 1` whose only records are the solitary centre points of every
+/// `j`-face, each moved by [`solitary_point`]: the stratum `G_j` of the stratified scheme
+/// (ism-math §3.2), a diffeomorphism for every position in 2D and 3D.
+pub fn stratum_stage(model: &Model, j: usize, seed: u64, amplitude: f64) -> Stage {
+    let faces = faces_of_dimension(model, j);
+    let records: Vec<FaceRecord> = faces
+        .par_chunks_exact(j + 1)
+        .map(|face| FaceRecord {
+            face: face.to_vec(),
+            points: solitary_point(seed, face, amplitude),
+            weights: Vec::new(),
+        })
+        .collect();
+    let mut stage = Stage::identity(StageKind::Bezier, j as u32 + 1);
+    stage.name = Some(format!("stratum G{j}"));
+    stage.faces = records;
+    stage
+}
+
+/// The stratified scheme `G = G_1 ∘ G_2 ∘ … ∘ G_n` (ism-math §3.2) as `n` Bézier stages: one
+/// [`stratum_stage`] per face dimension `j = 1..n`, with a solitary point on EVERY `j`-face.
+///
+/// Returned in application order (`stages[0]` first), which for `G_1 ∘ … ∘ G_n` is
+/// `[G_n, G_{n−1}, …, G_1]`: degrees `n + 1, n, …, 2`. Strata use seeds `seed + j`, so the same
+/// face gets independent moves in different models only if their seeds differ.
+pub fn stratified_stages(model: &Model, seed: u64, amplitude: f64) -> Vec<Stage> {
+    let n = model.dim();
+    (1..=n)
+        .rev()
+        .map(|j| stratum_stage(model, j, seed.wrapping_add(j as u64), amplitude))
+        .collect()
+}
+
+/// A quadratic Bézier stage moving the middle control point of every edge along the edge:
+/// `(½ + a·r/2, ½ − a·r/2)` with `r ∈ [−1, 1)`. Adjusted and of degree 2, hence a diffeomorphism
+/// (ism-math §3.2, `000` Prop. 5.6).
+pub fn quadratic_edge_stage(model: &Model, seed: u64, amplitude: f64) -> Stage {
+    let mut stage = stratum_stage(model, 1, seed, amplitude);
+    stage.name = Some("quadratic edges".into());
+    stage
+}
+
+/// A cubic Bézier stage moving the centre point (index `111`) of every triangle of the complex
+/// (in 2D: of every top simplex, a solitary point per simplex, `000` Prop. 5.7; in 3D: the stratum
+/// `G_2`, `000` Prop. 5.9). A diffeomorphism in both cases.
+pub fn cubic_face_point_stage(model: &Model, seed: u64, amplitude: f64) -> Stage {
+    let mut stage = stratum_stage(model, 2, seed, amplitude);
+    stage.name = Some("cubic face points".into());
+    stage
+}
+
+/// A rational stage of degree `degree` with every control point fixed (`b_I = I/d`) and the weights
+/// `weight(face, J)` for the multi-index `J` owned by `face` (sorted global ids). Fixed points with
+/// positive weights make a diffeomorphism for every `n` (`000` Thm. 6.4). Faces whose weights are
+/// all 1 are left out (they equal the default). Non-positive or non-finite weights are replaced
+/// by 1, so the result is always a valid stage.
+pub fn rational_fixed_points_stage(
+    model: &Model,
+    degree: u32,
+    weight: impl Fn(&[u32], &[u32]) -> f64 + Sync,
+) -> Stage {
+    let n = model.dim();
+    let mut stage = Stage::identity(StageKind::Rational, degree);
+    stage.name = Some(format!("rational degree {degree}, fixed points"));
+    for k in 1..=n {
+        let m = k + 1;
+        if owned_count(m, degree) == 0 {
+            continue;
+        }
+        let indices = owned(m, degree);
+        let faces = faces_of_dimension(model, k);
+        let records: Vec<FaceRecord> = faces
+            .par_chunks_exact(m)
+            .filter_map(|face| {
+                let weights: Vec<f64> = indices
+                    .chunks_exact(m)
+                    .map(|j| {
+                        let q = weight(face, j);
+                        if q.is_finite() && q > 0.0 {
+                            q
+                        } else {
+                            1.0
+                        }
+                    })
+                    .collect();
+                if weights.iter().all(|&q| q == 1.0) {
+                    return None;
+                }
+                let points = indices
+                    .iter()
+                    .map(|&e| f64::from(e) / f64::from(degree))
+                    .collect();
+                Some(FaceRecord {
+                    face: face.to_vec(),
+                    points,
+                    weights,
+                })
+            })
+            .collect();
+        stage.faces.extend(records);
+    }
+    stage
+}
+
+/// Seeded weights for [`rational_fixed_points_stage`]: `exp(spread · r)`, `r ∈ [−1, 1)` drawn from
+/// the stream of the face and multi-index, so every weight lies in `[e^−spread, e^spread)`.
+pub fn seeded_weights(seed: u64, spread: f64) -> impl Fn(&[u32], &[u32]) -> f64 + Sync {
+    move |face, index| {
+        let key: Vec<u32> = face.iter().chain(index).copied().collect();
+        (spread * FaceRng::new(seed, &key).symmetric()).exp()
+    }
+}
+
+/// A monotonic stage of degree `degree` with a map on every used vertex: coefficients
+/// `a_0 = 0`, `a_j = a_{j−1} + (1 + a·r_j)/d` with `r_j ∈ [−1, 1)` and `a = min(amplitude, 0.9)`,
+/// strictly increasing, so each `g_v` is increasing and the stage a diffeomorphism (`000` §4).
+pub fn monotonic_stage(model: &Model, degree: u32, seed: u64, amplitude: f64) -> Stage {
+    let a = clamp_amplitude(amplitude);
+    let vertices = faces_of_dimension(model, 0);
+    let d = f64::from(degree.max(1));
+    let mut stage = Stage::identity(StageKind::Monotonic, degree);
+    stage.name = Some(format!("monotonic degree {degree}"));
+    stage.vertex_maps = vertices
+        .iter()
+        .map(|&v| {
+            let mut rng = FaceRng::new(seed, &[v]);
+            let mut acc = 0.0;
+            let mut coefficients = vec![0.0];
+            for _ in 0..degree {
+                acc += (1.0 + a * rng.symmetric()) / d;
+                coefficients.push(acc);
+            }
+            VertexMap {
+                vertex: v,
+                coefficients,
+            }
+        })
+        .collect();
+    stage
+}
+
+/// A quadratic stage that moves the level set toward the exact zero set of `g` along every edge the
+/// linear shape crosses: on an edge `[a, b]` with `f(a) − c`, `f(b) − c` of opposite signs, the linear
+/// crossing is at `t₀ = (c − f(a)) / (f(b) − f(a))`; bisection on `g` finds the exact crossing `t*`;
+/// the middle control point `β` (the coordinate of `b`) solves `X(t*) = t₀` for the edge's
+/// quadratic map `X(t) = 2t(1 − t)β + t²`, i.e. `β = (t₀ − t*²) / (2t*(1 − t*))`, clamped to
+/// `[0.05, 0.95]` so the stage stays adjusted (hence a diffeomorphism, degree 2). Then `F` vanishes
+/// exactly where `g` does on every crossed edge (unless clamped).
+pub fn level_crossing_stage(model: &Model, g: impl Fn(&[f64]) -> f64 + Sync) -> Stage {
+    /// Bisection steps: 60 halvings take the bracket below 1e-18 of the edge, under f64 resolution.
+    const BISECTION_STEPS: usize = 60;
+    /// Bounds keeping the middle point well inside the open edge (a 5 % margin): adjusted, and far
+    /// enough from the vertices that the Jacobian stays above a tenth of the identity's.
+    const BETA_RANGE: (f64, f64) = (0.05, 0.95);
+    let n = model.dim();
+    let c = model.level;
+    let edges = faces_of_dimension(model, 1);
+    let records: Vec<FaceRecord> = edges
+        .par_chunks_exact(2)
+        .filter_map(|e| {
+            let (fa, fb) = (
+                model.values[e[0] as usize] - c,
+                model.values[e[1] as usize] - c,
+            );
+            if (fa < 0.0) == (fb < 0.0) {
+                return None;
+            }
+            let (pa, pb) = (model.vertex(e[0] as usize), model.vertex(e[1] as usize));
+            let at = |t: f64| -> Vec<f64> { (0..n).map(|i| pa[i] + t * (pb[i] - pa[i])).collect() };
+            let (ga, gb) = (g(&at(0.0)) - c, g(&at(1.0)) - c);
+            if !(ga.is_finite() && gb.is_finite()) || (ga < 0.0) == (gb < 0.0) {
+                return None;
+            }
+            let (mut lo, mut hi) = (0.0f64, 1.0f64);
+            for _ in 0..BISECTION_STEPS {
+                let mid = 0.5 * (lo + hi);
+                if ((g(&at(mid)) - c) < 0.0) == (ga < 0.0) {
+                    lo = mid;
+                } else {
+                    hi = mid;
+                }
+            }
+            let t_star = (0.5 * (lo + hi)).clamp(1e-6, 1.0 - 1e-6);
+            let t0 = fa / (fa - fb);
+            let beta = ((t0 - t_star * t_star) / (2.0 * t_star * (1.0 - t_star)))
+                .clamp(BETA_RANGE.0, BETA_RANGE.1);
+            // Point coordinates w.r.t. (e0, e1): (1 − β, β).
+            Some(FaceRecord {
+                face: e.to_vec(),
+                points: vec![1.0 - beta, beta],
+                weights: Vec::new(),
+            })
+        })
+        .collect();
+    let mut stage = Stage::identity(StageKind::Bezier, 2);
+    stage.name = Some("level crossings".into());
+    stage.faces = records;
+    stage
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::{kuhn_grid_2d, kuhn_grid_3d, Aabb};
+    use ism_format::structure::check;
+
+    fn sphere(p: &[f64]) -> f64 {
+        p.iter().map(|x| x * x).sum::<f64>() - 0.4
+    }
+
+    #[test]
+    fn stratified_stages_cover_every_face_with_interior_points() {
+        let mut m = kuhn_grid_3d(2, 2, 2, Aabb::cube(-1.0, 1.0), sphere).unwrap();
+        m.stages = stratified_stages(&m, 3, 0.5);
+        assert!(check(&m, 100).is_empty(), "{:?}", check(&m, 100));
+        let degrees: Vec<u32> = m.stages.iter().map(|s| s.degree).collect();
+        assert_eq!(degrees, vec![4, 3, 2]);
+        for (stage, j) in m.stages.iter().zip([3usize, 2, 1]) {
+            assert_eq!(stage.faces.len(), faces_of_dimension(&m, j).len() / (j + 1));
+            for rec in &stage.faces {
+                assert_eq!(rec.points.len(), j + 1);
+                assert!(rec.points.iter().all(|&x| x > 0.0));
+                assert!((rec.points.iter().sum::<f64>() - 1.0).abs() < 1e-15);
+            }
+        }
+        // Parameters per tetrahedron neighbourhood: 1 per edge, 2 per triangle, 3 per tet (free).
+        let again = stratified_stages(&m, 3, 0.5);
+        assert_eq!(again, m.stages, "deterministic");
+        assert_ne!(stratified_stages(&m, 4, 0.5), m.stages, "seeded");
+    }
+
+    #[test]
+    fn generated_stages_pass_structural_checks() {
+        let base = kuhn_grid_2d(4, 4, Aabb::cube(-0.5, 0.5), |p| {
+            p[0] * p[0] + p[1] * p[1] - 0.28 * 0.28
+        })
+        .unwrap();
+        let stages = [
+            quadratic_edge_stage(&base, 1, 0.6),
+            cubic_face_point_stage(&base, 2, 0.6),
+            rational_fixed_points_stage(&base, 5, seeded_weights(3, 1.0)),
+            monotonic_stage(&base, 3, 4, 0.5),
+            level_crossing_stage(&base, |p| p[0] * p[0] + p[1] * p[1] - 0.28 * 0.28),
+        ];
+        for stage in stages {
+            let mut m = base.clone();
+            m.stages.push(stage);
+            assert!(check(&m, 100).is_empty(), "{:?}", check(&m, 100));
+        }
+    }
+
+    #[test]
+    fn rational_weights_are_positive_and_points_fixed() {
+        let m = kuhn_grid_2d(2, 2, Aabb::cube(0.0, 1.0), |p| p[0] - 0.4).unwrap();
+        let s = rational_fixed_points_stage(&m, 5, seeded_weights(9, 1.0));
+        let edges = faces_of_dimension(&m, 1).len() / 2;
+        assert_eq!(s.faces.len(), edges + m.num_simplices());
+        for rec in &s.faces {
+            let k1 = rec.face.len();
+            assert_eq!(rec.weights.len(), owned_count(k1, 5));
+            assert!(rec
+                .weights
+                .iter()
+                .all(|&q| q > 0.0 && (q - 1.0).abs() > 0.0));
+            let expect: Vec<f64> = owned(k1, 5).iter().map(|&e| f64::from(e) / 5.0).collect();
+            assert_eq!(rec.points, expect);
+        }
+        let unit = rational_fixed_points_stage(&m, 5, |_, _| 1.0);
+        assert!(unit.faces.is_empty());
+    }
+
+    #[test]
+    fn monotonic_coefficients_strictly_increase_from_zero() {
+        let m = kuhn_grid_3d(1, 1, 1, Aabb::cube(0.0, 1.0), |p| p[1] - 0.5).unwrap();
+        let s = monotonic_stage(&m, 4, 11, 5.0);
+        assert_eq!(s.vertex_maps.len(), 8);
+        for map in &s.vertex_maps {
+            assert_eq!(map.coefficients[0], 0.0);
+            assert!(map.coefficients.windows(2).all(|w| w[1] > w[0]));
+        }
+    }
+
+    #[test]
+    fn level_crossing_puts_the_zero_on_the_exact_crossing() {
+        let g = |p: &[f64]| p[0] * p[0] + p[1] * p[1] - 0.28 * 0.28;
+        let m = kuhn_grid_2d(4, 4, Aabb::cube(-0.5, 0.5), g).unwrap();
+        let s = level_crossing_stage(&m, g);
+        assert!(!s.faces.is_empty());
+        for rec in &s.faces {
+            let (a, b) = (rec.face[0] as usize, rec.face[1] as usize);
+            let beta = rec.points[1];
+            // Solve X(t) = t0 on the edge independently (bisection on the monotone quadratic map,
+            // written in Bernstein form) and check g vanishes there.
+            let (fa, fb) = (m.values[a], m.values[b]);
+            let t0 = fa / (fa - fb);
+            let x = |t: f64| 2.0 * t * (1.0 - t) * beta + t * t;
+            let (mut lo, mut hi) = (0.0, 1.0);
+            for _ in 0..80 {
+                let mid = 0.5 * (lo + hi);
+                if x(mid) < t0 {
+                    lo = mid;
+                } else {
+                    hi = mid;
+                }
+            }
+            let t = 0.5 * (lo + hi);
+            let p: Vec<f64> = (0..2)
+                .map(|i| m.vertex(a)[i] + t * (m.vertex(b)[i] - m.vertex(a)[i]))
+                .collect();
+            if beta > 0.05 && beta < 0.95 {
+                assert!(g(&p).abs() < 1e-12, "g = {} on edge {:?}", g(&p), rec.face);
+            }
+        }
+    }
+}
