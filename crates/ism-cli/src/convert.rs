@@ -38,13 +38,29 @@ pub struct Args {
 }
 
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
-    let doc = io::read_path(&args.input).with_context(|| format!("cannot read {}", args.input.display()))?;
-    let encoding = args.to.or_else(|| Encoding::from_path(&args.output)).with_context(|| {
-        format!("cannot tell the encoding of {}: use --to json|msgpack|binary", args.output.display())
-    })?;
-    let options = io::WriteOptions { pretty: args.pretty, json_in_container: args.container };
+    let doc = io::read_path(&args.input)
+        .with_context(|| format!("cannot read {}", args.input.display()))?;
+    let encoding = args
+        .to
+        .or_else(|| Encoding::from_path(&args.output))
+        .with_context(|| {
+            format!(
+                "cannot tell the encoding of {}: use --to json|msgpack|binary",
+                args.output.display()
+            )
+        })?;
+    let options = io::WriteOptions {
+        pretty: args.pretty,
+        json_in_container: args.container,
+    };
     io::write_path(&doc.model, &args.output, Some(encoding), options)
         .with_context(|| format!("cannot write {}", args.output.display()))?;
-    eprintln!("{} ({}) -> {} ({})", args.input.display(), doc.encoding.name(), args.output.display(), encoding.name());
+    eprintln!(
+        "{} ({}) -> {} ({})",
+        args.input.display(),
+        doc.encoding.name(),
+        args.output.display(),
+        encoding.name()
+    );
     Ok(ExitCode::SUCCESS)
 }

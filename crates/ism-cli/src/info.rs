@@ -88,7 +88,10 @@ fn for_each_subset(ids: &[u32], k: usize, f: &mut impl FnMut(&[u32])) {
     let m = ids.len();
     for mask in 0u32..(1 << m) {
         if mask.count_ones() as usize == k {
-            let sub: Vec<u32> = (0..m).filter(|i| mask & (1 << i) != 0).map(|i| ids[i]).collect();
+            let sub: Vec<u32> = (0..m)
+                .filter(|i| mask & (1 << i) != 0)
+                .map(|i| ids[i])
+                .collect();
             f(&sub);
         }
     }
@@ -127,7 +130,10 @@ fn summarize(path: &std::path::Path, doc: &Document) -> Summary {
                 .iter()
                 .map(|f| f.points.len() - f.points.len() / f.face.len().max(1) + f.weights.len())
                 .sum::<usize>()
-                + s.vertex_maps.iter().map(|m| m.coefficients.len().saturating_sub(1)).sum::<usize>(),
+                + s.vertex_maps
+                    .iter()
+                    .map(|m| m.coefficients.len().saturating_sub(1))
+                    .sum::<usize>(),
         })
         .collect();
     Summary {
@@ -135,7 +141,11 @@ fn summarize(path: &std::path::Path, doc: &Document) -> Summary {
         encoding: doc.encoding.name(),
         version: model.version.clone(),
         container: doc.container,
-        checksum: if doc.container.is_some() { "verified (CRC-32)" } else { "none (plain JSON)" },
+        checksum: if doc.container.is_some() {
+            "verified (CRC-32)"
+        } else {
+            "none (plain JSON)"
+        },
         bytes: doc.byte_len,
         name: model.metadata.name.clone(),
         generator: model.metadata.generator.clone(),
@@ -152,14 +162,18 @@ fn summarize(path: &std::path::Path, doc: &Document) -> Summary {
 }
 
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
-    let doc = io::read_path(&args.file).with_context(|| format!("cannot read {}", args.file.display()))?;
+    let doc = io::read_path(&args.file)
+        .with_context(|| format!("cannot read {}", args.file.display()))?;
     let s = summarize(&args.file, &doc);
     if args.json {
         println!("{}", serde_json::to_string_pretty(&s)?);
         return Ok(ExitCode::SUCCESS);
     }
     println!("{}", s.file);
-    println!("  format      ISM {} ({}, {} bytes, checksum {})", s.version, s.encoding, s.bytes, s.checksum);
+    println!(
+        "  format      ISM {} ({}, {} bytes, checksum {})",
+        s.version, s.encoding, s.bytes, s.checksum
+    );
     if let Some(name) = &s.name {
         println!("  name        {name}");
     }
@@ -167,11 +181,27 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         println!("  generator   {g}");
     }
     let names = ["vertices", "edges", "triangles", "tetrahedra"];
-    let faces: Vec<String> = s.faces_by_dimension.iter().zip(names).map(|(c, n)| format!("{c} {n}")).collect();
+    let faces: Vec<String> = s
+        .faces_by_dimension
+        .iter()
+        .zip(names)
+        .map(|(c, n)| format!("{c} {n}"))
+        .collect();
     println!("  dimension   {}", s.dimension);
-    println!("  complex     {} top simplices; faces: {}", s.simplices, faces.join(", "));
-    println!("  values      level {}, {} of {} vertices inside (f < level)", s.level, s.inside_vertices, s.vertices);
-    let bbox: Vec<String> = s.bounding_box.iter().map(|b| format!("[{}, {}]", b[0], b[1])).collect();
+    println!(
+        "  complex     {} top simplices; faces: {}",
+        s.simplices,
+        faces.join(", ")
+    );
+    println!(
+        "  values      level {}, {} of {} vertices inside (f < level)",
+        s.level, s.inside_vertices, s.vertices
+    );
+    let bbox: Vec<String> = s
+        .bounding_box
+        .iter()
+        .map(|b| format!("[{}, {}]", b[0], b[1]))
+        .collect();
     println!("  bbox        {}", bbox.join(" × "));
     if s.stages.is_empty() {
         println!("  stages      none (linear isocomplex)");

@@ -13,7 +13,9 @@ pub struct ModelBuilder {
 impl ModelBuilder {
     /// Starts a model of dimension `n` (2 or 3).
     pub fn new(dimension: u8) -> ModelBuilder {
-        ModelBuilder { model: Model::new(dimension) }
+        ModelBuilder {
+            model: Model::new(dimension),
+        }
     }
 
     /// Sets the name in the metadata.
@@ -64,10 +66,11 @@ impl ModelBuilder {
     /// # Errors
     /// [`Error::Structure`] listing every structural error.
     pub fn build(self) -> Result<Model> {
-        let errors: Vec<_> = crate::structure::check(&self.model, crate::structure::DEFAULT_MAX_DIAGNOSTICS)
-            .into_iter()
-            .filter(|d| d.severity == Severity::Error)
-            .collect();
+        let errors: Vec<_> =
+            crate::structure::check(&self.model, crate::structure::DEFAULT_MAX_DIAGNOSTICS)
+                .into_iter()
+                .filter(|d| d.severity == Severity::Error)
+                .collect();
         if errors.is_empty() {
             Ok(self.model)
         } else {
@@ -90,17 +93,23 @@ pub struct StageBuilder {
 impl StageBuilder {
     /// A Bézier stage of degree `d` (all points fixed until set).
     pub fn bezier(degree: u32) -> StageBuilder {
-        StageBuilder { stage: Stage::identity(StageKind::Bezier, degree) }
+        StageBuilder {
+            stage: Stage::identity(StageKind::Bezier, degree),
+        }
     }
 
     /// A rational stage of degree `d` (points fixed, weights 1 until set).
     pub fn rational(degree: u32) -> StageBuilder {
-        StageBuilder { stage: Stage::identity(StageKind::Rational, degree) }
+        StageBuilder {
+            stage: Stage::identity(StageKind::Rational, degree),
+        }
     }
 
     /// A monotonic stage of degree `d` (`g_v(t) = t` until set).
     pub fn monotonic(degree: u32) -> StageBuilder {
-        StageBuilder { stage: Stage::identity(StageKind::Monotonic, degree) }
+        StageBuilder {
+            stage: Stage::identity(StageKind::Monotonic, degree),
+        }
     }
 
     /// Stores the stage inverted (parametric direction).
@@ -129,15 +138,25 @@ impl StageBuilder {
             // Reorder each point's coordinates; the canonical order of owned indices is defined on
             // the sorted face, so a caller with an unsorted face must already list points in the
             // order of the sorted face's multi-indices.
-            points.chunks(m).flat_map(|p| order.iter().map(move |&i| p[i])).collect()
+            points
+                .chunks(m)
+                .flat_map(|p| order.iter().map(move |&i| p[i]))
+                .collect()
         };
-        self.stage.faces.push(FaceRecord { face: sorted_face, points, weights: weights.to_vec() });
+        self.stage.faces.push(FaceRecord {
+            face: sorted_face,
+            points,
+            weights: weights.to_vec(),
+        });
         self
     }
 
     /// Records a monotonic vertex map.
     pub fn vertex_map(mut self, vertex: u32, coefficients: &[f64]) -> Self {
-        self.stage.vertex_maps.push(VertexMap { vertex, coefficients: coefficients.to_vec() });
+        self.stage.vertex_maps.push(VertexMap {
+            vertex,
+            coefficients: coefficients.to_vec(),
+        });
         self
     }
 

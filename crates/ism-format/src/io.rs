@@ -83,7 +83,9 @@ impl std::str::FromStr for Encoding {
             "json" => Ok(Encoding::Json),
             "msgpack" | "messagepack" => Ok(Encoding::MessagePack),
             "binary" | "bincode" | "ismb" => Ok(Encoding::Binary),
-            other => Err(format!("unknown encoding {other:?}; expected json, msgpack or binary")),
+            other => Err(format!(
+                "unknown encoding {other:?}; expected json, msgpack or binary"
+            )),
         }
     }
 }
@@ -98,7 +100,9 @@ pub struct Limits {
 impl Default for Limits {
     fn default() -> Self {
         // 8 GiB: several times the largest models in use, well below what one machine can map.
-        Limits { max_payload_bytes: 8 << 30 }
+        Limits {
+            max_payload_bytes: 8 << 30,
+        }
     }
 }
 
@@ -116,7 +120,11 @@ pub struct ReadOptions {
 
 impl Default for ReadOptions {
     fn default() -> Self {
-        ReadOptions { limits: Limits::default(), check_structure: true, supported_extensions: &[] }
+        ReadOptions {
+            limits: Limits::default(),
+            check_structure: true,
+            supported_extensions: &[],
+        }
     }
 }
 
@@ -185,7 +193,12 @@ pub fn read_with<R: Read>(reader: R, options: &ReadOptions) -> Result<Document> 
     let mut bytes = Vec::new();
     // `take` bounds the read even for an endless stream; one extra byte detects "too long".
     reader
-        .take(options.limits.max_payload_bytes.saturating_add(HEADER_LEN as u64 + 1))
+        .take(
+            options
+                .limits
+                .max_payload_bytes
+                .saturating_add(HEADER_LEN as u64 + 1),
+        )
         .read_to_end(&mut bytes)
         .map_err(|e| Error::io(None, e))?;
     from_slice_with(&bytes, options)
@@ -199,10 +212,11 @@ pub fn from_slice_with(bytes: &[u8], options: &ReadOptions) -> Result<Document> 
     let doc = decode(bytes, options)?;
     check_extensions(&doc.model, options)?;
     if options.check_structure {
-        let errors: Vec<_> = crate::structure::check(&doc.model, crate::structure::DEFAULT_MAX_DIAGNOSTICS)
-            .into_iter()
-            .filter(|d| d.severity == Severity::Error)
-            .collect();
+        let errors: Vec<_> =
+            crate::structure::check(&doc.model, crate::structure::DEFAULT_MAX_DIAGNOSTICS)
+                .into_iter()
+                .filter(|d| d.severity == Severity::Error)
+                .collect();
         if !errors.is_empty() {
             return Err(Error::Structure(errors));
         }
@@ -233,7 +247,10 @@ pub fn parse_header(bytes: &[u8]) -> Result<(Encoding, ContainerInfo)> {
         return Err(Error::format(
             Rule::Truncated,
             Location::offset(bytes.len() as u64),
-            format!("file ends after {} bytes, inside the {HEADER_LEN}-byte container header", bytes.len()),
+            format!(
+                "file ends after {} bytes, inside the {HEADER_LEN}-byte container header",
+                bytes.len()
+            ),
         ));
     }
     let u16_at = |o: usize| u16::from_le_bytes([bytes[o], bytes[o + 1]]);
@@ -252,21 +269,39 @@ pub fn parse_header(bytes: &[u8]) -> Result<(Encoding, ContainerInfo)> {
         return Err(Error::format(
             Rule::UnsupportedVersion,
             Location::offset(8),
-            format!("format version {major}.{minor}; this reader implements major version {}", FORMAT_VERSION.major),
+            format!(
+                "format version {major}.{minor}; this reader implements major version {}",
+                FORMAT_VERSION.major
+            ),
         ));
     }
     let encoding = Encoding::from_tag(bytes[12]).ok_or_else(|| {
         Error::format(
             Rule::UnknownEncoding,
             Location::offset(12),
-            format!("encoding tag {}; expected 1 (JSON), 2 (MessagePack) or 3 (binary)", bytes[12]),
+            format!(
+                "encoding tag {}; expected 1 (JSON), 2 (MessagePack) or 3 (binary)",
+                bytes[12]
+            ),
         )
     })?;
     if bytes[13] != 0 || u16_at(14) != 0 {
-        return Err(Error::format(Rule::Malformed, Location::offset(13), "reserved header bytes 13–15 must be zero"));
+        return Err(Error::format(
+            Rule::Malformed,
+            Location::offset(13),
+            "reserved header bytes 13–15 must be zero",
+        ));
     }
     let payload_len = u64::from_le_bytes(bytes[16..24].try_into().expect("8 bytes"));
-    Ok((encoding, ContainerInfo { major, minor, payload_len, crc32: u32_at(24) }))
+    Ok((
+        encoding,
+        ContainerInfo {
+            major,
+            minor,
+            payload_len,
+            crc32: u32_at(24),
+        },
+    ))
 }
 
 fn decode(bytes: &[u8], options: &ReadOptions) -> Result<Document> {
@@ -276,7 +311,10 @@ fn decode(bytes: &[u8], options: &ReadOptions) -> Result<Document> {
             return Err(Error::format(
                 Rule::LimitExceeded,
                 Location::offset(16),
-                format!("declared payload of {} bytes exceeds the limit of {}", info.payload_len, options.limits.max_payload_bytes),
+                format!(
+                    "declared payload of {} bytes exceeds the limit of {}",
+                    info.payload_len, options.limits.max_payload_bytes
+                ),
             ));
         }
         let available = (bytes.len() - HEADER_LEN) as u64;
@@ -284,7 +322,10 @@ fn decode(bytes: &[u8], options: &ReadOptions) -> Result<Document> {
             return Err(Error::format(
                 Rule::Truncated,
                 Location::offset(bytes.len() as u64),
-                format!("payload declares {} bytes; file holds only {available} after the header", info.payload_len),
+                format!(
+                    "payload declares {} bytes; file holds only {available} after the header",
+                    info.payload_len
+                ),
             ));
         }
         let end = HEADER_LEN + info.payload_len as usize;
@@ -301,7 +342,10 @@ fn decode(bytes: &[u8], options: &ReadOptions) -> Result<Document> {
             return Err(Error::format(
                 Rule::ChecksumMismatch,
                 Location::offset(24),
-                format!("payload CRC-32 is {crc:08x}; header stores {:08x} (corrupt payload)", info.crc32),
+                format!(
+                    "payload CRC-32 is {crc:08x}; header stores {:08x} (corrupt payload)",
+                    info.crc32
+                ),
             ));
         }
         let reader_minor_is_older = info.minor > FORMAT_VERSION.minor;
@@ -315,17 +359,30 @@ fn decode(bytes: &[u8], options: &ReadOptions) -> Result<Document> {
             return Err(Error::format(
                 Rule::VersionMismatch,
                 Location::pointer("/version"),
-                format!("payload says version {version}; container header says {}.{}", info.major, info.minor),
+                format!(
+                    "payload says version {version}; container header says {}.{}",
+                    info.major, info.minor
+                ),
             ));
         }
-        return Ok(Document { model, encoding, container: Some(info), byte_len: bytes.len() as u64 });
+        return Ok(Document {
+            model,
+            encoding,
+            container: Some(info),
+            byte_len: bytes.len() as u64,
+        });
     }
     let text_start = bytes.strip_prefix(b"\xEF\xBB\xBF").unwrap_or(bytes);
     match text_start.iter().find(|b| !b.is_ascii_whitespace()) {
         Some(b'{') => {
             let model = decode_json(bytes, 0)?;
             check_version(&model)?;
-            Ok(Document { model, encoding: Encoding::Json, container: None, byte_len: bytes.len() as u64 })
+            Ok(Document {
+                model,
+                encoding: Encoding::Json,
+                container: None,
+                byte_len: bytes.len() as u64,
+            })
         }
         _ => Err(Error::format(
             Rule::BadMagic,
@@ -337,13 +394,20 @@ fn decode(bytes: &[u8], options: &ReadOptions) -> Result<Document> {
 
 fn check_version(model: &Model) -> Result<Version> {
     let version = model.parsed_version().ok_or_else(|| {
-        Error::format(Rule::Malformed, Location::pointer("/version"), format!("version {:?} is not \"major.minor\"", model.version))
+        Error::format(
+            Rule::Malformed,
+            Location::pointer("/version"),
+            format!("version {:?} is not \"major.minor\"", model.version),
+        )
     })?;
     if version.major != FORMAT_VERSION.major {
         return Err(Error::format(
             Rule::UnsupportedVersion,
             Location::pointer("/version"),
-            format!("format version {version}; this reader implements major version {}", FORMAT_VERSION.major),
+            format!(
+                "format version {version}; this reader implements major version {}",
+                FORMAT_VERSION.major
+            ),
         ));
     }
     Ok(version)
@@ -357,7 +421,10 @@ fn probe_version_json(bytes: &[u8]) -> Option<Result<()>> {
         version: String,
     }
     let probe: Probe = serde_json::from_slice(bytes).ok()?;
-    let model_version = Model { version: probe.version, ..Model::new(0) };
+    let model_version = Model {
+        version: probe.version,
+        ..Model::new(0)
+    };
     Some(check_version(&model_version).map(|_| ()))
 }
 
@@ -374,7 +441,11 @@ fn decode_json(bytes: &[u8], base: u64) -> Result<Model> {
             let offset = line_column_offset(bytes, inner.line(), inner.column()).map(|o| o + base);
             Err(Error::format(
                 Rule::Malformed,
-                Location { pointer: Some(pointer), offset, ..Location::default() },
+                Location {
+                    pointer: Some(pointer),
+                    offset,
+                    ..Location::default()
+                },
                 format!("JSON: {inner}"),
             ))
         }
@@ -402,7 +473,11 @@ fn decode_msgpack(bytes: &[u8], base: u64) -> Result<Model> {
             let pointer = path_to_pointer(err.path());
             Err(Error::format(
                 Rule::Malformed,
-                Location { pointer: Some(pointer), offset: Some(base + cursor.position()), ..Location::default() },
+                Location {
+                    pointer: Some(pointer),
+                    offset: Some(base + cursor.position()),
+                    ..Location::default()
+                },
                 format!("MessagePack: {}", err.into_inner()),
             ))
         }
@@ -415,8 +490,12 @@ fn path_to_pointer(path: &serde_path_to_error::Path) -> String {
     for seg in path.iter() {
         match seg {
             Segment::Seq { index } => out.push_str(&format!("/{index}")),
-            Segment::Map { key } => out.push_str(&format!("/{}", crate::structure::escape_pointer(key))),
-            Segment::Enum { variant } => out.push_str(&format!("/{}", crate::structure::escape_pointer(variant))),
+            Segment::Map { key } => {
+                out.push_str(&format!("/{}", crate::structure::escape_pointer(key)))
+            }
+            Segment::Enum { variant } => {
+                out.push_str(&format!("/{}", crate::structure::escape_pointer(variant)))
+            }
             Segment::Unknown => out.push_str("/?"),
         }
     }
@@ -436,8 +515,11 @@ fn line_column_offset(bytes: &[u8], line: usize, column: usize) -> Option<u64> {
 
 /// The bincode configuration of the binary encoding (spec §7.4): little-endian, fixed-width
 /// integers, lengths as u64.
-pub fn binary_config() -> bincode::config::Configuration<bincode::config::LittleEndian, bincode::config::Fixint> {
-    bincode::config::standard().with_little_endian().with_fixed_int_encoding()
+pub fn binary_config(
+) -> bincode::config::Configuration<bincode::config::LittleEndian, bincode::config::Fixint> {
+    bincode::config::standard()
+        .with_little_endian()
+        .with_fixed_int_encoding()
 }
 
 fn decode_binary(bytes: &[u8], base: u64, allow_trailing: bool) -> Result<Model> {
@@ -468,12 +550,25 @@ fn decode_binary(bytes: &[u8], base: u64, allow_trailing: bool) -> Result<Model>
             Ok(model)
         }
         Err(e) => {
-            let rule = if matches!(e, bincode::error::DecodeError::LimitExceeded) { Rule::LimitExceeded } else { Rule::Malformed };
+            let rule = if matches!(e, bincode::error::DecodeError::LimitExceeded) {
+                Rule::LimitExceeded
+            } else {
+                Rule::Malformed
+            };
             let at = match &e {
-                bincode::error::DecodeError::UnexpectedEnd { .. } => Some(base + bytes.len() as u64),
+                bincode::error::DecodeError::UnexpectedEnd { .. } => {
+                    Some(base + bytes.len() as u64)
+                }
                 _ => None,
             };
-            Err(Error::format(rule, Location { offset: at, ..Location::default() }, format!("binary: {e}")))
+            Err(Error::format(
+                rule,
+                Location {
+                    offset: at,
+                    ..Location::default()
+                },
+                format!("binary: {e}"),
+            ))
         }
     }
 }
@@ -493,18 +588,60 @@ pub struct WriteOptions {
 /// # Errors
 /// Only if serialization itself fails (e.g. non-finite numbers in JSON).
 pub fn encode_payload(model: &Model, encoding: Encoding, pretty: bool) -> Result<Vec<u8>> {
-    let fail = |what: &str, e: String| Error::format(Rule::Malformed, Location::default(), format!("{what}: {e}"));
+    let fail = |what: &str, e: String| {
+        Error::format(Rule::Malformed, Location::default(), format!("{what}: {e}"))
+    };
     match encoding {
         Encoding::Json => {
+            if let Some(pointer) = first_non_finite(model) {
+                return Err(Error::format(
+                    Rule::NonFinite,
+                    Location::pointer(pointer),
+                    "JSON cannot represent NaN or infinity; use the binary or MessagePack encoding",
+                ));
+            }
             if pretty {
                 serde_json::to_vec_pretty(model).map_err(|e| fail("JSON", e.to_string()))
             } else {
                 serde_json::to_vec(model).map_err(|e| fail("JSON", e.to_string()))
             }
         }
-        Encoding::MessagePack => rmp_serde::to_vec_named(model).map_err(|e| fail("MessagePack", e.to_string())),
-        Encoding::Binary => bincode::encode_to_vec(model, binary_config()).map_err(|e| fail("binary", e.to_string())),
+        Encoding::MessagePack => {
+            rmp_serde::to_vec_named(model).map_err(|e| fail("MessagePack", e.to_string()))
+        }
+        Encoding::Binary => bincode::encode_to_vec(model, binary_config())
+            .map_err(|e| fail("binary", e.to_string())),
     }
+}
+
+/// JSON pointer of the first NaN or infinity among the model's numbers (JSON would write `null`).
+fn first_non_finite(model: &Model) -> Option<String> {
+    let find = |xs: &[f64]| xs.iter().position(|x| !x.is_finite());
+    if let Some(i) = find(&model.vertices) {
+        return Some(format!("/vertices/{i}"));
+    }
+    if let Some(i) = find(&model.values) {
+        return Some(format!("/values/{i}"));
+    }
+    if !model.level.is_finite() {
+        return Some("/level".into());
+    }
+    for (k, stage) in model.stages.iter().enumerate() {
+        for (r, rec) in stage.faces.iter().enumerate() {
+            if let Some(i) = find(&rec.points) {
+                return Some(format!("/stages/{k}/faces/{r}/points/{i}"));
+            }
+            if let Some(i) = find(&rec.weights) {
+                return Some(format!("/stages/{k}/faces/{r}/weights/{i}"));
+            }
+        }
+        for (r, map) in stage.vertex_maps.iter().enumerate() {
+            if let Some(i) = find(&map.coefficients) {
+                return Some(format!("/stages/{k}/vertexMaps/{r}/coefficients/{i}"));
+            }
+        }
+    }
+    None
 }
 
 /// The container header for a payload.
@@ -531,7 +668,11 @@ pub fn to_vec(model: &Model, encoding: Encoding, options: WriteOptions) -> Resul
         return Ok(payload);
     }
     let version = model.parsed_version().ok_or_else(|| {
-        Error::format(Rule::Malformed, Location::pointer("/version"), format!("version {:?} is not \"major.minor\"", model.version))
+        Error::format(
+            Rule::Malformed,
+            Location::pointer("/version"),
+            format!("version {:?} is not \"major.minor\"", model.version),
+        )
     })?;
     let mut out = Vec::with_capacity(HEADER_LEN + payload.len());
     out.extend_from_slice(&header(encoding, version, &payload));
@@ -543,7 +684,12 @@ pub fn to_vec(model: &Model, encoding: Encoding, options: WriteOptions) -> Resul
 ///
 /// # Errors
 /// As [`to_vec`], plus [`Error::Io`].
-pub fn write<W: Write>(model: &Model, encoding: Encoding, options: WriteOptions, mut writer: W) -> Result<()> {
+pub fn write<W: Write>(
+    model: &Model,
+    encoding: Encoding,
+    options: WriteOptions,
+    mut writer: W,
+) -> Result<()> {
     let bytes = to_vec(model, encoding, options)?;
     writer.write_all(&bytes).map_err(|e| Error::io(None, e))?;
     writer.flush().map_err(|e| Error::io(None, e))
@@ -554,9 +700,16 @@ pub fn write<W: Write>(model: &Model, encoding: Encoding, options: WriteOptions,
 ///
 /// # Errors
 /// As [`to_vec`], plus [`Error::Io`] naming the path.
-pub fn write_path(model: &Model, path: impl AsRef<Path>, encoding: Option<Encoding>, options: WriteOptions) -> Result<()> {
+pub fn write_path(
+    model: &Model,
+    path: impl AsRef<Path>,
+    encoding: Option<Encoding>,
+    options: WriteOptions,
+) -> Result<()> {
     let path = path.as_ref();
-    let encoding = encoding.or_else(|| Encoding::from_path(path)).unwrap_or(Encoding::Binary);
+    let encoding = encoding
+        .or_else(|| Encoding::from_path(path))
+        .unwrap_or(Encoding::Binary);
     let bytes = to_vec(model, encoding, options)?;
     write_atomic(path, |w| w.write_all(&bytes)).map_err(|e| Error::io(Some(path.to_path_buf()), e))
 }
@@ -566,12 +719,18 @@ pub fn write_path(model: &Model, path: impl AsRef<Path>, encoding: Option<Encodi
 ///
 /// # Errors
 /// Whatever `fill`, the temporary file or the rename report.
-pub fn write_atomic(path: &Path, fill: impl FnOnce(&mut std::io::BufWriter<&std::fs::File>) -> std::io::Result<()>) -> std::io::Result<()> {
+pub fn write_atomic(
+    path: &Path,
+    fill: impl FnOnce(&mut std::io::BufWriter<&std::fs::File>) -> std::io::Result<()>,
+) -> std::io::Result<()> {
     let dir = match path.parent() {
         Some(p) if !p.as_os_str().is_empty() => p,
         _ => Path::new("."),
     };
-    let tmp = tempfile::Builder::new().prefix(".ism-").suffix(".tmp").tempfile_in(dir)?;
+    let tmp = tempfile::Builder::new()
+        .prefix(".ism-")
+        .suffix(".tmp")
+        .tempfile_in(dir)?;
     {
         let mut w = std::io::BufWriter::new(tmp.as_file());
         fill(&mut w)?;

@@ -40,7 +40,10 @@ pub mod structure;
 
 pub use error::{Error, Result};
 pub use io::{Document, Encoding};
-pub use model::{Direction, FaceRecord, JsonValue, Metadata, Model, Stage, StageKind, Version, VertexMap, FORMAT_VERSION};
+pub use model::{
+    Direction, FaceRecord, JsonValue, Metadata, Model, Stage, StageKind, Version, VertexMap,
+    FORMAT_VERSION,
+};
 pub use rules::{Diagnostic, Location, Rule, Severity};
 
 /// The JSON Schema of the JSON encoding, generated from the types (checked in as

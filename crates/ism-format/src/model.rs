@@ -24,11 +24,15 @@ impl Version {
     /// Parses `"1.0"`; `None` when the text is not two decimal integers separated by a dot.
     pub fn parse(text: &str) -> Option<Version> {
         let (a, b) = text.split_once('.')?;
-        let digits = |s: &str| !s.is_empty() && s.len() <= 5 && s.bytes().all(|c| c.is_ascii_digit());
+        let digits =
+            |s: &str| !s.is_empty() && s.len() <= 5 && s.bytes().all(|c| c.is_ascii_digit());
         if !digits(a) || !digits(b) {
             return None;
         }
-        Some(Version { major: a.parse().ok()?, minor: b.parse().ok()? })
+        Some(Version {
+            major: a.parse().ok()?,
+            minor: b.parse().ok()?,
+        })
     }
 }
 
@@ -46,7 +50,10 @@ impl std::fmt::Display for Version {
 pub struct JsonValue(pub serde_json::Value);
 
 impl Encode for JsonValue {
-    fn encode<E: bincode::enc::Encoder>(&self, encoder: &mut E) -> Result<(), bincode::error::EncodeError> {
+    fn encode<E: bincode::enc::Encoder>(
+        &self,
+        encoder: &mut E,
+    ) -> Result<(), bincode::error::EncodeError> {
         let text = serde_json::to_string(&self.0)
             .map_err(|e| bincode::error::EncodeError::OtherString(e.to_string()))?;
         text.encode(encoder)
@@ -54,7 +61,9 @@ impl Encode for JsonValue {
 }
 
 impl<C> Decode<C> for JsonValue {
-    fn decode<D: bincode::de::Decoder<Context = C>>(decoder: &mut D) -> Result<Self, bincode::error::DecodeError> {
+    fn decode<D: bincode::de::Decoder<Context = C>>(
+        decoder: &mut D,
+    ) -> Result<Self, bincode::error::DecodeError> {
         let text = String::decode(decoder)?;
         serde_json::from_str(&text)
             .map(JsonValue)
@@ -73,7 +82,10 @@ impl JsonValue {
 /// A complete Iso-Simplicial Model (spec §2).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, JsonSchema, Encode, Decode)]
 #[serde(rename_all = "camelCase")]
-#[schemars(title = "ISM model", description = "An Iso-Simplicial Model, JSON encoding of spec/ism-format.md version 1.0")]
+#[schemars(
+    title = "ISM model",
+    description = "An Iso-Simplicial Model, JSON encoding of spec/ism-format.md version 1.0"
+)]
 pub struct Model {
     /// Format version `"major.minor"`; this specification is `"1.0"`.
     #[schemars(regex(pattern = r"^[0-9]{1,5}\.[0-9]{1,5}$"))]
@@ -129,7 +141,9 @@ pub struct Metadata {
 }
 
 /// Kind of a stage's map (spec §5.2–5.4).
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize, JsonSchema, Encode, Decode)]
+#[derive(
+    Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize, JsonSchema, Encode, Decode,
+)]
 #[serde(rename_all = "lowercase")]
 pub enum StageKind {
     /// Polynomial Bernstein–Bézier map of degree `d`.
@@ -152,7 +166,20 @@ impl StageKind {
 }
 
 /// Which way a stage's stored map points (spec §5.1).
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Serialize, Deserialize, JsonSchema, Encode, Decode)]
+#[derive(
+    Clone,
+    Copy,
+    Debug,
+    Default,
+    PartialEq,
+    Eq,
+    Hash,
+    Serialize,
+    Deserialize,
+    JsonSchema,
+    Encode,
+    Decode,
+)]
 #[serde(rename_all = "lowercase")]
 pub enum Direction {
     /// The stored map is the stage `X_k` itself: point coordinates → function coordinates.
@@ -286,7 +313,14 @@ impl Stage {
 
     /// Number of stored real parameters (coordinates, weights, coefficients).
     pub fn parameter_count(&self) -> usize {
-        self.faces.iter().map(|f| f.points.len() + f.weights.len()).sum::<usize>()
-            + self.vertex_maps.iter().map(|m| m.coefficients.len()).sum::<usize>()
+        self.faces
+            .iter()
+            .map(|f| f.points.len() + f.weights.len())
+            .sum::<usize>()
+            + self
+                .vertex_maps
+                .iter()
+                .map(|m| m.coefficients.len())
+                .sum::<usize>()
     }
 }

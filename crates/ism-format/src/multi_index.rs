@@ -92,13 +92,13 @@ pub fn rank(index: &[u32]) -> usize {
     let m = index.len();
     let mut remaining: u32 = index.iter().sum();
     let mut r = 0usize;
-    for p in 0..m.saturating_sub(1) {
-        // Indices with a larger entry e > index[p] at position p: the rest (m-p-1 vars) sums to
+    for (p, &entry) in index.iter().enumerate().take(m.saturating_sub(1)) {
+        // Indices with a larger entry e > entry at position p: the rest (m-p-1 vars) sums to
         // remaining - e.
-        for e in (index[p] + 1)..=remaining {
+        for e in (entry + 1)..=remaining {
             r += count(m - p - 1, remaining - e);
         }
-        remaining -= index[p];
+        remaining -= entry;
     }
     r
 }
@@ -109,7 +109,10 @@ mod tests {
 
     #[test]
     fn canonical_order_matches_spec_example() {
-        assert_eq!(all(3, 2), vec![2, 0, 0, 1, 1, 0, 1, 0, 1, 0, 2, 0, 0, 1, 1, 0, 0, 2]);
+        assert_eq!(
+            all(3, 2),
+            vec![2, 0, 0, 1, 1, 0, 1, 0, 1, 0, 2, 0, 0, 1, 1, 0, 0, 2]
+        );
         assert_eq!(owned(3, 4), vec![2, 1, 1, 1, 2, 1, 1, 1, 2]);
         assert_eq!(owned(2, 3), vec![2, 1, 1, 2]);
     }

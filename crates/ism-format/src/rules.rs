@@ -120,11 +120,17 @@ pub struct Location {
 impl Location {
     /// A location with only a JSON pointer.
     pub fn pointer(p: impl Into<String>) -> Location {
-        Location { pointer: Some(p.into()), ..Location::default() }
+        Location {
+            pointer: Some(p.into()),
+            ..Location::default()
+        }
     }
     /// A location with only a byte offset.
     pub fn offset(offset: u64) -> Location {
-        Location { offset: Some(offset), ..Location::default() }
+        Location {
+            offset: Some(offset),
+            ..Location::default()
+        }
     }
 }
 
@@ -174,13 +180,24 @@ pub struct Diagnostic {
 impl Diagnostic {
     /// A diagnostic at the rule's own severity.
     pub fn new(rule: Rule, location: Location, message: impl Into<String>) -> Diagnostic {
-        Diagnostic { rule, severity: rule.severity(), location, message: message.into() }
+        Diagnostic {
+            rule,
+            severity: rule.severity(),
+            location,
+            message: message.into(),
+        }
     }
 }
 
 impl std::fmt::Display for Diagnostic {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        write!(f, "{} ({}): {}", self.rule.id(), self.location, self.message)
+        write!(
+            f,
+            "{} ({}): {}",
+            self.rule.id(),
+            self.location,
+            self.message
+        )
     }
 }
 

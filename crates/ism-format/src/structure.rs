@@ -40,7 +40,8 @@ pub fn orientation(model: &Model, s: usize) -> (f64, f64) {
     let det = if n == 2 {
         e[0][0] * e[1][1] - e[0][1] * e[1][0]
     } else {
-        e[0][0] * (e[1][1] * e[2][2] - e[1][2] * e[2][1]) - e[0][1] * (e[1][0] * e[2][2] - e[1][2] * e[2][0])
+        e[0][0] * (e[1][1] * e[2][2] - e[1][2] * e[2][1])
+            - e[0][1] * (e[1][0] * e[2][2] - e[1][2] * e[2][0])
             + e[0][2] * (e[1][0] * e[2][1] - e[1][1] * e[2][0])
     };
     let mut longest = 0.0f64;
@@ -72,9 +73,17 @@ impl Collector {
 
 /// Checks every structural requirement; returns errors and warnings, at most `max` of them.
 pub fn check(model: &Model, max: usize) -> Vec<Diagnostic> {
-    let mut c = Collector { out: Vec::new(), max };
+    let mut c = Collector {
+        out: Vec::new(),
+        max,
+    };
     check_arrays(model, &mut c);
-    if c.out.iter().any(|d| matches!(d.rule, Rule::Dimension | Rule::VertexArray | Rule::SimplexArray | Rule::IndexRange)) {
+    if c.out.iter().any(|d| {
+        matches!(
+            d.rule,
+            Rule::Dimension | Rule::VertexArray | Rule::SimplexArray | Rule::IndexRange
+        )
+    }) {
         // Later checks index vertices through simplices; stop before they would misread.
         return c.out;
     }
@@ -90,20 +99,34 @@ pub fn check(model: &Model, max: usize) -> Vec<Diagnostic> {
 fn check_arrays(model: &Model, c: &mut Collector) {
     let n = model.dim();
     if !(2..=3).contains(&n) {
-        c.push(Rule::Dimension, Location::pointer("/dimension"), format!("dimension is {n}; expected 2 or 3"));
+        c.push(
+            Rule::Dimension,
+            Location::pointer("/dimension"),
+            format!("dimension is {n}; expected 2 or 3"),
+        );
         return;
     }
     if model.vertices.len() % n != 0 {
         c.push(
             Rule::VertexArray,
             Location::pointer("/vertices"),
-            format!("{} numbers is not a multiple of dimension {n}", model.vertices.len()),
+            format!(
+                "{} numbers is not a multiple of dimension {n}",
+                model.vertices.len()
+            ),
         );
     }
     for (i, x) in model.vertices.iter().enumerate() {
         if !x.is_finite() {
-            let loc = Location { vertex: Some(i / n), ..Location::pointer(format!("/vertices/{i}")) };
-            c.push(Rule::VertexArray, loc, format!("coordinate {x} is not finite"));
+            let loc = Location {
+                vertex: Some(i / n),
+                ..Location::pointer(format!("/vertices/{i}"))
+            };
+            c.push(
+                Rule::VertexArray,
+                loc,
+                format!("coordinate {x} is not finite"),
+            );
         }
     }
     let m = n + 1;
@@ -111,21 +134,34 @@ fn check_arrays(model: &Model, c: &mut Collector) {
         c.push(
             Rule::SimplexArray,
             Location::pointer("/simplices"),
-            format!("{} indices; expected a positive multiple of {m}", model.simplices.len()),
+            format!(
+                "{} indices; expected a positive multiple of {m}",
+                model.simplices.len()
+            ),
         );
         return;
     }
     let nv = model.num_vertices();
     for (i, &id) in model.simplices.iter().enumerate() {
         if id as usize >= nv {
-            let loc = Location { simplex: Some(i / m), ..Location::pointer(format!("/simplices/{i}")) };
-            c.push(Rule::IndexRange, loc, format!("vertex index {id} out of range (model has {nv} vertices)"));
+            let loc = Location {
+                simplex: Some(i / m),
+                ..Location::pointer(format!("/simplices/{i}"))
+            };
+            c.push(
+                Rule::IndexRange,
+                loc,
+                format!("vertex index {id} out of range (model has {nv} vertices)"),
+            );
         }
     }
 }
 
 fn simplex_location(s: usize, m: usize) -> Location {
-    Location { simplex: Some(s), ..Location::pointer(format!("/simplices/{}", s * m)) }
+    Location {
+        simplex: Some(s),
+        ..Location::pointer(format!("/simplices/{}", s * m))
+    }
 }
 
 fn check_simplices(model: &Model, c: &mut Collector) {
@@ -137,7 +173,11 @@ fn check_simplices(model: &Model, c: &mut Collector) {
         sorted.sort_unstable();
         if sorted.windows(2).any(|w| w[0] == w[1]) {
             repeated[s] = true;
-            c.push(Rule::RepeatedIndex, simplex_location(s, m), format!("vertices {ids:?} repeat an index"));
+            c.push(
+                Rule::RepeatedIndex,
+                simplex_location(s, m),
+                format!("vertices {ids:?} repeat an index"),
+            );
             continue;
         }
         let (det, longest) = orientation(model, s);
@@ -221,17 +261,38 @@ fn check_simplices(model: &Model, c: &mut Collector) {
             j += 1;
         }
         let group = &facets[i..j];
-        let face: Vec<u32> = group[0].0.iter().copied().filter(|&x| x != u32::MAX).collect();
+        let face: Vec<u32> = group[0]
+            .0
+            .iter()
+            .copied()
+            .filter(|&x| x != u32::MAX)
+            .collect();
         if group.len() > 2 {
             let sims: Vec<u32> = group.iter().map(|g| g.2).collect();
-            let loc = Location { face: Some(face), ..simplex_location(group[2].2 as usize, m) };
-            c.push(Rule::FacetOvershared, loc, format!("facet shared by {} simplices {sims:?}; at most 2 allowed", group.len()));
+            let loc = Location {
+                face: Some(face),
+                ..simplex_location(group[2].2 as usize, m)
+            };
+            c.push(
+                Rule::FacetOvershared,
+                loc,
+                format!(
+                    "facet shared by {} simplices {sims:?}; at most 2 allowed",
+                    group.len()
+                ),
+            );
         } else if group.len() == 2 && group[0].1 == group[1].1 && group[0].2 != group[1].2 {
-            let loc = Location { face: Some(face), ..simplex_location(group[1].2 as usize, m) };
+            let loc = Location {
+                face: Some(face),
+                ..simplex_location(group[1].2 as usize, m)
+            };
             c.push(
                 Rule::Overlap,
                 loc,
-                format!("simplices {} and {} lie on the same side of their shared facet", group[0].2, group[1].2),
+                format!(
+                    "simplices {} and {} lie on the same side of their shared facet",
+                    group[0].2, group[1].2
+                ),
             );
         }
         if c.full() {
@@ -245,32 +306,57 @@ fn check_simplices(model: &Model, c: &mut Collector) {
     }
     for (v, u) in used.iter().enumerate() {
         if !u {
-            let loc = Location { vertex: Some(v), ..Location::pointer(format!("/vertices/{}", v * n)) };
-            c.push(Rule::UnusedVertex, loc, "vertex belongs to no simplex".into());
+            let loc = Location {
+                vertex: Some(v),
+                ..Location::pointer(format!("/vertices/{}", v * n))
+            };
+            c.push(
+                Rule::UnusedVertex,
+                loc,
+                "vertex belongs to no simplex".into(),
+            );
         }
     }
 }
 
 fn check_values(model: &Model, c: &mut Collector) {
     if !model.level.is_finite() {
-        c.push(Rule::Level, Location::pointer("/level"), format!("level {} is not finite", model.level));
+        c.push(
+            Rule::Level,
+            Location::pointer("/level"),
+            format!("level {} is not finite", model.level),
+        );
     }
     let nv = model.num_vertices();
     if model.values.len() != nv {
         c.push(
             Rule::ValueArray,
             Location::pointer("/values"),
-            format!("{} values for {nv} vertices; expected one per vertex", model.values.len()),
+            format!(
+                "{} values for {nv} vertices; expected one per vertex",
+                model.values.len()
+            ),
         );
     }
     for (v, &x) in model.values.iter().enumerate() {
-        let loc = || Location { vertex: Some(v), ..Location::pointer(format!("/values/{v}")) };
+        let loc = || Location {
+            vertex: Some(v),
+            ..Location::pointer(format!("/values/{v}"))
+        };
         if !x.is_finite() {
             c.push(Rule::ValueArray, loc(), format!("value {x} is not finite"));
         } else if x == 0.0 {
-            c.push(Rule::ValueZero, loc(), "value is zero; vertex values must be nonzero".into());
+            c.push(
+                Rule::ValueZero,
+                loc(),
+                "value is zero; vertex values must be nonzero".into(),
+            );
         } else if x == model.level {
-            c.push(Rule::ValueAtLevel, loc(), format!("value equals the level {}", model.level));
+            c.push(
+                Rule::ValueAtLevel,
+                loc(),
+                format!("value equals the level {}", model.level),
+            );
         }
     }
 }
@@ -339,19 +425,34 @@ impl Incidence {
 fn check_stages(model: &Model, c: &mut Collector) {
     let n = model.dim();
     let nv = model.num_vertices();
-    let incidence = if model.stages.iter().any(|s| !s.faces.is_empty()) { Some(Incidence::new(model)) } else { None };
+    let incidence = if model.stages.iter().any(|s| !s.faces.is_empty()) {
+        Some(Incidence::new(model))
+    } else {
+        None
+    };
     for (k, stage) in model.stages.iter().enumerate() {
         let base = format!("/stages/{k}");
-        let at = |suffix: String| Location { stage: Some(k), ..Location::pointer(format!("{base}{suffix}")) };
+        let at = |suffix: String| Location {
+            stage: Some(k),
+            ..Location::pointer(format!("{base}{suffix}"))
+        };
         let d = stage.degree;
         if d == 0 || d > crate::structure::MAX_DEGREE {
-            c.push(Rule::StageDegree, at("/degree".into()), format!("degree {d}; expected 1 to {MAX_DEGREE}"));
+            c.push(
+                Rule::StageDegree,
+                at("/degree".into()),
+                format!("degree {d}; expected 1 to {MAX_DEGREE}"),
+            );
             continue;
         }
         match stage.kind {
             StageKind::Monotonic => {
                 if !stage.faces.is_empty() {
-                    c.push(Rule::KindMismatch, at("/faces".into()), "a monotonic stage has vertexMaps, not faces".into());
+                    c.push(
+                        Rule::KindMismatch,
+                        at("/faces".into()),
+                        "a monotonic stage has vertexMaps, not faces".into(),
+                    );
                 }
                 let mut seen = HashSet::new();
                 for (r, map) in stage.vertex_maps.iter().enumerate() {
@@ -360,19 +461,35 @@ fn check_stages(model: &Model, c: &mut Collector) {
                         ..at(format!("/vertexMaps/{r}{suffix}"))
                     };
                     if map.vertex as usize >= nv {
-                        c.push(Rule::VertexMapIndex, loc("/vertex"), format!("vertex {} out of range ({nv} vertices)", map.vertex));
+                        c.push(
+                            Rule::VertexMapIndex,
+                            loc("/vertex"),
+                            format!("vertex {} out of range ({nv} vertices)", map.vertex),
+                        );
                     } else if !seen.insert(map.vertex) {
-                        c.push(Rule::VertexMapIndex, loc("/vertex"), format!("vertex {} has two maps in this stage", map.vertex));
+                        c.push(
+                            Rule::VertexMapIndex,
+                            loc("/vertex"),
+                            format!("vertex {} has two maps in this stage", map.vertex),
+                        );
                     }
                     if map.coefficients.len() != d as usize + 1 {
                         c.push(
                             Rule::CoefficientCount,
                             loc("/coefficients"),
-                            format!("{} coefficients; degree {d} needs {}", map.coefficients.len(), d + 1),
+                            format!(
+                                "{} coefficients; degree {d} needs {}",
+                                map.coefficients.len(),
+                                d + 1
+                            ),
                         );
                     }
                     if let Some(j) = map.coefficients.iter().position(|x| !x.is_finite()) {
-                        c.push(Rule::NonFinite, loc(&format!("/coefficients/{j}")), "coefficient is not finite".into());
+                        c.push(
+                            Rule::NonFinite,
+                            loc(&format!("/coefficients/{j}")),
+                            "coefficient is not finite".into(),
+                        );
                     }
                 }
             }
@@ -387,22 +504,43 @@ fn check_stages(model: &Model, c: &mut Collector) {
                 let incidence = incidence.as_ref().expect("built when any stage has faces");
                 let mut seen: HashMap<&[u32], usize> = HashMap::new();
                 for (r, rec) in stage.faces.iter().enumerate() {
-                    let loc = |suffix: &str| Location { face: Some(rec.face.clone()), ..at(format!("/faces/{r}{suffix}")) };
+                    let loc = |suffix: &str| Location {
+                        face: Some(rec.face.clone()),
+                        ..at(format!("/faces/{r}{suffix}"))
+                    };
                     let kdim = rec.face.len();
                     if kdim == 0 || kdim > n + 1 {
-                        c.push(Rule::NotAFace, loc("/face"), format!("{kdim} vertex ids; a face has 1 to {}", n + 1));
+                        c.push(
+                            Rule::NotAFace,
+                            loc("/face"),
+                            format!("{kdim} vertex ids; a face has 1 to {}", n + 1),
+                        );
                         continue;
                     }
                     if rec.face.windows(2).any(|w| w[0] >= w[1]) {
-                        c.push(Rule::FaceSorted, loc("/face"), format!("{:?} is not strictly increasing", rec.face));
+                        c.push(
+                            Rule::FaceSorted,
+                            loc("/face"),
+                            format!("{:?} is not strictly increasing", rec.face),
+                        );
                         continue;
                     }
-                    if rec.face.iter().any(|&v| v as usize >= nv) || !incidence.is_face(model, &rec.face) {
-                        c.push(Rule::NotAFace, loc("/face"), format!("{:?} is not a face of any simplex", rec.face));
+                    if rec.face.iter().any(|&v| v as usize >= nv)
+                        || !incidence.is_face(model, &rec.face)
+                    {
+                        c.push(
+                            Rule::NotAFace,
+                            loc("/face"),
+                            format!("{:?} is not a face of any simplex", rec.face),
+                        );
                         continue;
                     }
                     if let Some(first) = seen.insert(&rec.face, r) {
-                        c.push(Rule::DuplicateFace, loc("/face"), format!("face already recorded at /stages/{k}/faces/{first}"));
+                        c.push(
+                            Rule::DuplicateFace,
+                            loc("/face"),
+                            format!("face already recorded at /stages/{k}/faces/{first}"),
+                        );
                     }
                     let owned = owned_count(kdim, d);
                     if owned == 0 {
@@ -424,15 +562,31 @@ fn check_stages(model: &Model, c: &mut Collector) {
                             ),
                         );
                     }
-                    let expect_w = if stage.kind == StageKind::Rational { owned } else { 0 };
+                    let expect_w = if stage.kind == StageKind::Rational {
+                        owned
+                    } else {
+                        0
+                    };
                     if rec.weights.len() != expect_w {
-                        c.push(Rule::WeightCount, loc("/weights"), format!("{} weights; expected {expect_w}", rec.weights.len()));
+                        c.push(
+                            Rule::WeightCount,
+                            loc("/weights"),
+                            format!("{} weights; expected {expect_w}", rec.weights.len()),
+                        );
                     }
                     if let Some(j) = rec.points.iter().position(|x| !x.is_finite()) {
-                        c.push(Rule::NonFinite, loc(&format!("/points/{j}")), "coordinate is not finite".into());
+                        c.push(
+                            Rule::NonFinite,
+                            loc(&format!("/points/{j}")),
+                            "coordinate is not finite".into(),
+                        );
                     }
                     if let Some(j) = rec.weights.iter().position(|x| !x.is_finite()) {
-                        c.push(Rule::NonFinite, loc(&format!("/weights/{j}")), "weight is not finite".into());
+                        c.push(
+                            Rule::NonFinite,
+                            loc(&format!("/weights/{j}")),
+                            "weight is not finite".into(),
+                        );
                     }
                     if c.full() {
                         return;

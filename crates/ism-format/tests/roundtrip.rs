@@ -1,12 +1,16 @@
 //! Round trips JSON ↔ MessagePack ↔ binary are bit-exact, for generated models (proptest).
 
 use ism_format::io::{self, ReadOptions, WriteOptions};
-use ism_format::{Direction, Encoding, FaceRecord, JsonValue, Metadata, Model, Stage, StageKind, VertexMap};
+use ism_format::{
+    Direction, Encoding, FaceRecord, JsonValue, Metadata, Model, Stage, StageKind, VertexMap,
+};
 use proptest::prelude::*;
 
 /// Any finite f64, by bit pattern: subnormals, ±0, extremes included (JSON cannot carry NaN/Inf).
 fn finite() -> impl Strategy<Value = f64> {
-    any::<u64>().prop_map(f64::from_bits).prop_filter("finite", |x| x.is_finite())
+    any::<u64>()
+        .prop_map(f64::from_bits)
+        .prop_filter("finite", |x| x.is_finite())
 }
 
 fn json_value() -> impl Strategy<Value = JsonValue> {
@@ -29,30 +33,53 @@ fn json_value() -> impl Strategy<Value = JsonValue> {
 
 fn stage() -> impl Strategy<Value = Stage> {
     (
-        prop_oneof![Just(StageKind::Bezier), Just(StageKind::Rational), Just(StageKind::Monotonic)],
+        prop_oneof![
+            Just(StageKind::Bezier),
+            Just(StageKind::Rational),
+            Just(StageKind::Monotonic)
+        ],
         1u32..8,
         any::<bool>(),
         prop::option::of("[a-z ]{0,10}"),
         prop::collection::vec(
-            (prop::collection::vec(any::<u32>(), 1..4), prop::collection::vec(finite(), 0..9), prop::collection::vec(finite(), 0..3))
-                .prop_map(|(face, points, weights)| FaceRecord { face, points, weights }),
+            (
+                prop::collection::vec(any::<u32>(), 1..4),
+                prop::collection::vec(finite(), 0..9),
+                prop::collection::vec(finite(), 0..3),
+            )
+                .prop_map(|(face, points, weights)| FaceRecord {
+                    face,
+                    points,
+                    weights,
+                }),
             0..4,
         ),
         prop::collection::vec(
-            (any::<u32>(), prop::collection::vec(finite(), 0..5)).prop_map(|(vertex, coefficients)| VertexMap { vertex, coefficients }),
+            (any::<u32>(), prop::collection::vec(finite(), 0..5)).prop_map(
+                |(vertex, coefficients)| VertexMap {
+                    vertex,
+                    coefficients,
+                },
+            ),
             0..3,
         ),
         json_value(),
     )
-        .prop_map(|(kind, degree, parametric, name, faces, vertex_maps, extras)| Stage {
-            kind,
-            degree,
-            direction: if parametric { Direction::Parametric } else { Direction::Implicit },
-            name,
-            faces,
-            vertex_maps,
-            extras,
-        })
+        .prop_map(
+            |(kind, degree, parametric, name, faces, vertex_maps, extras)| Stage {
+                kind,
+                degree,
+                direction: if parametric {
+                    Direction::Parametric
+                } else {
+                    Direction::Implicit
+                },
+                name,
+                faces,
+                vertex_maps,
+                extras,
+            },
+        )
 }
 
 fn model() -> impl Strategy<Value = Model> {
@@ -67,19 +94,26 @@ fn model() -> impl Strategy<Value = Model> {
         prop::collection::btree_map("[A-Z]{2}_[a-z]{1,6}", json_value(), 0..2),
         json_value(),
     )
-        .prop_map(|(dimension, vertices, simplices, values, level, stages, name, extensions, extras)| {
-            let mut m = Model::new(dimension);
-            m.vertices = vertices;
-            m.simplices = simplices;
-            m.values = values;
-            m.level = level;
-            m.stages = stages;
-            m.metadata = Metadata { name, generator: Some("proptest".into()), units: None, description: None };
-            m.extensions_used = extensions.keys().cloned().collect();
-            m.extensions = extensions;
-            m.extras = extras;
-            m
-        })
+        .prop_map(
+            |(dimension, vertices, simplices, values, level, stages, name, extensions, extras)| {
+                let mut m = Model::new(dimension);
+                m.vertices = vertices;
+                m.simplices = simplices;
+                m.values = values;
+                m.level = level;
+                m.stages = stages;
+                m.metadata = Metadata {
+                    name,
+                    generator: Some("proptest".into()),
+                    units: None,
+                    description: None,
+                };
+                m.extensions_used = extensions.keys().cloned().collect();
+                m.extensions = extensions;
+                m.extras = extras;
+                m
+            },
+        )
 }
 
 /// The binary encoding writes every f64 as its 8 bytes, so equal binary payloads mean bit-equal models.
@@ -88,7 +122,10 @@ fn bits(model: &Model) -> Vec<u8> {
 }
 
 fn unchecked() -> ReadOptions {
-    ReadOptions { check_structure: false, ..ReadOptions::default() }
+    ReadOptions {
+        check_structure: false,
+        ..ReadOptions::default()
+    }
 }
 
 proptest! {
@@ -121,7 +158,14 @@ proptest! {
 #[test]
 fn special_values_survive_json() {
     let mut m = Model::new(2);
-    m.vertices = vec![-0.0, 5e-324, f64::MAX, f64::MIN_POSITIVE, 0.1 + 0.2, -1.0 / 3.0];
+    m.vertices = vec![
+        -0.0,
+        5e-324,
+        f64::MAX,
+        f64::MIN_POSITIVE,
+        0.1 + 0.2,
+        -1.0 / 3.0,
+    ];
     m.values = vec![f64::EPSILON, -2.5e-308, 1e308];
     let bytes = io::to_vec(&m, Encoding::Json, WriteOptions::default()).unwrap();
     let back = io::from_slice_with(&bytes, &unchecked()).unwrap().model;
