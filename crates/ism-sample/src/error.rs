@@ -1,0 +1,59 @@
+//! The crate's error type.
+
+use std::path::PathBuf;
+
+/// Why sampling, querying or writing a point set failed.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum SampleError {
+    /// The operating system refused a read or write.
+    #[error("I/O error{}: {source}", path.as_ref().map(|p| format!(" on {}", p.display())).unwrap_or_default())]
+    Io {
+        /// The file, when known.
+        path: Option<PathBuf>,
+        /// The underlying error.
+        source: std::io::Error,
+    },
+    /// A request the sampler cannot honour (bad count, sigma, box, column layout …).
+    #[error("invalid argument: {0}")]
+    InvalidArgument(String),
+    /// The model has no surface to sample: no top simplex has vertices on both sides of the level.
+    #[error("the shape F = c is empty: no top simplex has vertex values on both sides of the level {level}")]
+    EmptySurface {
+        /// The level `c`.
+        level: f64,
+    },
+    /// No certified bound of the area element could be found for a simplex, so uniform sampling
+    /// by curved area cannot be guaranteed there.
+    #[error("simplex {simplex}, stage {stage}: {reason}")]
+    Uncertified {
+        /// Top simplex id.
+        simplex: usize,
+        /// Stage index (`stages[stage]`).
+        stage: usize,
+        /// What failed.
+        reason: String,
+    },
+    /// A sample broke a certified bound or a tolerance: a bug or an invalid model, never ignored.
+    #[error("simplex {simplex}: {reason}")]
+    Numerical {
+        /// Top simplex id.
+        simplex: usize,
+        /// What failed.
+        reason: String,
+    },
+    /// The model could not be evaluated (from the math kernel).
+    #[error("model evaluation: {0}")]
+    Geometry(String),
+    /// A points file could not be parsed.
+    #[error("points input{}: {message}", location.as_ref().map(|l| format!(" at {l}")).unwrap_or_default())]
+    Points {
+        /// Where: `line 3, column 2` (text) or `byte 128` (NPY).
+        location: Option<String>,
+        /// What was expected.
+        message: String,
+    },
+}
+
+/// Shorthand for this crate's results.
+pub type Result<T, E = SampleError> = std::result::Result<T, E>;
