@@ -204,7 +204,8 @@ fn rmp_header_map_with_huge_array() -> Vec<u8> {
 
 #[test]
 fn structural_errors_name_the_place() {
-    let cases: Vec<(&str, Box<dyn Fn(&mut Model)>, Rule, &str)> = vec![
+    type Mutation = Box<dyn Fn(&mut Model)>;
+    let cases: Vec<(&str, Mutation, Rule, &str)> = vec![
         (
             "nan vertex",
             Box::new(|m| m.vertices[3] = f64::NAN),
