@@ -1,0 +1,485 @@
+//! Dense Bernstein polynomials on a simplex with `m` variables (barycentric coordinates).
+//!
+//! `p(w) = Σ_{|I| = d} c_I B_I(w)`, `B_I(w) = d!/(I_0!…I_{m−1}!) Π w_i^{I_i}`, coefficients in the
+//! canonical order of [`ism_format::multi_index`]. Vector-valued polynomials are arrays of these,
+//! one per component.
+//!
+//! Evaluation is de Casteljau: at a vertex every step multiplies by an exact 1 or 0, so the value
+//! there is exactly the vertex coefficient; on a face the coefficients off the face never enter.
+
+use ism_format::multi_index;
+
+use crate::error::{GeomError, Result};
+use crate::tables::multinomial;
+
+/// A Bernstein polynomial of degree `d` in `m` barycentric variables.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Bernstein {
+    m: usize,
+    degree: u32,
+    coeffs: Vec<f64>,
+}
+
+/// `up[r * m + i]` = rank, among degree-`t + 1` indices, of `K_r + e_i` where `K_r` is the `r`-th
+/// degree-`t` index.
+fn up_table(m: usize, t: u32) -> Vec<usize> {
+    let lower = multi_index::all(m, t);
+    let mut out = Vec::with_capacity(lower.len());
+    let mut idx = vec![0u32; m];
+    for k in lower.chunks_exact(m) {
+        for i in 0..m {
+            idx.copy_from_slice(k);
+            idx[i] += 1;
+            out.push(multi_index::rank(&idx));
+        }
+    }
+    out
+}
+
+/// One de Casteljau step with point `x`: degree-`t + 1` coefficients → degree-`t`.
+fn casteljau_step(m: usize, t: u32, up: &[usize], c: &[f64], x: &[f64]) -> Vec<f64> {
+    let count = multi_index::count(m, t);
+    let mut out = Vec::with_capacity(count);
+    for r in 0..count {
+        let mut s = 0.0;
+        for i in 0..m {
+            if x[i] != 0.0 {
+                s += x[i] * c[up[r * m + i]];
+            }
+        }
+        out.push(s);
+    }
+    out
+}
+
+impl Bernstein {
+    /// A polynomial from its coefficients in canonical order.
+    ///
+    /// # Errors
+    /// [`GeomError::Coefficients`] when `coeffs.len() != C(d + m − 1, m − 1)` or `m == 0`.
+    pub fn new(m: usize, degree: u32, coeffs: Vec<f64>) -> Result<Bernstein> {
+        let expected = multi_index::count(m, degree);
+        if m == 0 || coeffs.len() != expected {
+            return Err(GeomError::Coefficients {
+                vars: m,
+                degree,
+                expected,
+                found: coeffs.len(),
+            });
+        }
+        Ok(Bernstein { m, degree, coeffs })
+    }
+
+    /// The constant `c` as a degree-`d` polynomial (all coefficients `c`).
+    pub fn constant(m: usize, degree: u32, c: f64) -> Bernstein {
+        Bernstein {
+            m,
+            degree,
+            coeffs: vec![c; multi_index::count(m, degree)],
+        }
+    }
+
+    /// Coefficients from a function of the multi-index (e.g. `|i| i[0] as f64 / d as f64`).
+    pub fn from_fn(m: usize, degree: u32, mut f: impl FnMut(&[u32]) -> f64) -> Bernstein {
+        let coeffs = multi_index::all(m, degree)
+            .chunks_exact(m.max(1))
+            .map(&mut f)
+            .collect();
+        Bernstein { m, degree, coeffs }
+    }
+
+    /// Number of variables `m`.
+    pub fn vars(&self) -> usize {
+        self.m
+    }
+
+    /// Degree `d`.
+    pub fn degree(&self) -> u32 {
+        self.degree
+    }
+
+    /// Coefficients in canonical order.
+    pub fn coeffs(&self) -> &[f64] {
+        &self.coeffs
+    }
+
+    /// Consumes into the coefficient vector.
+    pub fn into_coeffs(self) -> Vec<f64> {
+        self.coeffs
+    }
+
+    /// The exact value at vertex `i`: the coefficient of `d·e_i`.
+    pub fn vertex_value(&self, i: usize) -> f64 {
+        let mut idx = vec![0u32; self.m];
+        idx[i] = self.degree;
+        self.coeffs[multi_index::rank(&idx)]
+    }
+
+    /// Smallest coefficient (a lower bound of the polynomial on the simplex).
+    pub fn min_coeff(&self) -> f64 {
+        self.coeffs.iter().copied().fold(f64::INFINITY, f64::min)
+    }
+
+    /// Largest coefficient (an upper bound on the simplex).
+    pub fn max_coeff(&self) -> f64 {
+        self.coeffs
+            .iter()
+            .copied()
+            .fold(f64::NEG_INFINITY, f64::max)
+    }
+
+    /// `p(w)` by de Casteljau (`w` has `m` entries; need not sum to 1: the homogeneous form is
+    /// evaluated).
+    pub fn eval(&self, w: &[f64]) -> f64 {
+        let m = self.m;
+        let mut c = self.coeffs.clone();
+        for t in (0..self.degree).rev() {
+            c = casteljau_step(m, t, &up_table(m, t), &c, w);
+        }
+        c[0]
+    }
+
+    /// The homogeneous partial derivative `∂p/∂w_j`, degree `d − 1`: coefficients `d c_{K + e_j}`.
+    /// Degree 0 gives the zero polynomial of degree 0.
+    pub fn partial(&self, j: usize) -> Bernstein {
+        let m = self.m;
+        if self.degree == 0 {
+            return Bernstein::constant(m, 0, 0.0);
+        }
+        let t = self.degree - 1;
+        let up = up_table(m, t);
+        let d = f64::from(self.degree);
+        let coeffs = (0..multi_index::count(m, t))
+            .map(|r| d * self.coeffs[up[r * m + j]])
+            .collect();
+        Bernstein {
+            m,
+            degree: t,
+            coeffs,
+        }
+    }
+
+    /// Directional derivative along `e_k − e_0` (the reduced-coordinate partial `∂/∂w_k` with
+    /// `w_0 = 1 − Σ`): coefficients `d (c_{K + e_k} − c_{K + e_0})`, degree `d − 1`.
+    pub fn derivative(&self, k: usize) -> Bernstein {
+        self.directional(k, 0)
+    }
+
+    /// Directional derivative along `e_a − e_b`, degree `d − 1`.
+    pub fn directional(&self, a: usize, b: usize) -> Bernstein {
+        let m = self.m;
+        if self.degree == 0 {
+            return Bernstein::constant(m, 0, 0.0);
+        }
+        let t = self.degree - 1;
+        let up = up_table(m, t);
+        let d = f64::from(self.degree);
+        let coeffs = (0..multi_index::count(m, t))
+            .map(|r| d * (self.coeffs[up[r * m + a]] - self.coeffs[up[r * m + b]]))
+            .collect();
+        Bernstein {
+            m,
+            degree: t,
+            coeffs,
+        }
+    }
+
+    /// The product (degree `a + b`): `B^a_I B^b_J = C(a;I) C(b;J) / C(a+b;I+J) · B^{a+b}_{I+J}`.
+    ///
+    /// # Panics
+    /// If the variable counts differ.
+    pub fn mul(&self, other: &Bernstein) -> Bernstein {
+        assert_eq!(self.m, other.m, "Bernstein::mul: variable counts differ");
+        let m = self.m;
+        let d = self.degree + other.degree;
+        let mut out = vec![0.0; multi_index::count(m, d)];
+        let ia = multi_index::all(m, self.degree);
+        let ib = multi_index::all(m, other.degree);
+        let ma: Vec<f64> = ia.chunks_exact(m).map(multinomial).collect();
+        let mb: Vec<f64> = ib.chunks_exact(m).map(multinomial).collect();
+        let mut sum = vec![0u32; m];
+        for (i, a) in ia.chunks_exact(m).enumerate() {
+            if self.coeffs[i] == 0.0 {
+                continue;
+            }
+            for (j, b) in ib.chunks_exact(m).enumerate() {
+                for k in 0..m {
+                    sum[k] = a[k] + b[k];
+                }
+                let r = multi_index::rank(&sum);
+                out[r] += ma[i] * mb[j] / multinomial(&sum) * self.coeffs[i] * other.coeffs[j];
+            }
+        }
+        Bernstein {
+            m,
+            degree: d,
+            coeffs: out,
+        }
+    }
+
+    /// Sum of two polynomials of the same shape (elevate first if the degrees differ).
+    ///
+    /// # Panics
+    /// If the shapes differ.
+    pub fn add(&self, other: &Bernstein) -> Bernstein {
+        assert!(
+            self.m == other.m && self.degree == other.degree,
+            "Bernstein::add: shapes differ"
+        );
+        let coeffs = self
+            .coeffs
+            .iter()
+            .zip(&other.coeffs)
+            .map(|(a, b)| a + b)
+            .collect();
+        Bernstein {
+            m: self.m,
+            degree: self.degree,
+            coeffs,
+        }
+    }
+
+    /// `s · p`.
+    pub fn scale(&self, s: f64) -> Bernstein {
+        Bernstein {
+            m: self.m,
+            degree: self.degree,
+            coeffs: self.coeffs.iter().map(|c| s * c).collect(),
+        }
+    }
+
+    /// Degree elevation by one: `c'_I = Σ_i I_i/(d+1) · c_{I − e_i}`.
+    pub fn elevate(&self) -> Bernstein {
+        let m = self.m;
+        let d1 = self.degree + 1;
+        let mut idx = vec![0u32; m];
+        let coeffs = multi_index::all(m, d1)
+            .chunks_exact(m)
+            .map(|i| {
+                let mut s = 0.0;
+                for k in 0..m {
+                    if i[k] > 0 {
+                        idx.copy_from_slice(i);
+                        idx[k] -= 1;
+                        s += f64::from(i[k]) / f64::from(d1) * self.coeffs[multi_index::rank(&idx)];
+                    }
+                }
+                s
+            })
+            .collect();
+        Bernstein {
+            m,
+            degree: d1,
+            coeffs,
+        }
+    }
+
+    /// Elevated to degree `target ≥ d` (unchanged when equal).
+    pub fn elevate_to(&self, target: u32) -> Bernstein {
+        let mut p = self.clone();
+        while p.degree < target {
+            p = p.elevate();
+        }
+        p
+    }
+
+    /// The same polynomial on the simplex whose vertex `a` is replaced by the point `r`
+    /// (barycentric, `m` entries): coefficient `I` is the blossom at `r` repeated `I_a` times and
+    /// `e_i` repeated `I_i` times (`i ≠ a`), computed level by level (`O(d · count · m)`).
+    pub fn replace_vertex(&self, a: usize, r: &[f64]) -> Bernstein {
+        let m = self.m;
+        let d = self.degree;
+        // levels[t] = blossom values b(r^t, e^J) for |J| = d − t.
+        let mut levels = vec![self.coeffs.clone()];
+        for t in 0..d {
+            let next = casteljau_step(
+                m,
+                d - t - 1,
+                &up_table(m, d - t - 1),
+                &levels[t as usize],
+                r,
+            );
+            levels.push(next);
+        }
+        let mut j = vec![0u32; m];
+        let coeffs = multi_index::all(m, d)
+            .chunks_exact(m)
+            .map(|i| {
+                j.copy_from_slice(i);
+                let t = j[a];
+                j[a] = 0;
+                levels[t as usize][multi_index::rank(&j)]
+            })
+            .collect();
+        Bernstein {
+            m,
+            degree: d,
+            coeffs,
+        }
+    }
+
+    /// Splits edge `(a, b)` at its midpoint: the first child has vertex `b` replaced by the midpoint
+    /// (the half where `w_a ≥ w_b`), the second has vertex `a` replaced. Both keep the parent's
+    /// orientation and vertex order.
+    pub fn split_edge(&self, a: usize, b: usize) -> (Bernstein, Bernstein) {
+        let mut mid = vec![0.0; self.m];
+        mid[a] = 0.5;
+        mid[b] = 0.5;
+        (self.replace_vertex(b, &mid), self.replace_vertex(a, &mid))
+    }
+
+    /// Restriction to the sub-simplex with barycentric vertices `vertices[0..m]` (each `m` entries):
+    /// coefficient `I` is the blossom at `vertices[i]` repeated `I_i` times. `O(count² · m)`; for
+    /// bisection prefer [`Bernstein::split_edge`].
+    pub fn restrict(&self, vertices: &[Vec<f64>]) -> Bernstein {
+        let m = self.m;
+        let d = self.degree;
+        let ups: Vec<Vec<usize>> = (0..d).map(|t| up_table(m, t)).collect();
+        let coeffs = multi_index::all(m, d)
+            .chunks_exact(m)
+            .map(|i| {
+                let mut c = self.coeffs.clone();
+                let mut t = d;
+                for (k, &e) in i.iter().enumerate() {
+                    for _ in 0..e {
+                        t -= 1;
+                        c = casteljau_step(m, t, &ups[t as usize], &c, &vertices[k]);
+                    }
+                }
+                c[0]
+            })
+            .collect();
+        Bernstein {
+            m,
+            degree: d,
+            coeffs,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn power_eval(p: &Bernstein, w: &[f64]) -> f64 {
+        let m = p.vars();
+        multi_index::all(m, p.degree())
+            .chunks_exact(m)
+            .zip(p.coeffs())
+            .map(|(i, c)| {
+                c * multinomial(i)
+                    * i.iter()
+                        .zip(w)
+                        .map(|(&e, &x)| x.powi(e as i32))
+                        .product::<f64>()
+            })
+            .sum()
+    }
+
+    fn sample(m: usize, d: u32, seed: u64) -> Bernstein {
+        let mut s = seed;
+        Bernstein::from_fn(m, d, |_| {
+            s = s
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            ((s >> 11) as f64 / (1u64 << 53) as f64) * 2.0 - 1.0
+        })
+    }
+
+    const W: [[f64; 4]; 3] = [
+        [0.1, 0.2, 0.3, 0.4],
+        [0.7, 0.1, 0.15, 0.05],
+        [0.25, 0.25, 0.25, 0.25],
+    ];
+
+    #[test]
+    fn casteljau_matches_power_form_and_vertices_are_exact() {
+        for m in 2..=4 {
+            for d in 0..=8 {
+                let p = sample(m, d, 7 + u64::from(d));
+                for w in &W {
+                    let w = &w[..m];
+                    assert!((p.eval(w) - power_eval(&p, w)).abs() < 1e-12, "m={m} d={d}");
+                }
+                for i in 0..m {
+                    let mut e = vec![0.0; m];
+                    e[i] = 1.0;
+                    assert_eq!(p.eval(&e), p.vertex_value(i));
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn product_elevation_and_derivative_agree_with_evaluation() {
+        for m in 2..=4 {
+            let p = sample(m, 3, 1);
+            let q = sample(m, 2, 2);
+            let pq = p.mul(&q);
+            let e = p.elevate_to(6);
+            for w in &W {
+                // Elevation multiplies the homogeneous form by Σw, so compare on the simplex.
+                let total: f64 = w[..m].iter().sum();
+                let w: Vec<f64> = w[..m].iter().map(|x| x / total).collect();
+                let w = &w[..];
+                assert!((pq.eval(w) - p.eval(w) * q.eval(w)).abs() < 1e-12);
+                assert!((e.eval(w) - p.eval(w)).abs() < 1e-12);
+                for k in 1..m {
+                    let h = 1e-6;
+                    let mut wp = w.to_vec();
+                    let mut wm = w.to_vec();
+                    wp[k] += h;
+                    wp[0] -= h;
+                    wm[k] -= h;
+                    wm[0] += h;
+                    let fd = (p.eval(&wp) - p.eval(&wm)) / (2.0 * h);
+                    assert!((p.derivative(k).eval(w) - fd).abs() < 1e-7);
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn split_and_restrict_reproduce_the_parent() {
+        for m in 2..=4 {
+            let p = sample(m, 4, 3);
+            let (a, b) = p.split_edge(0, m - 1);
+            // A point of child a with local coordinates w maps to the parent point with vertex m−1
+            // replaced by the midpoint of edge (0, m−1).
+            for w in &W {
+                let w = &w[..m];
+                let mut parent = w.to_vec();
+                parent[0] += 0.5 * w[m - 1];
+                parent[m - 1] = 0.5 * w[m - 1];
+                assert!((a.eval(w) - p.eval(&parent)).abs() < 1e-12);
+                let mut parent_b = w.to_vec();
+                parent_b[m - 1] += 0.5 * w[0];
+                parent_b[0] = 0.5 * w[0];
+                assert!((b.eval(w) - p.eval(&parent_b)).abs() < 1e-12);
+            }
+            let verts: Vec<Vec<f64>> = (0..m)
+                .map(|i| {
+                    (0..m)
+                        .map(|j| if i == j { 0.6 } else { 0.4 / (m - 1) as f64 })
+                        .collect()
+                })
+                .collect();
+            let r = p.restrict(&verts);
+            for w in &W {
+                let w = &w[..m];
+                let x: Vec<f64> = (0..m)
+                    .map(|j| (0..m).map(|i| w[i] * verts[i][j]).sum())
+                    .collect();
+                assert!((r.eval(w) - p.eval(&x)).abs() < 1e-12);
+            }
+        }
+    }
+
+    #[test]
+    fn wrong_coefficient_count_is_an_error() {
+        assert!(matches!(
+            Bernstein::new(3, 2, vec![0.0; 5]),
+            Err(GeomError::Coefficients { expected: 6, .. })
+        ));
+    }
+}

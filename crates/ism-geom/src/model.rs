@@ -1,0 +1,537 @@
+//! Whole-model evaluation: point location, `F(p)`, `∇F(p)`, inside/outside, the linear patches
+//! `θ_σ` and the parametric map `θ_σ ∋ u ↦ p ∈ O` with its derivative.
+//!
+//! Point location uses an R*-tree (`rstar`) of the simplices' bounding boxes, bulk-loaded: it is a
+//! maintained crate, builds in `O(N log N)`, and unlike a uniform grid it does not degrade on graded
+//! meshes (adaptive refinement produces cells of very different sizes).
+//!
+//! Local maps are built lazily, once per simplex, and cached: a million-simplex model with a few
+//! curved cells costs memory only for the cells actually evaluated.
+
+use std::sync::OnceLock;
+
+use ism_format::{multi_index, Model, StageKind};
+use rayon::prelude::*;
+use rstar::{RTree, RTreeObject, AABB};
+
+use crate::error::{GeomError, Result};
+use crate::linalg;
+use crate::stage::{InverseResult, LocalMap, StageLookup};
+use crate::{Bary, Mat, MAX_DEGREE, MAX_VARS};
+
+/// Barycentric slack accepted by point location: a point whose smallest barycentric coordinate is
+/// above `−LOCATE_TOLERANCE` counts as inside. Coordinates are computed from an inverted edge matrix,
+/// so points exactly on a shared face come out as `±` a few ulps; this admits them on both sides
+/// and is far below any meaningful distance in a unit-scaled model.
+pub const LOCATE_TOLERANCE: f64 = 1e-10;
+
+/// A located point: the top simplex and the barycentric coordinates there (clamped to `≥ 0`,
+/// summing to 1).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Located {
+    /// Top simplex index.
+    pub simplex: usize,
+    /// Barycentric coordinates in that simplex's local vertex order.
+    pub w: Bary,
+}
+
+/// One corner of a linear patch `θ_σ`: where the zero set of `Σ f_i u_i − c` crosses an edge of σ.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PatchCorner {
+    /// Barycentric coordinates (two nonzero entries).
+    pub u: Bary,
+    /// Local positions of the edge's ends: `[inside vertex (f < c), outside vertex (f ≥ c)]`.
+    pub edge: [usize; 2],
+}
+
+/// The linear patch `θ_σ = {u ∈ Δⁿ : Σ f_i u_i = c}` of one simplex: 2 corners in 2D (a segment),
+/// 3 or 4 in 3D (triangle or quad, in cyclic order), 1 in 1D. Ordered so that the patch's
+/// orientation normal points towards `F > c` (outside): in 2D the normal is the tangent
+/// `p_1 − p_0` turned clockwise; in 3D `(p_1 − p_0) × (p_2 − p_0)`.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Patch {
+    /// The corners.
+    pub corners: Vec<PatchCorner>,
+}
+
+/// A point of the parametric form of `O`.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ParamPoint {
+    /// The point `p = Σ w_i v_i` (first `n` entries).
+    pub p: [f64; 3],
+    /// Its barycentric coordinates `w = X⁻¹(u)`.
+    pub w: Bary,
+    /// How the inversion went.
+    pub inverse: InverseResult,
+}
+
+#[derive(Clone, Copy, Debug)]
+struct SimplexBox {
+    aabb: AABB<[f64; 3]>,
+    id: u32,
+}
+
+impl RTreeObject for SimplexBox {
+    type Envelope = AABB<[f64; 3]>;
+    fn envelope(&self) -> Self::Envelope {
+        self.aabb
+    }
+}
+
+/// Evaluator of a whole model, built once.
+pub struct ModelEval {
+    model: Model,
+    n: usize,
+    /// Per simplex, the inverse edge matrix `A` (row-major `n × n` in a `3 × 3`): reduced
+    /// barycentric `w_{1..n} = A (p − v_0)`.
+    inv_edges: Vec<[f64; 9]>,
+    lookups: Vec<StageLookup>,
+    maps: Vec<OnceLock<LocalMap>>,
+    tree: RTree<SimplexBox>,
+}
+
+impl std::fmt::Debug for ModelEval {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("ModelEval")
+            .field("n", &self.n)
+            .field("simplices", &self.inv_edges.len())
+            .finish_non_exhaustive()
+    }
+}
+
+impl ModelEval {
+    /// Checks the array shapes and stage records, inverts every edge matrix and builds the spatial
+    /// index (in parallel).
+    ///
+    /// # Errors
+    /// Dimension outside `1..=3`, inconsistent array lengths, vertex ids out of range, degenerate
+    /// simplices, stage degrees outside `1..=16`, face records or vertex maps of the wrong length.
+    pub fn new(model: &Model) -> Result<ModelEval> {
+        let n = model.dim();
+        if !(1..=3).contains(&n) {
+            return Err(GeomError::Dimension(n));
+        }
+        let m = n + 1;
+        if model.vertices.len() % n != 0 || model.simplices.len() % m != 0 {
+            return Err(GeomError::Shape(format!(
+                "{} vertex coordinates and {} simplex ids are not multiples of {n} and {m}",
+                model.vertices.len(),
+                model.simplices.len()
+            )));
+        }
+        let nv = model.num_vertices();
+        if model.values.len() != nv {
+            return Err(GeomError::Shape(format!(
+                "{} values for {nv} vertices",
+                model.values.len()
+            )));
+        }
+        check_stages(model, m)?;
+        let ns = model.num_simplices();
+        let inv_edges = (0..ns)
+            .into_par_iter()
+            .map(|s| {
+                let ids = model.simplex(s);
+                if let Some(&bad) = ids.iter().find(|&&v| v as usize >= nv) {
+                    return Err(GeomError::NoVertex {
+                        simplex: s,
+                        vertex: bad,
+                        count: nv,
+                    });
+                }
+                let e = edge_matrix(model, ids);
+                let det = linalg::det(n, &e);
+                let inv = linalg::inverse(n, &e).filter(|_| det != 0.0 && det.is_finite());
+                let inv = inv.ok_or(GeomError::Degenerate { simplex: s, det })?;
+                let mut out = [0.0; 9];
+                for r in 0..n {
+                    for c in 0..n {
+                        out[r * 3 + c] = inv[r][c];
+                    }
+                }
+                Ok(out)
+            })
+            .collect::<Result<Vec<_>>>()?;
+        let boxes: Vec<SimplexBox> = (0..ns)
+            .into_par_iter()
+            .map(|s| {
+                let mut lo = [0.0; 3];
+                let mut hi = [0.0; 3];
+                for (k, &v) in model.simplex(s).iter().enumerate() {
+                    let p = model.vertex(v as usize);
+                    for x in 0..n {
+                        if k == 0 || p[x] < lo[x] {
+                            lo[x] = p[x];
+                        }
+                        if k == 0 || p[x] > hi[x] {
+                            hi[x] = p[x];
+                        }
+                    }
+                }
+                SimplexBox {
+                    aabb: AABB::from_corners(lo, hi),
+                    id: s as u32,
+                }
+            })
+            .collect();
+        let tree = RTree::bulk_load(boxes);
+        let lookups = model
+            .stages
+            .iter()
+            .enumerate()
+            .map(|(i, s)| StageLookup::new(s, i))
+            .collect();
+        let maps = if model.stages.is_empty() {
+            Vec::new()
+        } else {
+            (0..ns).map(|_| OnceLock::new()).collect()
+        };
+        Ok(ModelEval {
+            model: model.clone(),
+            n,
+            inv_edges,
+            lookups,
+            maps,
+            tree,
+        })
+    }
+
+    /// The model evaluated.
+    pub fn model(&self) -> &Model {
+        &self.model
+    }
+
+    /// Dimension `n`.
+    pub fn dim(&self) -> usize {
+        self.n
+    }
+
+    /// Number of top simplices.
+    pub fn num_simplices(&self) -> usize {
+        self.inv_edges.len()
+    }
+
+    /// The local map (all stages) of simplex `s`, built on first use.
+    ///
+    /// # Panics
+    /// If `s` is out of range.
+    pub fn local_map(&self, s: usize) -> &LocalMap {
+        static IDENTITY: [OnceLock<LocalMap>; MAX_VARS + 1] = [
+            OnceLock::new(),
+            OnceLock::new(),
+            OnceLock::new(),
+            OnceLock::new(),
+            OnceLock::new(),
+        ];
+        let m = self.n + 1;
+        if self.maps.is_empty() {
+            assert!(s < self.num_simplices(), "simplex {s} out of range");
+            return IDENTITY[m].get_or_init(|| LocalMap::from_stages(m, Vec::new()));
+        }
+        self.maps[s].get_or_init(|| {
+            LocalMap::new(&self.model.stages, &self.lookups, self.model.simplex(s))
+                .expect("stage records were checked in ModelEval::new")
+        })
+    }
+
+    /// Unclamped barycentric coordinates of `p` (first `n` entries used) w.r.t. simplex `s`.
+    pub fn barycentric(&self, s: usize, p: &[f64]) -> Bary {
+        let n = self.n;
+        let a = &self.inv_edges[s];
+        let v0 = self.model.vertex(self.model.simplex(s)[0] as usize);
+        let mut w = [0.0; MAX_VARS];
+        let mut sum = 0.0;
+        for r in 0..n {
+            let mut acc = 0.0;
+            for c in 0..n {
+                acc += a[r * 3 + c] * (p[c] - v0[c]);
+            }
+            w[r + 1] = acc;
+            sum += acc;
+        }
+        w[0] = 1.0 - sum;
+        w
+    }
+
+    /// The point `Σ w_i v_i` of simplex `s` (first `n` entries).
+    pub fn point(&self, s: usize, w: &Bary) -> [f64; 3] {
+        let mut p = [0.0; 3];
+        for (i, &v) in self.model.simplex(s).iter().enumerate() {
+            let q = self.model.vertex(v as usize);
+            for x in 0..self.n {
+                p[x] += w[i] * q[x];
+            }
+        }
+        p
+    }
+
+    /// The top simplex containing `p` (first `n` entries used), or `None` outside the complex. On a
+    /// shared face the simplex with the largest smallest coordinate wins (ties: lowest index), so
+    /// the answer is deterministic.
+    pub fn locate(&self, p: &[f64]) -> Option<Located> {
+        let mut q = [0.0; 3];
+        q[..self.n].copy_from_slice(&p[..self.n]);
+        let mut best: Option<(f64, usize, Bary)> = None;
+        for b in self
+            .tree
+            .locate_in_envelope_intersecting(AABB::from_point(q))
+        {
+            let s = b.id as usize;
+            let w = self.barycentric(s, &q);
+            let min = w[..=self.n].iter().copied().fold(f64::INFINITY, f64::min);
+            if min < -LOCATE_TOLERANCE {
+                continue;
+            }
+            let better = match best {
+                None => true,
+                Some((bm, bs, _)) => min > bm || (min == bm && s < bs),
+            };
+            if better {
+                best = Some((min, s, w));
+            }
+        }
+        best.map(|(_, s, w)| Located {
+            simplex: s,
+            w: crate::stage::project(self.n + 1, &w),
+        })
+    }
+
+    /// `F` at barycentric `w` of simplex `s`: `Σ f(v_i) X(w)_i`.
+    pub fn value_at(&self, s: usize, w: &Bary) -> f64 {
+        let u = self.local_map(s).eval(w);
+        self.model
+            .simplex(s)
+            .iter()
+            .enumerate()
+            .map(|(i, &v)| self.model.values[v as usize] * u[i])
+            .sum()
+    }
+
+    /// `∇F` (first `n` entries) at barycentric `w` of simplex `s`, by the chain rule through the
+    /// stages; `None` where a parametric stage's stored Jacobian is singular.
+    pub fn gradient_at(&self, s: usize, w: &Bary) -> Option<[f64; 3]> {
+        let n = self.n;
+        let (_, j) = self.local_map(s).jacobian(w);
+        let j = j?;
+        let ids = self.model.simplex(s);
+        let f0 = self.model.values[ids[0] as usize];
+        // ∂F/∂w_l (reduced) = Σ_k (f_k − f_0) J[k][l].
+        let mut dw = [0.0; 3];
+        for l in 0..n {
+            dw[l] = (0..n)
+                .map(|k| (self.model.values[ids[k + 1] as usize] - f0) * j[k][l])
+                .sum();
+        }
+        let a = &self.inv_edges[s];
+        let mut g = [0.0; 3];
+        for x in 0..n {
+            g[x] = (0..n).map(|l| dw[l] * a[l * 3 + x]).sum();
+        }
+        Some(g)
+    }
+
+    /// `F(p)`, or `None` outside the complex.
+    pub fn value(&self, p: &[f64]) -> Option<f64> {
+        self.locate(p).map(|l| self.value_at(l.simplex, &l.w))
+    }
+
+    /// `∇F(p)`, or `None` outside the complex (or at a singular parametric stage).
+    pub fn gradient(&self, p: &[f64]) -> Option<[f64; 3]> {
+        self.locate(p)
+            .and_then(|l| self.gradient_at(l.simplex, &l.w))
+    }
+
+    /// Whether `p` is inside the shape (`F(p) < c`); `None` outside the complex.
+    pub fn inside(&self, p: &[f64]) -> Option<bool> {
+        self.value(p).map(|f| f < self.model.level)
+    }
+
+    /// The linear patch `θ_σ` of simplex `s`; `None` when all vertex values are on one side of `c`.
+    pub fn patch(&self, s: usize) -> Option<Patch> {
+        let n = self.n;
+        let ids = self.model.simplex(s);
+        let c = self.model.level;
+        let f: Vec<f64> = ids
+            .iter()
+            .map(|&v| self.model.values[v as usize] - c)
+            .collect();
+        let inside: Vec<usize> = (0..=n).filter(|&i| f[i] < 0.0).collect();
+        let outside: Vec<usize> = (0..=n).filter(|&i| f[i] >= 0.0).collect();
+        if inside.is_empty() || outside.is_empty() {
+            return None;
+        }
+        let corner = |a: usize, b: usize| {
+            // Zero of f_a (1 − t) + f_b t on the edge; f_a < 0 ≤ f_b so the denominator is > 0.
+            let t = f[a] / (f[a] - f[b]);
+            let mut u = [0.0; MAX_VARS];
+            u[a] = 1.0 - t;
+            u[b] = t;
+            PatchCorner { u, edge: [a, b] }
+        };
+        let mut corners: Vec<PatchCorner> = if inside.len() == 2 && outside.len() == 2 {
+            let (a, b, c2, d) = (inside[0], inside[1], outside[0], outside[1]);
+            vec![corner(a, c2), corner(a, d), corner(b, d), corner(b, c2)]
+        } else {
+            inside
+                .iter()
+                .flat_map(|&a| outside.iter().map(move |&b| (a, b)))
+                .map(|(a, b)| corner(a, b))
+                .collect()
+        };
+        if n >= 2 {
+            // Orient by the gradient of the linear function (outward: towards F > c).
+            let grad = {
+                let a = &self.inv_edges[s];
+                let mut g = [0.0; 3];
+                for x in 0..n {
+                    g[x] = (0..n).map(|l| (f[l + 1] - f[0]) * a[l * 3 + x]).sum();
+                }
+                g
+            };
+            let p: Vec<[f64; 3]> = corners.iter().map(|k| self.point(s, &k.u)).collect();
+            let d1 = sub(&p[1], &p[0]);
+            let normal = if n == 2 {
+                [d1[1], -d1[0], 0.0]
+            } else {
+                let d2 = sub(&p[2], &p[0]);
+                [
+                    d1[1] * d2[2] - d1[2] * d2[1],
+                    d1[2] * d2[0] - d1[0] * d2[2],
+                    d1[0] * d2[1] - d1[1] * d2[0],
+                ]
+            };
+            let dot: f64 = (0..3).map(|x| normal[x] * grad[x]).sum();
+            if dot < 0.0 {
+                corners.reverse();
+            }
+        }
+        Some(Patch { corners })
+    }
+
+    /// The parametric map at `u ∈ θ_σ` (or any `u ∈ Δⁿ`): `w = X⁻¹(u)`, `p = Σ w_i v_i`.
+    pub fn param_point(&self, s: usize, u: &Bary) -> ParamPoint {
+        let inverse = self.local_map(s).inverse(u);
+        ParamPoint {
+            p: self.point(s, &inverse.w),
+            w: inverse.w,
+            inverse,
+        }
+    }
+
+    /// Derivative `∂p/∂(u_1..u_n)` of the parametric map at barycentric `w = X⁻¹(u)` of simplex
+    /// `s` (row `x` = coordinate, column `l` = `u_l`, `u_0 = 1 − Σ`): `E · DX(w)⁻¹` with `E` the edge
+    /// matrix. Compose with the patch's own parameterisation for an area element. `None` when
+    /// `DX(w)` is singular.
+    pub fn param_jacobian(&self, s: usize, w: &Bary) -> Option<Mat> {
+        let n = self.n;
+        let (_, j) = self.local_map(s).jacobian(w);
+        let jinv = linalg::inverse(n, &j?)?;
+        let e = edge_matrix(&self.model, self.model.simplex(s));
+        Some(linalg::mul(n, &e, &jinv))
+    }
+
+    /// Locates many points (flat, `n` per point), in parallel.
+    pub fn locate_many(&self, points: &[f64]) -> Vec<Option<Located>> {
+        points
+            .par_chunks_exact(self.n)
+            .map(|p| self.locate(p))
+            .collect()
+    }
+
+    /// `F` at many points (flat, `n` per point), in parallel; `None` outside the complex.
+    pub fn values(&self, points: &[f64]) -> Vec<Option<f64>> {
+        points
+            .par_chunks_exact(self.n)
+            .map(|p| self.value(p))
+            .collect()
+    }
+
+    /// `∇F` at many points (flat, `n` per point), in parallel.
+    pub fn gradients(&self, points: &[f64]) -> Vec<Option<[f64; 3]>> {
+        points
+            .par_chunks_exact(self.n)
+            .map(|p| self.gradient(p))
+            .collect()
+    }
+
+    /// The parametric map at many `(simplex, u)` pairs, in parallel.
+    pub fn param_points(&self, queries: &[(usize, Bary)]) -> Vec<ParamPoint> {
+        queries
+            .par_iter()
+            .map(|(s, u)| self.param_point(*s, u))
+            .collect()
+    }
+}
+
+fn sub(a: &[f64; 3], b: &[f64; 3]) -> [f64; 3] {
+    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
+}
+
+/// `E[x][l] = (v_{l+1} − v_0)_x`: columns are the edges from vertex 0.
+fn edge_matrix(model: &Model, ids: &[u32]) -> Mat {
+    let n = model.dim();
+    let v0 = model.vertex(ids[0] as usize);
+    let mut e = [[0.0; MAX_VARS]; MAX_VARS];
+    for l in 0..n {
+        let v = model.vertex(ids[l + 1] as usize);
+        for x in 0..n {
+            e[x][l] = v[x] - v0[x];
+        }
+    }
+    e
+}
+
+/// Checks what [`crate::stage::LocalStage::new`] would reject, once for the whole model.
+fn check_stages(model: &Model, m: usize) -> Result<()> {
+    for (si, stage) in model.stages.iter().enumerate() {
+        let d = stage.degree;
+        if d == 0 || d > MAX_DEGREE {
+            return Err(GeomError::Degree {
+                stage: si,
+                degree: d,
+            });
+        }
+        match stage.kind {
+            StageKind::Monotonic => {
+                for (ri, vm) in stage.vertex_maps.iter().enumerate() {
+                    if vm.coefficients.len() != d as usize + 1 {
+                        return Err(GeomError::VertexMap {
+                            stage: si,
+                            record: ri,
+                            vertex: vm.vertex,
+                            found: vm.coefficients.len(),
+                            expected: d as usize + 1,
+                        });
+                    }
+                }
+            }
+            StageKind::Bezier | StageKind::Rational => {
+                for (ri, rec) in stage.faces.iter().enumerate() {
+                    let k1 = rec.face.len();
+                    let err = |what, found, expected| GeomError::FaceRecord {
+                        stage: si,
+                        record: ri,
+                        face: rec.face.clone(),
+                        what,
+                        found,
+                        expected,
+                    };
+                    if k1 == 0 || k1 > m {
+                        return Err(err("face", k1, m));
+                    }
+                    let owned = multi_index::owned_count(k1, d);
+                    if rec.points.len() != owned * k1 {
+                        return Err(err("points", rec.points.len(), owned * k1));
+                    }
+                    if stage.kind == StageKind::Rational
+                        && !rec.weights.is_empty()
+                        && rec.weights.len() != owned
+                    {
+                        return Err(err("weights", rec.weights.len(), owned));
+                    }
+                }
+            }
+        }
+    }
+    Ok(())
+}

@@ -1,0 +1,944 @@
+//! One stage restricted to one top simplex ([`LocalStage`]) and all stages of one simplex in
+//! order ([`LocalMap`]).
+//!
+//! Coordinates are barycentric, `m = n + 1` of them, in the simplex's LOCAL (stored) vertex order,
+//! held in `[f64; 4]` arrays whose unused tail is zero. Jacobians are `[[f64; 4]; 4]` whose upper-left
+//! block is meaningful: the *reduced* Jacobian is `n × n`, w.r.t. `(w_1..w_n)` with `w_0 = 1 − Σ`, rows
+//! `u_1..u_n`; the *homogeneous* one is `m × m`, the partial derivatives of the stored formula in all
+//! `m` variables.
+//!
+//! K-invariance is structural: a control point owned by a face has zero coordinates off that face,
+//! and `0^e = 0` exactly, so `w_i = 0` gives `u_i = 0` with no rounding; a vertex maps to itself
+//! exactly. The inverse restricts its unknowns to the support of `u` for the same reason.
+
+// Index loops mirror the matrix and multi-index formulas they implement; iterator chains over
+// several arrays at once would hide them.
+#![allow(clippy::needless_range_loop)]
+
+use std::collections::HashMap;
+
+use ism_format::{multi_index, Direction, Model, Stage, StageKind};
+
+use crate::error::{GeomError, Result};
+use crate::linalg;
+use crate::tables::{basis, powers, tables, Tables};
+use crate::{Bary, Mat, MAX_DEGREE, MAX_VARS};
+
+/// Target of the inverse: max-norm of `X(w) − u`. Values are barycentric coordinates of order 1,
+/// so this is about 5 000 ulps — reachable by Newton in double precision for any stage whose
+/// Jacobian is not nearly singular, and far below any geometric tolerance of the format.
+pub const INVERSE_TOLERANCE: f64 = 1e-12;
+
+/// Newton iterations tried before falling back to continuation. Newton converges quadratically
+/// from a good start, so a valid stage either converges in far fewer or is in a region where
+/// continuation is the right tool.
+const NEWTON_MAX_ITERATIONS: u32 = 30;
+
+/// Corrector iterations per continuation step; small steps make a few enough.
+const CONTINUATION_CORRECTOR_ITERATIONS: u32 = 12;
+
+/// Smallest continuation step (in the path parameter `t ∈ [0, 1]`) before giving up; the inverse
+/// path of a diffeomorphism is continuous, so needing smaller steps means the stage is not valid
+/// (or is extremely close to singular).
+const CONTINUATION_MIN_STEP: f64 = 1e-7;
+
+/// Tolerance of intermediate continuation points: they only need to be good starting guesses.
+const CONTINUATION_INTERMEDIATE_TOLERANCE: f64 = 1e-9;
+
+/// Result of inverting a map at one point.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct InverseResult {
+    /// Barycentric preimage (first `m` entries).
+    pub w: Bary,
+    /// Newton iterations spent (all stages, all continuation steps).
+    pub iterations: u32,
+    /// Max-norm of `X(w) − u` at the returned `w` (after projecting `u` onto the simplex).
+    pub residual: f64,
+    /// `residual ≤ INVERSE_TOLERANCE` (and, for a map, every stage converged).
+    pub converged: bool,
+}
+
+/// Map from sorted face ids to their record index, and from vertex ids to monotonic maps, for one
+/// stage. Build it once per stage and share it among all simplices.
+#[derive(Clone, Debug, Default)]
+pub struct StageLookup {
+    stage_index: usize,
+    faces: HashMap<Vec<u32>, usize>,
+    vertices: HashMap<u32, usize>,
+}
+
+impl StageLookup {
+    /// Indexes the records of `stage` (the `stage_index` is only used in error messages).
+    pub fn new(stage: &Stage, stage_index: usize) -> StageLookup {
+        let faces = stage
+            .faces
+            .iter()
+            .enumerate()
+            .map(|(i, r)| (r.face.clone(), i))
+            .collect();
+        let vertices = stage
+            .vertex_maps
+            .iter()
+            .enumerate()
+            .map(|(i, r)| (r.vertex, i))
+            .collect();
+        StageLookup {
+            stage_index,
+            faces,
+            vertices,
+        }
+    }
+
+    /// Whether any face record has a face among the subsets of `simplex` (so the local map may differ
+    /// from the identity).
+    fn touches(&self, stage: &Stage, simplex: &[u32]) -> bool {
+        match stage.kind {
+            StageKind::Monotonic => simplex.iter().any(|v| self.vertices.contains_key(v)),
+            _ => {
+                // Few records per stage is the common case (stratified, sparse edits); many records
+                // are checked per subset instead.
+                let m = simplex.len();
+                if self.faces.len() < (1 << m) {
+                    stage
+                        .faces
+                        .iter()
+                        .any(|r| r.face.iter().all(|v| simplex.contains(v)))
+                } else {
+                    let mut sorted = simplex.to_vec();
+                    sorted.sort_unstable();
+                    (1u32..(1 << m)).any(|mask| {
+                        let face: Vec<u32> = (0..m)
+                            .filter(|i| mask & (1 << i) != 0)
+                            .map(|i| sorted[i])
+                            .collect();
+                        self.faces.contains_key(&face)
+                    })
+                }
+            }
+        }
+    }
+}
+
+/// One stage on one top simplex: the dense control net in local vertex order.
+#[derive(Clone, Debug)]
+pub struct LocalStage {
+    kind: StageKind,
+    direction: Direction,
+    degree: u32,
+    m: usize,
+    identity: bool,
+    tables: &'static Tables,
+    /// Dense control points `b_I` (Bézier, rational), canonical order.
+    points: Vec<Bary>,
+    /// Dense weights `q_I` (rational only).
+    weights: Vec<f64>,
+    /// `q_I b_I` (rational only).
+    weighted: Vec<Bary>,
+    /// Monotonic: `a_j` per local vertex, `(d + 1)` each.
+    mono: Vec<f64>,
+    /// Monotonic: `a_j C(d, j)`.
+    mono_scaled: Vec<f64>,
+    /// Monotonic: `d (a_{j+1} − a_j) C(d − 1, j)`, the derivative's scaled coefficients.
+    mono_deriv: Vec<f64>,
+}
+
+impl LocalStage {
+    /// Builds stage `stage_index` of `model` on top simplex `simplex_index`.
+    ///
+    /// Indexes the stage's records on every call; to build many simplices of one stage use
+    /// [`StageLookup`] with [`LocalStage::new`] (or [`crate::ModelEval`], which caches).
+    pub fn from_model(
+        model: &Model,
+        stage_index: usize,
+        simplex_index: usize,
+    ) -> Result<LocalStage> {
+        let stage = model.stages.get(stage_index).ok_or(GeomError::NoStage {
+            index: stage_index,
+            count: model.stages.len(),
+        })?;
+        let count = model.num_simplices();
+        if simplex_index >= count {
+            return Err(GeomError::NoSimplex {
+                index: simplex_index,
+                count,
+            });
+        }
+        let lookup = StageLookup::new(stage, stage_index);
+        LocalStage::new(stage, &lookup, model.simplex(simplex_index))
+    }
+
+    /// Builds `stage` on the top simplex with vertex ids `simplex` (stored order, `m = n + 1` ids).
+    pub fn new(stage: &Stage, lookup: &StageLookup, simplex: &[u32]) -> Result<LocalStage> {
+        let m = simplex.len();
+        if !(2..=MAX_VARS).contains(&m) {
+            return Err(GeomError::Dimension(m.saturating_sub(1)));
+        }
+        let d = stage.degree;
+        if d == 0 || d > MAX_DEGREE {
+            return Err(GeomError::Degree {
+                stage: lookup.stage_index,
+                degree: d,
+            });
+        }
+        let t = tables(m, d);
+        let mut local = LocalStage {
+            kind: stage.kind,
+            direction: stage.direction,
+            degree: d,
+            m,
+            identity: !lookup.touches(stage, simplex),
+            tables: t,
+            points: Vec::new(),
+            weights: Vec::new(),
+            weighted: Vec::new(),
+            mono: Vec::new(),
+            mono_scaled: Vec::new(),
+            mono_deriv: Vec::new(),
+        };
+        match stage.kind {
+            StageKind::Monotonic => local.fill_monotonic(stage, lookup, simplex)?,
+            StageKind::Bezier | StageKind::Rational => local.fill_net(stage, lookup, simplex)?,
+        }
+        Ok(local)
+    }
+
+    /// An identity stage (no records) of the given kind and degree in `m` variables.
+    pub fn identity(kind: StageKind, degree: u32, m: usize) -> Result<LocalStage> {
+        let stage = Stage::identity(kind, degree);
+        let ids: Vec<u32> = (0..m as u32).collect();
+        LocalStage::new(&stage, &StageLookup::new(&stage, 0), &ids)
+    }
+
+    fn fill_net(&mut self, stage: &Stage, lookup: &StageLookup, simplex: &[u32]) -> Result<()> {
+        let (m, d) = (self.m, self.degree);
+        let rational = stage.kind == StageKind::Rational;
+        let n_idx = self.tables.exps.len();
+        self.points = Vec::with_capacity(n_idx);
+        if rational {
+            self.weights = Vec::with_capacity(n_idx);
+        }
+        for e in &self.tables.exps {
+            // Fixed default I/d, weight 1.
+            let mut b = [0.0; MAX_VARS];
+            for i in 0..m {
+                b[i] = f64::from(e[i]) / f64::from(d);
+            }
+            let mut q = 1.0;
+            if !self.identity {
+                // Local positions of the support, ordered by global id → t_0 < … < t_k.
+                let mut pos: Vec<usize> = (0..m).filter(|&i| e[i] > 0).collect();
+                pos.sort_unstable_by_key(|&i| simplex[i]);
+                let face: Vec<u32> = pos.iter().map(|&i| simplex[i]).collect();
+                if let Some(&ri) = lookup.faces.get(&face) {
+                    let rec = &stage.faces[ri];
+                    let k1 = pos.len();
+                    let owned = multi_index::owned_count(k1, d);
+                    let err = |what, found, expected| GeomError::FaceRecord {
+                        stage: lookup.stage_index,
+                        record: ri,
+                        face: rec.face.clone(),
+                        what,
+                        found,
+                        expected,
+                    };
+                    if rec.points.len() != owned * k1 {
+                        return Err(err("points", rec.points.len(), owned * k1));
+                    }
+                    if rational && !rec.weights.is_empty() && rec.weights.len() != owned {
+                        return Err(err("weights", rec.weights.len(), owned));
+                    }
+                    let j: Vec<u32> = pos.iter().map(|&i| u32::from(e[i])).collect();
+                    let r = rank_owned(&j);
+                    b = [0.0; MAX_VARS];
+                    for (jj, &p) in pos.iter().enumerate() {
+                        b[p] = rec.points[r * k1 + jj];
+                    }
+                    if rational && !rec.weights.is_empty() {
+                        q = rec.weights[r];
+                    }
+                }
+            }
+            self.points.push(b);
+            if rational {
+                self.weights.push(q);
+            }
+        }
+        if rational {
+            self.weighted = self
+                .points
+                .iter()
+                .zip(&self.weights)
+                .map(|(b, &q)| {
+                    let mut out = [0.0; MAX_VARS];
+                    for i in 0..m {
+                        out[i] = q * b[i];
+                    }
+                    out
+                })
+                .collect();
+        }
+        Ok(())
+    }
+
+    fn fill_monotonic(
+        &mut self,
+        stage: &Stage,
+        lookup: &StageLookup,
+        simplex: &[u32],
+    ) -> Result<()> {
+        let d = self.degree as usize;
+        for &v in simplex {
+            match lookup.vertices.get(&v) {
+                Some(&ri) => {
+                    let rec = &stage.vertex_maps[ri];
+                    if rec.coefficients.len() != d + 1 {
+                        return Err(GeomError::VertexMap {
+                            stage: lookup.stage_index,
+                            record: ri,
+                            vertex: v,
+                            found: rec.coefficients.len(),
+                            expected: d + 1,
+                        });
+                    }
+                    self.mono.extend_from_slice(&rec.coefficients);
+                }
+                None => self.mono.extend((0..=d).map(|j| j as f64 / d as f64)),
+            }
+        }
+        for coeffs in self.mono.chunks_exact(d + 1) {
+            for (j, a) in coeffs.iter().enumerate() {
+                self.mono_scaled
+                    .push(a * multi_index::binomial(d as u64, j as u64) as f64);
+            }
+            for j in 0..d {
+                self.mono_deriv.push(
+                    d as f64
+                        * (coeffs[j + 1] - coeffs[j])
+                        * multi_index::binomial(d as u64 - 1, j as u64) as f64,
+                );
+            }
+        }
+        Ok(())
+    }
+
+    /// Map kind.
+    pub fn kind(&self) -> StageKind {
+        self.kind
+    }
+
+    /// Stored direction.
+    pub fn direction(&self) -> Direction {
+        self.direction
+    }
+
+    /// Degree `d`.
+    pub fn degree(&self) -> u32 {
+        self.degree
+    }
+
+    /// Number of barycentric coordinates `m = n + 1`.
+    pub fn vars(&self) -> usize {
+        self.m
+    }
+
+    /// True when no record touches this simplex: the local map is the identity.
+    pub fn is_identity(&self) -> bool {
+        self.identity
+    }
+
+    /// Dense control points `b_I` in canonical order, local vertex order (Bézier and rational; empty
+    /// for monotonic). Each is `[f64; 4]`; the first `m` entries are the coordinates.
+    pub fn control_points(&self) -> &[Bary] {
+        &self.points
+    }
+
+    /// Dense weights `q_I` (rational only; empty otherwise).
+    pub fn weights(&self) -> &[f64] {
+        &self.weights
+    }
+
+    /// Monotonic coefficients `a_0..a_d` of local vertex `i` (empty slice for other kinds).
+    pub fn monotonic_coefficients(&self, i: usize) -> &[f64] {
+        let d = self.degree as usize + 1;
+        self.mono.get(i * d..(i + 1) * d).unwrap_or(&[])
+    }
+
+    /// Evaluates the STORED map at `w` (for a parametric stage this is `X⁻¹`).
+    #[inline]
+    pub fn eval_stored(&self, w: &Bary) -> Bary {
+        if self.identity {
+            return *w;
+        }
+        let (m, d) = (self.m, self.degree);
+        match self.kind {
+            StageKind::Bezier => {
+                let pw = powers(m, d, w);
+                let t = self.tables;
+                let mut u = [0.0; MAX_VARS];
+                for ((e, &mult), b) in t.exps.iter().zip(&t.multinom).zip(&self.points) {
+                    let bi = basis(m, mult, e, &pw);
+                    for i in 0..MAX_VARS {
+                        u[i] += bi * b[i];
+                    }
+                }
+                u
+            }
+            StageKind::Rational => {
+                let pw = powers(m, d, w);
+                let t = self.tables;
+                let mut p = [0.0; MAX_VARS];
+                let mut q = 0.0;
+                for (((e, &mult), qb), &wt) in t
+                    .exps
+                    .iter()
+                    .zip(&t.multinom)
+                    .zip(&self.weighted)
+                    .zip(&self.weights)
+                {
+                    let bi = basis(m, mult, e, &pw);
+                    q += wt * bi;
+                    for i in 0..MAX_VARS {
+                        p[i] += bi * qb[i];
+                    }
+                }
+                for v in p.iter_mut() {
+                    *v /= q;
+                }
+                p
+            }
+            StageKind::Monotonic => {
+                let mut g = [0.0; MAX_VARS];
+                let mut s = 0.0;
+                for i in 0..m {
+                    g[i] = self.g(i, w[i]);
+                    s += g[i];
+                }
+                for v in g.iter_mut() {
+                    *v /= s;
+                }
+                g
+            }
+        }
+    }
+
+    /// `g_i(t)` of local vertex `i` (monotonic).
+    #[inline]
+    fn g(&self, i: usize, t: f64) -> f64 {
+        let d = self.degree as usize;
+        let a = &self.mono_scaled[i * (d + 1)..(i + 1) * (d + 1)];
+        bernstein_1d(a, t)
+    }
+
+    /// `g_i'(t)` (monotonic).
+    #[inline]
+    fn g_prime(&self, i: usize, t: f64) -> f64 {
+        let d = self.degree as usize;
+        let a = &self.mono_deriv[i * d..(i + 1) * d];
+        bernstein_1d(a, t)
+    }
+
+    /// Value and homogeneous `m × m` Jacobian `H[i][j] = ∂S_i/∂w_j` of the STORED map `S` at `w`.
+    pub fn homogeneous_jacobian_stored(&self, w: &Bary) -> (Bary, Mat) {
+        let m = self.m;
+        let mut h = [[0.0; MAX_VARS]; MAX_VARS];
+        if self.identity {
+            for (i, row) in h.iter_mut().enumerate().take(m) {
+                row[i] = 1.0;
+            }
+            return (*w, h);
+        }
+        let d = self.degree;
+        let t = self.tables;
+        match self.kind {
+            StageKind::Bezier => {
+                let pw = powers(m, d, w);
+                let df = f64::from(d);
+                for ((e, &mult), up) in t.lower_exps.iter().zip(&t.lower_multinom).zip(&t.up) {
+                    let bk = df * basis(m, mult, e, &pw);
+                    for j in 0..m {
+                        let b = &self.points[up[j] as usize];
+                        for i in 0..m {
+                            h[i][j] += bk * b[i];
+                        }
+                    }
+                }
+                (self.eval_stored(w), h)
+            }
+            StageKind::Rational => {
+                let pw = powers(m, d, w);
+                let df = f64::from(d);
+                let mut p = [0.0; MAX_VARS];
+                let mut q = 0.0;
+                for (((e, &mult), qb), &wt) in t
+                    .exps
+                    .iter()
+                    .zip(&t.multinom)
+                    .zip(&self.weighted)
+                    .zip(&self.weights)
+                {
+                    let bi = basis(m, mult, e, &pw);
+                    q += wt * bi;
+                    for i in 0..m {
+                        p[i] += bi * qb[i];
+                    }
+                }
+                let mut dp = [[0.0; MAX_VARS]; MAX_VARS];
+                let mut dq = [0.0; MAX_VARS];
+                for ((e, &mult), up) in t.lower_exps.iter().zip(&t.lower_multinom).zip(&t.up) {
+                    let bk = df * basis(m, mult, e, &pw);
+                    for j in 0..m {
+                        let r = up[j] as usize;
+                        dq[j] += bk * self.weights[r];
+                        let qb = &self.weighted[r];
+                        for i in 0..m {
+                            dp[i][j] += bk * qb[i];
+                        }
+                    }
+                }
+                let mut u = [0.0; MAX_VARS];
+                for i in 0..m {
+                    u[i] = p[i] / q;
+                }
+                for i in 0..m {
+                    for j in 0..m {
+                        h[i][j] = (dp[i][j] - u[i] * dq[j]) / q;
+                    }
+                }
+                (u, h)
+            }
+            StageKind::Monotonic => {
+                let mut g = [0.0; MAX_VARS];
+                let mut gp = [0.0; MAX_VARS];
+                let mut s = 0.0;
+                for i in 0..m {
+                    g[i] = self.g(i, w[i]);
+                    gp[i] = self.g_prime(i, w[i]);
+                    s += g[i];
+                }
+                let mut u = [0.0; MAX_VARS];
+                for i in 0..m {
+                    u[i] = g[i] / s;
+                }
+                for i in 0..m {
+                    for j in 0..m {
+                        let diag = if i == j { gp[i] } else { 0.0 };
+                        h[i][j] = (diag - u[i] * gp[j]) / s;
+                    }
+                }
+                (u, h)
+            }
+        }
+    }
+
+    /// Value and reduced `n × n` Jacobian of the STORED map at `w`.
+    pub fn jacobian_stored(&self, w: &Bary) -> (Bary, Mat) {
+        let (u, h) = self.homogeneous_jacobian_stored(w);
+        (u, reduce(self.m, &h))
+    }
+
+    /// `X(w)`: the stage in the implicit direction (point coordinates → function coordinates),
+    /// whatever the stored direction.
+    #[inline]
+    pub fn eval(&self, w: &Bary) -> Bary {
+        match self.direction {
+            Direction::Implicit => self.eval_stored(w),
+            Direction::Parametric => self.invert_stored(w).w,
+        }
+    }
+
+    /// `X⁻¹(u)`: function coordinates → point coordinates, whatever the stored direction.
+    pub fn inverse(&self, u: &Bary) -> InverseResult {
+        match self.direction {
+            Direction::Implicit => self.invert_stored(u),
+            Direction::Parametric => {
+                let w = self.eval_stored(&project(self.m, u));
+                InverseResult {
+                    w,
+                    iterations: 0,
+                    residual: 0.0,
+                    converged: true,
+                }
+            }
+        }
+    }
+
+    /// `X(w)` and the reduced Jacobian `DX(w)` (for a parametric stage, the inverse of the stored
+    /// map's Jacobian at `X(w)`; `None` there when it is singular).
+    pub fn jacobian(&self, w: &Bary) -> (Bary, Option<Mat>) {
+        match self.direction {
+            Direction::Implicit => {
+                let (u, j) = self.jacobian_stored(w);
+                (u, Some(j))
+            }
+            Direction::Parametric => {
+                let u = self.invert_stored(w).w;
+                let (_, j) = self.jacobian_stored(&u);
+                (u, linalg::inverse(self.m - 1, &j))
+            }
+        }
+    }
+
+    /// `det DX(w)` in reduced coordinates.
+    pub fn det(&self, w: &Bary) -> f64 {
+        match self.jacobian(w) {
+            (_, Some(j)) => linalg::det(self.m - 1, &j),
+            (_, None) => f64::INFINITY,
+        }
+    }
+
+    /// Solves `S(w) = u` for the STORED map `S`: damped Newton on the face that supports `u`, then
+    /// continuation from the face centroid if Newton stalls. `u` is first projected onto the simplex
+    /// (negative or non-finite entries become 0, then it is rescaled to sum 1).
+    pub fn invert_stored(&self, u: &Bary) -> InverseResult {
+        let m = self.m;
+        let u = project(m, u);
+        if self.identity {
+            return InverseResult {
+                w: u,
+                iterations: 0,
+                residual: 0.0,
+                converged: true,
+            };
+        }
+        let mut support = [0usize; MAX_VARS];
+        let mut k1 = 0;
+        for i in 0..m {
+            if u[i] > 0.0 {
+                support[k1] = i;
+                k1 += 1;
+            }
+        }
+        if k1 <= 1 {
+            // A vertex (or nothing left after projection): vertices are fixed exactly.
+            return InverseResult {
+                w: u,
+                iterations: 0,
+                residual: 0.0,
+                converged: k1 == 1,
+            };
+        }
+        let sup = &support[..k1];
+        let mut iterations = 0;
+        let start = u;
+        if let Some((w, r)) = self.newton(
+            sup,
+            &u,
+            start,
+            NEWTON_MAX_ITERATIONS,
+            INVERSE_TOLERANCE,
+            &mut iterations,
+        ) {
+            return InverseResult {
+                w,
+                iterations,
+                residual: r,
+                converged: true,
+            };
+        }
+        // Continuation: from the face centroid c (whose image c* = S(c) is known) follow
+        // u(t) = c* + t (u − c*); the preimage path is continuous for a diffeomorphism.
+        let mut w = [0.0; MAX_VARS];
+        for &i in sup {
+            w[i] = 1.0 / k1 as f64;
+        }
+        let c_star = self.eval_stored(&w);
+        let (mut t, mut h) = (0.0f64, 0.25f64);
+        while t < 1.0 {
+            let t_next = (t + h).min(1.0);
+            let mut target = [0.0; MAX_VARS];
+            for &i in sup {
+                target[i] = c_star[i] + t_next * (u[i] - c_star[i]);
+            }
+            let tol = if t_next >= 1.0 {
+                INVERSE_TOLERANCE
+            } else {
+                CONTINUATION_INTERMEDIATE_TOLERANCE
+            };
+            match self.newton(
+                sup,
+                &target,
+                w,
+                CONTINUATION_CORRECTOR_ITERATIONS,
+                tol,
+                &mut iterations,
+            ) {
+                Some((w_next, r)) => {
+                    w = w_next;
+                    t = t_next;
+                    h = (h * 2.0).min(0.5);
+                    if t >= 1.0 {
+                        return InverseResult {
+                            w,
+                            iterations,
+                            residual: r,
+                            converged: true,
+                        };
+                    }
+                }
+                None => {
+                    h *= 0.5;
+                    if h < CONTINUATION_MIN_STEP {
+                        break;
+                    }
+                }
+            }
+        }
+        let r = residual(m, &self.eval_stored(&w), &u);
+        InverseResult {
+            w,
+            iterations,
+            residual: r,
+            converged: r <= INVERSE_TOLERANCE,
+        }
+    }
+
+    /// Damped Newton for `S(w) = target` with unknowns on `sup` only (the others stay exactly 0).
+    /// Returns the solution and its residual when the residual reaches `tol`.
+    fn newton(
+        &self,
+        sup: &[usize],
+        target: &Bary,
+        mut w: Bary,
+        max_iter: u32,
+        tol: f64,
+        iterations: &mut u32,
+    ) -> Option<(Bary, f64)> {
+        let m = self.m;
+        let k = sup.len() - 1;
+        let s0 = sup[0];
+        let (mut val, mut h) = self.homogeneous_jacobian_stored(&w);
+        let mut r = residual(m, &val, target);
+        for _ in 0..max_iter {
+            if r <= tol {
+                return Some((w, r));
+            }
+            *iterations += 1;
+            let mut a = [[0.0; MAX_VARS]; MAX_VARS];
+            let mut rhs = [0.0; MAX_VARS];
+            for (ri, &s) in sup[1..].iter().enumerate() {
+                rhs[ri] = target[s] - val[s];
+                for (ci, &c) in sup[1..].iter().enumerate() {
+                    a[ri][ci] = h[s][c] - h[s][s0];
+                }
+            }
+            let delta = linalg::solve(k, &a, &rhs)?;
+            let mut full = [0.0; MAX_VARS];
+            let mut sum = 0.0;
+            for (ci, &c) in sup[1..].iter().enumerate() {
+                full[c] = delta[ci];
+                sum += delta[ci];
+            }
+            full[s0] = -sum;
+            // Fraction to the boundary: the solution lies in the open face, so never step past it.
+            let mut alpha = 1.0f64;
+            for &i in sup {
+                if full[i] < 0.0 && w[i] + full[i] <= 0.0 {
+                    alpha = alpha.min(0.9 * w[i] / -full[i]);
+                }
+            }
+            let mut accepted = false;
+            for _ in 0..20 {
+                let mut trial = w;
+                for &i in sup {
+                    trial[i] += alpha * full[i];
+                }
+                let tv = self.eval_stored(&trial);
+                let tr = residual(m, &tv, target);
+                if tr < r || tr <= tol {
+                    w = trial;
+                    r = tr;
+                    accepted = true;
+                    break;
+                }
+                alpha *= 0.5;
+            }
+            if !accepted {
+                return None;
+            }
+            (val, h) = self.homogeneous_jacobian_stored(&w);
+        }
+        (r <= tol).then_some((w, r))
+    }
+}
+
+/// Reduced `n × n` Jacobian from the homogeneous one: `R[k−1][l−1] = H[k][l] − H[k][0]`.
+pub fn reduce(m: usize, h: &Mat) -> Mat {
+    let mut r = [[0.0; MAX_VARS]; MAX_VARS];
+    for k in 1..m {
+        for l in 1..m {
+            r[k - 1][l - 1] = h[k][l] - h[k][0];
+        }
+    }
+    r
+}
+
+/// Projects onto the closed simplex: negative or non-finite entries become 0, then the rest are
+/// rescaled to sum 1 (exact zeros stay zero). An all-zero input stays zero.
+pub fn project(m: usize, u: &Bary) -> Bary {
+    let mut out = [0.0; MAX_VARS];
+    let mut s = 0.0;
+    for i in 0..m {
+        if u[i].is_finite() && u[i] > 0.0 {
+            out[i] = u[i];
+            s += u[i];
+        }
+    }
+    if s > 0.0 && s != 1.0 {
+        for v in out.iter_mut() {
+            *v /= s;
+        }
+    }
+    out
+}
+
+fn residual(m: usize, a: &Bary, b: &Bary) -> f64 {
+    (0..m).map(|i| (a[i] - b[i]).abs()).fold(0.0, f64::max)
+}
+
+/// `Σ_j c_j t^j (1 − t)^{d−j}` with `c_j` already scaled by `C(d, j)`.
+#[inline]
+fn bernstein_1d(c: &[f64], t: f64) -> f64 {
+    let d = c.len().saturating_sub(1);
+    let s = 1.0 - t;
+    let mut tp = [1.0; MAX_DEGREE as usize + 1];
+    let mut sp = [1.0; MAX_DEGREE as usize + 1];
+    for j in 1..=d {
+        tp[j] = tp[j - 1] * t;
+        sp[j] = sp[j - 1] * s;
+    }
+    (0..=d).map(|j| c[j] * tp[j] * sp[d - j]).sum()
+}
+
+/// Rank of owned index `j` (all entries ≥ 1, sum `d`) in canonical order of owned indices:
+/// subtracting 1 from every entry is an order-preserving bijection onto all indices of degree
+/// `d − k − 1`.
+fn rank_owned(j: &[u32]) -> usize {
+    let shifted: Vec<u32> = j.iter().map(|&e| e - 1).collect();
+    multi_index::rank(&shifted)
+}
+
+/// All stages of one top simplex, in application order (`stages[0]` first).
+#[derive(Clone, Debug)]
+pub struct LocalMap {
+    m: usize,
+    stages: Vec<LocalStage>,
+}
+
+impl LocalMap {
+    /// Builds every stage of `model` on simplex `simplex_index`.
+    pub fn from_model(model: &Model, simplex_index: usize) -> Result<LocalMap> {
+        let count = model.num_simplices();
+        if simplex_index >= count {
+            return Err(GeomError::NoSimplex {
+                index: simplex_index,
+                count,
+            });
+        }
+        let lookups: Vec<StageLookup> = model
+            .stages
+            .iter()
+            .enumerate()
+            .map(|(i, s)| StageLookup::new(s, i))
+            .collect();
+        LocalMap::new(&model.stages, &lookups, model.simplex(simplex_index))
+    }
+
+    /// Builds the stages on the simplex with vertex ids `simplex`, using prebuilt lookups (one per
+    /// stage, same order).
+    pub fn new(stages: &[Stage], lookups: &[StageLookup], simplex: &[u32]) -> Result<LocalMap> {
+        let m = simplex.len();
+        let stages = stages
+            .iter()
+            .zip(lookups)
+            .map(|(s, l)| LocalStage::new(s, l, simplex))
+            .collect::<Result<Vec<_>>>()?;
+        Ok(LocalMap {
+            m,
+            stages: stages.into_iter().filter(|s| !s.is_identity()).collect(),
+        })
+    }
+
+    /// A map from explicit local stages (all with `m` variables), in application order.
+    pub fn from_stages(m: usize, stages: Vec<LocalStage>) -> LocalMap {
+        LocalMap { m, stages }
+    }
+
+    /// The non-identity stages, in application order.
+    pub fn stages(&self) -> &[LocalStage] {
+        &self.stages
+    }
+
+    /// Number of barycentric coordinates.
+    pub fn vars(&self) -> usize {
+        self.m
+    }
+
+    /// `X(w) = X_{last}(… X_0(w))`.
+    #[inline]
+    pub fn eval(&self, w: &Bary) -> Bary {
+        let mut u = *w;
+        for s in &self.stages {
+            u = s.eval(&u);
+        }
+        u
+    }
+
+    /// `X(w)` and its reduced Jacobian by the chain rule; `None` if a parametric stage's stored
+    /// Jacobian is singular.
+    pub fn jacobian(&self, w: &Bary) -> (Bary, Option<Mat>) {
+        let n = self.m - 1;
+        let mut u = *w;
+        let mut acc = identity_mat(n);
+        for s in &self.stages {
+            let (next, j) = s.jacobian(&u);
+            let Some(j) = j else {
+                return (self.eval(w), None);
+            };
+            acc = linalg::mul(n, &j, &acc);
+            u = next;
+        }
+        (u, Some(acc))
+    }
+
+    /// `det DX(w)` (reduced).
+    pub fn det(&self, w: &Bary) -> f64 {
+        match self.jacobian(w).1 {
+            Some(j) => linalg::det(self.m - 1, &j),
+            None => f64::INFINITY,
+        }
+    }
+
+    /// `X⁻¹(u) = X_0⁻¹(… X_{last}⁻¹(u))`; `residual` is that of the whole map, `|X(w) − u|∞`.
+    pub fn inverse(&self, u: &Bary) -> InverseResult {
+        let u = project(self.m, u);
+        let mut w = u;
+        let mut iterations = 0;
+        let mut all = true;
+        for s in self.stages.iter().rev() {
+            let r = s.inverse(&w);
+            iterations += r.iterations;
+            all &= r.converged;
+            w = r.w;
+        }
+        let residual = if self.stages.is_empty() {
+            0.0
+        } else {
+            residual(self.m, &self.eval(&w), &u)
+        };
+        InverseResult {
+            w,
+            iterations,
+            residual,
+            converged: all && residual <= INVERSE_TOLERANCE * self.stages.len().max(1) as f64,
+        }
+    }
+}
+
+/// Identity in the upper-left `n × n` block.
+pub fn identity_mat(n: usize) -> Mat {
+    let mut a = [[0.0; MAX_VARS]; MAX_VARS];
+    for (i, row) in a.iter_mut().enumerate().take(n) {
+        row[i] = 1.0;
+    }
+    a
+}
