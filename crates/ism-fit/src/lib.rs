@@ -1,2 +1,26 @@
-//! ISM fitting: adaptive polygonization of implicit functions, Hermite modeling, meshes in
+//! ISM fitting: adaptive polygonization of implicit functions (papers `000` §9.2, `001` §6).
 #![deny(missing_docs)]
+
+pub mod complex;
+pub mod expr;
+pub mod interval;
+pub mod presets;
+
+pub use expr::{Expression, ImplicitFunction};
+pub use presets::{Preset, PRESETS};
+
+/// Errors of this crate.
+#[derive(Debug, thiserror::Error)]
+pub enum FitError {
+    /// An expression did not parse, or uses a variable the dimension does not have.
+    #[error("expression `{text}`: {message}")]
+    Expression {
+        /// The expression text.
+        text: String,
+        /// What went wrong.
+        message: String,
+    },
+    /// Inconsistent or out-of-range options.
+    #[error("options: {0}")]
+    Options(String),
+}
