@@ -1,0 +1,606 @@
+//! VTK writers: legacy `.vtk` (ASCII, version 4.2) and XML `.vtu` (ASCII), for the extracted
+//! surface and for the complex itself as Bézier cells.
+//!
+//! Our own writer rather than `vtkio`: vtkio's current line is 0.7 release candidates on a forked
+//! XML crate, and what we need (one unstructured grid, a handful of arrays, active-attribute
+//! declarations such as `RationalWeights`) is a hundred lines of text we can test directly against
+//! the Python `vtk` reader.
+
+use std::io::Write;
+
+use crate::mesh::{Mesh, Primitive};
+use crate::Result;
+
+/// VTK cell type ids (`vtkCellType.h`).
+pub mod cell_type {
+    /// `VTK_LINE`
+    pub const LINE: u8 = 3;
+    /// `VTK_TRIANGLE`
+    pub const TRIANGLE: u8 = 5;
+    /// `VTK_TETRA`
+    pub const TETRA: u8 = 10;
+    /// `VTK_BEZIER_TRIANGLE`
+    pub const BEZIER_TRIANGLE: u8 = 76;
+    /// `VTK_BEZIER_TETRAHEDRON`
+    pub const BEZIER_TETRAHEDRON: u8 = 78;
+}
+
+/// Values of a data array: floating point or integer.
+#[derive(Clone, Debug, PartialEq)]
+pub enum ArrayValues {
+    /// `Float64` / `double`.
+    Float(Vec<f64>),
+    /// `Int64` / `vtkIdType`-sized integers.
+    Int(Vec<i64>),
+}
+
+impl ArrayValues {
+    fn len(&self) -> usize {
+        match self {
+            ArrayValues::Float(v) => v.len(),
+            ArrayValues::Int(v) => v.len(),
+        }
+    }
+}
+
+/// The role a point-data array plays (VTK's active attributes).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Attribute {
+    /// A plain named array.
+    None,
+    /// The active scalars (what filters contour by default).
+    Scalars,
+    /// The active normals.
+    Normals,
+    /// Rational Bézier weights; VTK honours them only when declared as this attribute.
+    RationalWeights,
+}
+
+/// A named data array with `components` values per tuple.
+#[derive(Clone, Debug, PartialEq)]
+pub struct DataArray {
+    /// Array name.
+    pub name: String,
+    /// Values per tuple.
+    pub components: usize,
+    /// The values, tuple-major.
+    pub values: ArrayValues,
+    /// Active-attribute role.
+    pub attribute: Attribute,
+}
+
+/// An unstructured grid, the one dataset both writers produce.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct UnstructuredGrid {
+    /// Point coordinates.
+    pub points: Vec<[f64; 3]>,
+    /// Cell connectivity, flat.
+    pub connectivity: Vec<u64>,
+    /// End offset of each cell in `connectivity`.
+    pub offsets: Vec<u64>,
+    /// VTK cell type of each cell.
+    pub types: Vec<u8>,
+    /// Per-point arrays.
+    pub point_data: Vec<DataArray>,
+    /// Per-cell arrays.
+    pub cell_data: Vec<DataArray>,
+}
+
+impl UnstructuredGrid {
+    /// Appends a cell.
+    pub fn push_cell(&mut self, cell_type: u8, ids: impl IntoIterator<Item = u64>) {
+        self.connectivity.extend(ids);
+        self.offsets.push(self.connectivity.len() as u64);
+        self.types.push(cell_type);
+    }
+
+    /// Number of cells.
+    pub fn num_cells(&self) -> usize {
+        self.types.len()
+    }
+
+    /// The surface or curve of `mesh` as a grid of triangles or lines, with point arrays `Normals`
+    /// (active normals), `GradientNorm` (`|∇F|`, active scalars) and `SourceSimplex`, and the
+    /// cell array `SourceSimplex`.
+    pub fn from_mesh(mesh: &Mesh) -> UnstructuredGrid {
+        let mut g = UnstructuredGrid {
+            points: mesh.positions.clone(),
+            ..Default::default()
+        };
+        let t = match mesh.primitive {
+            Primitive::Triangles => cell_type::TRIANGLE,
+            Primitive::Segments => cell_type::LINE,
+        };
+        for c in mesh.cell_iter() {
+            g.push_cell(t, c.iter().map(|&i| u64::from(i)));
+        }
+        if mesh.normals.len() == mesh.positions.len() {
+            g.point_data.push(DataArray {
+                name: "Normals".into(),
+                components: 3,
+                values: ArrayValues::Float(mesh.normals.iter().flatten().copied().collect()),
+                attribute: Attribute::Normals,
+            });
+        }
+        if mesh.gradient_norm.len() == mesh.positions.len() {
+            g.point_data.push(DataArray {
+                name: "GradientNorm".into(),
+                components: 1,
+                values: ArrayValues::Float(mesh.gradient_norm.clone()),
+                attribute: Attribute::Scalars,
+            });
+        }
+        if mesh.vertex_simplex.len() == mesh.positions.len() {
+            g.point_data.push(DataArray {
+                name: "SourceSimplex".into(),
+                components: 1,
+                values: ArrayValues::Int(
+                    mesh.vertex_simplex.iter().map(|&s| i64::from(s)).collect(),
+                ),
+                attribute: Attribute::None,
+            });
+        }
+        if mesh.cell_simplex.len() == mesh.num_cells() {
+            g.cell_data.push(DataArray {
+                name: "SourceSimplex".into(),
+                components: 1,
+                values: ArrayValues::Int(mesh.cell_simplex.iter().map(|&s| i64::from(s)).collect()),
+                attribute: Attribute::None,
+            });
+        }
+        g
+    }
+
+    /// Writes the XML `.vtu` form (ASCII data arrays).
+    ///
+    /// # Errors
+    /// [`crate::Error::Io`] when the writer fails.
+    pub fn write_vtu<W: Write>(&self, mut out: W) -> Result<()> {
+        writeln!(out, r#"<?xml version="1.0"?>"#)?;
+        writeln!(
+            out,
+            r#"<VTKFile type="UnstructuredGrid" version="1.0" byte_order="LittleEndian" header_type="UInt64">"#
+        )?;
+        writeln!(out, "  <UnstructuredGrid>")?;
+        writeln!(
+            out,
+            r#"    <Piece NumberOfPoints="{}" NumberOfCells="{}">"#,
+            self.points.len(),
+            self.num_cells()
+        )?;
+        write_vtu_data(&mut out, "PointData", &self.point_data)?;
+        write_vtu_data(&mut out, "CellData", &self.cell_data)?;
+        writeln!(out, "      <Points>")?;
+        writeln!(
+            out,
+            r#"        <DataArray type="Float64" NumberOfComponents="3" format="ascii">"#
+        )?;
+        for p in &self.points {
+            writeln!(out, "{} {} {}", p[0], p[1], p[2])?;
+        }
+        writeln!(out, "        </DataArray>")?;
+        writeln!(out, "      </Points>")?;
+        writeln!(out, "      <Cells>")?;
+        writeln!(
+            out,
+            r#"        <DataArray type="Int64" Name="connectivity" format="ascii">"#
+        )?;
+        let mut start = 0usize;
+        for &end in &self.offsets {
+            write_joined(&mut out, &self.connectivity[start..end as usize])?;
+            start = end as usize;
+        }
+        writeln!(out, "        </DataArray>")?;
+        writeln!(
+            out,
+            r#"        <DataArray type="Int64" Name="offsets" format="ascii">"#
+        )?;
+        write_wrapped(&mut out, &self.offsets)?;
+        writeln!(out, "        </DataArray>")?;
+        writeln!(
+            out,
+            r#"        <DataArray type="UInt8" Name="types" format="ascii">"#
+        )?;
+        write_wrapped(&mut out, &self.types)?;
+        writeln!(out, "        </DataArray>")?;
+        writeln!(out, "      </Cells>")?;
+        writeln!(out, "    </Piece>")?;
+        writeln!(out, "  </UnstructuredGrid>")?;
+        writeln!(out, "</VTKFile>")?;
+        out.flush()?;
+        Ok(())
+    }
+
+    /// Writes the legacy `.vtk` form (ASCII, file version 4.2). The active normals become
+    /// `NORMALS`, the active scalars `SCALARS`, every other array a `FIELD` entry.
+    ///
+    /// # Errors
+    /// [`crate::Error::Io`] when the writer fails.
+    pub fn write_legacy<W: Write>(&self, title: &str, mut out: W) -> Result<()> {
+        writeln!(out, "# vtk DataFile Version 4.2")?;
+        // The title is one line of at most 256 characters.
+        let title: String = title
+            .chars()
+            .filter(|c| !c.is_control())
+            .take(255)
+            .collect();
+        writeln!(
+            out,
+            "{}",
+            if title.is_empty() {
+                "ISM export"
+            } else {
+                &title
+            }
+        )?;
+        writeln!(out, "ASCII")?;
+        writeln!(out, "DATASET UNSTRUCTURED_GRID")?;
+        writeln!(out, "POINTS {} double", self.points.len())?;
+        for p in &self.points {
+            writeln!(out, "{} {} {}", p[0], p[1], p[2])?;
+        }
+        writeln!(
+            out,
+            "CELLS {} {}",
+            self.num_cells(),
+            self.num_cells() + self.connectivity.len()
+        )?;
+        let mut start = 0usize;
+        for &end in &self.offsets {
+            let ids = &self.connectivity[start..end as usize];
+            write!(out, "{} ", ids.len())?;
+            write_joined(&mut out, ids)?;
+            start = end as usize;
+        }
+        writeln!(out, "CELL_TYPES {}", self.num_cells())?;
+        write_wrapped(&mut out, &self.types)?;
+        write_legacy_data(&mut out, "POINT_DATA", self.points.len(), &self.point_data)?;
+        write_legacy_data(&mut out, "CELL_DATA", self.num_cells(), &self.cell_data)?;
+        out.flush()?;
+        Ok(())
+    }
+}
+
+fn write_joined<W: Write, T: std::fmt::Display>(out: &mut W, values: &[T]) -> std::io::Result<()> {
+    for (i, v) in values.iter().enumerate() {
+        if i > 0 {
+            out.write_all(b" ")?;
+        }
+        write!(out, "{v}")?;
+    }
+    out.write_all(b"\n")
+}
+
+/// Writes values a fixed number per line, so no line grows with the mesh.
+fn write_wrapped<W: Write, T: std::fmt::Display>(out: &mut W, values: &[T]) -> std::io::Result<()> {
+    for chunk in values.chunks(12) {
+        write_joined(out, chunk)?;
+    }
+    Ok(())
+}
+
+fn write_array_values<W: Write>(out: &mut W, a: &DataArray) -> std::io::Result<()> {
+    let per_line = a.components.max(1);
+    match &a.values {
+        ArrayValues::Float(v) => {
+            for chunk in v.chunks(per_line) {
+                write_joined(out, chunk)?;
+            }
+        }
+        ArrayValues::Int(v) => {
+            for chunk in v.chunks(per_line.max(12)) {
+                write_joined(out, chunk)?;
+            }
+        }
+    }
+    Ok(())
+}
+
+fn write_vtu_data<W: Write>(
+    out: &mut W,
+    section: &str,
+    arrays: &[DataArray],
+) -> std::io::Result<()> {
+    let mut decl = String::new();
+    for a in arrays {
+        let key = match a.attribute {
+            Attribute::None => continue,
+            Attribute::Scalars => "Scalars",
+            Attribute::Normals => "Normals",
+            Attribute::RationalWeights => "RationalWeights",
+        };
+        decl.push_str(&format!(r#" {key}="{}""#, xml_escape(&a.name)));
+    }
+    writeln!(out, "      <{section}{decl}>")?;
+    for a in arrays {
+        let ty = match a.values {
+            ArrayValues::Float(_) => "Float64",
+            ArrayValues::Int(_) => "Int64",
+        };
+        writeln!(
+            out,
+            r#"        <DataArray type="{ty}" Name="{}" NumberOfComponents="{}" format="ascii">"#,
+            xml_escape(&a.name),
+            a.components
+        )?;
+        write_array_values(out, a)?;
+        writeln!(out, "        </DataArray>")?;
+    }
+    writeln!(out, "      </{section}>")
+}
+
+fn write_legacy_data<W: Write>(
+    out: &mut W,
+    section: &str,
+    count: usize,
+    arrays: &[DataArray],
+) -> std::io::Result<()> {
+    if arrays.is_empty() {
+        return Ok(());
+    }
+    writeln!(out, "{section} {count}")?;
+    let legacy_name = |name: &str| name.replace(char::is_whitespace, "_");
+    let mut fields = Vec::new();
+    let mut scalars_done = false;
+    let mut normals_done = false;
+    for a in arrays {
+        match (a.attribute, &a.values) {
+            (Attribute::Normals, ArrayValues::Float(_)) if !normals_done && a.components == 3 => {
+                normals_done = true;
+                writeln!(out, "NORMALS {} double", legacy_name(&a.name))?;
+                write_array_values(out, a)?;
+            }
+            (Attribute::Scalars, values) if !scalars_done => {
+                scalars_done = true;
+                let ty = if matches!(values, ArrayValues::Float(_)) {
+                    "double"
+                } else {
+                    "long"
+                };
+                writeln!(
+                    out,
+                    "SCALARS {} {ty} {}",
+                    legacy_name(&a.name),
+                    a.components
+                )?;
+                writeln!(out, "LOOKUP_TABLE default")?;
+                write_array_values(out, a)?;
+            }
+            _ => fields.push(a),
+        }
+    }
+    if !fields.is_empty() {
+        writeln!(out, "FIELD FieldData {}", fields.len())?;
+        for a in fields {
+            let ty = if matches!(a.values, ArrayValues::Float(_)) {
+                "double"
+            } else {
+                "long"
+            };
+            writeln!(
+                out,
+                "{} {} {} {ty}",
+                legacy_name(&a.name),
+                a.components,
+                a.values.len() / a.components.max(1)
+            )?;
+            write_array_values(out, a)?;
+        }
+    }
+    Ok(())
+}
+
+fn xml_escape(s: &str) -> String {
+    s.replace('&', "&amp;")
+        .replace('<', "&lt;")
+        .replace('>', "&gt;")
+        .replace('"', "&quot;")
+}
+
+/// Point order of VTK's higher-order triangle of degree `d`, as VTK barycentric indices
+/// `(b0, b1, b2)` where local vertex 0 is `(0, 0, d)`, vertex 1 `(d, 0, 0)`, vertex 2 `(0, d, 0)`:
+/// the three vertices, the edges (0→1, 1→2, 2→0) each walked from its first vertex, then the
+/// interior as a triangle of degree `d − 3` in the same order, recursively.
+pub fn vtk_triangle_order(d: u32) -> Vec<[u32; 3]> {
+    if d == 0 {
+        return vec![[0, 0, 0]];
+    }
+    let lam = |l: [u32; 3]| [l[1], l[2], l[0]];
+    let mut out = vec![lam([d, 0, 0]), lam([0, d, 0]), lam([0, 0, d])];
+    for (a, b) in [(0usize, 1usize), (1, 2), (2, 0)] {
+        for k in 1..d {
+            let mut l = [0u32; 3];
+            l[a] = d - k;
+            l[b] = k;
+            out.push(lam(l));
+        }
+    }
+    if d >= 3 {
+        out.extend(
+            vtk_triangle_order(d - 3)
+                .into_iter()
+                .map(|b| [b[0] + 1, b[1] + 1, b[2] + 1]),
+        );
+    }
+    out
+}
+
+/// Point order of VTK's higher-order tetrahedron of degree `d`, as VTK barycentric indices
+/// `(b0, b1, b2, b3)` where local vertex 0 is `(0, 0, 0, d)` and vertex `k ≥ 1` has `b_{k−1} = d`:
+/// vertices; edges 0→1, 1→2, 2→0, 0→3, 1→3, 2→3; the four faces' interiors, each a VTK triangle
+/// of degree `d − 3` laid onto the face's coordinates; then the interior as a tetrahedron of degree
+/// `d − 4`, recursively.
+pub fn vtk_tetra_order(d: u32) -> Vec<[u32; 4]> {
+    if d == 0 {
+        return vec![[0, 0, 0, 0]];
+    }
+    // Local vertex weights λ → VTK's barycentric index.
+    let lam = |l: [u32; 4]| [l[1], l[2], l[3], l[0]];
+    let mut out: Vec<[u32; 4]> = (0..4)
+        .map(|v| {
+            let mut l = [0u32; 4];
+            l[v] = d;
+            lam(l)
+        })
+        .collect();
+    for (a, b) in [(0usize, 1usize), (1, 2), (2, 0), (0, 3), (1, 3), (2, 3)] {
+        for k in 1..d {
+            let mut l = [0u32; 4];
+            l[a] = d - k;
+            l[b] = k;
+            out.push(lam(l));
+        }
+    }
+    if d >= 3 {
+        // Which VTK barycentric slots a face's triangle coordinates occupy, and which slot is
+        // zero on that face (faces 013, 123, 203, 021 in vertex terms).
+        const FACE_SLOTS: [[usize; 3]; 4] = [[0, 2, 3], [2, 0, 1], [2, 1, 3], [1, 0, 3]];
+        const FACE_ZERO: [usize; 4] = [1, 3, 0, 2];
+        for f in 0..4 {
+            for t in vtk_triangle_order(d - 3) {
+                let mut b = [0u32; 4];
+                for c in 0..3 {
+                    b[FACE_SLOTS[f][c]] = t[c] + 1;
+                }
+                b[FACE_ZERO[f]] = 0;
+                out.push(b);
+            }
+        }
+    }
+    if d >= 4 {
+        out.extend(
+            vtk_tetra_order(d - 4)
+                .into_iter()
+                .map(|b| [b[0] + 1, b[1] + 1, b[2] + 1, b[3] + 1]),
+        );
+    }
+    out
+}
+
+/// The VTK point order of a degree-`d` Bézier cell on an `n`-simplex as local multi-indices
+/// `I` (entry `i` = exponent of the simplex's stored vertex `i`), flat, `n + 1` per point.
+pub fn vtk_local_multi_indices(n: usize, d: u32) -> Vec<u32> {
+    match n {
+        2 => vtk_triangle_order(d)
+            .into_iter()
+            .flat_map(|b| [b[2], b[0], b[1]])
+            .collect(),
+        3 => vtk_tetra_order(d)
+            .into_iter()
+            .flat_map(|b| [b[3], b[0], b[1], b[2]])
+            .collect(),
+        _ => Vec::new(),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::mesh::tests::tetrahedron_surface;
+
+    // Fixtures printed by Python vtk 9.7: vtkHigherOrderTriangle/Tetra.BarycentricIndex(i, b, d).
+    const VTK_TRI_4: [[u32; 3]; 15] = [
+        [0, 0, 4],
+        [4, 0, 0],
+        [0, 4, 0],
+        [1, 0, 3],
+        [2, 0, 2],
+        [3, 0, 1],
+        [3, 1, 0],
+        [2, 2, 0],
+        [1, 3, 0],
+        [0, 3, 1],
+        [0, 2, 2],
+        [0, 1, 3],
+        [1, 1, 2],
+        [2, 1, 1],
+        [1, 2, 1],
+    ];
+    const VTK_TET_3: [[u32; 4]; 20] = [
+        [0, 0, 0, 3],
+        [3, 0, 0, 0],
+        [0, 3, 0, 0],
+        [0, 0, 3, 0],
+        [1, 0, 0, 2],
+        [2, 0, 0, 1],
+        [2, 1, 0, 0],
+        [1, 2, 0, 0],
+        [0, 2, 0, 1],
+        [0, 1, 0, 2],
+        [0, 0, 1, 2],
+        [0, 0, 2, 1],
+        [2, 0, 1, 0],
+        [1, 0, 2, 0],
+        [0, 2, 1, 0],
+        [0, 1, 2, 0],
+        [1, 0, 1, 1],
+        [1, 1, 1, 0],
+        [0, 1, 1, 1],
+        [1, 1, 0, 1],
+    ];
+    const VTK_TET_5_TAIL: [[u32; 4]; 8] = [
+        [1, 2, 0, 2],
+        [2, 2, 0, 1],
+        [2, 1, 0, 2],
+        [1, 1, 1, 2],
+        [2, 1, 1, 1],
+        [1, 2, 1, 1],
+        [1, 1, 2, 1],
+        [0, 0, 0, 0],
+    ];
+
+    #[test]
+    fn orders_match_vtk_fixtures() {
+        assert_eq!(vtk_triangle_order(4), VTK_TRI_4.to_vec());
+        assert_eq!(vtk_tetra_order(3), VTK_TET_3.to_vec());
+        let t5 = vtk_tetra_order(5);
+        assert_eq!(t5.len(), 56);
+        assert_eq!(t5[49..56], VTK_TET_5_TAIL[..7]);
+    }
+
+    #[test]
+    fn orders_are_permutations_of_all_multi_indices() {
+        for d in 0..=8u32 {
+            for n in [2usize, 3] {
+                let mut ours: Vec<Vec<u32>> = vtk_local_multi_indices(n, d)
+                    .chunks(n + 1)
+                    .map(<[u32]>::to_vec)
+                    .collect();
+                assert!(ours.iter().all(|i| i.iter().sum::<u32>() == d));
+                ours.sort();
+                let mut all: Vec<Vec<u32>> = ism_format::multi_index::all(n + 1, d)
+                    .chunks(n + 1)
+                    .map(<[u32]>::to_vec)
+                    .collect();
+                all.sort();
+                assert_eq!(ours, all, "n = {n}, d = {d}");
+            }
+        }
+    }
+
+    #[test]
+    fn legacy_and_vtu_contain_every_array() {
+        let g = UnstructuredGrid::from_mesh(&tetrahedron_surface());
+        let mut legacy = Vec::new();
+        g.write_legacy("tet", &mut legacy).unwrap();
+        let text = String::from_utf8(legacy).unwrap();
+        assert!(text.contains("CELLS 4 16\n3 0 2 1\n"));
+        assert!(text.contains("NORMALS Normals double"));
+        assert!(text.contains("SCALARS GradientNorm double 1"));
+        assert!(text.contains("FIELD FieldData 1\nSourceSimplex 1 4 long"));
+        assert!(text.contains("CELL_DATA 4"));
+        let mut vtu = Vec::new();
+        g.write_vtu(&mut vtu).unwrap();
+        let text = String::from_utf8(vtu).unwrap();
+        let doc = roxmltree::Document::parse(&text).expect("well-formed XML");
+        let piece = doc.descendants().find(|n| n.has_tag_name("Piece")).unwrap();
+        assert_eq!(piece.attribute("NumberOfPoints"), Some("4"));
+        assert_eq!(piece.attribute("NumberOfCells"), Some("4"));
+        let pd = doc
+            .descendants()
+            .find(|n| n.has_tag_name("PointData"))
+            .unwrap();
+        assert_eq!(pd.attribute("Normals"), Some("Normals"));
+        assert_eq!(pd.attribute("Scalars"), Some("GradientNorm"));
+    }
+}
