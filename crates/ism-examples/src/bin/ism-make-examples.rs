@@ -1,1 +1,61 @@
-fn main() {}
+//! `ism-make-examples`: (re)writes `spec/examples/` and, with `--vectors`, `spec/vectors/reader/`.
+
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+use clap::Parser;
+
+const AFTER_HELP: &str = "\
+Examples:
+  cargo run -p ism-examples --bin ism-make-examples                 # rewrite spec/examples/
+  cargo run -p ism-examples --bin ism-make-examples -- --vectors    # also spec/vectors/reader/
+  ism-make-examples --examples-dir /tmp/ex --no-examples --vectors --vectors-dir /tmp/vec
+
+Output is deterministic: running it twice gives identical bytes.
+Exit status: 0 when every file was written, 2 on a write error or a vector that does not fail as intended.";
+
+/// Writes the ISM example models (three encodings each) and the reader test vectors.
+#[derive(Parser)]
+#[command(name = "ism-make-examples", version, about, after_help = AFTER_HELP)]
+struct Args {
+    /// Directory of the examples.
+    #[arg(long, default_value = "spec/examples")]
+    examples_dir: PathBuf,
+    /// Skip the examples.
+    #[arg(long)]
+    no_examples: bool,
+    /// Also write the reader test vectors.
+    #[arg(long)]
+    vectors: bool,
+    /// Directory of the reader test vectors.
+    #[arg(long, default_value = "spec/vectors/reader")]
+    vectors_dir: PathBuf,
+}
+
+fn main() -> ExitCode {
+    let args = Args::parse();
+    match run(&args) {
+        Ok(count) => {
+            eprintln!("wrote {count} files");
+            ExitCode::SUCCESS
+        }
+        Err(e) => {
+            eprintln!("ism-make-examples: {e:#}");
+            ExitCode::from(2)
+        }
+    }
+}
+
+fn run(args: &Args) -> anyhow::Result<usize> {
+    let mut count = 0;
+    if !args.no_examples {
+        std::fs::create_dir_all(&args.examples_dir)?;
+        count += ism_examples::named::write_examples(&args.examples_dir)?.len();
+    }
+    if args.vectors {
+        count += ism_examples::vectors::write_reader_vectors(&args.vectors_dir)
+            .map_err(anyhow::Error::msg)?
+            .len();
+    }
+    Ok(count)
+}
