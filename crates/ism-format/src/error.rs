@@ -9,12 +9,12 @@ use crate::rules::{Diagnostic, Location, Rule};
 #[non_exhaustive]
 pub enum Error {
     /// The operating system refused a read or write.
-    #[error("I/O error{}: {source}", path.as_ref().map(|p| format!(" on {}", p.display())).unwrap_or_default())]
+    #[error("I/O error{}: {error}", path.as_ref().map(|p| format!(" on {}", p.display())).unwrap_or_default())]
     Io {
         /// The file, when known.
         path: Option<PathBuf>,
         /// The underlying error.
-        source: std::io::Error,
+        error: std::io::Error,
     },
     /// The bytes break a requirement of the container or encoding (spec §7).
     #[error("{0}")]
@@ -30,7 +30,7 @@ impl Error {
     }
 
     pub(crate) fn io(path: Option<PathBuf>, source: std::io::Error) -> Error {
-        Error::Io { path, source }
+        Error::Io { path, error: source }
     }
 
     /// The diagnostics this error carries (empty for I/O errors).

@@ -179,7 +179,7 @@ pub fn read_path(path: impl AsRef<Path>) -> Result<Document> {
     let path = path.as_ref();
     let file = std::fs::File::open(path).map_err(|e| Error::io(Some(path.to_path_buf()), e))?;
     read_with(std::io::BufReader::new(file), &ReadOptions::default()).map_err(|e| match e {
-        Error::Io { path: None, source } => Error::io(Some(path.to_path_buf()), source),
+        Error::Io { path: None, error } => Error::io(Some(path.to_path_buf()), error),
         other => other,
     })
 }
@@ -735,6 +735,14 @@ pub fn write_atomic(
         let mut w = std::io::BufWriter::new(tmp.as_file());
         fill(&mut w)?;
         w.flush()?;
+    }
+    // Temporary files are created owner-only; give the result the permissions of the file it
+    // replaces, or the usual rw-r--r-- for a new file.
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::PermissionsExt;
+        let mode = std::fs::metadata(path).map(|m| m.permissions().mode()).unwrap_or(0o644);
+        tmp.as_file().set_permissions(std::fs::Permissions::from_mode(mode))?;
     }
     tmp.as_file().sync_all()?;
     tmp.persist(path).map_err(|e| e.error)?;

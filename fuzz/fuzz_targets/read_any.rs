@@ -1,0 +1,10 @@
+//! Whole reader with content sniffing: arbitrary bytes must give Ok or a typed error, never a panic.
+#![no_main]
+libfuzzer_sys::fuzz_target!(|data: &[u8]| {
+    if let Ok(doc) = ism_format::io::from_slice(data) {
+        // Whatever reads must write and read back to the same model.
+        let bytes = ism_format::io::to_vec(&doc.model, doc.encoding, Default::default()).expect("re-encode");
+        let again = ism_format::io::from_slice(&bytes).expect("re-read");
+        assert_eq!(again.model, doc.model);
+    }
+});
