@@ -3,10 +3,15 @@
 
 pub mod complex;
 pub mod expr;
+pub mod fit;
 pub mod interval;
+pub mod isocontour;
 pub mod presets;
+pub mod strata;
+pub mod svg;
 
 pub use expr::{Expression, ImplicitFunction};
+pub use fit::{fit, FitOptions, FitReport, Fitted, Progress};
 pub use presets::{Preset, PRESETS};
 
 /// Errors of this crate.

@@ -1,0 +1,920 @@
+//! Adaptive polygonization of an implicit function (paper `000` §9.2, ism-math §6).
+//!
+//! 1. The Kuhn triangulation of the domain box, `f = g` at the vertices, identity map.
+//! 2. Topology: every cell whose bounding box fails the Plantinga–Vegter test
+//!    (`0 ∉ □g` or `⟨□∇g, □∇g⟩ > 0`) is bisected until all pass, so no small component or
+//!    handle hides inside a cell.
+//! 3. Each sign-changing edge gets the edge-stratum point that moves the patch's corner onto the
+//!    root of `g` on that edge; the other solitary points (edges without a crossing, triangles,
+//!    tetrahedra) are optimized face by face, minimizing `Σ (g/|∇g|)²` over samples of the curved
+//!    patches of the cells around the face.
+//! 4. While the worst cell's error `max |g|/|∇g|` exceeds the tolerance, the worst cells are
+//!    bisected (longest edge, with propagation), values set at the new vertices, and the points in
+//!    the star of the new vertices re-optimized.
+
+use std::collections::{HashMap, HashSet};
+use std::time::Instant;
+
+use ism_format::model::Model;
+use rayon::prelude::*;
+
+use crate::complex::{Complex, EdgeKey};
+use crate::expr::ImplicitFunction;
+use crate::isocontour::{patch_corners, patch_samples, topology, Bary, Topology};
+use crate::strata::{edge_logits, LocalStrata, StratifiedMap, LOGIT_BOUND};
+use crate::FitError;
+
+/// Options of [`fit`].
+#[derive(Clone, Debug)]
+pub struct FitOptions {
+    /// Domain box, `lo, hi` per axis.
+    pub domain: Vec<f64>,
+    /// Cells of the initial grid along the longest axis (others proportionally).
+    pub resolution: usize,
+    /// Target for the largest `|g|/|∇g|` on the shape.
+    pub tolerance: f64,
+    /// Stop refining at this many simplices even if the tolerance is not met.
+    pub max_simplices: usize,
+    /// Optimize the map (otherwise only the edge crossings are placed).
+    pub optimize: bool,
+    /// Refine until every cell passes the Plantinga–Vegter test.
+    pub topology: bool,
+}
+
+impl FitOptions {
+    /// Defaults for a domain: resolution 8, tolerance 10⁻³ of the domain's largest side.
+    pub fn new(domain: &[f64]) -> FitOptions {
+        let size = domain.chunks(2).map(|c| c[1] - c[0]).fold(0.0, f64::max);
+        FitOptions {
+            domain: domain.to_vec(),
+            resolution: 8,
+            tolerance: 1e-3 * size,
+            max_simplices: 200_000,
+            optimize: true,
+            topology: true,
+        }
+    }
+}
+
+/// A progress event (for a progress bar).
+#[derive(Clone, Debug)]
+pub struct Progress {
+    /// What is being done.
+    pub phase: &'static str,
+    /// Live simplices now.
+    pub simplices: usize,
+    /// Largest cell error now (`NaN` before the first evaluation).
+    pub worst: f64,
+}
+
+/// Summary of a fit.
+#[derive(Clone, Debug, PartialEq)]
+pub struct FitReport {
+    /// Top simplices.
+    pub simplices: usize,
+    /// Vertices.
+    pub vertices: usize,
+    /// Simplices the shape passes through.
+    pub crossing_simplices: usize,
+    /// Stored real parameters of the stages (control point coordinates).
+    pub parameters: usize,
+    /// All numbers the model stores: coordinates, vertex ids, values, face ids and parameters.
+    pub stored_numbers: usize,
+    /// Largest `|g|/|∇g|` over the dense samples of `O`.
+    pub max_distance: f64,
+    /// Mean `|g|/|∇g|` over the dense samples of `O`.
+    pub mean_distance: f64,
+    /// Number of dense samples.
+    pub samples: usize,
+    /// Refinement steps (edge bisections).
+    pub bisections: usize,
+    /// Cells still failing the Plantinga–Vegter test when the budget ran out (0 = all pass).
+    pub pv_failures: usize,
+    /// Topology of `O` (= that of the linear isocomplex of the final complex).
+    pub topology: Topology,
+    /// Whether `max_distance ≤ tolerance`.
+    pub tolerance_met: bool,
+    /// Wall time in seconds.
+    pub seconds: f64,
+}
+
+/// The result of [`fit`].
+#[derive(Clone, Debug)]
+pub struct Fitted {
+    /// The final complex.
+    pub complex: Complex,
+    /// `f` per vertex (`g`, with exact zeros nudged; see [`vertex_value`]).
+    pub values: Vec<f64>,
+    /// The fitted map.
+    pub map: StratifiedMap,
+    /// The summary.
+    pub report: FitReport,
+}
+
+/// Sample level of a patch while optimizing and ranking cells (segment points − 1 in 2D, grid
+/// level per fan triangle in 3D): enough to see a cubic-like deviation, cheap enough for LM.
+fn opt_level(n: usize) -> usize {
+    if n == 2 {
+        8
+    } else {
+        3
+    }
+}
+
+/// Sample level of the final dense report.
+fn report_level(n: usize) -> usize {
+    if n == 2 {
+        64
+    } else {
+        8
+    }
+}
+
+/// Relative size of the value given to a vertex where `g` is exactly 0: the format needs
+/// `f ≠ c`, and a tiny positive value keeps the crossing (numerically) at that vertex. Such a
+/// vertex is treated as outside; this is deterministic and documented in the CLI help.
+pub const ZERO_NUDGE: f64 = 1e-12;
+
+/// `f(v)` for a vertex at `p`: `g(p)`, or `+ZERO_NUDGE · scale` where `g(p) = 0`.
+pub fn vertex_value(g: &dyn ImplicitFunction, p: &[f64], scale: f64) -> f64 {
+    let v = g.value(p);
+    if v == 0.0 || !v.is_finite() {
+        ZERO_NUDGE * scale.max(f64::MIN_POSITIVE)
+    } else {
+        v
+    }
+}
+
+struct Fitter<'a> {
+    g: &'a dyn ImplicitFunction,
+    n: usize,
+    complex: Complex,
+    values: Vec<f64>,
+    map: StratifiedMap,
+    scale: f64,
+    bisections: usize,
+}
+
+impl Fitter<'_> {
+    fn is_crossing(&self, c: u32) -> bool {
+        let ids = self.complex.cell(c);
+        let neg = ids.iter().any(|&v| self.values[v as usize] < 0.0);
+        let pos = ids.iter().any(|&v| self.values[v as usize] > 0.0);
+        neg && pos
+    }
+
+    fn crossing_cells(&self) -> Vec<u32> {
+        self.complex
+            .live_cells()
+            .into_iter()
+            .filter(|&c| self.is_crossing(c))
+            .collect()
+    }
+
+    fn point_of(&self, cell: &[u32], w: &Bary) -> [f64; 3] {
+        let mut p = [0.0; 3];
+        for (i, &v) in cell.iter().enumerate() {
+            for (k, x) in self.complex.point(v).iter().enumerate() {
+                p[k] += w[i] * x;
+            }
+        }
+        p
+    }
+
+    /// Signed `g/|∇g|` at the samples of cell `c`'s curved patch under `local`.
+    fn residuals_with(&self, c: u32, local: &LocalStrata, level: usize, out: &mut Vec<f64>) {
+        let ids = self.complex.cell(c);
+        let s: Vec<f64> = ids.iter().map(|&v| self.values[v as usize]).collect();
+        let corners: Vec<Bary> = patch_corners(&s).into_iter().map(|x| x.0).collect();
+        for u in patch_samples(&corners, level) {
+            let w = local.eval(&u);
+            let p = self.point_of(ids, &w);
+            let mut grad = [0.0; 3];
+            let v = self.g.gradient(&p[..self.n], &mut grad[..self.n]);
+            let norm = grad[..self.n]
+                .iter()
+                .map(|x| x * x)
+                .sum::<f64>()
+                .sqrt()
+                .max(f64::MIN_POSITIVE);
+            out.push(v / norm);
+        }
+    }
+
+    fn cell_error(&self, c: u32) -> f64 {
+        let mut r = Vec::new();
+        self.residuals_with(
+            c,
+            &self.map.local(self.complex.cell(c)),
+            opt_level(self.n),
+            &mut r,
+        );
+        r.iter().fold(0.0f64, |m, x| m.max(x.abs()))
+    }
+
+    fn pv_passes(&self, c: u32) -> bool {
+        let (lo, hi) = self.complex.bounding_box(c);
+        let Some(enc) = self.g.enclose(&lo, &hi) else {
+            return true;
+        };
+        if !enc.value.contains(0.0) {
+            return true;
+        }
+        // ⟨□∇g, □∇g⟩ with the two factors as independent boxes (not squares): > 0 means no two
+        // gradients in the box are orthogonal or opposed.
+        let mut dot = crate::interval::Interval::point(0.0);
+        for gk in &enc.gradient {
+            dot = dot + *gk * *gk;
+        }
+        dot.lo > 0.0
+    }
+
+    fn set_values_for_new_vertices(&mut self) {
+        for v in self.values.len()..self.complex.num_vertices() {
+            let p = self.complex.point(v as u32).to_vec();
+            let x = vertex_value(self.g, &p, self.scale);
+            self.values.push(x);
+        }
+    }
+
+    fn refine(&mut self, c: u32) -> Vec<u32> {
+        let added = self.complex.refine(c);
+        self.bisections += added.len();
+        self.set_values_for_new_vertices();
+        added
+    }
+
+    fn is_crossing_edge(&self, e: EdgeKey) -> bool {
+        (self.values[e.0 as usize] < 0.0) != (self.values[e.1 as usize] < 0.0)
+    }
+
+    /// Puts the edge-stratum point of a sign-changing edge where it maps the patch corner onto
+    /// the root of `g` on the edge. On the edge the map is `t ↦ t + (2α − 1)·t(1 − t)` (`t` the
+    /// weight of the second vertex), so `α = ½ + (t* − t)/(2t(1 − t))`.
+    fn init_crossing_edge(&mut self, e: EdgeKey) {
+        let (fa, fb) = (self.values[e.0 as usize], self.values[e.1 as usize]);
+        let t = fa / (fa - fb);
+        let pa = self.complex.point(e.0).to_vec();
+        let pb = self.complex.point(e.1).to_vec();
+        let at = |s: f64| -> f64 {
+            let p: Vec<f64> = pa.iter().zip(&pb).map(|(a, b)| a + s * (b - a)).collect();
+            self.g.value(&p)
+        };
+        // Bisection: the values at the ends have opposite signs by construction (the nudged zero
+        // counts as positive, like its value).
+        let (mut lo, mut hi) = (0.0f64, 1.0f64);
+        let neg_at_lo = fa < 0.0;
+        for _ in 0..60 {
+            let mid = 0.5 * (lo + hi);
+            let v = at(mid);
+            if (v < 0.0) == neg_at_lo {
+                lo = mid;
+            } else {
+                hi = mid;
+            }
+        }
+        let root = 0.5 * (lo + hi);
+        let alpha = 0.5 + (root - t) / (2.0 * t * (1.0 - t)).max(f64::MIN_POSITIVE);
+        self.map.set_logits(&[e.0, e.1], &edge_logits(alpha));
+    }
+
+    fn faces_of(&self, c: u32) -> Vec<Vec<u32>> {
+        let ids = self.complex.cell(c);
+        let m = ids.len();
+        let mut out = Vec::new();
+        for mask in 1u32..(1 << m) {
+            if mask.count_ones() < 2 {
+                continue;
+            }
+            let mut f: Vec<u32> = (0..m)
+                .filter(|p| mask & (1 << p) != 0)
+                .map(|p| ids[p])
+                .collect();
+            f.sort_unstable();
+            out.push(f);
+        }
+        out
+    }
+
+    fn crossing_cells_with_face(&self, face: &[u32]) -> Vec<u32> {
+        self.complex
+            .cells_around(face[0], face[1])
+            .iter()
+            .copied()
+            .filter(|&c| {
+                self.is_crossing(c) && face.iter().all(|v| self.complex.cell(c).contains(v))
+            })
+            .collect()
+    }
+
+    /// Initializes the crossing edges of `cells` and optimizes every other face point of them.
+    fn fit_region(&mut self, cells: &[u32], optimize: bool) {
+        let mut faces: Vec<Vec<u32>> = Vec::new();
+        let mut seen = HashSet::new();
+        for &c in cells {
+            if !self.complex.is_alive(c) || !self.is_crossing(c) {
+                continue;
+            }
+            for f in self.faces_of(c) {
+                if seen.insert(f.clone()) {
+                    faces.push(f);
+                }
+            }
+        }
+        faces.sort();
+        for f in &faces {
+            if f.len() == 2 && self.is_crossing_edge((f[0], f[1])) {
+                self.init_crossing_edge((f[0], f[1]));
+            }
+        }
+        if !optimize {
+            return;
+        }
+        // Two Gauss–Seidel sweeps: faces couple only through shared cells, so a second pass
+        // lets each point see its neighbours' updates.
+        for _ in 0..2 {
+            for f in &faces {
+                if f.len() == 2 && self.is_crossing_edge((f[0], f[1])) {
+                    continue;
+                }
+                self.optimize_face(f);
+            }
+        }
+    }
+
+    fn block_residuals(
+        &self,
+        face: &[u32],
+        cells: &[u32],
+        logits: &[f64],
+        map: &mut StratifiedMap,
+    ) -> Vec<f64> {
+        map.set_logits(face, logits);
+        let mut r = Vec::new();
+        for &c in cells {
+            let local = map.local(self.complex.cell(c));
+            self.residuals_with(c, &local, opt_level(self.n), &mut r);
+        }
+        r
+    }
+
+    /// Levenberg–Marquardt on one face's logits (≤ 4 unknowns). Hand-written: a dense 4×4 solve is
+    /// all it needs, and a general solver crate would not know the softmax clamp.
+    fn optimize_face(&mut self, face: &[u32]) {
+        let cells = self.crossing_cells_with_face(face);
+        if cells.is_empty() {
+            return;
+        }
+        let k = face.len();
+        let mut map = std::mem::take(&mut self.map);
+        let mut x = map.logits(face);
+        let mut r = self.block_residuals(face, &cells, &x, &mut map);
+        let mut cost: f64 = r.iter().map(|v| v * v).sum();
+        let mut lambda = 1e-3;
+        for _ in 0..6 {
+            // Forward-difference Jacobian in logit space.
+            const H: f64 = 1e-6;
+            let mut jac = vec![vec![0.0; r.len()]; k];
+            for (j, col) in jac.iter_mut().enumerate() {
+                let mut xh = x.clone();
+                xh[j] += H;
+                let rh = self.block_residuals(face, &cells, &xh, &mut map);
+                for (i, v) in col.iter_mut().enumerate() {
+                    *v = (rh[i] - r[i]) / H;
+                }
+            }
+            let mut improved = false;
+            for _ in 0..4 {
+                let mut a = vec![0.0; k * k];
+                let mut b = vec![0.0; k];
+                for i in 0..k {
+                    for j in 0..k {
+                        a[i * k + j] = jac[i].iter().zip(&jac[j]).map(|(p, q)| p * q).sum();
+                    }
+                    b[i] = -jac[i].iter().zip(&r).map(|(p, q)| p * q).sum::<f64>();
+                }
+                for i in 0..k {
+                    a[i * k + i] += lambda * a[i * k + i] + 1e-12;
+                }
+                let Some(step) = solve(&mut a, &mut b, k) else {
+                    break;
+                };
+                let xn: Vec<f64> = x
+                    .iter()
+                    .zip(&step)
+                    .map(|(a, s)| (a + s).clamp(-LOGIT_BOUND, LOGIT_BOUND))
+                    .collect();
+                let rn = self.block_residuals(face, &cells, &xn, &mut map);
+                let cn: f64 = rn.iter().map(|v| v * v).sum();
+                if cn < cost {
+                    x = xn;
+                    r = rn;
+                    cost = cn;
+                    lambda = (lambda / 3.0).max(1e-9);
+                    improved = true;
+                    break;
+                }
+                lambda *= 5.0;
+            }
+            if !improved {
+                break;
+            }
+        }
+        map.set_logits(face, &x);
+        self.map = map;
+    }
+
+    fn faces_in_complex(&self) -> HashSet<Vec<u32>> {
+        let mut set = HashSet::new();
+        for c in self.complex.live_cells() {
+            for f in self.faces_of(c) {
+                set.insert(f);
+            }
+        }
+        set
+    }
+}
+
+/// Solves `a x = b` (`k × k`, row-major) by Gaussian elimination with partial pivoting.
+fn solve(a: &mut [f64], b: &mut [f64], k: usize) -> Option<Vec<f64>> {
+    for col in 0..k {
+        let p = (col..k).max_by(|&i, &j| a[i * k + col].abs().total_cmp(&a[j * k + col].abs()))?;
+        if a[p * k + col].abs() < 1e-300 {
+            return None;
+        }
+        for j in 0..k {
+            a.swap(p * k + j, col * k + j);
+        }
+        b.swap(p, col);
+        for row in col + 1..k {
+            let f = a[row * k + col] / a[col * k + col];
+            for j in col..k {
+                a[row * k + j] -= f * a[col * k + j];
+            }
+            b[row] -= f * b[col];
+        }
+    }
+    let mut x = vec![0.0; k];
+    for row in (0..k).rev() {
+        let s: f64 = (row + 1..k).map(|j| a[row * k + j] * x[j]).sum();
+        x[row] = (b[row] - s) / a[row * k + row];
+    }
+    x.iter().all(|v| v.is_finite()).then_some(x)
+}
+
+/// Cells per axis for `resolution` cells along the longest side.
+pub fn grid_cells(domain: &[f64], resolution: usize) -> Vec<usize> {
+    let sides: Vec<f64> = domain.chunks(2).map(|c| c[1] - c[0]).collect();
+    let longest = sides.iter().copied().fold(0.0, f64::max);
+    sides
+        .iter()
+        .map(|s| ((resolution as f64 * s / longest).round() as usize).max(1))
+        .collect()
+}
+
+fn check_options(g: &dyn ImplicitFunction, o: &FitOptions) -> Result<(), FitError> {
+    let n = g.dim();
+    if !(2..=3).contains(&n) {
+        return Err(FitError::Options(format!(
+            "dimension {n}: only 2 and 3 are supported"
+        )));
+    }
+    if o.domain.len() != 2 * n {
+        return Err(FitError::Options(format!(
+            "domain has {} numbers; a {n}-D domain needs {}",
+            o.domain.len(),
+            2 * n
+        )));
+    }
+    if o.domain
+        .chunks(2)
+        .any(|c| !(c[0].is_finite() && c[1].is_finite() && c[0] < c[1]))
+    {
+        return Err(FitError::Options(
+            "domain: each axis needs finite lo < hi".into(),
+        ));
+    }
+    if o.resolution == 0 || o.resolution > 512 {
+        return Err(FitError::Options(format!(
+            "resolution {} is outside 1..=512",
+            o.resolution
+        )));
+    }
+    if !(o.tolerance > 0.0 && o.tolerance.is_finite()) {
+        return Err(FitError::Options(
+            "tolerance must be a positive number".into(),
+        ));
+    }
+    let cells: usize = grid_cells(&o.domain, o.resolution)
+        .iter()
+        .product::<usize>()
+        * if n == 2 { 2 } else { 6 };
+    if cells > o.max_simplices {
+        return Err(FitError::Options(format!(
+            "the initial grid has {cells} simplices, more than max-simplices {}",
+            o.max_simplices
+        )));
+    }
+    Ok(())
+}
+
+/// Fits an ISM to the zero set of `g` (see the module doc). `progress` is called now and then.
+///
+/// # Errors
+/// [`FitError::Options`] for a bad domain, resolution or tolerance.
+pub fn fit(
+    g: &dyn ImplicitFunction,
+    options: &FitOptions,
+    progress: &mut dyn FnMut(&Progress),
+) -> Result<Fitted, FitError> {
+    check_options(g, options)?;
+    let start = Instant::now();
+    let n = g.dim();
+    let complex = Complex::kuhn(
+        &options.domain,
+        &grid_cells(&options.domain, options.resolution),
+    );
+    let scale = (0..complex.num_vertices() as u32)
+        .map(|v| g.value(complex.point(v)).abs())
+        .filter(|x| x.is_finite())
+        .fold(0.0, f64::max);
+    let mut fitter = Fitter {
+        g,
+        n,
+        complex,
+        values: Vec::new(),
+        map: StratifiedMap::new(n),
+        scale,
+        bisections: 0,
+    };
+    fitter.set_values_for_new_vertices();
+
+    // Topology phase.
+    let mut pv_failures = 0;
+    if options.topology {
+        loop {
+            let failing: Vec<u32> = {
+                let f = &fitter;
+                f.complex
+                    .live_cells()
+                    .into_par_iter()
+                    .filter(|&c| !f.pv_passes(c))
+                    .collect()
+            };
+            pv_failures = failing.len();
+            progress(&Progress {
+                phase: "topology",
+                simplices: fitter.complex.num_cells(),
+                worst: f64::NAN,
+            });
+            if failing.is_empty()
+                || fitter.complex.num_cells() + 2 * failing.len() > options.max_simplices
+            {
+                break;
+            }
+            for c in failing {
+                if fitter.complex.is_alive(c) {
+                    fitter.refine(c);
+                }
+            }
+        }
+    }
+
+    // Initial fit of every crossing cell.
+    let crossing = fitter.crossing_cells();
+    progress(&Progress {
+        phase: "optimize",
+        simplices: fitter.complex.num_cells(),
+        worst: f64::NAN,
+    });
+    fitter.fit_region(&crossing, options.optimize);
+
+    // Accuracy phase.
+    loop {
+        let errors: Vec<(u32, f64)> = {
+            let f = &fitter;
+            f.crossing_cells()
+                .into_par_iter()
+                .map(|c| (c, f.cell_error(c)))
+                .collect()
+        };
+        let worst = errors.iter().map(|e| e.1).fold(0.0, f64::max);
+        progress(&Progress {
+            phase: "refine",
+            simplices: fitter.complex.num_cells(),
+            worst,
+        });
+        let mut bad: Vec<(u32, f64)> = errors
+            .into_iter()
+            .filter(|e| e.1 > options.tolerance)
+            .collect();
+        if bad.is_empty() || fitter.complex.num_cells() >= options.max_simplices {
+            break;
+        }
+        bad.sort_by(|a, b| b.1.total_cmp(&a.1).then(a.0.cmp(&b.0)));
+        // The paper refines one worst cell per step; refining the worst tenth at once reaches the
+        // same complex region far faster and each step still starts from the worst cell.
+        let batch = (bad.len() / 10).max(1);
+        let mut new_vertices = Vec::new();
+        for &(c, _) in bad.iter().take(batch) {
+            if fitter.complex.is_alive(c) && fitter.complex.num_cells() < options.max_simplices {
+                new_vertices.extend(fitter.refine(c));
+            }
+        }
+        if new_vertices.is_empty() {
+            break;
+        }
+        // The star of the new vertices, and the cells sharing a vertex with it (their faces share
+        // points with the star).
+        let new_set: HashSet<u32> = new_vertices.iter().copied().collect();
+        let region: Vec<u32> = fitter
+            .complex
+            .live_cells()
+            .into_iter()
+            .filter(|&c| fitter.complex.cell(c).iter().any(|v| new_set.contains(v)))
+            .collect();
+        fitter.fit_region(&region, options.optimize);
+    }
+
+    let faces = fitter.faces_in_complex();
+    fitter.map.retain(|f| faces.contains(f));
+    let pl_topology = topology(&fitter.complex, &fitter.values);
+    let mut fitted = Fitted {
+        complex: fitter.complex,
+        values: fitter.values,
+        map: fitter.map,
+        report: FitReport {
+            simplices: 0,
+            vertices: 0,
+            crossing_simplices: 0,
+            parameters: 0,
+            stored_numbers: 0,
+            max_distance: 0.0,
+            mean_distance: 0.0,
+            samples: 0,
+            bisections: fitter.bisections,
+            pv_failures,
+            topology: pl_topology,
+            tolerance_met: false,
+            seconds: 0.0,
+        },
+    };
+    progress(&Progress {
+        phase: "report",
+        simplices: fitted.complex.num_cells(),
+        worst: f64::NAN,
+    });
+    let model = fitted.to_model("fit");
+    let dense = dense_error(g, &model)
+        .map_err(|e| FitError::Options(format!("the fitted model does not evaluate: {e}")))?;
+    let r = &mut fitted.report;
+    r.simplices = model.num_simplices();
+    r.vertices = model.num_vertices();
+    r.crossing_simplices = dense.cells;
+    r.parameters = model.stages.iter().map(|s| s.parameter_count()).sum();
+    r.stored_numbers = stored_numbers(&model);
+    r.max_distance = dense.max;
+    r.mean_distance = dense.mean;
+    r.samples = dense.samples;
+    r.tolerance_met = dense.max <= options.tolerance;
+    r.seconds = start.elapsed().as_secs_f64();
+    Ok(fitted)
+}
+
+/// Every number a model stores: coordinates, simplex ids, values, and per face record its ids,
+/// points and weights.
+pub fn stored_numbers(model: &Model) -> usize {
+    model.vertices.len()
+        + model.simplices.len()
+        + model.values.len()
+        + model
+            .stages
+            .iter()
+            .flat_map(|s| &s.faces)
+            .map(|f| f.face.len() + f.points.len() + f.weights.len())
+            .sum::<usize>()
+}
+
+/// Distance estimates on dense samples of a model's shape.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct DenseError {
+    /// Largest `|g|/|∇g|`.
+    pub max: f64,
+    /// Mean `|g|/|∇g|`.
+    pub mean: f64,
+    /// Number of samples.
+    pub samples: usize,
+    /// Simplices the shape passes through.
+    pub cells: usize,
+}
+
+/// `|g|/|∇g|` at dense samples of the parametric form of the model's shape, evaluated by the
+/// kernel (`ism-geom`: `θ_σ` and `u ↦ p`), independently of the fitter's own evaluation.
+///
+/// # Errors
+/// The kernel's error when the model does not evaluate.
+pub fn dense_error(
+    g: &dyn ImplicitFunction,
+    model: &Model,
+) -> Result<DenseError, ism_geom::GeomError> {
+    let eval = ism_geom::ModelEval::new(model)?;
+    let n = model.dim();
+    let per_cell: Vec<(f64, f64, usize)> = (0..model.num_simplices())
+        .into_par_iter()
+        .filter_map(|s| {
+            let patch = eval.patch(s)?;
+            let corners: Vec<Bary> = patch.corners.iter().map(|c| c.u).collect();
+            let mut max = 0.0f64;
+            let mut sum = 0.0;
+            let samples = patch_samples(&corners, report_level(n));
+            for u in &samples {
+                let p = eval.param_point(s, u).p;
+                let d = g.distance_estimate(&p[..n]);
+                max = max.max(d);
+                sum += d;
+            }
+            Some((max, sum, samples.len()))
+        })
+        .collect();
+    let samples: usize = per_cell.iter().map(|x| x.2).sum();
+    Ok(DenseError {
+        max: per_cell.iter().map(|x| x.0).fold(0.0, f64::max),
+        mean: per_cell.iter().map(|x| x.1).sum::<f64>() / samples.max(1) as f64,
+        samples,
+        cells: per_cell.len(),
+    })
+}
+
+impl Fitted {
+    /// The ISM: the complex, `f`, level 0, and one parametric Bézier stage per stratum.
+    pub fn to_model(&self, name: &str) -> Model {
+        let n = self.complex.dim();
+        let mut model = Model::new(n as u8);
+        model.metadata.name = Some(name.to_string());
+        model.metadata.generator = Some(format!("ism-fit {}", env!("CARGO_PKG_VERSION")));
+        model.vertices = self.complex.points().to_vec();
+        model.simplices = self.complex.compact_cells();
+        model.values = self.values.clone();
+        let faces: HashSet<Vec<u32>> = {
+            let mut set = HashSet::new();
+            for c in self.complex.live_cells() {
+                let ids = self.complex.cell(c);
+                for mask in 1u32..(1 << ids.len()) {
+                    let mut f: Vec<u32> = (0..ids.len())
+                        .filter(|p| mask & (1 << p) != 0)
+                        .map(|p| ids[p])
+                        .collect();
+                    f.sort_unstable();
+                    set.insert(f);
+                }
+            }
+            set
+        };
+        model.stages = self.map.to_stages(|f| faces.contains(f));
+        model
+    }
+}
+
+/// The linear isocomplex of `g` on the uniform Kuhn grid of `domain` with `resolution` cells along
+/// the longest side: `(simplices, stored numbers of the complex with values, max |g|/|∇g|)` — the
+/// comparison the compactness table makes.
+pub fn linear_baseline(
+    g: &dyn ImplicitFunction,
+    domain: &[f64],
+    resolution: usize,
+) -> (usize, usize, f64) {
+    let complex = Complex::kuhn(domain, &grid_cells(domain, resolution));
+    linear_error(g, &complex)
+}
+
+/// `(simplices, stored numbers, max |g|/|∇g|)` of the linear isocomplex of `g` on `complex`.
+pub fn linear_error(g: &dyn ImplicitFunction, complex: &Complex) -> (usize, usize, f64) {
+    let n = complex.dim();
+    let scale = 1.0;
+    let values: Vec<f64> = (0..complex.num_vertices() as u32)
+        .map(|v| vertex_value(g, complex.point(v), scale))
+        .collect();
+    let cells = complex.live_cells();
+    let max = cells
+        .par_iter()
+        .map(|&c| {
+            let ids = complex.cell(c);
+            let s: Vec<f64> = ids.iter().map(|&v| values[v as usize]).collect();
+            let corners: Vec<Bary> = patch_corners(&s).into_iter().map(|x| x.0).collect();
+            let mut m = 0.0f64;
+            for u in patch_samples(&corners, report_level(n)) {
+                let mut p = [0.0; 3];
+                for (i, &v) in ids.iter().enumerate() {
+                    for (k, x) in complex.point(v).iter().enumerate() {
+                        p[k] += u[i] * x;
+                    }
+                }
+                m = m.max(g.distance_estimate(&p[..n]));
+            }
+            m
+        })
+        .reduce(|| 0.0, f64::max);
+    let stored = complex.points().len() + cells.len() * (n + 1) + values.len();
+    (cells.len(), stored, max)
+}
+
+/// Re-exported for tests and tools: the map of a fitted model per cell, keyed by live cell id.
+pub fn local_maps(fitted: &Fitted) -> HashMap<u32, LocalStrata> {
+    fitted
+        .complex
+        .live_cells()
+        .into_iter()
+        .map(|c| (c, fitted.map.local(fitted.complex.cell(c))))
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::presets::Preset;
+
+    #[test]
+    fn circle_fits_to_tolerance_with_the_right_topology() {
+        let preset = Preset::find("circle").unwrap();
+        let g = preset.expression().unwrap();
+        let mut options = FitOptions::new(preset.domain);
+        options.resolution = 6;
+        options.tolerance = 1e-4;
+        let fitted = fit(&g, &options, &mut |_| {}).unwrap();
+        let r = &fitted.report;
+        assert!(r.tolerance_met, "{r:?}");
+        assert_eq!(
+            r.topology,
+            Topology {
+                components: preset.components,
+                euler: preset.euler
+            }
+        );
+        let model = fitted.to_model("circle");
+        let errors: Vec<_> = ism_format::structure::check(&model, 100)
+            .into_iter()
+            .filter(|d| d.severity == ism_format::Severity::Error)
+            .collect();
+        assert!(errors.is_empty(), "{errors:?}");
+        // Compactness: the linear isocomplex on the same grid is far worse.
+        let (_, _, linear) = linear_error(&g, &fitted.complex);
+        assert!(
+            linear > 10.0 * r.max_distance,
+            "linear {linear} vs {}",
+            r.max_distance
+        );
+    }
+
+    #[test]
+    fn fitter_map_agrees_with_the_kernel() {
+        // Two independent evaluations of the same parametric map: the closed-form strata here and
+        // ism-geom's general Bézier stages on the written model.
+        let preset = Preset::find("sphere").unwrap();
+        let g = preset.expression().unwrap();
+        let mut options = FitOptions::new(preset.domain);
+        options.resolution = 3;
+        options.tolerance = 1e-2;
+        let fitted = fit(&g, &options, &mut |_| {}).unwrap();
+        assert!(fitted.map.num_faces() > 0);
+        let model = fitted.to_model("sphere");
+        let eval = ism_geom::ModelEval::new(&model).unwrap();
+        let live = fitted.complex.live_cells();
+        let mut checked = 0;
+        for (s, &c) in live.iter().enumerate() {
+            let local = fitted.map.local(fitted.complex.cell(c));
+            for u in [
+                [0.1, 0.2, 0.3, 0.4],
+                [0.7, 0.1, 0.1, 0.1],
+                [0.25, 0.25, 0.5, 0.0],
+            ] {
+                let w = local.eval(&u);
+                let kernel = eval.param_point(s, &u);
+                for k in 0..4 {
+                    assert!(
+                        (w[k] - kernel.w[k]).abs() < 1e-9,
+                        "cell {s}: {w:?} vs {:?}",
+                        kernel.w
+                    );
+                }
+                checked += 1;
+            }
+        }
+        assert!(checked > 100);
+    }
+
+    #[test]
+    fn bad_options_are_errors() {
+        let g = crate::Expression::parse("x^2 + y^2 - 1", 2).unwrap();
+        let mut o = FitOptions::new(&[0.0, 1.0, 0.0, 1.0]);
+        o.domain = vec![0.0, 1.0];
+        assert!(matches!(
+            fit(&g, &o, &mut |_| {}),
+            Err(FitError::Options(_))
+        ));
+        let mut o = FitOptions::new(&[0.0, 1.0, 1.0, 0.0]);
+        assert!(fit(&g, &o, &mut |_| {}).is_err());
+        o.domain = vec![0.0, 1.0, 0.0, 1.0];
+        o.tolerance = -1.0;
+        assert!(fit(&g, &o, &mut |_| {}).is_err());
+    }
+}

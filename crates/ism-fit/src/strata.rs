@@ -1,0 +1,250 @@
+//! The stratified map the fitter optimizes (ism-math §3.2, paper `000` §5.4), stored parametric.
+//!
+//! Stratum `G_j` moves the solitary centre control point of every `j`-face; on a simplex it is the
+//! degree-`(j+1)` Bézier map whose only non-fixed points are those centres:
+//! `G_j(w) = w + Σ_τ (b_τ − 𝟙_τ/|τ|) · (j+1)! · Π_{i∈τ} w_i`. Every stratum is a simplicial
+//! diffeomorphism for every position of its points in their open faces (2D and 3D, Props. 5.6,
+//! 5.7, 5.9), so the composition is valid by construction.
+//!
+//! The fitter works in the parametric direction (paper `000` §9.2): the map `Y` carries the linear
+//! patch `θ_σ` onto the curve. The model stores stratum `j` as stage `j − 1` with
+//! `direction: parametric`, so `X⁻¹ = Y_0 ∘ Y_1 ∘ … ∘ Y_{n−1}`: the interior stratum acts first
+//! on `u` and the edge stratum last. Positions are kept as logits through a softmax, so every
+//! stored coordinate is positive and the coordinates of a point sum to 1.
+//!
+//! This module evaluates only the closed form above, for speed inside the optimizer; the general
+//! kernel (`ism-geom`) evaluates the written model, and the tests check the two agree.
+
+use std::collections::HashMap;
+
+use ism_format::model::{Direction, FaceRecord, Stage, StageKind};
+
+/// Bound on each logit. Softmax coordinates then stay above `e^{−2·6}/(k+1) ≈ 1.5·10⁻⁶`, so no
+/// control point approaches its face's boundary, where the Jacobian determinant would approach 0
+/// and certification would need deep subdivision.
+pub const LOGIT_BOUND: f64 = 6.0;
+
+/// Largest number of barycentric coordinates (`n ≤ 3`).
+const M: usize = 4;
+
+/// Softmax of `logits` (clamped to `±LOGIT_BOUND`).
+pub fn softmax(logits: &[f64]) -> Vec<f64> {
+    let e: Vec<f64> = logits
+        .iter()
+        .map(|l| l.clamp(-LOGIT_BOUND, LOGIT_BOUND).exp())
+        .collect();
+    let s: f64 = e.iter().sum();
+    e.iter().map(|x| x / s).collect()
+}
+
+/// Logits of the edge point that puts a fraction `alpha` of its weight on the second vertex.
+pub fn edge_logits(alpha: f64) -> [f64; 2] {
+    let a = alpha.clamp(1e-9, 1.0 - 1e-9);
+    [0.0, (a / (1.0 - a)).ln().clamp(-LOGIT_BOUND, LOGIT_BOUND)]
+}
+
+/// Solitary points of every stratum, as logits keyed by the sorted global vertex ids of the face.
+/// A face without an entry has its fixed centre (all logits 0).
+#[derive(Clone, Debug, Default)]
+pub struct StratifiedMap {
+    dim: usize,
+    logits: HashMap<Vec<u32>, Vec<f64>>,
+}
+
+#[derive(Clone, Copy, Debug)]
+struct Term {
+    positions: [usize; M],
+    len: usize,
+    /// `(b_τ − 𝟙_τ/|τ|) · |τ|!`, per position in `positions`.
+    delta: [f64; M],
+}
+
+/// The stratified map on one top simplex, in its local vertex order.
+#[derive(Clone, Debug)]
+pub struct LocalStrata {
+    m: usize,
+    /// `strata[j − 1]`: the terms of stratum `j`.
+    strata: Vec<Vec<Term>>,
+}
+
+impl LocalStrata {
+    /// `w = Y(u)`: strata `n, n−1, …, 1` in turn.
+    pub fn eval(&self, u: &[f64; M]) -> [f64; M] {
+        let mut v = *u;
+        for terms in self.strata.iter().rev() {
+            let mut out = v;
+            for t in terms {
+                let mut b = 1.0;
+                for &p in &t.positions[..t.len] {
+                    b *= v[p];
+                }
+                for (k, &p) in t.positions[..t.len].iter().enumerate() {
+                    out[p] += t.delta[k] * b;
+                }
+            }
+            // Keep exact zeros exact (a point on a face stays on it) and the sum at 1.
+            for x in out.iter_mut().take(self.m) {
+                if *x < 0.0 {
+                    *x = 0.0;
+                }
+            }
+            v = out;
+        }
+        v
+    }
+}
+
+impl StratifiedMap {
+    /// The identity map in dimension `n`.
+    pub fn new(dim: usize) -> StratifiedMap {
+        StratifiedMap {
+            dim,
+            logits: HashMap::new(),
+        }
+    }
+
+    /// Space dimension.
+    pub fn dim(&self) -> usize {
+        self.dim
+    }
+
+    /// The logits of `face` (sorted ids), zeros if unset.
+    pub fn logits(&self, face: &[u32]) -> Vec<f64> {
+        self.logits
+            .get(face)
+            .cloned()
+            .unwrap_or_else(|| vec![0.0; face.len()])
+    }
+
+    /// Sets the logits of `face` (sorted ids), clamped to `±LOGIT_BOUND`.
+    pub fn set_logits(&mut self, face: &[u32], logits: &[f64]) {
+        let l: Vec<f64> = logits
+            .iter()
+            .map(|x| x.clamp(-LOGIT_BOUND, LOGIT_BOUND))
+            .collect();
+        self.logits.insert(face.to_vec(), l);
+    }
+
+    /// Forgets the point of `face` (back to the fixed centre).
+    pub fn remove(&mut self, face: &[u32]) {
+        self.logits.remove(face);
+    }
+
+    /// Keeps only the faces for which `keep` is true.
+    pub fn retain(&mut self, mut keep: impl FnMut(&[u32]) -> bool) {
+        self.logits.retain(|f, _| keep(f));
+    }
+
+    /// The control point of `face` (coordinates w.r.t. the sorted ids).
+    pub fn point(&self, face: &[u32]) -> Vec<f64> {
+        softmax(&self.logits(face))
+    }
+
+    /// Number of faces with a stored point.
+    pub fn num_faces(&self) -> usize {
+        self.logits.len()
+    }
+
+    /// The map on the simplex with vertex ids `cell` (local order).
+    pub fn local(&self, cell: &[u32]) -> LocalStrata {
+        let m = cell.len();
+        let mut strata = vec![Vec::new(); m.saturating_sub(1)];
+        // Every subset of ≥ 2 local positions, as a bit mask.
+        for mask in 1u32..(1 << m) {
+            let len = mask.count_ones() as usize;
+            if len < 2 {
+                continue;
+            }
+            let mut positions = [0usize; M];
+            let mut k = 0;
+            for (p, slot) in (0..m).filter(|p| mask & (1 << p) != 0).zip(0..) {
+                positions[slot] = p;
+                k += 1;
+            }
+            let mut ids: Vec<(u32, usize)> = positions[..k].iter().map(|&p| (cell[p], p)).collect();
+            ids.sort_unstable();
+            let face: Vec<u32> = ids.iter().map(|x| x.0).collect();
+            let Some(logits) = self.logits.get(&face) else {
+                continue;
+            };
+            let point = softmax(logits);
+            let factorial: f64 = (1..=len).map(|x| x as f64).product();
+            let mut term = Term {
+                positions: [0; M],
+                len,
+                delta: [0.0; M],
+            };
+            for (slot, &(_, p)) in ids.iter().enumerate() {
+                term.positions[slot] = p;
+                term.delta[slot] = (point[slot] - 1.0 / len as f64) * factorial;
+            }
+            strata[len - 2].push(term);
+        }
+        LocalStrata { m, strata }
+    }
+
+    /// The stages of a model: stratum `j` as a parametric Bézier stage of degree `j + 1`, edges
+    /// first (see the module doc for the order). Only faces for which `exists` is true are
+    /// written; records are sorted by face.
+    pub fn to_stages(&self, exists: impl Fn(&[u32]) -> bool) -> Vec<Stage> {
+        (1..=self.dim)
+            .map(|j| {
+                let mut faces: Vec<FaceRecord> = self
+                    .logits
+                    .iter()
+                    .filter(|(f, l)| f.len() == j + 1 && l.iter().any(|&x| x != 0.0) && exists(f))
+                    .map(|(f, l)| FaceRecord {
+                        face: f.clone(),
+                        points: softmax(l),
+                        weights: Vec::new(),
+                    })
+                    .collect();
+                faces.sort_by(|a, b| a.face.cmp(&b.face));
+                let mut stage = Stage::identity(StageKind::Bezier, j as u32 + 1);
+                stage.direction = Direction::Parametric;
+                stage.name = Some(format!("stratum G{j}"));
+                stage.faces = faces;
+                stage
+            })
+            .collect()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn identity_until_set_and_faces_stay_put() {
+        let mut map = StratifiedMap::new(3);
+        let cell = [7u32, 2, 9, 4];
+        let u = [0.1, 0.2, 0.3, 0.4];
+        assert_eq!(map.local(&cell).eval(&u), u);
+        map.set_logits(&[2, 7], &[0.0, 1.0]);
+        map.set_logits(&[2, 4, 9], &[0.3, -0.2, 0.5]);
+        map.set_logits(&[2, 4, 7, 9], &[0.3, -0.2, 0.5, 1.0]);
+        let local = map.local(&cell);
+        let w = local.eval(&u);
+        assert!((w.iter().sum::<f64>() - 1.0).abs() < 1e-14);
+        assert!(w.iter().all(|&x| x > 0.0));
+        // A point on the face (2, 9, 4) (local 1, 2, 3) stays on it: coordinate 0 stays exactly 0.
+        let on_face = local.eval(&[0.0, 0.2, 0.3, 0.5]);
+        assert_eq!(on_face[0], 0.0);
+        // Vertices are fixed.
+        assert_eq!(local.eval(&[0.0, 0.0, 1.0, 0.0]), [0.0, 0.0, 1.0, 0.0]);
+    }
+
+    #[test]
+    fn edge_point_moves_the_edge_as_a_quadratic() {
+        let mut map = StratifiedMap::new(2);
+        let alpha = 0.8;
+        map.set_logits(&[3, 5], &edge_logits(alpha));
+        // Local order (5, 3): position 0 is vertex 5, the second sorted vertex.
+        let local = map.local(&[5, 3, 8]);
+        let t = 0.3; // weight on vertex 5
+        let w = local.eval(&[t, 1.0 - t, 0.0, 0.0]);
+        // y(t) = t + (2α − 1)·t(1 − t) for the weight on the second sorted vertex.
+        let expect = t + (2.0 * alpha - 1.0) * t * (1.0 - t);
+        assert!((w[0] - expect).abs() < 1e-12, "{} vs {}", w[0], expect);
+    }
+}
