@@ -64,6 +64,22 @@ pub enum Error {
         /// Vertex count requested (saturated).
         vertices: usize,
     },
+    /// A model could not be encoded.
+    #[error("encoding {}: {message}", path.display())]
+    Encode {
+        /// The file being written.
+        path: std::path::PathBuf,
+        /// The encoder's message.
+        message: String,
+    },
+    /// A file could not be written.
+    #[error("writing {}: {error}", path.display())]
+    Write {
+        /// The file.
+        path: std::path::PathBuf,
+        /// The operating system's error.
+        error: std::io::Error,
+    },
     /// The implicit function returned NaN or ±∞.
     #[error("implicit function is {value} at vertex {vertex}; expected a finite number")]
     NonFiniteValue {

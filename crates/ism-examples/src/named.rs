@@ -195,19 +195,22 @@ pub fn example_bytes(model: &Model, encoding: Encoding) -> ism_format::Result<Ve
 /// paths written.
 ///
 /// # Errors
-/// I/O and encoding errors, naming the file.
-pub fn write_examples(dir: &Path) -> ism_format::Result<Vec<std::path::PathBuf>> {
+/// [`crate::Error::Encode`] or [`crate::Error::Write`], naming the file.
+pub fn write_examples(dir: &Path) -> Result<Vec<std::path::PathBuf>, crate::Error> {
     let mut written = Vec::new();
     for (name, model) in all_examples() {
         for encoding in Encoding::ALL {
             let path = dir.join(format!("{name}.{}", encoding.extension()));
-            let bytes = example_bytes(&model, encoding)?;
-            io::write_atomic(&path, |w| std::io::Write::write_all(w, &bytes)).map_err(
-                |source| ism_format::Error::Io {
-                    path: Some(path.clone()),
-                    source,
-                },
-            )?;
+            let bytes = example_bytes(&model, encoding).map_err(|error| crate::Error::Encode {
+                path: path.clone(),
+                message: error.to_string(),
+            })?;
+            io::write_atomic(&path, |w| std::io::Write::write_all(w, &bytes)).map_err(|error| {
+                crate::Error::Write {
+                    path: path.clone(),
+                    error,
+                }
+            })?;
             written.push(path);
         }
     }
