@@ -1,15 +1,173 @@
-//! Placeholder until this subcommand's library lands.
+//! `ism validate`: structure, invariance and certified positivity; glue over `ism-validate`.
 
+use std::path::PathBuf;
 use std::process::ExitCode;
 
-/// Arguments.
+use ism_validate::{Options, Report, Verdict};
+
+const AFTER_HELP: &str = "\
+Examples:
+  ism validate spec/examples/*.ism.json
+  ism validate --json model.ismb > report.json
+  ism validate --quality --depth 24 --threads 1 model.ism.json
+
+Each element (stage × top simplex) is certified valid by a theorem or by Bernstein coefficients of
+det DX with subdivision, rejected with a witness point, or left undetermined (never counted valid).
+Rules are defined in spec/validation.md; --json prints the report of spec/schema/report.schema.json
+(one report per file; several files give a JSON array).
+
+Exit status:
+  0  every file valid
+  1  some file invalid or undetermined
+  2  some file unreadable, or bad arguments";
+
+/// Arguments of `ism validate`.
 #[derive(clap::Args)]
+#[command(after_help = AFTER_HELP)]
 pub struct Args {
-    /// Input files.
-    files: Vec<std::path::PathBuf>,
+    /// Model files (any encoding; detected from content).
+    #[arg(required = true)]
+    files: Vec<PathBuf>,
+    /// Print the machine-readable report (JSON) instead of the summary.
+    #[arg(long)]
+    json: bool,
+    /// Most messages listed per file (all are counted).
+    #[arg(long, default_value_t = ism_validate::DEFAULT_MAX_ISSUES)]
+    max_issues: usize,
+    /// Worker threads (0: all cores).
+    #[arg(long, default_value_t = 0)]
+    threads: usize,
+    /// Subdivision depth limit of the positivity certificate.
+    #[arg(long, default_value_t = ism_validate::DEFAULT_DEPTH, value_parser = clap::value_parser!(u32).range(0..=64))]
+    depth: u32,
+    /// Also report quality: C¹ residuals of rational stages, normal jumps, det DX range.
+    #[arg(long)]
+    quality: bool,
+    /// Certify every element numerically even where a theorem applies.
+    #[arg(long)]
+    no_theorems: bool,
+}
+
+fn print_summary(path: &std::path::Path, report: &Report) {
+    let verdict = match report.verdict {
+        Verdict::Valid => "VALID",
+        Verdict::Invalid => "INVALID",
+        Verdict::Undetermined => "UNDETERMINED",
+    };
+    println!(
+        "{}: {verdict} — {} error(s), {} warning(s), {} info(s); {} simplices, {} stage(s)",
+        path.display(),
+        report.issues.num_errors,
+        report.issues.num_warnings,
+        report.issues.num_infos,
+        report.model.simplices,
+        report.model.stages
+    );
+    if !report.issues.counts.is_empty() {
+        // Worst rules first: severity, then count.
+        let mut counts: Vec<(&String, &usize)> = report.issues.counts.iter().collect();
+        let severity = |code: &str| {
+            ism_format::Rule::from_id(code)
+                .map(|r| r.severity())
+                .unwrap_or(ism_format::Severity::Info)
+        };
+        counts.sort_by(|a, b| {
+            severity(b.0)
+                .cmp(&severity(a.0))
+                .then(b.1.cmp(a.1))
+                .then(a.0.cmp(b.0))
+        });
+        for (code, count) in counts {
+            let title = ism_format::Rule::from_id(code)
+                .map(|r| r.title())
+                .unwrap_or("");
+            println!("  {code} ×{count}  {title}");
+        }
+    }
+    for st in &report.stages {
+        let certs: Vec<String> = st
+            .certificates
+            .iter()
+            .map(|(k, v)| format!("{v} by {k}"))
+            .collect();
+        println!(
+            "  stage {} ({} degree {}, {}): {} — {} valid, {} invalid, {} undetermined{}",
+            st.index,
+            st.kind,
+            st.degree,
+            st.direction,
+            st.skipped_because
+                .as_deref()
+                .map(|r| format!("skipped: {r}"))
+                .unwrap_or_else(|| st.status.clone()),
+            st.valid,
+            st.invalid,
+            st.undetermined,
+            if certs.is_empty() {
+                String::new()
+            } else {
+                format!(" [{}]", certs.join("; "))
+            }
+        );
+    }
+    // Messages are already ordered errors first; show the first few.
+    for m in report.issues.messages.iter().take(20) {
+        println!(
+            "  {} {:?} ({}): {}",
+            m.code, m.severity, m.location, m.message
+        );
+    }
+    if report.issues.messages.len() > 20 || report.issues.truncated {
+        let total = report.issues.num_errors + report.issues.num_warnings + report.issues.num_infos;
+        println!(
+            "  … {} more (use --json or --max-issues)",
+            total.saturating_sub(20.min(report.issues.messages.len()))
+        );
+    }
 }
 
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
-    let _ = args.files;
-    anyhow::bail!("this subcommand is not implemented yet")
+    let options = Options {
+        max_issues: args.max_issues,
+        threads: args.threads,
+        depth: args.depth,
+        quality: args.quality,
+        theorems: !args.no_theorems,
+    };
+    let mut worst = 0u8;
+    let mut reports = Vec::new();
+    for path in &args.files {
+        match ism_validate::validate_path(path, &options) {
+            Ok(report) => {
+                if report.verdict != Verdict::Valid {
+                    worst = worst.max(1);
+                }
+                if args.json {
+                    reports.push(serde_json::to_value(&report)?);
+                } else {
+                    print_summary(path, &report);
+                }
+            }
+            Err(err) => {
+                worst = 2;
+                eprintln!("error: {}: {err}", path.display());
+                if args.json {
+                    reports.push(serde_json::json!({
+                        "file": { "path": path.display().to_string() },
+                        "verdict": "unreadable",
+                        "error": err.to_string(),
+                    }));
+                }
+            }
+        }
+    }
+    if args.json {
+        let out = if reports.len() == 1 {
+            reports.pop().expect("one report")
+        } else {
+            serde_json::Value::Array(reports)
+        };
+        println!("{}", serde_json::to_string_pretty(&out)?);
+    }
+    Ok(ExitCode::from(worst))
 }

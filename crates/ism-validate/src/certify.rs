@@ -1,0 +1,695 @@
+//! Certified sign of `det DX` on a closed simplex (spec/validation.md §4.3).
+//!
+//! For one stage restricted to one top simplex (a [`DenseNet`]), [`DetKernel::det_coefficients`]
+//! computes the Bernstein coefficients of the Jacobian polynomial together with a rigorous bound on
+//! their rounding error, and [`DetKernel::certify`] decides its sign by adaptive subdivision:
+//!
+//! - polynomial stage of degree `d`: `det ∂(X₁..Xₙ)/∂(w₁..wₙ)` (reduced barycentric coordinates,
+//!   `w₀ = 1 − Σ`), degree `n(d − 1)`; the identity has `det = 1`;
+//! - rational stage: `N = det[V, ∂₁V, …, ∂ₙV]` with `V = (Q, P₁, …, Pₙ)`, degree `(n + 1)d − n`;
+//!   `det DX = N / Q^{n+1}` with `Q > 0`, so `N` has the sign of `det DX` (ism-math §4).
+//!
+//! # Why this is not in `ism-geom`
+//! The kernel carries, for every coefficient, the same computation on absolute values; with the
+//! number of roundings on the longest path `k` this bounds the error by `γₖ · |·|` (Higham,
+//! *Accuracy and Stability of Numerical Algorithms*, §3.1). Subdivision propagates a running error
+//! bound. A general Bernstein library has no reason to do either, and the hot loop must not allocate
+//! per element, so the certificate arithmetic lives here; tests check it against `ism-geom`'s
+//! evaluation of the same maps.
+
+use ism_format::multi_index;
+
+/// Unit roundoff of f64 (round to nearest).
+const UNIT_ROUNDOFF: f64 = f64::EPSILON / 2.0;
+
+/// Absolute slack added to every error bound for gradual underflow: each rounding may also lose up
+/// to the smallest subnormal, and no computation here has more than 10⁴ roundings on a path.
+const UNDERFLOW_SLACK: f64 = 1e4 * f64::MIN_POSITIVE;
+
+/// Hard cap on the pieces one element may be cut into, whatever the depth: bounds time and memory on
+/// hostile input (a piece holds at most `C(3·16+3, 3)` coefficients).
+pub const MAX_PIECES: usize = 1 << 14;
+
+/// Default subdivision depth (bisections along any path). Every bisection halves one edge, so 3·n
+/// levels halve the diameter of a piece at least once; 18 levels reach pieces 1/64 the size of the
+/// simplex in 3D, enough for every example and for 99.9 % of random adjusted nets (BENCHMARKS.md).
+pub const DEFAULT_DEPTH: u32 = 18;
+
+/// One stage on one top simplex: the dense control net in local vertex order.
+#[derive(Clone, Debug, PartialEq)]
+pub struct DenseNet {
+    /// Space dimension `n` (1 to 3); every point has `n + 1` coordinates.
+    pub n: usize,
+    /// Degree `d`.
+    pub degree: u32,
+    /// Control points in the canonical order of `multi_index::all(n + 1, d)`, barycentric.
+    pub points: Vec<[f64; 4]>,
+    /// Weights in the same order (rational stages), empty for polynomial ones.
+    pub weights: Vec<f64>,
+}
+
+impl DenseNet {
+    /// The identity net `b_I = I/d` (all points fixed), polynomial.
+    pub fn identity(n: usize, degree: u32) -> DenseNet {
+        let m = n + 1;
+        let points = multi_index::all(m, degree)
+            .chunks(m)
+            .map(|i| {
+                let mut p = [0.0; 4];
+                for (c, &e) in p.iter_mut().zip(i) {
+                    *c = f64::from(e) / f64::from(degree);
+                }
+                p
+            })
+            .collect();
+        DenseNet {
+            n,
+            degree,
+            points,
+            weights: Vec::new(),
+        }
+    }
+
+    /// Whether the net carries weights.
+    pub fn is_rational(&self) -> bool {
+        !self.weights.is_empty()
+    }
+}
+
+/// Coefficients with their rounding-error bounds: `|computed − exact| ≤ error` for each.
+#[derive(Clone, Debug, PartialEq)]
+pub struct BoundedCoefficients {
+    /// Bernstein coefficients in canonical order.
+    pub values: Vec<f64>,
+    /// Error bound of each coefficient.
+    pub errors: Vec<f64>,
+}
+
+/// Outcome of the sign decision for one element.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Decision {
+    /// Every coefficient of every piece exceeds its error bound.
+    Positive {
+        /// Greatest subdivision depth used (0: the coefficients were positive at once).
+        depth: u32,
+        /// Pieces examined.
+        pieces: usize,
+        /// A certified lower bound of the polynomial on the simplex (min of value − error).
+        lower_bound: f64,
+    },
+    /// The polynomial is `≤ 0` (as computed) at a point of the closed simplex.
+    NonPositive {
+        /// Barycentric point of the simplex.
+        point: Vec<f64>,
+        /// The polynomial's value there (an exact vertex coefficient of a piece).
+        value: f64,
+        /// Its rounding-error bound: `value + error ≤ 0` makes the sign certain.
+        error: f64,
+    },
+    /// Undecided at the depth or piece limit.
+    Undetermined {
+        /// Depth reached.
+        depth: u32,
+        /// Pieces examined.
+        pieces: usize,
+        /// Certified lower bound over the undecided pieces (negative or zero).
+        lower_bound: f64,
+        /// Smallest value found at a piece vertex (an upper bound of the minimum).
+        upper_bound: f64,
+    },
+}
+
+impl Decision {
+    /// Whether the sign is certified positive.
+    pub fn is_positive(&self) -> bool {
+        matches!(self, Decision::Positive { .. })
+    }
+}
+
+/// The coefficient lines along one edge `(a, b)`, each listed by increasing exponent of `b`.
+type EdgeLines = ((usize, usize), Vec<Vec<u16>>);
+
+/// Table of the products `x_i · y_j → z_k` of a homogeneous convolution.
+#[derive(Clone, Debug)]
+struct Convolution {
+    triples: Vec<(u16, u16, u16)>,
+    /// Most terms summed into one output coefficient.
+    max_terms: usize,
+}
+
+impl Convolution {
+    fn new(m: usize, a: u32, b: u32) -> Convolution {
+        let ia = multi_index::all(m, a);
+        let ib = multi_index::all(m, b);
+        let mut triples = Vec::with_capacity(ia.len() / m * (ib.len() / m));
+        let mut terms = vec![0usize; multi_index::count(m, a + b)];
+        let mut sum = vec![0u32; m];
+        for (i, x) in ia.chunks(m).enumerate() {
+            for (j, y) in ib.chunks(m).enumerate() {
+                for c in 0..m {
+                    sum[c] = x[c] + y[c];
+                }
+                let k = multi_index::rank(&sum);
+                terms[k] += 1;
+                triples.push((i as u16, j as u16, k as u16));
+            }
+        }
+        Convolution {
+            triples,
+            max_terms: terms.into_iter().max().unwrap_or(0),
+        }
+    }
+}
+
+/// Multinomial coefficients `d!/(I₀!…Iₘ₋₁!)` in canonical order (exact in f64 for `d ≤ 48`, as
+/// `48! / (12!)⁴ < 2⁵³`).
+fn multinomials(m: usize, d: u32) -> Vec<f64> {
+    let fact = |k: u32| (1..=k).fold(1.0f64, |a, x| a * f64::from(x));
+    multi_index::all(m, d)
+        .chunks(m)
+        .map(|i| fact(d) / i.iter().map(|&e| fact(e)).product::<f64>())
+        .collect()
+}
+
+/// Everything the certificate needs for one `(n, d, rational)` triple, built once per stage and
+/// shared across threads.
+#[derive(Clone, Debug)]
+pub struct DetKernel {
+    n: usize,
+    degree: u32,
+    rational: bool,
+    /// Size of the determinant: `n` (polynomial) or `n + 1` (rational).
+    size: usize,
+    /// Degrees of the columns.
+    column_degrees: Vec<u32>,
+    /// Canonical index positions: for each multi-index of degree `d − 1`, the ranks of `I + e_k` in
+    /// degree `d`, `k = 0..m`.
+    shift: Vec<[u16; 4]>,
+    /// Multinomials of degree `d − 1` and `d`.
+    mult_entry: Vec<f64>,
+    mult_first: Vec<f64>,
+    /// Laplace levels: `conv[j]` multiplies column `j` by a minor of columns `j + 1..`.
+    conv: Vec<Convolution>,
+    /// Degree of the determinant polynomial.
+    det_degree: u32,
+    mult_det: Vec<f64>,
+    /// `γ_k` for the longest rounding path, with a safety factor.
+    gamma: f64,
+    /// Rank of `D·e_i` in the determinant's canonical order.
+    vertex_rank: [usize; 4],
+    /// For each edge `(a, b)`, `a < b`: the lines of coefficients along the edge, each listed by
+    /// increasing exponent of `b`.
+    lines: Vec<EdgeLines>,
+}
+
+impl DetKernel {
+    /// Builds the tables for stages of dimension `n` (1 to 3), degree `d` (1 to 16).
+    ///
+    /// # Panics
+    /// When `n` or `d` is out of that range (callers have validated the structure).
+    pub fn new(n: usize, degree: u32, rational: bool) -> DetKernel {
+        assert!((1..=3).contains(&n) && (1..=ism_format::structure::MAX_DEGREE).contains(&degree));
+        let m = n + 1;
+        let d = degree;
+        let size = if rational { n + 1 } else { n };
+        let mut column_degrees = vec![d - 1; size];
+        if rational {
+            column_degrees[0] = d;
+        }
+        let shift = multi_index::all(m, d - 1)
+            .chunks(m)
+            .map(|i| {
+                let mut out = [0u16; 4];
+                let mut j = i.to_vec();
+                for (k, o) in out.iter_mut().enumerate().take(m) {
+                    j[k] += 1;
+                    *o = multi_index::rank(&j) as u16;
+                    j[k] -= 1;
+                }
+                out
+            })
+            .collect();
+        // Minors of columns j.. have degree Σ column_degrees[j..].
+        let mut conv = Vec::new();
+        let mut minor_degree = column_degrees[size - 1];
+        for j in (0..size - 1).rev() {
+            conv.push(Convolution::new(m, column_degrees[j], minor_degree));
+            minor_degree += column_degrees[j];
+        }
+        conv.reverse();
+        let det_degree = minor_degree;
+        // Roundings on the longest path: entry (difference, ×d, ×multinomial, and ×weight for
+        // rational nets) = 4; each Laplace level: one product plus its summation into a coefficient
+        // over at most rows × max_terms terms; the final division by the multinomial: 1.
+        let mut k = 4usize;
+        for (level, c) in conv.iter().enumerate() {
+            let rows = size - level;
+            k += 1 + rows * c.max_terms;
+        }
+        k += 1;
+        let kf = k as f64 * UNIT_ROUNDOFF;
+        // The bound itself is computed in floating point with a handful of roundings; a factor 2
+        // covers them with a wide margin.
+        let gamma = 2.0 * kf / (1.0 - kf);
+        let mut vertex_rank = [0usize; 4];
+        for (i, v) in vertex_rank.iter_mut().enumerate().take(m) {
+            let mut e = vec![0u32; m];
+            e[i] = det_degree;
+            *v = multi_index::rank(&e);
+        }
+        let all = multi_index::all(m, det_degree);
+        let mut lines = Vec::new();
+        for a in 0..m {
+            for b in (a + 1)..m {
+                // Group indices by their entries off {a, b}; order each group by I_b.
+                let mut groups: std::collections::BTreeMap<Vec<u32>, Vec<(u32, u16)>> =
+                    Default::default();
+                for (r, idx) in all.chunks(m).enumerate() {
+                    let key: Vec<u32> = (0..m)
+                        .map(|c| if c == a || c == b { u32::MAX } else { idx[c] })
+                        .collect();
+                    groups.entry(key).or_default().push((idx[b], r as u16));
+                }
+                let edge_lines = groups
+                    .into_values()
+                    .map(|mut g| {
+                        g.sort_unstable();
+                        g.into_iter().map(|(_, r)| r).collect()
+                    })
+                    .collect();
+                lines.push(((a, b), edge_lines));
+            }
+        }
+        DetKernel {
+            n,
+            degree: d,
+            rational,
+            size,
+            column_degrees,
+            shift,
+            mult_entry: multinomials(m, d - 1),
+            mult_first: multinomials(m, d),
+            conv,
+            det_degree,
+            mult_det: multinomials(m, det_degree),
+            gamma,
+            vertex_rank,
+            lines,
+        }
+    }
+
+    /// Degree of the determinant polynomial: `n(d − 1)` or `(n + 1)d − n`.
+    pub fn det_degree(&self) -> u32 {
+        self.det_degree
+    }
+
+    /// The relative error factor `γ` applied to the absolute-value companion.
+    pub fn gamma(&self) -> f64 {
+        self.gamma
+    }
+
+    /// Bernstein coefficients of the Jacobian polynomial of `net` with rigorous error bounds.
+    ///
+    /// # Panics
+    /// When the net does not match the kernel's dimension, degree and kind.
+    pub fn det_coefficients(&self, net: &DenseNet) -> BoundedCoefficients {
+        let m = self.n + 1;
+        assert_eq!(net.n, self.n);
+        assert_eq!(net.degree, self.degree);
+        assert_eq!(net.points.len(), multi_index::count(m, self.degree));
+        assert_eq!(net.is_rational(), self.rational);
+        let d = f64::from(self.degree);
+        let s = self.size;
+        // Columns in scaled (monomial) form: value and absolute companion, per row.
+        let entry_len = self.mult_entry.len();
+        let mut cols: Vec<Vec<(Vec<f64>, Vec<f64>)>> = Vec::with_capacity(s);
+        // Row r of a polynomial net is coordinate r + 1; of a rational net, component r of
+        // V = q·(1, b₁, …, bₙ).
+        let component = |idx: usize, r: usize| -> (f64, f64) {
+            if self.rational {
+                let q = net.weights[idx];
+                if r == 0 {
+                    (q, q.abs())
+                } else {
+                    let v = q * net.points[idx][r];
+                    (v, v.abs())
+                }
+            } else {
+                let v = net.points[idx][r + 1];
+                (v, v.abs())
+            }
+        };
+        if self.rational {
+            let mut col = Vec::with_capacity(s);
+            for r in 0..s {
+                let (mut v, mut a) = (
+                    vec![0.0; self.mult_first.len()],
+                    vec![0.0; self.mult_first.len()],
+                );
+                for (i, mlt) in self.mult_first.iter().enumerate() {
+                    let (x, ax) = component(i, r);
+                    v[i] = x * mlt;
+                    a[i] = ax * mlt;
+                }
+                col.push((v, a));
+            }
+            cols.push(col);
+        }
+        for k in 1..=self.n {
+            let mut col = Vec::with_capacity(s);
+            for r in 0..s {
+                let (mut v, mut a) = (vec![0.0; entry_len], vec![0.0; entry_len]);
+                for (i, sh) in self.shift.iter().enumerate() {
+                    let (xk, ak) = component(sh[k] as usize, r);
+                    let (x0, a0) = component(sh[0] as usize, r);
+                    let scale = d * self.mult_entry[i];
+                    v[i] = (xk - x0) * scale;
+                    a[i] = (ak + a0) * scale;
+                }
+                col.push((v, a));
+            }
+            cols.push(col);
+        }
+        // Laplace expansion from the last column: minors[mask] over the rows in `mask`.
+        let full = (1usize << s) - 1;
+        let mut minors: Vec<Option<(Vec<f64>, Vec<f64>)>> = vec![None; full + 1];
+        for r in 0..s {
+            minors[1 << r] = Some(cols[s - 1][r].clone());
+        }
+        for j in (0..s - 1).rev() {
+            let rows = s - j;
+            let conv = &self.conv[j];
+            let out_len = multi_index::count(m, self.column_degrees[j..].iter().sum());
+            let mut next: Vec<Option<(Vec<f64>, Vec<f64>)>> = vec![None; full + 1];
+            for (mask, slot) in next.iter_mut().enumerate() {
+                if (mask as u32).count_ones() as usize != rows {
+                    continue;
+                }
+                let (mut v, mut a) = (vec![0.0; out_len], vec![0.0; out_len]);
+                let mut sign = 1.0;
+                for r in 0..s {
+                    if mask & (1 << r) == 0 {
+                        continue;
+                    }
+                    let (ev, ea) = &cols[j][r];
+                    let (mv, ma) = minors[mask & !(1 << r)]
+                        .as_ref()
+                        .expect("minor computed at the previous level");
+                    for &(x, y, z) in &conv.triples {
+                        let (x, y, z) = (x as usize, y as usize, z as usize);
+                        v[z] += sign * ev[x] * mv[y];
+                        a[z] += ea[x] * ma[y];
+                    }
+                    sign = -sign;
+                }
+                *slot = Some((v, a));
+            }
+            minors = next;
+        }
+        let (v, a) = minors[full].take().expect("full determinant");
+        let mut values = Vec::with_capacity(v.len());
+        let mut errors = Vec::with_capacity(v.len());
+        for ((x, ax), mlt) in v.into_iter().zip(a).zip(&self.mult_det) {
+            values.push(x / mlt);
+            errors.push(self.gamma * (ax / mlt) + UNDERFLOW_SLACK);
+        }
+        BoundedCoefficients { values, errors }
+    }
+
+    /// Decides the sign of the Jacobian polynomial of `net` on the closed simplex, subdividing up to
+    /// `max_depth` bisections along any path.
+    pub fn certify(&self, net: &DenseNet, max_depth: u32) -> Decision {
+        let coefficients = self.det_coefficients(net);
+        self.decide(coefficients, max_depth)
+    }
+
+    /// The sign decision for given coefficients (the second half of [`DetKernel::certify`]).
+    pub fn decide(&self, coefficients: BoundedCoefficients, max_depth: u32) -> Decision {
+        let m = self.n + 1;
+        struct Piece {
+            values: Vec<f64>,
+            errors: Vec<f64>,
+            corners: [[f64; 4]; 4],
+            depth: u32,
+        }
+        let mut corners = [[0.0; 4]; 4];
+        for (i, c) in corners.iter_mut().enumerate().take(m) {
+            c[i] = 1.0;
+        }
+        let mut stack = vec![Piece {
+            values: coefficients.values,
+            errors: coefficients.errors,
+            corners,
+            depth: 0,
+        }];
+        let mut pieces = 0usize;
+        let mut deepest = 0u32;
+        let mut lower = f64::INFINITY;
+        let mut undecided: Option<(f64, f64)> = None;
+        let mut upper = f64::INFINITY;
+        while let Some(piece) = stack.pop() {
+            pieces += 1;
+            deepest = deepest.max(piece.depth);
+            for i in 0..m {
+                let r = self.vertex_rank[i];
+                let value = piece.values[r];
+                upper = upper.min(value);
+                if value <= 0.0 || value.is_nan() {
+                    return Decision::NonPositive {
+                        point: piece.corners[i][..m].to_vec(),
+                        value,
+                        error: piece.errors[r],
+                    };
+                }
+            }
+            let low = piece
+                .values
+                .iter()
+                .zip(&piece.errors)
+                .map(|(v, e)| v - e)
+                .fold(f64::INFINITY, f64::min);
+            if low > 0.0 {
+                lower = lower.min(low);
+                continue;
+            }
+            if piece.depth >= max_depth || pieces + stack.len() >= MAX_PIECES {
+                let (l, _) = undecided.get_or_insert((low, upper));
+                *l = l.min(low);
+                continue;
+            }
+            let (a, b) = longest_edge(&piece.corners, m);
+            let ((left_v, left_e), (right_v, right_e)) =
+                self.bisect(&piece.values, &piece.errors, a, b);
+            let mut mid = [0.0; 4];
+            for (c, x) in mid.iter_mut().enumerate().take(m) {
+                *x = 0.5 * (piece.corners[a][c] + piece.corners[b][c]);
+            }
+            // Child keeping a (b moved to the midpoint) and child keeping b.
+            let mut ca = piece.corners;
+            ca[b] = mid;
+            let mut cb = piece.corners;
+            cb[a] = mid;
+            stack.push(Piece {
+                values: right_v,
+                errors: right_e,
+                corners: cb,
+                depth: piece.depth + 1,
+            });
+            stack.push(Piece {
+                values: left_v,
+                errors: left_e,
+                corners: ca,
+                depth: piece.depth + 1,
+            });
+        }
+        match undecided {
+            None => Decision::Positive {
+                depth: deepest,
+                pieces,
+                lower_bound: lower,
+            },
+            Some((l, _)) => Decision::Undetermined {
+                depth: deepest,
+                pieces,
+                lower_bound: l,
+                upper_bound: upper,
+            },
+        }
+    }
+
+    /// Splits the simplex at the midpoint of edge `(a, b)`: coefficients of the child that keeps
+    /// vertex `a` and of the child that keeps vertex `b`, with propagated error bounds.
+    #[allow(clippy::type_complexity)]
+    fn bisect(
+        &self,
+        values: &[f64],
+        errors: &[f64],
+        a: usize,
+        b: usize,
+    ) -> ((Vec<f64>, Vec<f64>), (Vec<f64>, Vec<f64>)) {
+        let (a, b, swap) = if a < b { (a, b, false) } else { (b, a, true) };
+        let lines = &self
+            .lines
+            .iter()
+            .find(|(e, _)| *e == (a, b))
+            .expect("every edge has lines")
+            .1;
+        let (mut lv, mut le) = (vec![0.0; values.len()], vec![0.0; values.len()]);
+        let (mut rv, mut re) = (vec![0.0; values.len()], vec![0.0; values.len()]);
+        let mut tv = Vec::new();
+        let mut te = Vec::new();
+        for line in lines {
+            let len = line.len();
+            tv.clear();
+            te.clear();
+            tv.extend(line.iter().map(|&r| values[r as usize]));
+            te.extend(line.iter().map(|&r| errors[r as usize]));
+            // De Casteljau at t = 1/2 along the line (index j = exponent of b). After step s, entry 0
+            // is the left child's coefficient s and entry len−1−s the right child's coefficient
+            // len−1−s.
+            lv[line[0] as usize] = tv[0];
+            le[line[0] as usize] = te[0];
+            rv[line[len - 1] as usize] = tv[len - 1];
+            re[line[len - 1] as usize] = te[len - 1];
+            for step in 1..len {
+                for j in 0..len - step {
+                    let v = (tv[j] + tv[j + 1]) * 0.5;
+                    // |fl((x+y)/2) − (x+y)/2| ≤ u·|v|(1+u); the bound's own roundings are covered by
+                    // the factor 4 in place of 1.
+                    let e = ((te[j] + te[j + 1]) * 0.5 + 2.0 * UNIT_ROUNDOFF * v.abs())
+                        * (1.0 + 4.0 * UNIT_ROUNDOFF)
+                        + UNDERFLOW_SLACK;
+                    tv[j] = v;
+                    te[j] = e;
+                }
+                lv[line[step] as usize] = tv[0];
+                le[line[step] as usize] = te[0];
+                rv[line[len - 1 - step] as usize] = tv[len - 1 - step];
+                re[line[len - 1 - step] as usize] = te[len - 1 - step];
+            }
+        }
+        if swap {
+            ((rv, re), (lv, le))
+        } else {
+            ((lv, le), (rv, re))
+        }
+    }
+}
+
+/// The pair of corners farthest apart (in barycentric coordinates), ties to the first pair.
+fn longest_edge(corners: &[[f64; 4]; 4], m: usize) -> (usize, usize) {
+    let mut best = (0, 1);
+    let mut len = -1.0;
+    for a in 0..m {
+        for b in (a + 1)..m {
+            let l: f64 = (0..m)
+                .map(|c| (corners[a][c] - corners[b][c]).powi(2))
+                .sum();
+            if l > len {
+                len = l;
+                best = (a, b);
+            }
+        }
+    }
+    best
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The degree-4 1-D net of `000` Fig. 2 with the interior points at positions `t` (second
+    /// coordinate) in canonical order `31, 22, 13`.
+    fn one_d(t: [f64; 3]) -> DenseNet {
+        let mut points = vec![[1.0, 0.0, 0.0, 0.0]];
+        points.extend(t.iter().map(|&x| [1.0 - x, x, 0.0, 0.0]));
+        points.push([0.0, 1.0, 0.0, 0.0]);
+        DenseNet {
+            n: 1,
+            degree: 4,
+            points,
+            weights: Vec::new(),
+        }
+    }
+
+    #[test]
+    fn identity_has_unit_jacobian_in_every_dimension_and_kind() {
+        for n in 1..=3 {
+            for d in 1..=5 {
+                for rational in [false, true] {
+                    let mut net = DenseNet::identity(n, d);
+                    if rational {
+                        net.weights = vec![1.0; net.points.len()];
+                    }
+                    let kernel = DetKernel::new(n, d, rational);
+                    let c = kernel.det_coefficients(&net);
+                    assert_eq!(
+                        c.values.len(),
+                        multi_index::count(n + 1, kernel.det_degree())
+                    );
+                    for (v, e) in c.values.iter().zip(&c.errors) {
+                        assert!(
+                            (v - 1.0).abs() <= *e,
+                            "n={n} d={d} rational={rational}: {v} ± {e}"
+                        );
+                    }
+                    assert!(kernel.certify(&net, 0).is_positive());
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn fig2_swapped_points_are_rejected_and_ordered_ones_certified() {
+        let kernel = DetKernel::new(1, 4, false);
+        // Ordered (Prop. 5.4): certified.
+        assert!(kernel
+            .certify(&one_d([0.2, 0.5, 0.8]), DEFAULT_DEPTH)
+            .is_positive());
+        // b31 and b13 exchanged beyond the midpoint: det < 0 at t = 1/2.
+        match kernel.certify(&one_d([0.9, 0.5, 0.1]), DEFAULT_DEPTH) {
+            Decision::NonPositive {
+                point,
+                value,
+                error,
+            } => {
+                assert!(value + error <= 0.0, "{value} ± {error}");
+                assert_eq!(point.len(), 2);
+            }
+            other => panic!("expected a witness, got {other:?}"),
+        }
+        // Exactly exchanged (b31 = 3/4 ↔ b13 = 1/4): det = 0 at t = 1/2, never certified.
+        assert!(!kernel
+            .certify(&one_d([0.75, 0.5, 0.25]), DEFAULT_DEPTH)
+            .is_positive());
+    }
+
+    #[test]
+    fn one_d_derivative_coefficients_match_the_hand_computation() {
+        // x(t) = Σ c_j B_j(t), c = (0, .2, .5, .8, 1): x' = 4 Σ (c_{j+1} − c_j) B^3_j, and the
+        // reduced Jacobian of the 1-D map is x'. Coefficients in canonical order (exponent of w₀
+        // decreasing) are those of increasing t.
+        let kernel = DetKernel::new(1, 4, false);
+        let c = kernel.det_coefficients(&one_d([0.2, 0.5, 0.8]));
+        let expect = [0.8, 1.2, 1.2, 0.8];
+        for ((v, e), x) in c.values.iter().zip(&c.errors).zip(expect) {
+            assert!((v - x).abs() <= e + 1e-15, "{v} vs {x}");
+        }
+    }
+
+    #[test]
+    fn subdivision_finds_a_positive_polynomial_with_a_negative_coefficient() {
+        // 1-D degree 4 with control values 0, .45, .5, .55, 1: x' coefficients 1.8, .2, .2, 1.8 are
+        // positive; push the middle points so one coefficient is negative but x' stays positive.
+        let kernel = DetKernel::new(1, 4, false);
+        let net = one_d([0.4, 0.38, 0.62]);
+        let c = kernel.det_coefficients(&net);
+        assert!(c.values.iter().any(|&v| v < 0.0), "{:?}", c.values);
+        match kernel.certify(&net, DEFAULT_DEPTH) {
+            Decision::Positive {
+                depth, lower_bound, ..
+            } => assert!(depth > 0 && lower_bound > 0.0),
+            other => panic!("{other:?}"),
+        }
+    }
+}

@@ -1,0 +1,191 @@
+//! Per-stage index of face records and expansion of one stage on one top simplex into its dense
+//! control net (the storage rules of spec/ism-format.md §5.2, restated in spec/validation.md §4.1).
+
+use std::collections::HashMap;
+
+use ism_format::{multi_index, Model, Stage, StageKind};
+
+use crate::certify::DenseNet;
+
+/// A face key: sorted global vertex ids, padded with `u32::MAX`.
+pub type FaceKey = [u32; 4];
+
+/// Builds the key of a face from any order of its ids (at most 4).
+pub fn face_key(ids: &[u32]) -> FaceKey {
+    let mut k = [u32::MAX; 4];
+    k[..ids.len()].copy_from_slice(ids);
+    k[..ids.len()].sort_unstable();
+    k
+}
+
+/// Face records of one Bézier or rational stage, keyed by face.
+#[derive(Debug)]
+pub struct StageIndex<'a> {
+    model: &'a Model,
+    stage: &'a Stage,
+    faces: HashMap<FaceKey, usize>,
+    /// All local multi-indices of degree `d` in `n + 1` variables, flat.
+    all: Vec<u32>,
+    /// Per record: every stored point equals the correctly rounded fixed point `J/d`.
+    fixed: Vec<bool>,
+}
+
+/// Which faces of one top simplex carry records: `records[mask]` for the face made of the local
+/// positions in `mask`.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct SimplexRecords {
+    /// Record index per local face mask (index 0 unused).
+    pub records: [Option<usize>; 16],
+}
+
+impl SimplexRecords {
+    /// `(mask, record)` for each recorded face.
+    pub fn iter(&self) -> impl Iterator<Item = (usize, usize)> + '_ {
+        self.records
+            .iter()
+            .enumerate()
+            .filter_map(|(mask, r)| r.map(|r| (mask, r)))
+    }
+
+    /// Number of recorded faces.
+    pub fn count(&self) -> usize {
+        self.records.iter().filter(|r| r.is_some()).count()
+    }
+}
+
+impl<'a> StageIndex<'a> {
+    /// Indexes the face records of `stage`; the model must have passed the structural checks.
+    pub fn new(model: &'a Model, stage: &'a Stage) -> StageIndex<'a> {
+        let faces = stage
+            .faces
+            .iter()
+            .enumerate()
+            .map(|(r, rec)| (face_key(&rec.face), r))
+            .collect();
+        let d = stage.degree;
+        let fixed = stage
+            .faces
+            .iter()
+            .map(|rec| {
+                let k1 = rec.face.len();
+                multi_index::owned(k1, d)
+                    .iter()
+                    .zip(&rec.points)
+                    .all(|(&j, &x)| x == f64::from(j) / f64::from(d))
+            })
+            .collect();
+        StageIndex {
+            model,
+            stage,
+            faces,
+            all: multi_index::all(model.dim() + 1, d),
+            fixed,
+        }
+    }
+
+    /// The stage.
+    pub fn stage(&self) -> &Stage {
+        self.stage
+    }
+
+    /// Whether record `r` stores exactly the fixed points (each coordinate the f64 nearest `J_j/d`).
+    pub fn is_fixed(&self, r: usize) -> bool {
+        self.fixed[r]
+    }
+
+    /// Whether record `r` is a vertex record storing the vertex itself (`[1.0]`), which moves
+    /// nothing.
+    pub fn is_trivial(&self, r: usize) -> bool {
+        let rec = &self.stage.faces[r];
+        rec.face.len() == 1 && rec.points.iter().all(|&x| x == 1.0)
+    }
+
+    /// The recorded faces of top simplex `s`.
+    pub fn records(&self, s: usize) -> SimplexRecords {
+        let ids = self.model.simplex(s);
+        let m = ids.len();
+        let mut out = SimplexRecords::default();
+        if self.faces.is_empty() {
+            return out;
+        }
+        for mask in 1usize..(1 << m) {
+            let mut key = [u32::MAX; 4];
+            let mut len = 0;
+            for (i, &id) in ids.iter().enumerate() {
+                if mask & (1 << i) != 0 {
+                    key[len] = id;
+                    len += 1;
+                }
+            }
+            key[..len].sort_unstable();
+            out.records[mask] = self.faces.get(&key).copied();
+        }
+        out
+    }
+
+    /// The dense control net of this stage on top simplex `s`, in the simplex's stored vertex order.
+    pub fn dense_net(&self, s: usize, records: &SimplexRecords) -> DenseNet {
+        let ids = self.model.simplex(s);
+        let m = ids.len();
+        let d = self.stage.degree;
+        let rational = self.stage.kind == StageKind::Rational;
+        let count = self.all.len() / m;
+        let mut points = Vec::with_capacity(count);
+        let mut weights = if rational {
+            Vec::with_capacity(count)
+        } else {
+            Vec::new()
+        };
+        let mut shifted = [0u32; 4];
+        for idx in self.all.chunks(m) {
+            let mut mask = 0usize;
+            for (i, &e) in idx.iter().enumerate() {
+                if e > 0 {
+                    mask |= 1 << i;
+                }
+            }
+            let mut p = [0.0; 4];
+            let mut w = 1.0;
+            match records.records[mask] {
+                None => {
+                    for (c, &e) in p.iter_mut().zip(idx) {
+                        *c = f64::from(e) / f64::from(d);
+                    }
+                }
+                Some(r) => {
+                    let rec = &self.stage.faces[r];
+                    // Local positions of the face, ordered by global id: t_0 < … < t_k.
+                    let mut pos = [0usize; 4];
+                    let mut k1 = 0;
+                    for i in 0..m {
+                        if mask & (1 << i) != 0 {
+                            pos[k1] = i;
+                            k1 += 1;
+                        }
+                    }
+                    pos[..k1].sort_unstable_by_key(|&i| ids[i]);
+                    for j in 0..k1 {
+                        shifted[j] = idx[pos[j]] - 1;
+                    }
+                    let rank = multi_index::rank(&shifted[..k1]);
+                    for j in 0..k1 {
+                        p[pos[j]] = rec.points[rank * k1 + j];
+                    }
+                    if rational {
+                        w = rec.weights[rank];
+                    }
+                }
+            }
+            points.push(p);
+            if rational {
+                weights.push(w);
+            }
+        }
+        DenseNet {
+            n: m - 1,
+            degree: d,
+            points,
+            weights,
+        }
+    }
+}

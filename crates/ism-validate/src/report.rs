@@ -1,0 +1,303 @@
+//! The validation report (spec/validation.md §6, schema `spec/schema/report.schema.json`).
+//!
+//! Modelled on the Khronos glTF validator's report: a versioned document with counts per severity
+//! and a list of messages, each with a stable `code` (the rule id), a `severity`, a `message` and a
+//! `location` whose `pointer` is a JSON pointer into the model's JSON encoding.
+
+use std::collections::BTreeMap;
+
+use ism_format::{Location, Rule, Severity};
+use serde::{Deserialize, Serialize};
+
+/// Version of the report format this crate writes.
+pub const REPORT_VERSION: &str = "1.0";
+
+/// The verdict of a whole file.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize, PartialOrd, Ord)]
+#[serde(rename_all = "lowercase")]
+pub enum Verdict {
+    /// No error: every stage certified.
+    Valid,
+    /// Some positivity questions were left undecided and nothing else is wrong.
+    Undetermined,
+    /// At least one error other than ISM-302.
+    Invalid,
+}
+
+impl Verdict {
+    /// The spelling used in the report.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Verdict::Valid => "valid",
+            Verdict::Undetermined => "undetermined",
+            Verdict::Invalid => "invalid",
+        }
+    }
+}
+
+/// A point where `det DX ≤ 0`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "camelCase")]
+pub struct Witness {
+    /// Barycentric coordinates in the top simplex, in its stored vertex order.
+    pub point: Vec<f64>,
+    /// `det DX` of the stored map there, evaluated directly (reduced barycentric coordinates).
+    pub det: f64,
+    /// The certificate polynomial's value there (equal to `det` for polynomial stages; `N` for
+    /// rational ones) and its rounding-error bound.
+    pub polynomial_value: f64,
+    /// Rounding-error bound of `polynomial_value`; `polynomial_value + error ≤ 0` makes the sign
+    /// certain.
+    pub error_bound: f64,
+}
+
+/// Bounds left when subdivision stopped (ISM-302).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "camelCase")]
+pub struct Bounds {
+    /// Depth reached.
+    pub depth: u32,
+    /// Pieces examined.
+    pub pieces: usize,
+    /// Certified lower bound of the certificate polynomial on the simplex.
+    pub lower: f64,
+    /// Smallest value found (an upper bound of its minimum).
+    pub upper: f64,
+}
+
+/// One diagnostic of the report.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "camelCase")]
+pub struct Message {
+    /// The rule id, e.g. `ISM-301`.
+    pub code: String,
+    /// Severity.
+    pub severity: Severity,
+    /// What was found and what was expected.
+    pub message: String,
+    /// Where.
+    pub location: Location,
+    /// For ISM-301: where `det DX ≤ 0`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub witness: Option<Witness>,
+    /// For ISM-302: how far subdivision went.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub bounds: Option<Bounds>,
+    /// For ISM-401..403: the measured quantity (angle in degrees, residual, det).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub value: Option<f64>,
+}
+
+impl Message {
+    /// A message for `rule` at the rule's severity.
+    pub fn new(rule: Rule, location: Location, message: impl Into<String>) -> Message {
+        Message {
+            code: rule.id().to_string(),
+            severity: rule.severity(),
+            message: message.into(),
+            location,
+            witness: None,
+            bounds: None,
+            value: None,
+        }
+    }
+
+    /// The rule, when the code is one of the spec's.
+    pub fn rule(&self) -> Option<Rule> {
+        Rule::from_id(&self.code)
+    }
+}
+
+impl From<ism_format::Diagnostic> for Message {
+    fn from(d: ism_format::Diagnostic) -> Message {
+        Message {
+            code: d.rule.id().to_string(),
+            severity: d.severity,
+            message: d.message,
+            location: d.location,
+            witness: None,
+            bounds: None,
+            value: None,
+        }
+    }
+}
+
+/// The messages with their counts.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "camelCase")]
+pub struct Issues {
+    /// Errors found (all of them, also those cut from `messages`).
+    pub num_errors: usize,
+    /// Warnings found.
+    pub num_warnings: usize,
+    /// Infos found.
+    pub num_infos: usize,
+    /// Whether `messages` was cut at the maximum number of messages.
+    pub truncated: bool,
+    /// Findings: errors first, then warnings and infos, each in file order.
+    pub messages: Vec<Message>,
+    /// Number of findings per rule id (all of them).
+    pub counts: BTreeMap<String, usize>,
+}
+
+/// How a stage was certified (layer 3).
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "camelCase")]
+pub struct StageReport {
+    /// Stage index.
+    pub index: usize,
+    /// `bezier`, `rational` or `monotonic`.
+    pub kind: String,
+    /// Degree.
+    pub degree: u32,
+    /// `implicit` or `parametric` (a parametric stage is valid iff its stored map is).
+    pub direction: String,
+    /// `certified`, `invalid`, `undetermined`, or `skipped` (earlier layers failed).
+    pub status: String,
+    /// Why the positivity layer did not run, when skipped.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub skipped_because: Option<String>,
+    /// Top simplices certified valid.
+    pub valid: usize,
+    /// Top simplices with a witness of `det ≤ 0`.
+    pub invalid: usize,
+    /// Top simplices left undecided.
+    pub undetermined: usize,
+    /// Certified simplices per method: a theorem's name, `identity`, or `subdivision`.
+    pub certificates: BTreeMap<String, usize>,
+    /// Deepest subdivision used by a certificate.
+    pub max_depth: u32,
+    /// Smallest certified lower bound of the certificate polynomial over subdivision certificates.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub min_lower_bound: Option<f64>,
+    /// Range of the Jacobian-polynomial values at the simplex vertices (exact coefficients), over
+    /// the simplices examined numerically, when `--quality` asked for it.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub det_range: Option<[f64; 2]>,
+}
+
+/// Size of the model validated.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "camelCase")]
+pub struct ModelInfo {
+    /// Dimension.
+    pub dimension: u8,
+    /// Vertices.
+    pub vertices: usize,
+    /// Top simplices.
+    pub simplices: usize,
+    /// Stages.
+    pub stages: usize,
+}
+
+/// The file, when the report comes from one.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "camelCase")]
+pub struct FileInfo {
+    /// Path as given.
+    pub path: String,
+    /// Encoding found by sniffing.
+    pub encoding: String,
+    /// Size in bytes.
+    pub bytes: u64,
+}
+
+/// Wall-clock time per layer, in seconds.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "camelCase")]
+pub struct Timing {
+    /// Layer 1.
+    pub structure: f64,
+    /// Layer 2.
+    pub invariance: f64,
+    /// Layer 3.
+    pub positivity: f64,
+    /// Layer 4 (`--quality`).
+    pub quality: f64,
+}
+
+/// The whole report.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "camelCase")]
+pub struct Report {
+    /// [`REPORT_VERSION`].
+    pub report_version: String,
+    /// `ism-validate <crate version>`.
+    pub validator: String,
+    /// The file, when validated from one.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub file: Option<FileInfo>,
+    /// The model's size.
+    pub model: ModelInfo,
+    /// The verdict.
+    pub verdict: Verdict,
+    /// Findings.
+    pub issues: Issues,
+    /// Layer 3 per stage.
+    pub stages: Vec<StageReport>,
+    /// Subdivision depth limit used.
+    pub depth_limit: u32,
+    /// Time per layer.
+    pub timing: Timing,
+}
+
+impl Report {
+    /// `(code, location)` of every message, for tests and scripts.
+    pub fn pairs(&self) -> Vec<(String, Location)> {
+        self.issues
+            .messages
+            .iter()
+            .map(|m| (m.code.clone(), m.location.clone()))
+            .collect()
+    }
+
+    /// Whether the model is valid (no error).
+    pub fn is_valid(&self) -> bool {
+        self.verdict == Verdict::Valid
+    }
+}
+
+/// Collects messages up to a maximum while counting them all.
+#[derive(Debug)]
+pub(crate) struct Collector {
+    pub messages: Vec<Message>,
+    pub counts: BTreeMap<String, usize>,
+    pub total: [usize; 3],
+    pub max: usize,
+    pub truncated: bool,
+}
+
+impl Collector {
+    pub fn new(max: usize) -> Collector {
+        Collector {
+            messages: Vec::new(),
+            counts: BTreeMap::new(),
+            total: [0; 3],
+            max,
+            truncated: false,
+        }
+    }
+
+    pub fn push(&mut self, m: Message) {
+        *self.counts.entry(m.code.clone()).or_default() += 1;
+        self.total[m.severity as usize] += 1;
+        if self.messages.len() < self.max {
+            self.messages.push(m);
+        } else {
+            self.truncated = true;
+        }
+    }
+
+    pub fn finish(mut self) -> Issues {
+        // Errors first, then warnings, then infos; stable so file order is kept within each.
+        self.messages.sort_by_key(|m| std::cmp::Reverse(m.severity));
+        Issues {
+            num_errors: self.total[Severity::Error as usize],
+            num_warnings: self.total[Severity::Warning as usize],
+            num_infos: self.total[Severity::Info as usize],
+            truncated: self.truncated,
+            messages: self.messages,
+            counts: self.counts,
+        }
+    }
+}
