@@ -30,7 +30,10 @@ impl Error {
     }
 
     pub(crate) fn io(path: Option<PathBuf>, source: std::io::Error) -> Error {
-        Error::Io { path, error: source }
+        Error::Io {
+            path,
+            error: source,
+        }
     }
 
     /// The diagnostics this error carries (empty for I/O errors).
