@@ -42,8 +42,21 @@ const CONTINUATION_CORRECTOR_ITERATIONS: u32 = 12;
 /// (or is extremely close to singular).
 const CONTINUATION_MIN_STEP: f64 = 1e-7;
 
+/// Newton steps on the composed map after inverting stage by stage: the start is already within
+/// the stages' residuals, so two or three quadratic steps suffice.
+const MAP_POLISH_ITERATIONS: u32 = 4;
+
+/// Bound on continuation steps (accepted or halved), so that an invalid stage costs bounded time:
+/// a valid one needs a handful (steps double after each success).
+const CONTINUATION_MAX_STEPS: u32 = 200;
+
 /// Tolerance of intermediate continuation points: they only need to be good starting guesses.
 const CONTINUATION_INTERMEDIATE_TOLERANCE: f64 = 1e-9;
+
+/// Sum defect below which [`project`] leaves coordinates untouched: barycentric coordinates
+/// computed in floating point sum to 1 only within a few ulps, and rescaling them would perturb
+/// points (vertices, exact face points) that are otherwise exact.
+const PROJECT_SLACK: f64 = 1e-14;
 
 /// Result of inverting a map at one point.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -542,7 +555,7 @@ impl LocalStage {
     pub fn eval(&self, w: &Bary) -> Bary {
         match self.direction {
             Direction::Implicit => self.eval_stored(w),
-            Direction::Parametric => self.invert_stored(w).w,
+            Direction::Parametric => self.invert_stored_with(w, true).w,
         }
     }
 
@@ -571,7 +584,7 @@ impl LocalStage {
                 (u, Some(j))
             }
             Direction::Parametric => {
-                let u = self.invert_stored(w).w;
+                let u = self.invert_stored_with(w, true).w;
                 let (_, j) = self.jacobian_stored(&u);
                 (u, linalg::inverse(self.m - 1, &j))
             }
@@ -590,6 +603,12 @@ impl LocalStage {
     /// continuation from the face centroid if Newton stalls. `u` is first projected onto the simplex
     /// (negative or non-finite entries become 0, then it is rescaled to sum 1).
     pub fn invert_stored(&self, u: &Bary) -> InverseResult {
+        self.invert_stored_with(u, false)
+    }
+
+    /// [`LocalStage::invert_stored`], optionally polished to rounding level (used when the inverse
+    /// is itself the forward map of a parametric stage, whose errors compound through later stages).
+    fn invert_stored_with(&self, u: &Bary, polish: bool) -> InverseResult {
         let m = self.m;
         let u = project(m, u);
         if self.identity {
@@ -626,6 +645,7 @@ impl LocalStage {
             start,
             NEWTON_MAX_ITERATIONS,
             INVERSE_TOLERANCE,
+            polish,
             &mut iterations,
         ) {
             return InverseResult {
@@ -643,7 +663,9 @@ impl LocalStage {
         }
         let c_star = self.eval_stored(&w);
         let (mut t, mut h) = (0.0f64, 0.25f64);
-        while t < 1.0 {
+        let mut steps = 0;
+        while t < 1.0 && steps < CONTINUATION_MAX_STEPS {
+            steps += 1;
             let t_next = (t + h).min(1.0);
             let mut target = [0.0; MAX_VARS];
             for &i in sup {
@@ -660,6 +682,7 @@ impl LocalStage {
                 w,
                 CONTINUATION_CORRECTOR_ITERATIONS,
                 tol,
+                polish && t_next >= 1.0,
                 &mut iterations,
             ) {
                 Some((w_next, r)) => {
@@ -692,73 +715,139 @@ impl LocalStage {
         }
     }
 
-    /// Damped Newton for `S(w) = target` with unknowns on `sup` only (the others stay exactly 0).
-    /// Returns the solution and its residual when the residual reaches `tol`.
+    /// Damped Newton on the stored map (see [`newton_solve`]).
+    #[allow(clippy::too_many_arguments)]
     fn newton(
         &self,
         sup: &[usize],
         target: &Bary,
-        mut w: Bary,
+        w: Bary,
         max_iter: u32,
         tol: f64,
+        polish: bool,
         iterations: &mut u32,
     ) -> Option<(Bary, f64)> {
-        let m = self.m;
-        let k = sup.len() - 1;
-        let s0 = sup[0];
-        let (mut val, mut h) = self.homogeneous_jacobian_stored(&w);
-        let mut r = residual(m, &val, target);
-        for _ in 0..max_iter {
-            if r <= tol {
+        newton_solve(
+            self.m,
+            sup,
+            target,
+            w,
+            NewtonSettings {
+                max_iter,
+                tol,
+                polish,
+            },
+            iterations,
+            |x| self.eval_stored(x),
+            |x| self.homogeneous_jacobian_stored(x),
+        )
+    }
+}
+
+/// Iteration limits of [`newton_solve`].
+#[derive(Clone, Copy)]
+struct NewtonSettings {
+    max_iter: u32,
+    tol: f64,
+    /// After reaching `tol`, take one more step and keep it if it lowers the residual: Newton
+    /// converges quadratically, so this lands at rounding level for the price of one iteration.
+    polish: bool,
+}
+
+/// Damped Newton for `S(w) = target` with unknowns on `sup` only (the others stay exactly 0), in
+/// barycentric coordinates based at `sup[0]`. `jac` returns the value and a homogeneous Jacobian
+/// that is correct on tangent vectors (`Σ v = 0`). Steps stop short of the face boundary
+/// (the solution is in the open face) and are halved until the residual decreases. Returns the
+/// solution and its residual once the residual reaches `settings.tol`.
+#[allow(clippy::too_many_arguments)]
+fn newton_solve(
+    m: usize,
+    sup: &[usize],
+    target: &Bary,
+    mut w: Bary,
+    settings: NewtonSettings,
+    iterations: &mut u32,
+    eval: impl Fn(&Bary) -> Bary,
+    jac: impl Fn(&Bary) -> (Bary, Mat),
+) -> Option<(Bary, f64)> {
+    let k = sup.len() - 1;
+    let s0 = sup[0];
+    let (mut val, mut h) = jac(&w);
+    let mut r = residual(m, &val, target);
+    let mut polishing = false;
+    for _ in 0..=settings.max_iter {
+        if r <= settings.tol {
+            if !settings.polish || polishing || r == 0.0 {
                 return Some((w, r));
             }
-            *iterations += 1;
-            let mut a = [[0.0; MAX_VARS]; MAX_VARS];
-            let mut rhs = [0.0; MAX_VARS];
-            for (ri, &s) in sup[1..].iter().enumerate() {
-                rhs[ri] = target[s] - val[s];
-                for (ci, &c) in sup[1..].iter().enumerate() {
-                    a[ri][ci] = h[s][c] - h[s][s0];
-                }
-            }
-            let delta = linalg::solve(k, &a, &rhs)?;
-            let mut full = [0.0; MAX_VARS];
-            let mut sum = 0.0;
-            for (ci, &c) in sup[1..].iter().enumerate() {
-                full[c] = delta[ci];
-                sum += delta[ci];
-            }
-            full[s0] = -sum;
-            // Fraction to the boundary: the solution lies in the open face, so never step past it.
-            let mut alpha = 1.0f64;
-            for &i in sup {
-                if full[i] < 0.0 && w[i] + full[i] <= 0.0 {
-                    alpha = alpha.min(0.9 * w[i] / -full[i]);
-                }
-            }
-            let mut accepted = false;
-            for _ in 0..20 {
-                let mut trial = w;
-                for &i in sup {
-                    trial[i] += alpha * full[i];
-                }
-                let tv = self.eval_stored(&trial);
-                let tr = residual(m, &tv, target);
-                if tr < r || tr <= tol {
-                    w = trial;
-                    r = tr;
-                    accepted = true;
-                    break;
-                }
-                alpha *= 0.5;
-            }
-            if !accepted {
-                return None;
-            }
-            (val, h) = self.homogeneous_jacobian_stored(&w);
+            polishing = true;
         }
-        (r <= tol).then_some((w, r))
+        *iterations += 1;
+        let mut a = [[0.0; MAX_VARS]; MAX_VARS];
+        let mut rhs = [0.0; MAX_VARS];
+        for (ri, &s) in sup[1..].iter().enumerate() {
+            rhs[ri] = target[s] - val[s];
+            for (ci, &c) in sup[1..].iter().enumerate() {
+                a[ri][ci] = h[s][c] - h[s][s0];
+            }
+        }
+        let Some(delta) = linalg::solve(k, &a, &rhs) else {
+            return (r <= settings.tol).then_some((w, r));
+        };
+        let mut full = [0.0; MAX_VARS];
+        let mut sum = 0.0;
+        for (ci, &c) in sup[1..].iter().enumerate() {
+            full[c] = delta[ci];
+            sum += delta[ci];
+        }
+        full[s0] = -sum;
+        // Fraction to the boundary: the solution lies in the open face, so never step past it.
+        let mut alpha = 1.0f64;
+        for &i in sup {
+            if full[i] < 0.0 && w[i] + full[i] <= 0.0 {
+                alpha = alpha.min(0.9 * w[i] / -full[i]);
+            }
+        }
+        let mut accepted = false;
+        for _ in 0..if polishing { 1 } else { 20 } {
+            let mut trial = w;
+            for &i in sup {
+                trial[i] += alpha * full[i];
+            }
+            let tr = residual(m, &eval(&trial), target);
+            if tr < r {
+                w = trial;
+                r = tr;
+                accepted = true;
+                break;
+            }
+            alpha *= 0.5;
+        }
+        if !accepted {
+            return (r <= settings.tol).then_some((w, r));
+        }
+        if polishing {
+            return Some((w, r));
+        }
+        (val, h) = jac(&w);
     }
+    (r <= settings.tol).then_some((w, r))
+}
+
+/// Homogeneous `m × m` matrix acting on tangent vectors like the reduced `n × n` matrix `r`
+/// (inverse of [`reduce`] on tangent vectors): `H[k][l] = R[k−1][l−1]`, column 0 zero, row 0 minus
+/// the column sums.
+pub fn embed(m: usize, r: &Mat) -> Mat {
+    let mut h = [[0.0; MAX_VARS]; MAX_VARS];
+    for l in 1..m {
+        let mut col = 0.0;
+        for k in 1..m {
+            h[k][l] = r[k - 1][l - 1];
+            col += r[k - 1][l - 1];
+        }
+        h[0][l] = -col;
+    }
+    h
 }
 
 /// Reduced `n × n` Jacobian from the homogeneous one: `R[k−1][l−1] = H[k][l] − H[k][0]`.
@@ -773,7 +862,8 @@ pub fn reduce(m: usize, h: &Mat) -> Mat {
 }
 
 /// Projects onto the closed simplex: negative or non-finite entries become 0, then the rest are
-/// rescaled to sum 1 (exact zeros stay zero). An all-zero input stays zero.
+/// rescaled to sum 1 unless the sum is already within `1e-14` of 1 (exact zeros stay zero). An
+/// all-zero input stays zero.
 pub fn project(m: usize, u: &Bary) -> Bary {
     let mut out = [0.0; MAX_VARS];
     let mut s = 0.0;
@@ -783,7 +873,7 @@ pub fn project(m: usize, u: &Bary) -> Bary {
             s += u[i];
         }
     }
-    if s > 0.0 && s != 1.0 {
+    if s > 0.0 && (s - 1.0).abs() > PROJECT_SLACK {
         for v in out.iter_mut() {
             *v /= s;
         }
@@ -908,9 +998,12 @@ impl LocalMap {
         }
     }
 
-    /// `X⁻¹(u) = X_0⁻¹(… X_{last}⁻¹(u))`; `residual` is that of the whole map, `|X(w) − u|∞`.
+    /// `X⁻¹(u) = X_0⁻¹(… X_{last}⁻¹(u))`, then (with more than one stage) a few Newton steps on the
+    /// whole map, since each stage's residual is amplified by the later stages. `residual` is that
+    /// of the whole map, `|X(w) − u|∞`.
     pub fn inverse(&self, u: &Bary) -> InverseResult {
-        let u = project(self.m, u);
+        let m = self.m;
+        let u = project(m, u);
         let mut w = u;
         let mut iterations = 0;
         let mut all = true;
@@ -920,16 +1013,56 @@ impl LocalMap {
             all &= r.converged;
             w = r.w;
         }
-        let residual = if self.stages.is_empty() {
-            0.0
-        } else {
-            residual(self.m, &self.eval(&w), &u)
-        };
+        if self.stages.len() <= 1 {
+            let residual = if self.stages.is_empty() {
+                0.0
+            } else {
+                residual(m, &self.eval(&w), &u)
+            };
+            return InverseResult {
+                w,
+                iterations,
+                residual,
+                converged: all && residual <= INVERSE_TOLERANCE,
+            };
+        }
+        let mut support = [0usize; MAX_VARS];
+        let mut k1 = 0;
+        for i in 0..m {
+            if u[i] > 0.0 {
+                support[k1] = i;
+                k1 += 1;
+            }
+        }
+        if k1 > 1 {
+            let settings = NewtonSettings {
+                max_iter: MAP_POLISH_ITERATIONS,
+                tol: INVERSE_TOLERANCE,
+                polish: true,
+            };
+            let jac = |x: &Bary| {
+                let (val, j) = self.jacobian(x);
+                (val, embed(m, &j.unwrap_or_else(|| identity_mat(m - 1))))
+            };
+            if let Some((polished, _)) = newton_solve(
+                m,
+                &support[..k1],
+                &u,
+                w,
+                settings,
+                &mut iterations,
+                |x| self.eval(x),
+                jac,
+            ) {
+                w = polished;
+            }
+        }
+        let residual = residual(m, &self.eval(&w), &u);
         InverseResult {
             w,
             iterations,
             residual,
-            converged: all && residual <= INVERSE_TOLERANCE * self.stages.len().max(1) as f64,
+            converged: residual <= INVERSE_TOLERANCE,
         }
     }
 }

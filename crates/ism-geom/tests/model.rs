@@ -1,0 +1,242 @@
+//! Whole-model evaluation on Kuhn grids with random valid stages: continuity of `F` across every
+//! shared face, gradients by finite differences, point location, patches and the parametric map.
+
+// Index loops over barycentric coordinates mirror the formulas under test.
+#![allow(clippy::needless_range_loop)]
+
+mod common;
+
+use std::collections::HashMap;
+
+use common::{make, Kind, Rng};
+use ism_format::Model;
+use ism_geom::{ModelEval, LOCATE_TOLERANCE};
+use proptest::prelude::*;
+
+fn random_model(n: usize, seed: u64) -> (Model, Rng) {
+    let mut rng = Rng(seed);
+    let mut model = common::kuhn(n, 2, &mut rng);
+    let mut stages = common::stratified(&model, &mut rng);
+    stages.push(make(Kind::Rational(3), &model, &mut rng, false));
+    stages.push(make(Kind::Monotonic(2), &model, &mut rng, true));
+    stages.push(make(Kind::AdjustedQuadratic, &model, &mut rng, false));
+    model.stages = stages;
+    (model, rng)
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 24, ..ProptestConfig::default() })]
+
+    /// Both sides of every interior facet give the same `F` (to 1e-12) at random points of the
+    /// facet, each side evaluated with exact barycentric coordinates in its own local order.
+    #[test]
+    fn f_is_continuous_across_shared_faces(seed in any::<u64>(), n in 2usize..=3) {
+        let (model, mut rng) = random_model(n, seed);
+        let eval = ModelEval::new(&model).unwrap();
+        let mut facets: HashMap<Vec<u32>, Vec<usize>> = HashMap::new();
+        for s in 0..model.num_simplices() {
+            let ids = model.simplex(s);
+            for skip in 0..=n {
+                let mut f: Vec<u32> = ids.iter().enumerate().filter(|&(i, _)| i != skip).map(|(_, &v)| v).collect();
+                f.sort_unstable();
+                facets.entry(f).or_default().push(s);
+            }
+        }
+        let mut checked = 0;
+        for (face, owners) in &facets {
+            if owners.len() != 2 {
+                continue;
+            }
+            for _ in 0..3 {
+                let mut c = rng.bary(n);
+                if c[..n].iter().all(|&x| x == 0.0) {
+                    c[0] = 1.0;
+                }
+                let vals: Vec<f64> = owners
+                    .iter()
+                    .map(|&s| {
+                        let ids = model.simplex(s);
+                        let mut w = [0.0; 4];
+                        for (k, v) in face.iter().enumerate() {
+                            let pos = ids.iter().position(|x| x == v).unwrap();
+                            w[pos] = c[k];
+                        }
+                        eval.value_at(s, &w)
+                    })
+                    .collect();
+                prop_assert!((vals[0] - vals[1]).abs() < 1e-12, "face {:?}: {} vs {}", face, vals[0], vals[1]);
+                checked += 1;
+            }
+        }
+        prop_assert!(checked > 0);
+    }
+
+    /// `∇F` (chain rule through all stages) against central differences of `F`, at interior points.
+    #[test]
+    fn gradient_matches_finite_differences(seed in any::<u64>(), n in 2usize..=3) {
+        let (model, mut rng) = random_model(n, seed);
+        let eval = ModelEval::new(&model).unwrap();
+        let h = 1e-6;
+        for _ in 0..20 {
+            let s = rng.below(model.num_simplices());
+            let mut w = [0.0; 4];
+            w[..=n].copy_from_slice(&rng.open_simplex(n + 1, 0.05));
+            let p = eval.point(s, &w);
+            let g = eval.gradient_at(s, &w).unwrap();
+            for x in 0..n {
+                let mut pp = p;
+                let mut pm = p;
+                pp[x] += h;
+                pm[x] -= h;
+                let fd = (eval.value_at(s, &eval.barycentric(s, &pp)) - eval.value_at(s, &eval.barycentric(s, &pm))) / (2.0 * h);
+                prop_assert!((g[x] - fd).abs() < 1e-5 * (1.0 + fd.abs()), "∂{}: {} vs {}", x, g[x], fd);
+            }
+        }
+    }
+
+    /// Points of every patch `θ_σ` map through the parametric form onto `F = c`, evaluated back
+    /// through point location (independent of the inverse's own residual); the patch normal agrees
+    /// with `∇F` there; the parametric Jacobian matches finite differences.
+    #[test]
+    fn parametric_form_lands_on_the_level_set(seed in any::<u64>(), n in 2usize..=3) {
+        let (model, mut rng) = random_model(n, seed);
+        let eval = ModelEval::new(&model).unwrap();
+        let mut bare = model.clone();
+        bare.stages.clear();
+        let linear = ModelEval::new(&bare).unwrap();
+        let mut patches = 0;
+        for s in 0..model.num_simplices() {
+            let Some(patch) = eval.patch(s) else { continue };
+            patches += 1;
+            let k = patch.corners.len();
+            let expected_corners = if n == 2 { k == 2 } else { k == 3 || k == 4 };
+            prop_assert!(expected_corners);
+            for c in &patch.corners {
+                let f: f64 = model.simplex(s).iter().enumerate().map(|(i, &v)| model.values[v as usize] * c.u[i]).sum();
+                prop_assert!((f - model.level).abs() < 1e-12);
+            }
+            // A random convex combination of the corners.
+            let lam = rng.open_simplex(k, 0.0);
+            let mut u = [0.0; 4];
+            for (c, l) in patch.corners.iter().zip(&lam) {
+                for i in 0..=n {
+                    u[i] += l * c.u[i];
+                }
+            }
+            let pp = eval.param_point(s, &u);
+            prop_assert!(pp.inverse.converged, "{:?}", pp.inverse);
+            let f = eval.value(&pp.p[..n]).unwrap();
+            prop_assert!((f - model.level).abs() < 1e-9, "F = {} at a parametric point", f);
+            // Orientation: the corner order's normal (of the linear patch) points along the
+            // linear function's gradient, towards F > c.
+            let lin: Vec<[f64; 3]> = patch.corners.iter().map(|c| linear.point(s, &c.u)).collect();
+            let a = [lin[1][0] - lin[0][0], lin[1][1] - lin[0][1], lin[1][2] - lin[0][2]];
+            let normal = if n == 2 {
+                [a[1], -a[0], 0.0]
+            } else {
+                let b = [lin[2][0] - lin[0][0], lin[2][1] - lin[0][1], lin[2][2] - lin[0][2]];
+                [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
+            };
+            let g = linear.gradient_at(s, &[0.25; 4]).unwrap();
+            prop_assert!((0..3).map(|x| normal[x] * g[x]).sum::<f64>() > 0.0);
+            // Parametric Jacobian vs finite differences along u_l − u_0 at an interior u.
+            let mut ui = [0.0; 4];
+            ui[..=n].copy_from_slice(&rng.open_simplex(n + 1, 0.1));
+            let w = eval.param_point(s, &ui).w;
+            let jac = eval.param_jacobian(s, &w).unwrap();
+            let h = 1e-6;
+            for l in 1..=n {
+                let mut up = ui;
+                let mut um = ui;
+                up[l] += h;
+                up[0] -= h;
+                um[l] -= h;
+                um[0] += h;
+                let (a, b) = (eval.param_point(s, &up).p, eval.param_point(s, &um).p);
+                for x in 0..n {
+                    let fd = (a[x] - b[x]) / (2.0 * h);
+                    prop_assert!((jac[x][l - 1] - fd).abs() < 1e-5 * (1.0 + fd.abs()));
+                }
+            }
+        }
+        prop_assert!(patches > 0 || model.values.iter().all(|&v| v > 0.0) || model.values.iter().all(|&v| v < 0.0));
+    }
+}
+
+#[test]
+fn location_finds_the_containing_simplex_and_rejects_outside_points() {
+    for n in [2usize, 3] {
+        let mut rng = Rng(42 + n as u64);
+        let model = common::kuhn(n, 4, &mut rng);
+        let eval = ModelEval::new(&model).unwrap();
+        for _ in 0..500 {
+            let p: Vec<f64> = (0..n).map(|_| rng.uniform(0.0, 4.0)).collect();
+            let loc = eval.locate(&p).expect("inside the grid");
+            let w = eval.barycentric(loc.simplex, &p);
+            assert!(w[..=n].iter().all(|&x| x >= -LOCATE_TOLERANCE));
+            let back = eval.point(loc.simplex, &loc.w);
+            assert!((0..n).all(|x| (back[x] - p[x]).abs() < 1e-12));
+            // Brute force: the located simplex is one of those containing p.
+            let containing: Vec<usize> = (0..model.num_simplices())
+                .filter(|&s| {
+                    eval.barycentric(s, &p)[..=n]
+                        .iter()
+                        .all(|&x| x >= -LOCATE_TOLERANCE)
+                })
+                .collect();
+            assert!(containing.contains(&loc.simplex));
+        }
+        // Vertices are located, with F exactly f(v) (identity model).
+        for v in 0..model.num_vertices() {
+            let f = eval.value(model.vertex(v)).unwrap();
+            assert_eq!(f, model.values[v]);
+        }
+        for p in [[-0.5, 1.0, 1.0], [1.0, 4.5, 1.0], [1.0, 1.0, -1e-6]] {
+            if n == 2 && p[2] != 1.0 {
+                continue;
+            }
+            assert!(eval.locate(&p[..n]).is_none(), "{p:?}");
+        }
+    }
+}
+
+#[test]
+fn batch_apis_agree_with_single_point_calls() {
+    let (model, mut rng) = random_model(3, 7);
+    let eval = ModelEval::new(&model).unwrap();
+    let pts: Vec<f64> = (0..300).map(|_| rng.uniform(-0.2, 2.2)).collect();
+    let vals = eval.values(&pts);
+    let grads = eval.gradients(&pts);
+    for (i, p) in pts.chunks_exact(3).enumerate() {
+        assert_eq!(vals[i], eval.value(p));
+        assert_eq!(grads[i], eval.gradient(p));
+    }
+    assert!(vals.iter().any(Option::is_none) && vals.iter().any(Option::is_some));
+}
+
+#[test]
+fn malformed_records_are_reported_with_their_location() {
+    let mut rng = Rng(3);
+    let mut model = common::kuhn(2, 1, &mut rng);
+    let mut st = common::adjusted_quadratic(&model, &mut rng);
+    st.faces[1].points.push(0.5);
+    model.stages.push(st);
+    let err = ModelEval::new(&model).unwrap_err();
+    assert!(
+        matches!(
+            err,
+            ism_geom::GeomError::FaceRecord {
+                stage: 0,
+                record: 1,
+                what: "points",
+                found: 3,
+                expected: 2,
+                ..
+            }
+        ),
+        "{err}"
+    );
+    let mut degenerate = common::kuhn(2, 1, &mut rng);
+    degenerate.vertices[0] = f64::NAN;
+    assert!(ModelEval::new(&degenerate).is_err());
+}
