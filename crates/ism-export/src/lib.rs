@@ -2,9 +2,11 @@
 #![deny(missing_docs)]
 
 pub mod error;
+pub mod extract;
 pub mod mesh;
 pub mod obj;
 
 pub use error::{Error, Result};
 pub mod gltf;
+pub mod marching;
 pub mod vtk;

@@ -1,0 +1,825 @@
+//! Extraction of the curved shape `O = F⁻¹(c)`: per crossed top simplex the linear patch `θ_σ` is
+//! refined adaptively in its own barycentric coordinates and mapped through the stage inverses,
+//! `u ↦ W_σ(X_σ⁻¹(u))`.
+//!
+//! **Welding.** Every vertex carries a key naming the face of `K` it lies on and its parameter
+//! there: a crossing of a K-edge is keyed by the edge; a point inside the patch edge on a facet
+//! (3D) by the facet and a dyadic parameter along that patch edge, measured from the corner on the
+//! smaller K-edge; a point inside `σ` by `(σ, counter)`. Vertices with equal keys become one vertex,
+//! so neighbouring simplices share their boundary exactly.
+//!
+//! **Consistent refinement.** Whether a patch edge on a facet is split is decided once per facet,
+//! by the lowest-numbered simplex containing it, and both sides read that decision; edges inside
+//! `σ` are decided from the edge alone (memoised per vertex pair), so two triangles sharing an edge
+//! always agree and no T-junction can appear. The split criterion is the chordal distance: the
+//! mapped points at ¼, ½ and ¾ of an edge against the straight chord between its mapped ends,
+//! compared with `tolerance`, until `max_depth` halvings.
+//!
+//! **Topology.** Each patch is triangulated as a disc (or a segment in 2D) whose boundary is shared
+//! with its neighbours, and `X` is a face-preserving homeomorphism, so the result has the
+//! components and Euler characteristic of the linear isocomplex, and is closed where it is closed.
+//! Triangles are ordered so their normals point to `F > c`, as the patch corners are.
+
+use std::collections::HashMap;
+
+use ism_geom::{Bary, ModelEval, Patch, MAX_VARS};
+use rayon::prelude::*;
+
+use crate::mesh::{Mesh, Primitive};
+use crate::{Error, Result};
+
+/// Deepest refinement accepted: a patch edge is halved at most this many times (2³⁰ pieces is far
+/// beyond any useful tolerance, and keeps dyadic parameters exact in `u64`).
+pub const MAX_DEPTH_LIMIT: u32 = 30;
+
+/// Options of [`extract`].
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ExtractOptions {
+    /// Chordal tolerance in model units: a patch edge is halved while a mapped point at ¼, ½ or ¾
+    /// of it lies farther than this from the chord.
+    pub tolerance: f64,
+    /// Most halvings of a patch edge (0 = the linear patches' corners only, mapped).
+    pub max_depth: u32,
+}
+
+impl Default for ExtractOptions {
+    fn default() -> Self {
+        ExtractOptions {
+            tolerance: 1e-3,
+            max_depth: 8,
+        }
+    }
+}
+
+/// What an extraction did.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct ExtractReport {
+    /// Top simplices whose vertex values straddle `c`.
+    pub crossed_simplices: usize,
+    /// Stage inversions performed (including refinement tests).
+    pub inversions: u64,
+    /// Largest inversion residual `|X(w) − u|∞` seen.
+    pub max_residual: f64,
+    /// Patch edges (or interior edges) that reached `max_depth` while still over tolerance.
+    pub depth_limited_edges: u64,
+}
+
+/// Where a vertex lies in `K`, with its parameter there: the welding key.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+enum VertexKey {
+    /// Crossing of the K-edge with these sorted global ids.
+    Edge(u32, u32),
+    /// Inside the patch edge of the facet (sorted global ids) at dyadic parameter `num / 2^level`.
+    Facet([u32; 3], Dyadic),
+    /// Inside simplex `σ`, the `k`-th vertex it created.
+    Interior(u32, u32),
+}
+
+/// `num / 2^level`, normalised (odd `num` or `level == 0`), so equal values have equal keys.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
+struct Dyadic {
+    num: u64,
+    level: u32,
+}
+
+impl Dyadic {
+    const ZERO: Dyadic = Dyadic { num: 0, level: 0 };
+    const ONE: Dyadic = Dyadic { num: 1, level: 0 };
+
+    fn normalized(mut num: u64, mut level: u32) -> Dyadic {
+        while level > 0 && num % 2 == 0 {
+            num /= 2;
+            level -= 1;
+        }
+        if num == 0 {
+            level = 0;
+        }
+        Dyadic { num, level }
+    }
+
+    fn midpoint(a: Dyadic, b: Dyadic) -> Dyadic {
+        let l = a.level.max(b.level);
+        let sa = a.num << (l - a.level);
+        let sb = b.num << (l - b.level);
+        Dyadic::normalized(sa + sb, l + 1)
+    }
+
+    fn value(self) -> f64 {
+        self.num as f64 / (1u64 << self.level) as f64
+    }
+}
+
+/// A point of `O` with its derivative data.
+#[derive(Clone, Copy, Debug)]
+struct SurfacePoint {
+    p: [f64; 3],
+    normal: [f64; 3],
+    gradient_norm: f64,
+}
+
+/// Counters gathered per worker and summed.
+#[derive(Clone, Copy, Debug, Default)]
+struct Counters {
+    inversions: u64,
+    max_residual: f64,
+    depth_limited: u64,
+}
+
+impl Counters {
+    fn merge(mut self, o: Counters) -> Counters {
+        self.inversions += o.inversions;
+        self.max_residual = self.max_residual.max(o.max_residual);
+        self.depth_limited += o.depth_limited;
+        self
+    }
+}
+
+/// Maps `u ∈ θ_σ` to `O` and evaluates the outward normal there.
+fn surface_point(
+    eval: &ModelEval,
+    s: usize,
+    u: &Bary,
+    counters: &mut Counters,
+) -> Result<SurfacePoint> {
+    let q = eval.param_point(s, u);
+    counters.inversions += 1;
+    counters.max_residual = counters.max_residual.max(q.inverse.residual);
+    if !q.inverse.converged || !q.p.iter().all(|x| x.is_finite()) {
+        return Err(Error::Inversion {
+            simplex: s,
+            u: u[..eval.dim() + 1].to_vec(),
+            residual: q.inverse.residual,
+        });
+    }
+    let g = eval.gradient_at(s, &q.w).unwrap_or([0.0; 3]);
+    let len = (g[0] * g[0] + g[1] * g[1] + g[2] * g[2]).sqrt();
+    let normal = if len > 0.0 && len.is_finite() {
+        [g[0] / len, g[1] / len, g[2] / len]
+    } else {
+        [0.0; 3]
+    };
+    Ok(SurfacePoint {
+        p: q.p,
+        normal,
+        gradient_norm: if len.is_finite() { len } else { 0.0 },
+    })
+}
+
+fn lerp(a: &Bary, b: &Bary, t: f64) -> Bary {
+    let mut u = [0.0; MAX_VARS];
+    for k in 0..MAX_VARS {
+        // Written so that t = 0 and t = 1 reproduce the ends exactly and each coordinate depends
+        // only on the same coordinate of the ends (so both simplices sharing a face agree bitwise).
+        u[k] = (1.0 - t) * a[k] + t * b[k];
+    }
+    u
+}
+
+fn chord_error(a: [f64; 3], b: [f64; 3], t: f64, p: [f64; 3]) -> f64 {
+    let mut d2 = 0.0;
+    for k in 0..3 {
+        let c = (1.0 - t) * a[k] + t * b[k];
+        d2 += (p[k] - c) * (p[k] - c);
+    }
+    d2.sqrt()
+}
+
+/// Tests an edge from `ua` (mapped `pa`) to `ub` (mapped `pb`): returns the mapped midpoint when
+/// some of the points at ¼, ½, ¾ is farther than `tol` from the chord.
+fn test_edge(
+    eval: &ModelEval,
+    s: usize,
+    (ua, pa): (&Bary, [f64; 3]),
+    (ub, pb): (&Bary, [f64; 3]),
+    tol: f64,
+    counters: &mut Counters,
+) -> Result<(bool, Bary, SurfacePoint)> {
+    let um = lerp(ua, ub, 0.5);
+    let pm = surface_point(eval, s, &um, counters)?;
+    let mut split = chord_error(pa, pb, 0.5, pm.p) > tol;
+    if !split {
+        for t in [0.25, 0.75] {
+            let q = surface_point(eval, s, &lerp(ua, ub, t), counters)?;
+            if chord_error(pa, pb, t, q.p) > tol {
+                split = true;
+                break;
+            }
+        }
+    }
+    Ok((split, um, pm))
+}
+
+/// The refinement of the patch edge on one facet, decided by the facet's owner.
+#[derive(Clone, Debug)]
+struct FacetEdge {
+    key: [u32; 3],
+    /// Interior parameters, sorted, with their points.
+    params: Vec<(Dyadic, SurfacePoint)>,
+}
+
+impl FacetEdge {
+    fn find(&self, d: Dyadic) -> Option<&SurfacePoint> {
+        self.params
+            .binary_search_by(|(x, _)| {
+                x.value()
+                    .partial_cmp(&d.value())
+                    .unwrap_or(std::cmp::Ordering::Equal)
+                    .then(x.cmp(&d))
+            })
+            .ok()
+            .map(|i| &self.params[i].1)
+    }
+}
+
+fn sorted_pair(a: u32, b: u32) -> (u32, u32) {
+    (a.min(b), a.max(b))
+}
+
+/// Global key of the K-edge a patch corner lies on.
+fn corner_edge(ids: &[u32], edge: [usize; 2]) -> (u32, u32) {
+    sorted_pair(ids[edge[0]], ids[edge[1]])
+}
+
+/// The facet (sorted global ids) containing two corners' K-edges in 3D.
+fn facet_of(ids: &[u32], e1: [usize; 2], e2: [usize; 2]) -> [u32; 3] {
+    let mut v: Vec<u32> = [e1[0], e1[1], e2[0], e2[1]]
+        .iter()
+        .map(|&i| ids[i])
+        .collect();
+    v.sort_unstable();
+    v.dedup();
+    debug_assert_eq!(v.len(), 3);
+    [v[0], v[1], v[2]]
+}
+
+/// Extracts `O` from a model evaluator.
+///
+/// 3D models give a triangle mesh, 2D models a polyline; other dimensions are refused.
+///
+/// # Errors
+/// [`Error::Unsupported`] for a dimension other than 2 or 3 or a bad option, [`Error::Inversion`]
+/// when a stage cannot be inverted at some patch point (the model is not a valid diffeomorphism
+/// there).
+pub fn extract(eval: &ModelEval, options: &ExtractOptions) -> Result<(Mesh, ExtractReport)> {
+    let n = eval.dim();
+    if options.tolerance.is_nan() || options.tolerance <= 0.0 || !options.tolerance.is_finite() {
+        return Err(Error::Unsupported(format!(
+            "tolerance must be a positive number, got {}",
+            options.tolerance
+        )));
+    }
+    if options.max_depth > MAX_DEPTH_LIMIT {
+        return Err(Error::Unsupported(format!(
+            "max depth {} exceeds {MAX_DEPTH_LIMIT}",
+            options.max_depth
+        )));
+    }
+    let patches: Vec<(usize, Patch)> = (0..eval.num_simplices())
+        .into_par_iter()
+        .filter_map(|s| eval.patch(s).map(|p| (s, p)))
+        .collect();
+    match n {
+        2 => extract_curve(eval, options, &patches),
+        3 => extract_surface(eval, options, &patches),
+        _ => Err(Error::Unsupported(format!(
+            "extraction needs a 2D or 3D model, got dimension {n}"
+        ))),
+    }
+}
+
+/// A simplex's local piece: vertices with keys, and cells in local ids.
+struct LocalPiece {
+    simplex: usize,
+    keys: Vec<VertexKey>,
+    points: Vec<SurfacePoint>,
+    cells: Vec<u32>,
+}
+
+fn merge(pieces: Vec<LocalPiece>, dimension: usize, primitive: Primitive) -> Mesh {
+    let mut mesh = Mesh::new(dimension, primitive);
+    let mut index: HashMap<VertexKey, u32> = HashMap::new();
+    for piece in pieces {
+        let map: Vec<u32> = piece
+            .keys
+            .iter()
+            .zip(&piece.points)
+            .map(|(key, pt)| {
+                let push = |mesh: &mut Mesh| {
+                    mesh.positions.push(pt.p);
+                    mesh.normals.push(pt.normal);
+                    mesh.gradient_norm.push(pt.gradient_norm);
+                    mesh.vertex_simplex.push(piece.simplex as u32);
+                    (mesh.positions.len() - 1) as u32
+                };
+                match key {
+                    // Interior vertices belong to one simplex: no lookup needed.
+                    VertexKey::Interior(..) => push(&mut mesh),
+                    _ => *index.entry(*key).or_insert_with(|| push(&mut mesh)),
+                }
+            })
+            .collect();
+        let arity = primitive.arity();
+        mesh.cells
+            .extend(piece.cells.iter().map(|&l| map[l as usize]));
+        mesh.cell_simplex.extend(std::iter::repeat_n(
+            piece.simplex as u32,
+            piece.cells.len() / arity,
+        ));
+    }
+    mesh
+}
+
+fn extract_curve(
+    eval: &ModelEval,
+    options: &ExtractOptions,
+    patches: &[(usize, Patch)],
+) -> Result<(Mesh, ExtractReport)> {
+    let results: Vec<Result<(LocalPiece, Counters)>> = patches
+        .par_iter()
+        .map(|(s, patch)| {
+            let s = *s;
+            let ids = eval.model().simplex(s);
+            let mut c = Counters::default();
+            let [c0, c1] = [patch.corners[0], patch.corners[1]];
+            let p0 = surface_point(eval, s, &c0.u, &mut c)?;
+            let p1 = surface_point(eval, s, &c1.u, &mut c)?;
+            let e0 = corner_edge(ids, c0.edge);
+            let e1 = corner_edge(ids, c1.edge);
+            let mut piece = LocalPiece {
+                simplex: s,
+                keys: vec![VertexKey::Edge(e0.0, e0.1)],
+                points: vec![p0],
+                cells: Vec::new(),
+            };
+            // Depth-first along the segment, emitting vertices in order.
+            #[allow(clippy::too_many_arguments)]
+            fn go(
+                eval: &ModelEval,
+                s: usize,
+                a: (Bary, SurfacePoint),
+                b: (Bary, SurfacePoint),
+                depth: u32,
+                options: &ExtractOptions,
+                piece: &mut LocalPiece,
+                c: &mut Counters,
+            ) -> Result<()> {
+                if depth < options.max_depth {
+                    let (split, um, pm) =
+                        test_edge(eval, s, (&a.0, a.1.p), (&b.0, b.1.p), options.tolerance, c)?;
+                    if split {
+                        go(eval, s, a, (um, pm), depth + 1, options, piece, c)?;
+                        let k = piece.keys.len() as u32;
+                        piece.keys.push(VertexKey::Interior(s as u32, k));
+                        piece.points.push(pm);
+                        return go(eval, s, (um, pm), b, depth + 1, options, piece, c);
+                    }
+                } else if options.max_depth > 0 {
+                    let (split, _, _) =
+                        test_edge(eval, s, (&a.0, a.1.p), (&b.0, b.1.p), options.tolerance, c)?;
+                    c.depth_limited += u64::from(split);
+                }
+                Ok(())
+            }
+            go(
+                eval,
+                s,
+                (c0.u, p0),
+                (c1.u, p1),
+                0,
+                options,
+                &mut piece,
+                &mut c,
+            )?;
+            piece.keys.push(VertexKey::Edge(e1.0, e1.1));
+            piece.points.push(p1);
+            let nv = piece.keys.len() as u32;
+            piece.cells = (0..nv - 1).flat_map(|i| [i, i + 1]).collect();
+            Ok((piece, c))
+        })
+        .collect();
+    let mut pieces = Vec::with_capacity(results.len());
+    let mut counters = Counters::default();
+    for r in results {
+        let (piece, c) = r?;
+        counters = counters.merge(c);
+        pieces.push(piece);
+    }
+    let report = ExtractReport {
+        crossed_simplices: patches.len(),
+        inversions: counters.inversions,
+        max_residual: counters.max_residual,
+        depth_limited_edges: counters.depth_limited,
+    };
+    Ok((merge(pieces, 2, Primitive::Segments), report))
+}
+
+/// A reference from a triangle edge to what decides its split.
+#[derive(Clone, Copy, Debug)]
+enum EdgeRef {
+    /// On the facet edge `facet` (index into the facet table), from parameter `start` to `end`.
+    Boundary {
+        facet: usize,
+        start: Dyadic,
+        end: Dyadic,
+    },
+    /// Inside σ, created at refinement depth `level`.
+    Interior { level: u32 },
+}
+
+struct SurfaceBuilder<'a> {
+    eval: &'a ModelEval,
+    options: &'a ExtractOptions,
+    facets: &'a [FacetEdge],
+    s: usize,
+    /// Per facet edge of this patch: the two corner u's (canonical order) for parameter → u.
+    facet_ends: HashMap<usize, (Bary, Bary)>,
+    piece: LocalPiece,
+    us: Vec<Bary>,
+    local: HashMap<VertexKey, u32>,
+    /// Interior-edge decisions: sorted local vertex pair → midpoint vertex (or none).
+    interior: HashMap<(u32, u32), Option<u32>>,
+    counters: Counters,
+}
+
+/// Refinement depth past which a triangle is emitted regardless; unreachable with edge levels
+/// bounded by `max_depth`, it only guards the recursion against a logic error.
+const SAFETY_DEPTH: u32 = 4 * MAX_DEPTH_LIMIT + 16;
+
+impl SurfaceBuilder<'_> {
+    fn vertex(&mut self, key: VertexKey, u: Bary, point: SurfacePoint) -> u32 {
+        if let Some(&i) = self.local.get(&key) {
+            return i;
+        }
+        let i = self.piece.keys.len() as u32;
+        self.piece.keys.push(key);
+        self.piece.points.push(point);
+        self.us.push(u);
+        self.local.insert(key, i);
+        i
+    }
+
+    fn interior_vertex(&mut self, u: Bary, point: SurfacePoint) -> u32 {
+        let i = self.piece.keys.len() as u32;
+        let key = VertexKey::Interior(self.s as u32, i);
+        self.vertex(key, u, point)
+    }
+
+    /// The midpoint vertex of an edge if the edge is split, else `None`.
+    fn split(&mut self, a: u32, b: u32, edge: EdgeRef) -> Result<Option<u32>> {
+        match edge {
+            EdgeRef::Boundary { facet, start, end } => {
+                let mid = Dyadic::midpoint(start, end);
+                let fe = &self.facets[facet];
+                let Some(point) = fe.find(mid).copied() else {
+                    return Ok(None);
+                };
+                let (ua, ub) = self.facet_ends[&facet];
+                let u = lerp(&ua, &ub, mid.value());
+                Ok(Some(self.vertex(VertexKey::Facet(fe.key, mid), u, point)))
+            }
+            EdgeRef::Interior { level } => {
+                let pair = (a.min(b), a.max(b));
+                if let Some(&d) = self.interior.get(&pair) {
+                    return Ok(d);
+                }
+                let (ua, ub) = (self.us[pair.0 as usize], self.us[pair.1 as usize]);
+                let (pa, pb) = (
+                    self.piece.points[pair.0 as usize].p,
+                    self.piece.points[pair.1 as usize].p,
+                );
+                let (split, um, pm) = test_edge(
+                    self.eval,
+                    self.s,
+                    (&ua, pa),
+                    (&ub, pb),
+                    self.options.tolerance,
+                    &mut self.counters,
+                )?;
+                let decision = if split && level < self.options.max_depth {
+                    Some(self.interior_vertex(um, pm))
+                } else {
+                    self.counters.depth_limited += u64::from(split);
+                    None
+                };
+                self.interior.insert(pair, decision);
+                Ok(decision)
+            }
+        }
+    }
+
+    fn halves(edge: EdgeRef, depth: u32) -> (EdgeRef, EdgeRef) {
+        match edge {
+            EdgeRef::Boundary { facet, start, end } => {
+                let mid = Dyadic::midpoint(start, end);
+                (
+                    EdgeRef::Boundary {
+                        facet,
+                        start,
+                        end: mid,
+                    },
+                    EdgeRef::Boundary {
+                        facet,
+                        start: mid,
+                        end,
+                    },
+                )
+            }
+            EdgeRef::Interior { level } => {
+                let l = level.max(depth) + 1;
+                (
+                    EdgeRef::Interior { level: l },
+                    EdgeRef::Interior { level: l },
+                )
+            }
+        }
+    }
+
+    /// Refines triangle `v` (edges `e[k]` from `v[k]` to `v[k+1]`), emitting the leaves.
+    fn refine(&mut self, v: [u32; 3], e: [EdgeRef; 3], depth: u32) -> Result<()> {
+        if depth >= SAFETY_DEPTH {
+            self.piece.cells.extend_from_slice(&v);
+            return Ok(());
+        }
+        let mut mids = [None; 3];
+        for k in 0..3 {
+            mids[k] = self.split(v[k], v[(k + 1) % 3], e[k])?;
+        }
+        let new = EdgeRef::Interior { level: depth + 1 };
+        let count = mids.iter().filter(|m| m.is_some()).count();
+        match count {
+            0 => {
+                self.piece.cells.extend_from_slice(&v);
+                Ok(())
+            }
+            3 => {
+                let [m0, m1, m2] = [mids[0].unwrap(), mids[1].unwrap(), mids[2].unwrap()];
+                let (e0a, e0b) = Self::halves(e[0], depth);
+                let (e1a, e1b) = Self::halves(e[1], depth);
+                let (e2a, e2b) = Self::halves(e[2], depth);
+                self.refine([v[0], m0, m2], [e0a, new, e2b], depth + 1)?;
+                self.refine([m0, v[1], m1], [e0b, e1a, new], depth + 1)?;
+                self.refine([m2, m1, v[2]], [new, e1b, e2a], depth + 1)?;
+                self.refine([m0, m1, m2], [new, new, new], depth + 1)
+            }
+            1 => {
+                let k = (0..3).find(|&k| mids[k].is_some()).unwrap();
+                let m = mids[k].unwrap();
+                let (a, b, c) = (v[k], v[(k + 1) % 3], v[(k + 2) % 3]);
+                let (ha, hb) = Self::halves(e[k], depth);
+                self.refine([a, m, c], [ha, new, e[(k + 2) % 3]], depth + 1)?;
+                self.refine([m, b, c], [hb, e[(k + 1) % 3], new], depth + 1)
+            }
+            _ => {
+                // Edges k and k+1 split, edge k+2 not.
+                let k = (0..3)
+                    .find(|&k| mids[k].is_some() && mids[(k + 1) % 3].is_some())
+                    .unwrap();
+                let (a, b, c) = (v[k], v[(k + 1) % 3], v[(k + 2) % 3]);
+                let (mk, mk1) = (mids[k].unwrap(), mids[(k + 1) % 3].unwrap());
+                let (ka, kb) = Self::halves(e[k], depth);
+                let (k1a, k1b) = Self::halves(e[(k + 1) % 3], depth);
+                let ec = e[(k + 2) % 3];
+                self.refine([mk, b, mk1], [kb, k1a, new], depth + 1)?;
+                // The quad a, mk, mk1, c: cut along the shorter diagonal.
+                let p = |i: u32| self.piece.points[i as usize].p;
+                let d2 =
+                    |x: [f64; 3], y: [f64; 3]| (0..3).map(|j| (x[j] - y[j]).powi(2)).sum::<f64>();
+                if d2(p(a), p(mk1)) <= d2(p(mk), p(c)) {
+                    self.refine([a, mk, mk1], [ka, new, new], depth + 1)?;
+                    self.refine([a, mk1, c], [new, k1b, ec], depth + 1)
+                } else {
+                    self.refine([a, mk, c], [ka, new, ec], depth + 1)?;
+                    self.refine([mk, mk1, c], [new, k1b, new], depth + 1)
+                }
+            }
+        }
+    }
+}
+
+fn extract_surface(
+    eval: &ModelEval,
+    options: &ExtractOptions,
+    patches: &[(usize, Patch)],
+) -> Result<(Mesh, ExtractReport)> {
+    let model = eval.model();
+    // 1. Facet table: (facet key, simplex, patch edge index), sorted so the owner comes first.
+    let mut entries: Vec<([u32; 3], u32, u8)> = patches
+        .par_iter()
+        .flat_map_iter(|(s, patch)| {
+            let ids = model.simplex(*s);
+            let k = patch.corners.len();
+            (0..k).map(move |j| {
+                (
+                    facet_of(ids, patch.corners[j].edge, patch.corners[(j + 1) % k].edge),
+                    *s as u32,
+                    j as u8,
+                )
+            })
+        })
+        .collect();
+    entries.par_sort_unstable();
+    let mut groups: Vec<(usize, usize)> = Vec::new(); // (first entry, end)
+    let mut i = 0;
+    while i < entries.len() {
+        let mut j = i + 1;
+        while j < entries.len() && entries[j].0 == entries[i].0 {
+            j += 1;
+        }
+        groups.push((i, j));
+        i = j;
+    }
+    let patch_of: HashMap<u32, usize> = patches
+        .iter()
+        .enumerate()
+        .map(|(i, (s, _))| (*s as u32, i))
+        .collect();
+
+    // 2. The owner of each facet decides its patch edge's refinement.
+    let facet_results: Vec<Result<(FacetEdge, Counters)>> = groups
+        .par_iter()
+        .map(|&(first, _)| {
+            let (key, s, j) = entries[first];
+            let s = s as usize;
+            let patch = &patches[patch_of[&(s as u32)]].1;
+            let ids = model.simplex(s);
+            let k = patch.corners.len();
+            let (mut ca, mut cb) = (
+                patch.corners[j as usize],
+                patch.corners[(j as usize + 1) % k],
+            );
+            if corner_edge(ids, ca.edge) > corner_edge(ids, cb.edge) {
+                std::mem::swap(&mut ca, &mut cb);
+            }
+            let mut c = Counters::default();
+            let pa = surface_point(eval, s, &ca.u, &mut c)?;
+            let pb = surface_point(eval, s, &cb.u, &mut c)?;
+            let mut params = Vec::new();
+            #[allow(clippy::too_many_arguments)]
+            fn go(
+                eval: &ModelEval,
+                s: usize,
+                (ua, ub): (&Bary, &Bary),
+                (da, pa): (Dyadic, [f64; 3]),
+                (db, pb): (Dyadic, [f64; 3]),
+                depth: u32,
+                options: &ExtractOptions,
+                params: &mut Vec<(Dyadic, SurfacePoint)>,
+                c: &mut Counters,
+            ) -> Result<()> {
+                if options.max_depth == 0 {
+                    return Ok(());
+                }
+                let (ta, tb) = (da.value(), db.value());
+                let (split, _, _) = test_edge(
+                    eval,
+                    s,
+                    (&lerp(ua, ub, ta), pa),
+                    (&lerp(ua, ub, tb), pb),
+                    options.tolerance,
+                    c,
+                )?;
+                if !split {
+                    return Ok(());
+                }
+                if depth >= options.max_depth {
+                    c.depth_limited += 1;
+                    return Ok(());
+                }
+                let dm = Dyadic::midpoint(da, db);
+                // Recompute the midpoint from the dyadic parameter so it is the same u the other
+                // side derives.
+                let pm = surface_point(eval, s, &lerp(ua, ub, dm.value()), c)?;
+                go(
+                    eval,
+                    s,
+                    (ua, ub),
+                    (da, pa),
+                    (dm, pm.p),
+                    depth + 1,
+                    options,
+                    params,
+                    c,
+                )?;
+                params.push((dm, pm));
+                go(
+                    eval,
+                    s,
+                    (ua, ub),
+                    (dm, pm.p),
+                    (db, pb),
+                    depth + 1,
+                    options,
+                    params,
+                    c,
+                )
+            }
+            go(
+                eval,
+                s,
+                (&ca.u, &cb.u),
+                (Dyadic::ZERO, pa.p),
+                (Dyadic::ONE, pb.p),
+                0,
+                options,
+                &mut params,
+                &mut c,
+            )?;
+            Ok((FacetEdge { key, params }, c))
+        })
+        .collect();
+    let mut facets = Vec::with_capacity(facet_results.len());
+    let mut counters = Counters::default();
+    for r in facet_results {
+        let (fe, c) = r?;
+        counters = counters.merge(c);
+        facets.push(fe);
+    }
+    // (simplex, patch edge) → facet index.
+    let mut facet_index: HashMap<(u32, u8), usize> = HashMap::with_capacity(entries.len());
+    for (g, &(first, end)) in groups.iter().enumerate() {
+        for &(_, s, j) in &entries[first..end] {
+            facet_index.insert((s, j), g);
+        }
+    }
+
+    // 3. Each simplex triangulates its patch against the shared facet decisions.
+    let results: Vec<Result<(LocalPiece, Counters)>> = patches
+        .par_iter()
+        .map(|(s, patch)| {
+            let s = *s;
+            let ids = model.simplex(s);
+            let k = patch.corners.len();
+            let mut b = SurfaceBuilder {
+                eval,
+                options,
+                facets: &facets,
+                s,
+                facet_ends: HashMap::new(),
+                piece: LocalPiece {
+                    simplex: s,
+                    keys: Vec::new(),
+                    points: Vec::new(),
+                    cells: Vec::new(),
+                },
+                us: Vec::new(),
+                local: HashMap::new(),
+                interior: HashMap::new(),
+                counters: Counters::default(),
+            };
+            let mut corner_ids = Vec::with_capacity(k);
+            for c in &patch.corners {
+                let (a, bb) = corner_edge(ids, c.edge);
+                let p = surface_point(eval, s, &c.u, &mut b.counters)?;
+                corner_ids.push(b.vertex(VertexKey::Edge(a, bb), c.u, p));
+            }
+            let mut edges = Vec::with_capacity(k);
+            for j in 0..k {
+                let (ca, cb) = (patch.corners[j], patch.corners[(j + 1) % k]);
+                let facet = facet_index[&(s as u32, j as u8)];
+                let forward = corner_edge(ids, ca.edge) < corner_edge(ids, cb.edge);
+                let ends = if forward { (ca.u, cb.u) } else { (cb.u, ca.u) };
+                b.facet_ends.insert(facet, ends);
+                let (start, end) = if forward {
+                    (Dyadic::ZERO, Dyadic::ONE)
+                } else {
+                    (Dyadic::ONE, Dyadic::ZERO)
+                };
+                edges.push(EdgeRef::Boundary { facet, start, end });
+            }
+            if k == 3 {
+                b.refine(
+                    [corner_ids[0], corner_ids[1], corner_ids[2]],
+                    [edges[0], edges[1], edges[2]],
+                    0,
+                )?;
+            } else {
+                let p = |i: u32| b.piece.points[i as usize].p;
+                let d2 =
+                    |x: [f64; 3], y: [f64; 3]| (0..3).map(|j| (x[j] - y[j]).powi(2)).sum::<f64>();
+                let c = &corner_ids;
+                let diag = EdgeRef::Interior { level: 0 };
+                if d2(p(c[0]), p(c[2])) <= d2(p(c[1]), p(c[3])) {
+                    b.refine([c[0], c[1], c[2]], [edges[0], edges[1], diag], 0)?;
+                    b.refine([c[0], c[2], c[3]], [diag, edges[2], edges[3]], 0)?;
+                } else {
+                    b.refine([c[0], c[1], c[3]], [edges[0], diag, edges[3]], 0)?;
+                    b.refine([c[1], c[2], c[3]], [edges[1], edges[2], diag], 0)?;
+                }
+            }
+            Ok((b.piece, b.counters))
+        })
+        .collect();
+    let mut pieces = Vec::with_capacity(results.len());
+    for r in results {
+        let (piece, c) = r?;
+        counters = counters.merge(c);
+        pieces.push(piece);
+    }
+    let report = ExtractReport {
+        crossed_simplices: patches.len(),
+        inversions: counters.inversions,
+        max_residual: counters.max_residual,
+        depth_limited_edges: counters.depth_limited,
+    };
+    Ok((merge(pieces, 3, Primitive::Triangles), report))
+}
