@@ -8,3 +8,4 @@ pub mod seed;
 
 pub use error::{Result, SampleError};
 pub use output::{Collect, Column, FormatWriter, Header, OutputFormat, SampleBlock, Sink};
+pub mod bound;

@@ -1,0 +1,569 @@
+//! Certified upper bounds of the area element of the parametric map, per top simplex.
+//!
+//! In simplex σ with edge matrix `E` (columns `v_l − v_0`), let `K = W ∘ X ∘ W⁻¹` be the deformation
+//! in point space, so `F = F_lin ∘ K` and the shape is `O ∩ σ = K⁻¹(θ)` with `θ` the linear patch.
+//! The area element of `K⁻¹` restricted to `θ` (length element in 2D) is
+//!
+//! `J = |∇F(p)| / (|∇F_lin| · det DK(p))`,
+//!
+//! because `∇F = DKᵀ ∇F_lin` and a map `H` scales the area of a hypersurface with unit normal `ν` by
+//! `|det DH| · |DH⁻ᵀ ν|` (here `H = K⁻¹`). With the stages `X = X_{m−1} ∘ … ∘ X_0` and
+//! `M_k = E · DX_k · E⁻¹` (stage `k` in point space, evaluated on the way), `DK = M_{m−1} ⋯ M_0`, so
+//!
+//! `J ≤ Π_k sup‖M_k‖₂ / inf det M_k`,
+//!
+//! each sup and inf over the whole simplex (every stage maps the simplex onto itself, so wherever the
+//! intermediate point lies, it is covered). Each factor comes from Bernstein coefficients:
+//! the Jacobian entries of a polynomial stage are Bernstein polynomials, so `‖M(w)‖₂ ≤ max_K
+//! ‖E D_K E⁻¹‖_F` by convexity of the norm; `det DX` is a Bernstein polynomial whose smallest
+//! coefficient bounds it from below (refined by edge bisection while the bound is loose). Rational
+//! and monotonic stages are quotients `P/Q` (monotonic: `P_i(w) = g_i(w_i)` written in the simplex's
+//! Bernstein basis of degree `d`, `Q = Σ P_i`), bounded through the numerator `N = DP·Q − P ∇Qᵀ` and
+//! the range of `Q`. A stage stored in the parametric direction (`S = X_k⁻¹`) uses
+//! `‖S⁻¹‖ ≤ ‖S‖^{n−1}/det S` and `det X_k = 1/det S`.
+
+use ism_format::{Direction, StageKind};
+use ism_geom::{linalg, Bernstein, LocalMap, LocalStage, Mat, MAX_VARS};
+
+/// Relative margin added to a bound for floating-point rounding in the Bernstein products, norms and
+/// determinants that produce it: these are sums of at most a few thousand products of numbers of
+/// order one, whose relative rounding error is below `1e-12`; `1e-9` leaves three orders to spare
+/// and costs nothing measurable in acceptance rate.
+pub const BOUND_ROUNDING_MARGIN: f64 = 1e-9;
+
+/// Most bisections spent tightening one stage's bound on one simplex: bounds the cost per simplex
+/// (each split restricts `n² + 3` polynomials) while letting the worst cell shrink to about 1/8 of
+/// the simplex's size in 3D.
+const MAX_SPLITS: usize = 48;
+
+/// Deepest bisection of one cell (cells at this depth are at most `2^(-depth/C(m,2))` of the
+/// simplex in every direction).
+const MAX_DEPTH: u32 = 24;
+
+/// A cell's certified factor is accepted once the factor at the cell's vertices (exact values, so a
+/// lower estimate of the supremum) is at least this fraction of it; otherwise the cell is bisected.
+/// 0.85 keeps the sampler's acceptance rate within 15 % of what the exact supremum would give.
+const DET_TIGHTNESS: f64 = 0.85;
+
+/// The bound of one stage on one simplex.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct StageBound {
+    /// A certified upper bound of `‖M(w)‖₂ / det M(w)` over the simplex (`M = E DX E⁻¹` of the
+    /// implicit-direction map `X`): the stage's factor in the bound of the area element. Computed
+    /// per bisection cell as `sup_cell ‖M‖ / inf_cell det M`, maximized over the cells.
+    pub factor: f64,
+}
+
+/// Bound of the area element `J` over a whole simplex: the product of its stages' factors, with the
+/// rounding margin. `Err` says which stage could not be bounded and why.
+pub fn area_element_bound(map: &LocalMap, edges: &Mat) -> Result<f64, (usize, String)> {
+    let n = map.vars() - 1;
+    let inv = linalg::inverse(n, edges).ok_or((0, "degenerate simplex".to_string()))?;
+    let mut bound = 1.0;
+    for (k, stage) in map.stages().iter().enumerate() {
+        let b = stage_bound(stage, edges, &inv).map_err(|e| (k, e))?;
+        bound *= b.factor;
+    }
+    if !bound.is_finite() {
+        return Err((0, format!("area-element bound is {bound}")));
+    }
+    Ok(bound * (1.0 + BOUND_ROUNDING_MARGIN))
+}
+
+/// Bounds of one local stage (see the module doc).
+///
+/// # Errors
+/// A message when the stored map's determinant cannot be shown positive by its Bernstein
+/// coefficients after `MAX_SPLITS` bisections, or a denominator is not positive.
+pub fn stage_bound(stage: &LocalStage, edges: &Mat, inv_edges: &Mat) -> Result<StageBound, String> {
+    let m = stage.vars();
+    let n = m - 1;
+    let d = stage.degree();
+    let (p, q): (Vec<Bernstein>, Option<Bernstein>) = match stage.kind() {
+        StageKind::Bezier => {
+            let comps = (0..m)
+                .map(|i| component(m, d, stage.control_points().iter().map(|b| b[i])))
+                .collect();
+            (comps, None)
+        }
+        StageKind::Rational => {
+            let q = stage.weights();
+            let comps = (0..m)
+                .map(|i| {
+                    component(
+                        m,
+                        d,
+                        stage.control_points().iter().zip(q).map(|(b, w)| b[i] * w),
+                    )
+                })
+                .collect();
+            (comps, Some(component(m, d, q.iter().copied())))
+        }
+        StageKind::Monotonic => {
+            // g_i(w_i) = Σ_j a_j C(d,j) w_i^j (1 − w_i)^{d−j}, and on the simplex 1 − w_i is the sum
+            // of the other coordinates, so C(d,j) w_i^j (1−w_i)^{d−j} = Σ_{|I|=d, I_i=j} B_I(w):
+            // the Bernstein coefficient of index I is a_{I_i}.
+            let comps: Vec<Bernstein> = (0..m)
+                .map(|i| {
+                    let a = stage.monotonic_coefficients(i).to_vec();
+                    Bernstein::from_fn(m, d, |idx| a[idx[i] as usize])
+                })
+                .collect();
+            let mut total = comps[0].clone();
+            for c in &comps[1..] {
+                total = total.add(c);
+            }
+            (comps, Some(total))
+        }
+    };
+    // Numerators of the reduced Jacobian entries (rows u_1..u_n, columns w_1..w_n).
+    let mut num: Vec<Vec<Bernstein>> = Vec::with_capacity(n);
+    for pi in &p[1..] {
+        let row = (1..m)
+            .map(|l| match &q {
+                None => pi.derivative(l),
+                Some(q) => pi
+                    .derivative(l)
+                    .mul(q)
+                    .add(&pi.mul(&q.derivative(l)).scale(-1.0)),
+            })
+            .collect();
+        num.push(row);
+    }
+    // Denominators: Q² for the entries, Q^{2n} for the determinant (none for a polynomial stage).
+    let q2 = q.as_ref().map(|q| q.mul(q));
+    if let Some(q2) = &q2 {
+        if q2.min_coeff().is_nan() || q2.min_coeff() <= 0.0 {
+            return Err(format!(
+                "denominator has a coefficient {} ≤ 0",
+                q2.min_coeff()
+            ));
+        }
+    }
+    let num: Vec<Vec<Bernstein>> = match &q2 {
+        None => num,
+        Some(q2) => num
+            .iter()
+            .map(|row| row.iter().map(|e| e.elevate_to(q2.degree())).collect())
+            .collect(),
+    };
+    let det = det_poly(&num);
+    let q2n = q2.as_ref().map(|q2| {
+        let mut acc = q2.clone();
+        for _ in 1..n {
+            acc = acc.mul(q2);
+        }
+        acc
+    });
+    let ctx = CellContext {
+        n,
+        edges,
+        inv_edges,
+        parametric: stage.direction() == Direction::Parametric,
+    };
+    // Refine the cell with the largest bound until it is within DET_TIGHTNESS of the largest exact
+    // vertex value seen (a lower estimate of the true supremum), or the budget is spent. The bound
+    // is the largest cell bound, so only the worst cell ever needs splitting.
+    let root = Cell {
+        num,
+        q2,
+        det,
+        q2n,
+        depth: 0,
+    };
+    let (bound, mut estimate) = ctx.factor(&root)?;
+    let mut cells: Vec<(f64, Cell)> = vec![(bound, root)];
+    let mut splits = 0;
+    let factor = loop {
+        let worst = (0..cells.len())
+            .max_by(|&i, &j| cells[i].0.total_cmp(&cells[j].0))
+            .expect("never empty");
+        let top = cells[worst].0;
+        if top * DET_TIGHTNESS <= estimate
+            || splits >= MAX_SPLITS
+            || cells[worst].1.depth >= MAX_DEPTH
+        {
+            break top;
+        }
+        let (_, cell) = cells.swap_remove(worst);
+        let (a, b) = cell.split(m);
+        for child in [a, b] {
+            let (bound, est) = ctx.factor(&child)?;
+            estimate = estimate.max(est);
+            cells.push((bound, child));
+        }
+        splits += 1;
+    };
+    if factor == f64::INFINITY {
+        return Err(format!(
+            "Jacobian determinant not certified positive after {splits} bisections"
+        ));
+    }
+    if !(factor.is_finite() && factor > 0.0) {
+        return Err(format!(
+            "non-finite or non-positive area-element factor {factor}"
+        ));
+    }
+    Ok(StageBound { factor })
+}
+
+/// A sub-simplex of one stage's bound computation: the Jacobian numerators, their denominator
+/// `Q²`, the determinant numerator and its denominator `Q^{2n}`, all restricted to the cell.
+struct Cell {
+    num: Vec<Vec<Bernstein>>,
+    q2: Option<Bernstein>,
+    det: Bernstein,
+    q2n: Option<Bernstein>,
+    depth: u32,
+}
+
+impl Cell {
+    /// Bisects edge `(a, b)`, cycling with depth so every edge is split within `C(m, 2)` levels.
+    fn split(&self, m: usize) -> (Cell, Cell) {
+        let pairs: Vec<(usize, usize)> = (0..m)
+            .flat_map(|i| (i + 1..m).map(move |j| (i, j)))
+            .collect();
+        let (e0, e1) = pairs[self.depth as usize % pairs.len()];
+        let halve = |p: &Bernstein| p.split_edge(e0, e1);
+        let halve_opt = |p: &Option<Bernstein>| match p {
+            None => (None, None),
+            Some(p) => {
+                let (x, y) = halve(p);
+                (Some(x), Some(y))
+            }
+        };
+        let mut num0 = Vec::with_capacity(self.num.len());
+        let mut num1 = Vec::with_capacity(self.num.len());
+        for row in &self.num {
+            let (r0, r1): (Vec<_>, Vec<_>) = row.iter().map(halve).unzip();
+            num0.push(r0);
+            num1.push(r1);
+        }
+        let (q0, q1) = halve_opt(&self.q2);
+        let (d0, d1) = halve(&self.det);
+        let (n0, n1) = halve_opt(&self.q2n);
+        let depth = self.depth + 1;
+        (
+            Cell {
+                num: num0,
+                q2: q0,
+                det: d0,
+                q2n: n0,
+                depth,
+            },
+            Cell {
+                num: num1,
+                q2: q1,
+                det: d1,
+                q2n: n1,
+                depth,
+            },
+        )
+    }
+}
+
+struct CellContext<'a> {
+    n: usize,
+    edges: &'a Mat,
+    inv_edges: &'a Mat,
+    parametric: bool,
+}
+
+impl CellContext<'_> {
+    /// `‖E C E⁻¹‖₂` bound for the coefficient (or vertex value) matrix picked by `at`.
+    fn norm(&self, num: &[Vec<Bernstein>], at: impl Fn(&Bernstein) -> f64) -> f64 {
+        let mut c: Mat = [[0.0; MAX_VARS]; MAX_VARS];
+        for (i, row) in num.iter().enumerate() {
+            for (l, e) in row.iter().enumerate() {
+                c[i][l] = at(e);
+            }
+        }
+        spectral_norm_bound(
+            self.n,
+            &linalg::mul(self.n, &linalg::mul(self.n, self.edges, &c), self.inv_edges),
+        )
+    }
+
+    /// The stage's factor from sup ‖M‖ and the range of det M (see the module doc).
+    fn combine(&self, norm: f64, det_lo: f64, det_hi: f64) -> f64 {
+        if self.parametric {
+            // X_k = S⁻¹: σ_max(S⁻¹) = 1/σ_min(S) ≤ σ_max(S)^{n−1}/det S, and det X_k = 1/det S.
+            norm.powi(self.n as i32 - 1) / det_lo * det_hi
+        } else {
+            norm / det_lo
+        }
+    }
+
+    /// `(certified bound, estimate from exact vertex values)` of the factor on `cell`.
+    fn factor(&self, cell: &Cell) -> Result<(f64, f64), String> {
+        let m = self.n + 1;
+        let count = cell.num[0][0].coeffs().len();
+        let mut norm: f64 = 0.0;
+        for k in 0..count {
+            let denom = cell.q2.as_ref().map_or(1.0, |q| q.coeffs()[k]);
+            norm = norm.max(self.norm(&cell.num, |e| e.coeffs()[k]) / denom);
+        }
+        // det/Q^{2n} ≥ min_I det_I/(Q^{2n})_I since det − r Q^{2n} has coefficients det_I − r (Q^{2n})_I.
+        let ratios: Vec<f64> = match &cell.q2n {
+            None => cell.det.coeffs().to_vec(),
+            Some(q) => cell
+                .det
+                .coeffs()
+                .iter()
+                .zip(q.coeffs())
+                .map(|(a, b)| a / b)
+                .collect(),
+        };
+        let slack = BOUND_ROUNDING_MARGIN * ratios.iter().fold(0.0f64, |a, r| a.max(r.abs()));
+        let det_lo = ratios.iter().copied().fold(f64::INFINITY, f64::min) - slack;
+        let det_hi = ratios.iter().copied().fold(f64::NEG_INFINITY, f64::max) + slack;
+        let mut estimate: f64 = 0.0;
+        for i in 0..m {
+            let qv = cell.q2.as_ref().map_or(1.0, |q| q.vertex_value(i));
+            let nv = self.norm(&cell.num, |e| e.vertex_value(i)) / qv;
+            let dv =
+                cell.det.vertex_value(i) / cell.q2n.as_ref().map_or(1.0, |q| q.vertex_value(i));
+            if dv.is_nan() || dv <= 0.0 {
+                return Err(format!(
+                    "Jacobian determinant {dv} ≤ 0 at a vertex of a sub-simplex: the stage is not a diffeomorphism"
+                ));
+            }
+            estimate = estimate.max(self.combine(nv, dv, dv));
+        }
+        if det_lo.is_nan() || det_lo <= 0.0 {
+            // Not certified on this cell yet: an infinite bound makes it the first to be split.
+            return Ok((f64::INFINITY, estimate));
+        }
+        Ok((self.combine(norm, det_lo, det_hi), estimate))
+    }
+}
+
+fn component(m: usize, d: u32, coeffs: impl Iterator<Item = f64>) -> Bernstein {
+    Bernstein::new(m, d, coeffs.collect()).expect("a dense net has C(d+n, n) points")
+}
+
+/// `det` of an `n × n` matrix of Bernstein polynomials of equal degree (`n ≤ 3`), as a polynomial.
+fn det_poly(a: &[Vec<Bernstein>]) -> Bernstein {
+    match a.len() {
+        1 => a[0][0].clone(),
+        2 => a[0][0]
+            .mul(&a[1][1])
+            .add(&a[0][1].mul(&a[1][0]).scale(-1.0)),
+        _ => {
+            let minor = |c0: usize, c1: usize| {
+                a[1][c0]
+                    .mul(&a[2][c1])
+                    .add(&a[1][c1].mul(&a[2][c0]).scale(-1.0))
+            };
+            a[0][0]
+                .mul(&minor(1, 2))
+                .add(&a[0][1].mul(&minor(0, 2)).scale(-1.0))
+                .add(&a[0][2].mul(&minor(0, 1)))
+        }
+    }
+}
+
+/// Upper bound of the spectral norm `σ_max` of the upper-left `n × n` block (`n ≤ 3`): the largest
+/// eigenvalue of `AᵀA` in closed form (trigonometric for `n = 3`), plus an allowance for rounding of
+/// [`BOUND_ROUNDING_MARGIN`] times the Frobenius norm.
+pub fn spectral_norm_bound(n: usize, a: &Mat) -> f64 {
+    let mut s = [[0.0f64; 3]; 3];
+    for i in 0..n {
+        for j in 0..n {
+            s[i][j] = (0..n).map(|k| a[k][i] * a[k][j]).sum();
+        }
+    }
+    let frob2: f64 = (0..n).map(|i| s[i][i]).sum();
+    let lambda = match n {
+        1 => s[0][0],
+        2 => {
+            let tr = s[0][0] + s[1][1];
+            let det = s[0][0] * s[1][1] - s[0][1] * s[1][0];
+            (tr + (tr * tr - 4.0 * det).max(0.0).sqrt()) / 2.0
+        }
+        _ => {
+            // Eigenvalues of a symmetric 3×3 matrix (Smith 1961).
+            let p1 = s[0][1].powi(2) + s[0][2].powi(2) + s[1][2].powi(2);
+            let q = (s[0][0] + s[1][1] + s[2][2]) / 3.0;
+            let p2 =
+                (s[0][0] - q).powi(2) + (s[1][1] - q).powi(2) + (s[2][2] - q).powi(2) + 2.0 * p1;
+            let p = (p2 / 6.0).sqrt();
+            if p == 0.0 {
+                q
+            } else {
+                let mut b = s;
+                for (i, row) in b.iter_mut().enumerate() {
+                    for (j, x) in row.iter_mut().enumerate() {
+                        *x = (*x - if i == j { q } else { 0.0 }) / p;
+                    }
+                }
+                let det_b = b[0][0] * (b[1][1] * b[2][2] - b[1][2] * b[2][1])
+                    - b[0][1] * (b[1][0] * b[2][2] - b[1][2] * b[2][0])
+                    + b[0][2] * (b[1][0] * b[2][1] - b[1][1] * b[2][0]);
+                let r = (det_b / 2.0).clamp(-1.0, 1.0);
+                q + 2.0 * p * (r.acos() / 3.0).cos()
+            }
+        }
+    };
+    (lambda.max(0.0) + BOUND_ROUNDING_MARGIN * frob2).sqrt()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use ism_format::builder::{ModelBuilder, StageBuilder};
+
+    fn two_triangles(stage: ism_format::Stage) -> ism_format::Model {
+        ModelBuilder::new(2)
+            .vertex(&[0.0, 0.0], -1.0)
+            .vertex(&[1.0, 0.0], 1.0)
+            .vertex(&[1.0, 1.0], 1.0)
+            .vertex(&[0.0, 1.0], 1.0)
+            .simplex(&[0, 1, 2])
+            .simplex(&[0, 2, 3])
+            .stage(stage)
+            .build()
+            .unwrap()
+    }
+
+    fn edges(model: &ism_format::Model, s: usize) -> Mat {
+        let ids = model.simplex(s);
+        let n = model.dim();
+        let v0 = model.vertex(ids[0] as usize);
+        let mut e = [[0.0; MAX_VARS]; MAX_VARS];
+        for l in 0..n {
+            let v = model.vertex(ids[l + 1] as usize);
+            for x in 0..n {
+                e[x][l] = v[x] - v0[x];
+            }
+        }
+        e
+    }
+
+    /// The bound must dominate sup ‖M‖/det M sampled densely (a necessary condition), and be
+    /// reasonably tight (within a factor 4 here) so sampling stays efficient.
+    fn check_dominates(model: &ism_format::Model) {
+        for s in 0..model.num_simplices() {
+            let map = LocalMap::from_model(model, s).unwrap();
+            let e = edges(model, s);
+            let inv = linalg::inverse(2, &e).unwrap();
+            let bound = area_element_bound(&map, &e).unwrap();
+            let mut worst: f64 = 0.0;
+            let k = 60;
+            for i in 0..=k {
+                for j in 0..=(k - i) {
+                    let w = [
+                        1.0 - (i + j) as f64 / k as f64,
+                        i as f64 / k as f64,
+                        j as f64 / k as f64,
+                        0.0,
+                    ];
+                    let (_, jac) = map.jacobian(&w);
+                    let jac = jac.unwrap();
+                    let mm = linalg::mul(2, &linalg::mul(2, &e, &jac), &inv);
+                    // 2×2 spectral norm from the singular values.
+                    let (a, b, c, d) = (mm[0][0], mm[0][1], mm[1][0], mm[1][1]);
+                    let s1 = a * a + b * b + c * c + d * d;
+                    let det = a * d - b * c;
+                    let smax = ((s1 + (s1 * s1 - 4.0 * det * det).max(0.0).sqrt()) / 2.0).sqrt();
+                    worst = worst.max(smax / det);
+                }
+            }
+            eprintln!("simplex {s}: bound {bound} sampled {worst}");
+            assert!(
+                bound >= worst,
+                "simplex {s}: bound {bound} < sampled {worst}"
+            );
+            assert!(
+                bound <= 4.0 * worst,
+                "simplex {s}: bound {bound} loose vs {worst}"
+            );
+        }
+    }
+
+    #[test]
+    fn bezier_rational_monotonic_and_parametric_bounds_dominate_samples() {
+        check_dominates(&two_triangles(
+            StageBuilder::bezier(2)
+                .face(&[0, 2], &[0.7, 0.3], &[])
+                .build(),
+        ));
+        check_dominates(&two_triangles(
+            StageBuilder::bezier(3)
+                .face(&[0, 1, 2], &[0.5, 0.2, 0.3], &[])
+                .build(),
+        ));
+        check_dominates(&two_triangles(
+            StageBuilder::bezier(2)
+                .face(&[0, 2], &[0.7, 0.3], &[])
+                .parametric()
+                .build(),
+        ));
+        check_dominates(&two_triangles(
+            StageBuilder::rational(2)
+                .face(&[0, 2], &[0.5, 0.5], &[3.0])
+                .build(),
+        ));
+        check_dominates(&two_triangles(
+            StageBuilder::monotonic(3)
+                .vertex_map(0, &[0.0, 1.0, 1.5, 2.0])
+                .vertex_map(2, &[0.0, 0.2, 0.5, 1.0])
+                .build(),
+        ));
+    }
+
+    #[test]
+    fn spectral_norm_matches_known_singular_values() {
+        // Rotation (about z by 0.3) times diag(3, 2, 0.5): σ_max = 3.
+        let (c, s) = (0.3f64.cos(), 0.3f64.sin());
+        let mut a = [[0.0; MAX_VARS]; MAX_VARS];
+        let diag = [3.0, 2.0, 0.5];
+        let rot = [[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]];
+        for i in 0..3 {
+            for j in 0..3 {
+                a[i][j] = rot[i][j] * diag[j];
+            }
+        }
+        let b = spectral_norm_bound(3, &a);
+        assert!(b >= 3.0 && b < 3.0 + 1e-6, "{b}");
+        let b2 = spectral_norm_bound(
+            2,
+            &[
+                [1.0, 2.0, 0.0, 0.0],
+                [0.0, 1.0, 0.0, 0.0],
+                [0.0; 4],
+                [0.0; 4],
+            ],
+        );
+        // Singular values of [[1,2],[0,1]]: 1 ± √2.
+        assert!(
+            b2 >= 1.0 + 2f64.sqrt() && b2 < 1.0 + 2f64.sqrt() + 1e-6,
+            "{b2}"
+        );
+    }
+
+    #[test]
+    fn identity_stage_has_factor_one() {
+        let model = two_triangles(
+            StageBuilder::bezier(2)
+                .face(&[0, 2], &[0.5, 0.5], &[])
+                .build(),
+        );
+        let map = LocalMap::from_model(&model, 0).unwrap();
+        let b = area_element_bound(&map, &edges(&model, 0)).unwrap();
+        assert!((b - 1.0).abs() < 1e-8, "{b}");
+    }
+
+    #[test]
+    fn a_folding_stage_is_refused() {
+        // A cubic edge point far outside its edge's natural position does not make the stage fold
+        // (adjusted), so fold a Bézier stage of degree 4 in 1-D style: swap b13 and b31 on edge 0-2.
+        let model = two_triangles(
+            StageBuilder::bezier(4)
+                .face(&[0, 2], &[0.25, 0.75, 0.5, 0.5, 0.75, 0.25], &[])
+                .build(),
+        );
+        let map = LocalMap::from_model(&model, 0).unwrap();
+        assert!(area_element_bound(&map, &edges(&model, 0)).is_err());
+    }
+}
