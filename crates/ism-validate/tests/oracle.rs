@@ -10,7 +10,7 @@
 //! runs 100,000 per kind and degree and prints the verdict counts and the undetermined rate.
 
 use ism_format::{multi_index, FaceRecord, Model, Stage, StageKind};
-use ism_validate::positivity::{self, Outcome, PositivityOptions};
+use ism_validate::positivity::{self, PositivityOptions};
 use ism_validate::{theorem, DEFAULT_DEPTH};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
