@@ -10,6 +10,7 @@ Examples:
   cargo run -p ism-examples --bin ism-make-examples                 # rewrite spec/examples/
   cargo run -p ism-examples --bin ism-make-examples -- --vectors    # also spec/vectors/reader/
   ism-make-examples --examples-dir /tmp/ex --no-examples --vectors --vectors-dir /tmp/vec
+  ism-make-examples --no-examples --large 1000000 /tmp/large.ismb   # benchmark model (any encoding)
 
 Output is deterministic: running it twice gives identical bytes.
 Exit status: 0 when every file was written, 2 on a write error or a vector that does not fail as intended.";
@@ -30,6 +31,10 @@ struct Args {
     /// Directory of the reader test vectors.
     #[arg(long, default_value = "spec/vectors/reader")]
     vectors_dir: PathBuf,
+    /// Also write `large_stratified_model(TETS)` to FILE (encoding from the extension: .ism.json,
+    /// .ism.msgpack, .ismb).
+    #[arg(long, num_args = 2, value_names = ["TETS", "FILE"])]
+    large: Option<Vec<String>>,
 }
 
 fn main() -> ExitCode {
@@ -56,6 +61,25 @@ fn run(args: &Args) -> anyhow::Result<usize> {
         count += ism_examples::vectors::write_reader_vectors(&args.vectors_dir)
             .map_err(anyhow::Error::msg)?
             .len();
+    }
+    if let Some(large) = &args.large {
+        let tets: usize = large[0]
+            .parse()
+            .map_err(|e| anyhow::anyhow!("TETS {:?}: {e}", large[0]))?;
+        let path = PathBuf::from(&large[1]);
+        let started = std::time::Instant::now();
+        let model = ism_examples::large_stratified_model(tets);
+        let built = started.elapsed();
+        ism_format::io::write_path(&model, &path, None, ism_format::io::WriteOptions::default())?;
+        eprintln!(
+            "{}: {} tetrahedra, {} face records; built in {:.2?}, written in {:.2?}",
+            path.display(),
+            model.num_simplices(),
+            model.stages.iter().map(|s| s.faces.len()).sum::<usize>(),
+            built,
+            started.elapsed() - built
+        );
+        count += 1;
     }
     Ok(count)
 }
