@@ -21,8 +21,19 @@ use ism_format::{multi_index, Direction, Model, Stage, StageKind};
 
 use crate::error::{GeomError, Result};
 use crate::linalg;
-use crate::tables::{basis, powers, tables, Tables};
+use crate::tables::{basis_m, pow_table, tables, Tables};
 use crate::{Bary, Mat, MAX_DEGREE, MAX_VARS};
+
+/// Calls a const-generic kernel for the stage's variable count (2, 3 or 4).
+macro_rules! dispatch {
+    ($s:ident, $f:ident, $w:expr) => {
+        match $s.m {
+            2 => $s.$f::<2>($w),
+            3 => $s.$f::<3>($w),
+            _ => $s.$f::<4>($w),
+        }
+    };
+}
 
 /// Target of the inverse: max-norm of `X(w) − u`. Values are barycentric coordinates of order 1,
 /// so this is about 5 000 ulps — reachable by Newton in double precision for any stage whose
@@ -382,44 +393,11 @@ impl LocalStage {
         if self.identity {
             return *w;
         }
-        let (m, d) = (self.m, self.degree);
         match self.kind {
-            StageKind::Bezier => {
-                let pw = powers(m, d, w);
-                let t = self.tables;
-                let mut u = [0.0; MAX_VARS];
-                for ((e, &mult), b) in t.exps.iter().zip(&t.multinom).zip(&self.points) {
-                    let bi = basis(m, mult, e, &pw);
-                    for i in 0..MAX_VARS {
-                        u[i] += bi * b[i];
-                    }
-                }
-                u
-            }
-            StageKind::Rational => {
-                let pw = powers(m, d, w);
-                let t = self.tables;
-                let mut p = [0.0; MAX_VARS];
-                let mut q = 0.0;
-                for (((e, &mult), qb), &wt) in t
-                    .exps
-                    .iter()
-                    .zip(&t.multinom)
-                    .zip(&self.weighted)
-                    .zip(&self.weights)
-                {
-                    let bi = basis(m, mult, e, &pw);
-                    q += wt * bi;
-                    for i in 0..MAX_VARS {
-                        p[i] += bi * qb[i];
-                    }
-                }
-                for v in p.iter_mut() {
-                    *v /= q;
-                }
-                p
-            }
+            StageKind::Bezier => dispatch!(self, eval_bezier, w),
+            StageKind::Rational => dispatch!(self, eval_rational, w),
             StageKind::Monotonic => {
+                let m = self.m;
                 let mut g = [0.0; MAX_VARS];
                 let mut s = 0.0;
                 for i in 0..m {
@@ -432,6 +410,116 @@ impl LocalStage {
                 g
             }
         }
+    }
+
+    /// `Σ b_I B_I(w)` with the variable count fixed at compile time, so the loops unroll.
+    #[inline(always)]
+    fn eval_bezier<const M: usize>(&self, w: &Bary) -> Bary {
+        let t = self.tables;
+        let pw = pow_table::<M>(self.degree as usize, w);
+        let mut u = [0.0; MAX_VARS];
+        for ((e, &mult), b) in t.exps.iter().zip(&t.multinom).zip(&self.points) {
+            let bi = basis_m::<M>(mult, e, &pw);
+            for i in 0..M {
+                u[i] += bi * b[i];
+            }
+        }
+        u
+    }
+
+    /// `Σ q_I b_I B_I / Σ q_I B_I`, fixed variable count.
+    #[inline(always)]
+    fn eval_rational<const M: usize>(&self, w: &Bary) -> Bary {
+        let t = self.tables;
+        let pw = pow_table::<M>(self.degree as usize, w);
+        let mut p = [0.0; MAX_VARS];
+        let mut q = 0.0;
+        for (((e, &mult), qb), &wt) in t
+            .exps
+            .iter()
+            .zip(&t.multinom)
+            .zip(&self.weighted)
+            .zip(&self.weights)
+        {
+            let bi = basis_m::<M>(mult, e, &pw);
+            q += wt * bi;
+            for i in 0..M {
+                p[i] += bi * qb[i];
+            }
+        }
+        for v in p.iter_mut().take(M) {
+            *v /= q;
+        }
+        p
+    }
+
+    /// Value and homogeneous Jacobian of a Bézier stage in one pass over the degree-`d − 1`
+    /// basis: `∂X/∂w_j = d Σ_K B_K b_{K+e_j}` and `X = Σ_K B_K Σ_j w_j b_{K+e_j}` (one de Casteljau
+    /// step). Zero coordinates stay exactly zero: `b_{K+e_j}` has coordinate `i` only if `K_i > 0`
+    /// (then `B_K` carries `w_i^{K_i} = 0`) or `j = i` (then `w_j = 0`).
+    #[inline(always)]
+    fn val_jac_bezier<const M: usize>(&self, w: &Bary) -> (Bary, Mat) {
+        let t = self.tables;
+        let pw = pow_table::<M>(self.degree as usize - 1, w);
+        let mut u = [0.0; MAX_VARS];
+        let mut h = [[0.0; MAX_VARS]; MAX_VARS];
+        for ((e, &mult), up) in t.lower_exps.iter().zip(&t.lower_multinom).zip(&t.up) {
+            let bk = basis_m::<M>(mult, e, &pw);
+            for j in 0..M {
+                let b = &self.points[up[j] as usize];
+                let s = bk * w[j];
+                for i in 0..M {
+                    h[i][j] += bk * b[i];
+                    u[i] += s * b[i];
+                }
+            }
+        }
+        let df = f64::from(self.degree);
+        for row in h.iter_mut().take(M) {
+            for v in row.iter_mut().take(M) {
+                *v *= df;
+            }
+        }
+        (u, h)
+    }
+
+    /// Value and homogeneous Jacobian of a rational stage in one pass over the degree-`d − 1`
+    /// basis (numerator `P`, denominator `Q` and their partials), then the quotient rule.
+    #[inline(always)]
+    fn val_jac_rational<const M: usize>(&self, w: &Bary) -> (Bary, Mat) {
+        let t = self.tables;
+        let pw = pow_table::<M>(self.degree as usize - 1, w);
+        let mut p = [0.0; MAX_VARS];
+        let mut q = 0.0;
+        let mut dp = [[0.0; MAX_VARS]; MAX_VARS];
+        let mut dq = [0.0; MAX_VARS];
+        for ((e, &mult), up) in t.lower_exps.iter().zip(&t.lower_multinom).zip(&t.up) {
+            let bk = basis_m::<M>(mult, e, &pw);
+            for j in 0..M {
+                let r = up[j] as usize;
+                let qb = &self.weighted[r];
+                let wt = self.weights[r];
+                let s = bk * w[j];
+                q += s * wt;
+                dq[j] += bk * wt;
+                for i in 0..M {
+                    dp[i][j] += bk * qb[i];
+                    p[i] += s * qb[i];
+                }
+            }
+        }
+        let df = f64::from(self.degree);
+        let mut u = [0.0; MAX_VARS];
+        for i in 0..M {
+            u[i] = p[i] / q;
+        }
+        let mut h = [[0.0; MAX_VARS]; MAX_VARS];
+        for i in 0..M {
+            for j in 0..M {
+                h[i][j] = df * (dp[i][j] - u[i] * dq[j]) / q;
+            }
+        }
+        (u, h)
     }
 
     /// `g_i(t)` of local vertex `i` (monotonic).
@@ -460,65 +548,9 @@ impl LocalStage {
             }
             return (*w, h);
         }
-        let d = self.degree;
-        let t = self.tables;
         match self.kind {
-            StageKind::Bezier => {
-                let pw = powers(m, d, w);
-                let df = f64::from(d);
-                for ((e, &mult), up) in t.lower_exps.iter().zip(&t.lower_multinom).zip(&t.up) {
-                    let bk = df * basis(m, mult, e, &pw);
-                    for j in 0..m {
-                        let b = &self.points[up[j] as usize];
-                        for i in 0..m {
-                            h[i][j] += bk * b[i];
-                        }
-                    }
-                }
-                (self.eval_stored(w), h)
-            }
-            StageKind::Rational => {
-                let pw = powers(m, d, w);
-                let df = f64::from(d);
-                let mut p = [0.0; MAX_VARS];
-                let mut q = 0.0;
-                for (((e, &mult), qb), &wt) in t
-                    .exps
-                    .iter()
-                    .zip(&t.multinom)
-                    .zip(&self.weighted)
-                    .zip(&self.weights)
-                {
-                    let bi = basis(m, mult, e, &pw);
-                    q += wt * bi;
-                    for i in 0..m {
-                        p[i] += bi * qb[i];
-                    }
-                }
-                let mut dp = [[0.0; MAX_VARS]; MAX_VARS];
-                let mut dq = [0.0; MAX_VARS];
-                for ((e, &mult), up) in t.lower_exps.iter().zip(&t.lower_multinom).zip(&t.up) {
-                    let bk = df * basis(m, mult, e, &pw);
-                    for j in 0..m {
-                        let r = up[j] as usize;
-                        dq[j] += bk * self.weights[r];
-                        let qb = &self.weighted[r];
-                        for i in 0..m {
-                            dp[i][j] += bk * qb[i];
-                        }
-                    }
-                }
-                let mut u = [0.0; MAX_VARS];
-                for i in 0..m {
-                    u[i] = p[i] / q;
-                }
-                for i in 0..m {
-                    for j in 0..m {
-                        h[i][j] = (dp[i][j] - u[i] * dq[j]) / q;
-                    }
-                }
-                (u, h)
-            }
+            StageKind::Bezier => dispatch!(self, val_jac_bezier, w),
+            StageKind::Rational => dispatch!(self, val_jac_rational, w),
             StageKind::Monotonic => {
                 let mut g = [0.0; MAX_VARS];
                 let mut gp = [0.0; MAX_VARS];
@@ -738,7 +770,6 @@ impl LocalStage {
                 polish,
             },
             iterations,
-            |x| self.eval_stored(x),
             |x| self.homogeneous_jacobian_stored(x),
         )
     }
@@ -767,7 +798,6 @@ fn newton_solve(
     mut w: Bary,
     settings: NewtonSettings,
     iterations: &mut u32,
-    eval: impl Fn(&Bary) -> Bary,
     jac: impl Fn(&Bary) -> (Bary, Mat),
 ) -> Option<(Bary, f64)> {
     let k = sup.len() - 1;
@@ -814,10 +844,15 @@ fn newton_solve(
             for &i in sup {
                 trial[i] += alpha * full[i];
             }
-            let tr = residual(m, &eval(&trial), target);
+            // Value and Jacobian together: an accepted full step (the usual case) needs no
+            // second evaluation.
+            let (tv, th) = jac(&trial);
+            let tr = residual(m, &tv, target);
             if tr < r {
                 w = trial;
                 r = tr;
+                val = tv;
+                h = th;
                 accepted = true;
                 break;
             }
@@ -829,7 +864,6 @@ fn newton_solve(
         if polishing {
             return Some((w, r));
         }
-        (val, h) = jac(&w);
     }
     (r <= settings.tol).then_some((w, r))
 }
@@ -1044,16 +1078,9 @@ impl LocalMap {
                 let (val, j) = self.jacobian(x);
                 (val, embed(m, &j.unwrap_or_else(|| identity_mat(m - 1))))
             };
-            if let Some((polished, _)) = newton_solve(
-                m,
-                &support[..k1],
-                &u,
-                w,
-                settings,
-                &mut iterations,
-                |x| self.eval(x),
-                jac,
-            ) {
+            if let Some((polished, _)) =
+                newton_solve(m, &support[..k1], &u, w, settings, &mut iterations, jac)
+            {
                 w = polished;
             }
         }

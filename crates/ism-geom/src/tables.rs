@@ -88,18 +88,17 @@ pub(crate) fn tables(m: usize, d: u32) -> &'static Tables {
     })
 }
 
+/// Length of a power-table row: exponents `0..=MAX_DEGREE`.
+pub(crate) const POW_LEN: usize = MAX_DEGREE as usize + 1;
+
 /// Powers `w_i^e` for `e = 0..=d`, one row per variable. `0^0 = 1`, and `0^e = 0` exactly.
-#[inline]
-pub(crate) fn powers(
-    m: usize,
-    d: u32,
-    w: &[f64; MAX_VARS],
-) -> [[f64; MAX_DEGREE as usize + 1]; MAX_VARS] {
-    let mut pw = [[0.0; MAX_DEGREE as usize + 1]; MAX_VARS];
-    for i in 0..m {
-        pw[i][0] = 1.0;
-        for e in 1..=d as usize {
-            pw[i][e] = pw[i][e - 1] * w[i];
+#[inline(always)]
+pub(crate) fn pow_table<const M: usize>(d: usize, w: &[f64; MAX_VARS]) -> [[f64; POW_LEN]; M] {
+    let mut pw = [[1.0; POW_LEN]; M];
+    for i in 0..M {
+        let x = w[i];
+        for e in 1..=d {
+            pw[i][e] = pw[i][e - 1] * x;
         }
     }
     pw
@@ -107,14 +106,13 @@ pub(crate) fn powers(
 
 /// `B_I(w)` from a power table.
 #[inline(always)]
-pub(crate) fn basis(
-    m: usize,
+pub(crate) fn basis_m<const M: usize>(
     mult: f64,
     e: &[u8; MAX_VARS],
-    pw: &[[f64; MAX_DEGREE as usize + 1]; MAX_VARS],
+    pw: &[[f64; POW_LEN]; M],
 ) -> f64 {
     let mut b = mult;
-    for i in 0..m {
+    for i in 0..M {
         b *= pw[i][e[i] as usize];
     }
     b

@@ -2,7 +2,7 @@
 //!
 //! Every generator documents why its stages are valid (a theorem of `000`, or a bound), so the
 //! property tests that use them test the kernel, not luck.
-#![allow(dead_code)]
+#![allow(dead_code, clippy::needless_range_loop)]
 
 use std::collections::BTreeSet;
 
