@@ -747,7 +747,9 @@ pub fn write_atomic(
         tmp.as_file()
             .set_permissions(std::fs::Permissions::from_mode(mode))?;
     }
-    tmp.as_file().sync_all()?;
+    // No fsync: the rename already guarantees readers see either the old file or the whole new
+    // one if this process dies; durability against power loss is the caller's choice (fsync the
+    // result) and costs seconds on large models.
     tmp.persist(path).map_err(|e| e.error)?;
     Ok(())
 }

@@ -2,7 +2,7 @@
 //!
 //! Positivity of the maps is not structural; the validator certifies it (spec §6).
 
-use std::collections::{HashMap, HashSet};
+use std::collections::HashSet;
 
 use crate::model::{Model, StageKind};
 use crate::multi_index::owned_count;
@@ -505,7 +505,25 @@ fn check_stages(model: &Model, c: &mut Collector) {
                     // No stage has face records, so this one has none to check.
                     continue;
                 };
-                let mut seen: HashMap<&[u32], usize> = HashMap::new();
+                // Duplicates by sorting (face, record) pairs: no hashing of millions of slices.
+                let mut order: Vec<(&[u32], usize)> = stage
+                    .faces
+                    .iter()
+                    .enumerate()
+                    .map(|(r, f)| (f.face.as_slice(), r))
+                    .collect();
+                order.sort_unstable();
+                let mut first_of = vec![usize::MAX; stage.faces.len()];
+                for w in order.windows(2) {
+                    if w[0].0 == w[1].0 {
+                        first_of[w[1].1] = if first_of[w[0].1] == usize::MAX {
+                            w[0].1
+                        } else {
+                            first_of[w[0].1]
+                        };
+                    }
+                }
+                drop(order);
                 for (r, rec) in stage.faces.iter().enumerate() {
                     let loc = |suffix: &str| Location {
                         face: Some(rec.face.clone()),
@@ -538,7 +556,8 @@ fn check_stages(model: &Model, c: &mut Collector) {
                         );
                         continue;
                     }
-                    if let Some(first) = seen.insert(&rec.face, r) {
+                    if first_of[r] != usize::MAX {
+                        let first = first_of[r];
                         c.push(
                             Rule::DuplicateFace,
                             loc("/face"),

@@ -1,0 +1,87 @@
+//! Read/write throughput of the three encodings on a large stratified model (issue 2 benchmark).
+//! Driven by `tools/bench_format.sh`, which also runs the meshio peer and records peak memory.
+//!
+//! `bench_format make DIR [TETS]`  build the model, write it in every encoding (timed), and dump
+//!                                 the raw tetrahedra/points/values as .npy for the peer.
+//! `bench_format read FILE [--no-check] [--repeat K]`  read a file (timed; best of K).
+
+use std::io::Write;
+use std::path::Path;
+use std::time::Instant;
+
+use ism_format::io::{self, ReadOptions, WriteOptions};
+use ism_format::Encoding;
+
+fn npy(path: &Path, descr: &str, shape: &[usize], data: &[u8]) -> std::io::Result<()> {
+    let dims: Vec<String> = shape.iter().map(|d| d.to_string()).collect();
+    let mut header = format!("{{'descr': '{descr}', 'fortran_order': False, 'shape': ({},), }}", dims.join(", "));
+    while (10 + header.len() + 1) % 64 != 0 {
+        header.push(' ');
+    }
+    header.push('\n');
+    let mut f = std::io::BufWriter::new(std::fs::File::create(path)?);
+    f.write_all(b"\x93NUMPY\x01\x00")?;
+    f.write_all(&(header.len() as u16).to_le_bytes())?;
+    f.write_all(header.as_bytes())?;
+    f.write_all(data)?;
+    f.flush()
+}
+
+fn make(dir: &Path, tets: usize) -> Result<(), Box<dyn std::error::Error>> {
+    std::fs::create_dir_all(dir)?;
+    let t = Instant::now();
+    let model = ism_examples::large_stratified_model(tets);
+    eprintln!("model: {} tets, {} vertices, {} face records, built in {:.2}s",
+        model.num_simplices(), model.num_vertices(),
+        model.stages.iter().map(|s| s.faces.len()).sum::<usize>(), t.elapsed().as_secs_f64());
+    for enc in Encoding::ALL {
+        let path = dir.join(format!("large.{}", enc.extension()));
+        let mut best = f64::INFINITY;
+        let mut bytes = 0;
+        for _ in 0..3 {
+            let t = Instant::now();
+            io::write_path(&model, &path, Some(enc), WriteOptions::default())?;
+            best = best.min(t.elapsed().as_secs_f64());
+            bytes = std::fs::metadata(&path)?.len();
+        }
+        println!("{{\"op\":\"write\",\"encoding\":\"{}\",\"bytes\":{bytes},\"seconds\":{best:.4},\"simplices\":{}}}",
+            enc.name(), model.num_simplices());
+    }
+    let f64s = |xs: &[f64]| xs.iter().flat_map(|x| x.to_le_bytes()).collect::<Vec<u8>>();
+    npy(&dir.join("points.npy"), "<f8", &[model.num_vertices(), 3], &f64s(&model.vertices))?;
+    npy(&dir.join("values.npy"), "<f8", &[model.num_vertices()], &f64s(&model.values))?;
+    let ids: Vec<u8> = model.simplices.iter().flat_map(|x| (*x as i64).to_le_bytes()).collect();
+    npy(&dir.join("tets.npy"), "<i8", &[model.num_simplices(), 4], &ids)?;
+    Ok(())
+}
+
+fn read(file: &Path, check: bool, repeat: usize) -> Result<(), Box<dyn std::error::Error>> {
+    let options = ReadOptions { check_structure: check, ..ReadOptions::default() };
+    let mut best = f64::INFINITY;
+    let mut doc = None;
+    for _ in 0..repeat {
+        drop(doc.take());
+        let t = Instant::now();
+        let f = std::fs::File::open(file)?;
+        let d = io::read_with(std::io::BufReader::new(f), &options)?;
+        best = best.min(t.elapsed().as_secs_f64());
+        doc = Some(d);
+    }
+    let doc = doc.expect("repeat ≥ 1");
+    println!("{{\"op\":\"read\",\"encoding\":\"{}\",\"check\":{check},\"bytes\":{},\"seconds\":{best:.4},\"simplices\":{}}}",
+        doc.encoding.name(), doc.byte_len, doc.model.num_simplices());
+    Ok(())
+}
+
+fn main() -> Result<(), Box<dyn std::error::Error>> {
+    let args: Vec<String> = std::env::args().skip(1).collect();
+    match args.first().map(String::as_str) {
+        Some("make") => make(Path::new(&args[1]), args.get(2).map(|s| s.parse()).transpose()?.unwrap_or(1_000_000)),
+        Some("read") => {
+            let check = !args.iter().any(|a| a == "--no-check");
+            let repeat = args.iter().position(|a| a == "--repeat").and_then(|i| args.get(i + 1)).map(|s| s.parse()).transpose()?.unwrap_or(3);
+            read(Path::new(&args[1]), check, repeat)
+        }
+        _ => Err("usage: bench_format make DIR [TETS] | read FILE [--no-check] [--repeat K]".into()),
+    }
+}
