@@ -1,0 +1,47 @@
+"""Peer for the format benchmark: meshio writing and reading the same tetrahedra and vertex values
+as binary .vtu (uncompressed, the fastest meshio setting). Prints one JSON line per operation.
+
+usage: python tools/bench_meshio.py DIR     (DIR from `bench_format make DIR`)
+       python tools/bench_meshio.py read FILE   (one read; the driver measures its peak memory)
+"""
+import json
+import os
+import sys
+import time
+
+import meshio
+import numpy as np
+
+
+def best_of(k, fn):
+    best = float("inf")
+    for _ in range(k):
+        t = time.perf_counter()
+        fn()
+        best = min(best, time.perf_counter() - t)
+    return best
+
+
+def main():
+    if sys.argv[1] == "read":
+        t = time.perf_counter()
+        mesh = meshio.read(sys.argv[2])
+        n = len(mesh.cells_dict["tetra"])
+        print(json.dumps({"op": "read", "tool": "meshio", "seconds": round(time.perf_counter() - t, 4),
+                          "bytes": os.path.getsize(sys.argv[2]), "simplices": n}))
+        return
+    d = sys.argv[1]
+    points = np.load(os.path.join(d, "points.npy"))
+    tets = np.load(os.path.join(d, "tets.npy"))
+    values = np.load(os.path.join(d, "values.npy"))
+    mesh = meshio.Mesh(points, [("tetra", tets)], point_data={"f": values})
+    path = os.path.join(d, "large.vtu")
+    secs = best_of(3, lambda: meshio.write(path, mesh, file_format="vtu", binary=True, compression=None))
+    print(json.dumps({"op": "write", "tool": "meshio", "seconds": round(secs, 4),
+                      "bytes": os.path.getsize(path), "simplices": len(tets)}))
+    back = meshio.read(path)
+    assert np.array_equal(back.cells_dict["tetra"], tets) and np.array_equal(back.point_data["f"], values)
+
+
+if __name__ == "__main__":
+    main()
