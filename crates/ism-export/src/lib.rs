@@ -3,10 +3,12 @@
 
 pub mod error;
 pub mod extract;
+pub mod format;
 pub mod mesh;
 pub mod obj;
 
 pub use error::{Error, Result};
 pub mod gltf;
 pub mod marching;
+pub mod volume;
 pub mod vtk;
