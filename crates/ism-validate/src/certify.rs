@@ -129,10 +129,13 @@ impl Decision {
 /// The coefficient lines along one edge `(a, b)`, each listed by increasing exponent of `b`.
 type EdgeLines = ((usize, usize), Vec<Vec<u16>>);
 
-/// Table of the products `x_i · y_j → z_k` of a homogeneous convolution.
+/// Table of the products `x_i · y_j → z_k` of a homogeneous convolution, as one row of output
+/// positions per `i`: `zrows[i · len_b + j] = k`.
 #[derive(Clone, Debug)]
 struct Convolution {
-    triples: Vec<(u16, u16, u16)>,
+    zrows: Vec<u16>,
+    len_b: usize,
+    out_len: usize,
     /// Most terms summed into one output coefficient.
     max_terms: usize,
 }
@@ -141,24 +144,42 @@ impl Convolution {
     fn new(m: usize, a: u32, b: u32) -> Convolution {
         let ia = multi_index::all(m, a);
         let ib = multi_index::all(m, b);
-        let mut triples = Vec::with_capacity(ia.len() / m * (ib.len() / m));
-        let mut terms = vec![0usize; multi_index::count(m, a + b)];
+        let len_b = ib.len() / m;
+        let out_len = multi_index::count(m, a + b);
+        let mut zrows = Vec::with_capacity(ia.len() / m * len_b);
+        let mut terms = vec![0usize; out_len];
         let mut sum = vec![0u32; m];
-        for (i, x) in ia.chunks(m).enumerate() {
-            for (j, y) in ib.chunks(m).enumerate() {
+        for x in ia.chunks(m) {
+            for y in ib.chunks(m) {
                 for c in 0..m {
                     sum[c] = x[c] + y[c];
                 }
                 let k = multi_index::rank(&sum);
                 terms[k] += 1;
-                triples.push((i as u16, j as u16, k as u16));
+                zrows.push(k as u16);
             }
         }
         Convolution {
-            triples,
+            zrows,
+            len_b,
+            out_len,
             max_terms: terms.into_iter().max().unwrap_or(0),
         }
     }
+}
+
+/// Permanent of the upper-left `s × s` block (`s ≤ 4`), by expansion along the first row.
+fn permanent(a: &[[f64; 4]; 4], s: usize) -> f64 {
+    fn rec(a: &[[f64; 4]; 4], s: usize, row: usize, used: u32) -> f64 {
+        if row == s {
+            return 1.0;
+        }
+        (0..s)
+            .filter(|c| used & (1 << c) == 0)
+            .map(|c| a[row][c] * rec(a, s, row + 1, used | (1 << c)))
+            .sum()
+    }
+    rec(a, s, 0, 0)
 }
 
 /// Multinomial coefficients `d!/(I₀!…Iₘ₋₁!)` in canonical order (exact in f64 for `d ≤ 48`, as
@@ -180,8 +201,6 @@ pub struct DetKernel {
     rational: bool,
     /// Size of the determinant: `n` (polynomial) or `n + 1` (rational).
     size: usize,
-    /// Degrees of the columns.
-    column_degrees: Vec<u32>,
     /// Canonical index positions: for each multi-index of degree `d − 1`, the ranks of `I + e_k` in
     /// degree `d`, `k = 0..m`.
     shift: Vec<[u16; 4]>,
@@ -285,7 +304,6 @@ impl DetKernel {
             degree: d,
             rational,
             size,
-            column_degrees,
             shift,
             mult_entry: multinomials(m, d - 1),
             mult_first: multinomials(m, d),
@@ -310,6 +328,12 @@ impl DetKernel {
 
     /// Bernstein coefficients of the Jacobian polynomial of `net` with rigorous error bounds.
     ///
+    /// The error bound is uniform: `γₖ · E` with `E` the permanent of the matrix of the entries'
+    /// largest absolute Bernstein coefficients. In Bernstein form the product formula is a convex
+    /// combination (`Σ_{I+J=K} C(a;I)C(b;J) = C(a+b;K)`), so the absolute-value companion of every
+    /// coefficient — the sum of the absolute values of all terms, which bounds the rounding error
+    /// through `γₖ` — is at most `E`.
+    ///
     /// # Panics
     /// When the net does not match the kernel's dimension, degree and kind.
     pub fn det_coefficients(&self, net: &DenseNet) -> BoundedCoefficients {
@@ -320,99 +344,102 @@ impl DetKernel {
         assert_eq!(net.is_rational(), self.rational);
         let d = f64::from(self.degree);
         let s = self.size;
-        // Columns in scaled (monomial) form: value and absolute companion, per row.
-        let entry_len = self.mult_entry.len();
-        let mut cols: Vec<Vec<(Vec<f64>, Vec<f64>)>> = Vec::with_capacity(s);
         // Row r of a polynomial net is coordinate r + 1; of a rational net, component r of
         // V = q·(1, b₁, …, bₙ).
-        let component = |idx: usize, r: usize| -> (f64, f64) {
+        let component = |idx: usize, r: usize| -> f64 {
             if self.rational {
                 let q = net.weights[idx];
                 if r == 0 {
-                    (q, q.abs())
+                    q
                 } else {
-                    let v = q * net.points[idx][r];
-                    (v, v.abs())
+                    q * net.points[idx][r]
                 }
             } else {
-                let v = net.points[idx][r + 1];
-                (v, v.abs())
+                net.points[idx][r + 1]
             }
         };
+        // Columns in scaled (monomial) form, cols[j][r], and the largest absolute Bernstein
+        // coefficient of each entry (for the bound).
+        let mut cols: Vec<Vec<Vec<f64>>> = Vec::with_capacity(s);
+        let mut maxabs = [[0.0f64; 4]; 4];
         if self.rational {
             let mut col = Vec::with_capacity(s);
-            for r in 0..s {
-                let (mut v, mut a) = (
-                    vec![0.0; self.mult_first.len()],
-                    vec![0.0; self.mult_first.len()],
-                );
-                for (i, mlt) in self.mult_first.iter().enumerate() {
-                    let (x, ax) = component(i, r);
-                    v[i] = x * mlt;
-                    a[i] = ax * mlt;
-                }
-                col.push((v, a));
+            for (r, mx) in maxabs.iter_mut().enumerate().take(s) {
+                let v: Vec<f64> = self
+                    .mult_first
+                    .iter()
+                    .enumerate()
+                    .map(|(i, mlt)| {
+                        let x = component(i, r);
+                        mx[0] = mx[0].max(x.abs());
+                        x * mlt
+                    })
+                    .collect();
+                col.push(v);
             }
             cols.push(col);
         }
         for k in 1..=self.n {
+            let j = cols.len();
             let mut col = Vec::with_capacity(s);
-            for r in 0..s {
-                let (mut v, mut a) = (vec![0.0; entry_len], vec![0.0; entry_len]);
-                for (i, sh) in self.shift.iter().enumerate() {
-                    let (xk, ak) = component(sh[k] as usize, r);
-                    let (x0, a0) = component(sh[0] as usize, r);
-                    let scale = d * self.mult_entry[i];
-                    v[i] = (xk - x0) * scale;
-                    a[i] = (ak + a0) * scale;
-                }
-                col.push((v, a));
+            for (r, mx) in maxabs.iter_mut().enumerate().take(s) {
+                let v: Vec<f64> = self
+                    .shift
+                    .iter()
+                    .zip(&self.mult_entry)
+                    .map(|(sh, mlt)| {
+                        let xk = component(sh[k] as usize, r);
+                        let x0 = component(sh[0] as usize, r);
+                        mx[j] = mx[j].max(d * (xk.abs() + x0.abs()));
+                        (xk - x0) * (d * mlt)
+                    })
+                    .collect();
+                col.push(v);
             }
             cols.push(col);
         }
-        // Laplace expansion from the last column: minors[mask] over the rows in `mask`.
+        // Laplace expansion from the last column: minors[mask] over the rows in `mask`, using the
+        // last popcount(mask) columns.
         let full = (1usize << s) - 1;
-        let mut minors: Vec<Option<(Vec<f64>, Vec<f64>)>> = vec![None; full + 1];
+        let mut minors: Vec<Vec<f64>> = vec![Vec::new(); full + 1];
         for r in 0..s {
-            minors[1 << r] = Some(cols[s - 1][r].clone());
+            minors[1 << r] = std::mem::take(&mut cols[s - 1][r]);
         }
         for j in (0..s - 1).rev() {
             let rows = s - j;
             let conv = &self.conv[j];
-            let out_len = multi_index::count(m, self.column_degrees[j..].iter().sum());
-            let mut next: Vec<Option<(Vec<f64>, Vec<f64>)>> = vec![None; full + 1];
-            for (mask, slot) in next.iter_mut().enumerate() {
+            for mask in 0..=full {
                 if (mask as u32).count_ones() as usize != rows {
                     continue;
                 }
-                let (mut v, mut a) = (vec![0.0; out_len], vec![0.0; out_len]);
+                let mut out = vec![0.0; conv.out_len];
                 let mut sign = 1.0;
                 for r in 0..s {
                     if mask & (1 << r) == 0 {
                         continue;
                     }
-                    let (ev, ea) = &cols[j][r];
-                    let (mv, ma) = minors[mask & !(1 << r)]
-                        .as_ref()
-                        .expect("minor computed at the previous level");
-                    for &(x, y, z) in &conv.triples {
-                        let (x, y, z) = (x as usize, y as usize, z as usize);
-                        v[z] += sign * ev[x] * mv[y];
-                        a[z] += ea[x] * ma[y];
+                    let entry = &cols[j][r];
+                    let minor = &minors[mask & !(1 << r)];
+                    for (x, &ex) in entry.iter().enumerate() {
+                        let ex = sign * ex;
+                        let zrow = &conv.zrows[x * conv.len_b..(x + 1) * conv.len_b];
+                        for (&z, &my) in zrow.iter().zip(minor) {
+                            out[z as usize] += ex * my;
+                        }
                     }
                     sign = -sign;
                 }
-                *slot = Some((v, a));
+                minors[mask] = out;
             }
-            minors = next;
         }
-        let (v, a) = minors[full].take().expect("full determinant");
-        let mut values = Vec::with_capacity(v.len());
-        let mut errors = Vec::with_capacity(v.len());
-        for ((x, ax), mlt) in v.into_iter().zip(a).zip(&self.mult_det) {
-            values.push(x / mlt);
-            errors.push(self.gamma * (ax / mlt) + UNDERFLOW_SLACK);
-        }
+        let bound = permanent(&maxabs, s);
+        let error = self.gamma * bound + UNDERFLOW_SLACK;
+        let values: Vec<f64> = minors[full]
+            .iter()
+            .zip(&self.mult_det)
+            .map(|(x, mlt)| x / mlt)
+            .collect();
+        let errors = vec![error; values.len()];
         BoundedCoefficients { values, errors }
     }
 
