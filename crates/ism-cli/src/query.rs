@@ -1,15 +1,93 @@
-//! Placeholder until this subcommand's library lands.
+//! `ism query`: F, its sign and gradient at given points (glue over `ism_sample`).
 
+use std::io::Read;
+use std::path::PathBuf;
 use std::process::ExitCode;
 
-/// Arguments.
+use anyhow::Context;
+use ism_format::io;
+use ism_sample::{points, OutputFormat, Sampler};
+
+use crate::sample::{choose_format, progress_bar, write_output};
+
+const AFTER_HELP: &str = "\
+Input points: CSV or whitespace-separated text, n numbers per line (a header line may name the
+columns x,y[,z]), or an NPY array of shape (N, n) of float64/float32 (or a structured array with
+fields x, y[, z]); the format is detected from the content. \"-\" reads standard input.
+
+Output columns: x y [z] simplex f sign gx gy [gz]
+  simplex  containing top simplex, -1 outside |K|
+  f        F(p), NaN outside |K|
+  sign     sign of F - c: -1 inside, 1 outside, 0 on the level or outside |K|
+  g*       ∇F(p), NaN outside |K|
+
+Examples:
+  ism query sphere.ism.json points.csv
+  printf '0 0 0\\n0.5 0.5 0.5\\n' | ism query sphere.ism.json -
+  ism query sphere.ism.json points.npy -o values.npy
+
+Exit status: 0 success; 2 unreadable model or points, bad arguments or a failed write.";
+
+/// Arguments of `ism query`.
 #[derive(clap::Args)]
+#[command(after_help = AFTER_HELP)]
 pub struct Args {
-    /// Input files.
-    files: Vec<std::path::PathBuf>,
+    /// The model file (any encoding).
+    model: PathBuf,
+    /// The points (CSV/text or NPY; "-" for standard input).
+    points: PathBuf,
+    /// Output file (format from the extension: .ply, .csv, .npy); standard output when absent or "-".
+    #[arg(short, long)]
+    output: Option<PathBuf>,
+    /// Output format: ply, ply-ascii, csv, npy (default: from the extension, csv on standard output).
+    #[arg(long, value_parser = parse_format)]
+    format: Option<OutputFormat>,
+    /// Worker threads (default: all cores).
+    #[arg(long, short = 'j')]
+    threads: Option<usize>,
+    /// No progress bar.
+    #[arg(long, short)]
+    quiet: bool,
+}
+
+fn parse_format(s: &str) -> Result<OutputFormat, String> {
+    OutputFormat::from_name(s)
+        .ok_or_else(|| format!("unknown format {s:?}; expected ply, ply-ascii, csv or npy"))
 }
 
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
-    let _ = args.files;
-    anyhow::bail!("this subcommand is not implemented yet")
+    let doc = io::read_path(&args.model)
+        .with_context(|| format!("cannot read {}", args.model.display()))?;
+    let model = doc.model;
+    let bytes = if args.points.as_os_str() == "-" {
+        let mut buf = Vec::new();
+        std::io::stdin()
+            .read_to_end(&mut buf)
+            .context("cannot read standard input")?;
+        buf
+    } else {
+        std::fs::read(&args.points)
+            .with_context(|| format!("cannot read {}", args.points.display()))?
+    };
+    let pts = points::parse_points(&bytes, model.dim())
+        .with_context(|| format!("cannot read points from {}", args.points.display()))?;
+    let format = choose_format(args.format, args.output.as_deref())?;
+    let bar = progress_bar((pts.len() / model.dim().max(1)) as u64, args.quiet);
+    let mut sampler = Sampler::new(&model)?;
+    if let Some(bar) = &bar {
+        let bar = bar.clone();
+        sampler = sampler.progress(move |done| bar.set_position(done));
+    }
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(args.threads.unwrap_or(0))
+        .build()?;
+    pool.install(|| {
+        write_output(args.output.as_deref(), format, |sink| {
+            sampler.query(&pts, sink)
+        })
+    })?;
+    if let Some(bar) = bar {
+        bar.finish_and_clear();
+    }
+    Ok(ExitCode::SUCCESS)
 }

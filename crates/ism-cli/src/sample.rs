@@ -1,15 +1,212 @@
-//! Placeholder until this subcommand's library lands.
+//! `ism sample`: point sets on, near or around the shape (glue over `ism_sample`).
 
+use std::io::{IsTerminal, Write};
+use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
-/// Arguments.
+use anyhow::{bail, Context};
+use ism_format::io;
+use ism_sample::{FormatWriter, OutputFormat, Region, Sampler, Sink};
+
+const AFTER_HELP: &str = "\
+Exactly one of --surface, --volume, --near-surface per run.
+
+Columns:
+  --surface        x y [z] nx ny [nz] f simplex   (uniform by true curved area/length; normal = ∇F/|∇F|)
+  --volume, --near-surface
+                   x y [z] f label simplex        (label 1 inside F < c, 0 outside, -1 outside |K|)
+  PLY files always carry z (and nz), 0 for 2D models. NPY files hold a structured array with these
+  field names (numpy: a = np.load(path); a['x']).
+
+Examples:
+  ism sample sphere.ism.json --surface 100000 -o sphere.ply
+  ism sample sphere.ism.json --surface 1000 --format csv > points.csv
+  ism sample sphere.ism.json --volume 50000 --seed 7 -o volume.npy
+  ism sample sphere.ism.json --volume 50000 --box -1,-1,-1,1,1,1 -o box.ply --format ply-ascii
+  ism sample sphere.ism.json --near-surface 50000 --sigma 0.01 -o near.csv
+
+Exit status: 0 success; 2 unreadable model, bad arguments, a model that cannot be sampled
+(empty shape, uncertified stage) or a failed write.";
+
+/// Arguments of `ism sample`.
 #[derive(clap::Args)]
+#[command(after_help = AFTER_HELP)]
 pub struct Args {
-    /// Input files.
-    files: Vec<std::path::PathBuf>,
+    /// The model file (any encoding).
+    model: PathBuf,
+    /// Number of points on the shape, uniform by curved area.
+    #[arg(long, value_name = "N")]
+    surface: Option<u64>,
+    /// Number of points uniform in the complex |K| (or in --box).
+    #[arg(long, value_name = "N")]
+    volume: Option<u64>,
+    /// Number of surface points displaced along random directions by N(0, sigma²).
+    #[arg(long = "near-surface", value_name = "N", requires = "sigma")]
+    near_surface: Option<u64>,
+    /// Standard deviation of the --near-surface displacement (model units).
+    #[arg(long, value_name = "S")]
+    sigma: Option<f64>,
+    /// With --volume: sample this box instead of |K|: lo_x,lo_y[,lo_z],hi_x,hi_y[,hi_z].
+    #[arg(long = "box", value_name = "LO,HI", value_delimiter = ',', num_args = 1..)]
+    bbox: Option<Vec<f64>>,
+    /// Seed: equal seeds give bit-identical output for any thread count.
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Output file (format from the extension: .ply, .csv, .npy); standard output when absent or "-".
+    #[arg(short, long)]
+    output: Option<PathBuf>,
+    /// Output format: ply (binary little-endian), ply-ascii, csv, npy. Default: from the extension,
+    /// csv on standard output.
+    #[arg(long, value_parser = parse_format)]
+    format: Option<OutputFormat>,
+    /// Worker threads (default: all cores).
+    #[arg(long, short = 'j')]
+    threads: Option<usize>,
+    /// No progress bar.
+    #[arg(long, short)]
+    quiet: bool,
+}
+
+fn parse_format(s: &str) -> Result<OutputFormat, String> {
+    OutputFormat::from_name(s)
+        .ok_or_else(|| format!("unknown format {s:?}; expected ply, ply-ascii, csv or npy"))
+}
+
+/// Which set to produce.
+enum Job {
+    Surface(u64),
+    Volume(u64, Region),
+    NearSurface(u64, f64),
+}
+
+/// The output format: `--format`, else the extension, else CSV for standard output.
+pub(crate) fn choose_format(
+    explicit: Option<OutputFormat>,
+    output: Option<&Path>,
+) -> anyhow::Result<OutputFormat> {
+    if let Some(f) = explicit {
+        return Ok(f);
+    }
+    match output {
+        None => Ok(OutputFormat::Csv),
+        Some(p) if p.as_os_str() == "-" => Ok(OutputFormat::Csv),
+        Some(p) => OutputFormat::from_path(p).with_context(|| {
+            format!("cannot tell the format of {} from its extension; use --format ply|ply-ascii|csv|npy", p.display())
+        }),
+    }
+}
+
+/// A progress bar on standard error when it is a terminal and not `--quiet`.
+pub(crate) fn progress_bar(total: u64, quiet: bool) -> Option<indicatif::ProgressBar> {
+    if quiet || !std::io::stderr().is_terminal() {
+        return None;
+    }
+    let bar = indicatif::ProgressBar::new(total);
+    if let Ok(style) = indicatif::ProgressStyle::with_template(
+        "{bar:40} {pos}/{len} points ({per_sec}, eta {eta})",
+    ) {
+        bar.set_style(style);
+    }
+    Some(bar)
+}
+
+/// Runs `produce` into a writer of `format` at `output` (atomically) or on standard output.
+pub(crate) fn write_output(
+    output: Option<&Path>,
+    format: OutputFormat,
+    produce: impl FnOnce(&mut dyn Sink) -> ism_sample::Result<()>,
+) -> anyhow::Result<()> {
+    match output {
+        Some(path) if path.as_os_str() != "-" => {
+            let mut failure: Option<ism_sample::SampleError> = None;
+            let written = io::write_atomic(path, |w| {
+                let mut sink = FormatWriter::new(w, format);
+                produce(&mut sink).map_err(|e| {
+                    let text = e.to_string();
+                    failure = Some(e);
+                    std::io::Error::other(text)
+                })
+            });
+            match (written, failure) {
+                (Ok(()), _) => Ok(()),
+                (Err(_), Some(e)) => Err(e.into()),
+                (Err(e), None) => {
+                    Err(anyhow::Error::new(e).context(format!("cannot write {}", path.display())))
+                }
+            }
+        }
+        _ => {
+            let stdout = std::io::stdout();
+            let mut sink = FormatWriter::new(std::io::BufWriter::new(stdout.lock()), format);
+            produce(&mut sink)?;
+            sink.into_inner()
+                .flush()
+                .context("cannot write to standard output")?;
+            Ok(())
+        }
+    }
 }
 
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
-    let _ = args.files;
-    anyhow::bail!("this subcommand is not implemented yet")
+    let doc = io::read_path(&args.model)
+        .with_context(|| format!("cannot read {}", args.model.display()))?;
+    let model = doc.model;
+    let n = model.dim();
+    let mut jobs = Vec::new();
+    if let Some(c) = args.surface {
+        jobs.push(Job::Surface(c));
+    }
+    if let Some(c) = args.volume {
+        let region = match &args.bbox {
+            None => Region::Complex,
+            Some(v) if v.len() == 2 * n => {
+                let mut lo = [0.0; 3];
+                let mut hi = [0.0; 3];
+                lo[..n].copy_from_slice(&v[..n]);
+                hi[..n].copy_from_slice(&v[n..]);
+                Region::Box { lo, hi }
+            }
+            Some(v) => bail!(
+                "--box needs {} numbers (lo then hi) for a {n}D model, got {}",
+                2 * n,
+                v.len()
+            ),
+        };
+        jobs.push(Job::Volume(c, region));
+    } else if args.bbox.is_some() {
+        bail!("--box applies to --volume only");
+    }
+    if let Some(c) = args.near_surface {
+        let sigma = args.sigma.context("--near-surface needs --sigma")?;
+        jobs.push(Job::NearSurface(c, sigma));
+    }
+    let job = match jobs.len() {
+        1 => jobs.pop().expect("one job"),
+        0 => bail!("nothing to sample: give --surface N, --volume N or --near-surface N --sigma S"),
+        _ => bail!("give only one of --surface, --volume, --near-surface per run"),
+    };
+    let format = choose_format(args.format, args.output.as_deref())?;
+    let total = match job {
+        Job::Surface(c) | Job::Volume(c, _) | Job::NearSurface(c, _) => c,
+    };
+    let bar = progress_bar(total, args.quiet);
+    let mut sampler = Sampler::new(&model)?.seed(args.seed);
+    if let Some(bar) = &bar {
+        let bar = bar.clone();
+        sampler = sampler.progress(move |done| bar.set_position(done));
+    }
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(args.threads.unwrap_or(0))
+        .build()?;
+    pool.install(|| {
+        write_output(args.output.as_deref(), format, |sink| match job {
+            Job::Surface(c) => sampler.surface(c, sink),
+            Job::Volume(c, region) => sampler.volume(c, region, sink),
+            Job::NearSurface(c, sigma) => sampler.near_surface(c, sigma, sink),
+        })
+    })?;
+    if let Some(bar) = bar {
+        bar.finish_and_clear();
+    }
+    Ok(ExitCode::SUCCESS)
 }

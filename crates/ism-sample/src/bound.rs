@@ -525,7 +525,7 @@ mod tests {
             }
         }
         let b = spectral_norm_bound(3, &a);
-        assert!(b >= 3.0 && b < 3.0 + 1e-6, "{b}");
+        assert!((3.0..3.0 + 1e-6).contains(&b), "{b}");
         let b2 = spectral_norm_bound(
             2,
             &[

@@ -55,5 +55,37 @@ pub enum SampleError {
     },
 }
 
+impl SampleError {
+    /// A copy of a cached error (I/O errors keep their kind and text).
+    pub fn duplicate(&self) -> SampleError {
+        match self {
+            SampleError::Io { path, source } => SampleError::Io {
+                path: path.clone(),
+                source: std::io::Error::new(source.kind(), source.to_string()),
+            },
+            SampleError::InvalidArgument(s) => SampleError::InvalidArgument(s.clone()),
+            SampleError::EmptySurface { level } => SampleError::EmptySurface { level: *level },
+            SampleError::Uncertified {
+                simplex,
+                stage,
+                reason,
+            } => SampleError::Uncertified {
+                simplex: *simplex,
+                stage: *stage,
+                reason: reason.clone(),
+            },
+            SampleError::Numerical { simplex, reason } => SampleError::Numerical {
+                simplex: *simplex,
+                reason: reason.clone(),
+            },
+            SampleError::Geometry(s) => SampleError::Geometry(s.clone()),
+            SampleError::Points { location, message } => SampleError::Points {
+                location: location.clone(),
+                message: message.clone(),
+            },
+        }
+    }
+}
+
 /// Shorthand for this crate's results.
 pub type Result<T, E = SampleError> = std::result::Result<T, E>;
