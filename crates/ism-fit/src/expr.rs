@@ -192,6 +192,8 @@ pub struct Expression {
     partials: Vec<Option<Compiled<FlatEx<f64>>>>,
     interval_value: Option<Compiled<IntervalEx>>,
     interval_partials: Option<Vec<Option<Compiled<IntervalEx>>>>,
+    /// Second partials `[i][j]` over intervals, for the mean-value form of the gradient.
+    interval_hessian: Option<Vec<Vec<Option<Compiled<IntervalEx>>>>>,
 }
 
 impl Expression {
@@ -241,6 +243,19 @@ impl Expression {
                 Some(c) => to_interval(&c.ex).map(Some),
             })
             .collect();
+        let interval_hessian: Option<Vec<Vec<Option<Compiled<IntervalEx>>>>> = partials
+            .iter()
+            .map(|p| -> Option<Vec<Option<Compiled<IntervalEx>>>> {
+                let mut row = vec![None; dim];
+                if let Some(c) = p {
+                    for (var_index, &coord) in c.slots.iter().enumerate() {
+                        let d2 = c.ex.clone().partial(var_index).ok()?;
+                        row[coord] = Some(to_interval(&d2)?);
+                    }
+                }
+                Some(row)
+            })
+            .collect();
         let (interval_value, interval_partials) = match (interval_value, interval_partials) {
             (Some(v), Some(p)) => (Some(v), Some(p)),
             _ => (None, None),
@@ -252,6 +267,7 @@ impl Expression {
             partials,
             interval_value,
             interval_partials,
+            interval_hessian,
         })
     }
 
@@ -301,6 +317,11 @@ impl ImplicitFunction for Expression {
         self.value(p)
     }
 
+    /// Natural interval extensions intersected with mean-value forms around the box centre
+    /// (`g(c) + □∇g·(box − c)`, and `∇g(c) + □H·(box − c)` for the gradient): the natural extension
+    /// of an expanded polynomial loses all cancellation between its terms, while the mean-value
+    /// form overestimates only to second order in the box size. Both enclose, so their
+    /// intersection does.
     fn enclose(&self, lo: &[f64], hi: &[f64]) -> Option<Enclosure> {
         let value = self.interval_value.as_ref()?;
         let partials = self.interval_partials.as_ref()?;
@@ -309,16 +330,37 @@ impl ImplicitFunction for Expression {
             .zip(hi)
             .map(|(&a, &b)| Interval::new(a, b))
             .collect();
-        Some(Enclosure {
-            value: eval_interval(value, &boxes),
-            gradient: partials
+        let centre: Vec<Interval> = lo
+            .iter()
+            .zip(hi)
+            .map(|(&a, &b)| Interval::point(0.5 * (a + b)))
+            .collect();
+        let offsets: Vec<Interval> = boxes.iter().zip(&centre).map(|(b, c)| *b - *c).collect();
+        let partial_over = |d: &Option<Compiled<IntervalEx>>, over: &[Interval]| {
+            d.as_ref()
+                .map_or(Interval::point(0.0), |d| eval_interval(d, over))
+        };
+        let natural: Vec<Interval> = partials.iter().map(|d| partial_over(d, &boxes)).collect();
+        let mut v = eval_interval(value, &centre);
+        for (g, o) in natural.iter().zip(&offsets) {
+            v = v + *g * *o;
+        }
+        let value = eval_interval(value, &boxes).intersect(v);
+        let gradient = match &self.interval_hessian {
+            Some(h) => natural
                 .iter()
-                .map(|d| {
-                    d.as_ref()
-                        .map_or(Interval::point(0.0), |d| eval_interval(d, &boxes))
+                .zip(partials.iter().zip(h))
+                .map(|(nat, (d, row))| {
+                    let mut g = partial_over(d, &centre);
+                    for (hd, o) in row.iter().zip(&offsets) {
+                        g = g + partial_over(hd, &boxes) * *o;
+                    }
+                    nat.intersect(g)
                 })
                 .collect(),
-        })
+            None => natural,
+        };
+        Some(Enclosure { value, gradient })
     }
 }
 

@@ -90,6 +90,18 @@ impl Interval {
         self.hi - self.lo
     }
 
+    /// The intersection of two enclosures of the same quantity (if rounding made them disjoint,
+    /// which two true enclosures cannot be, the hull is returned to stay safe).
+    pub fn intersect(self, other: Interval) -> Interval {
+        let lo = self.lo.max(other.lo);
+        let hi = self.hi.min(other.hi);
+        if lo <= hi {
+            Interval { lo, hi }
+        } else {
+            self.hull(other)
+        }
+    }
+
     /// The hull of two intervals.
     pub fn hull(self, other: Interval) -> Interval {
         Interval {
