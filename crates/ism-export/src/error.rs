@@ -57,7 +57,6 @@ impl Error {
         Error::Io { path: None, source }
     }
 
-    #[allow(dead_code)] // used by the importer, which lands next
     pub(crate) fn import(
         format: &'static str,
         location: impl Into<Option<String>>,

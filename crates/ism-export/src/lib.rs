@@ -9,6 +9,7 @@ pub mod obj;
 
 pub use error::{Error, Result};
 pub mod gltf;
+pub mod import;
 pub mod marching;
 pub mod volume;
 pub mod vtk;
