@@ -3,6 +3,7 @@
 //! processes' load does not inflate the way wall-clock time is.
 //!
 //! `cargo run --release -p ism-geom --example throughput -- <bezier|rational|monotonic> <degree> <eval|jacobian|inverse> <millions>`
+//! `cargo run --release -p ism-geom --example throughput -- locate <cubes per side> - <millions>`
 
 #[path = "../tests/common/mod.rs"]
 mod common;
@@ -20,6 +21,10 @@ fn main() {
     }
     let degree: u32 = args[2].parse().unwrap_or(3);
     let millions: f64 = args[4].parse().unwrap_or(1.0);
+    if args[1] == "locate" {
+        locate(args[2].parse().unwrap_or(55), millions);
+        return;
+    }
     let mut rng = Rng(1);
     let model = common::kuhn(3, 1, &mut rng);
     let stage = match args[1].as_str() {
@@ -63,5 +68,31 @@ fn main() {
         wall,
         total as f64 / wall / 1e6,
         iterations as f64 / total as f64
+    );
+}
+
+/// Builds a Kuhn grid of `k³` cubes × 6 tetrahedra and locates random points in it.
+fn locate(k: usize, millions: f64) {
+    let mut rng = Rng(2);
+    let model = common::kuhn(3, k, &mut rng);
+    let start = std::time::Instant::now();
+    let eval = ism_geom::ModelEval::new(&model).expect("valid model");
+    let build = start.elapsed().as_secs_f64();
+    let pts: Vec<f64> = (0..3 * 65536).map(|_| rng.uniform(0.0, k as f64)).collect();
+    let total = (millions * 1e6) as usize;
+    let start = std::time::Instant::now();
+    let mut acc = 0usize;
+    for i in 0..total {
+        let p = &pts[3 * (i % 65536)..3 * (i % 65536) + 3];
+        acc += eval.locate(black_box(p)).map_or(0, |l| l.simplex);
+    }
+    let wall = start.elapsed().as_secs_f64();
+    println!(
+        "locate in {} tets: build {:.2}s wall, {} locations in {:.3}s wall ({:.2} M/s wall) (checksum {acc})",
+        eval.num_simplices(),
+        build,
+        total,
+        wall,
+        total as f64 / wall / 1e6
     );
 }

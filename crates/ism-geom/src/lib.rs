@@ -8,7 +8,7 @@
 //!   order) and [`LocalMap`] (all stages of a simplex): `X(w)`, reduced and homogeneous Jacobians,
 //!   `det`, and the inverse `X⁻¹(u)` by damped Newton with a continuation fallback. Points on a face
 //!   stay on that face exactly.
-//! - [`model`]: [`ModelEval`] — point location (R*-tree), `F(p)`, `∇F(p)`, inside/outside, the
+//! - [`model`]: [`ModelEval`] — point location (uniform grid, R*-tree for graded meshes), `F(p)`, `∇F(p)`, inside/outside, the
 //!   linear patches `θ_σ`, the parametric map `u ↦ p` and its derivative, batch APIs over rayon.
 //!
 //! Barycentric points are [`Bary`] = `[f64; 4]` (first `n + 1` entries used; `n ≤ 3`), matrices
@@ -49,6 +49,7 @@ pub mod bernstein;
 pub mod error;
 pub mod linalg;
 pub mod model;
+mod spatial;
 pub mod stage;
 mod tables;
 

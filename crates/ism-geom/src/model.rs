@@ -1,9 +1,8 @@
 //! Whole-model evaluation: point location, `F(p)`, `∇F(p)`, inside/outside, the linear patches
 //! `θ_σ` and the parametric map `θ_σ ∋ u ↦ p ∈ O` with its derivative.
 //!
-//! Point location uses an R*-tree (`rstar`) of the simplices' bounding boxes, bulk-loaded: it is a
-//! maintained crate, builds in `O(N log N)`, and unlike a uniform grid it does not degrade on graded
-//! meshes (adaptive refinement produces cells of very different sizes).
+//! Point location uses a uniform grid of the simplices' bounding boxes, falling back to an R*-tree
+//! (`rstar`) on strongly graded meshes (see `spatial.rs` for why).
 //!
 //! Local maps are built lazily, once per simplex, and cached: a million-simplex model with a few
 //! curved cells costs memory only for the cells actually evaluated.
@@ -12,10 +11,10 @@ use std::sync::OnceLock;
 
 use ism_format::{multi_index, Model, StageKind};
 use rayon::prelude::*;
-use rstar::{RTree, RTreeObject, AABB};
 
 use crate::error::{GeomError, Result};
 use crate::linalg;
+use crate::spatial::{SimplexBox, SpatialIndex};
 use crate::stage::{InverseResult, LocalMap, StageLookup};
 use crate::{Bary, Mat, MAX_DEGREE, MAX_VARS};
 
@@ -65,19 +64,6 @@ pub struct ParamPoint {
     pub inverse: InverseResult,
 }
 
-#[derive(Clone, Copy, Debug)]
-struct SimplexBox {
-    aabb: AABB<[f64; 3]>,
-    id: u32,
-}
-
-impl RTreeObject for SimplexBox {
-    type Envelope = AABB<[f64; 3]>;
-    fn envelope(&self) -> Self::Envelope {
-        self.aabb
-    }
-}
-
 /// Evaluator of a whole model, built once.
 pub struct ModelEval {
     model: Model,
@@ -87,7 +73,7 @@ pub struct ModelEval {
     inv_edges: Vec<[f64; 9]>,
     lookups: Vec<StageLookup>,
     maps: Vec<OnceLock<LocalMap>>,
-    tree: RTree<SimplexBox>,
+    index: SpatialIndex,
 }
 
 impl std::fmt::Debug for ModelEval {
@@ -169,12 +155,13 @@ impl ModelEval {
                     }
                 }
                 SimplexBox {
-                    aabb: AABB::from_corners(lo, hi),
+                    lo,
+                    hi,
                     id: s as u32,
                 }
             })
             .collect();
-        let tree = RTree::bulk_load(boxes);
+        let index = SpatialIndex::build(n, boxes);
         let lookups = model
             .stages
             .iter()
@@ -192,7 +179,7 @@ impl ModelEval {
             inv_edges,
             lookups,
             maps,
-            tree,
+            index,
         })
     }
 
@@ -204,6 +191,11 @@ impl ModelEval {
     /// Dimension `n`.
     pub fn dim(&self) -> usize {
         self.n
+    }
+
+    /// The spatial index chosen: `"grid"` (uniform grid) or `"rtree"` (graded meshes).
+    pub fn index_kind(&self) -> &'static str {
+        self.index.kind()
     }
 
     /// Number of top simplices.
@@ -272,15 +264,11 @@ impl ModelEval {
         let mut q = [0.0; 3];
         q[..self.n].copy_from_slice(&p[..self.n]);
         let mut best: Option<(f64, usize, Bary)> = None;
-        for b in self
-            .tree
-            .locate_in_envelope_intersecting(AABB::from_point(q))
-        {
-            let s = b.id as usize;
+        self.index.candidates(&q, |s| {
             let w = self.barycentric(s, &q);
             let min = w[..=self.n].iter().copied().fold(f64::INFINITY, f64::min);
             if min < -LOCATE_TOLERANCE {
-                continue;
+                return true;
             }
             let better = match best {
                 None => true,
@@ -289,7 +277,9 @@ impl ModelEval {
             if better {
                 best = Some((min, s, w));
             }
-        }
+            // Clearly interior: in a complex no other simplex contains the point.
+            min <= LOCATE_TOLERANCE
+        });
         best.map(|(_, s, w)| Located {
             simplex: s,
             w: crate::stage::project(self.n + 1, &w),

@@ -200,6 +200,71 @@ fn location_finds_the_containing_simplex_and_rejects_outside_points() {
     }
 }
 
+/// A strongly graded mesh (coordinates `x ↦ 8^x`, so cell sizes differ by 8⁷) takes the R*-tree
+/// path; a Kuhn grid takes the uniform grid. Both agree with brute force.
+#[test]
+fn both_spatial_indices_agree_with_brute_force() {
+    for graded in [false, true] {
+        let mut rng = Rng(9);
+        let mut model = common::kuhn(3, if graded { 8 } else { 4 }, &mut rng);
+        if graded {
+            for c in model.vertices.iter_mut() {
+                *c = 8f64.powf(*c);
+            }
+        }
+        let eval = ModelEval::new(&model).unwrap();
+        assert_eq!(eval.index_kind(), if graded { "rtree" } else { "grid" });
+        let hi = if graded { 8f64.powi(8) } else { 4.0 };
+        let lo = if graded { 1.0 } else { 0.0 };
+        for _ in 0..400 {
+            let p: Vec<f64> = (0..3).map(|_| rng.uniform(lo - 0.1, hi + 0.1)).collect();
+            let brute: Vec<usize> = (0..model.num_simplices())
+                .filter(|&s| {
+                    eval.barycentric(s, &p)[..4]
+                        .iter()
+                        .all(|&x| x >= -LOCATE_TOLERANCE)
+                })
+                .collect();
+            match eval.locate(&p) {
+                Some(l) => assert!(brute.contains(&l.simplex)),
+                None => assert!(brute.is_empty(), "{p:?} missed: {brute:?}"),
+            }
+        }
+    }
+}
+
+/// A non-convex (L-shaped) grid: every vertex, including those on the re-entrant boundary that
+/// lie exactly on grid planes, is located.
+#[test]
+fn boundary_points_of_a_non_convex_complex_are_located() {
+    for n in [2usize, 3] {
+        let mut rng = Rng(11);
+        let full = common::kuhn(n, 4, &mut rng);
+        let mut model = full.clone();
+        model.simplices.clear();
+        for s in full.simplex_iter() {
+            let centre: Vec<f64> = (0..n)
+                .map(|x| {
+                    s.iter().map(|&v| full.vertex(v as usize)[x]).sum::<f64>() / (n + 1) as f64
+                })
+                .collect();
+            if !(centre[0] > 2.0 && centre[1] > 2.0) {
+                model.simplices.extend_from_slice(s);
+            }
+        }
+        let eval = ModelEval::new(&model).unwrap();
+        let used: std::collections::BTreeSet<u32> = model.simplices.iter().copied().collect();
+        for &v in &used {
+            let p = model.vertex(v as usize);
+            let loc = eval
+                .locate(p)
+                .unwrap_or_else(|| panic!("vertex {v} at {p:?} not located"));
+            assert!(model.simplex(loc.simplex).contains(&v));
+        }
+        assert!(eval.locate(&[3.5, 3.5, 1.0][..n]).is_none());
+    }
+}
+
 #[test]
 fn batch_apis_agree_with_single_point_calls() {
     let (model, mut rng) = random_model(3, 7);
