@@ -18,27 +18,30 @@ pub fn faces_of_dimension(model: &Model, k: usize) -> Vec<u32> {
         return Vec::new();
     }
     let subsets = subsets(m, k + 1);
-    let mut keys: Vec<[u32; 4]> = model
-        .simplices
-        .par_chunks_exact(m)
-        .flat_map_iter(|ids| {
+    // Each face as one u128 (ids from the most significant 32 bits down), so sorting compares two
+    // machine words instead of four array elements; the keys are written into a preallocated buffer,
+    // one fixed-size chunk per simplex, rather than collected from a parallel iterator.
+    let per_simplex = subsets.len();
+    let mut keys = vec![0u128; model.num_simplices() * per_simplex];
+    keys.par_chunks_mut(per_simplex)
+        .zip(model.simplices.par_chunks_exact(m))
+        .for_each(|(out, ids)| {
             let mut sorted = [0u32; 4];
             sorted[..m].copy_from_slice(ids);
             sorted[..m].sort_unstable();
-            subsets.iter().map(move |sub| {
-                let mut key = [u32::MAX; 4];
-                for (slot, &pos) in key.iter_mut().zip(sub) {
-                    *slot = sorted[pos];
-                }
-                key
-            })
-        })
-        .collect();
+            for (slot, sub) in out.iter_mut().zip(&subsets) {
+                *slot = sub.iter().enumerate().fold(0u128, |key, (j, &pos)| {
+                    key | (u128::from(sorted[pos]) << (96 - 32 * j))
+                });
+            }
+        });
     keys.par_sort_unstable();
     keys.dedup();
-    keys.iter()
-        .flat_map(|key| key[..=k].iter().copied())
-        .collect()
+    let mut out = Vec::with_capacity(keys.len() * (k + 1));
+    for key in keys {
+        out.extend((0..=k).map(|j| (key >> (96 - 32 * j)) as u32));
+    }
+    out
 }
 
 /// All `size`-element subsets of `0..m` as increasing position lists, in lexicographic order.
