@@ -1,15 +1,246 @@
-//! Placeholder until this subcommand's library lands.
+//! `ism fit`: adaptive polygonization of an implicit function into an ISM (glue over `ism-fit`).
 
+use std::path::PathBuf;
 use std::process::ExitCode;
 
-/// Arguments.
+use anyhow::{bail, Context};
+use ism_fit::{Expression, FitOptions, Preset, PRESETS};
+use ism_format::io;
+
+const AFTER_HELP: &str = "\
+The shape is g = 0 with g given by --expr (variables x, y[, z]; + - * / ^, sin cos tan exp ln sqrt
+abs, PI, E) or by --preset. Note: unary minus binds tighter than ^, so write 0-x^2, not -x^2.
+Vertices where g is exactly 0 get the value +1e-12·max|g| (they count as outside).
+
+Presets: circle (paper 001 Fig. 4), taubin (000 §9.2), sphere, torus, genus2.
+
+Examples:
+  ism fit --preset circle -o circle.ism.json --svg circle.svg
+  ism fit --expr \"x^2 + 2*y^2 - 0.5\" --domain -1,1,-1,1 --resolution 6 --tolerance 1e-4 -o e.ismb
+  ism fit --preset torus --resolution 8 --tolerance 2e-3 -o torus.ismb --json
+
+Exit status: 0 when the fit meets the tolerance and the model passes the structural checks;
+1 when the tolerance was not met within --max-simplices, or the true topology of a preset
+was not reproduced (the model is still written); 2 on bad arguments or a failed write.";
+
+/// Arguments of `ism fit`.
 #[derive(clap::Args)]
+#[command(after_help = AFTER_HELP)]
 pub struct Args {
-    /// Input files.
-    files: Vec<std::path::PathBuf>,
+    /// The implicit function g (the shape is g = 0).
+    #[arg(long, conflicts_with = "preset", required_unless_present_any = ["preset", "list_presets"])]
+    expr: Option<String>,
+    /// Domain box: x0,x1,y0,y1[,z0,z1]; its length sets the dimension.
+    #[arg(
+        long,
+        value_delimiter = ',',
+        allow_hyphen_values = true,
+        requires = "expr"
+    )]
+    domain: Option<Vec<f64>>,
+    /// A named shape (see --list-presets).
+    #[arg(long)]
+    preset: Option<String>,
+    /// List the presets and exit.
+    #[arg(long)]
+    list_presets: bool,
+    /// Initial grid cells along the longest side of the domain.
+    #[arg(long, default_value_t = 8)]
+    resolution: usize,
+    /// Largest allowed |g|/|∇g| on the shape [default: 1e-3 × the domain's longest side].
+    #[arg(long)]
+    tolerance: Option<f64>,
+    /// Stop refining at this many simplices.
+    #[arg(long, default_value_t = 200_000)]
+    max_simplices: usize,
+    /// Only place the edge crossings; do not optimize the interior control points.
+    #[arg(long)]
+    no_optimize: bool,
+    /// Skip the Plantinga–Vegter refinement (topology not guaranteed).
+    #[arg(long)]
+    no_topology: bool,
+    /// Output model (.ism.json, .ism.msgpack or .ismb).
+    #[arg(short, long, required_unless_present = "list_presets")]
+    output: Option<PathBuf>,
+    /// Also draw the result as SVG (2D only).
+    #[arg(long)]
+    svg: Option<PathBuf>,
+    /// Print the report as JSON on stdout.
+    #[arg(long)]
+    json: bool,
+    /// Hide the progress bar.
+    #[arg(long, short)]
+    quiet: bool,
 }
 
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
-    let _ = args.files;
-    anyhow::bail!("this subcommand is not implemented yet")
+    if args.list_presets {
+        for p in PRESETS {
+            println!(
+                "{:<8} {}D  {}  domain {:?}",
+                p.name, p.dim, p.description, p.domain
+            );
+        }
+        return Ok(ExitCode::SUCCESS);
+    }
+    let (expression, domain, name, preset): (Expression, Vec<f64>, String, Option<&Preset>) =
+        match (&args.preset, &args.expr) {
+            (Some(name), _) => {
+                let p = Preset::find(name)?;
+                (
+                    p.expression()?,
+                    p.domain.to_vec(),
+                    p.name.to_string(),
+                    Some(p),
+                )
+            }
+            (None, Some(text)) => {
+                let domain = args
+                    .domain
+                    .clone()
+                    .context("--expr needs --domain x0,x1,y0,y1[,z0,z1]")?;
+                if domain.len() != 4 && domain.len() != 6 {
+                    bail!(
+                        "--domain needs 4 numbers (2D) or 6 (3D), got {}",
+                        domain.len()
+                    );
+                }
+                (
+                    Expression::parse(text, domain.len() / 2)?,
+                    domain,
+                    "fit".to_string(),
+                    None,
+                )
+            }
+            (None, None) => bail!("give --expr with --domain, or --preset"),
+        };
+    let output = args.output.clone().context("missing --output")?;
+    let mut options = FitOptions::new(&domain);
+    options.resolution = args.resolution;
+    if let Some(t) = args.tolerance {
+        options.tolerance = t;
+    }
+    options.max_simplices = args.max_simplices;
+    options.optimize = !args.no_optimize;
+    options.topology = !args.no_topology;
+
+    let bar = if args.quiet {
+        indicatif::ProgressBar::hidden()
+    } else {
+        let bar = indicatif::ProgressBar::new_spinner();
+        bar.set_style(
+            indicatif::ProgressStyle::with_template("{spinner} [{elapsed}] {msg}")
+                .unwrap_or_else(|_| indicatif::ProgressStyle::default_spinner()),
+        );
+        bar
+    };
+    let tolerance = options.tolerance;
+    let fitted = ism_fit::fit(&expression, &options, &mut |p| {
+        let worst = if p.worst.is_nan() {
+            String::from("-")
+        } else {
+            format!("{:.3e}", p.worst)
+        };
+        bar.set_message(format!(
+            "{:<8} {} simplices, worst |g|/|∇g| {} (target {:.1e})",
+            p.phase, p.simplices, worst, tolerance
+        ));
+        bar.tick();
+    })?;
+    bar.finish_and_clear();
+    let model = fitted.to_model(&name);
+
+    let structural: Vec<_> = ism_format::structure::check(&model, 20)
+        .into_iter()
+        .filter(|d| d.severity == ism_format::Severity::Error)
+        .collect();
+    io::write_path(&model, &output, None, io::WriteOptions::default())
+        .with_context(|| format!("cannot write {}", output.display()))?;
+    if let Some(svg) = &args.svg {
+        let title = format!(
+            "{name}: {} triangles, {} parameters, max |g|/|∇g| {:.2e}",
+            fitted.report.simplices, fitted.report.parameters, fitted.report.max_distance
+        );
+        let text = ism_fit::svg::picture(&model, &title)?;
+        io::write_atomic(svg, |w| std::io::Write::write_all(w, text.as_bytes()))
+            .with_context(|| format!("cannot write {}", svg.display()))?;
+    }
+
+    let r = &fitted.report;
+    let topology_ok =
+        preset.is_none_or(|p| p.components == r.topology.components && p.euler == r.topology.euler);
+    if args.json {
+        let value = serde_json::json!({
+            "simplices": r.simplices,
+            "vertices": r.vertices,
+            "crossingSimplices": r.crossing_simplices,
+            "parameters": r.parameters,
+            "storedNumbers": r.stored_numbers,
+            "maxDistance": r.max_distance,
+            "meanDistance": r.mean_distance,
+            "samples": r.samples,
+            "bisections": r.bisections,
+            "pvFailures": r.pv_failures,
+            "components": r.topology.components,
+            "euler": r.topology.euler,
+            "toleranceMet": r.tolerance_met,
+            "topologyMatchesPreset": topology_ok,
+            "structuralErrors": structural.len(),
+            "seconds": r.seconds,
+        });
+        println!("{value}");
+    } else {
+        println!("wrote {}", output.display());
+        println!(
+            "  simplices        {} ({} crossing the shape), vertices {}",
+            r.simplices, r.crossing_simplices, r.vertices
+        );
+        println!(
+            "  parameters       {} (stored numbers in all: {})",
+            r.parameters, r.stored_numbers
+        );
+        println!(
+            "  |g|/|∇g| on O    max {:.3e}, mean {:.3e} over {} samples (tolerance {:.1e})",
+            r.max_distance, r.mean_distance, r.samples, tolerance
+        );
+        println!(
+            "  topology         {} component(s), Euler characteristic {}",
+            r.topology.components, r.topology.euler
+        );
+        println!(
+            "  Plantinga–Vegter {}",
+            if r.pv_failures == 0 {
+                "every cell passes".to_string()
+            } else {
+                format!("{} cells still fail", r.pv_failures)
+            }
+        );
+        println!(
+            "  time             {:.2} s, {} bisections",
+            r.seconds, r.bisections
+        );
+    }
+    if !structural.is_empty() {
+        for d in &structural {
+            eprintln!("structural error: {d:?}");
+        }
+        return Ok(ExitCode::from(1));
+    }
+    if !r.tolerance_met {
+        eprintln!(
+            "tolerance {tolerance:.1e} not met (max {:.3e}); raise --max-simplices or --resolution",
+            r.max_distance
+        );
+        return Ok(ExitCode::from(1));
+    }
+    if !topology_ok {
+        if let Some(p) = preset {
+            eprintln!(
+                "topology {} component(s), χ = {} differs from the true shape's {} component(s), χ = {}",
+                r.topology.components, r.topology.euler, p.components, p.euler
+            );
+        }
+        return Ok(ExitCode::from(1));
+    }
+    Ok(ExitCode::SUCCESS)
 }
