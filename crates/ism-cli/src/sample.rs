@@ -47,7 +47,12 @@ pub struct Args {
     #[arg(long, value_name = "S")]
     sigma: Option<f64>,
     /// With --volume: sample this box instead of |K|: lo_x,lo_y[,lo_z],hi_x,hi_y[,hi_z].
-    #[arg(long = "box", value_name = "LO,HI", value_delimiter = ',', num_args = 1..)]
+    #[arg(
+        long = "box",
+        value_name = "LO,HI",
+        value_delimiter = ',',
+        allow_hyphen_values = true
+    )]
     bbox: Option<Vec<f64>>,
     /// Seed: equal seeds give bit-identical output for any thread count.
     #[arg(long, default_value_t = 0)]

@@ -32,9 +32,10 @@ use ism_geom::{linalg, Bernstein, LocalMap, LocalStage, Mat, MAX_VARS};
 pub const BOUND_ROUNDING_MARGIN: f64 = 1e-9;
 
 /// Most bisections spent tightening one stage's bound on one simplex: bounds the cost per simplex
-/// (each split restricts `n² + 3` polynomials) while letting the worst cell shrink to about 1/8 of
-/// the simplex's size in 3D.
-const MAX_SPLITS: usize = 48;
+/// (each split restricts `n² + 3` polynomials). Only the worst cell is split, and refinement stops
+/// as soon as it is within `DET_TIGHTNESS` of the exact vertex values, so near-identity stages
+/// (stratified models) stop after few or no splits.
+const MAX_SPLITS: usize = 32;
 
 /// Deepest bisection of one cell (cells at this depth are at most `2^(-depth/C(m,2))` of the
 /// simplex in every direction).
