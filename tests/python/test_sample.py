@@ -90,7 +90,7 @@ def test_csv_and_query_agree(tmp_path: Path, sphere: Path) -> None:
     a = np.genfromtxt(text.splitlines(), delimiter=",", names=True)
     assert len(a) == 300
     pts = np.stack([a["x"], a["y"], a["z"]], axis=1)
-    q = ism("query", str(sphere), "-", stdin="\n".join(" ".join(repr(x) for x in p) for p in pts).encode())
+    q = ism("query", str(sphere), "-", stdin="\n".join(" ".join(repr(float(x)) for x in p) for p in pts).encode())
     b = np.genfromtxt(q.decode().splitlines(), delimiter=",", names=True)
     assert np.all(b["simplex"] >= 0)
     assert np.all(np.abs(b["f"] - level(sphere)) < 1e-8)
