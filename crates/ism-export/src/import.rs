@@ -144,11 +144,15 @@ fn push_cell(
     fmt: &'static str,
     at: impl Fn() -> String,
 ) -> Result<()> {
+    if ids.len() < corners {
+        return Err(Error::import(
+            fmt,
+            at(),
+            "cell has fewer nodes than its type needs",
+        ));
+    }
     let mut c = [0u32; 4];
-    for k in 0..corners {
-        let id = *ids
-            .get(k)
-            .ok_or_else(|| Error::import(fmt, at(), "cell has fewer nodes than its type needs"))?;
+    for (slot, &id) in c.iter_mut().zip(&ids[..corners]) {
         if id < 0 || id as usize >= npts {
             return Err(Error::import(
                 fmt,
@@ -156,7 +160,7 @@ fn push_cell(
                 format!("node {id} out of range (0..{npts})"),
             ));
         }
-        c[k] = id as u32;
+        *slot = id as u32;
     }
     if corners == 4 {
         raw.tetrahedra.push(c);
