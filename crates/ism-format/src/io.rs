@@ -375,7 +375,9 @@ fn decode(bytes: &[u8], options: &ReadOptions) -> Result<Document> {
     let text_start = bytes.strip_prefix(b"\xEF\xBB\xBF").unwrap_or(bytes);
     match text_start.iter().find(|b| !b.is_ascii_whitespace()) {
         Some(b'{') => {
-            let model = decode_json(bytes, 0)?;
+            // A UTF-8 byte-order mark is skipped (spec §7.5); offsets still count from the file start.
+            let bom = (bytes.len() - text_start.len()) as u64;
+            let model = decode_json(text_start, bom)?;
             check_version(&model)?;
             Ok(Document {
                 model,
@@ -430,8 +432,22 @@ fn probe_version_json(bytes: &[u8]) -> Option<Result<()>> {
 
 fn decode_json(bytes: &[u8], base: u64) -> Result<Model> {
     let de = &mut serde_json::Deserializer::from_slice(bytes);
-    match serde_path_to_error::deserialize::<_, Model>(de) {
-        Ok(model) => Ok(model),
+    match serde_path_to_error::deserialize::<_, Model>(&mut *de) {
+        Ok(model) => {
+            // Only white space may follow the object (spec §7.2).
+            de.end().map_err(|e| {
+                let offset = line_column_offset(bytes, e.line(), e.column()).map(|o| o + base);
+                Error::format(
+                    Rule::Malformed,
+                    Location {
+                        offset,
+                        ..Location::default()
+                    },
+                    format!("JSON: {e}"),
+                )
+            })?;
+            Ok(model)
+        }
         Err(err) => {
             if let Some(Err(version_error)) = probe_version_json(bytes) {
                 return Err(version_error);

@@ -49,7 +49,7 @@ rules! {
     LimitExceeded = "ISM-007", Error, "The payload fits the reader's resource limits";
     ExtensionRequired = "ISM-008", Error, "Every extension in extensionsRequired is supported by the reader";
     VersionMismatch = "ISM-009", Error, "The container version equals the payload's version member";
-    TrailingData = "ISM-010", Error, "No bytes follow the payload of a file of the reader's own minor version";
+    TrailingData = "ISM-010", Error, "No bytes follow the declared payload";
     // Complex and vertex function (spec §2–3).
     Dimension = "ISM-101", Error, "dimension is 2 or 3";
     VertexArray = "ISM-102", Error, "vertices holds n finite numbers per vertex";

@@ -355,3 +355,22 @@ fn header_is_32_bytes_and_crc_protected() {
         crc32fast::hash(&bytes[HEADER_LEN..])
     );
 }
+
+#[test]
+fn json_with_bom_reads_and_trailing_text_is_refused() {
+    let json = io::to_vec(&sample_model(), Encoding::Json, WriteOptions::default()).unwrap();
+    let mut with_bom = b"\xEF\xBB\xBF".to_vec();
+    with_bom.extend_from_slice(&json);
+    assert_eq!(io::from_slice(&with_bom).unwrap().model, sample_model());
+    let mut trailing = json.clone();
+    trailing.extend_from_slice(b"  \n garbage");
+    let err = io::from_slice(&trailing).unwrap_err();
+    assert_eq!(err.rule(), Some(Rule::Malformed));
+    assert_eq!(
+        err.diagnostics()[0].location.offset,
+        Some(json.len() as u64 + 4)
+    );
+    let mut spaces = json;
+    spaces.extend_from_slice(b" \n\t ");
+    assert!(io::from_slice(&spaces).is_ok());
+}
