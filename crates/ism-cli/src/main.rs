@@ -56,7 +56,26 @@ enum Command {
     Smooth(smooth::Args),
 }
 
+/// `ism info … | head` closes stdout early; `println!` then panics. Treat that like the conventional
+/// SIGPIPE exit (quiet, status 141) instead of a crash report; every other panic keeps the default hook.
+fn quiet_broken_pipe() {
+    let default = std::panic::take_hook();
+    std::panic::set_hook(Box::new(move |info| {
+        let text = info
+            .payload()
+            .downcast_ref::<String>()
+            .map(String::as_str)
+            .or_else(|| info.payload().downcast_ref::<&str>().copied())
+            .unwrap_or("");
+        if text.contains("failed printing to stdout") && text.contains("Broken pipe") {
+            std::process::exit(141);
+        }
+        default(info);
+    }));
+}
+
 fn main() -> ExitCode {
+    quiet_broken_pipe();
     let cli = Cli::parse();
     let result = match cli.command {
         Command::Info(args) => info::run(args),
