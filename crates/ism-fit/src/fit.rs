@@ -88,7 +88,8 @@ pub struct FitReport {
     pub samples: usize,
     /// Refinement steps (edge bisections).
     pub bisections: usize,
-    /// Cells still failing the Plantinga–Vegter test when the budget ran out (0 = all pass).
+    /// Cells of the final complex failing the Plantinga–Vegter test (0 = all pass; with the
+    /// topology phase on, nonzero only when the simplex budget ran out).
     pub pv_failures: usize,
     /// Topology of `O` (= that of the linear isocomplex of the final complex).
     pub topology: Topology,
@@ -701,6 +702,15 @@ pub fn fit(
     }
 
     // Points of faces that no crossing cell has do not touch the shape: drop them.
+    // The final complex's Plantinga–Vegter status, whether or not the topology phase ran.
+    pv_failures = {
+        let f = &fitter;
+        f.complex
+            .live_cells()
+            .into_par_iter()
+            .filter(|&c| !f.pv_passes(c))
+            .count()
+    };
     let faces = fitter.faces_of_crossing_cells();
     fitter.map.retain(|f| faces.contains(f));
     let pl_topology = topology(&fitter.complex, &fitter.values);
