@@ -316,6 +316,27 @@ mod tests {
         }
     }
 
+    proptest::proptest! {
+        /// Any finite points written as NPY or CSV by our writers read back exactly.
+        #[test]
+        fn written_points_read_back_exactly(
+            coords in proptest::collection::vec(-1e300f64..1e300, 0..90),
+            dim in 2usize..=3,
+        ) {
+            let rows = coords.len() / dim;
+            let positions = coords[..rows * dim].to_vec();
+            let header = Header { dim, columns: vec![Column::Position, Column::Value], count: rows as u64 };
+            let block = SampleBlock { values: vec![0.5; rows], positions: positions.clone(), ..SampleBlock::default() };
+            for format in [OutputFormat::Npy, OutputFormat::Csv] {
+                let mut w = FormatWriter::new(Vec::new(), format);
+                w.begin(&header).unwrap();
+                w.block(&block).unwrap();
+                w.finish().unwrap();
+                proptest::prop_assert_eq!(&parse_points(&w.into_inner(), dim).unwrap(), &positions);
+            }
+        }
+    }
+
     #[test]
     fn plain_npy_array() {
         let dict = "{'descr': '<f4', 'fortran_order': False, 'shape': (2, 2), }";

@@ -225,7 +225,7 @@ impl SurfaceTable {
         })
     }
 
-    /// `Σ A_σ` over patches (2D: length).
+    /// Number of patches (crossed simplices).
     pub fn len(&self) -> usize {
         self.patches.len()
     }
