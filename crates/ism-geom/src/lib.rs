@@ -11,6 +11,11 @@
 //! - [`model`]: [`ModelEval`] — point location (uniform grid, R*-tree for graded meshes), `F(p)`, `∇F(p)`, inside/outside, the
 //!   linear patches `θ_σ`, the parametric map `u ↦ p` and its derivative, batch APIs over rayon.
 //!
+//! Directions: [`LocalStage::eval`] is always `X` (point coordinates → function coordinates) and
+//! [`LocalStage::inverse`] always `X⁻¹`; [`LocalStage::eval_stored`] / [`LocalStage::invert_stored`]
+//! address the stored formula, which for a `parametric` stage is `X⁻¹` (so its `eval` solves by
+//! Newton and its `inverse` is a direct evaluation).
+//!
 //! Barycentric points are [`Bary`] = `[f64; 4]` (first `n + 1` entries used; `n ≤ 3`), matrices
 //! [`Mat`] = `[[f64; 4]; 4]` (upper-left block used), so evaluation never allocates.
 //!
