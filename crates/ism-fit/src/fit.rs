@@ -613,7 +613,6 @@ pub fn fit(
     fitter.set_values_for_new_vertices();
 
     // Topology phase.
-    let mut pv_failures = 0;
     if options.topology {
         loop {
             let failing: Vec<u32> = {
@@ -624,7 +623,6 @@ pub fn fit(
                     .filter(|&c| !f.pv_passes(c))
                     .collect()
             };
-            pv_failures = failing.len();
             progress(&Progress {
                 phase: "topology",
                 simplices: fitter.complex.num_cells(),
@@ -703,7 +701,7 @@ pub fn fit(
 
     // Points of faces that no crossing cell has do not touch the shape: drop them.
     // The final complex's Plantinga–Vegter status, whether or not the topology phase ran.
-    pv_failures = {
+    let pv_failures = {
         let f = &fitter;
         f.complex
             .live_cells()
