@@ -3,6 +3,11 @@
 
 use std::collections::HashMap;
 
+/// Face keys are small integer arrays hashed millions of times per stage; foldhash is several times
+/// faster than SipHash there and needs no DoS resistance (keys come from the model being checked,
+/// whose size is already bounded).
+type FastMap<K, V> = HashMap<K, V, foldhash::fast::RandomState>;
+
 use ism_format::{multi_index, Model, Stage, StageKind};
 
 use crate::certify::DenseNet;
@@ -23,7 +28,7 @@ pub fn face_key(ids: &[u32]) -> FaceKey {
 pub struct StageIndex<'a> {
     model: &'a Model,
     stage: &'a Stage,
-    faces: HashMap<FaceKey, usize>,
+    faces: FastMap<FaceKey, usize>,
     /// All local multi-indices of degree `d` in `n + 1` variables, flat.
     all: Vec<u32>,
     /// Per record: every stored point equals the correctly rounded fixed point `J/d`.

@@ -159,6 +159,14 @@ pub fn check_stage(model: &Model, k: usize, options: PositivityOptions) -> Stage
     };
     let geom_lookup = ism_geom::StageLookup::new(stage, k);
     let decide = |s: usize| -> Outcome {
+        // A stage-wide theorem covers every simplex, touched or not: no lookup needed.
+        if let StageClass::Theorem(name) = class {
+            return Outcome::Valid {
+                method: name,
+                depth: 0,
+                lower_bound: None,
+            };
+        }
         let records = index.records(s);
         let moving: Vec<(usize, usize)> = records
             .iter()
@@ -167,13 +175,6 @@ pub fn check_stage(model: &Model, k: usize, options: PositivityOptions) -> Stage
         if stage.kind != StageKind::Monotonic && moving.is_empty() {
             return Outcome::Valid {
                 method: theorem::IDENTITY,
-                depth: 0,
-                lower_bound: None,
-            };
-        }
-        if let StageClass::Theorem(name) = class {
-            return Outcome::Valid {
-                method: name,
                 depth: 0,
                 lower_bound: None,
             };
