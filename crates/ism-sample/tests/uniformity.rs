@@ -244,3 +244,72 @@ fn curved_area_sampling_passes_and_linear_area_sampling_fails() {
         );
     }
 }
+
+/// Every surface sample lies in its source simplex and on the level set within the tolerance,
+/// checked here by re-evaluating `F` and `∇F` at the written position.
+#[test]
+fn every_sample_is_in_its_simplex_and_on_the_level_set() {
+    for (name, model) in common::curved_models() {
+        let sampler = Sampler::new(&model).unwrap().seed(5);
+        let mut rows = Collect::default();
+        sampler.surface(4000, &mut rows).unwrap();
+        let eval = sampler.eval();
+        let n = eval.dim();
+        let scale = 2.0 * (n as f64).sqrt(); // bounding-box diagonal of [−1, 1]ⁿ
+        for (r, p) in rows.rows.positions.chunks_exact(n).enumerate() {
+            let s = rows.rows.simplices[r] as usize;
+            let w = eval.barycentric(s, p);
+            assert!(
+                w[..=n].iter().all(|&x| x >= -1e-12),
+                "{name}: sample {r} outside simplex {s}: {w:?}"
+            );
+            let f = eval.value_at(s, &w);
+            let g = eval.gradient_at(s, &w).unwrap();
+            let gn = g[..n].iter().map(|x| x * x).sum::<f64>().sqrt();
+            assert!(
+                (f - model.level).abs() <= ism_sample::SURFACE_TOLERANCE * gn * scale,
+                "{name}: sample {r}: |F − c| = {:e} > 1e-10·|∇F|·L = {:e}",
+                (f - model.level).abs(),
+                ism_sample::SURFACE_TOLERANCE * gn * scale
+            );
+        }
+    }
+}
+
+/// The same seed gives the same rows on one and on two threads.
+#[test]
+fn output_does_not_depend_on_the_thread_count() {
+    let model = &common::curved_models()[2].1;
+    let run = |threads: usize| {
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap();
+        pool.install(|| {
+            let sampler = Sampler::new(model).unwrap().seed(99);
+            let mut rows = Collect::default();
+            sampler
+                .surface(3 * ism_sample::seed::CHUNK as u64 + 17, &mut rows)
+                .unwrap();
+            let mut vol = Collect::default();
+            sampler.near_surface(10_000, 0.05, &mut vol).unwrap();
+            (rows.rows, vol.rows)
+        })
+    };
+    let one = run(1);
+    let two = run(2);
+    assert_eq!(
+        one.0
+            .positions
+            .iter()
+            .map(|x| x.to_bits())
+            .collect::<Vec<_>>(),
+        two.0
+            .positions
+            .iter()
+            .map(|x| x.to_bits())
+            .collect::<Vec<_>>()
+    );
+    assert_eq!(one.1.simplices, two.1.simplices);
+    assert_eq!(one.1.labels, two.1.labels);
+}
