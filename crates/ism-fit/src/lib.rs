@@ -1,4 +1,30 @@
 //! ISM fitting: adaptive polygonization of implicit functions (papers `000` §9.2, `001` §6).
+//!
+//! - [`expr`]: `g` from text (`exmex`), exact symbolic gradient, interval enclosures;
+//!   [`presets`]: circle, Taubin's curve, sphere, torus, genus-2 surface.
+//! - [`complex`]: Kuhn/Freudenthal triangulation of a box, conforming longest-edge bisection.
+//! - [`strata`]: the stratified Bézier map the fitter optimizes (valid by construction).
+//! - [`fit`]: the adaptive loop (Plantinga–Vegter topology refinement, edge roots, face-wise
+//!   Levenberg–Marquardt, refinement of cells above the tolerance) and its report.
+//! - [`isocontour`]: the linear isocomplex, its topology and samples; [`svg`]: 2D pictures.
+//!
+//! ```
+//! use ism_fit::{fit, FitOptions, Preset};
+//!
+//! let circle = Preset::find("circle")?;
+//! let g = circle.expression()?;
+//! let mut options = FitOptions::new(circle.domain);
+//! options.resolution = 4;
+//! options.tolerance = 1e-3;
+//! let fitted = fit(&g, &options, &mut |_| {})?;
+//! assert!(fitted.report.tolerance_met);
+//! assert_eq!((fitted.report.topology.components, fitted.report.topology.euler), (1, 0));
+//! let model = fitted.to_model("circle");
+//! assert!(ism_format::structure::check(&model, 10)
+//!     .iter()
+//!     .all(|d| d.severity != ism_format::Severity::Error));
+//! # Ok::<(), ism_fit::FitError>(())
+//! ```
 #![deny(missing_docs)]
 
 pub mod complex;
