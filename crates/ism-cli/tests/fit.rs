@@ -158,3 +158,44 @@ fn list_presets_names_all_five() {
         assert!(text.contains(name), "{text}");
     }
 }
+
+#[test]
+fn sphere_preset_fits_in_3d_with_the_true_topology_and_validates() {
+    let dir = tempfile::tempdir().unwrap();
+    let model = dir.path().join("sphere.ismb");
+    let out = ism()
+        .args([
+            "fit",
+            "--preset",
+            "sphere",
+            "--resolution",
+            "4",
+            "--tolerance",
+            "1e-2",
+            "--json",
+            "-q",
+            "-o",
+        ])
+        .arg(&model)
+        .output()
+        .unwrap();
+    assert_eq!(
+        out.status.code(),
+        Some(0),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let r = report(&out.stdout);
+    assert_eq!(
+        (r["components"].as_u64(), r["euler"].as_i64()),
+        (Some(1), Some(2))
+    );
+    assert_eq!(r["topologyMatchesPreset"], true);
+    let check = ism().arg("validate").arg(&model).output().unwrap();
+    assert_eq!(
+        check.status.code(),
+        Some(0),
+        "{}",
+        String::from_utf8_lossy(&check.stdout)
+    );
+}
