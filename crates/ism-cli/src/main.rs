@@ -11,7 +11,6 @@ mod import;
 mod info;
 mod query;
 mod sample;
-mod smooth;
 mod validate;
 
 const AFTER_HELP: &str = "\
@@ -52,8 +51,6 @@ enum Command {
     Query(query::Args),
     /// Build an ISM from an implicit function, Hermite data or a closed mesh.
     Fit(fit::Args),
-    /// Reduce the normal jumps of the shape across facets by adjusting the stages' parameters.
-    Smooth(smooth::Args),
 }
 
 /// `ism info … | head` closes stdout early; `println!` then panics. Treat that like the conventional
@@ -86,7 +83,6 @@ fn main() -> ExitCode {
         Command::Sample(args) => sample::run(args),
         Command::Query(args) => query::run(args),
         Command::Fit(args) => fit::run(args),
-        Command::Smooth(args) => smooth::run(args),
     };
     match result {
         Ok(code) => code,
