@@ -49,7 +49,7 @@ enum Command {
     Sample(sample::Args),
     /// Evaluate F, its sign and gradient at given points.
     Query(query::Args),
-    /// Build an ISM from an implicit function, Hermite data or a closed mesh.
+    /// Build an ISM by adaptive fitting of an implicit function (a preset or an expression).
     Fit(fit::Args),
 }
 
