@@ -14,7 +14,10 @@ use ism_format::Encoding;
 
 fn npy(path: &Path, descr: &str, shape: &[usize], data: &[u8]) -> std::io::Result<()> {
     let dims: Vec<String> = shape.iter().map(|d| d.to_string()).collect();
-    let mut header = format!("{{'descr': '{descr}', 'fortran_order': False, 'shape': ({},), }}", dims.join(", "));
+    let mut header = format!(
+        "{{'descr': '{descr}', 'fortran_order': False, 'shape': ({},), }}",
+        dims.join(", ")
+    );
     while (10 + header.len() + 1) % 64 != 0 {
         header.push(' ');
     }
@@ -31,9 +34,13 @@ fn make(dir: &Path, tets: usize) -> Result<(), Box<dyn std::error::Error>> {
     std::fs::create_dir_all(dir)?;
     let t = Instant::now();
     let model = ism_examples::large_stratified_model(tets);
-    eprintln!("model: {} tets, {} vertices, {} face records, built in {:.2}s",
-        model.num_simplices(), model.num_vertices(),
-        model.stages.iter().map(|s| s.faces.len()).sum::<usize>(), t.elapsed().as_secs_f64());
+    eprintln!(
+        "model: {} tets, {} vertices, {} face records, built in {:.2}s",
+        model.num_simplices(),
+        model.num_vertices(),
+        model.stages.iter().map(|s| s.faces.len()).sum::<usize>(),
+        t.elapsed().as_secs_f64()
+    );
     for enc in Encoding::ALL {
         let path = dir.join(format!("large.{}", enc.extension()));
         let mut best = f64::INFINITY;
@@ -48,15 +55,37 @@ fn make(dir: &Path, tets: usize) -> Result<(), Box<dyn std::error::Error>> {
             enc.name(), model.num_simplices());
     }
     let f64s = |xs: &[f64]| xs.iter().flat_map(|x| x.to_le_bytes()).collect::<Vec<u8>>();
-    npy(&dir.join("points.npy"), "<f8", &[model.num_vertices(), 3], &f64s(&model.vertices))?;
-    npy(&dir.join("values.npy"), "<f8", &[model.num_vertices()], &f64s(&model.values))?;
-    let ids: Vec<u8> = model.simplices.iter().flat_map(|x| (*x as i64).to_le_bytes()).collect();
-    npy(&dir.join("tets.npy"), "<i8", &[model.num_simplices(), 4], &ids)?;
+    npy(
+        &dir.join("points.npy"),
+        "<f8",
+        &[model.num_vertices(), 3],
+        &f64s(&model.vertices),
+    )?;
+    npy(
+        &dir.join("values.npy"),
+        "<f8",
+        &[model.num_vertices()],
+        &f64s(&model.values),
+    )?;
+    let ids: Vec<u8> = model
+        .simplices
+        .iter()
+        .flat_map(|x| (*x as i64).to_le_bytes())
+        .collect();
+    npy(
+        &dir.join("tets.npy"),
+        "<i8",
+        &[model.num_simplices(), 4],
+        &ids,
+    )?;
     Ok(())
 }
 
 fn read(file: &Path, check: bool, repeat: usize) -> Result<(), Box<dyn std::error::Error>> {
-    let options = ReadOptions { check_structure: check, ..ReadOptions::default() };
+    let options = ReadOptions {
+        check_structure: check,
+        ..ReadOptions::default()
+    };
     let mut best = f64::INFINITY;
     let mut doc = None;
     for _ in 0..repeat {
@@ -76,12 +105,26 @@ fn read(file: &Path, check: bool, repeat: usize) -> Result<(), Box<dyn std::erro
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let args: Vec<String> = std::env::args().skip(1).collect();
     match args.first().map(String::as_str) {
-        Some("make") => make(Path::new(&args[1]), args.get(2).map(|s| s.parse()).transpose()?.unwrap_or(1_000_000)),
+        Some("make") => make(
+            Path::new(&args[1]),
+            args.get(2)
+                .map(|s| s.parse())
+                .transpose()?
+                .unwrap_or(1_000_000),
+        ),
         Some("read") => {
             let check = !args.iter().any(|a| a == "--no-check");
-            let repeat = args.iter().position(|a| a == "--repeat").and_then(|i| args.get(i + 1)).map(|s| s.parse()).transpose()?.unwrap_or(3);
+            let repeat = args
+                .iter()
+                .position(|a| a == "--repeat")
+                .and_then(|i| args.get(i + 1))
+                .map(|s| s.parse())
+                .transpose()?
+                .unwrap_or(3);
             read(Path::new(&args[1]), check, repeat)
         }
-        _ => Err("usage: bench_format make DIR [TETS] | read FILE [--no-check] [--repeat K]".into()),
+        _ => {
+            Err("usage: bench_format make DIR [TETS] | read FILE [--no-check] [--repeat K]".into())
+        }
     }
 }
