@@ -6,9 +6,9 @@ use std::process::ExitCode;
 
 use anyhow::Context;
 use ism_format::io;
-use ism_sample::{points, OutputFormat, Sampler};
+use ism_sample::{points, Sampler};
 
-use crate::sample::{choose_format, progress_bar, write_output};
+use crate::sample::{choose_format, progress_bar, write_output, OutputArgs};
 
 const AFTER_HELP: &str = "\
 Input points: CSV or whitespace-separated text, n numbers per line (a header line may name the
@@ -36,23 +36,8 @@ pub struct Args {
     model: PathBuf,
     /// The points (CSV/text or NPY; "-" for standard input).
     points: PathBuf,
-    /// Output file (format from the extension: .ply, .csv, .npy); standard output when absent or "-".
-    #[arg(short, long)]
-    output: Option<PathBuf>,
-    /// Output format: ply, ply-ascii, csv, npy (default: from the extension, csv on standard output).
-    #[arg(long, value_parser = parse_format)]
-    format: Option<OutputFormat>,
-    /// Worker threads (default: all cores).
-    #[arg(long, short = 'j')]
-    threads: Option<usize>,
-    /// No progress bar.
-    #[arg(long, short)]
-    quiet: bool,
-}
-
-fn parse_format(s: &str) -> Result<OutputFormat, String> {
-    OutputFormat::from_name(s)
-        .ok_or_else(|| format!("unknown format {s:?}; expected ply, ply-ascii, csv or npy"))
+    #[command(flatten)]
+    out: OutputArgs,
 }
 
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
@@ -71,18 +56,18 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     };
     let pts = points::parse_points(&bytes, model.dim())
         .with_context(|| format!("cannot read points from {}", args.points.display()))?;
-    let format = choose_format(args.format, args.output.as_deref())?;
-    let bar = progress_bar((pts.len() / model.dim().max(1)) as u64, args.quiet);
+    let format = choose_format(args.out.format, args.out.output.as_deref())?;
+    let bar = progress_bar((pts.len() / model.dim().max(1)) as u64, args.out.quiet);
     let mut sampler = Sampler::new(&model)?;
     if let Some(bar) = &bar {
         let bar = bar.clone();
         sampler = sampler.progress(move |done| bar.set_position(done));
     }
     let pool = rayon::ThreadPoolBuilder::new()
-        .num_threads(args.threads.unwrap_or(0))
+        .num_threads(args.out.threads.unwrap_or(0))
         .build()?;
     pool.install(|| {
-        write_output(args.output.as_deref(), format, |sink| {
+        write_output(args.out.output.as_deref(), format, |sink| {
             sampler.query(&pts, sink)
         })
     })?;

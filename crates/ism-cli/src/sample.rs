@@ -57,19 +57,26 @@ pub struct Args {
     /// Seed: equal seeds give bit-identical output for any thread count.
     #[arg(long, default_value_t = 0)]
     seed: u64,
+    #[command(flatten)]
+    out: OutputArgs,
+}
+
+/// Output options shared by `ism sample` and `ism query`.
+#[derive(clap::Args)]
+pub(crate) struct OutputArgs {
     /// Output file (format from the extension: .ply, .csv, .npy); standard output when absent or "-".
     #[arg(short, long)]
-    output: Option<PathBuf>,
+    pub(crate) output: Option<PathBuf>,
     /// Output format: ply (binary little-endian), ply-ascii, csv, npy. Default: from the extension,
     /// csv on standard output.
     #[arg(long, value_parser = parse_format)]
-    format: Option<OutputFormat>,
+    pub(crate) format: Option<OutputFormat>,
     /// Worker threads (default: all cores).
     #[arg(long, short = 'j')]
-    threads: Option<usize>,
+    pub(crate) threads: Option<usize>,
     /// No progress bar.
     #[arg(long, short)]
-    quiet: bool,
+    pub(crate) quiet: bool,
 }
 
 fn parse_format(s: &str) -> Result<OutputFormat, String> {
@@ -190,21 +197,21 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         0 => bail!("nothing to sample: give --surface N, --volume N or --near-surface N --sigma S"),
         _ => bail!("give only one of --surface, --volume, --near-surface per run"),
     };
-    let format = choose_format(args.format, args.output.as_deref())?;
+    let format = choose_format(args.out.format, args.out.output.as_deref())?;
     let total = match job {
         Job::Surface(c) | Job::Volume(c, _) | Job::NearSurface(c, _) => c,
     };
-    let bar = progress_bar(total, args.quiet);
+    let bar = progress_bar(total, args.out.quiet);
     let mut sampler = Sampler::new(&model)?.seed(args.seed);
     if let Some(bar) = &bar {
         let bar = bar.clone();
         sampler = sampler.progress(move |done| bar.set_position(done));
     }
     let pool = rayon::ThreadPoolBuilder::new()
-        .num_threads(args.threads.unwrap_or(0))
+        .num_threads(args.out.threads.unwrap_or(0))
         .build()?;
     pool.install(|| {
-        write_output(args.output.as_deref(), format, |sink| match job {
+        write_output(args.out.output.as_deref(), format, |sink| match job {
             Job::Surface(c) => sampler.surface(c, sink),
             Job::Volume(c, region) => sampler.volume(c, region, sink),
             Job::NearSurface(c, sigma) => sampler.near_surface(c, sigma, sink),
