@@ -7,6 +7,8 @@
 //! Evaluation is de Casteljau: at a vertex every step multiplies by an exact 1 or 0, so the value
 //! there is exactly the vertex coefficient; on a face the coefficients off the face never enter.
 
+use std::sync::OnceLock;
+
 use ism_format::multi_index;
 
 use crate::error::{GeomError, Result};
@@ -20,20 +22,100 @@ pub struct Bernstein {
     coeffs: Vec<f64>,
 }
 
-/// `up[r * m + i]` = rank, among degree-`t + 1` indices, of `K_r + e_i` where `K_r` is the `r`-th
-/// degree-`t` index.
-fn up_table(m: usize, t: u32) -> Vec<usize> {
-    let lower = multi_index::all(m, t);
-    let mut out = Vec::with_capacity(lower.len());
-    let mut idx = vec![0u32; m];
-    for k in lower.chunks_exact(m) {
-        for i in 0..m {
-            idx.copy_from_slice(k);
-            idx[i] += 1;
-            out.push(multi_index::rank(&idx));
+/// Highest degree whose index tables are cached for the life of the process. Products in the
+/// certified bounds reach `2n · 2(d − 1) + …` for rational stages of degree `d ≤ 16`, i.e. below
+/// 128 in 3D; higher degrees still work, with tables rebuilt per call.
+const CACHED_DEGREE: usize = 128;
+
+/// Index tables of one shape `(m, d)`: the canonical list, multinomials, ranks of `K + e_i` for the
+/// degree-`d` indices `K` among degree `d + 1`, and a dense rank lookup. Building them costs more
+/// than most operations that use them (ranks need binomials), hence the cache.
+#[derive(Debug)]
+struct Shape {
+    /// All degree-`d` indices, canonical order, flat (`m` per index).
+    all: Vec<u32>,
+    /// `d! / Π I_i!` per index.
+    multinom: Vec<f64>,
+    /// `up[r * m + i]` = rank, among degree-`d + 1` indices, of `K_r + e_i`.
+    up: Vec<usize>,
+    /// Rank of every degree-`d` index, addressed by its first `m − 1` entries in radix `d + 1`.
+    dense: Vec<u32>,
+    /// Rank of `d · e_i`.
+    vertex: [usize; 4],
+}
+
+impl Shape {
+    fn build(m: usize, d: u32) -> Shape {
+        let all = multi_index::all(m, d);
+        let multinom = all.chunks_exact(m.max(1)).map(multinomial).collect();
+        let mut up = Vec::with_capacity(all.len());
+        let mut idx = vec![0u32; m];
+        for k in all.chunks_exact(m.max(1)) {
+            for i in 0..m {
+                idx.copy_from_slice(k);
+                idx[i] += 1;
+                up.push(multi_index::rank(&idx));
+            }
+        }
+        let radix = d as usize + 1;
+        let mut dense = vec![0u32; radix.pow(m.saturating_sub(1) as u32)];
+        for (r, k) in all.chunks_exact(m.max(1)).enumerate() {
+            dense[dense_key(&k[..m.saturating_sub(1)], radix)] = r as u32;
+        }
+        let mut vertex = [0usize; 4];
+        for (i, v) in vertex.iter_mut().enumerate().take(m) {
+            idx.fill(0);
+            idx[i] = d;
+            *v = multi_index::rank(&idx);
+        }
+        Shape {
+            all,
+            multinom,
+            up,
+            dense,
+            vertex,
         }
     }
-    out
+
+    /// Rank of a degree-`d` index.
+    #[inline]
+    fn rank(&self, index: &[u32], d: u32) -> usize {
+        let m = index.len();
+        self.dense[dense_key(&index[..m.saturating_sub(1)], d as usize + 1)] as usize
+    }
+}
+
+#[inline]
+fn dense_key(head: &[u32], radix: usize) -> usize {
+    head.iter().fold(0usize, |acc, &e| acc * radix + e as usize)
+}
+
+static SHAPES: [[OnceLock<Shape>; CACHED_DEGREE + 1]; 5] =
+    [const { [const { OnceLock::new() }; CACHED_DEGREE + 1] }; 5];
+
+/// A cached shape, or one built for a single use (beyond the cache).
+enum ShapeRef {
+    Cached(&'static Shape),
+    Owned(Box<Shape>),
+}
+
+impl std::ops::Deref for ShapeRef {
+    type Target = Shape;
+    fn deref(&self) -> &Shape {
+        match self {
+            ShapeRef::Cached(s) => s,
+            ShapeRef::Owned(s) => s,
+        }
+    }
+}
+
+/// The tables of `(m, d)`: cached for `m ≤ 4`, `d ≤ CACHED_DEGREE`, built on the spot otherwise.
+fn shape(m: usize, d: u32) -> ShapeRef {
+    if m <= 4 && (d as usize) <= CACHED_DEGREE {
+        ShapeRef::Cached(SHAPES[m][d as usize].get_or_init(|| Shape::build(m, d)))
+    } else {
+        ShapeRef::Owned(Box::new(Shape::build(m, d)))
+    }
 }
 
 /// One de Casteljau step with point `x`: degree-`t + 1` coefficients → degree-`t`.
@@ -81,7 +163,8 @@ impl Bernstein {
 
     /// Coefficients from a function of the multi-index (e.g. `|i| i[0] as f64 / d as f64`).
     pub fn from_fn(m: usize, degree: u32, mut f: impl FnMut(&[u32]) -> f64) -> Bernstein {
-        let coeffs = multi_index::all(m, degree)
+        let coeffs = shape(m, degree)
+            .all
             .chunks_exact(m.max(1))
             .map(&mut f)
             .collect();
@@ -110,6 +193,9 @@ impl Bernstein {
 
     /// The exact value at vertex `i`: the coefficient of `d·e_i`.
     pub fn vertex_value(&self, i: usize) -> f64 {
+        if self.m <= 4 {
+            return self.coeffs[shape(self.m, self.degree).vertex[i]];
+        }
         let mut idx = vec![0u32; self.m];
         idx[i] = self.degree;
         self.coeffs[multi_index::rank(&idx)]
@@ -134,7 +220,7 @@ impl Bernstein {
         let m = self.m;
         let mut c = self.coeffs.clone();
         for t in (0..self.degree).rev() {
-            c = casteljau_step(m, t, &up_table(m, t), &c, w);
+            c = casteljau_step(m, t, &shape(m, t).up, &c, w);
         }
         c[0]
     }
@@ -147,7 +233,7 @@ impl Bernstein {
             return Bernstein::constant(m, 0, 0.0);
         }
         let t = self.degree - 1;
-        let up = up_table(m, t);
+        let up = &shape(m, t).up;
         let d = f64::from(self.degree);
         let coeffs = (0..multi_index::count(m, t))
             .map(|r| d * self.coeffs[up[r * m + j]])
@@ -172,7 +258,7 @@ impl Bernstein {
             return Bernstein::constant(m, 0, 0.0);
         }
         let t = self.degree - 1;
-        let up = up_table(m, t);
+        let up = &shape(m, t).up;
         let d = f64::from(self.degree);
         let coeffs = (0..multi_index::count(m, t))
             .map(|r| d * (self.coeffs[up[r * m + a]] - self.coeffs[up[r * m + b]]))
@@ -193,21 +279,19 @@ impl Bernstein {
         let m = self.m;
         let d = self.degree + other.degree;
         let mut out = vec![0.0; multi_index::count(m, d)];
-        let ia = multi_index::all(m, self.degree);
-        let ib = multi_index::all(m, other.degree);
-        let ma: Vec<f64> = ia.chunks_exact(m).map(multinomial).collect();
-        let mb: Vec<f64> = ib.chunks_exact(m).map(multinomial).collect();
+        let (sa, sb, sd) = (shape(m, self.degree), shape(m, other.degree), shape(m, d));
         let mut sum = vec![0u32; m];
-        for (i, a) in ia.chunks_exact(m).enumerate() {
+        for (i, a) in sa.all.chunks_exact(m).enumerate() {
             if self.coeffs[i] == 0.0 {
                 continue;
             }
-            for (j, b) in ib.chunks_exact(m).enumerate() {
+            let ca = sa.multinom[i] * self.coeffs[i];
+            for (j, b) in sb.all.chunks_exact(m).enumerate() {
                 for k in 0..m {
                     sum[k] = a[k] + b[k];
                 }
-                let r = multi_index::rank(&sum);
-                out[r] += ma[i] * mb[j] / multinomial(&sum) * self.coeffs[i] * other.coeffs[j];
+                let r = sd.rank(&sum, d);
+                out[r] += ca * sb.multinom[j] / sd.multinom[r] * other.coeffs[j];
             }
         }
         Bernstein {
@@ -253,7 +337,9 @@ impl Bernstein {
         let m = self.m;
         let d1 = self.degree + 1;
         let mut idx = vec![0u32; m];
-        let coeffs = multi_index::all(m, d1)
+        let lower = shape(m, self.degree);
+        let coeffs = shape(m, d1)
+            .all
             .chunks_exact(m)
             .map(|i| {
                 let mut s = 0.0;
@@ -261,7 +347,8 @@ impl Bernstein {
                     if i[k] > 0 {
                         idx.copy_from_slice(i);
                         idx[k] -= 1;
-                        s += f64::from(i[k]) / f64::from(d1) * self.coeffs[multi_index::rank(&idx)];
+                        s += f64::from(i[k]) / f64::from(d1)
+                            * self.coeffs[lower.rank(&idx, self.degree)];
                     }
                 }
                 s
@@ -295,20 +382,23 @@ impl Bernstein {
             let next = casteljau_step(
                 m,
                 d - t - 1,
-                &up_table(m, d - t - 1),
+                &shape(m, d - t - 1).up,
                 &levels[t as usize],
                 r,
             );
             levels.push(next);
         }
         let mut j = vec![0u32; m];
-        let coeffs = multi_index::all(m, d)
+        let shapes: Vec<ShapeRef> = (0..=d).map(|t| shape(m, t)).collect();
+        let coeffs = shapes[d as usize]
+            .all
             .chunks_exact(m)
             .map(|i| {
                 j.copy_from_slice(i);
                 let t = j[a];
                 j[a] = 0;
-                levels[t as usize][multi_index::rank(&j)]
+                let lower = d - t;
+                levels[t as usize][shapes[lower as usize].rank(&j, lower)]
             })
             .collect();
         Bernstein {
@@ -334,8 +424,9 @@ impl Bernstein {
     pub fn restrict(&self, vertices: &[Vec<f64>]) -> Bernstein {
         let m = self.m;
         let d = self.degree;
-        let ups: Vec<Vec<usize>> = (0..d).map(|t| up_table(m, t)).collect();
-        let coeffs = multi_index::all(m, d)
+        let ups: Vec<ShapeRef> = (0..d).map(|t| shape(m, t)).collect();
+        let coeffs = shape(m, d)
+            .all
             .chunks_exact(m)
             .map(|i| {
                 let mut c = self.coeffs.clone();
@@ -343,7 +434,7 @@ impl Bernstein {
                 for (k, &e) in i.iter().enumerate() {
                     for _ in 0..e {
                         t -= 1;
-                        c = casteljau_step(m, t, &ups[t as usize], &c, &vertices[k]);
+                        c = casteljau_step(m, t, &ups[t as usize].up, &c, &vertices[k]);
                     }
                 }
                 c[0]
