@@ -32,6 +32,7 @@ pub mod expr;
 pub mod fit;
 pub mod interval;
 pub mod isocontour;
+pub mod mesh;
 pub mod presets;
 pub mod strata;
 pub mod svg;
@@ -54,4 +55,12 @@ pub enum FitError {
     /// Inconsistent or out-of-range options.
     #[error("options: {0}")]
     Options(String),
+    /// A mesh file that cannot be read, or a mesh that cannot define a distance.
+    #[error("mesh {}: {message}", path.display())]
+    Mesh {
+        /// The file (empty for an in-memory mesh).
+        path: std::path::PathBuf,
+        /// What went wrong.
+        message: String,
+    },
 }
