@@ -30,10 +30,12 @@
 pub mod complex;
 pub mod expr;
 pub mod fit;
+pub mod hermite;
 pub mod interval;
 pub mod isocontour;
 pub mod mesh;
 pub mod presets;
+pub mod smooth;
 pub mod strata;
 pub mod svg;
 

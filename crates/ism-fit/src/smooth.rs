@@ -1,0 +1,461 @@
+//! Smoothing: reduce the normal jumps of the shape across interior facets (paper `000` §8).
+//!
+//! A curved isocomplex is in general not smooth across a facet `δ`: the normals computed in the
+//! two simplices `σ, σ′` at a point of `O ∩ δ` differ. [`smooth`] minimizes
+//! `Σ_δ err(δ, β) + α Σ |β − β₀|²` with the paper's `err(δ, β) = Σ_i |n_σ(p_i) − n_σ′(p_i)|²`
+//! over sample points `p_i` of `O` on `δ` (the same points `ism validate --quality` uses for
+//! ISM-401: the crossing of the facet in 2D, five points along `θ ∩ δ` in 3D), over the solitary
+//! points `β` (logits) of the stratified block of [`Layered`]. The proximity term (weight
+//! [`SmoothOptions::alpha`]) keeps the map near the input where the jumps do not care.
+//!
+//! - A model whose first stages are a stratified block (what `ism fit` and `ism fit --hermite`
+//!   write) has that block optimized. Any other model (monotonic, general Bézier, rational stages)
+//!   keeps its stages and gets a new identity block in front of them, which is then optimized:
+//!   `X = S ∘ Y⁻¹`, valid because each factor is. Rational weights are not optimized.
+//! - The points of sign-changing edges stay fixed, so the shape keeps crossing every edge where it
+//!   did; everything else in the cells around crossing facets moves.
+//! - Validity by construction: softmax logits keep every solitary point in its open face. Each
+//!   accepted Levenberg–Marquardt step lowers its face's part of the objective, which is the
+//!   whole objective's change, so the objective never increases.
+//!
+//! ```
+//! use ism_fit::smooth::{normal_jumps, smooth, SmoothOptions};
+//! use ism_fit::{fit, FitOptions, Preset};
+//!
+//! let circle = Preset::find("circle")?;
+//! let mut options = FitOptions::new(circle.domain);
+//! options.resolution = 4;
+//! let model = fit(&circle.expression()?, &options, &mut |_| {})?.to_model("circle");
+//! let smoothed = smooth(&model, &SmoothOptions::default()).unwrap();
+//! let (before, after) = (smoothed.report.before.unwrap(), smoothed.report.after.unwrap());
+//! assert!(after.max < before.max);
+//! # Ok::<(), ism_fit::FitError>(())
+//! ```
+
+use std::collections::HashMap;
+use std::time::Instant;
+
+use ism_format::model::Model;
+use ism_geom::{Bary, MAX_VARS};
+
+use crate::hermite::{check_structure, faces_of, lm_face, EditError, Jet, Layered, Sample};
+use crate::strata::StratifiedMap;
+
+/// Points of `O` sampled per 3D facet along `θ ∩ δ` — the value ISM-401 uses, so the objective
+/// and the reported measure look at the same points.
+const FACET_SAMPLES_3D: usize = 5;
+
+/// Options of [`smooth`].
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct SmoothOptions {
+    /// Gauss–Seidel sweeps over the free faces.
+    pub iterations: usize,
+    /// Weight of the proximity term `Σ |β − β₀|²` (logits).
+    pub alpha: f64,
+}
+
+impl Default for SmoothOptions {
+    fn default() -> Self {
+        SmoothOptions {
+            iterations: 4,
+            alpha: 1e-3,
+        }
+    }
+}
+
+/// The ISM-401 measure of `ism validate --quality`: per interior facet crossing the shape, the
+/// largest angle between the two simplices' normals; max and mean over facets.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct JumpStats {
+    /// Facets measured.
+    pub facets: usize,
+    /// Largest jump, degrees.
+    pub max: f64,
+    /// Mean jump, degrees (as printed by the validator: 3 decimals).
+    pub mean: f64,
+}
+
+/// Summary of [`smooth`].
+#[derive(Clone, Debug, PartialEq)]
+pub struct SmoothReport {
+    /// ISM-401 of the input (`None` when the validator does not certify every stage).
+    pub before: Option<JumpStats>,
+    /// ISM-401 of the output.
+    pub after: Option<JumpStats>,
+    /// `Σ_δ err(δ)` of the input.
+    pub objective_before: f64,
+    /// `Σ_δ err(δ)` of the output.
+    pub objective_after: f64,
+    /// The full objective (with the proximity term) after each sweep.
+    pub sweeps: Vec<f64>,
+    /// Interior facets crossing the shape.
+    pub facets: usize,
+    /// Sample points on them.
+    pub samples: usize,
+    /// Solitary points optimized.
+    pub free_faces: usize,
+    /// Whether a new stratified block was put in front of the input's stages.
+    pub block_added: bool,
+    /// Wall time in seconds.
+    pub seconds: f64,
+}
+
+/// The result of [`smooth`].
+#[derive(Clone, Debug)]
+pub struct Smoothed {
+    /// The smoothed model.
+    pub model: Model,
+    /// The summary.
+    pub report: SmoothReport,
+}
+
+/// ISM-401 of `model` from the validator (quality layer); `None` when it is not computed (some
+/// stage not certified).
+pub fn normal_jumps(model: &Model) -> Option<JumpStats> {
+    let options = ism_validate::Options {
+        quality: true,
+        max_issues: usize::MAX,
+        ..ism_validate::Options::default()
+    };
+    let report = ism_validate::validate(model, &options);
+    let info = report.issues.messages.iter().find(|m| {
+        m.code == ism_format::Rule::NormalJump.id() && m.severity == ism_format::Severity::Info
+    })?;
+    // "{checked} interior facets cross the shape: normal jump max {max:.3}°, mean {mean:.3}°"
+    let facets = info.message.split_whitespace().next()?.parse().ok()?;
+    let mean = info
+        .message
+        .rsplit("mean ")
+        .next()?
+        .trim_end_matches('°')
+        .parse()
+        .ok()?;
+    Some(JumpStats {
+        facets,
+        max: info.value?,
+        mean,
+    })
+}
+
+/// A facet sample seen from both sides.
+struct Pair {
+    a: Sample,
+    b: Sample,
+}
+
+/// Samples of `O` on the interior facets crossing the shape (σ's and σ′'s coordinates).
+fn facet_pairs(layer: &Layered) -> Result<(usize, Vec<Pair>), EditError> {
+    let frames = layer.frames();
+    let m = layer.dim() + 1;
+    let mut facets: HashMap<Vec<u32>, Vec<(usize, usize)>> = HashMap::new();
+    for (s, fr) in frames.iter().enumerate() {
+        for skip in 0..m {
+            let mut key: Vec<u32> = (0..m).filter(|&i| i != skip).map(|i| fr.ids[i]).collect();
+            key.sort_unstable();
+            facets.entry(key).or_default().push((s, skip));
+        }
+    }
+    let mut keys: Vec<&Vec<u32>> = facets.keys().collect();
+    keys.sort();
+    let mut pairs = Vec::new();
+    let mut crossing = 0;
+    for key in keys {
+        let sides = &facets[key];
+        if sides.len() != 2 {
+            continue;
+        }
+        let (s1, a1) = sides[0];
+        let (s2, _) = sides[1];
+        let f = &frames[s1].f;
+        let pos: Vec<usize> = (0..m).filter(|&i| i != a1).collect();
+        let mut ends: Vec<Bary> = Vec::new();
+        for x in 0..pos.len() {
+            for y in (x + 1)..pos.len() {
+                let (i, j) = (pos[x], pos[y]);
+                if f[i] * f[j] < 0.0 {
+                    let t = f[j] / (f[j] - f[i]);
+                    let mut u = [0.0; MAX_VARS];
+                    u[i] = t;
+                    u[j] = 1.0 - t;
+                    ends.push(u);
+                }
+            }
+        }
+        let us: Vec<Bary> = match ends.len() {
+            1 => ends,
+            2 => (0..FACET_SAMPLES_3D)
+                .map(|k| {
+                    let t = (k as f64 + 0.5) / FACET_SAMPLES_3D as f64;
+                    let mut u = [0.0; MAX_VARS];
+                    for c in 0..m {
+                        u[c] = (1.0 - t) * ends[0][c] + t * ends[1][c];
+                    }
+                    u
+                })
+                .collect(),
+            _ => continue,
+        };
+        crossing += 1;
+        for u in us {
+            let mut u2 = [0.0; MAX_VARS];
+            for &i in &pos {
+                let v = frames[s1].ids[i];
+                let j = frames[s2]
+                    .ids
+                    .iter()
+                    .position(|&w| w == v)
+                    .expect("facet vertex in both simplices");
+                u2[j] = u[i];
+            }
+            let (Some(a), Some(b)) = (layer.sample(s1, &u), layer.sample(s2, &u2)) else {
+                return Err(EditError::Model(format!(
+                    "the stages of simplex {s1} or {s2} do not invert at a point of the shape"
+                )));
+            };
+            pairs.push(Pair { a, b });
+        }
+    }
+    Ok((crossing, pairs))
+}
+
+/// Reduces the normal jumps of `model` (see the module doc).
+///
+/// # Errors
+/// [`EditError::Model`] for structural errors, a dimension other than 2 and 3, a negative
+/// `alpha`, or kept stages that do not invert at a point of the shape; [`EditError::Geom`] when a
+/// stage does not evaluate.
+pub fn smooth(model: &Model, options: &SmoothOptions) -> Result<Smoothed, EditError> {
+    let start = Instant::now();
+    if !(options.alpha >= 0.0 && options.alpha.is_finite()) {
+        return Err(EditError::Model(format!(
+            "alpha {} must be a finite number ≥ 0",
+            options.alpha
+        )));
+    }
+    check_structure(model)?;
+    let before = normal_jumps(model);
+    let mut layer = Layered::new(model)?;
+    let n = layer.dim();
+    let (facets, pairs) = facet_pairs(&layer)?;
+
+    let residuals = |layer: &Layered, map: &StratifiedMap, which: &[usize]| -> Vec<f64> {
+        let mut jets: HashMap<usize, Jet> = HashMap::new();
+        let mut out = Vec::with_capacity(which.len() * n);
+        for &k in which {
+            let p = &pairs[k];
+            let mut normal = |smp: &Sample| {
+                let jet = jets
+                    .entry(smp.cell)
+                    .or_insert_with(|| Jet::new(map, &layer.frames()[smp.cell].ids));
+                layer.normal(jet, smp).map(|x| x.1)
+            };
+            match (normal(&p.a), normal(&p.b)) {
+                (Some(x), Some(y)) => out.extend((0..n).map(|c| x[c] - y[c])),
+                // Degenerate gradient: the largest possible deviation, so steps avoid it.
+                _ => out.extend((0..n).map(|_| 2.0)),
+            }
+        }
+        out
+    };
+    let all: Vec<usize> = (0..pairs.len()).collect();
+    let jump_cost = |layer: &Layered, map: &StratifiedMap| -> f64 {
+        residuals(layer, map, &all).iter().map(|v| v * v).sum()
+    };
+    let objective_before = jump_cost(&layer, &layer.map);
+
+    // Free faces: every solitary point of the cells around crossing facets, except the points of
+    // sign-changing edges (they hold the crossings).
+    let mut by_cell: HashMap<usize, Vec<usize>> = HashMap::new();
+    for (k, p) in pairs.iter().enumerate() {
+        by_cell.entry(p.a.cell).or_default().push(k);
+        by_cell.entry(p.b.cell).or_default().push(k);
+    }
+    let mut free: Vec<Vec<u32>> = {
+        let mut set = std::collections::HashSet::new();
+        for &s in by_cell.keys() {
+            for f in faces_of(&layer.frames()[s].ids) {
+                if !(f.len() == 2 && layer.is_crossing_edge(f[0], f[1])) {
+                    set.insert(f);
+                }
+            }
+        }
+        set.into_iter().collect()
+    };
+    free.sort();
+    let blocks: Vec<Vec<usize>> = free
+        .iter()
+        .map(|f| {
+            let mut ks: Vec<usize> = layer
+                .cells_with(f)
+                .into_iter()
+                .filter_map(|s| by_cell.get(&s))
+                .flatten()
+                .copied()
+                .collect();
+            ks.sort_unstable();
+            ks.dedup();
+            ks
+        })
+        .collect();
+    let start_logits: Vec<Vec<f64>> = free.iter().map(|f| layer.map.logits(f)).collect();
+    let sqrt_alpha = options.alpha.sqrt();
+    let mut map = std::mem::take(&mut layer.map);
+    let proximity = |map: &StratifiedMap| -> f64 {
+        free.iter()
+            .zip(&start_logits)
+            .map(|(f, x0)| {
+                map.logits(f)
+                    .iter()
+                    .zip(x0)
+                    .map(|(a, b)| (a - b).powi(2))
+                    .sum::<f64>()
+            })
+            .sum::<f64>()
+            * options.alpha
+    };
+    let mut sweeps = Vec::with_capacity(options.iterations);
+    for _ in 0..options.iterations {
+        for ((f, which), x0) in free.iter().zip(&blocks).zip(&start_logits) {
+            lm_face(&mut map, f, 3, &|m: &StratifiedMap| {
+                let mut r = residuals(&layer, m, which);
+                r.extend(
+                    m.logits(f)
+                        .iter()
+                        .zip(x0)
+                        .map(|(a, b)| sqrt_alpha * (a - b)),
+                );
+                r
+            });
+        }
+        sweeps.push(jump_cost(&layer, &map) + proximity(&map));
+    }
+    let objective_after = jump_cost(&layer, &map);
+    layer.map = map;
+    let out = if layer.block_added && layer.map.num_faces() == 0 {
+        model.clone()
+    } else {
+        let mut out = layer.to_model();
+        out.metadata.generator = Some(format!("ism-fit {} (smooth)", env!("CARGO_PKG_VERSION")));
+        out
+    };
+    let after = normal_jumps(&out);
+    Ok(Smoothed {
+        model: out,
+        report: SmoothReport {
+            before,
+            after,
+            objective_before,
+            objective_after,
+            sweeps,
+            facets,
+            samples: pairs.len(),
+            free_faces: free.len(),
+            block_added: layer.block_added,
+            seconds: start.elapsed().as_secs_f64(),
+        },
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::{fit, FitOptions, Preset};
+
+    fn valid(model: &Model) -> bool {
+        ism_validate::validate(model, &ism_validate::Options::default()).verdict
+            == ism_validate::Verdict::Valid
+    }
+
+    fn check(model: &Model, options: &SmoothOptions) -> SmoothReport {
+        let s = smooth(model, options).unwrap();
+        let r = s.report;
+        assert!(valid(&s.model));
+        // Never increases the objective: each sweep's total is at most the previous one.
+        let mut last = r.objective_before;
+        for &x in &r.sweeps {
+            assert!(x <= last * (1.0 + 1e-12) + 1e-15, "{r:?}");
+            last = x;
+        }
+        assert!(r.objective_after <= r.objective_before);
+        r
+    }
+
+    #[test]
+    fn fitted_circle_gets_smoother() {
+        let circle = Preset::find("circle").unwrap();
+        let mut o = FitOptions::new(circle.domain);
+        o.resolution = 6;
+        o.tolerance = 1e-3;
+        let model = fit(&circle.expression().unwrap(), &o, &mut |_| {})
+            .unwrap()
+            .to_model("circle");
+        let r = check(&model, &SmoothOptions::default());
+        assert!(!r.block_added);
+        let (b, a) = (r.before.unwrap(), r.after.unwrap());
+        assert!(a.max < 0.5 * b.max && a.mean < 0.5 * b.mean, "{r:?}");
+    }
+
+    #[test]
+    fn sphere_example_gets_smoother() {
+        let text = include_str!("../../../spec/examples/sphere.ism.json");
+        let model = ism_format::io::from_slice(text.as_bytes()).unwrap().model;
+        let r = check(
+            &model,
+            &SmoothOptions {
+                iterations: 2,
+                ..SmoothOptions::default()
+            },
+        );
+        assert!(r.block_added);
+        let (b, a) = (r.before.unwrap(), r.after.unwrap());
+        assert!(a.mean < b.mean && a.max <= b.max, "{r:?}");
+    }
+
+    #[test]
+    fn measure_matches_the_validator_on_both_sides() {
+        // Our objective's samples are ISM-401's: with no change (0 sweeps) the per-sample angles
+        // bound the validator's maximum from both sides.
+        let circle = Preset::find("circle").unwrap();
+        let mut o = FitOptions::new(circle.domain);
+        o.resolution = 4;
+        let model = fit(&circle.expression().unwrap(), &o, &mut |_| {})
+            .unwrap()
+            .to_model("circle");
+        let s = smooth(
+            &model,
+            &SmoothOptions {
+                iterations: 0,
+                alpha: 0.0,
+            },
+        )
+        .unwrap();
+        let b = s.report.before.unwrap();
+        assert_eq!(s.report.before, s.report.after);
+        assert_eq!(b.facets, s.report.facets);
+        // |n − n′|² = 2 − 2 cos θ per sample; the largest sample term gives the max angle.
+        let layer = Layered::new(&model).unwrap();
+        let (_, pairs) = facet_pairs(&layer).unwrap();
+        let mut worst = 0.0f64;
+        for p in &pairs {
+            let ja = Jet::new(&layer.map, &layer.frames()[p.a.cell].ids);
+            let jb = Jet::new(&layer.map, &layer.frames()[p.b.cell].ids);
+            let na = layer.normal(&ja, &p.a).unwrap().1;
+            let nb = layer.normal(&jb, &p.b).unwrap().1;
+            worst = worst.max(crate::hermite::angle_deg(&na, &nb));
+        }
+        assert!((worst - b.max).abs() < 1e-6, "{worst} vs {}", b.max);
+    }
+
+    #[test]
+    fn negative_alpha_is_an_error() {
+        let text = include_str!("../../../spec/examples/circle-curved.ism.json");
+        let model = ism_format::io::from_slice(text.as_bytes()).unwrap().model;
+        let o = SmoothOptions {
+            alpha: -1.0,
+            ..SmoothOptions::default()
+        };
+        assert!(matches!(smooth(&model, &o), Err(EditError::Model(_))));
+        let s = smooth(&model, &SmoothOptions::default()).unwrap();
+        assert!(valid(&s.model));
+    }
+}
