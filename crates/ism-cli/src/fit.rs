@@ -28,7 +28,7 @@ was not reproduced (the model is still written); 2 on bad arguments or a failed 
 #[command(after_help = AFTER_HELP)]
 pub struct Args {
     /// The implicit function g (the shape is g = 0).
-    #[arg(long, conflicts_with = "preset", required_unless_present_any = ["preset", "list_presets"])]
+    #[arg(long, conflicts_with = "preset", required_unless_present_any = ["preset", "list_presets", "hermite"])]
     expr: Option<String>,
     /// Domain box: x0,x1,y0,y1[,z0,z1]; its length sets the dimension.
     #[arg(
@@ -71,9 +71,16 @@ pub struct Args {
     /// Hide the progress bar.
     #[arg(long, short)]
     quiet: bool,
+    /// Hermite handles file (JSON): build the free-form model it defines (000 §9.1).
+    #[arg(long, conflicts_with_all = ["expr", "preset"], long_help = crate::hermite::HELP)]
+    hermite: Option<PathBuf>,
 }
 
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
+    if let Some(handles) = &args.hermite {
+        let (output, svg) = (args.output.as_deref(), args.svg.as_deref());
+        return crate::hermite::run(handles, output, svg, args.json);
+    }
     if args.list_presets {
         for p in PRESETS {
             println!(

@@ -7,10 +7,12 @@ use clap::{Parser, Subcommand};
 mod convert;
 mod export;
 mod fit;
+mod hermite;
 mod import;
 mod info;
 mod query;
 mod sample;
+mod smooth;
 mod validate;
 
 const AFTER_HELP: &str = "\
@@ -51,6 +53,8 @@ enum Command {
     Query(query::Args),
     /// Build an ISM by adaptive fitting of an implicit function (a preset or an expression).
     Fit(fit::Args),
+    /// Reduce the normal jumps of the shape across facets (paper 000 §8).
+    Smooth(smooth::Args),
 }
 
 /// `ism info … | head` closes stdout early; `println!` then panics. Treat that like the conventional
@@ -83,6 +87,7 @@ fn main() -> ExitCode {
         Command::Sample(args) => sample::run(args),
         Command::Query(args) => query::run(args),
         Command::Fit(args) => fit::run(args),
+        Command::Smooth(args) => smooth::run(args),
     };
     match result {
         Ok(code) => code,

@@ -118,12 +118,27 @@ pub struct HermiteData {
     /// The handles.
     #[serde(default)]
     pub handles: Vec<Handle>,
+    /// Weight `α` of the normal term (default 1).
+    #[serde(default)]
+    pub alpha: Option<f64>,
+    /// Optimization sweeps (default 8).
+    #[serde(default)]
+    pub iterations: Option<usize>,
 }
 
 /// The format tag of handles files.
 pub const FORMAT_TAG: &str = "ism-hermite/1";
 
 impl HermiteData {
+    /// The file's options over the defaults.
+    pub fn options(&self) -> HermiteOptions {
+        let d = HermiteOptions::default();
+        HermiteOptions {
+            alpha: self.alpha.unwrap_or(d.alpha),
+            iterations: self.iterations.unwrap_or(d.iterations),
+        }
+    }
+
     /// Parses a handles file.
     ///
     /// # Errors
@@ -347,16 +362,23 @@ fn is_stratum(stage: &Stage, k: usize) -> bool {
             .all(|r| r.face.len() == j + 1 && r.points.len() == j + 1 && r.weights.is_empty())
 }
 
-/// Logits of a stored point (`ln` centred), if within `±LOGIT_BOUND` (else the softmax cannot
-/// represent it and the block is not taken over).
+/// Logits of a stored point (`ln`, shifted to centre their range), if the softmax can represent
+/// it within `±LOGIT_BOUND` (else the block is not taken over). Points written from bounded logits
+/// come back within rounding of the bound, hence the slack.
 fn logits_of(point: &[f64]) -> Option<Vec<f64>> {
+    const SLACK: f64 = 1e-9;
     if point.iter().any(|&x| !(x > 0.0 && x.is_finite())) {
         return None;
     }
     let l: Vec<f64> = point.iter().map(|x| x.ln()).collect();
-    let mean = l.iter().sum::<f64>() / l.len() as f64;
-    let l: Vec<f64> = l.iter().map(|x| x - mean).collect();
-    l.iter().all(|x| x.abs() <= LOGIT_BOUND).then_some(l)
+    let hi = l.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+    let lo = l.iter().copied().fold(f64::INFINITY, f64::min);
+    let mid = 0.5 * (hi + lo);
+    (hi - lo <= 2.0 * LOGIT_BOUND * (1.0 + SLACK)).then(|| {
+        l.iter()
+            .map(|x| (x - mid).clamp(-LOGIT_BOUND, LOGIT_BOUND))
+            .collect()
+    })
 }
 
 impl Layered {
