@@ -7,8 +7,6 @@
 //! Syntax caveat inherited from `exmex`: unary operators bind tighter than binary ones, so
 //! `-x^2` means `(-x)^2`. Write `0-x^2` or `-(x^2)`.
 
-use std::str::FromStr;
-
 use exmex::prelude::*;
 use exmex::{BinOp, FlatEx, MakeOperators, NumberMatcher, Operator};
 
@@ -53,32 +51,6 @@ pub trait ImplicitFunction: Sync {
         } else {
             f64::INFINITY
         }
-    }
-}
-
-impl FromStr for Interval {
-    type Err = std::num::ParseFloatError;
-
-    /// A decimal literal: exact when it is an integer below 2⁵³ written without a fraction,
-    /// otherwise the parsed double widened by one ulp each way (the decimal value lies within half
-    /// an ulp of it).
-    fn from_str(text: &str) -> Result<Interval, Self::Err> {
-        let v: f64 = text.parse()?;
-        let integral = {
-            let (int, frac) = text.split_once('.').unwrap_or((text, ""));
-            int.bytes().all(|c| c.is_ascii_digit()) && frac.bytes().all(|c| c == b'0')
-        };
-        if integral && v.abs() < 9.0e15 {
-            Ok(Interval::point(v))
-        } else {
-            Ok(Interval::around(v))
-        }
-    }
-}
-
-impl std::fmt::Display for Interval {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        write!(f, "[{}, {}]", self.lo, self.hi)
     }
 }
 

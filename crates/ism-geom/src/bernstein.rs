@@ -11,6 +11,8 @@ use std::sync::OnceLock;
 
 use ism_format::multi_index;
 
+use crate::interval::Interval;
+
 use crate::error::{GeomError, Result};
 use crate::tables::multinomial;
 
@@ -223,6 +225,34 @@ impl Bernstein {
             c = casteljau_step(m, t, &shape(m, t).up, &c, w);
         }
         c[0]
+    }
+
+    /// An enclosure of `p` over the box `w ∈ [w_i]` of barycentric coordinates, by de Casteljau in
+    /// interval arithmetic. The homogeneous form is evaluated, so points of the box off the plane
+    /// `Σ w = 1` only widen the result: it contains every value of `p` on the box's part of the
+    /// simplex.
+    pub fn eval_interval(&self, w: &[Interval]) -> Interval {
+        let m = self.m;
+        let mut c: Vec<Interval> = self.coeffs.iter().map(|&x| Interval::point(x)).collect();
+        for t in (0..self.degree).rev() {
+            let shape = shape(m, t);
+            let count = multi_index::count(m, t);
+            let mut next = Vec::with_capacity(count);
+            for r in 0..count {
+                let mut s = Interval::point(0.0);
+                for (i, wi) in w.iter().enumerate().take(m) {
+                    s = s + *wi * c[shape.up[r * m + i]];
+                }
+                next.push(s);
+            }
+            c = next;
+        }
+        c[0]
+    }
+
+    /// `[min coefficient, max coefficient]`: an enclosure of `p` on the simplex.
+    pub fn range(&self) -> Interval {
+        Interval::new(self.min_coeff(), self.max_coeff())
     }
 
     /// The homogeneous partial derivative `∂p/∂w_j`, degree `d − 1`: coefficients `d c_{K + e_j}`.
@@ -497,6 +527,31 @@ mod tests {
                     e[i] = 1.0;
                     assert_eq!(p.eval(&e), p.vertex_value(i));
                 }
+            }
+        }
+    }
+
+    #[test]
+    fn interval_evaluation_encloses_point_values_on_the_box() {
+        for m in 2..=4 {
+            for d in 0..=6 {
+                let p = sample(m, d, 3 + u64::from(d));
+                let lo = [0.1, 0.2, 0.05, 0.3];
+                let hi = [0.3, 0.35, 0.2, 0.45];
+                let boxed: Vec<Interval> = (0..m).map(|i| Interval::new(lo[i], hi[i])).collect();
+                let enclosure = p.eval_interval(&boxed);
+                let mut s = 11u64;
+                for _ in 0..200 {
+                    let mut w = [0.0; 4];
+                    for i in 0..m {
+                        s = s.wrapping_mul(6364136223846793005).wrapping_add(1);
+                        let t = (s >> 11) as f64 / (1u64 << 53) as f64;
+                        w[i] = lo[i] + t * (hi[i] - lo[i]);
+                    }
+                    assert!(enclosure.contains(p.eval(&w[..m])), "m={m} d={d}");
+                }
+                let centre = vec![1.0 / m as f64; m];
+                assert!(p.range().contains(p.eval(&centre)));
             }
         }
     }

@@ -1,4 +1,5 @@
-//! Conservative interval arithmetic for the Plantinga–Vegter test.
+//! Conservative interval arithmetic: the Plantinga–Vegter test of `ism-fit` and the certified
+//! area-element bounds of `ism-sample`.
 //!
 //! Hand-written on purpose: the maintained crate `inari` only builds with
 //! `RUSTFLAGS=-Ctarget-cpu=haswell` (it refuses plain stable x86-64), and a workspace-wide target-cpu
@@ -327,6 +328,32 @@ impl Div for Interval {
         let lo = p.iter().copied().fold(f64::INFINITY, f64::min);
         let hi = p.iter().copied().fold(f64::NEG_INFINITY, f64::max);
         Interval::widened(lo, hi, BASIC_REL)
+    }
+}
+
+impl std::str::FromStr for Interval {
+    type Err = std::num::ParseFloatError;
+
+    /// A decimal literal: exact when it is an integer below 2⁵³ written without a fraction,
+    /// otherwise the parsed double widened by one ulp each way (the decimal value lies within half
+    /// an ulp of it).
+    fn from_str(text: &str) -> Result<Interval, Self::Err> {
+        let v: f64 = text.parse()?;
+        let integral = {
+            let (int, frac) = text.split_once('.').unwrap_or((text, ""));
+            int.bytes().all(|c| c.is_ascii_digit()) && frac.bytes().all(|c| c == b'0')
+        };
+        if integral && v.abs() < 9.0e15 {
+            Ok(Interval::point(v))
+        } else {
+            Ok(Interval::around(v))
+        }
+    }
+}
+
+impl std::fmt::Display for Interval {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "[{}, {}]", self.lo, self.hi)
     }
 }
 

@@ -52,6 +52,7 @@
 
 pub mod bernstein;
 pub mod error;
+pub mod interval;
 pub mod linalg;
 pub mod model;
 mod spatial;
@@ -61,7 +62,7 @@ mod tables;
 pub use bernstein::Bernstein;
 pub use error::{GeomError, Result};
 pub use model::{Located, ModelEval, ParamPoint, Patch, PatchCorner, LOCATE_TOLERANCE};
-pub use stage::{InverseResult, LocalMap, LocalStage, StageLookup, INVERSE_TOLERANCE};
+pub use stage::{InverseResult, LocalMap, LocalStage, Solved, StageLookup, INVERSE_TOLERANCE};
 
 /// Largest number of barycentric coordinates supported (`n ≤ 3`).
 pub const MAX_VARS: usize = 4;

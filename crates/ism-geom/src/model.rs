@@ -288,21 +288,20 @@ impl ModelEval {
 
     /// `F` at barycentric `w` of simplex `s`: `Σ f(v_i) X(w)_i`.
     pub fn value_at(&self, s: usize, w: &Bary) -> f64 {
-        let u = self.local_map(s).eval(w);
-        self.model
-            .simplex(s)
-            .iter()
-            .enumerate()
-            .map(|(i, &v)| self.model.values[v as usize] * u[i])
-            .sum()
+        self.value_from_coordinates(s, &self.local_map(s).eval(w))
     }
 
     /// `∇F` (first `n` entries) at barycentric `w` of simplex `s`, by the chain rule through the
     /// stages; `None` where a parametric stage's stored Jacobian is singular.
     pub fn gradient_at(&self, s: usize, w: &Bary) -> Option<[f64; 3]> {
-        let n = self.n;
         let (_, j) = self.local_map(s).jacobian(w);
-        let j = j?;
+        Some(self.gradient_from_jacobian(s, &j?))
+    }
+
+    /// `∇F` (first `n` entries) in simplex `s` from the reduced Jacobian `DX` of its map at the
+    /// point (e.g. the one [`LocalMap::inverse_near`] returns).
+    pub fn gradient_from_jacobian(&self, s: usize, j: &Mat) -> [f64; 3] {
+        let n = self.n;
         let ids = self.model.simplex(s);
         let f0 = self.model.values[ids[0] as usize];
         // ∂F/∂w_l (reduced) = Σ_k (f_k − f_0) J[k][l].
@@ -317,7 +316,17 @@ impl ModelEval {
         for x in 0..n {
             g[x] = (0..n).map(|l| dw[l] * a[l * 3 + x]).sum();
         }
-        Some(g)
+        g
+    }
+
+    /// `F` in simplex `s` from the function coordinates `x = X(w)` of a point.
+    pub fn value_from_coordinates(&self, s: usize, x: &Bary) -> f64 {
+        self.model
+            .simplex(s)
+            .iter()
+            .enumerate()
+            .map(|(i, &v)| self.model.values[v as usize] * x[i])
+            .sum()
     }
 
     /// `F(p)`, or `None` outside the complex.

@@ -249,6 +249,39 @@ proptest! {
         }
     }
 
+    /// `inverse_near` from a perturbed guess lands on the same preimage as `inverse`, and the
+    /// value and Jacobian it returns are those of the map at that preimage.
+    #[test]
+    fn inverse_near_agrees_with_inverse_and_returns_the_jacobian(seed in any::<u64>(), n in 2usize..=3) {
+        let mut rng = Rng(seed);
+        let mut model = common::kuhn(n, 1, &mut rng);
+        for (i, kind) in [Kind::Monotonic(3), Kind::NearIdentity(3), Kind::Rational(2)].into_iter().enumerate() {
+            let st = make(kind, &model, &mut rng, i == 1);
+            model.stages.push(st);
+        }
+        let m = n + 1;
+        for s in 0..model.num_simplices() {
+            let map = LocalMap::from_model(&model, s).unwrap();
+            for _ in 0..10 {
+                let w = interior(&mut rng, m);
+                let u = map.eval(&w);
+                let mut guess = w;
+                for g in guess.iter_mut().take(m) {
+                    *g *= 1.0 + 0.02 * (rng.bary(2)[0] - 0.5);
+                }
+                let Some(near) = map.inverse_near(&u, &guess) else {
+                    // Allowed (callers fall back), but not from a guess this close.
+                    return Err(TestCaseError::fail(format!("no convergence from {guess:?}")));
+                };
+                prop_assert!(near.residual <= INVERSE_TOLERANCE);
+                prop_assert!(max_diff(m, &near.w, &w) < ROUNDTRIP_W);
+                let (x, j) = map.jacobian(&near.w);
+                prop_assert_eq!(x, near.x);
+                prop_assert_eq!(j.unwrap(), near.jacobian);
+            }
+        }
+    }
+
     /// `000` §3 Prop. 3.1: for a polynomial stage `det(reduced) = det(H) / d`.
     #[test]
     fn reduced_and_homogeneous_jacobian_routes_agree(seed in any::<u64>(), n in 2usize..=3, d in 1u32..=6) {

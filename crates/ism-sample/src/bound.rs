@@ -71,12 +71,336 @@ pub fn area_element_bound(map: &LocalMap, edges: &Mat) -> Result<f64, (usize, St
     Ok(bound * (1.0 + BOUND_ROUNDING_MARGIN))
 }
 
+/// Most bisections spent on the last stage's surface-restricted bound: the level set is a
+/// hypersurface, so halving the cell size roughly doubles (2D) or quadruples (3D) the cells that
+/// cross it; 96 reaches cells of about 1/8 of the simplex around a typical patch.
+const MAX_SURFACE_SPLITS: usize = 96;
+
+/// Bound of the area element `J` on the part of a simplex where the shape lies: like
+/// [`area_element_bound`], except that the last stage (when stored in the implicit direction)
+/// contributes `sup |Mᵀν| / det M` (the exact factor of `J` for a single stage, `ν` the unit normal
+/// of the linear patch) over only the bisection cells its level set `f·X(v) = c` can cross, instead
+/// of `sup ‖M‖ / inf det M` over the whole simplex. `values` are `f` at the simplex's vertices
+/// (stored order) and `level` is `c`.
+pub fn surface_area_element_bound(
+    map: &LocalMap,
+    edges: &Mat,
+    values: &[f64],
+    level: f64,
+) -> Result<f64, (usize, String)> {
+    let stages = map.stages();
+    let Some(last) = stages.last() else {
+        return Ok(1.0);
+    };
+    if last.direction() == Direction::Parametric {
+        return area_element_bound(map, edges);
+    }
+    let n = map.vars() - 1;
+    let inv = linalg::inverse(n, edges).ok_or((0, "degenerate simplex".to_string()))?;
+    let mut bound = 1.0;
+    for (k, stage) in stages[..stages.len() - 1].iter().enumerate() {
+        bound *= stage_bound(stage, edges, &inv).map_err(|e| (k, e))?.factor;
+    }
+    let k = stages.len() - 1;
+    // Both factors are certified; the restricted one is usually far smaller, but its vector-norm
+    // bound (componentwise maxima) can lose to the whole-simplex one on nearly affine stages.
+    let whole = stage_bound(last, edges, &inv).map_err(|e| (k, e))?.factor;
+    bound *= surface_stage_factor(last, &inv, values, level)
+        .map_err(|e| (k, e))?
+        .min(whole);
+    if !bound.is_finite() {
+        return Err((0, format!("area-element bound is {bound}")));
+    }
+    Ok(bound * (1.0 + BOUND_ROUNDING_MARGIN))
+}
+
+/// A cell of the surface-restricted bound: `F − c` (times `Q`), the components of
+/// `E⁻ᵀ ∇_w F` (times `Q²`), `Q²`, `det DX` (times `Q^{2n}`) and `Q^{2n}`, restricted to the cell.
+struct SurfaceCell {
+    cross: Bernstein,
+    grad: Vec<Bernstein>,
+    q2: Option<Bernstein>,
+    det: Bernstein,
+    q2n: Option<Bernstein>,
+    depth: u32,
+}
+
+impl SurfaceCell {
+    fn split(&self, m: usize) -> (SurfaceCell, SurfaceCell) {
+        let pairs: Vec<(usize, usize)> = (0..m)
+            .flat_map(|i| (i + 1..m).map(move |j| (i, j)))
+            .collect();
+        let (e0, e1) = pairs[self.depth as usize % pairs.len()];
+        let halve = |p: &Bernstein| p.split_edge(e0, e1);
+        let halve_opt = |p: &Option<Bernstein>| match p {
+            None => (None, None),
+            Some(p) => {
+                let (x, y) = halve(p);
+                (Some(x), Some(y))
+            }
+        };
+        let (c0, c1) = halve(&self.cross);
+        let (g0, g1): (Vec<_>, Vec<_>) = self.grad.iter().map(halve).unzip();
+        let (q0, q1) = halve_opt(&self.q2);
+        let (d0, d1) = halve(&self.det);
+        let (n0, n1) = halve_opt(&self.q2n);
+        let depth = self.depth + 1;
+        (
+            SurfaceCell {
+                cross: c0,
+                grad: g0,
+                q2: q0,
+                det: d0,
+                q2n: n0,
+                depth,
+            },
+            SurfaceCell {
+                cross: c1,
+                grad: g1,
+                q2: q1,
+                det: d1,
+                q2n: n1,
+                depth,
+            },
+        )
+    }
+
+    /// Whether the level set can meet the cell: `F − c` (times `Q > 0`) has coefficients of both
+    /// signs, allowing for rounding in their computation.
+    fn crosses(&self) -> bool {
+        let c = self.cross.coeffs();
+        let scale = c.iter().fold(0.0f64, |a, x| a.max(x.abs()));
+        let slack = BOUND_ROUNDING_MARGIN * scale;
+        self.cross.min_coeff() <= slack && self.cross.max_coeff() >= -slack
+    }
+
+    /// `(certified bound, estimate at the cell's vertices)` of `|E⁻ᵀ∇_w F| / (|∇F_lin| det DX)`.
+    fn factor(&self, m: usize, linear: f64) -> (f64, f64) {
+        let count = self.grad[0].coeffs().len();
+        let mut g2 = 0.0;
+        for g in &self.grad {
+            let mut top: f64 = 0.0;
+            for k in 0..count {
+                let denom = self.q2.as_ref().map_or(1.0, |q| q.coeffs()[k]);
+                top = top.max(g.coeffs()[k].abs() / denom);
+            }
+            g2 += top * top;
+        }
+        let ratios: Vec<f64> = match &self.q2n {
+            None => self.det.coeffs().to_vec(),
+            Some(q) => self
+                .det
+                .coeffs()
+                .iter()
+                .zip(q.coeffs())
+                .map(|(a, b)| a / b)
+                .collect(),
+        };
+        let slack = BOUND_ROUNDING_MARGIN * ratios.iter().fold(0.0f64, |a, r| a.max(r.abs()));
+        let det_lo = ratios.iter().copied().fold(f64::INFINITY, f64::min) - slack;
+        let mut estimate: f64 = 0.0;
+        for i in 0..m {
+            let qv = self.q2.as_ref().map_or(1.0, |q| q.vertex_value(i));
+            let gv: f64 = self
+                .grad
+                .iter()
+                .map(|g| (g.vertex_value(i) / qv).powi(2))
+                .sum::<f64>()
+                .sqrt();
+            let dv =
+                self.det.vertex_value(i) / self.q2n.as_ref().map_or(1.0, |q| q.vertex_value(i));
+            if dv > 0.0 {
+                estimate = estimate.max(gv / (linear * dv));
+            }
+        }
+        let bound = if det_lo.is_nan() || det_lo <= 0.0 {
+            f64::INFINITY
+        } else {
+            g2.sqrt() * (1.0 + BOUND_ROUNDING_MARGIN) / (linear * det_lo)
+        };
+        (bound, estimate)
+    }
+}
+
+/// The last stage's factor `sup |E⁻ᵀ DXᵀ Δf| / (|∇F_lin| det DX)` over the cells its level set
+/// crosses (see [`surface_area_element_bound`]).
+fn surface_stage_factor(
+    stage: &LocalStage,
+    inv_edges: &Mat,
+    values: &[f64],
+    level: f64,
+) -> Result<f64, String> {
+    let m = stage.vars();
+    let n = m - 1;
+    let JacobianPolys {
+        p, q, q2, det, q2n, ..
+    } = jacobian_polys(stage)?;
+    // F = Σ f_i X_i = N/Q with N = Σ f_i P_i (Q ≡ 1 for a polynomial stage, whose components sum
+    // to one).
+    let mut nf = p[0].scale(values[0]);
+    for (pi, &fi) in p.iter().zip(values).skip(1) {
+        nf = nf.add(&pi.scale(fi));
+    }
+    let cross = match &q {
+        None => nf.add(&Bernstein::constant(m, nf.degree(), -level)),
+        Some(q) => nf.add(&q.scale(-level)),
+    };
+    // ∂F/∂w_l = (∂N Q − N ∂Q)/Q², numerators elevated to the degree of Q².
+    let dw: Vec<Bernstein> = (1..m)
+        .map(|l| match (&q, &q2) {
+            (Some(q), Some(q2)) => nf
+                .derivative(l)
+                .mul(q)
+                .add(&nf.mul(&q.derivative(l)).scale(-1.0))
+                .elevate_to(q2.degree()),
+            _ => nf.derivative(l),
+        })
+        .collect();
+    // (E⁻ᵀ g)_x = Σ_l (E⁻¹)_{l x} g_l.
+    let grad: Vec<Bernstein> = (0..n)
+        .map(|x| {
+            let mut acc = dw[0].scale(inv_edges[0][x]);
+            for (l, g) in dw.iter().enumerate().skip(1) {
+                acc = acc.add(&g.scale(inv_edges[l][x]));
+            }
+            acc
+        })
+        .collect();
+    let linear = (0..n)
+        .map(|x| {
+            (0..n)
+                .map(|l| (values[l + 1] - values[0]) * inv_edges[l][x])
+                .sum::<f64>()
+                .powi(2)
+        })
+        .sum::<f64>()
+        .sqrt();
+    if linear.is_nan() || linear <= 0.0 {
+        return Err("the linear function is constant on the simplex".into());
+    }
+    let root = SurfaceCell {
+        cross,
+        grad,
+        q2,
+        det,
+        q2n,
+        depth: 0,
+    };
+    if !root.crosses() {
+        // No surface in this simplex: nothing is ever sampled here.
+        return Ok(0.0);
+    }
+    let (bound, mut estimate) = root.factor(m, linear);
+    let mut cells: Vec<(f64, SurfaceCell)> = vec![(bound, root)];
+    let mut splits = 0;
+    let factor = loop {
+        let Some(worst) = (0..cells.len()).max_by(|&i, &j| cells[i].0.total_cmp(&cells[j].0))
+        else {
+            break 0.0;
+        };
+        let top = cells[worst].0;
+        if top * DET_TIGHTNESS <= estimate
+            || splits >= MAX_SURFACE_SPLITS
+            || cells[worst].1.depth >= MAX_DEPTH
+        {
+            break top;
+        }
+        let (_, cell) = cells.swap_remove(worst);
+        let (a, b) = cell.split(m);
+        for child in [a, b] {
+            if child.crosses() {
+                let (bound, est) = child.factor(m, linear);
+                estimate = estimate.max(est);
+                cells.push((bound, child));
+            }
+        }
+        splits += 1;
+    };
+    if !(factor.is_finite() && factor >= 0.0) {
+        return Err(format!(
+            "Jacobian determinant not certified positive near the surface after {splits} bisections"
+        ));
+    }
+    Ok(factor)
+}
+
 /// Bounds of one local stage (see the module doc).
 ///
 /// # Errors
 /// A message when the stored map's determinant cannot be shown positive by its Bernstein
 /// coefficients after `MAX_SPLITS` bisections, or a denominator is not positive.
 pub fn stage_bound(stage: &LocalStage, edges: &Mat, inv_edges: &Mat) -> Result<StageBound, String> {
+    let m = stage.vars();
+    let n = m - 1;
+    let JacobianPolys {
+        num, q2, det, q2n, ..
+    } = jacobian_polys(stage)?;
+    let ctx = CellContext {
+        n,
+        edges,
+        inv_edges,
+        parametric: stage.direction() == Direction::Parametric,
+    };
+    // Refine the cell with the largest bound until it is within DET_TIGHTNESS of the largest exact
+    // vertex value seen (a lower estimate of the true supremum), or the budget is spent. The bound
+    // is the largest cell bound, so only the worst cell ever needs splitting.
+    let root = Cell {
+        num,
+        q2,
+        det,
+        q2n,
+        depth: 0,
+    };
+    let (bound, mut estimate) = ctx.factor(&root)?;
+    let mut cells: Vec<(f64, Cell)> = vec![(bound, root)];
+    let mut splits = 0;
+    let factor = loop {
+        let worst = (0..cells.len())
+            .max_by(|&i, &j| cells[i].0.total_cmp(&cells[j].0))
+            .expect("never empty");
+        let top = cells[worst].0;
+        if top * DET_TIGHTNESS <= estimate
+            || splits >= MAX_SPLITS
+            || cells[worst].1.depth >= MAX_DEPTH
+        {
+            break top;
+        }
+        let (_, cell) = cells.swap_remove(worst);
+        let (a, b) = cell.split(m);
+        for child in [a, b] {
+            let (bound, est) = ctx.factor(&child)?;
+            estimate = estimate.max(est);
+            cells.push((bound, child));
+        }
+        splits += 1;
+    };
+    if factor == f64::INFINITY {
+        return Err(format!(
+            "Jacobian determinant not certified positive after {splits} bisections"
+        ));
+    }
+    if !(factor.is_finite() && factor > 0.0) {
+        return Err(format!(
+            "non-finite or non-positive area-element factor {factor}"
+        ));
+    }
+    Ok(StageBound { factor })
+}
+
+/// A stage as Bernstein polynomials: components `P_i` and denominator `Q` (none for a polynomial
+/// stage), reduced Jacobian numerators, their denominator `Q²`, `det` of the numerators and its
+/// denominator `Q^{2n}`.
+struct JacobianPolys {
+    /// Components `P_i`.
+    p: Vec<Bernstein>,
+    q: Option<Bernstein>,
+    num: Vec<Vec<Bernstein>>,
+    q2: Option<Bernstein>,
+    det: Bernstein,
+    q2n: Option<Bernstein>,
+}
+
+fn jacobian_polys(stage: &LocalStage) -> Result<JacobianPolys, String> {
     let m = stage.vars();
     let n = m - 1;
     let d = stage.degree();
@@ -156,56 +480,14 @@ pub fn stage_bound(stage: &LocalStage, edges: &Mat, inv_edges: &Mat) -> Result<S
         }
         acc
     });
-    let ctx = CellContext {
-        n,
-        edges,
-        inv_edges,
-        parametric: stage.direction() == Direction::Parametric,
-    };
-    // Refine the cell with the largest bound until it is within DET_TIGHTNESS of the largest exact
-    // vertex value seen (a lower estimate of the true supremum), or the budget is spent. The bound
-    // is the largest cell bound, so only the worst cell ever needs splitting.
-    let root = Cell {
+    Ok(JacobianPolys {
+        p,
+        q,
         num,
         q2,
         det,
         q2n,
-        depth: 0,
-    };
-    let (bound, mut estimate) = ctx.factor(&root)?;
-    let mut cells: Vec<(f64, Cell)> = vec![(bound, root)];
-    let mut splits = 0;
-    let factor = loop {
-        let worst = (0..cells.len())
-            .max_by(|&i, &j| cells[i].0.total_cmp(&cells[j].0))
-            .expect("never empty");
-        let top = cells[worst].0;
-        if top * DET_TIGHTNESS <= estimate
-            || splits >= MAX_SPLITS
-            || cells[worst].1.depth >= MAX_DEPTH
-        {
-            break top;
-        }
-        let (_, cell) = cells.swap_remove(worst);
-        let (a, b) = cell.split(m);
-        for child in [a, b] {
-            let (bound, est) = ctx.factor(&child)?;
-            estimate = estimate.max(est);
-            cells.push((bound, child));
-        }
-        splits += 1;
-    };
-    if factor == f64::INFINITY {
-        return Err(format!(
-            "Jacobian determinant not certified positive after {splits} bisections"
-        ));
-    }
-    if !(factor.is_finite() && factor > 0.0) {
-        return Err(format!(
-            "non-finite or non-positive area-element factor {factor}"
-        ));
-    }
-    Ok(StageBound { factor })
+    })
 }
 
 /// A sub-simplex of one stage's bound computation: the Jacobian numerators, their denominator
@@ -479,6 +761,77 @@ mod tests {
                 bound <= 4.0 * worst,
                 "simplex {s}: bound {bound} loose vs {worst}"
             );
+        }
+    }
+
+    /// The surface-restricted bound must dominate `J` sampled densely on the shape (points
+    /// `X⁻¹(u)` for `u` on the linear patch), and never exceed the whole-simplex bound by more
+    /// than rounding.
+    fn check_surface_dominates(model: &ism_format::Model) {
+        let eval = ism_geom::ModelEval::new(model).unwrap();
+        for s in 0..model.num_simplices() {
+            let Some(patch) = eval.patch(s) else { continue };
+            let map = eval.local_map(s);
+            let e = edges(model, s);
+            let inv = linalg::inverse(2, &e).unwrap();
+            let ids = model.simplex(s);
+            let values: Vec<f64> = ids.iter().map(|&v| model.values[v as usize]).collect();
+            let bound = surface_area_element_bound(map, &e, &values, model.level).unwrap();
+            let whole = area_element_bound(map, &e).unwrap();
+            let linear = (0..2)
+                .map(|x| {
+                    (0..2)
+                        .map(|l| (values[l + 1] - values[0]) * inv[l][x])
+                        .sum::<f64>()
+                        .powi(2)
+                })
+                .sum::<f64>()
+                .sqrt();
+            let (a, b) = (patch.corners[0].u, patch.corners[1].u);
+            let mut worst: f64 = 0.0;
+            for k in 0..=400 {
+                let t = f64::from(k) / 400.0;
+                let mut u = [0.0; MAX_VARS];
+                for i in 0..3 {
+                    u[i] = (1.0 - t) * a[i] + t * b[i];
+                }
+                let w = map.inverse(&u).w;
+                let jac = map.jacobian(&w).1.unwrap();
+                let g = eval.gradient_from_jacobian(s, &jac);
+                let j = (g[0] * g[0] + g[1] * g[1]).sqrt() / (linear * linalg::det(2, &jac));
+                worst = worst.max(j);
+            }
+            eprintln!("simplex {s}: surface bound {bound}, whole {whole}, sampled {worst}");
+            assert!(
+                bound >= worst,
+                "simplex {s}: bound {bound} < sampled {worst}"
+            );
+            assert!(
+                bound <= whole * (1.0 + 1e-9),
+                "simplex {s}: {bound} > {whole}"
+            );
+        }
+    }
+
+    #[test]
+    fn surface_bounds_dominate_the_area_element_on_the_shape() {
+        for stage in [
+            StageBuilder::bezier(2)
+                .face(&[0, 2], &[0.7, 0.3], &[])
+                .build(),
+            StageBuilder::bezier(3)
+                .face(&[0, 1, 2], &[0.5, 0.2, 0.3], &[])
+                .face(&[0, 1], &[0.6, 0.4, 0.1, 0.9], &[])
+                .build(),
+            StageBuilder::rational(2)
+                .face(&[0, 2], &[0.5, 0.5], &[3.0])
+                .build(),
+            StageBuilder::monotonic(3)
+                .vertex_map(0, &[0.0, 1.0, 1.5, 2.0])
+                .vertex_map(2, &[0.0, 0.2, 0.5, 1.0])
+                .build(),
+        ] {
+            check_surface_dominates(&two_triangles(stage));
         }
     }
 

@@ -12,11 +12,11 @@
 //!    inside its simplex if needed.
 
 use ism_format::Model;
-use ism_geom::{linalg, Bary, Mat, ModelEval, MAX_VARS};
+use ism_geom::{linalg, Bary, Mat, ModelEval, Solved, MAX_VARS};
 use rand::Rng;
 use rayon::prelude::*;
 
-use crate::bound::area_element_bound;
+use crate::bound::surface_area_element_bound;
 use crate::error::{Result, SampleError};
 
 /// Required closeness of a surface sample to `O`, relative to the model size: `|F − c| / |∇F|`
@@ -63,7 +63,26 @@ pub struct PatchEntry {
     pub bound: f64,
     /// `|∇F_lin|` on this simplex.
     linear_gradient: f64,
+    /// Preimages `X⁻¹(u)` of a level-[`GUESS_LEVEL`] lattice on each triangle (or the segment),
+    /// [`lattice_index`] order: linear interpolation in them starts Newton close to the solution.
+    /// Empty when the simplex has no stage.
+    guesses: Vec<Bary>,
 }
+
+/// Subdivision level of the per-patch lattice of precomputed preimages. Linear interpolation on a
+/// lattice of spacing `h = 1/4` is off by `O(h²)` times the map's second derivative, so Newton from
+/// there needs two or three iterations instead of the five to fifteen a per-stage solve from the
+/// identity takes; the table costs `15` inversions per triangle.
+pub const GUESS_LEVEL: usize = 4;
+
+/// Position of lattice point `(i, j)` (`i + j ≤ L`, barycentric `((L − i − j)/L, i/L, j/L)`) in
+/// a triangle's part of the guess list (a segment stores point `i` at `i`).
+fn lattice_index(i: usize, j: usize) -> usize {
+    i * (2 * GUESS_LEVEL + 3 - i) / 2 + j
+}
+
+/// Number of lattice points per triangle.
+const LATTICE_POINTS: usize = (GUESS_LEVEL + 1) * (GUESS_LEVEL + 2) / 2;
 
 /// Everything the surface sampler precomputes: one entry per crossed simplex and the cumulative
 /// selection weights.
@@ -177,14 +196,14 @@ impl SurfaceTable {
                         ([t, t], 1u8, 1.0, a0)
                     }
                 };
-                let bound =
-                    area_element_bound(eval.local_map(s), &e).map_err(|(stage, reason)| {
-                        SampleError::Uncertified {
-                            simplex: s,
-                            stage,
-                            reason,
-                        }
+                let values: Vec<f64> = ids.iter().map(|&v| model.values[v as usize]).collect();
+                let bound = surface_area_element_bound(eval.local_map(s), &e, &values, model.level)
+                    .map_err(|(stage, reason)| SampleError::Uncertified {
+                        simplex: s,
+                        stage,
+                        reason,
                     })?;
+                let guesses = lattice_guesses(eval.local_map(s), &tris, count);
                 Ok(PatchEntry {
                     simplex: s as u32,
                     corners: tris,
@@ -193,6 +212,7 @@ impl SurfaceTable {
                     linear_area: area,
                     bound,
                     linear_gradient: norm(&g),
+                    guesses,
                 })
             })
             .collect::<Result<Vec<_>>>()?;
@@ -254,70 +274,92 @@ impl SurfaceTable {
         loop {
             let patch = self.pick(rng);
             let s = patch.simplex as usize;
-            let u = uniform_on_patch(patch, rng);
+            let (u, guess) = patch.propose(rng);
             let map = eval.local_map(s);
-            let (w, accept) = if map.stages().is_empty() {
-                (u, true)
-            } else {
-                let inv = map.inverse(&u);
-                if inv.residual.is_nan() || inv.residual > INVERSE_RESIDUAL {
-                    return Err(SampleError::Numerical {
-                        simplex: s,
-                        reason: format!(
-                            "inverse map did not converge at u = {:?} (residual {:e})",
-                            &u[..=n],
-                            inv.residual
-                        ),
-                    });
+            let solved = if map.stages().is_empty() {
+                Solved {
+                    w: u,
+                    x: u,
+                    jacobian: ism_geom::stage::identity_mat(n),
+                    residual: 0.0,
+                    iterations: 0,
                 }
-                let accept = match self.weighting {
-                    Weighting::LinearArea => true,
-                    Weighting::CurvedArea => {
-                        let j = self.area_element(eval, s, &inv.w, patch)?;
-                        if j > patch.bound {
-                            return Err(SampleError::Numerical {
-                                simplex: s,
-                                reason: format!(
-                                    "area element {j} exceeds its certified bound {}",
-                                    patch.bound
-                                ),
-                            });
-                        }
-                        rng.random::<f64>() * patch.bound < j
-                    }
-                };
-                (inv.w, accept)
+            } else {
+                match map.inverse_near(&u, &guess) {
+                    Some(solved) => solved,
+                    None => solve_from_scratch(map, s, &u)?,
+                }
+            };
+            let grad = eval.gradient_from_jacobian(s, &solved.jacobian);
+            let accept = match self.weighting {
+                Weighting::LinearArea => true,
+                Weighting::CurvedArea => {
+                    let j = self.area_element(s, &solved, &grad, patch)?;
+                    rng.random::<f64>() * patch.bound < j
+                }
             };
             if accept {
-                return self.finish(eval, s, w);
+                return self.finish_solved(eval, s, &solved, &grad);
             }
         }
     }
 
-    /// `J = |∇F| / (|∇F_lin| det DX)` at barycentric `w` of simplex `s` (module doc of
-    /// [`crate::bound`]).
+    /// `J = |∇F| / (|∇F_lin| det DX)` (module doc of [`crate::bound`]), from the Jacobian the
+    /// inverse returned.
     fn area_element(
         &self,
-        eval: &ModelEval,
         s: usize,
-        w: &Bary,
+        solved: &Solved,
+        grad: &[f64; 3],
         patch: &PatchEntry,
     ) -> Result<f64> {
-        let n = eval.dim();
-        let det = eval.local_map(s).det(w);
-        let grad = eval
-            .gradient_at(s, w)
-            .ok_or_else(|| SampleError::Numerical {
-                simplex: s,
-                reason: "singular stage Jacobian".into(),
-            })?;
+        let n = grad.len().min(patch_dim(patch));
+        let det = linalg::det(n, &solved.jacobian);
         if det.is_nan() || det <= 0.0 {
             return Err(SampleError::Numerical {
                 simplex: s,
-                reason: format!("det DX = {det} ≤ 0 at w = {:?}", &w[..=n]),
+                reason: format!("det DX = {det} ≤ 0 at w = {:?}", &solved.w[..=n]),
             });
         }
-        Ok(norm(&grad[..n]) / (patch.linear_gradient * det))
+        let j = norm(&grad[..n]) / (patch.linear_gradient * det);
+        if j > patch.bound {
+            return Err(SampleError::Numerical {
+                simplex: s,
+                reason: format!(
+                    "area element {j} exceeds its certified bound {}",
+                    patch.bound
+                ),
+            });
+        }
+        Ok(j)
+    }
+
+    /// The accepted point, from the values the inverse already computed when they meet the
+    /// surface tolerance (the usual case), else polished by [`SurfaceTable::finish`].
+    fn finish_solved(
+        &self,
+        eval: &ModelEval,
+        s: usize,
+        solved: &Solved,
+        grad: &[f64; 3],
+    ) -> Result<SurfacePoint> {
+        let n = eval.dim();
+        let c = eval.model().level;
+        let f = eval.value_from_coordinates(s, &solved.x);
+        let gn = norm(&grad[..n]);
+        if (f - c).abs() <= SURFACE_TOLERANCE * gn * self.scale && gn > 0.0 {
+            let mut normal = [0.0; 3];
+            for x in 0..n {
+                normal[x] = grad[x] / gn;
+            }
+            return Ok(SurfacePoint {
+                p: eval.point(s, &solved.w),
+                normal,
+                value: f,
+                simplex: s,
+            });
+        }
+        self.finish(eval, s, solved.w)
     }
 
     fn finish(&self, eval: &ModelEval, s: usize, mut w: Bary) -> Result<SurfacePoint> {
@@ -375,30 +417,144 @@ pub struct SurfacePoint {
     pub simplex: usize,
 }
 
-/// `u` uniform (by point-space area; `W` is affine so barycentric area is proportional) on the
-/// patch.
-fn uniform_on_patch(patch: &PatchEntry, rng: &mut impl Rng) -> Bary {
-    let mut u = [0.0; MAX_VARS];
+/// `X⁻¹(u)` with the robust per-stage solver (when Newton from the lattice guess fails), and the
+/// Jacobian there.
+fn solve_from_scratch(map: &ism_geom::LocalMap, s: usize, u: &Bary) -> Result<Solved> {
+    let n = map.vars() - 1;
+    let inv = map.inverse(u);
+    if inv.residual.is_nan() || inv.residual > INVERSE_RESIDUAL {
+        return Err(SampleError::Numerical {
+            simplex: s,
+            reason: format!(
+                "inverse map did not converge at u = {:?} (residual {:e})",
+                &u[..=n],
+                inv.residual
+            ),
+        });
+    }
+    let (x, j) = map.jacobian(&inv.w);
+    let jacobian = j.ok_or_else(|| SampleError::Numerical {
+        simplex: s,
+        reason: "singular stage Jacobian".into(),
+    })?;
+    Ok(Solved {
+        w: inv.w,
+        x,
+        jacobian,
+        residual: inv.residual,
+        iterations: inv.iterations,
+    })
+}
+
+/// Dimension of the patch's simplex (2 for a segment patch, 3 otherwise).
+fn patch_dim(patch: &PatchEntry) -> usize {
     if patch.triangles == 0 {
-        let t: f64 = rng.random();
-        let [a, b, _] = patch.corners[0];
-        for i in 0..MAX_VARS {
-            u[i] = (1.0 - t) * a[i] + t * b[i];
-        }
-        return u;
-    }
-    let which = if patch.triangles == 2 && rng.random::<f64>() >= patch.first_fraction {
-        1
+        2
     } else {
-        0
-    };
-    let [a, b, c] = patch.corners[which];
-    let r1: f64 = rng.random();
-    let r2: f64 = rng.random();
-    let s = r1.sqrt();
-    let (la, lb, lc) = (1.0 - s, s * (1.0 - r2), s * r2);
-    for i in 0..MAX_VARS {
-        u[i] = la * a[i] + lb * b[i] + lc * c[i];
+        3
     }
-    u
+}
+
+/// Preimages of the lattice points of each patch triangle (segment in 2D).
+fn lattice_guesses(map: &ism_geom::LocalMap, tris: &[[Bary; 3]; 2], count: u8) -> Vec<Bary> {
+    if map.stages().is_empty() {
+        return Vec::new();
+    }
+    let l = GUESS_LEVEL as f64;
+    let mut out = Vec::with_capacity(LATTICE_POINTS * usize::from(count.max(1)));
+    if count == 0 {
+        let [a, b, _] = tris[0];
+        for i in 0..=GUESS_LEVEL {
+            let t = i as f64 / l;
+            let mut u = [0.0; MAX_VARS];
+            for k in 0..MAX_VARS {
+                u[k] = (1.0 - t) * a[k] + t * b[k];
+            }
+            out.push(map.inverse(&u).w);
+        }
+        return out;
+    }
+    for tri in tris.iter().take(usize::from(count)) {
+        for i in 0..=GUESS_LEVEL {
+            for j in 0..=GUESS_LEVEL - i {
+                let (lb, lc) = (i as f64 / l, j as f64 / l);
+                let la = 1.0 - lb - lc;
+                let mut u = [0.0; MAX_VARS];
+                for k in 0..MAX_VARS {
+                    u[k] = la * tri[0][k] + lb * tri[1][k] + lc * tri[2][k];
+                }
+                // Only a starting guess: an unconverged preimage costs iterations, not accuracy.
+                out.push(map.inverse(&u).w);
+            }
+        }
+    }
+    out
+}
+
+impl PatchEntry {
+    /// `u` uniform (by point-space area; `W` is affine so barycentric area is proportional) on the
+    /// patch, and the preimage guess interpolated in the lattice.
+    fn propose(&self, rng: &mut impl Rng) -> (Bary, Bary) {
+        let l = GUESS_LEVEL as f64;
+        let mut u = [0.0; MAX_VARS];
+        if self.triangles == 0 {
+            let t: f64 = rng.random();
+            let [a, b, _] = self.corners[0];
+            for i in 0..MAX_VARS {
+                u[i] = (1.0 - t) * a[i] + t * b[i];
+            }
+            if self.guesses.is_empty() {
+                return (u, u);
+            }
+            let x = t * l;
+            let i = (x.floor() as usize).min(GUESS_LEVEL - 1);
+            let f = x - i as f64;
+            let (g0, g1) = (&self.guesses[i], &self.guesses[i + 1]);
+            let mut g = [0.0; MAX_VARS];
+            for k in 0..MAX_VARS {
+                g[k] = (1.0 - f) * g0[k] + f * g1[k];
+            }
+            return (u, g);
+        }
+        let which = if self.triangles == 2 && rng.random::<f64>() >= self.first_fraction {
+            1
+        } else {
+            0
+        };
+        let [a, b, c] = self.corners[which];
+        let r1: f64 = rng.random();
+        let r2: f64 = rng.random();
+        let s = r1.sqrt();
+        let (la, lb, lc) = (1.0 - s, s * (1.0 - r2), s * r2);
+        for i in 0..MAX_VARS {
+            u[i] = la * a[i] + lb * b[i] + lc * c[i];
+        }
+        if self.guesses.is_empty() {
+            return (u, u);
+        }
+        // The lattice cell of (lb, lc) and its lower or upper triangle.
+        let (x, y) = (lb * l, lc * l);
+        let i = (x.floor() as usize).min(GUESS_LEVEL - 1);
+        let j = (y.floor() as usize).min(GUESS_LEVEL - 1 - i.min(GUESS_LEVEL - 1));
+        let (fx, fy) = (x - i as f64, y - j as f64);
+        let base = which * LATTICE_POINTS;
+        let at = |i: usize, j: usize| &self.guesses[base + lattice_index(i, j)];
+        let (p, q, r, wp, wq, wr) = if fx + fy <= 1.0 || i + j + 2 > GUESS_LEVEL {
+            (at(i, j), at(i + 1, j), at(i, j + 1), 1.0 - fx - fy, fx, fy)
+        } else {
+            (
+                at(i + 1, j + 1),
+                at(i, j + 1),
+                at(i + 1, j),
+                fx + fy - 1.0,
+                1.0 - fx,
+                1.0 - fy,
+            )
+        };
+        let mut g = [0.0; MAX_VARS];
+        for k in 0..MAX_VARS {
+            g[k] = wp * p[k] + wq * q[k] + wr * r[k];
+        }
+        (u, g)
+    }
 }
