@@ -393,6 +393,29 @@ mod tests {
         assert!(!r.block_added);
         let (b, a) = (r.before.unwrap(), r.after.unwrap());
         assert!(a.max < 0.5 * b.max && a.mean < 0.5 * b.mean, "{r:?}");
+        // Smoothing trades position for smoothness (|g|/|∇g| max 6.7e-4 → 1.3e-3 at α = 1e-3 in
+        // our runs); a larger α stays nearer the input (7.3e-4 at α = 0.1, jump max 4.3°).
+        let g = circle.expression().unwrap();
+        let distance = |alpha: f64| {
+            let s = smooth(
+                &model,
+                &SmoothOptions {
+                    alpha,
+                    ..SmoothOptions::default()
+                },
+            )
+            .unwrap();
+            let d = crate::fit::dense_error(&g, &s.model).unwrap().max;
+            (d, s.report.after.unwrap().max)
+        };
+        let input = crate::fit::dense_error(&g, &model).unwrap().max;
+        let (d_small, _) = distance(1e-3);
+        let (d_large, jump_large) = distance(0.1);
+        assert!(
+            d_large < d_small && d_small < 3.0 * input,
+            "{input} {d_small} {d_large}"
+        );
+        assert!(jump_large < 0.5 * b.max);
     }
 
     #[test]
