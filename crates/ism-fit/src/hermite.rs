@@ -1271,4 +1271,67 @@ mod tests {
         assert_eq!(again.model.stages.len(), 3);
         assert!(again.report.objective_before <= fit.report.objective_after * (1.0 + 1e-9) + 1e-15);
     }
+
+    mod properties {
+        use super::*;
+        use proptest::prelude::*;
+
+        proptest! {
+            #![proptest_config(ProptestConfig::with_cases(24))]
+
+            /// Random values on a 3×3 grid; on every crossing edge a target inside the reach of
+            /// the quadratic edge map and a normal within ±80° of the edge direction.
+            #[test]
+            fn reachable_crossings_are_exact_and_the_output_valid(
+                values in prop::collection::vec(-1.0f64..1.0, 16),
+                reach in prop::collection::vec(0.05f64..0.95, 40),
+                turn in prop::collection::vec(-1.4f64..1.4, 40),
+            ) {
+                let complex = Complex::kuhn(&[0.0, 1.0, 0.0, 1.0], &[3, 3]);
+                let mut model = Model::new(2);
+                model.vertices = complex.points().to_vec();
+                model.simplices = complex.compact_cells();
+                model.values = values
+                    .iter()
+                    .map(|&v| if v.abs() < 0.05 { 0.05f64.copysign(v) } else { v })
+                    .collect();
+                let mut edges: Vec<Vec<u32>> = model
+                    .simplices
+                    .chunks(3)
+                    .flat_map(faces_of)
+                    .filter(|f| f.len() == 2
+                        && model.values[f[0] as usize] * model.values[f[1] as usize] < 0.0)
+                    .collect();
+                edges.sort();
+                edges.dedup();
+                let handles: Vec<Handle> = edges
+                    .iter()
+                    .enumerate()
+                    .map(|(k, e)| {
+                        let (fa, fb) = (model.values[e[0] as usize], model.values[e[1] as usize]);
+                        let tl = fa / (fa - fb);
+                        let (lo, hi) = (tl * tl, 2.0 * tl - tl * tl);
+                        let t = lo + reach[k % reach.len()] * (hi - lo);
+                        let (pa, pb) = (model.vertex(e[0] as usize), model.vertex(e[1] as usize));
+                        let sign = if fb > fa { 1.0 } else { -1.0 };
+                        let (dx, dy) = (sign * (pb[0] - pa[0]), sign * (pb[1] - pa[1]));
+                        let a = turn[k % turn.len()];
+                        Handle {
+                            edge: [e[0], e[1]],
+                            t: Some(t),
+                            point: None,
+                            normal: vec![dx * a.cos() - dy * a.sin(), dx * a.sin() + dy * a.cos()],
+                        }
+                    })
+                    .collect();
+                let options = HermiteOptions { iterations: 2, ..HermiteOptions::default() };
+                let fit = fit_hermite(&model, &handles, &options).unwrap();
+                let r = &fit.report;
+                prop_assert!(r.max_position_error < 1e-9, "{:?}", r);
+                prop_assert!(r.objective_after <= r.objective_before * (1.0 + 1e-12) + 1e-15);
+                let report = ism_validate::validate(&fit.model, &ism_validate::Options::default());
+                prop_assert_eq!(report.verdict, ism_validate::Verdict::Valid);
+            }
+        }
+    }
 }

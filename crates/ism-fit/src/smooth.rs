@@ -481,4 +481,62 @@ mod tests {
         let s = smooth(&model, &SmoothOptions::default()).unwrap();
         assert!(valid(&s.model));
     }
+
+    mod properties {
+        use super::*;
+        use crate::complex::Complex;
+        use proptest::prelude::*;
+
+        /// A 3×3 Kuhn grid with the given values (pushed away from 0) and random solitary points.
+        fn random_model(values: &[f64], logits: &[f64]) -> Model {
+            let complex = Complex::kuhn(&[0.0, 1.0, 0.0, 1.0], &[3, 3]);
+            let mut model = Model::new(2);
+            model.vertices = complex.points().to_vec();
+            model.simplices = complex.compact_cells();
+            model.values = values
+                .iter()
+                .map(|&v| {
+                    if v.abs() < 0.05 {
+                        0.05f64.copysign(v)
+                    } else {
+                        v
+                    }
+                })
+                .collect();
+            let mut layer = Layered::new(&model).unwrap();
+            let mut faces: Vec<Vec<u32>> = model.simplices.chunks(3).flat_map(faces_of).collect();
+            faces.sort();
+            faces.dedup();
+            for (k, f) in faces.iter().enumerate() {
+                let l: Vec<f64> = (0..f.len())
+                    .map(|i| logits[(3 * k + i) % logits.len()])
+                    .collect();
+                layer.map.set_logits(f, &l);
+            }
+            layer.to_model()
+        }
+
+        proptest! {
+            #![proptest_config(ProptestConfig::with_cases(24))]
+
+            #[test]
+            fn smoothing_never_increases_the_objective_nor_invalidates(
+                values in prop::collection::vec(-1.0f64..1.0, 16),
+                logits in prop::collection::vec(-3.0f64..3.0, 32),
+                alpha in prop_oneof![Just(0.0), 1e-4f64..1.0],
+            ) {
+                let model = random_model(&values, &logits);
+                prop_assume!(valid(&model));
+                let s = smooth(&model, &SmoothOptions { iterations: 2, alpha }).unwrap();
+                let r = &s.report;
+                let mut last = r.objective_before;
+                for &x in &r.sweeps {
+                    prop_assert!(x <= last * (1.0 + 1e-12) + 1e-15, "{:?}", r);
+                    last = x;
+                }
+                prop_assert!(r.objective_after <= r.objective_before * (1.0 + 1e-12) + 1e-15);
+                prop_assert!(valid(&s.model));
+            }
+        }
+    }
 }
