@@ -42,6 +42,9 @@ pub fn run(
         None => None,
     };
     let model = data.base_model(base)?;
+    if svg.is_some() && model.dim() != 2 {
+        anyhow::bail!("--svg draws 2D models only; this one is {}D", model.dim());
+    }
     let fitted = fit_hermite(&model, &data.handles, &data.options())?;
     io::write_path(&fitted.model, output, None, io::WriteOptions::default())
         .with_context(|| format!("cannot write {}", output.display()))?;
