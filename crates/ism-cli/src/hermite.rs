@@ -16,7 +16,8 @@ A JSON handles file (spec/hermite.md, schema spec/schema/hermite.schema.json): e
 \"values\" overrides; and \"handles\": per sign-changing edge {\"edge\": [a, b], \"t\": 0.4 | \"point\":
 [x, y(, z)], \"normal\": [nx, ny(, nz)]} (t runs from a to b; the normal points outside, towards
 larger values). Optional \"alpha\" (weight of the normal term, default 1) and \"iterations\"
-(default 8). Each crossing is met by its edge's control point (exactly when in reach of the
+(default 8), and \"adjustValues\": true to rescale |f(v)| (signs kept) so that every crossing
+comes within reach of its edge map. Each crossing is met by its edge's control point (exactly when in reach of the
 quadratic edge map), the normals by optimizing the other solitary points; the report gives
 per-handle position and angle errors, and the written model is validated.";
 
@@ -88,6 +89,7 @@ pub fn run(
             "objectiveAfter": r.objective_after,
             "freeFaces": r.free_faces,
             "blockAdded": r.block_added,
+            "valuesAdjusted": r.values_adjusted,
             "simplices": fitted.model.num_simplices(),
             "verdict": verdict.as_str(),
             "seconds": r.seconds,
@@ -113,7 +115,7 @@ pub fn run(
         for (i, h) in r.handles.iter().enumerate() {
             if h.position_error > 1e-9 {
                 println!(
-                    "  handle {i} (edge {:?}): crossing out of reach of the edge map, off by {:.3e}",
+                    "  handle {i} (edge {:?}): crossing out of reach of the edge map, off by {:.3e} (see adjustValues)",
                     h.edge, h.position_error
                 );
             }
