@@ -4,7 +4,8 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 
 use anyhow::{bail, Context};
-use ism_fit::{Expression, FitOptions, Preset, PRESETS};
+use ism_fit::mesh::{MeshCheck, MeshDistance, TriangleMesh};
+use ism_fit::{Expression, FitOptions, ImplicitFunction, Preset, PRESETS};
 use ism_format::io;
 
 const AFTER_HELP: &str = "\
@@ -14,33 +15,47 @@ Vertices where g is exactly 0 get the value +1e-12·max|g| (they count as outsid
 
 Presets: circle (paper 001 Fig. 4), taubin (000 §9.2), sphere, torus, genus2.
 
+--mesh FILE (.obj, .glb, .gltf): g is the signed distance to the triangles, negative where the
+generalized winding number exceeds 1/2; the domain is the mesh's bounding box padded by
+--mesh-margin × its diagonal unless --domain is given. The reported distances are true distances to
+the mesh (also relative to its diagonal). A closed mesh's topology (components, Euler
+characteristic) must be reproduced; an open or non-manifold mesh is fitted with a warning and
+without that check.
+
 Examples:
   ism fit --preset circle -o circle.ism.json --svg circle.svg
   ism fit --expr \"x^2 + 2*y^2 - 0.5\" --domain -1,1,-1,1 --resolution 6 --tolerance 1e-4 -o e.ismb
   ism fit --preset torus --resolution 8 --tolerance 2e-3 -o torus.ismb --json
+  ism fit --mesh bunny.obj --resolution 8 --tolerance 2e-3 -o bunny.ismb
 
 Exit status: 0 when the fit meets the tolerance and the model passes the structural checks;
 1 when the tolerance was not met within --max-simplices, or the true topology of a preset
-was not reproduced (the model is still written); 2 on bad arguments or a failed write.";
+or closed mesh was not reproduced (the model is still written); 2 on bad arguments or a failed write.";
 
 /// Arguments of `ism fit`.
 #[derive(clap::Args)]
 #[command(after_help = AFTER_HELP)]
 pub struct Args {
     /// The implicit function g (the shape is g = 0).
-    #[arg(long, conflicts_with = "preset", required_unless_present_any = ["preset", "list_presets", "hermite"])]
+    #[arg(long, conflicts_with = "preset", required_unless_present_any = ["preset", "list_presets", "mesh", "hermite"])]
     expr: Option<String>,
     /// Domain box: x0,x1,y0,y1[,z0,z1]; its length sets the dimension.
     #[arg(
         long,
         value_delimiter = ',',
         allow_hyphen_values = true,
-        requires = "expr"
+        conflicts_with = "preset"
     )]
     domain: Option<Vec<f64>>,
     /// A named shape (see --list-presets).
     #[arg(long)]
     preset: Option<String>,
+    /// A closed triangle mesh (.obj, .glb, .gltf): fit its surface.
+    #[arg(long, conflicts_with_all = ["expr", "preset"])]
+    mesh: Option<PathBuf>,
+    /// With --mesh and no --domain: pad the bounding box by this fraction of its diagonal.
+    #[arg(long, default_value_t = 0.05)]
+    mesh_margin: f64,
     /// List the presets and exit.
     #[arg(long)]
     list_presets: bool,
@@ -90,37 +105,48 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         }
         return Ok(ExitCode::SUCCESS);
     }
-    let (expression, domain, name, preset): (Expression, Vec<f64>, String, Option<&Preset>) =
-        match (&args.preset, &args.expr) {
-            (Some(name), _) => {
-                let p = Preset::find(name)?;
-                (
-                    p.expression()?,
-                    p.domain.to_vec(),
-                    p.name.to_string(),
-                    Some(p),
-                )
+    let mut mesh: Option<(MeshCheck, f64, bool)> = None;
+    type Setup<'a> = (
+        Box<dyn ImplicitFunction>,
+        Vec<f64>,
+        String,
+        Option<&'a Preset>,
+    );
+    let (expression, domain, name, preset): Setup = match (&args.preset, &args.expr) {
+        (None, None) if args.mesh.is_some() => {
+            let (g, domain, name, info) = mesh_setup(&args)?;
+            mesh = Some(info);
+            (Box::new(g), domain, name, None)
+        }
+        (Some(name), _) => {
+            let p = Preset::find(name)?;
+            (
+                Box::new(p.expression()?),
+                p.domain.to_vec(),
+                p.name.to_string(),
+                Some(p),
+            )
+        }
+        (None, Some(text)) => {
+            let domain = args
+                .domain
+                .clone()
+                .context("--expr needs --domain x0,x1,y0,y1[,z0,z1]")?;
+            if domain.len() != 4 && domain.len() != 6 {
+                bail!(
+                    "--domain needs 4 numbers (2D) or 6 (3D), got {}",
+                    domain.len()
+                );
             }
-            (None, Some(text)) => {
-                let domain = args
-                    .domain
-                    .clone()
-                    .context("--expr needs --domain x0,x1,y0,y1[,z0,z1]")?;
-                if domain.len() != 4 && domain.len() != 6 {
-                    bail!(
-                        "--domain needs 4 numbers (2D) or 6 (3D), got {}",
-                        domain.len()
-                    );
-                }
-                (
-                    Expression::parse(text, domain.len() / 2)?,
-                    domain,
-                    "fit".to_string(),
-                    None,
-                )
-            }
-            (None, None) => bail!("give --expr with --domain, or --preset"),
-        };
+            (
+                Box::new(Expression::parse(text, domain.len() / 2)?),
+                domain,
+                "fit".to_string(),
+                None,
+            )
+        }
+        (None, None) => bail!("give --expr with --domain, or --preset"),
+    };
     let output = args.output.clone().context("missing --output")?;
     let mut options = FitOptions::new(&domain);
     options.resolution = args.resolution;
@@ -142,7 +168,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         bar
     };
     let tolerance = options.tolerance;
-    let fitted = ism_fit::fit(&expression, &options, &mut |p| {
+    let fitted = ism_fit::fit(&*expression, &options, &mut |p| {
         let worst = if p.worst.is_nan() {
             String::from("-")
         } else {
@@ -174,8 +200,19 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     }
 
     let r = &fitted.report;
+    let expected = match (preset, &mesh) {
+        (Some(p), _) => Some(("the true shape", p.components, p.euler)),
+        (None, Some((c, _, _))) if c.is_closed_manifold() => {
+            Some(("the mesh", c.components, c.euler))
+        }
+        _ => None,
+    };
     let topology_ok =
-        preset.is_none_or(|p| p.components == r.topology.components && p.euler == r.topology.euler);
+        expected.is_none_or(|(_, c, e)| c == r.topology.components && e == r.topology.euler);
+    // True distances to the mesh relative to its diagonal (|g|/|∇g| = |g| for a distance).
+    let relative = mesh
+        .as_ref()
+        .map(|(_, diagonal, _)| (r.max_distance / diagonal, r.mean_distance / diagonal));
     if args.json {
         let value = serde_json::json!({
             "simplices": r.simplices,
@@ -192,6 +229,19 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             "euler": r.topology.euler,
             "toleranceMet": r.tolerance_met,
             "topologyMatchesPreset": topology_ok,
+            "mesh": mesh.as_ref().map(|(c, diagonal, flipped)| serde_json::json!({
+                "vertices": c.vertices,
+                "triangles": c.triangles,
+                "closedManifold": c.is_closed_manifold(),
+                "boundaryEdges": c.boundary_edges,
+                "nonmanifoldEdges": c.nonmanifold_edges,
+                "components": c.components,
+                "euler": c.euler,
+                "flipped": flipped,
+                "diagonal": diagonal,
+                "maxDistanceRelative": relative.map(|x| x.0),
+                "meanDistanceRelative": relative.map(|x| x.1),
+            })),
             "structuralErrors": structural.len(),
             "seconds": r.seconds,
         });
@@ -214,9 +264,18 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             "  topology         {} component(s), Euler characteristic {}",
             r.topology.components, r.topology.euler
         );
+        if let (Some((c, diagonal, _)), Some((max, mean))) = (&mesh, relative) {
+            println!(
+                "  mesh             {} triangles, {} vertices, {} component(s), χ = {}, diagonal {:.4}",
+                c.triangles, c.vertices, c.components, c.euler, diagonal
+            );
+            println!("  distance to mesh max {max:.3e}, mean {mean:.3e} of the diagonal");
+        }
         println!(
             "  Plantinga–Vegter {}",
-            if r.pv_failures == 0 {
+            if mesh.as_ref().is_some_and(|m| !m.0.is_closed_manifold()) {
+                "not applicable (open mesh: no enclosures)".to_string()
+            } else if r.pv_failures == 0 {
                 "every cell passes".to_string()
             } else {
                 format!("{} cells still fail", r.pv_failures)
@@ -241,13 +300,60 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         return Ok(ExitCode::from(1));
     }
     if !topology_ok {
-        if let Some(p) = preset {
+        if let Some((what, c, e)) = expected {
             eprintln!(
-                "topology {} component(s), χ = {} differs from the true shape's {} component(s), χ = {}",
-                r.topology.components, r.topology.euler, p.components, p.euler
+                "topology {} component(s), χ = {} differs from {what}'s {c} component(s), χ = {e}",
+                r.topology.components, r.topology.euler
             );
         }
         return Ok(ExitCode::from(1));
     }
     Ok(ExitCode::SUCCESS)
+}
+
+/// `--mesh`: the signed distance, the domain, the name, and (check, diagonal, flipped).
+fn mesh_setup(
+    args: &Args,
+) -> anyhow::Result<(MeshDistance, Vec<f64>, String, (MeshCheck, f64, bool))> {
+    let path = args.mesh.as_ref().context("missing --mesh")?;
+    let loaded = TriangleMesh::load(path)?;
+    let g = MeshDistance::new(loaded).map_err(|e| match e {
+        ism_fit::FitError::Mesh { message, .. } => ism_fit::FitError::Mesh {
+            path: path.clone(),
+            message,
+        },
+        e => e,
+    })?;
+    let check = g.check();
+    if !check.is_closed_manifold() {
+        eprintln!(
+            "warning: {} is not a closed manifold ({} boundary, {} non-manifold, {} misoriented edges): \
+             inside is where the winding number exceeds 1/2, and its topology is not checked",
+            path.display(),
+            check.boundary_edges,
+            check.nonmanifold_edges,
+            check.misoriented_edges
+        );
+    }
+    if g.flipped() {
+        eprintln!(
+            "warning: {} faces inward; fitted with its orientation reversed",
+            path.display()
+        );
+    }
+    if !(args.mesh_margin.is_finite() && args.mesh_margin >= 0.0) {
+        bail!("--mesh-margin must be a number ≥ 0");
+    }
+    let domain = match &args.domain {
+        Some(d) if d.len() != 6 => bail!("--domain with --mesh needs 6 numbers, got {}", d.len()),
+        Some(d) => d.clone(),
+        None => g.mesh().domain(args.mesh_margin),
+    };
+    let name = path
+        .file_stem()
+        .and_then(|s| s.to_str())
+        .unwrap_or("mesh")
+        .to_string();
+    let info = (check, g.mesh().diagonal(), g.flipped());
+    Ok((g, domain, name, info))
 }
