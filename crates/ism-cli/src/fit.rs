@@ -105,7 +105,8 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         }
         return Ok(ExitCode::SUCCESS);
     }
-    let mut mesh: Option<(MeshCheck, f64, bool)> = None;
+    let mut mesh: Option<MeshInfo> = None;
+    let mut mesh_sharpest: Option<f64> = None;
     type Setup<'a> = (
         Box<dyn ImplicitFunction>,
         Vec<f64>,
@@ -116,6 +117,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         (None, None) if args.mesh.is_some() => {
             let (g, domain, name, info) = mesh_setup(&args)?;
             mesh = Some(info);
+            mesh_sharpest = Some(g.sharpest_edge());
             (Box::new(g), domain, name, None)
         }
         (Some(name), _) => {
@@ -155,7 +157,8 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     }
     options.max_simplices = args.max_simplices;
     options.optimize = !args.no_optimize;
-    options.topology = !args.no_topology;
+    options.topology =
+        !args.no_topology && mesh_sharpest.is_none_or(|a| a <= ism_fit::mesh::PV_SHARPEST_EDGE);
 
     let bar = if args.quiet {
         indicatif::ProgressBar::hidden()
@@ -311,10 +314,11 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     Ok(ExitCode::SUCCESS)
 }
 
-/// `--mesh`: the signed distance, the domain, the name, and (check, diagonal, flipped).
-fn mesh_setup(
-    args: &Args,
-) -> anyhow::Result<(MeshDistance, Vec<f64>, String, (MeshCheck, f64, bool))> {
+/// What the report needs to know about a mesh: its check, diagonal, and whether it was flipped.
+type MeshInfo = (MeshCheck, f64, bool);
+
+/// `--mesh`: the signed distance, the domain, the name, and the [`MeshInfo`].
+fn mesh_setup(args: &Args) -> anyhow::Result<(MeshDistance, Vec<f64>, String, MeshInfo)> {
     let path = args.mesh.as_ref().context("missing --mesh")?;
     let loaded = TriangleMesh::load(path)?;
     let g = MeshDistance::new(loaded).map_err(|e| match e {
@@ -333,6 +337,16 @@ fn mesh_setup(
             check.boundary_edges,
             check.nonmanifold_edges,
             check.misoriented_edges
+        );
+    }
+    let sharpest = g.sharpest_edge();
+    if sharpest > ism_fit::mesh::PV_SHARPEST_EDGE && !args.no_topology {
+        eprintln!(
+            "warning: {} has edges where the normal turns by {:.0}°: the Plantinga–Vegter test cannot \
+             pass there at any cell size, so it is skipped (as with --no-topology); the topology is \
+             checked against the mesh's instead",
+            path.display(),
+            sharpest.to_degrees()
         );
     }
     if g.flipped() {

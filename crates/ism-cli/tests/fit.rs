@@ -199,3 +199,265 @@ fn sphere_preset_fits_in_3d_with_the_true_topology_and_validates() {
         String::from_utf8_lossy(&check.stdout)
     );
 }
+
+/// An icosphere of radius `r` around `centre` (`level` subdivisions), outward triangles.
+fn icosphere(level: usize, r: f64, centre: [f64; 3]) -> (Vec<[f64; 3]>, Vec<[u32; 3]>) {
+    let t = (1.0 + 5f64.sqrt()) / 2.0;
+    let unit = |p: [f64; 3]| {
+        let l = (p[0] * p[0] + p[1] * p[1] + p[2] * p[2]).sqrt();
+        p.map(|x| x / l)
+    };
+    let mut points: Vec<[f64; 3]> = [
+        [-1.0, t, 0.0],
+        [1.0, t, 0.0],
+        [-1.0, -t, 0.0],
+        [1.0, -t, 0.0],
+        [0.0, -1.0, t],
+        [0.0, 1.0, t],
+        [0.0, -1.0, -t],
+        [0.0, 1.0, -t],
+        [t, 0.0, -1.0],
+        [t, 0.0, 1.0],
+        [-t, 0.0, -1.0],
+        [-t, 0.0, 1.0],
+    ]
+    .map(unit)
+    .to_vec();
+    let mut tris: Vec<[u32; 3]> = vec![
+        [0, 11, 5],
+        [0, 5, 1],
+        [0, 1, 7],
+        [0, 7, 10],
+        [0, 10, 11],
+        [1, 5, 9],
+        [5, 11, 4],
+        [11, 10, 2],
+        [10, 7, 6],
+        [7, 1, 8],
+        [3, 9, 4],
+        [3, 4, 2],
+        [3, 2, 6],
+        [3, 6, 8],
+        [3, 8, 9],
+        [4, 9, 5],
+        [2, 4, 11],
+        [6, 2, 10],
+        [8, 6, 7],
+        [9, 8, 1],
+    ];
+    for _ in 0..level {
+        let mut mid = std::collections::HashMap::new();
+        let mut next = Vec::new();
+        for tri in &tris {
+            let m = [0, 1, 2].map(|k| {
+                let (a, b) = (tri[k], tri[(k + 1) % 3]);
+                *mid.entry((a.min(b), a.max(b))).or_insert_with(|| {
+                    let (p, q) = (points[a as usize], points[b as usize]);
+                    points.push(unit([p[0] + q[0], p[1] + q[1], p[2] + q[2]]));
+                    (points.len() - 1) as u32
+                })
+            });
+            next.extend([
+                [tri[0], m[0], m[2]],
+                [tri[1], m[1], m[0]],
+                [tri[2], m[2], m[1]],
+                [m[0], m[1], m[2]],
+            ]);
+        }
+        tris = next;
+    }
+    let points = points
+        .iter()
+        .map(|p| [0, 1, 2].map(|k| centre[k] + r * p[k]))
+        .collect();
+    (points, tris)
+}
+
+fn obj_text(points: &[[f64; 3]], tris: &[[u32; 3]]) -> String {
+    let mut s = String::new();
+    for p in points {
+        s += &format!("v {} {} {}\n", p[0], p[1], p[2]);
+    }
+    for t in tris {
+        s += &format!("f {} {} {}\n", t[0] + 1, t[1] + 1, t[2] + 1);
+    }
+    s
+}
+
+/// A GLB with one indexed triangle primitive placed by a node translation.
+fn glb_bytes(points: &[[f64; 3]], tris: &[[u32; 3]], translation: [f32; 3]) -> Vec<u8> {
+    let mut bin = Vec::new();
+    let (mut lo, mut hi) = ([f32::MAX; 3], [f32::MIN; 3]);
+    for p in points {
+        for k in 0..3 {
+            let x = p[k] as f32;
+            lo[k] = lo[k].min(x);
+            hi[k] = hi[k].max(x);
+            bin.extend(x.to_le_bytes());
+        }
+    }
+    let index_offset = bin.len();
+    for t in tris {
+        for i in t {
+            bin.extend(i.to_le_bytes());
+        }
+    }
+    let json = format!(
+        r#"{{"asset":{{"version":"2.0"}},"scene":0,"scenes":[{{"nodes":[0]}}],
+        "nodes":[{{"mesh":0,"translation":{translation:?}}}],
+        "meshes":[{{"primitives":[{{"attributes":{{"POSITION":0}},"indices":1}}]}}],
+        "buffers":[{{"byteLength":{}}}],
+        "bufferViews":[{{"buffer":0,"byteOffset":0,"byteLength":{index_offset}}},
+                       {{"buffer":0,"byteOffset":{index_offset},"byteLength":{}}}],
+        "accessors":[{{"bufferView":0,"componentType":5126,"count":{},"type":"VEC3","min":{lo:?},"max":{hi:?}}},
+                     {{"bufferView":1,"componentType":5125,"count":{},"type":"SCALAR"}}]}}"#,
+        bin.len(),
+        bin.len() - index_offset,
+        points.len(),
+        tris.len() * 3
+    );
+    let mut json = json.into_bytes();
+    while json.len() % 4 != 0 {
+        json.push(b' ');
+    }
+    let total = 12 + 8 + json.len() + 8 + bin.len();
+    let mut out = Vec::new();
+    out.extend(b"glTF");
+    out.extend(2u32.to_le_bytes());
+    out.extend((total as u32).to_le_bytes());
+    out.extend((json.len() as u32).to_le_bytes());
+    out.extend(b"JSON");
+    out.extend(&json);
+    out.extend((bin.len() as u32).to_le_bytes());
+    out.extend(b"BIN\0");
+    out.extend(&bin);
+    out
+}
+
+fn fit_mesh(mesh: &std::path::Path, model: &std::path::Path, extra: &[&str]) -> serde_json::Value {
+    let out = ism()
+        .arg("fit")
+        .arg("--mesh")
+        .arg(mesh)
+        .args(extra)
+        .args(["--json", "-q", "-o"])
+        .arg(model)
+        .output()
+        .unwrap();
+    assert_eq!(
+        out.status.code(),
+        Some(0),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let check = ism().arg("validate").arg(model).output().unwrap();
+    assert_eq!(
+        check.status.code(),
+        Some(0),
+        "{}",
+        String::from_utf8_lossy(&check.stdout)
+    );
+    report(&out.stdout)
+}
+
+#[test]
+fn obj_and_glb_meshes_fit_validate_and_keep_the_sphere_topology() {
+    let dir = tempfile::tempdir().unwrap();
+    let (points, tris) = icosphere(2, 0.5, [0.0; 3]);
+    let obj = dir.path().join("ball.obj");
+    std::fs::write(&obj, obj_text(&points, &tris)).unwrap();
+    let glb = dir.path().join("ball.glb");
+    std::fs::write(&glb, glb_bytes(&points, &tris, [0.25, 0.0, -0.5])).unwrap();
+    // The Plantinga–Vegter phase is covered by the library tests; here it would dominate the time.
+    let settings = ["--resolution", "3", "--tolerance", "3e-2", "--no-topology"];
+    let a = fit_mesh(&obj, &dir.path().join("a.ismb"), &settings);
+    let b = fit_mesh(&glb, &dir.path().join("b.ismb"), &settings);
+    for r in [&a, &b] {
+        assert_eq!(
+            (r["components"].as_u64(), r["euler"].as_i64()),
+            (Some(1), Some(2))
+        );
+        assert_eq!(r["topologyMatchesPreset"], true);
+        let m = &r["mesh"];
+        assert_eq!(m["triangles"], 320);
+        assert_eq!(m["closedManifold"], true);
+        assert_eq!(
+            (m["components"].as_u64(), m["euler"].as_i64()),
+            (Some(1), Some(2))
+        );
+        // True distance to the mesh, relative to its diagonal.
+        let rel = m["maxDistanceRelative"].as_f64().unwrap();
+        let diagonal = m["diagonal"].as_f64().unwrap();
+        assert!(rel > 0.0 && rel * diagonal <= 3e-2, "{r}");
+    }
+    // The same shape moved by the node translation: the same complex size and error.
+    assert_eq!(a["simplices"], b["simplices"]);
+    let (ea, eb) = (
+        a["maxDistance"].as_f64().unwrap(),
+        b["maxDistance"].as_f64().unwrap(),
+    );
+    assert!((ea - eb).abs() < 1e-3, "{ea} vs {eb}");
+}
+
+#[test]
+fn two_balls_give_two_components() {
+    let dir = tempfile::tempdir().unwrap();
+    let (mut points, mut tris) = icosphere(1, 0.3, [-0.45, 0.0, 0.0]);
+    let (p2, t2) = icosphere(1, 0.3, [0.45, 0.0, 0.0]);
+    let n = points.len() as u32;
+    points.extend(p2);
+    tris.extend(t2.iter().map(|t| t.map(|v| v + n)));
+    let obj = dir.path().join("two.obj");
+    std::fs::write(&obj, obj_text(&points, &tris)).unwrap();
+    let r = fit_mesh(
+        &obj,
+        &dir.path().join("two.ism.json"),
+        &["--resolution", "5", "--tolerance", "5e-2", "--no-topology"],
+    );
+    assert_eq!(
+        (r["components"].as_u64(), r["euler"].as_i64()),
+        (Some(2), Some(4))
+    );
+    assert_eq!(r["mesh"]["components"], 2);
+}
+
+#[test]
+fn bad_meshes_and_conflicting_arguments_exit_2() {
+    let dir = tempfile::tempdir().unwrap();
+    let model = dir.path().join("x.ismb");
+    let garbage = dir.path().join("garbage.obj");
+    std::fs::write(&garbage, "v 0 0 0\nv 1 0 0\nf 1 2 7\n").unwrap();
+    let glb = dir.path().join("cut.glb");
+    let (points, tris) = icosphere(0, 1.0, [0.0; 3]);
+    let bytes = glb_bytes(&points, &tris, [0.0; 3]);
+    std::fs::write(&glb, &bytes[..bytes.len() / 2]).unwrap();
+    let obj = dir.path().join("ok.obj");
+    std::fs::write(&obj, obj_text(&points, &tris)).unwrap();
+    let missing = dir.path().join("missing.obj");
+    let stl = dir.path().join("x.stl");
+    std::fs::write(&stl, "solid x\nendsolid x\n").unwrap();
+    for args in [
+        vec!["fit", "--mesh", missing.to_str().unwrap()],
+        vec!["fit", "--mesh", garbage.to_str().unwrap()],
+        vec!["fit", "--mesh", glb.to_str().unwrap()],
+        vec!["fit", "--mesh", stl.to_str().unwrap()],
+        vec!["fit", "--mesh", obj.to_str().unwrap(), "--preset", "sphere"],
+        vec!["fit", "--mesh", obj.to_str().unwrap(), "--expr", "x"],
+        vec![
+            "fit",
+            "--mesh",
+            obj.to_str().unwrap(),
+            "--domain",
+            "0,1,0,1",
+        ],
+    ] {
+        let out = ism().args(&args).arg("-o").arg(&model).output().unwrap();
+        assert_eq!(
+            out.status.code(),
+            Some(2),
+            "{args:?}: {}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        assert!(!model.exists(), "{args:?} wrote a file");
+    }
+}

@@ -656,6 +656,11 @@ const VALUE_MARGIN_REL: f64 = 1e-9;
 /// differences divided by its length: a few ulps); generous, like [`VALUE_MARGIN_REL`].
 const NORMAL_MARGIN: f64 = 1e-9;
 
+/// Normal turn (radians, 60°) across an edge beyond which the Plantinga–Vegter test may never pass
+/// near it: the test `⟨□∇g, □∇g⟩ > 0` on a component-wise enclosure of unit vectors fails once
+/// they spread ±32° around a coordinate axis, and every box on the edge sees both normals.
+pub const PV_SHARPEST_EDGE: f64 = std::f64::consts::FRAC_PI_3;
+
 /// [`MeshDistance::enclose`] gathers candidate triangles per sub-box of the box split this many
 /// times along each axis (4³ sub-boxes): each level halves the over-reach of the candidate set, which
 /// decides how small cells must get before the Plantinga–Vegter test can pass; 64 nearest-point
@@ -674,6 +679,41 @@ pub struct MeshDistance {
     winding: WindingNode,
     /// Size of the coordinates, for the rounding margins.
     scale: f64,
+    /// Key of this instance in the per-thread query caches.
+    instance: u64,
+    /// Cell size of the cache's grid.
+    cache_cell: f64,
+}
+
+/// What one evaluation learned, reusable exactly by later queries near it.
+#[derive(Clone, Copy, Debug)]
+struct Known {
+    p: P3,
+    /// Distance from `p` to the mesh: the open ball of this radius meets no triangle, so the
+    /// winding number, and with it the sign, is constant in it.
+    dist: f64,
+    inside: bool,
+    /// The closest triangle: a nearby query's distance to it bounds its search radius.
+    triangle: u32,
+}
+
+/// Entries per thread before the cache is cleared (bounded memory: ~64 MB).
+const CACHE_CAPACITY: usize = 1 << 20;
+
+/// A cached sign is reused only within this fraction of the cached distance, so rounding in the
+/// distance cannot put the query across the surface.
+const CACHE_BALL_FRACTION: f64 = 0.5;
+
+/// Cache grid cell relative to the mesh diagonal: the fitter's finite differences move its sample
+/// points by ~10⁻⁷ of a cell, so they land in the cell of the unperturbed point.
+const CACHE_CELL_REL: f64 = 1e-6;
+
+static NEXT_INSTANCE: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+
+thread_local! {
+    /// Per-thread cache of recent queries (no locking under rayon): grid cell → what was learned.
+    static QUERY_CACHE: std::cell::RefCell<HashMap<(u64, [i64; 3]), Known>> =
+        std::cell::RefCell::new(HashMap::new());
 }
 
 impl MeshDistance {
@@ -716,6 +756,7 @@ impl MeshDistance {
             });
         }
         let tree = RTree::bulk_load(tris);
+        let mesh_diagonal = mesh.diagonal().max(f64::MIN_POSITIVE);
         let winding = WindingNode::build(tree.root(), &mesh, &mut Vec::new());
         let scale = mesh
             .positions
@@ -731,6 +772,8 @@ impl MeshDistance {
             tree,
             winding,
             scale,
+            instance: NEXT_INSTANCE.fetch_add(1, std::sync::atomic::Ordering::Relaxed),
+            cache_cell: CACHE_CELL_REL * mesh_diagonal,
         })
     }
 
@@ -742,6 +785,33 @@ impl MeshDistance {
     /// Its combinatorial check.
     pub fn check(&self) -> MeshCheck {
         self.check
+    }
+
+    /// The largest angle (radians) between the normals of two triangles sharing an edge: above
+    /// [`PV_SHARPEST_EDGE`], cells on that edge can fail the Plantinga–Vegter test at every size.
+    pub fn sharpest_edge(&self) -> f64 {
+        let mut by_edge: HashMap<(u32, u32), Vec<u32>> = HashMap::new();
+        for (i, t) in self.mesh.triangles.iter().enumerate() {
+            for k in 0..3 {
+                let (u, v) = (t[k], t[(k + 1) % 3]);
+                by_edge
+                    .entry((u.min(v), u.max(v)))
+                    .or_default()
+                    .push(i as u32);
+            }
+        }
+        let mut worst = 0.0f64;
+        for tris in by_edge.values() {
+            for (a, &i) in tris.iter().enumerate() {
+                for &j in &tris[a + 1..] {
+                    let (ni, nj) = (self.normals[i as usize], self.normals[j as usize]);
+                    if ni != [0.0; 3] && nj != [0.0; 3] {
+                        worst = worst.max(dot(ni, nj).clamp(-1.0, 1.0).acos());
+                    }
+                }
+            }
+        }
+        worst
     }
 
     /// Whether [`MeshDistance::new`] turned the mesh inside out to make its volume positive.
@@ -779,12 +849,77 @@ impl MeshDistance {
         self.winding_number(p) > 0.5
     }
 
+    /// The closest point and triangle, searching only within the distance to `hint`'s
+    /// triangle (exact: the closest triangle is no farther than any other). `hint` is a triangle
+    /// the R-tree returned, so it is not degenerate.
+    fn closest_point_near(&self, p: P3, hint: u32) -> (P3, u32) {
+        if hint as usize >= self.mesh.triangles.len() {
+            return self.closest_point(p);
+        }
+        let h = hint;
+        let v = self.mesh.triangles[hint as usize].map(|i| self.mesh.positions[i as usize]);
+        let dh = sub(p, closest_point_on_triangle(p, v));
+        // Widened so rounding cannot drop the hint itself from the ball.
+        let r2 = dot(dh, dh) * (1.0 + 1e-9) + f64::MIN_POSITIVE;
+        let mut best = (f64::INFINITY, h);
+        for t in self.tree.locate_within_distance(p, r2) {
+            let d = t.distance_2(&p);
+            if d < best.0 || (d == best.0 && t.id < best.1) {
+                best = (d, t.id);
+            }
+        }
+        if best.0.is_finite() {
+            let v = self.mesh.triangles[best.1 as usize].map(|i| self.mesh.positions[i as usize]);
+            (closest_point_on_triangle(p, v), best.1)
+        } else {
+            self.closest_point(p)
+        }
+    }
+
+    /// Distance to the closest point, its triangle, and the side: reuses a cached query in the
+    /// same grid cell when `p` lies in its surface-free ball (same sign, exactly) and as the
+    /// search hint; otherwise the R-tree and the winding number.
+    fn locate(&self, p: P3) -> (P3, u32, bool) {
+        let key = (
+            self.instance,
+            p.map(|x| (x / self.cache_cell).floor() as i64),
+        );
+        let known = QUERY_CACHE.with(|c| c.borrow().get(&key).copied());
+        let (q, t) = match known {
+            Some(k) => self.closest_point_near(p, k.triangle),
+            None => self.closest_point(p),
+        };
+        let inside = match known {
+            Some(k) if norm(sub(p, k.p)) < CACHE_BALL_FRACTION * k.dist => k.inside,
+            _ => self.is_inside(p),
+        };
+        let dist = norm(sub(p, q));
+        if dist > 0.0 {
+            QUERY_CACHE.with(|c| {
+                let mut c = c.borrow_mut();
+                if c.len() >= CACHE_CAPACITY {
+                    c.clear();
+                }
+                c.insert(
+                    key,
+                    Known {
+                        p,
+                        dist,
+                        inside,
+                        triangle: t,
+                    },
+                );
+            });
+        }
+        (q, t, inside)
+    }
+
     /// Signed distance, its gradient, and the closest point.
     fn evaluate(&self, p: P3) -> (f64, P3) {
-        let (q, t) = self.closest_point(p);
+        let (q, t, inside) = self.locate(p);
         let d = sub(p, q);
         let dist = norm(d);
-        let sign = if self.is_inside(p) { -1.0 } else { 1.0 };
+        let sign = if inside { -1.0 } else { 1.0 };
         let grad = if dist > 0.0 {
             d.map(|x| sign * x / dist)
         } else {
@@ -900,9 +1035,9 @@ impl ImplicitFunction for MeshDistance {
 
     fn value(&self, p: &[f64]) -> f64 {
         let p = [p[0], p[1], p[2]];
-        let (q, _) = self.closest_point(p);
+        let (q, _, inside) = self.locate(p);
         let dist = norm(sub(p, q));
-        if self.is_inside(p) {
+        if inside {
             -dist
         } else {
             dist
@@ -1139,12 +1274,40 @@ mod tests {
                 let g = d.gradient(&p, &mut grad);
                 assert!((g.abs() - brute).abs() < 1e-12, "{p:?}: {g} vs {brute}");
                 assert!((norm(grad) - 1.0).abs() < 1e-12);
+                // The per-thread cache (sign reuse, search hint) answers like a cold query: a
+                // tiny and a larger step from p, against the brute-force sign and distance.
+                for step in [1e-9, 1e-3, 0.05] {
+                    let r = axpy(p, step, [0.6, -0.48, 0.64]);
+                    let brute_r = mesh
+                        .triangles
+                        .iter()
+                        .map(|t| brute_distance(r, t.map(|v| mesh.positions[v as usize])))
+                        .fold(f64::INFINITY, f64::min);
+                    let inside = d.winding_number_brute_force(r) > 0.5;
+                    let v = d.value(&r);
+                    assert!((v.abs() - brute_r).abs() < 1e-12, "{r:?}: {v} vs {brute_r}");
+                    assert!(brute_r < 1e-12 || (v < 0.0) == inside, "{r:?}: {v}");
+                }
                 // The gradient is that of a distance: stepping along it changes g by the step.
                 let h = 1e-7 * brute;
                 let ahead = d.value(&axpy(p, h, grad));
                 assert!((ahead - g - h).abs() < 1e-3 * h, "{p:?}");
             }
         }
+    }
+
+    #[test]
+    fn sharp_edges_are_measured() {
+        let cube = MeshDistance::new(cube(0.5, [0.0; 3])).unwrap();
+        assert!((cube.sharpest_edge() - std::f64::consts::FRAC_PI_2).abs() < 1e-12);
+        assert!(cube.sharpest_edge() > PV_SHARPEST_EDGE);
+        // Icosphere level 2: neighbouring normals turn by about 10°.
+        let ico = MeshDistance::new(icosphere(2)).unwrap();
+        assert!(
+            ico.sharpest_edge() < 15f64.to_radians(),
+            "{}",
+            ico.sharpest_edge()
+        );
     }
 
     #[test]
