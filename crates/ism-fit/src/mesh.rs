@@ -23,6 +23,22 @@
 //! The gradient is `sign · (p − q)/|p − q|` with `q` the closest point (the outward face normal on
 //! the surface itself). [`MeshDistance::enclose`] gives the Lipschitz value bound and a conservative
 //! gradient enclosure from the normals of the triangles that can hold a closest point (see there).
+//!
+//! ```
+//! use ism_fit::mesh::{MeshDistance, TriangleMesh};
+//! use ism_fit::ImplicitFunction;
+//!
+//! let tet = "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 4\n";
+//! let mesh = TriangleMesh::from_obj(tet.as_bytes(), std::path::Path::new("tet.obj"))?;
+//! let g = MeshDistance::new(mesh)?;
+//! let check = g.check();
+//! assert!(check.is_closed_manifold() && check.euler == 2);
+//! assert!((g.winding_number([0.1, 0.1, 0.1]) - 1.0).abs() < 1e-12);
+//! assert!(g.winding_number([1.0, 1.0, 1.0]).abs() < 1e-12);
+//! assert!((g.value(&[0.1, 0.1, 0.1]) + 0.1).abs() < 1e-12); // 0.1 below the face z = 0
+//! assert!(g.value(&[0.0, 0.0, -0.5]) == 0.5);
+//! # Ok::<(), ism_fit::FitError>(())
+//! ```
 
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
