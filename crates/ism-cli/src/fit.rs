@@ -19,8 +19,8 @@ Presets: circle (paper 001 Fig. 4), taubin (000 §9.2), sphere, torus, genus2.
 generalized winding number exceeds 1/2; the domain is the mesh's bounding box padded by
 --mesh-margin × its diagonal unless --domain is given. The reported distances are true distances to
 the mesh (also relative to its diagonal). A closed mesh's topology (components, Euler
-characteristic) must be reproduced; an open or non-manifold mesh is fitted with a warning and
-without that check.
+characteristic) must be reproduced; an open, non-manifold or inconsistently oriented mesh is
+refused (exit 2): its signed distance jumps where the winding number crosses 1/2 off the surface.
 
 Examples:
   ism fit --preset circle -o circle.ism.json --svg circle.svg
@@ -276,9 +276,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         }
         println!(
             "  Plantinga–Vegter {}",
-            if mesh.as_ref().is_some_and(|m| !m.0.is_closed_manifold()) {
-                "not applicable (open mesh: no enclosures)".to_string()
-            } else if r.pv_failures == 0 {
+            if r.pv_failures == 0 {
                 "every cell passes".to_string()
             } else {
                 format!("{} cells still fail", r.pv_failures)
@@ -329,10 +327,14 @@ fn mesh_setup(args: &Args) -> anyhow::Result<(MeshDistance, Vec<f64>, String, Me
         e => e,
     })?;
     let check = g.check();
+    // An error, not a warning: across a hole the winding number passes ½ away from the
+    // triangles, where the signed distance jumps from +d to −d; the fitter would refine that
+    // jump to the simplex budget without ever meeting the tolerance.
     if !check.is_closed_manifold() {
-        eprintln!(
-            "warning: {} is not a closed manifold ({} boundary, {} non-manifold, {} misoriented edges): \
-             inside is where the winding number exceeds 1/2, and its topology is not checked",
+        bail!(
+            "{} is not a closed manifold ({} boundary, {} non-manifold, {} misoriented edges): \
+             the signed distance would jump where the winding number crosses 1/2 off the surface; \
+             close and orient the mesh first",
             path.display(),
             check.boundary_edges,
             check.nonmanifold_edges,

@@ -461,3 +461,28 @@ fn bad_meshes_and_conflicting_arguments_exit_2() {
         assert!(!model.exists(), "{args:?} wrote a file");
     }
 }
+
+#[test]
+fn open_mesh_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let (points, mut tris) = icosphere(1, 0.5, [0.0; 3]);
+    tris.pop();
+    let obj = dir.path().join("open.obj");
+    std::fs::write(&obj, obj_text(&points, &tris)).unwrap();
+    let model = dir.path().join("open.ismb");
+    let out = ism()
+        .arg("fit")
+        .arg("--mesh")
+        .arg(&obj)
+        .arg("-o")
+        .arg(&model)
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(2));
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        stderr.contains("not a closed manifold (3 boundary"),
+        "{stderr}"
+    );
+    assert!(!model.exists());
+}

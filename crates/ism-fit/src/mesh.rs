@@ -684,6 +684,10 @@ pub const PV_SHARPEST_EDGE: f64 = std::f64::consts::FRAC_PI_3;
 const GRADIENT_SPLIT_LEVELS: u32 = 2;
 
 /// The signed distance to a mesh, with the winding-number sign (see the module doc).
+///
+/// Continuous only for a closed, consistently oriented manifold mesh ([`MeshCheck::is_closed_manifold`]):
+/// across a hole the winding number passes ½ away from the triangles and `g` jumps from `+d` to
+/// `−d` there, which no fit can meet (`ism fit --mesh` refuses such meshes).
 #[derive(Debug)]
 pub struct MeshDistance {
     mesh: TriangleMesh,
