@@ -192,12 +192,35 @@ impl TriangleMesh {
     /// [`FitError::Mesh`] on a parse or validation error, a missing buffer, an index out of range
     /// or no triangle.
     pub fn from_gltf(bytes: &[u8], path: &Path) -> Result<TriangleMesh, FitError> {
-        let gltf =
-            gltf::Gltf::from_slice(bytes).map_err(|e| mesh_error(path, format!("glTF: {e}")))?;
-        let buffers = gltf::import_buffers(&gltf.document, path.parent(), gltf.blob.clone())
+        let raw = gltf::Gltf::from_slice_without_validation(bytes)
+            .map_err(|e| mesh_error(path, format!("glTF: {e}")))?;
+        // gltf-json 1.4.1's validation indexes `accessors[POSITION]` without a bounds check
+        // (src/mesh.rs:151) and panics on a bad index; check those indices before validating.
+        let json = raw.document.as_json();
+        for (mi, mesh) in json.meshes.iter().enumerate() {
+            for (pi, p) in mesh.primitives.iter().enumerate() {
+                let bad = p
+                    .attributes
+                    .values()
+                    .chain(p.indices.as_ref())
+                    .find(|a| a.value() >= json.accessors.len());
+                if let Some(a) = bad {
+                    return Err(mesh_error(
+                        path,
+                        format!(
+                            "glTF mesh {mi}, primitive {pi}: accessor {} does not exist",
+                            a.value()
+                        ),
+                    ));
+                }
+            }
+        }
+        let document = gltf::Document::from_json(raw.document.into_json())
+            .map_err(|e| mesh_error(path, format!("glTF: {e}")))?;
+        let buffers = gltf::import_buffers(&document, path.parent(), raw.blob)
             .map_err(|e| mesh_error(path, format!("glTF buffers: {e}")))?;
         let mut out = (Vec::new(), Vec::new());
-        let doc = &gltf.document;
+        let doc = &document;
         let scenes: Vec<gltf::Scene> = match doc.default_scene() {
             Some(s) => vec![s],
             None => doc.scenes().collect(),
@@ -1501,6 +1524,36 @@ mod tests {
         assert!(MeshDistance::new(flat).is_err());
         assert!(TriangleMesh::load(Path::new("/nonexistent/x.obj")).is_err());
         assert!(TriangleMesh::load(Path::new("x.stl")).is_err());
+    }
+
+    #[test]
+    fn mutated_files_are_errors_or_meshes_never_panics() {
+        // Random byte edits of a valid GLB and OBJ (deterministic LCG). This found gltf-json's
+        // unchecked accessor index, now checked before its validation runs.
+        let glb = glb_bytes(&icosphere(1), [0.25, -0.5, 1.0]);
+        let obj = obj_text(&cube(0.5, [0.0; 3])).into_bytes();
+        let mut s: u64 = 1;
+        let mut next = move || {
+            s = s
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (s >> 33) as usize
+        };
+        for i in 0..4000 {
+            let mut b = if i % 2 == 0 { glb.clone() } else { obj.clone() };
+            for _ in 0..1 + next() % 4 {
+                let k = next() % b.len();
+                b[k] = (next() % 256) as u8;
+            }
+            let r = std::panic::catch_unwind(|| {
+                if i % 2 == 0 {
+                    TriangleMesh::from_gltf(&b, Path::new("f.glb")).map(|m| m.triangles.len())
+                } else {
+                    TriangleMesh::from_obj(&b, Path::new("f.obj")).map(|m| m.triangles.len())
+                }
+            });
+            assert!(r.is_ok(), "panic on {}", String::from_utf8_lossy(&b));
+        }
     }
 
     #[test]
