@@ -51,7 +51,7 @@ pub struct Args {
     #[arg(long)]
     preset: Option<String>,
     /// A closed triangle mesh (.obj, .glb, .gltf): fit its surface.
-    #[arg(long, conflicts_with_all = ["expr", "preset"])]
+    #[arg(long, conflicts_with_all = ["expr", "preset", "hermite"])]
     mesh: Option<PathBuf>,
     /// With --mesh and no --domain: pad the bounding box by this fraction of its diagonal.
     #[arg(long, default_value_t = 0.05)]
