@@ -740,8 +740,10 @@ struct Known {
     triangle: u32,
 }
 
-/// Entries per thread before the cache is cleared (bounded memory: ~64 MB).
-const CACHE_CAPACITY: usize = 1 << 20;
+/// Entries per thread before the cache is cleared: ~12 MB per thread. The fitter revisits a
+/// point within one face's Levenberg–Marquardt loop (a few thousand samples), so a small cache
+/// keeps nearly all of its hits.
+const CACHE_CAPACITY: usize = 1 << 17;
 
 /// A cached sign is reused only within this fraction of the cached distance, so rounding in the
 /// distance cannot put the query across the surface.
@@ -757,6 +759,9 @@ thread_local! {
     /// Per-thread cache of recent queries (no locking under rayon): grid cell → what was learned.
     static QUERY_CACHE: std::cell::RefCell<HashMap<(u64, [i64; 3]), Known>> =
         std::cell::RefCell::new(HashMap::new());
+    /// This thread's previous (instance, closest triangle): consecutive queries are usually near
+    /// each other, so it bounds the next search radius tightly.
+    static LAST_TRIANGLE: std::cell::Cell<(u64, u32)> = const { std::cell::Cell::new((u64::MAX, 0)) };
 }
 
 impl MeshDistance {
@@ -928,10 +933,13 @@ impl MeshDistance {
             p.map(|x| (x / self.cache_cell).floor() as i64),
         );
         let known = QUERY_CACHE.with(|c| c.borrow().get(&key).copied());
+        let last = LAST_TRIANGLE.with(|c| c.get());
         let (q, t) = match known {
             Some(k) => self.closest_point_near(p, k.triangle),
+            None if last.0 == self.instance => self.closest_point_near(p, last.1),
             None => self.closest_point(p),
         };
+        LAST_TRIANGLE.with(|c| c.set((self.instance, t)));
         let inside = match known {
             Some(k) if norm(sub(p, k.p)) < CACHE_BALL_FRACTION * k.dist => k.inside,
             _ => self.is_inside(p),
