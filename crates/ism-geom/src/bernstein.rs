@@ -136,6 +136,50 @@ fn casteljau_step(m: usize, t: u32, up: &[usize], c: &[f64], x: &[f64]) -> Vec<f
     out
 }
 
+/// How to restrict polynomials to one sub-simplex by replacing the vertices one at a time: vertex
+/// `k` of the current simplex is replaced by the target's vertex `k`, written in the current
+/// simplex's barycentric coordinates.
+#[derive(Clone, Debug)]
+pub struct Restriction {
+    points: Vec<[f64; crate::MAX_VARS]>,
+    vertices: Vec<Vec<f64>>,
+}
+
+impl Restriction {
+    /// The plan for the sub-simplex with barycentric `vertices`; `None` when a replacement would be
+    /// degenerate (a new vertex's coordinate on the vertex it replaces is not clearly positive) or
+    /// there are more than `MAX_VARS` variables.
+    pub fn new(vertices: &[Vec<f64>]) -> Option<Restriction> {
+        let m = vertices.len();
+        if m == 0 || m > crate::MAX_VARS || vertices.iter().any(|v| v.len() < m) {
+            return None;
+        }
+        // Columns: the current simplex's vertices in the original coordinates.
+        let mut cur = [[0.0; crate::MAX_VARS]; crate::MAX_VARS];
+        for (i, row) in cur.iter_mut().enumerate().take(m) {
+            row[i] = 1.0;
+        }
+        let mut points = Vec::with_capacity(m);
+        for k in 0..m {
+            let mut target = [0.0; crate::MAX_VARS];
+            target[..m].copy_from_slice(&vertices[k][..m]);
+            let lam = crate::linalg::solve(m, &cur, &target)?;
+            // Far from zero, so the solve's rounding stays at the level of the coefficients'.
+            if lam[k].is_nan() || lam[k] <= 1e-6 {
+                return None;
+            }
+            points.push(lam);
+            for (i, row) in cur.iter_mut().enumerate().take(m) {
+                row[k] = vertices[k][i];
+            }
+        }
+        Some(Restriction {
+            points,
+            vertices: vertices.to_vec(),
+        })
+    }
+}
+
 impl Bernstein {
     /// A polynomial from its coefficients in canonical order.
     ///
@@ -449,9 +493,36 @@ impl Bernstein {
     }
 
     /// Restriction to the sub-simplex with barycentric vertices `vertices[0..m]` (each `m` entries):
-    /// coefficient `I` is the blossom at `vertices[i]` repeated `I_i` times. `O(count² · m)`; for
-    /// bisection prefer [`Bernstein::split_edge`].
+    /// coefficient `I` is the blossom at `vertices[i]` repeated `I_i` times. Computed by replacing
+    /// the vertices one at a time (`O(m² · d · count)`), or directly from the blossom
+    /// (`O(count² · m)`) when a replacement would be degenerate; for bisection prefer
+    /// [`Bernstein::split_edge`].
     pub fn restrict(&self, vertices: &[Vec<f64>]) -> Bernstein {
+        match Restriction::new(vertices) {
+            Some(plan) => self.restrict_with(&plan),
+            None => self.restrict_by_blossom(vertices),
+        }
+    }
+
+    /// [`Bernstein::restrict`] with a precomputed plan (shared by every polynomial restricted to
+    /// the same sub-simplex).
+    pub fn restrict_with(&self, plan: &Restriction) -> Bernstein {
+        if plan.points.len() != self.m {
+            return self.restrict_by_blossom(&plan.vertices);
+        }
+        let mut p = self.clone();
+        for (k, lam) in plan.points.iter().enumerate() {
+            p = p.replace_vertex(k, &lam[..self.m]);
+        }
+        p
+    }
+
+    #[cfg(test)]
+    fn restrict_by_replacement(&self, vertices: &[Vec<f64>]) -> Option<Bernstein> {
+        Restriction::new(vertices).map(|plan| self.restrict_with(&plan))
+    }
+
+    fn restrict_by_blossom(&self, vertices: &[Vec<f64>]) -> Bernstein {
         let m = self.m;
         let d = self.degree;
         let ups: Vec<ShapeRef> = (0..d).map(|t| shape(m, t)).collect();
@@ -580,6 +651,41 @@ mod tests {
                     wm[0] += h;
                     let fd = (p.eval(&wp) - p.eval(&wm)) / (2.0 * h);
                     assert!((p.derivative(k).eval(w) - fd).abs() < 1e-7);
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn restriction_by_replacement_matches_the_blossom() {
+        for m in 2..=4 {
+            for d in 0..=7 {
+                let p = sample(m, d, 17 + u64::from(d));
+                // A small simplex {w ≥ lo} and a general one.
+                let lo = [0.21, 0.3, 0.12, 0.17];
+                let rest = 1.0 - lo[..m].iter().sum::<f64>();
+                let corner: Vec<Vec<f64>> = (0..m)
+                    .map(|j| {
+                        let mut v = lo[..m].to_vec();
+                        v[j] += rest;
+                        v
+                    })
+                    .collect();
+                let general: Vec<Vec<f64>> = (0..m)
+                    .map(|j| {
+                        let mut v = vec![0.1; m];
+                        v[j] += 1.0 - 0.1 * m as f64;
+                        v[(j + 1) % m] += 0.05;
+                        v[j] -= 0.05;
+                        v
+                    })
+                    .collect();
+                for verts in [&corner, &general] {
+                    let fast = p.restrict_by_replacement(verts).expect("well ordered");
+                    let slow = p.restrict_by_blossom(verts);
+                    for (a, b) in fast.coeffs().iter().zip(slow.coeffs()) {
+                        assert!((a - b).abs() < 1e-12, "m={m} d={d}: {a} vs {b}");
+                    }
                 }
             }
         }

@@ -59,7 +59,7 @@ mod spatial;
 pub mod stage;
 mod tables;
 
-pub use bernstein::Bernstein;
+pub use bernstein::{Bernstein, Restriction};
 pub use error::{GeomError, Result};
 pub use model::{Located, ModelEval, ParamPoint, Patch, PatchCorner, LOCATE_TOLERANCE};
 pub use stage::{InverseResult, LocalMap, LocalStage, Solved, StageLookup, INVERSE_TOLERANCE};

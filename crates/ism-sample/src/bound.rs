@@ -400,11 +400,13 @@ struct JacobianPolys {
     q2n: Option<Bernstein>,
 }
 
-fn jacobian_polys(stage: &LocalStage) -> Result<JacobianPolys, String> {
+/// A stored stage as Bernstein polynomials on its simplex: components `P_i` and the denominator
+/// `Q` (`None` for a polynomial stage, whose components sum to one). Rational: `P_i = Σ q_I b_{I,i}
+/// B_I`, `Q = Σ q_I B_I`; monotonic: `P_i = g_i(w_i)` in the degree-`d` basis, `Q = Σ P_i`.
+pub(crate) fn stage_components(stage: &LocalStage) -> (Vec<Bernstein>, Option<Bernstein>) {
     let m = stage.vars();
-    let n = m - 1;
     let d = stage.degree();
-    let (p, q): (Vec<Bernstein>, Option<Bernstein>) = match stage.kind() {
+    match stage.kind() {
         StageKind::Bezier => {
             let comps = (0..m)
                 .map(|i| component(m, d, stage.control_points().iter().map(|b| b[i])))
@@ -440,7 +442,13 @@ fn jacobian_polys(stage: &LocalStage) -> Result<JacobianPolys, String> {
             }
             (comps, Some(total))
         }
-    };
+    }
+}
+
+fn jacobian_polys(stage: &LocalStage) -> Result<JacobianPolys, String> {
+    let m = stage.vars();
+    let n = m - 1;
+    let (p, q) = stage_components(stage);
     // Numerators of the reduced Jacobian entries (rows u_1..u_n, columns w_1..w_n).
     let mut num: Vec<Vec<Bernstein>> = Vec::with_capacity(n);
     for pi in &p[1..] {
@@ -626,7 +634,7 @@ fn component(m: usize, d: u32, coeffs: impl Iterator<Item = f64>) -> Bernstein {
 }
 
 /// `det` of an `n × n` matrix of Bernstein polynomials of equal degree (`n ≤ 3`), as a polynomial.
-fn det_poly(a: &[Vec<Bernstein>]) -> Bernstein {
+pub(crate) fn det_poly(a: &[Vec<Bernstein>]) -> Bernstein {
     match a.len() {
         1 => a[0][0].clone(),
         2 => a[0][0]

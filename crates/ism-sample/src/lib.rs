@@ -45,6 +45,7 @@
 #![deny(missing_docs)]
 
 pub mod bound;
+pub mod chain;
 pub mod error;
 pub mod output;
 pub mod points;

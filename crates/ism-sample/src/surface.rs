@@ -17,6 +17,7 @@ use rand::Rng;
 use rayon::prelude::*;
 
 use crate::bound::surface_area_element_bound;
+use crate::chain::{chain_bound, TIGHTNESS};
 use crate::error::{Result, SampleError};
 
 /// Required closeness of a surface sample to `O`, relative to the model size: `|F − c| / |∇F|`
@@ -59,14 +60,20 @@ pub struct PatchEntry {
     first_fraction: f64,
     /// Point-space area (length in 2D) of the linear patch.
     pub linear_area: f64,
-    /// Certified bound of the area element on this simplex.
+    /// Certified bound of the area element on this simplex (the largest region bound).
     pub bound: f64,
+    /// Certified bound of the area element per region of the patch: the `GUESS_LEVEL²`
+    /// sub-triangles of each triangle ([`sub_triangles`] order), or the `GUESS_LEVEL`
+    /// sub-segments of a segment.
+    pub region_bounds: Vec<f64>,
     /// `|∇F_lin|` on this simplex.
     linear_gradient: f64,
     /// Preimages `X⁻¹(u)` of a level-[`GUESS_LEVEL`] lattice on each triangle (or the segment),
     /// [`lattice_index`] order: linear interpolation in them starts Newton close to the solution.
     /// Empty when the simplex has no stage.
     guesses: Vec<Bary>,
+    /// Mean exact `J` at the lattice points: an estimate of the curved area per linear area.
+    sample_mean: f64,
 }
 
 /// Subdivision level of the per-patch lattice of precomputed preimages. Linear interpolation on a
@@ -90,6 +97,8 @@ const LATTICE_POINTS: usize = (GUESS_LEVEL + 1) * (GUESS_LEVEL + 2) / 2;
 pub struct SurfaceTable {
     /// The patches, in simplex order.
     pub patches: Vec<PatchEntry>,
+    /// `(patch, region)` of each selection entry.
+    entries: Vec<(u32, u16)>,
     cumulative: Vec<f64>,
     /// `Σ A_σ B_σ`: an upper bound of the curved area of `O`.
     pub bounded_area: f64,
@@ -151,6 +160,138 @@ fn cross_norm(a: &[f64; 3], b: &[f64; 3]) -> f64 {
     ])
 }
 
+/// Refinement budget per patch in the first pass (see [`crate::chain`]).
+const FIRST_SPLITS: usize = 48;
+/// Refinement budget of the second pass.
+const SECOND_SPLITS: usize = 2048;
+/// A patch gets the second pass when its excess is above this share of the whole bounded area.
+const REFINE_SHARE: f64 = 0.005;
+/// At most this many patches get the second pass (bounds the table's cost).
+const REFINE_COUNT: usize = 64;
+
+/// One patch of the table: linear patch, lattice of preimages, certified region bounds.
+fn build_patch(
+    eval: &ModelEval,
+    s: usize,
+    patch: &ism_geom::Patch,
+    max_splits: usize,
+) -> Result<PatchEntry> {
+    let model = eval.model();
+    let n = model.dim();
+
+    let e = edge_matrix(model, s);
+    let inv = linalg::inverse(n, &e).ok_or_else(|| SampleError::Numerical {
+        simplex: s,
+        reason: "degenerate simplex".into(),
+    })?;
+    let ids = model.simplex(s);
+    let f0 = model.values[ids[0] as usize];
+    let mut g = [0.0; 3];
+    for (x, gx) in g.iter_mut().enumerate().take(n) {
+        *gx = (0..n)
+            .map(|l| (model.values[ids[l + 1] as usize] - f0) * inv[l][x])
+            .sum();
+    }
+    let corners: Vec<Bary> = patch.corners.iter().map(|c| c.u).collect();
+    let pts: Vec<[f64; 3]> = corners.iter().map(|u| eval.point(s, u)).collect();
+    let (tris, count, first_fraction, area) = if n == 2 {
+        let len = norm(&sub3(&pts[1], &pts[0]));
+        ([[corners[0], corners[1], corners[1]]; 2], 0u8, 1.0, len)
+    } else {
+        let a0 = 0.5 * cross_norm(&sub3(&pts[1], &pts[0]), &sub3(&pts[2], &pts[0]));
+        if corners.len() == 4 {
+            let a1 = 0.5 * cross_norm(&sub3(&pts[2], &pts[0]), &sub3(&pts[3], &pts[0]));
+            let t = [
+                [corners[0], corners[1], corners[2]],
+                [corners[0], corners[2], corners[3]],
+            ];
+            (t, 2u8, a0 / (a0 + a1), a0 + a1)
+        } else {
+            let t = [corners[0], corners[1], corners[2]];
+            ([t, t], 1u8, 1.0, a0)
+        }
+    };
+    let values: Vec<f64> = ids.iter().map(|&v| model.values[v as usize]).collect();
+    let map = eval.local_map(s);
+    let lattice = lattice_guesses(map, &tris, count);
+    let uncertified = |(stage, reason)| SampleError::Uncertified {
+        simplex: s,
+        stage,
+        reason,
+    };
+    // Exact J at the lattice preimages (points of the shape): where the certified
+    // refinement should come close.
+    let lin = norm(&g[..n]);
+    let samples: Vec<([f64; 4], f64)> = lattice
+        .iter()
+        .filter_map(|(u, w)| {
+            let (x, j) = map.jacobian(w);
+            let j = j?;
+            // Only converged preimages are points of the shape.
+            let off = (0..=n).map(|i| (x[i] - u[i]).abs()).fold(0.0, f64::max);
+            let grad = eval.gradient_from_jacobian(s, &j);
+            let det = linalg::det(n, &j);
+            (det > 0.0 && off <= INVERSE_RESIDUAL).then(|| (*u, norm(&grad[..n]) / (lin * det)))
+        })
+        .collect();
+    let best_sample = samples.iter().map(|s| s.1).fold(0.0, f64::max);
+    let sample_mean = samples.iter().map(|s| s.1).sum::<f64>() / samples.len().max(1) as f64;
+    let chain = match chain_bound(map, &inv, &values, model.level, &samples, max_splits) {
+        Some(Ok(c)) => Some(c),
+        _ => None,
+    };
+    // The per-stage bound is certified too; it is needed where the chain's is
+    // missing, infinite, or not tight within its budget.
+    let per_stage = match &chain {
+        Some(c) if c.top() * TIGHTNESS <= best_sample => f64::INFINITY,
+        _ => surface_area_element_bound(map, &e, &values, model.level)
+            .or_else(|err| {
+                if chain.is_some() {
+                    Ok(f64::INFINITY)
+                } else {
+                    Err(err)
+                }
+            })
+            .map_err(uncertified)?,
+    };
+    let region_bounds: Vec<f64> = regions(&tris, count)
+        .iter()
+        .map(|(lo, hi)| match &chain {
+            // Every region holds points of the shape, so some leaf meets it; a
+            // zero would mean a rounding gap between boxes: use the whole bound.
+            Some(c) => match c.over(&lo[..=n], &hi[..=n]) {
+                b if b > 0.0 => b.min(per_stage),
+                _ => c.top().min(per_stage),
+            },
+            None => per_stage,
+        })
+        .collect();
+    let bound = region_bounds.iter().copied().fold(0.0, f64::max);
+    if !bound.is_finite() {
+        return Err(uncertified((
+            map.stages().len().saturating_sub(1),
+            "area element not bounded on the shape".into(),
+        )));
+    }
+    let guesses = if map.stages().is_empty() {
+        Vec::new()
+    } else {
+        lattice.into_iter().map(|(_, w)| w).collect()
+    };
+    Ok(PatchEntry {
+        simplex: s as u32,
+        corners: tris,
+        triangles: count,
+        first_fraction,
+        linear_area: area,
+        bound,
+        region_bounds,
+        linear_gradient: norm(&g),
+        guesses,
+        sample_mean,
+    })
+}
+
 impl SurfaceTable {
     /// Builds the table (in parallel over simplices).
     ///
@@ -159,63 +300,37 @@ impl SurfaceTable {
     /// stage's area-element bound cannot be certified on a crossed simplex.
     pub fn new(eval: &ModelEval, weighting: Weighting) -> Result<SurfaceTable> {
         let model = eval.model();
-        let n = model.dim();
-        let patches: Vec<PatchEntry> = (0..eval.num_simplices())
+        let crossed: Vec<(usize, ism_geom::Patch)> = (0..eval.num_simplices())
             .into_par_iter()
             .filter_map(|s| eval.patch(s).map(|p| (s, p)))
-            .map(|(s, patch)| {
-                let e = edge_matrix(model, s);
-                let inv = linalg::inverse(n, &e).ok_or_else(|| SampleError::Numerical {
-                    simplex: s,
-                    reason: "degenerate simplex".into(),
-                })?;
-                let ids = model.simplex(s);
-                let f0 = model.values[ids[0] as usize];
-                let mut g = [0.0; 3];
-                for (x, gx) in g.iter_mut().enumerate().take(n) {
-                    *gx = (0..n)
-                        .map(|l| (model.values[ids[l + 1] as usize] - f0) * inv[l][x])
-                        .sum();
-                }
-                let corners: Vec<Bary> = patch.corners.iter().map(|c| c.u).collect();
-                let pts: Vec<[f64; 3]> = corners.iter().map(|u| eval.point(s, u)).collect();
-                let (tris, count, first_fraction, area) = if n == 2 {
-                    let len = norm(&sub3(&pts[1], &pts[0]));
-                    ([[corners[0], corners[1], corners[1]]; 2], 0u8, 1.0, len)
-                } else {
-                    let a0 = 0.5 * cross_norm(&sub3(&pts[1], &pts[0]), &sub3(&pts[2], &pts[0]));
-                    if corners.len() == 4 {
-                        let a1 = 0.5 * cross_norm(&sub3(&pts[2], &pts[0]), &sub3(&pts[3], &pts[0]));
-                        let t = [
-                            [corners[0], corners[1], corners[2]],
-                            [corners[0], corners[2], corners[3]],
-                        ];
-                        (t, 2u8, a0 / (a0 + a1), a0 + a1)
-                    } else {
-                        let t = [corners[0], corners[1], corners[2]];
-                        ([t, t], 1u8, 1.0, a0)
-                    }
-                };
-                let values: Vec<f64> = ids.iter().map(|&v| model.values[v as usize]).collect();
-                let bound = surface_area_element_bound(eval.local_map(s), &e, &values, model.level)
-                    .map_err(|(stage, reason)| SampleError::Uncertified {
-                        simplex: s,
-                        stage,
-                        reason,
-                    })?;
-                let guesses = lattice_guesses(eval.local_map(s), &tris, count);
-                Ok(PatchEntry {
-                    simplex: s as u32,
-                    corners: tris,
-                    triangles: count,
-                    first_fraction,
-                    linear_area: area,
-                    bound,
-                    linear_gradient: norm(&g),
-                    guesses,
-                })
+            .collect();
+        let mut patches: Vec<PatchEntry> = crossed
+            .par_iter()
+            .map(|(s, patch)| build_patch(eval, *s, patch, FIRST_SPLITS))
+            .collect::<Result<Vec<_>>>()?;
+        // Second pass: the patches whose bounds waste the most (bounded minus sampled curved
+        // area) get a larger refinement budget. Chosen from the first pass's figures in a fixed
+        // order, so the table is the same whatever the thread count.
+        let excess: Vec<f64> = patches.iter().map(PatchEntry::excess).collect();
+        let total: f64 = patches.iter().map(PatchEntry::bounded_area).sum();
+        let mut worst: Vec<usize> = (0..patches.len())
+            .filter(|&i| excess[i] > REFINE_SHARE * total)
+            .collect();
+        worst.sort_by(|&a, &b| excess[b].total_cmp(&excess[a]).then(a.cmp(&b)));
+        worst.truncate(REFINE_COUNT);
+        let refined: Vec<(usize, PatchEntry)> = worst
+            .par_iter()
+            .map(|&i| {
+                let (s, patch) = &crossed[i];
+                build_patch(eval, *s, patch, SECOND_SPLITS).map(|p| (i, p))
             })
             .collect::<Result<Vec<_>>>()?;
+        for (i, p) in refined {
+            if p.bounded_area() < patches[i].bounded_area() {
+                patches[i] = p;
+            }
+        }
+
         let patches: Vec<PatchEntry> = patches
             .into_iter()
             .filter(|p| p.linear_area > 0.0)
@@ -224,19 +339,29 @@ impl SurfaceTable {
             return Err(SampleError::EmptySurface { level: model.level });
         }
         // Sequential prefix sums: the same table, bit for bit, whatever the thread count.
-        let mut cumulative = Vec::with_capacity(patches.len());
+        let mut entries = Vec::new();
+        let mut cumulative = Vec::new();
         let mut acc = 0.0;
         let mut linear = 0.0;
-        for p in &patches {
-            acc += match weighting {
-                Weighting::CurvedArea => p.linear_area * p.bound,
-                Weighting::LinearArea => p.linear_area,
-            };
+        for (pi, p) in patches.iter().enumerate() {
+            let per_region = region_fractions(p);
+            for (r, (&b, frac)) in p.region_bounds.iter().zip(per_region).enumerate() {
+                let area = p.linear_area * frac;
+                let weight = match weighting {
+                    Weighting::CurvedArea => area * b,
+                    Weighting::LinearArea => area,
+                };
+                if weight > 0.0 {
+                    acc += weight;
+                    entries.push((pi as u32, r as u16));
+                    cumulative.push(acc);
+                }
+            }
             linear += p.linear_area;
-            cumulative.push(acc);
         }
         Ok(SurfaceTable {
             patches,
+            entries,
             cumulative,
             bounded_area: acc,
             linear_area: linear,
@@ -255,13 +380,14 @@ impl SurfaceTable {
         self.patches.is_empty()
     }
 
-    fn pick(&self, rng: &mut impl Rng) -> &PatchEntry {
+    fn pick(&self, rng: &mut impl Rng) -> (&PatchEntry, usize) {
         let x = rng.random::<f64>() * self.bounded_area;
         let i = self
             .cumulative
             .partition_point(|&c| c <= x)
-            .min(self.patches.len() - 1);
-        &self.patches[i]
+            .min(self.entries.len() - 1);
+        let (p, r) = self.entries[i];
+        (&self.patches[p as usize], usize::from(r))
     }
 
     /// Draws one accepted surface sample.
@@ -272,9 +398,9 @@ impl SurfaceTable {
     pub fn draw(&self, eval: &ModelEval, rng: &mut impl Rng) -> Result<SurfacePoint> {
         let n = eval.dim();
         loop {
-            let patch = self.pick(rng);
+            let (patch, region) = self.pick(rng);
             let s = patch.simplex as usize;
-            let (u, guess) = patch.propose(rng);
+            let (u, guess) = patch.propose(region, rng);
             let map = eval.local_map(s);
             let solved = if map.stages().is_empty() {
                 Solved {
@@ -294,8 +420,9 @@ impl SurfaceTable {
             let accept = match self.weighting {
                 Weighting::LinearArea => true,
                 Weighting::CurvedArea => {
-                    let j = self.area_element(s, &solved, &grad, patch)?;
-                    rng.random::<f64>() * patch.bound < j
+                    let bound = patch.region_bounds[region];
+                    let j = self.area_element(s, &solved, &grad, patch, bound)?;
+                    rng.random::<f64>() * bound < j
                 }
             };
             if accept {
@@ -312,6 +439,7 @@ impl SurfaceTable {
         solved: &Solved,
         grad: &[f64; 3],
         patch: &PatchEntry,
+        bound: f64,
     ) -> Result<f64> {
         let n = grad.len().min(patch_dim(patch));
         let det = linalg::det(n, &solved.jacobian);
@@ -322,13 +450,10 @@ impl SurfaceTable {
             });
         }
         let j = norm(&grad[..n]) / (patch.linear_gradient * det);
-        if j > patch.bound {
+        if j > bound {
             return Err(SampleError::Numerical {
                 simplex: s,
-                reason: format!(
-                    "area element {j} exceeds its certified bound {}",
-                    patch.bound
-                ),
+                reason: format!("area element {j} exceeds its certified bound {bound}"),
             });
         }
         Ok(j)
@@ -456,10 +581,11 @@ fn patch_dim(patch: &PatchEntry) -> usize {
 }
 
 /// Preimages of the lattice points of each patch triangle (segment in 2D).
-fn lattice_guesses(map: &ism_geom::LocalMap, tris: &[[Bary; 3]; 2], count: u8) -> Vec<Bary> {
-    if map.stages().is_empty() {
-        return Vec::new();
-    }
+fn lattice_guesses(
+    map: &ism_geom::LocalMap,
+    tris: &[[Bary; 3]; 2],
+    count: u8,
+) -> Vec<(Bary, Bary)> {
     let l = GUESS_LEVEL as f64;
     let mut out = Vec::with_capacity(LATTICE_POINTS * usize::from(count.max(1)));
     if count == 0 {
@@ -470,7 +596,7 @@ fn lattice_guesses(map: &ism_geom::LocalMap, tris: &[[Bary; 3]; 2], count: u8) -
             for k in 0..MAX_VARS {
                 u[k] = (1.0 - t) * a[k] + t * b[k];
             }
-            out.push(map.inverse(&u).w);
+            out.push((u, map.inverse(&u).w));
         }
         return out;
     }
@@ -484,76 +610,169 @@ fn lattice_guesses(map: &ism_geom::LocalMap, tris: &[[Bary; 3]; 2], count: u8) -
                     u[k] = la * tri[0][k] + lb * tri[1][k] + lc * tri[2][k];
                 }
                 // Only a starting guess: an unconverged preimage costs iterations, not accuracy.
-                out.push(map.inverse(&u).w);
+                out.push((u, map.inverse(&u).w));
             }
         }
     }
     out
 }
 
-impl PatchEntry {
-    /// `u` uniform (by point-space area; `W` is affine so barycentric area is proportional) on the
-    /// patch, and the preimage guess interpolated in the lattice.
-    fn propose(&self, rng: &mut impl Rng) -> (Bary, Bary) {
+/// The `GUESS_LEVEL²` sub-triangles of the lattice of a triangle, as lattice coordinates
+/// `(i, j)` of their vertices: "lower" `(i, j), (i+1, j), (i, j+1)` for `i + j < L`, then "upper"
+/// `(i+1, j+1), (i, j+1), (i+1, j)` for `i + j < L − 1`. All have the same area.
+fn sub_triangles() -> &'static [[(usize, usize); 3]] {
+    static SUBS: std::sync::OnceLock<Vec<[(usize, usize); 3]>> = std::sync::OnceLock::new();
+    SUBS.get_or_init(|| {
+        let l = GUESS_LEVEL;
+        let mut out = Vec::with_capacity(l * l);
+        for i in 0..l {
+            for j in 0..l - i {
+                out.push([(i, j), (i + 1, j), (i, j + 1)]);
+            }
+        }
+        for i in 0..l {
+            for j in 0..l - i {
+                if i + j + 1 < l {
+                    out.push([(i + 1, j + 1), (i, j + 1), (i + 1, j)]);
+                }
+            }
+        }
+        out
+    })
+}
+
+/// `u` of lattice point `(i, j)` of triangle `tri`.
+fn lattice_u(tri: &[Bary; 3], (i, j): (usize, usize)) -> Bary {
+    let l = GUESS_LEVEL as f64;
+    let (lb, lc) = (i as f64 / l, j as f64 / l);
+    let la = 1.0 - lb - lc;
+    let mut u = [0.0; MAX_VARS];
+    for k in 0..MAX_VARS {
+        u[k] = la * tri[0][k] + lb * tri[1][k] + lc * tri[2][k];
+    }
+    u
+}
+
+/// Bounding boxes (in `u`) of the regions of a patch: sub-triangles of each triangle, or
+/// sub-segments of a segment.
+fn regions(tris: &[[Bary; 3]; 2], count: u8) -> Vec<(Bary, Bary)> {
+    let boxed = |pts: &[Bary]| {
+        let mut lo = [f64::INFINITY; MAX_VARS];
+        let mut hi = [f64::NEG_INFINITY; MAX_VARS];
+        for p in pts {
+            for k in 0..MAX_VARS {
+                lo[k] = lo[k].min(p[k]);
+                hi[k] = hi[k].max(p[k]);
+            }
+        }
+        (lo, hi)
+    };
+    if count == 0 {
+        let [a, b, _] = tris[0];
         let l = GUESS_LEVEL as f64;
+        return (0..GUESS_LEVEL)
+            .map(|k| {
+                let at = |t: f64| {
+                    let mut u = [0.0; MAX_VARS];
+                    for x in 0..MAX_VARS {
+                        u[x] = (1.0 - t) * a[x] + t * b[x];
+                    }
+                    u
+                };
+                boxed(&[at(k as f64 / l), at((k + 1) as f64 / l)])
+            })
+            .collect();
+    }
+    tris.iter()
+        .take(usize::from(count))
+        .flat_map(|tri| {
+            sub_triangles().iter().map(|v| {
+                boxed(&[
+                    lattice_u(tri, v[0]),
+                    lattice_u(tri, v[1]),
+                    lattice_u(tri, v[2]),
+                ])
+            })
+        })
+        .collect()
+}
+
+/// The fraction of the patch's area in each region (same order as [`regions`]).
+fn region_fractions(p: &PatchEntry) -> Vec<f64> {
+    if p.triangles == 0 {
+        return vec![1.0 / GUESS_LEVEL as f64; GUESS_LEVEL];
+    }
+    let per = (GUESS_LEVEL * GUESS_LEVEL) as f64;
+    let mut out = vec![p.first_fraction / per; GUESS_LEVEL * GUESS_LEVEL];
+    if p.triangles == 2 {
+        out.extend(std::iter::repeat_n(
+            (1.0 - p.first_fraction) / per,
+            GUESS_LEVEL * GUESS_LEVEL,
+        ));
+    }
+    out
+}
+
+impl PatchEntry {
+    /// `Σ_r A_r B_r`: this patch's share of the table's bounded area.
+    fn bounded_area(&self) -> f64 {
+        self.region_bounds
+            .iter()
+            .zip(region_fractions(self))
+            .map(|(b, f)| self.linear_area * f * b)
+            .sum()
+    }
+
+    /// Bounded area minus the sampled estimate of the curved area: what loose bounds cost here.
+    fn excess(&self) -> f64 {
+        (self.bounded_area() - self.linear_area * self.sample_mean).max(0.0)
+    }
+
+    /// `u` uniform (by point-space area; `W` is affine so barycentric area is proportional) on
+    /// region `region` of the patch, and the preimage guess interpolated linearly in the lattice
+    /// preimages at the region's corners.
+    fn propose(&self, region: usize, rng: &mut impl Rng) -> (Bary, Bary) {
         let mut u = [0.0; MAX_VARS];
+        let mut g = [0.0; MAX_VARS];
         if self.triangles == 0 {
-            let t: f64 = rng.random();
             let [a, b, _] = self.corners[0];
+            let t = (region as f64 + rng.random::<f64>()) / GUESS_LEVEL as f64;
+            let f = t * GUESS_LEVEL as f64 - region as f64;
             for i in 0..MAX_VARS {
                 u[i] = (1.0 - t) * a[i] + t * b[i];
             }
             if self.guesses.is_empty() {
                 return (u, u);
             }
-            let x = t * l;
-            let i = (x.floor() as usize).min(GUESS_LEVEL - 1);
-            let f = x - i as f64;
-            let (g0, g1) = (&self.guesses[i], &self.guesses[i + 1]);
-            let mut g = [0.0; MAX_VARS];
+            let (g0, g1) = (&self.guesses[region], &self.guesses[region + 1]);
             for k in 0..MAX_VARS {
                 g[k] = (1.0 - f) * g0[k] + f * g1[k];
             }
             return (u, g);
         }
-        let which = if self.triangles == 2 && rng.random::<f64>() >= self.first_fraction {
-            1
-        } else {
-            0
-        };
-        let [a, b, c] = self.corners[which];
+        let per = GUESS_LEVEL * GUESS_LEVEL;
+        let (which, sub) = (region / per, region % per);
+        let tri = &self.corners[which];
+        let verts = sub_triangles()[sub];
         let r1: f64 = rng.random();
         let r2: f64 = rng.random();
         let s = r1.sqrt();
-        let (la, lb, lc) = (1.0 - s, s * (1.0 - r2), s * r2);
-        for i in 0..MAX_VARS {
-            u[i] = la * a[i] + lb * b[i] + lc * c[i];
+        let weights = [1.0 - s, s * (1.0 - r2), s * r2];
+        let base = which * LATTICE_POINTS;
+        for (v, &wt) in verts.iter().zip(&weights) {
+            let uv = lattice_u(tri, *v);
+            for k in 0..MAX_VARS {
+                u[k] += wt * uv[k];
+            }
+            if !self.guesses.is_empty() {
+                let gv = &self.guesses[base + lattice_index(v.0, v.1)];
+                for k in 0..MAX_VARS {
+                    g[k] += wt * gv[k];
+                }
+            }
         }
         if self.guesses.is_empty() {
             return (u, u);
-        }
-        // The lattice cell of (lb, lc) and its lower or upper triangle.
-        let (x, y) = (lb * l, lc * l);
-        let i = (x.floor() as usize).min(GUESS_LEVEL - 1);
-        let j = (y.floor() as usize).min(GUESS_LEVEL - 1 - i.min(GUESS_LEVEL - 1));
-        let (fx, fy) = (x - i as f64, y - j as f64);
-        let base = which * LATTICE_POINTS;
-        let at = |i: usize, j: usize| &self.guesses[base + lattice_index(i, j)];
-        let (p, q, r, wp, wq, wr) = if fx + fy <= 1.0 || i + j + 2 > GUESS_LEVEL {
-            (at(i, j), at(i + 1, j), at(i, j + 1), 1.0 - fx - fy, fx, fy)
-        } else {
-            (
-                at(i + 1, j + 1),
-                at(i, j + 1),
-                at(i + 1, j),
-                fx + fy - 1.0,
-                1.0 - fx,
-                1.0 - fy,
-            )
-        };
-        let mut g = [0.0; MAX_VARS];
-        for k in 0..MAX_VARS {
-            g[k] = wp * p[k] + wq * q[k] + wr * r[k];
         }
         (u, g)
     }

@@ -1,0 +1,864 @@
+//! Certified bound of the area element on the shape for a whole chain of stages.
+//!
+//! [`crate::bound`] bounds each stage separately over its whole simplex, `Π sup‖M_k‖ / inf det M_k`:
+//! exact factors of `J` are replaced by norms, and suprema and infima are taken at different places,
+//! far from the shape. When every stage is stored in the same direction, this module bounds `J`
+//! itself on small cells that the shape can cross, propagating enclosures through the chain:
+//!
+//! - **All implicit** (`X = X_{m−1} ∘ … ∘ X_0` is stored): cells are sub-simplices of the point
+//!   barycentric coordinates `w`. The first stage is restricted to the cell exactly (Bernstein
+//!   subdivision, coefficient ranges); later stages are evaluated in interval arithmetic on the box
+//!   that encloses the image of the cell so far (convex hull property, then interval de Casteljau).
+//!   `J = |E⁻ᵀ DXᵀ Δf| / (|∇F_lin| det DX)` with `DX = DX_{m−1} ⋯ DX_0`: the vector is propagated
+//!   by interval matrix–vector products, `det DX ≥ Π inf det DX_k` by interval determinants. A cell
+//!   is dropped when the enclosure of `F − c` on it excludes 0.
+//! - **All parametric** (`Y = X⁻¹ = Y_0 ∘ … ∘ Y_{m−1}` is stored): cells are sub-simplices of the
+//!   function coordinates `u`, where the shape is the flat patch `f·u = c` (an exact crossing test).
+//!   The last stored stage is restricted exactly, the others are evaluated on boxes, and
+//!   `J = |E⁻ᵀ cof(DY) Δf| / |∇F_lin|` with `cof(DY) = cof(DY_0) ⋯ cof(DY_{m−1})` (the cofactor
+//!   matrix `det(A) A⁻ᵀ` is multiplicative), so no determinant bound is needed at all.
+//!
+//! Cells are bisected (longest edge) worst first, where "worst" is the ratio of a cell's bound to
+//! the exact `J` at the caller's sample points of the shape inside the cell's `u`-box, until every
+//! ratio is within [`TIGHTNESS`] or the budget is spent. The leaves keep their `u`-boxes, so a
+//! caller can bound `J` over any region of the linear patch by the leaves whose boxes meet it
+//! ([`ChainBound::over`]). Every step is an enclosure, so the results are certified.
+
+use ism_format::Direction;
+use ism_geom::interval::Interval;
+use ism_geom::{linalg, Bernstein, LocalMap, LocalStage, Mat, Restriction};
+
+use crate::bound::{det_poly, stage_components, BOUND_ROUNDING_MARGIN};
+
+/// Refinement stops once every leaf's bound is within this factor of the largest exact sample of
+/// `J` in its box: the sampler then accepts about this fraction of what exact suprema would give.
+pub const TIGHTNESS: f64 = 0.7;
+
+/// Deepest bisection of one cell.
+const MAX_DEPTH: u32 = 30;
+
+/// A stored stage as polynomials: components `P_i`, denominator `Q` (`None` for a polynomial
+/// stage) and their reduced partial derivatives `∂/∂w_l = ∂_l − ∂_0`, `l = 1..n`.
+struct Polys {
+    p: Vec<Bernstein>,
+    q: Option<Bernstein>,
+    /// `dp[i − 1][l − 1]` for output rows `i = 1..n`.
+    dp: Vec<Vec<Bernstein>>,
+    dq: Vec<Bernstein>,
+}
+
+impl Polys {
+    fn new(stage: &LocalStage) -> Polys {
+        let m = stage.vars();
+        let (p, q) = stage_components(stage);
+        let dp = p[1..]
+            .iter()
+            .map(|pi| (1..m).map(|l| pi.derivative(l)).collect())
+            .collect();
+        let dq = q
+            .as_ref()
+            .map(|q| (1..m).map(|l| q.derivative(l)).collect())
+            .unwrap_or_default();
+        Polys { p, q, dp, dq }
+    }
+}
+
+/// Barycentric coordinates lie in `[0, 1]`.
+fn clamp_unit(x: Interval) -> Interval {
+    x.intersect(Interval::new(0.0, 1.0))
+}
+
+type IMat = [[Interval; 3]; 3];
+
+/// The first stage of the processing order, restricted to a cell exactly: components and
+/// denominator (image by the convex hull property), Jacobian numerators over `Q²` (elevated to a
+/// common degree), and optionally `F − c` times `Q` (when this stage is also the last implicit one).
+#[derive(Clone)]
+struct Restricted {
+    p: Vec<Bernstein>,
+    q: Option<Bernstein>,
+    num: Vec<Vec<Bernstein>>,
+    q2: Option<Bernstein>,
+    /// `det` of the numerators and its denominator `Q^{2n}`: an exact polynomial, tighter than
+    /// the interval determinant of the entries' ranges. Kept for the first stage only, which is
+    /// subdivided by cheap edge splits; later stages are restricted afresh per cell, where the
+    /// high-degree determinant would dominate the cost.
+    det: Option<Bernstein>,
+    q2n: Option<Bernstein>,
+    cross: Option<Bernstein>,
+}
+
+impl Restricted {
+    fn new(polys: &Polys, values: Option<(&[f64], f64)>) -> Restricted {
+        let m = polys.p.len();
+        let (num, q2) = match &polys.q {
+            None => (polys.dp.clone(), None),
+            Some(q) => {
+                let q2 = q.mul(q);
+                let num = polys
+                    .dp
+                    .iter()
+                    .enumerate()
+                    .map(|(i, row)| {
+                        row.iter()
+                            .enumerate()
+                            .map(|(l, d)| {
+                                d.mul(q)
+                                    .add(&polys.p[i + 1].mul(&polys.dq[l]).scale(-1.0))
+                                    .elevate_to(q2.degree())
+                            })
+                            .collect()
+                    })
+                    .collect();
+                (num, Some(q2))
+            }
+        };
+        let det = Some(det_poly(&num));
+        let q2n = q2.as_ref().map(|q2| {
+            let mut acc = q2.clone();
+            for _ in 2..m {
+                acc = acc.mul(q2);
+            }
+            acc
+        });
+        let cross = values.map(|(f, c)| {
+            let mut nf = polys.p[0].scale(f[0]);
+            for (pi, &fi) in polys.p.iter().zip(f).skip(1) {
+                nf = nf.add(&pi.scale(fi));
+            }
+            match &polys.q {
+                None => nf.add(&Bernstein::constant(m, nf.degree(), -c)),
+                Some(q) => nf.add(&q.scale(-c)),
+            }
+        });
+        Restricted {
+            p: polys.p.clone(),
+            q: polys.q.clone(),
+            num,
+            q2,
+            det,
+            q2n,
+            cross,
+        }
+    }
+
+    fn split(&self, a: usize, b: usize) -> (Restricted, Restricted) {
+        let halve = |p: &Bernstein| p.split_edge(a, b);
+        let halve_opt = |p: &Option<Bernstein>| match p {
+            None => (None, None),
+            Some(p) => {
+                let (x, y) = halve(p);
+                (Some(x), Some(y))
+            }
+        };
+        let (p0, p1): (Vec<_>, Vec<_>) = self.p.iter().map(halve).unzip();
+        let (q0, q1) = halve_opt(&self.q);
+        let mut num0 = Vec::with_capacity(self.num.len());
+        let mut num1 = Vec::with_capacity(self.num.len());
+        for row in &self.num {
+            let (r0, r1): (Vec<_>, Vec<_>) = row.iter().map(halve).unzip();
+            num0.push(r0);
+            num1.push(r1);
+        }
+        let (s0, s1) = halve_opt(&self.q2);
+        let (d0, d1) = halve_opt(&self.det);
+        let (n0, n1) = halve_opt(&self.q2n);
+        let (c0, c1) = halve_opt(&self.cross);
+        (
+            Restricted {
+                p: p0,
+                q: q0,
+                num: num0,
+                q2: s0,
+                det: d0,
+                q2n: n0,
+                cross: c0,
+            },
+            Restricted {
+                p: p1,
+                q: q1,
+                num: num1,
+                q2: s1,
+                det: d1,
+                q2n: n1,
+                cross: c1,
+            },
+        )
+    }
+
+    /// Image box (coefficient ratios `P_{i,I}/Q_I`: the restricted map's control points) and the
+    /// interval Jacobian (coefficient ratios of the numerators over `Q²`).
+    fn ranges(&self, n: usize) -> (Vec<Interval>, IMat) {
+        let ratio_range = |a: &Bernstein, b: Option<&Bernstein>| -> Interval {
+            match b {
+                None => widen(a.range()),
+                Some(b) => {
+                    let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
+                    for (x, y) in a.coeffs().iter().zip(b.coeffs()) {
+                        let r = x / y;
+                        lo = lo.min(r);
+                        hi = hi.max(r);
+                    }
+                    widen(Interval::new(lo, hi))
+                }
+            }
+        };
+        let image = self
+            .p
+            .iter()
+            .map(|p| clamp_unit(ratio_range(p, self.q.as_ref())))
+            .collect();
+        let mut jac = [[Interval::point(0.0); 3]; 3];
+        for (row, nums) in jac.iter_mut().zip(&self.num).take(n) {
+            for (entry, num) in row.iter_mut().zip(nums).take(n) {
+                *entry = ratio_range(num, self.q2.as_ref());
+            }
+        }
+        (image, jac)
+    }
+
+    /// The polynomials restricted to the simplex `{w ≥ lo, Σ w = 1}` (vertices
+    /// `lo + (1 − Σ lo) e_j`), which contains every point of the simplex whose coordinates are at
+    /// least `lo`: the enclosure the previous stage's image is propagated in.
+    fn restrict_to(&self, lo: &[f64]) -> Restricted {
+        let m = self.p.len();
+        let rest = (1.0 - lo.iter().take(m).sum::<f64>()).max(0.0);
+        let vertices: Vec<Vec<f64>> = (0..m)
+            .map(|j| {
+                let mut v = lo[..m].to_vec();
+                v[j] += rest;
+                v
+            })
+            .collect();
+        let plan = Restriction::new(&vertices);
+        let r = |p: &Bernstein| match &plan {
+            Some(plan) => p.restrict_with(plan),
+            None => p.restrict(&vertices),
+        };
+        let r_opt = |p: &Option<Bernstein>| p.as_ref().map(r);
+        Restricted {
+            p: self.p.iter().map(r).collect(),
+            q: r_opt(&self.q),
+            num: self
+                .num
+                .iter()
+                .map(|row| row.iter().map(r).collect())
+                .collect(),
+            q2: r_opt(&self.q2),
+            det: None,
+            q2n: None,
+            cross: r_opt(&self.cross),
+        }
+    }
+
+    /// Lower bound of `det DX` on the cell: from the determinant polynomial when kept
+    /// (`det − r Q^{2n}` has coefficients `det_I − r Q^{2n}_I`, so the smallest coefficient ratio is
+    /// one), else the interval determinant of the entries' ranges `jac`.
+    fn det_lo(&self, n: usize, jac: &IMat) -> f64 {
+        let Some(det) = &self.det else {
+            return interval_det(n, jac).lo;
+        };
+        let ratios: Vec<f64> = match &self.q2n {
+            None => det.coeffs().to_vec(),
+            Some(q) => det
+                .coeffs()
+                .iter()
+                .zip(q.coeffs())
+                .map(|(a, b)| a / b)
+                .collect(),
+        };
+        let slack = BOUND_ROUNDING_MARGIN * ratios.iter().fold(0.0f64, |a, r| a.max(r.abs()));
+        ratios.iter().copied().fold(f64::INFINITY, f64::min) - slack
+    }
+
+    /// Whether `F − c` (times `Q > 0`) can vanish on the cell, allowing for rounding.
+    fn may_cross(&self) -> bool {
+        match &self.cross {
+            None => true,
+            Some(c) => {
+                let scale = c.coeffs().iter().fold(0.0f64, |a, x| a.max(x.abs()));
+                let slack = BOUND_ROUNDING_MARGIN * scale;
+                c.min_coeff() <= slack && c.max_coeff() >= -slack
+            }
+        }
+    }
+}
+
+/// Widens a range computed from rounded coefficients by the rounding allowance.
+fn widen(x: Interval) -> Interval {
+    let s = BOUND_ROUNDING_MARGIN * x.lo.abs().max(x.hi.abs()) + f64::MIN_POSITIVE;
+    Interval::new(x.lo - s, x.hi + s)
+}
+
+fn interval_det(n: usize, a: &IMat) -> Interval {
+    match n {
+        1 => a[0][0],
+        2 => a[0][0] * a[1][1] - a[0][1] * a[1][0],
+        _ => {
+            a[0][0] * (a[1][1] * a[2][2] - a[1][2] * a[2][1])
+                - a[0][1] * (a[1][0] * a[2][2] - a[1][2] * a[2][0])
+                + a[0][2] * (a[1][0] * a[2][1] - a[1][1] * a[2][0])
+        }
+    }
+}
+
+/// `cof(A) = det(A) A⁻ᵀ`.
+fn cofactor(n: usize, a: &IMat) -> IMat {
+    let mut c = [[Interval::point(0.0); 3]; 3];
+    match n {
+        1 => c[0][0] = Interval::point(1.0),
+        2 => {
+            c[0][0] = a[1][1];
+            c[0][1] = -a[1][0];
+            c[1][0] = -a[0][1];
+            c[1][1] = a[0][0];
+        }
+        _ => {
+            for (i, row) in c.iter_mut().enumerate() {
+                for (j, entry) in row.iter_mut().enumerate() {
+                    let (r0, r1) = ((i + 1) % 3, (i + 2) % 3);
+                    let (c0, c1) = ((j + 1) % 3, (j + 2) % 3);
+                    // Cyclic indices make the sign come out right for 3×3.
+                    *entry = a[r0][c0] * a[r1][c1] - a[r0][c1] * a[r1][c0];
+                }
+            }
+        }
+    }
+    c
+}
+
+fn mat_vec(n: usize, a: &IMat, v: &[Interval; 3], transpose: bool) -> [Interval; 3] {
+    let mut out = [Interval::point(0.0); 3];
+    for (i, o) in out.iter_mut().enumerate().take(n) {
+        let mut s = Interval::point(0.0);
+        for (j, vj) in v.iter().enumerate().take(n) {
+            s = s + if transpose { a[j][i] } else { a[i][j] } * *vj;
+        }
+        *o = s;
+    }
+    out
+}
+
+/// Which chain layout a map has.
+#[derive(Clone, Copy, PartialEq, Eq)]
+enum Layout {
+    Implicit,
+    Parametric,
+}
+
+struct Chain<'a> {
+    map: &'a LocalMap,
+    layout: Layout,
+    n: usize,
+    /// Stages in processing order after the first (implicit: stages 1.., parametric: stored
+    /// stages m−2 down to 0), unrestricted; the last implicit one carries `F − c`.
+    rest: Vec<Restricted>,
+    inv_edges: &'a Mat,
+    values: &'a [f64],
+    level: f64,
+    linear: f64,
+}
+
+struct Cell {
+    restricted: Restricted,
+    /// Vertices of the cell (barycentric in the restricted stage's domain), `m` each.
+    vertices: Vec<[f64; 4]>,
+    depth: u32,
+}
+
+impl Chain<'_> {
+    /// Certified bound of `J` over the parts of `cell` the shape can reach, or `None` when it
+    /// cannot reach the cell at all.
+    fn bound(&self, cell: &Cell) -> Option<(f64, UBox)> {
+        let n = self.n;
+        let m = n + 1;
+        if self.layout == Layout::Parametric {
+            // The shape is the flat patch f·u = c: linear, so its vertex values decide.
+            let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
+            let mut scale: f64 = self.level.abs();
+            for v in &cell.vertices {
+                let f: f64 = (0..m).map(|i| self.values[i] * v[i]).sum();
+                lo = lo.min(f);
+                hi = hi.max(f);
+                scale = scale.max(f.abs());
+            }
+            let slack = BOUND_ROUNDING_MARGIN * scale;
+            if lo - self.level > slack || hi - self.level < -slack {
+                return None;
+            }
+        } else if !cell.restricted.may_cross() {
+            return None;
+        }
+        let (mut image, first) = cell.restricted.ranges(n);
+        let mut jacs = vec![first];
+        let mut dets = vec![cell.restricted.det_lo(n, &first)];
+        for stage in &self.rest {
+            // The image so far lies in {w ≥ lo}: restrict the next stage there exactly.
+            let lo: Vec<f64> = image.iter().map(|x| x.lo.max(0.0)).collect();
+            let here = stage.restrict_to(&lo);
+            if !here.may_cross() {
+                return None;
+            }
+            let (next, jac) = here.ranges(n);
+            dets.push(here.det_lo(n, &jac));
+            jacs.push(jac);
+            image = next;
+        }
+        let mut g = [Interval::point(0.0); 3];
+        for (i, gi) in g.iter_mut().enumerate().take(n) {
+            *gi = Interval::point(self.values[i + 1] - self.values[0]);
+        }
+        let mut det_lo = 1.0f64;
+        match self.layout {
+            // DX = DX_{m−1} ⋯ DX_0 and jacs holds DX_0, DX_1, …: DXᵀΔf = DX_0ᵀ(⋯(DX_{m−1}ᵀ Δf)).
+            Layout::Implicit => {
+                for (jac, &d) in jacs.iter().zip(&dets).rev() {
+                    g = mat_vec(n, jac, &g, true);
+                    if d.is_nan() || d <= 0.0 {
+                        return Some((f64::INFINITY, self.u_box(cell, &image)));
+                    }
+                    det_lo *= d;
+                }
+            }
+            // cof(DY)Δf = cof(DY_0)(⋯(cof(DY_{m−1})Δf)) and jacs holds DY_{m−1}, DY_{m−2}, ….
+            Layout::Parametric => {
+                for jac in &jacs {
+                    g = mat_vec(n, &cofactor(n, jac), &g, false);
+                }
+            }
+        }
+        // h = E⁻ᵀ g: h_x = Σ_l (E⁻¹)_{l x} g_l.
+        let mut norm2 = 0.0;
+        for x in 0..n {
+            let mut h = Interval::point(0.0);
+            for (l, gl) in g.iter().enumerate().take(n) {
+                h = h + Interval::point(self.inv_edges[l][x]) * *gl;
+            }
+            let top = h.lo.abs().max(h.hi.abs());
+            norm2 += top * top;
+        }
+        let bound = norm2.sqrt() / (self.linear * det_lo) * (1.0 + BOUND_ROUNDING_MARGIN);
+        let bound = if bound.is_nan() { f64::INFINITY } else { bound };
+        Some((bound, self.u_box(cell, &image)))
+    }
+
+    /// Enclosure of the function coordinates `u = X(w)` of the cell's points: the image after
+    /// the whole chain (implicit), or the cell's own bounding box (parametric: cells live in `u`).
+    fn u_box(&self, cell: &Cell, image: &[Interval]) -> UBox {
+        let m = self.n + 1;
+        let mut b = [Interval::point(0.0); 4];
+        match self.layout {
+            Layout::Implicit => b[..m].copy_from_slice(&image[..m]),
+            Layout::Parametric => {
+                for (i, bi) in b.iter_mut().enumerate().take(m) {
+                    let lo = cell
+                        .vertices
+                        .iter()
+                        .map(|v| v[i])
+                        .fold(f64::INFINITY, f64::min);
+                    let hi = cell
+                        .vertices
+                        .iter()
+                        .map(|v| v[i])
+                        .fold(f64::NEG_INFINITY, f64::max);
+                    *bi = Interval::new(lo, hi);
+                }
+            }
+        }
+        b
+    }
+
+    /// `J` at the cell's centroid (off the shape in general, but `J` is smooth): a cheap
+    /// estimate of its size on the cell, used when no sample of the shape lies in the cell's box.
+    fn centroid_j(&self, cell: &Cell) -> f64 {
+        let n = self.n;
+        let m = n + 1;
+        let mut c = [0.0; 4];
+        for v in &cell.vertices {
+            for i in 0..m {
+                c[i] += v[i] / m as f64;
+            }
+        }
+        let mut dfull = [0.0; 4];
+        for (i, d) in dfull.iter_mut().enumerate().take(n) {
+            *d = self.values[i + 1] - self.values[0];
+        }
+        let g: [f64; 4] = match self.layout {
+            Layout::Implicit => {
+                let Some(j) = self.map.jacobian(&c).1 else {
+                    return 0.0;
+                };
+                let det = linalg::det(n, &j);
+                if det.is_nan() || det <= 0.0 {
+                    return 0.0;
+                }
+                let mut g = [0.0; 4];
+                for l in 0..n {
+                    g[l] = (0..n).map(|i| j[i][l] * dfull[i]).sum::<f64>() / det;
+                }
+                g
+            }
+            Layout::Parametric => {
+                // DY = DY_0 ⋯ DY_{m−1}, stages applied last-stored first.
+                let mut v = c;
+                let mut dy = ism_geom::stage::identity_mat(n);
+                for stage in self.map.stages().iter().rev() {
+                    let (next, j) = stage.jacobian_stored(&v);
+                    dy = linalg::mul(n, &j, &dy);
+                    v = next;
+                }
+                let Some(inv) = linalg::inverse(n, &dy) else {
+                    return 0.0;
+                };
+                let det = linalg::det(n, &dy);
+                // cof(DY)Δf = det · DY⁻ᵀ Δf.
+                let mut g = [0.0; 4];
+                for l in 0..n {
+                    g[l] = det * (0..n).map(|i| inv[i][l] * dfull[i]).sum::<f64>();
+                }
+                g
+            }
+        };
+        let mut norm2 = 0.0;
+        for x in 0..n {
+            let h: f64 = (0..n).map(|l| self.inv_edges[l][x] * g[l]).sum();
+            norm2 += h * h;
+        }
+        norm2.sqrt() / self.linear
+    }
+
+    fn split(&self, cell: &Cell) -> (Cell, Cell) {
+        let m = self.n + 1;
+        // The longest edge in barycentric terms keeps cells well shaped.
+        let (mut a, mut b, mut best) = (0, 1, -1.0);
+        for i in 0..m {
+            for j in i + 1..m {
+                let d: f64 = (0..m)
+                    .map(|k| (cell.vertices[i][k] - cell.vertices[j][k]).powi(2))
+                    .sum();
+                if d > best {
+                    (a, b, best) = (i, j, d);
+                }
+            }
+        }
+        let (r0, r1) = cell.restricted.split(a, b);
+        let mut mid = [0.0; 4];
+        for (k, x) in mid.iter_mut().enumerate().take(m) {
+            *x = 0.5 * (cell.vertices[a][k] + cell.vertices[b][k]);
+        }
+        let mut v0 = cell.vertices.clone();
+        v0[b] = mid;
+        let mut v1 = cell.vertices.clone();
+        v1[a] = mid;
+        (
+            Cell {
+                restricted: r0,
+                vertices: v0,
+                depth: cell.depth + 1,
+            },
+            Cell {
+                restricted: r1,
+                vertices: v1,
+                depth: cell.depth + 1,
+            },
+        )
+    }
+}
+
+/// Slack of box comparisons in [`ChainBound::over`]: barycentric coordinates computed in floating
+/// point miss their exact value by a few ulps (e.g. `−3e−18` for an exact 0), far below this.
+pub const BOX_SLACK: f64 = 1e-12;
+
+/// Enclosure of function coordinates `u` (first `m` entries).
+pub type UBox = [Interval; 4];
+
+/// The result of [`chain_bound`]: the leaves of the refinement that the shape can reach, each
+/// with a certified bound of `J` on it and an enclosure of its points' `u`. Every point of the
+/// shape in the simplex lies in a leaf, so the largest leaf bound among those whose box meets a
+/// region of the linear patch bounds `J` over that region.
+#[derive(Clone, Debug)]
+pub struct ChainBound {
+    /// `(bound, u-box)` per leaf.
+    pub leaves: Vec<(f64, UBox)>,
+}
+
+impl ChainBound {
+    /// The bound over the whole simplex.
+    pub fn top(&self) -> f64 {
+        self.leaves.iter().map(|l| l.0).fold(0.0, f64::max)
+    }
+
+    /// The bound over the points whose `u` lies in the box `[lo, hi]`. Boxes are compared with
+    /// a slack of [`BOX_SLACK`], so coordinates rounded across 0 or 1 still find their leaf.
+    pub fn over(&self, lo: &[f64], hi: &[f64]) -> f64 {
+        self.leaves
+            .iter()
+            .filter(|(_, b)| {
+                lo.iter()
+                    .zip(hi)
+                    .zip(b)
+                    .all(|((&l, &h), bi)| bi.lo <= h + BOX_SLACK && l - BOX_SLACK <= bi.hi)
+            })
+            .map(|l| l.0)
+            .fold(0.0, f64::max)
+    }
+}
+
+/// Certified bound of the area element `J` on the shape in one simplex, for a chain whose stages
+/// are all implicit or all parametric; `None` for a mixed chain (use [`crate::bound`]), and
+/// `Some(Err)` when a stage cannot be bounded at all (a denominator not positive). Leaves whose
+/// determinant was not certified within the budget carry an infinite bound.
+///
+/// `inv_edges` is the inverse of the simplex's edge matrix, `values` the vertex values (stored
+/// order), `level` the level `c`, and `samples` points of the shape as `(u, exact J)` (e.g. the
+/// sampler's lattice), which only steer refinement: a leaf is split while its bound exceeds the
+/// largest sample inside its box by more than [`TIGHTNESS`], worst ratio first, within the budget.
+pub fn chain_bound(
+    map: &LocalMap,
+    inv_edges: &Mat,
+    values: &[f64],
+    level: f64,
+    samples: &[([f64; 4], f64)],
+    max_splits: usize,
+) -> Option<Result<ChainBound, String>> {
+    let stages = map.stages();
+    let m = map.vars();
+    if stages.is_empty() {
+        let mut b = [Interval::new(0.0, 1.0); 4];
+        for bi in b.iter_mut().skip(m) {
+            *bi = Interval::point(0.0);
+        }
+        return Some(Ok(ChainBound {
+            leaves: vec![(1.0, b)],
+        }));
+    }
+    let layout = if stages.iter().all(|s| s.direction() == Direction::Implicit) {
+        Layout::Implicit
+    } else if stages
+        .iter()
+        .all(|s| s.direction() == Direction::Parametric)
+    {
+        Layout::Parametric
+    } else {
+        return None;
+    };
+    let n = m - 1;
+    let linear = (0..n)
+        .map(|x| {
+            (0..n)
+                .map(|l| (values[l + 1] - values[0]) * inv_edges[l][x])
+                .sum::<f64>()
+                .powi(2)
+        })
+        .sum::<f64>()
+        .sqrt();
+    if linear.is_nan() || linear <= 0.0 {
+        return Some(Err("the linear function is constant on the simplex".into()));
+    }
+    let mut polys: Vec<Polys> = stages.iter().map(Polys::new).collect();
+    if layout == Layout::Parametric {
+        polys.reverse();
+    }
+    let first = polys.remove(0);
+    for p in std::iter::once(&first).chain(&polys) {
+        if let Some(q) = &p.q {
+            if q.min_coeff().is_nan() || q.min_coeff() <= 0.0 {
+                return Some(Err(format!(
+                    "denominator has a coefficient {} ≤ 0",
+                    q.min_coeff()
+                )));
+            }
+        }
+    }
+    // F − c is tested on the last implicit stage (the one whose output is u).
+    let last_cross =
+        |k: usize| (layout == Layout::Implicit && k == polys.len()).then_some((values, level));
+    let restricted = Restricted::new(&first, last_cross(0));
+    let rest: Vec<Restricted> = polys
+        .iter()
+        .enumerate()
+        .map(|(k, p)| Restricted::new(p, last_cross(k + 1)))
+        .collect();
+    let chain = Chain {
+        map,
+        layout,
+        n,
+        rest,
+        inv_edges,
+        values,
+        level,
+        linear,
+    };
+    let mut vertices = vec![[0.0; 4]; m];
+    for (i, v) in vertices.iter_mut().enumerate() {
+        v[i] = 1.0;
+    }
+    let root = Cell {
+        restricted,
+        vertices,
+        depth: 0,
+    };
+    let Some((b, ubox)) = chain.bound(&root) else {
+        // A crossed simplex always meets the shape (the maps are diffeomorphisms): excluding
+        // the whole simplex means the enclosures are not trustworthy here.
+        return Some(Err("the shape's enclosure excludes its own simplex".into()));
+    };
+    // The size of J on a cell: the largest sample of the shape inside its box, or J at its
+    // centroid when it is larger (small cells rarely hold a sample).
+    let local = |b: &UBox, cell: &Cell| -> f64 {
+        let inside = samples
+            .iter()
+            .filter(|(u, _)| (0..m).all(|i| b[i].lo <= u[i] && u[i] <= b[i].hi))
+            .map(|s| s.1)
+            .fold(0.0f64, f64::max);
+        inside.max(chain.centroid_j(cell))
+    };
+    let ratio = |bound: f64, b: &UBox, cell: &Cell| bound / local(b, cell);
+    let mut cells = vec![(ratio(b, &ubox, &root), b, ubox, root)];
+    let mut splits = 0;
+    while let Some(worst) = (0..cells.len()).max_by(|&i, &j| cells[i].0.total_cmp(&cells[j].0)) {
+        if cells[worst].0 * TIGHTNESS <= 1.0
+            || splits >= max_splits
+            || cells[worst].3.depth >= MAX_DEPTH
+        {
+            break;
+        }
+        let (_, _, _, cell) = cells.swap_remove(worst);
+        let (a, b) = chain.split(&cell);
+        for child in [a, b] {
+            if let Some((bound, ubox)) = chain.bound(&child) {
+                cells.push((ratio(bound, &ubox, &child), bound, ubox, child));
+            }
+        }
+        splits += 1;
+    }
+    let result = ChainBound {
+        leaves: cells.into_iter().map(|(_, b, u, _)| (b, u)).collect(),
+    };
+    // Leaves may still carry an infinite bound (det not certified within the budget): callers
+    // combine with the per-stage bound there.
+    Some(Ok(result))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use ism_format::builder::{ModelBuilder, StageBuilder};
+    use ism_format::Model;
+    use ism_geom::{ModelEval, MAX_VARS};
+
+    fn example(name: &str) -> Model {
+        let path = format!(
+            "{}/../../spec/examples/{name}.ism.json",
+            env!("CARGO_MANIFEST_DIR")
+        );
+        ism_format::io::read_path(path).unwrap().model
+    }
+
+    /// Two triangles with a parametric stage (so the chain is all parametric).
+    fn parametric_square() -> Model {
+        ModelBuilder::new(2)
+            .vertex(&[0.0, 0.0], -1.0)
+            .vertex(&[1.0, 0.0], 1.0)
+            .vertex(&[1.0, 1.0], 1.0)
+            .vertex(&[0.0, 1.0], 1.0)
+            .simplex(&[0, 1, 2])
+            .simplex(&[0, 2, 3])
+            .stage(
+                StageBuilder::bezier(3)
+                    .face(&[0, 2], &[0.6, 0.4, 0.3, 0.7], &[])
+                    .face(&[0, 1, 2], &[0.2, 0.5, 0.3], &[])
+                    .parametric()
+                    .build(),
+            )
+            .build()
+            .unwrap()
+    }
+
+    /// Exact `J` at points `X⁻¹(u)` of the shape, `u` on a fine lattice of each linear patch,
+    /// never exceeds the chain bound of the leaves whose boxes contain `u`.
+    fn check(model: &Model, splits: usize) {
+        let eval = ModelEval::new(model).unwrap();
+        let n = model.dim();
+        let mut checked = 0;
+        for s in 0..model.num_simplices() {
+            let Some(patch) = eval.patch(s) else { continue };
+            let map = eval.local_map(s);
+            let ids = model.simplex(s);
+            let v0 = model.vertex(ids[0] as usize);
+            let mut e = [[0.0; MAX_VARS]; MAX_VARS];
+            for l in 0..n {
+                let v = model.vertex(ids[l + 1] as usize);
+                for x in 0..n {
+                    e[x][l] = v[x] - v0[x];
+                }
+            }
+            let inv = linalg::inverse(n, &e).unwrap();
+            let values: Vec<f64> = ids.iter().map(|&v| model.values[v as usize]).collect();
+            let Some(Ok(chain)) = chain_bound(map, &inv, &values, model.level, &[], splits) else {
+                panic!("simplex {s}: no chain bound");
+            };
+            let lin = (0..n)
+                .map(|x| {
+                    (0..n)
+                        .map(|l| (values[l + 1] - values[0]) * inv[l][x])
+                        .sum::<f64>()
+                        .powi(2)
+                })
+                .sum::<f64>()
+                .sqrt();
+            let c: Vec<_> = patch.corners.iter().map(|c| c.u).collect();
+            let k = 24;
+            for i in 0..=k {
+                for j in 0..=(if n == 2 { 0 } else { k - i }) {
+                    let (a, b) = (f64::from(i) / f64::from(k), f64::from(j) / f64::from(k));
+                    let mut u = [0.0; MAX_VARS];
+                    for t in 0..=n {
+                        u[t] = if n == 2 {
+                            (1.0 - a) * c[0][t] + a * c[1][t]
+                        } else {
+                            (1.0 - a - b) * c[0][t] + a * c[1][t] + b * c[2][t]
+                        };
+                    }
+                    let w = map.inverse(&u).w;
+                    let jac = map.jacobian(&w).1.unwrap();
+                    let g = eval.gradient_from_jacobian(s, &jac);
+                    let det = linalg::det(n, &jac);
+                    let exact = g[..n].iter().map(|x| x * x).sum::<f64>().sqrt() / (lin * det);
+                    let bound = chain.over(&u[..=n], &u[..=n]);
+                    assert!(
+                        exact <= bound,
+                        "simplex {s}, u {:?}: J = {exact} > bound {bound}",
+                        &u[..=n]
+                    );
+                    checked += 1;
+                }
+            }
+        }
+        assert!(checked > 0);
+    }
+
+    #[test]
+    fn chain_bounds_dominate_the_area_element_on_the_shape() {
+        check(&example("circle-curved"), 64);
+        check(&example("rational-degree5"), 16);
+        check(&example("stratified-3d"), 8);
+        check(&parametric_square(), 64);
+    }
+
+    #[test]
+    fn mixed_directions_are_left_to_the_per_stage_bound() {
+        let model = example("two-stage");
+        let eval = ModelEval::new(&model).unwrap();
+        let s = (0..model.num_simplices())
+            .find(|&s| eval.patch(s).is_some())
+            .unwrap();
+        let id = [
+            [1.0, 0.0, 0.0, 0.0],
+            [0.0, 1.0, 0.0, 0.0],
+            [0.0; 4],
+            [0.0; 4],
+        ];
+        assert!(chain_bound(eval.local_map(s), &id, &[-1.0, 1.0, 1.0], 0.0, &[], 8).is_none());
+    }
+}
