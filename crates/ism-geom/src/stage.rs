@@ -1048,7 +1048,12 @@ impl LocalMap {
             all &= r.converged;
             w = r.w;
         }
-        if self.stages.len() <= 1 {
+        // A parametric stage's inverse is its stored map, evaluated directly: nothing to polish.
+        let all_parametric = self
+            .stages
+            .iter()
+            .all(|s| s.direction() == Direction::Parametric);
+        if self.stages.len() <= 1 || all_parametric {
             let residual = if self.stages.is_empty() {
                 0.0
             } else {
@@ -1116,6 +1121,37 @@ pub struct Solved {
 const NEAR_MAX_ITERATIONS: u32 = 8;
 
 impl LocalMap {
+    /// For a map whose stages are all stored in the parametric direction (`Y = X⁻¹` stored):
+    /// `w = Y(u)` by direct evaluation, `X(w) = u`, and `DX(w) = DY(u)⁻¹`, without any Newton
+    /// solve. `None` when a stage is implicit or `DY` is singular.
+    pub fn param_solve(&self, u: &Bary) -> Option<Solved> {
+        if !self
+            .stages
+            .iter()
+            .all(|s| s.direction() == Direction::Parametric)
+        {
+            return None;
+        }
+        let n = self.m - 1;
+        let u = project(self.m, u);
+        let mut w = u;
+        let mut dy = identity_mat(n);
+        // Y = Y_0 ∘ … ∘ Y_{last}: the last stored stage acts on u first.
+        for s in self.stages.iter().rev() {
+            let (next, j) = s.jacobian_stored(&w);
+            dy = linalg::mul(n, &j, &dy);
+            w = next;
+        }
+        let jacobian = linalg::inverse(n, &dy)?;
+        Some(Solved {
+            w,
+            x: u,
+            jacobian,
+            residual: 0.0,
+            iterations: 0,
+        })
+    }
+
     /// `X⁻¹(u)` by damped Newton on the whole map started at `guess` (which should be close, e.g.
     /// interpolated from nearby solved points), returning `X` and `DX` at the solution as well.
     /// `None` when Newton does not reach [`INVERSE_TOLERANCE`] within a few iterations; callers

@@ -163,11 +163,11 @@ fn cross_norm(a: &[f64; 3], b: &[f64; 3]) -> f64 {
 /// Refinement budget per patch in the first pass (see [`crate::chain`]).
 const FIRST_SPLITS: usize = 48;
 /// Refinement budget of the second pass.
-const SECOND_SPLITS: usize = 2048;
+const SECOND_SPLITS: usize = 768;
 /// A patch gets the second pass when its excess is above this share of the whole bounded area.
 const REFINE_SHARE: f64 = 0.005;
 /// At most this many patches get the second pass (bounds the table's cost).
-const REFINE_COUNT: usize = 64;
+const REFINE_COUNT: usize = 32;
 
 /// One patch of the table: linear patch, lattice of preimages, certified region bounds.
 fn build_patch(
@@ -225,8 +225,13 @@ fn build_patch(
     let samples: Vec<([f64; 4], f64)> = lattice
         .iter()
         .filter_map(|(u, w)| {
-            let (x, j) = map.jacobian(w);
-            let j = j?;
+            let (x, j) = match map.param_solve(u) {
+                Some(solved) => (solved.x, solved.jacobian),
+                None => {
+                    let (x, j) = map.jacobian(w);
+                    (x, j?)
+                }
+            };
             // Only converged preimages are points of the shape.
             let off = (0..=n).map(|i| (x[i] - u[i]).abs()).fold(0.0, f64::max);
             let grad = eval.gradient_from_jacobian(s, &j);
@@ -411,7 +416,8 @@ impl SurfaceTable {
                     iterations: 0,
                 }
             } else {
-                match map.inverse_near(&u, &guess) {
+                // All-parametric maps (what `ism fit` writes) need no Newton at all.
+                match map.param_solve(&u).or_else(|| map.inverse_near(&u, &guess)) {
                     Some(solved) => solved,
                     None => solve_from_scratch(map, s, &u)?,
                 }
