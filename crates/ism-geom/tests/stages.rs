@@ -282,6 +282,39 @@ proptest! {
         }
     }
 
+    /// For all-parametric maps `param_solve` is `inverse` without Newton, with `DX = DY⁻¹`.
+    #[test]
+    fn param_solve_agrees_with_inverse_and_jacobian(seed in any::<u64>(), n in 2usize..=3) {
+        let mut rng = Rng(seed);
+        let mut model = common::kuhn(n, 1, &mut rng);
+        for kind in [Kind::NearIdentity(3), Kind::Rational(2), Kind::Monotonic(2)] {
+            let st = make(kind, &model, &mut rng, true);
+            model.stages.push(st);
+        }
+        let m = n + 1;
+        for s in 0..model.num_simplices() {
+            let map = LocalMap::from_model(&model, s).unwrap();
+            for _ in 0..10 {
+                let u = interior(&mut rng, m);
+                let solved = map.param_solve(&u).unwrap();
+                let reference = map.inverse(&u);
+                prop_assert!(max_diff(m, &solved.w, &reference.w) < ROUNDTRIP_W);
+                prop_assert!(max_diff(m, &map.eval(&solved.w), &u) < ROUNDTRIP_W);
+                let j = map.jacobian(&solved.w).1.unwrap();
+                for r in 0..n {
+                    for c in 0..n {
+                        prop_assert!((j[r][c] - solved.jacobian[r][c]).abs() < 1e-8 * (1.0 + j[r][c].abs()));
+                    }
+                }
+            }
+        }
+        // An implicit stage anywhere: no direct solve.
+        let st = make(Kind::NearIdentity(2), &model, &mut rng, false);
+        model.stages.push(st);
+        let map = LocalMap::from_model(&model, 0).unwrap();
+        prop_assert!(map.param_solve(&interior(&mut rng, m)).is_none());
+    }
+
     /// `000` §3 Prop. 3.1: for a polynomial stage `det(reduced) = det(H) / d`.
     #[test]
     fn reduced_and_homogeneous_jacobian_routes_agree(seed in any::<u64>(), n in 2usize..=3, d in 1u32..=6) {
