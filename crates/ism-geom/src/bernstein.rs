@@ -523,12 +523,20 @@ impl Bernstein {
     }
 
     fn restrict_by_blossom(&self, vertices: &[Vec<f64>]) -> Bernstein {
+        self.restrict_to_face(&vertices[..self.m])
+    }
+
+    /// Restriction to the sub-simplex (of any dimension) spanned by `vertices` (barycentric, `m`
+    /// entries each): a polynomial in `vertices.len()` variables whose coefficient `I` is the
+    /// blossom at `vertices[i]` repeated `I_i` times. `O(count_out · count · m)`.
+    pub fn restrict_to_face(&self, vertices: &[Vec<f64>]) -> Bernstein {
         let m = self.m;
+        let k1 = vertices.len();
         let d = self.degree;
         let ups: Vec<ShapeRef> = (0..d).map(|t| shape(m, t)).collect();
-        let coeffs = shape(m, d)
+        let coeffs = shape(k1, d)
             .all
-            .chunks_exact(m)
+            .chunks_exact(k1.max(1))
             .map(|i| {
                 let mut c = self.coeffs.clone();
                 let mut t = d;
@@ -542,7 +550,7 @@ impl Bernstein {
             })
             .collect();
         Bernstein {
-            m,
+            m: k1,
             degree: d,
             coeffs,
         }
@@ -687,6 +695,38 @@ mod tests {
                         assert!((a - b).abs() < 1e-12, "m={m} d={d}: {a} vs {b}");
                     }
                 }
+            }
+        }
+    }
+
+    #[test]
+    fn restriction_to_a_face_evaluates_like_the_parent() {
+        for m in 3..=4 {
+            for d in 0..=5 {
+                let p = sample(m, d, 5 + u64::from(d));
+                let verts: Vec<Vec<f64>> = (0..m - 1)
+                    .map(|j| {
+                        let mut v = vec![0.15; m];
+                        v[j] += 1.0 - 0.15 * m as f64;
+                        v
+                    })
+                    .collect();
+                let face = p.restrict_to_face(&verts);
+                assert_eq!(face.vars(), m - 1);
+                let lam = [0.2, 0.5, 0.3];
+                let lam = &lam[..m - 1];
+                let total: f64 = lam.iter().sum();
+                let lam: Vec<f64> = lam.iter().map(|x| x / total).collect();
+                let mut point = vec![0.0; m];
+                for (l, v) in lam.iter().zip(&verts) {
+                    for k in 0..m {
+                        point[k] += l * v[k];
+                    }
+                }
+                assert!(
+                    (face.eval(&lam) - p.eval(&point)).abs() < 1e-12,
+                    "m={m} d={d}"
+                );
             }
         }
     }

@@ -251,6 +251,27 @@ impl Restricted {
         }
     }
 
+    /// The polynomials restricted to the face spanned by `vertices` (a region of the linear
+    /// patch): polynomials in `vertices.len()` variables. The determinant is dropped (a
+    /// parametric chain needs none).
+    fn restrict_to_face(&self, vertices: &[Vec<f64>]) -> Restricted {
+        let r = |p: &Bernstein| p.restrict_to_face(vertices);
+        let r_opt = |p: &Option<Bernstein>| p.as_ref().map(r);
+        Restricted {
+            p: self.p.iter().map(r).collect(),
+            q: r_opt(&self.q),
+            num: self
+                .num
+                .iter()
+                .map(|row| row.iter().map(r).collect())
+                .collect(),
+            q2: r_opt(&self.q2),
+            det: None,
+            q2n: None,
+            cross: None,
+        }
+    }
+
     /// Lower bound of `det DX` on the cell: from the determinant polynomial when kept
     /// (`det − r Q^{2n}` has coefficients `det_I − r Q^{2n}_I`, so the smallest coefficient ratio is
     /// one), else the interval determinant of the entries' ranges `jac`.
@@ -380,7 +401,8 @@ impl Chain<'_> {
                 let f: f64 = (0..m).map(|i| self.values[i] * v[i]).sum();
                 lo = lo.min(f);
                 hi = hi.max(f);
-                scale = scale.max(f.abs());
+                // Rounding of the sum is relative to its terms, not to its (small) value.
+                scale = scale.max((0..m).map(|i| (self.values[i] * v[i]).abs()).sum());
             }
             let slack = BOUND_ROUNDING_MARGIN * scale;
             if lo - self.level > slack || hi - self.level < -slack {
@@ -474,9 +496,10 @@ impl Chain<'_> {
         let n = self.n;
         let m = n + 1;
         let mut c = [0.0; 4];
+        let count = cell.vertices.len() as f64;
         for v in &cell.vertices {
             for i in 0..m {
-                c[i] += v[i] / m as f64;
+                c[i] += v[i] / count;
             }
         }
         let mut dfull = [0.0; 4];
@@ -529,10 +552,11 @@ impl Chain<'_> {
 
     fn split(&self, cell: &Cell) -> (Cell, Cell) {
         let m = self.n + 1;
+        let corners = cell.vertices.len();
         // The longest edge in barycentric terms keeps cells well shaped.
         let (mut a, mut b, mut best) = (0, 1, -1.0);
-        for i in 0..m {
-            for j in i + 1..m {
+        for i in 0..corners {
+            for j in i + 1..corners {
                 let d: f64 = (0..m)
                     .map(|k| (cell.vertices[i][k] - cell.vertices[j][k]).powi(2))
                     .sum();
@@ -738,6 +762,117 @@ pub fn chain_bound(
     // Leaves may still carry an infinite bound (det not certified within the budget): callers
     // combine with the per-stage bound there.
     Some(Ok(result))
+}
+
+/// Certified bounds of the area element `J` on regions of the linear patch, for a chain whose
+/// stages are all stored in the parametric direction (what `ism fit` writes): the shape there is
+/// `Y(θ)`, so each region (a simplex of `θ` given by its vertices `u`, `m` entries each; a
+/// triangle in 3D, a segment in 2D) is itself the cell the first stored map is restricted to,
+/// exactly, and then bisected within the face until its bound is within [`TIGHTNESS`] of `J`'s
+/// size there or `max_splits` is spent. `None` unless every stage is parametric.
+pub fn parametric_region_bounds(
+    map: &LocalMap,
+    inv_edges: &Mat,
+    values: &[f64],
+    level: f64,
+    regions: &[Vec<Vec<f64>>],
+    samples: &[([f64; 4], f64)],
+    max_splits: usize,
+) -> Option<Result<Vec<f64>, String>> {
+    let stages = map.stages();
+    if stages.is_empty()
+        || !stages
+            .iter()
+            .all(|s| s.direction() == Direction::Parametric)
+    {
+        return None;
+    }
+    let m = map.vars();
+    let n = m - 1;
+    let linear = (0..n)
+        .map(|x| {
+            (0..n)
+                .map(|l| (values[l + 1] - values[0]) * inv_edges[l][x])
+                .sum::<f64>()
+                .powi(2)
+        })
+        .sum::<f64>()
+        .sqrt();
+    if linear.is_nan() || linear <= 0.0 {
+        return Some(Err("the linear function is constant on the simplex".into()));
+    }
+    let mut polys: Vec<Polys> = stages.iter().map(Polys::new).collect();
+    polys.reverse();
+    for p in &polys {
+        if let Some(q) = &p.q {
+            if q.min_coeff().is_nan() || q.min_coeff() <= 0.0 {
+                return Some(Err(format!(
+                    "denominator has a coefficient {} ≤ 0",
+                    q.min_coeff()
+                )));
+            }
+        }
+    }
+    let first = Restricted::new(&polys.remove(0), None);
+    let rest: Vec<Restricted> = polys.iter().map(|p| Restricted::new(p, None)).collect();
+    let chain = Chain {
+        map,
+        layout: Layout::Parametric,
+        n,
+        rest,
+        inv_edges,
+        values,
+        level,
+        linear,
+    };
+    let local = |b: &UBox, cell: &Cell| -> f64 {
+        let inside = samples
+            .iter()
+            .filter(|(u, _)| (0..m).all(|i| b[i].lo <= u[i] && u[i] <= b[i].hi))
+            .map(|s| s.1)
+            .fold(0.0f64, f64::max);
+        inside.max(chain.centroid_j(cell))
+    };
+    let mut out = Vec::with_capacity(regions.len());
+    for region in regions {
+        let mut vertices: Vec<[f64; 4]> = Vec::with_capacity(region.len());
+        for v in region {
+            let mut a = [0.0; 4];
+            a[..m].copy_from_slice(&v[..m]);
+            vertices.push(a);
+        }
+        let root = Cell {
+            restricted: first.restrict_to_face(region),
+            vertices,
+            depth: 0,
+        };
+        let Some((b, ubox)) = chain.bound(&root) else {
+            return Some(Err(
+                "a region of the linear patch missed its own plane".into()
+            ));
+        };
+        let mut cells = vec![(b / local(&ubox, &root), b, root)];
+        let mut splits = 0;
+        while let Some(worst) = (0..cells.len()).max_by(|&i, &j| cells[i].0.total_cmp(&cells[j].0))
+        {
+            if cells[worst].0 * TIGHTNESS <= 1.0
+                || splits >= max_splits
+                || cells[worst].2.depth >= MAX_DEPTH
+            {
+                break;
+            }
+            let (_, _, cell) = cells.swap_remove(worst);
+            let (a, b) = chain.split(&cell);
+            for child in [a, b] {
+                if let Some((bound, ubox)) = chain.bound(&child) {
+                    cells.push((bound / local(&ubox, &child), bound, child));
+                }
+            }
+            splits += 1;
+        }
+        out.push(cells.iter().map(|c| c.1).fold(0.0, f64::max));
+    }
+    Some(Ok(out))
 }
 
 #[cfg(test)]

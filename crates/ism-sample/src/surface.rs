@@ -17,7 +17,7 @@ use rand::Rng;
 use rayon::prelude::*;
 
 use crate::bound::surface_area_element_bound;
-use crate::chain::{chain_bound, TIGHTNESS};
+use crate::chain::{chain_bound, parametric_region_bounds, TIGHTNESS};
 use crate::error::{Result, SampleError};
 
 /// Required closeness of a surface sample to `O`, relative to the model size: `|F − c| / |∇F|`
@@ -241,6 +241,39 @@ fn build_patch(
         .collect();
     let best_sample = samples.iter().map(|s| s.1).fold(0.0, f64::max);
     let sample_mean = samples.iter().map(|s| s.1).sum::<f64>() / samples.len().max(1) as f64;
+    // All-parametric maps: bound each region of the patch directly (exact restriction to it).
+    let region_vertices = region_corners(&tris, count);
+    if let Some(bounds) = parametric_region_bounds(
+        map,
+        &inv,
+        &values,
+        model.level,
+        &region_vertices,
+        &samples,
+        max_splits / 16,
+    ) {
+        let region_bounds =
+            bounds.map_err(|reason| uncertified((map.stages().len().saturating_sub(1), reason)))?;
+        let bound = region_bounds.iter().copied().fold(0.0, f64::max);
+        if !bound.is_finite() {
+            return Err(uncertified((
+                map.stages().len().saturating_sub(1),
+                "area element not bounded on the shape".into(),
+            )));
+        }
+        return Ok(PatchEntry {
+            simplex: s as u32,
+            corners: tris,
+            triangles: count,
+            first_fraction,
+            linear_area: area,
+            bound,
+            region_bounds,
+            linear_gradient: norm(&g),
+            guesses: Vec::new(),
+            sample_mean,
+        });
+    }
     let chain = match chain_bound(map, &inv, &values, model.level, &samples, max_splits) {
         Some(Ok(c)) => Some(c),
         _ => None,
@@ -699,6 +732,27 @@ fn regions(tris: &[[Bary; 3]; 2], count: u8) -> Vec<(Bary, Bary)> {
                     lattice_u(tri, v[2]),
                 ])
             })
+        })
+        .collect()
+}
+
+/// Corners (in `u`) of the regions of a patch, in [`regions`] order.
+fn region_corners(tris: &[[Bary; 3]; 2], count: u8) -> Vec<Vec<Vec<f64>>> {
+    let m = MAX_VARS;
+    if count == 0 {
+        let [a, b, _] = tris[0];
+        let l = GUESS_LEVEL as f64;
+        let at = |t: f64| -> Vec<f64> { (0..m).map(|x| (1.0 - t) * a[x] + t * b[x]).collect() };
+        return (0..GUESS_LEVEL)
+            .map(|k| vec![at(k as f64 / l), at((k + 1) as f64 / l)])
+            .collect();
+    }
+    tris.iter()
+        .take(usize::from(count))
+        .flat_map(|tri| {
+            sub_triangles()
+                .iter()
+                .map(|v| v.iter().map(|&c| lattice_u(tri, c).to_vec()).collect())
         })
         .collect()
 }
