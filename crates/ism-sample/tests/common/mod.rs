@@ -204,6 +204,12 @@ pub fn curved_models() -> Vec<(&'static str, Model)> {
         stratum(&st, 2, 0.6, 7),
         stratum(&st, 1, 0.6, 8),
     ];
-    out.push(("3d stratified", st));
+    out.push(("3d stratified", st.clone()));
+    // What `ism fit` writes: every stage stored in the parametric direction.
+    let mut pst = st;
+    for stage in &mut pst.stages {
+        stage.direction = ism_format::Direction::Parametric;
+    }
+    out.push(("3d stratified, parametric", pst));
     out
 }
