@@ -981,6 +981,80 @@ mod tests {
         check(&parametric_square(), 64);
     }
 
+    /// Per-region bounds of all-parametric maps dominate exact `J` at points of each region.
+    #[test]
+    fn parametric_region_bounds_dominate_the_area_element() {
+        let mut stratified = example("stratified-3d");
+        for stage in &mut stratified.stages {
+            stage.direction = Direction::Parametric;
+        }
+        for model in [parametric_square(), stratified] {
+            let eval = ModelEval::new(&model).unwrap();
+            let n = model.dim();
+            for s in 0..model.num_simplices() {
+                let Some(patch) = eval.patch(s) else { continue };
+                let map = eval.local_map(s);
+                let ids = model.simplex(s);
+                let v0 = model.vertex(ids[0] as usize);
+                let mut e = [[0.0; MAX_VARS]; MAX_VARS];
+                for l in 0..n {
+                    let v = model.vertex(ids[l + 1] as usize);
+                    for x in 0..n {
+                        e[x][l] = v[x] - v0[x];
+                    }
+                }
+                let inv = linalg::inverse(n, &e).unwrap();
+                let values: Vec<f64> = ids.iter().map(|&v| model.values[v as usize]).collect();
+                let lin = (0..n)
+                    .map(|x| {
+                        (0..n)
+                            .map(|l| (values[l + 1] - values[0]) * inv[l][x])
+                            .sum::<f64>()
+                            .powi(2)
+                    })
+                    .sum::<f64>()
+                    .sqrt();
+                // The patch (first triangle or the segment) as one region, and its first half.
+                let c: Vec<Vec<f64>> = patch.corners.iter().map(|c| c.u[..=n].to_vec()).collect();
+                let whole: Vec<Vec<f64>> = c[..n].to_vec();
+                let mut half = whole.clone();
+                half[1] = whole[0]
+                    .iter()
+                    .zip(&whole[1])
+                    .map(|(a, b)| 0.5 * (a + b))
+                    .collect();
+                let regions = vec![whole, half];
+                let bounds =
+                    parametric_region_bounds(map, &inv, &values, model.level, &regions, &[], 6)
+                        .unwrap()
+                        .unwrap();
+                for (region, bound) in regions.iter().zip(&bounds) {
+                    for k in 0..=40 {
+                        for j in 0..=(if n == 2 { 0 } else { 40 - k }) {
+                            let (a, b) = (f64::from(k) / 40.0, f64::from(j) / 40.0);
+                            let mut u = [0.0; MAX_VARS];
+                            for t in 0..=n {
+                                u[t] = if n == 2 {
+                                    (1.0 - a) * region[0][t] + a * region[1][t]
+                                } else {
+                                    (1.0 - a - b) * region[0][t]
+                                        + a * region[1][t]
+                                        + b * region[2][t]
+                                };
+                            }
+                            let solved = map.param_solve(&u).unwrap();
+                            let g = eval.gradient_from_jacobian(s, &solved.jacobian);
+                            let det = linalg::det(n, &solved.jacobian);
+                            let exact =
+                                g[..n].iter().map(|x| x * x).sum::<f64>().sqrt() / (lin * det);
+                            assert!(exact <= *bound, "simplex {s}: J = {exact} > {bound}");
+                        }
+                    }
+                }
+            }
+        }
+    }
+
     #[test]
     fn mixed_directions_are_left_to_the_per_stage_bound() {
         let model = example("two-stage");
