@@ -163,11 +163,14 @@ fn cross_norm(a: &[f64; 3], b: &[f64; 3]) -> f64 {
 /// Refinement budget per patch in the first pass (see [`crate::chain`]).
 const FIRST_SPLITS: usize = 48;
 /// Refinement budget of the second pass.
-const SECOND_SPLITS: usize = 768;
+const SECOND_SPLITS: usize = 2048;
+/// Refinement budget per region of a parametric map in the first and second pass: its 16–32
+/// regions are refined separately, and start small, so few splits each are needed.
+const REGION_SPLITS: [usize; 2] = [3, 24];
 /// A patch gets the second pass when its excess is above this share of the whole bounded area.
 const REFINE_SHARE: f64 = 0.005;
 /// At most this many patches get the second pass (bounds the table's cost).
-const REFINE_COUNT: usize = 32;
+const REFINE_COUNT: usize = 24;
 
 /// One patch of the table: linear patch, lattice of preimages, certified region bounds.
 fn build_patch(
@@ -250,7 +253,11 @@ fn build_patch(
         model.level,
         &region_vertices,
         &samples,
-        max_splits / 16,
+        if max_splits == FIRST_SPLITS {
+            REGION_SPLITS[0]
+        } else {
+            REGION_SPLITS[1]
+        },
     ) {
         let region_bounds =
             bounds.map_err(|reason| uncertified((map.stages().len().saturating_sub(1), reason)))?;
