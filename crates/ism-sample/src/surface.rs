@@ -464,7 +464,9 @@ impl SurfaceTable {
             };
             let grad = eval.gradient_from_jacobian(s, &solved.jacobian);
             let accept = match self.weighting {
+                // No stage: the shape is the linear patch, J ≡ 1 (no rounding should decide).
                 Weighting::LinearArea => true,
+                Weighting::CurvedArea if map.stages().is_empty() => true,
                 Weighting::CurvedArea => {
                     let bound = patch.region_bounds[region];
                     let j = self.area_element(s, &solved, &grad, patch, bound)?;
