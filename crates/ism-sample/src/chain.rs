@@ -7,14 +7,16 @@
 //!
 //! - **All implicit** (`X = X_{m−1} ∘ … ∘ X_0` is stored): cells are sub-simplices of the point
 //!   barycentric coordinates `w`. The first stage is restricted to the cell exactly (Bernstein
-//!   subdivision, coefficient ranges); later stages are evaluated in interval arithmetic on the box
-//!   that encloses the image of the cell so far (convex hull property, then interval de Casteljau).
-//!   `J = |E⁻ᵀ DXᵀ Δf| / (|∇F_lin| det DX)` with `DX = DX_{m−1} ⋯ DX_0`: the vector is propagated
-//!   by interval matrix–vector products, `det DX ≥ Π inf det DX_k` by interval determinants. A cell
-//!   is dropped when the enclosure of `F − c` on it excludes 0.
-//! - **All parametric** (`Y = X⁻¹ = Y_0 ∘ … ∘ Y_{m−1}` is stored): cells are sub-simplices of the
-//!   function coordinates `u`, where the shape is the flat patch `f·u = c` (an exact crossing test).
-//!   The last stored stage is restricted exactly, the others are evaluated on boxes, and
+//!   subdivision, coefficient ranges; the image of the cell lies in the hull of the restricted
+//!   control points). Each later stage is restricted exactly to the simplex `{v ≥ lo}`, where `lo`
+//!   is the lower corner of the image so far. `J = |E⁻ᵀ DXᵀ Δf| / (|∇F_lin| det DX)` with
+//!   `DX = DX_{m−1} ⋯ DX_0`: the vector is propagated by interval matrix–vector products over the
+//!   entries' ranges, and `det DX ≥ Π inf det DX_k` (the first stage's determinant polynomial, the
+//!   others' interval determinants). A cell is dropped when `F − c` cannot vanish on it.
+//! - **All parametric** (`Y = X⁻¹ = Y_0 ∘ … ∘ Y_{m−1}` is stored): the shape is `Y(θ)` with `θ` the
+//!   flat patch `f·u = c`, so cells are simplices of `θ` itself (the regions the sampler draws
+//!   from, [`parametric_region_bounds`]), or of `u` crossing it ([`chain_bound`]). The last stored
+//!   stage is restricted to the cell exactly, the others as above, and
 //!   `J = |E⁻ᵀ cof(DY) Δf| / |∇F_lin|` with `cof(DY) = cof(DY_0) ⋯ cof(DY_{m−1})` (the cofactor
 //!   matrix `det(A) A⁻ᵀ` is multiplicative), so no determinant bound is needed at all.
 //!

@@ -63,7 +63,7 @@ pub struct PatchEntry {
     /// Certified bound of the area element on this simplex (the largest region bound).
     pub bound: f64,
     /// Certified bound of the area element per region of the patch: the `GUESS_LEVEL²`
-    /// sub-triangles of each triangle ([`sub_triangles`] order), or the `GUESS_LEVEL`
+    /// sub-triangles of each triangle (lower ones row by row, then upper ones), or the `GUESS_LEVEL`
     /// sub-segments of a segment.
     pub region_bounds: Vec<f64>,
     /// `|∇F_lin|` on this simplex.
