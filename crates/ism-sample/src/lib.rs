@@ -2,8 +2,8 @@
 //! queries.
 //!
 //! - [`Sampler::surface`]: points on `O = F⁻¹(c)` distributed uniformly by TRUE curved area (length
-//!   in 2D), by rejection against a certified per-simplex bound of the parametric map's area
-//!   element ([`bound`], [`surface`]), with unit normals and source simplex ids; every point meets
+//!   in 2D), by rejection against certified per-region bounds of the parametric map's area
+//!   element ([`chain`], [`bound`], [`surface`]), with unit normals and source simplex ids; every point meets
 //!   `|F − c| ≤ 1e-10 · |∇F| · L`.
 //! - [`Sampler::volume`]: uniform in `|K|` or a box, with `F` and the inside label;
 //!   [`Sampler::near_surface`]: surface points displaced along random directions by `N(0, σ²)`.

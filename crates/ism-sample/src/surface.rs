@@ -1,11 +1,14 @@
 //! Points on the shape `O`, uniform by true curved area (length in 2D).
 //!
 //! 1. Per top simplex σ crossed by the level, the linear patch `θ_σ` (segment, triangle or quad),
-//!    its point-space area `A_σ` and a certified bound `B_σ ≥ J` of the area element of the
-//!    parametric map `θ_σ → O ∩ σ` ([`crate::bound`]).
-//! 2. Choose σ with probability `A_σ B_σ / Σ A B`, `u` uniform on `θ_σ`, map `w = X⁻¹(u)`,
-//!    `p = W(w)`, and accept with probability `J(u) / B_σ`. The accepted points have density
-//!    `∝ J`, i.e. uniform with respect to the curved area; `J > B_σ` is reported as an error, never
+//!    cut into regions `r` (16 equal sub-triangles per triangle, 4 sub-segments per segment), each
+//!    with its point-space area `A_r` and a certified bound `B_r ≥ J` of the area element of the
+//!    parametric map `θ_σ → O ∩ σ` over it ([`crate::chain`]; [`crate::bound`] for chains mixing
+//!    implicit and parametric stages).
+//! 2. Choose a region with probability `A_r B_r / Σ A B`, `u` uniform on it, solve `w = X⁻¹(u)`
+//!    (Newton from a lattice of precomputed preimages, or directly for parametric maps),
+//!    `p = W(w)`, and accept with probability `J(u) / B_r`. The accepted points have density
+//!    `∝ J`, i.e. uniform with respect to the curved area; `J > B_r` is reported as an error, never
 //!    clipped.
 //! 3. Every accepted point is checked against `|F(p) − c| ≤ SURFACE_TOLERANCE · |∇F(p)| · L`
 //!    (`L` the diagonal of the model's bounding box) and polished by Newton steps along `∇F`
