@@ -186,18 +186,7 @@ impl SurfaceCell {
             }
             g2 += top * top;
         }
-        let ratios: Vec<f64> = match &self.q2n {
-            None => self.det.coeffs().to_vec(),
-            Some(q) => self
-                .det
-                .coeffs()
-                .iter()
-                .zip(q.coeffs())
-                .map(|(a, b)| a / b)
-                .collect(),
-        };
-        let slack = BOUND_ROUNDING_MARGIN * ratios.iter().fold(0.0f64, |a, r| a.max(r.abs()));
-        let det_lo = ratios.iter().copied().fold(f64::INFINITY, f64::min) - slack;
+        let (det_lo, _) = quotient_range(&self.det, self.q2n.as_ref());
         let mut estimate: f64 = 0.0;
         for i in 0..m {
             let qv = self.q2.as_ref().map_or(1.0, |q| q.vertex_value(i));
@@ -266,18 +255,7 @@ fn surface_stage_factor(
             acc
         })
         .collect();
-    let linear = (0..n)
-        .map(|x| {
-            (0..n)
-                .map(|l| (values[l + 1] - values[0]) * inv_edges[l][x])
-                .sum::<f64>()
-                .powi(2)
-        })
-        .sum::<f64>()
-        .sqrt();
-    if linear.is_nan() || linear <= 0.0 {
-        return Err("the linear function is constant on the simplex".into());
-    }
+    let linear = linear_gradient_norm(inv_edges, &values[..m])?;
     let root = SurfaceCell {
         cross,
         grad,
@@ -322,6 +300,41 @@ fn surface_stage_factor(
         ));
     }
     Ok(factor)
+}
+
+/// `|∇F_lin|` on a simplex from the inverse edge matrix and the vertex values (stored order):
+/// `(E⁻ᵀ Δf)_x = Σ_l (f_{l+1} − f_0) (E⁻¹)_{l x}`. `Err` when it is zero (no level set crosses).
+pub(crate) fn linear_gradient_norm(inv_edges: &Mat, values: &[f64]) -> Result<f64, String> {
+    let n = values.len() - 1;
+    let linear = (0..n)
+        .map(|x| {
+            (0..n)
+                .map(|l| (values[l + 1] - values[0]) * inv_edges[l][x])
+                .sum::<f64>()
+                .powi(2)
+        })
+        .sum::<f64>()
+        .sqrt();
+    if linear.is_nan() || linear <= 0.0 {
+        return Err("the linear function is constant on the simplex".into());
+    }
+    Ok(linear)
+}
+
+/// `[lo, hi]` enclosing `num/den` on the (sub)simplex of their coefficients (`den > 0`
+/// coefficientwise, or absent for 1): `num − r·den` has coefficients `num_I − r·den_I`, so the
+/// extreme coefficient ratios bound the quotient. Widened by [`BOUND_ROUNDING_MARGIN`] of the
+/// largest ratio for the rounding of the coefficients.
+pub(crate) fn quotient_range(num: &Bernstein, den: Option<&Bernstein>) -> (f64, f64) {
+    let (mut lo, mut hi, mut top) = (f64::INFINITY, f64::NEG_INFINITY, 0.0f64);
+    for (k, &x) in num.coeffs().iter().enumerate() {
+        let r = den.map_or(x, |d| x / d.coeffs()[k]);
+        lo = lo.min(r);
+        hi = hi.max(r);
+        top = top.max(r.abs());
+    }
+    let slack = BOUND_ROUNDING_MARGIN * top + f64::MIN_POSITIVE;
+    (lo - slack, hi + slack)
 }
 
 /// Bounds of one local stage (see the module doc).
@@ -595,19 +608,7 @@ impl CellContext<'_> {
             norm = norm.max(self.norm(&cell.num, |e| e.coeffs()[k]) / denom);
         }
         // det/Q^{2n} ≥ min_I det_I/(Q^{2n})_I since det − r Q^{2n} has coefficients det_I − r (Q^{2n})_I.
-        let ratios: Vec<f64> = match &cell.q2n {
-            None => cell.det.coeffs().to_vec(),
-            Some(q) => cell
-                .det
-                .coeffs()
-                .iter()
-                .zip(q.coeffs())
-                .map(|(a, b)| a / b)
-                .collect(),
-        };
-        let slack = BOUND_ROUNDING_MARGIN * ratios.iter().fold(0.0f64, |a, r| a.max(r.abs()));
-        let det_lo = ratios.iter().copied().fold(f64::INFINITY, f64::min) - slack;
-        let det_hi = ratios.iter().copied().fold(f64::NEG_INFINITY, f64::max) + slack;
+        let (det_lo, det_hi) = quotient_range(&cell.det, cell.q2n.as_ref());
         let mut estimate: f64 = 0.0;
         for i in 0..m {
             let qv = cell.q2.as_ref().map_or(1.0, |q| q.vertex_value(i));

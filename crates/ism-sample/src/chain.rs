@@ -30,7 +30,9 @@ use ism_format::Direction;
 use ism_geom::interval::Interval;
 use ism_geom::{linalg, Bernstein, LocalMap, LocalStage, Mat, Restriction};
 
-use crate::bound::{det_poly, stage_components, BOUND_ROUNDING_MARGIN};
+use crate::bound::{
+    det_poly, linear_gradient_norm, quotient_range, stage_components, BOUND_ROUNDING_MARGIN,
+};
 
 /// Refinement stops once every leaf's bound is within this factor of the largest exact sample of
 /// `J` in its box: the sampler then accepts about this fraction of what exact suprema would give.
@@ -192,18 +194,8 @@ impl Restricted {
     /// interval Jacobian (coefficient ratios of the numerators over `Q²`).
     fn ranges(&self, n: usize) -> (Vec<Interval>, IMat) {
         let ratio_range = |a: &Bernstein, b: Option<&Bernstein>| -> Interval {
-            match b {
-                None => widen(a.range()),
-                Some(b) => {
-                    let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
-                    for (x, y) in a.coeffs().iter().zip(b.coeffs()) {
-                        let r = x / y;
-                        lo = lo.min(r);
-                        hi = hi.max(r);
-                    }
-                    widen(Interval::new(lo, hi))
-                }
-            }
+            let (lo, hi) = quotient_range(a, b);
+            Interval::new(lo, hi)
         };
         let image = self
             .p
@@ -278,20 +270,10 @@ impl Restricted {
     /// (`det − r Q^{2n}` has coefficients `det_I − r Q^{2n}_I`, so the smallest coefficient ratio is
     /// one), else the interval determinant of the entries' ranges `jac`.
     fn det_lo(&self, n: usize, jac: &IMat) -> f64 {
-        let Some(det) = &self.det else {
-            return interval_det(n, jac).lo;
-        };
-        let ratios: Vec<f64> = match &self.q2n {
-            None => det.coeffs().to_vec(),
-            Some(q) => det
-                .coeffs()
-                .iter()
-                .zip(q.coeffs())
-                .map(|(a, b)| a / b)
-                .collect(),
-        };
-        let slack = BOUND_ROUNDING_MARGIN * ratios.iter().fold(0.0f64, |a, r| a.max(r.abs()));
-        ratios.iter().copied().fold(f64::INFINITY, f64::min) - slack
+        match &self.det {
+            Some(det) => quotient_range(det, self.q2n.as_ref()).0,
+            None => interval_det(n, jac).lo,
+        }
     }
 
     /// Whether `F − c` (times `Q > 0`) can vanish on the cell, allowing for rounding.
@@ -305,12 +287,6 @@ impl Restricted {
             }
         }
     }
-}
-
-/// Widens a range computed from rounded coefficients by the rounding allowance.
-fn widen(x: Interval) -> Interval {
-    let s = BOUND_ROUNDING_MARGIN * x.lo.abs().max(x.hi.abs()) + f64::MIN_POSITIVE;
-    Interval::new(x.lo - s, x.hi + s)
 }
 
 fn interval_det(n: usize, a: &IMat) -> Interval {
@@ -630,6 +606,32 @@ impl ChainBound {
     }
 }
 
+/// `|∇F_lin|` and the stages as polynomials in processing order (parametric chains: the last
+/// stored stage first), after checking that every denominator is positive.
+fn prepare(
+    map: &LocalMap,
+    layout: Layout,
+    inv_edges: &Mat,
+    values: &[f64],
+) -> Result<(f64, Vec<Polys>), String> {
+    let linear = linear_gradient_norm(inv_edges, &values[..map.vars()])?;
+    let mut polys: Vec<Polys> = map.stages().iter().map(Polys::new).collect();
+    if layout == Layout::Parametric {
+        polys.reverse();
+    }
+    for p in &polys {
+        if let Some(q) = &p.q {
+            if q.min_coeff().is_nan() || q.min_coeff() <= 0.0 {
+                return Err(format!(
+                    "denominator has a coefficient {} ≤ 0",
+                    q.min_coeff()
+                ));
+            }
+        }
+    }
+    Ok((linear, polys))
+}
+
 /// Certified bound of the area element `J` on the shape in one simplex, for a chain whose stages
 /// are all implicit or all parametric; `None` for a mixed chain (use [`crate::bound`]), and
 /// `Some(Err)` when a stage cannot be bounded at all (a denominator not positive). Leaves whose
@@ -669,33 +671,11 @@ pub fn chain_bound(
         return None;
     };
     let n = m - 1;
-    let linear = (0..n)
-        .map(|x| {
-            (0..n)
-                .map(|l| (values[l + 1] - values[0]) * inv_edges[l][x])
-                .sum::<f64>()
-                .powi(2)
-        })
-        .sum::<f64>()
-        .sqrt();
-    if linear.is_nan() || linear <= 0.0 {
-        return Some(Err("the linear function is constant on the simplex".into()));
-    }
-    let mut polys: Vec<Polys> = stages.iter().map(Polys::new).collect();
-    if layout == Layout::Parametric {
-        polys.reverse();
-    }
+    let (linear, mut polys) = match prepare(map, layout, inv_edges, values) {
+        Ok(prepared) => prepared,
+        Err(e) => return Some(Err(e)),
+    };
     let first = polys.remove(0);
-    for p in std::iter::once(&first).chain(&polys) {
-        if let Some(q) = &p.q {
-            if q.min_coeff().is_nan() || q.min_coeff() <= 0.0 {
-                return Some(Err(format!(
-                    "denominator has a coefficient {} ≤ 0",
-                    q.min_coeff()
-                )));
-            }
-        }
-    }
     // F − c is tested on the last implicit stage (the one whose output is u).
     let last_cross =
         |k: usize| (layout == Layout::Implicit && k == polys.len()).then_some((values, level));
@@ -791,30 +771,10 @@ pub fn parametric_region_bounds(
     }
     let m = map.vars();
     let n = m - 1;
-    let linear = (0..n)
-        .map(|x| {
-            (0..n)
-                .map(|l| (values[l + 1] - values[0]) * inv_edges[l][x])
-                .sum::<f64>()
-                .powi(2)
-        })
-        .sum::<f64>()
-        .sqrt();
-    if linear.is_nan() || linear <= 0.0 {
-        return Some(Err("the linear function is constant on the simplex".into()));
-    }
-    let mut polys: Vec<Polys> = stages.iter().map(Polys::new).collect();
-    polys.reverse();
-    for p in &polys {
-        if let Some(q) = &p.q {
-            if q.min_coeff().is_nan() || q.min_coeff() <= 0.0 {
-                return Some(Err(format!(
-                    "denominator has a coefficient {} ≤ 0",
-                    q.min_coeff()
-                )));
-            }
-        }
-    }
+    let (linear, mut polys) = match prepare(map, Layout::Parametric, inv_edges, values) {
+        Ok(prepared) => prepared,
+        Err(e) => return Some(Err(e)),
+    };
     let first = Restricted::new(&polys.remove(0), None);
     let rest: Vec<Restricted> = polys.iter().map(|p| Restricted::new(p, None)).collect();
     let chain = Chain {

@@ -245,16 +245,13 @@ fn build_patch(
             (det > 0.0 && off <= INVERSE_RESIDUAL).then(|| (*u, norm(&grad[..n]) / (lin * det)))
         })
         .collect();
-    let best_sample = samples.iter().map(|s| s.1).fold(0.0, f64::max);
     let sample_mean = samples.iter().map(|s| s.1).sum::<f64>() / samples.len().max(1) as f64;
-    // All-parametric maps: bound each region of the patch directly (exact restriction to it).
-    let region_vertices = region_corners(&tris, count);
-    if let Some(bounds) = parametric_region_bounds(
+    let region_bounds = match parametric_region_bounds(
         map,
         &inv,
         &values,
         model.level,
-        &region_vertices,
+        &region_corners(&tris, count),
         &samples,
         if max_splits == FIRST_SPLITS {
             REGION_SPLITS[0]
@@ -262,58 +259,25 @@ fn build_patch(
             REGION_SPLITS[1]
         },
     ) {
-        let region_bounds =
-            bounds.map_err(|reason| uncertified((map.stages().len().saturating_sub(1), reason)))?;
-        let bound = region_bounds.iter().copied().fold(0.0, f64::max);
-        if !bound.is_finite() {
-            return Err(uncertified((
-                map.stages().len().saturating_sub(1),
-                "area element not bounded on the shape".into(),
-            )));
+        // All-parametric maps: each region of the patch bounded directly (exact restriction).
+        Some(bounds) => {
+            bounds.map_err(|reason| uncertified((map.stages().len().saturating_sub(1), reason)))?
         }
-        return Ok(PatchEntry {
-            simplex: s as u32,
-            corners: tris,
-            triangles: count,
-            first_fraction,
-            linear_area: area,
-            bound,
-            region_bounds,
-            linear_gradient: norm(&g),
-            guesses: Vec::new(),
-            sample_mean,
-        });
-    }
-    let chain = match chain_bound(map, &inv, &values, model.level, &samples, max_splits) {
-        Some(Ok(c)) => Some(c),
-        _ => None,
-    };
-    // The per-stage bound is certified too; it is needed where the chain's is
-    // missing, infinite, or not tight within its budget.
-    let per_stage = match &chain {
-        Some(c) if c.top() * TIGHTNESS <= best_sample => f64::INFINITY,
-        _ => surface_area_element_bound(map, &e, &values, model.level)
-            .or_else(|err| {
-                if chain.is_some() {
-                    Ok(f64::INFINITY)
-                } else {
-                    Err(err)
-                }
-            })
-            .map_err(uncertified)?,
-    };
-    let region_bounds: Vec<f64> = regions(&tris, count)
-        .iter()
-        .map(|(lo, hi)| match &chain {
-            // Every region holds points of the shape, so some leaf meets it; a
-            // zero would mean a rounding gap between boxes: use the whole bound.
-            Some(c) => match c.over(&lo[..=n], &hi[..=n]) {
-                b if b > 0.0 => b.min(per_stage),
-                _ => c.top().min(per_stage),
+        None => implicit_region_bounds(
+            ImplicitInputs {
+                map,
+                edges: &e,
+                inv: &inv,
+                values: &values,
+                level: model.level,
+                samples: &samples,
+                max_splits,
             },
-            None => per_stage,
-        })
-        .collect();
+            &tris,
+            count,
+        )
+        .map_err(uncertified)?,
+    };
     let bound = region_bounds.iter().copied().fold(0.0, f64::max);
     if !bound.is_finite() {
         return Err(uncertified((
@@ -321,7 +285,12 @@ fn build_patch(
             "area element not bounded on the shape".into(),
         )));
     }
-    let guesses = if map.stages().is_empty() {
+    let parametric = map
+        .stages()
+        .iter()
+        .all(|st| st.direction() == ism_format::Direction::Parametric);
+    // Newton starts: not needed without stages or with all-parametric maps (direct evaluation).
+    let guesses = if parametric {
         Vec::new()
     } else {
         lattice.into_iter().map(|(_, w)| w).collect()
@@ -338,6 +307,66 @@ fn build_patch(
         guesses,
         sample_mean,
     })
+}
+
+/// Inputs of [`implicit_region_bounds`].
+struct ImplicitInputs<'a> {
+    map: &'a ism_geom::LocalMap,
+    edges: &'a Mat,
+    inv: &'a Mat,
+    values: &'a [f64],
+    level: f64,
+    samples: &'a [([f64; 4], f64)],
+    max_splits: usize,
+}
+
+/// Region bounds from the chain bound's leaves, with the per-stage bound where the chain has
+/// none or is not tight within its budget (both are certified, so their minimum is).
+fn implicit_region_bounds(
+    input: ImplicitInputs<'_>,
+    tris: &[[Bary; 3]; 2],
+    count: u8,
+) -> std::result::Result<Vec<f64>, (usize, String)> {
+    let ImplicitInputs {
+        map,
+        edges,
+        inv,
+        values,
+        level,
+        samples,
+        max_splits,
+    } = input;
+    let n = map.vars() - 1;
+    let best_sample = samples.iter().map(|s| s.1).fold(0.0, f64::max);
+    let chain = match chain_bound(map, inv, values, level, samples, max_splits) {
+        Some(Ok(c)) => Some(c),
+        _ => None,
+    };
+    // The per-stage bound is certified too; it is needed where the chain's is
+    // missing, infinite, or not tight within its budget.
+    let per_stage = match &chain {
+        Some(c) if c.top() * TIGHTNESS <= best_sample => f64::INFINITY,
+        _ => surface_area_element_bound(map, edges, values, level).or_else(|err| {
+            if chain.is_some() {
+                Ok(f64::INFINITY)
+            } else {
+                Err(err)
+            }
+        })?,
+    };
+    let region_bounds: Vec<f64> = regions(tris, count)
+        .iter()
+        .map(|(lo, hi)| match &chain {
+            // Every region holds points of the shape, so some leaf meets it; a
+            // zero would mean a rounding gap between boxes: use the whole bound.
+            Some(c) => match c.over(&lo[..=n], &hi[..=n]) {
+                b if b > 0.0 => b.min(per_stage),
+                _ => c.top().min(per_stage),
+            },
+            None => per_stage,
+        })
+        .collect();
+    Ok(region_bounds)
 }
 
 impl SurfaceTable {
