@@ -557,6 +557,43 @@ impl Layered {
     }
 
     /// The simplices containing all of `face` (any order).
+    /// The faces whose solitary points may move around the cells in `by_cell` (every face of those
+    /// cells except the sign-changing edges, whose points hold the crossings), sorted, and for
+    /// each the indices (sorted, distinct) of the terms in `by_cell` of the cells around it.
+    pub(crate) fn free_blocks(
+        &self,
+        by_cell: &HashMap<usize, Vec<usize>>,
+    ) -> (Vec<Vec<u32>>, Vec<Vec<usize>>) {
+        let mut free: Vec<Vec<u32>> = {
+            let mut set = HashSet::new();
+            for &s in by_cell.keys() {
+                for f in faces_of(&self.frames[s].ids) {
+                    if !(f.len() == 2 && self.is_crossing_edge(f[0], f[1])) {
+                        set.insert(f);
+                    }
+                }
+            }
+            set.into_iter().collect()
+        };
+        free.sort();
+        let blocks = free
+            .iter()
+            .map(|f| {
+                let mut ks: Vec<usize> = self
+                    .cells_with(f)
+                    .into_iter()
+                    .filter_map(|s| by_cell.get(&s))
+                    .flatten()
+                    .copied()
+                    .collect();
+                ks.sort_unstable();
+                ks.dedup();
+                ks
+            })
+            .collect();
+        (free, blocks)
+    }
+
     pub(crate) fn cells_with(&self, face: &[u32]) -> Vec<usize> {
         (0..self.frames.len())
             .filter(|&s| face.iter().all(|v| self.frames[s].ids.contains(v)))
@@ -1054,32 +1091,7 @@ pub fn fit_hermite(
     for (k, (_, smp)) in samples.iter().enumerate() {
         by_cell.entry(smp.cell).or_default().push(k);
     }
-    let mut free: Vec<Vec<u32>> = {
-        let mut set = HashSet::new();
-        for &s in by_cell.keys() {
-            for f in faces_of(&layer.frames[s].ids) {
-                if !(f.len() == 2 && layer.is_crossing_edge(f[0], f[1])) {
-                    set.insert(f);
-                }
-            }
-        }
-        set.into_iter().collect()
-    };
-    free.sort();
-    let blocks: Vec<Vec<usize>> = free
-        .iter()
-        .map(|f| {
-            let mut ks: Vec<usize> = layer
-                .cells_with(f)
-                .into_iter()
-                .filter_map(|s| by_cell.get(&s))
-                .flatten()
-                .copied()
-                .collect();
-            ks.sort_unstable();
-            ks
-        })
-        .collect();
+    let (free, blocks) = layer.free_blocks(&by_cell);
     let mut map = std::mem::take(&mut layer.map);
     for _ in 0..options.iterations {
         for (f, which) in free.iter().zip(&blocks) {

@@ -38,7 +38,7 @@ use std::time::Instant;
 use ism_format::model::Model;
 use ism_geom::{Bary, MAX_VARS};
 
-use crate::hermite::{check_structure, faces_of, lm_face, EditError, Jet, Layered, Sample};
+use crate::hermite::{check_structure, lm_face, EditError, Jet, Layered, Sample};
 use crate::strata::StratifiedMap;
 
 /// Points of `O` sampled per 3D facet along `θ ∩ δ` — the value ISM-401 uses, so the objective
@@ -270,33 +270,7 @@ pub fn smooth(model: &Model, options: &SmoothOptions) -> Result<Smoothed, EditEr
         by_cell.entry(p.a.cell).or_default().push(k);
         by_cell.entry(p.b.cell).or_default().push(k);
     }
-    let mut free: Vec<Vec<u32>> = {
-        let mut set = std::collections::HashSet::new();
-        for &s in by_cell.keys() {
-            for f in faces_of(&layer.frames()[s].ids) {
-                if !(f.len() == 2 && layer.is_crossing_edge(f[0], f[1])) {
-                    set.insert(f);
-                }
-            }
-        }
-        set.into_iter().collect()
-    };
-    free.sort();
-    let blocks: Vec<Vec<usize>> = free
-        .iter()
-        .map(|f| {
-            let mut ks: Vec<usize> = layer
-                .cells_with(f)
-                .into_iter()
-                .filter_map(|s| by_cell.get(&s))
-                .flatten()
-                .copied()
-                .collect();
-            ks.sort_unstable();
-            ks.dedup();
-            ks
-        })
-        .collect();
+    let (free, blocks) = layer.free_blocks(&by_cell);
     let start_logits: Vec<Vec<f64>> = free.iter().map(|f| layer.map.logits(f)).collect();
     let sqrt_alpha = options.alpha.sqrt();
     let mut map = std::mem::take(&mut layer.map);
@@ -359,6 +333,7 @@ pub fn smooth(model: &Model, options: &SmoothOptions) -> Result<Smoothed, EditEr
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::hermite::faces_of;
     use crate::{fit, FitOptions, Preset};
 
     fn valid(model: &Model) -> bool {
