@@ -1,10 +1,11 @@
 //! `ism smooth`: reduce the normal jumps of the shape across interior facets (glue over
-//! `ism_fit::smooth`).
+//! `ism_fit::smooth`, and `ism_fit::c1` with `--rational`).
 
 use std::path::PathBuf;
 use std::process::ExitCode;
 
 use anyhow::Context;
+use ism_fit::c1::{smooth_rational, C1Options, C1Report};
 use ism_fit::smooth::{smooth, SmoothOptions};
 use ism_format::io;
 
@@ -20,12 +21,26 @@ construction and checked by the validator.
 Smoothing trades position for smoothness; --alpha sets the balance (fitted circle, resolution 6:
 input jump max 16.3°, |g|/|∇g| max 6.7e-4; alpha 1e-3: 2.7°, 1.3e-3; alpha 0.1: 4.3°, 7.3e-4).
 
+With --rational (000 §8 Thm. 8.1, eq. (6)): the input must be a linear isocomplex (no stage) or
+have one implicit rational stage with every control point fixed. The output has one rational stage
+of degree --degree (default: the input stage's, or the dimension n as in the paper) with fixed
+control points and weights q = exp(β), |β| ≤ 4, fitted by sparse Levenberg–Marquardt to minimize
+the C¹ residual of eq. (6) (ISM-402) over the interior facets the shape crosses, plus
+alpha·Σ(β − β̄)² (β̄ the mean log-weight: the residual is scale-free, the penalty keeps the
+weights' spread small). --iterations counts Levenberg–Marquardt steps there (default 100), and
+--alpha defaults to 1e-4. Positive weights with fixed points are a diffeomorphism (Thm. 6.4), so
+the output is valid by construction. Reported: ISM-402 relative residual and ISM-401 normal jump
+(max, mean over crossed facets) before and after. Any positive weights move the shape's crossings
+along the edges, so the shape moves too.
+
 The normal jump is reported with the measure of `ism validate --quality` (ISM-401): per facet
 the largest angle between the two sides' normals; max and mean over facets.
 
 Examples:
   ism smooth circle.ism.json -o circle-smooth.ism.json
   ism smooth spec/examples/sphere.ism.json -o sphere-smooth.ismb --iterations 2 --json
+  ism smooth spec/examples/circle-linear.ism.json -o circle-c1.ism.json --rational
+  ism smooth linear-sphere.ism.json -o sphere-c1.ismb --rational --degree 4 --alpha 1e-3 --json
 
 Exit status: 0 when the output validates; 1 when it does not; 2 on unreadable input, bad
 arguments or a failed write.";
@@ -39,12 +54,21 @@ pub struct Args {
     /// Output model.
     #[arg(short, long)]
     output: PathBuf,
-    /// Gauss–Seidel sweeps over the free control points.
-    #[arg(long, default_value_t = SmoothOptions::default().iterations)]
-    iterations: usize,
-    /// Weight of the proximity term alpha·|β − β₀|² (0: jumps only).
-    #[arg(long, default_value_t = SmoothOptions::default().alpha)]
-    alpha: f64,
+    /// Gauss–Seidel sweeps over the free control points [default: 4; with --rational:
+    /// Levenberg–Marquardt steps, default 100].
+    #[arg(long)]
+    iterations: Option<usize>,
+    /// Weight of the proximity term alpha·|β − β₀|² (0: jumps only) [default: 1e-3; with
+    /// --rational: of the spread penalty alpha·Σ(β − β̄)², default 1e-4].
+    #[arg(long)]
+    alpha: Option<f64>,
+    /// Fit the weights of a rational stage with fixed control points to the C¹ condition of
+    /// 000 Thm. 8.1 instead (input: no stage, or one such rational stage).
+    #[arg(long)]
+    rational: bool,
+    /// Degree of the rational stage (with --rational) [default: the input stage's, or n].
+    #[arg(long, requires = "rational")]
+    degree: Option<u32>,
     /// Print the report as JSON on stdout.
     #[arg(long)]
     json: bool,
@@ -57,23 +81,117 @@ fn stats(s: Option<ism_fit::smooth::JumpStats>) -> serde_json::Value {
     }
 }
 
+fn residual_stats(s: ism_fit::c1::ResidualStats) -> serde_json::Value {
+    serde_json::json!({"facets": s.facets, "max": s.max, "mean": s.mean})
+}
+
+fn show_jumps(s: Option<ism_fit::smooth::JumpStats>) -> String {
+    match s {
+        Some(s) => format!(
+            "max {:.3}°, mean {:.3}° over {} facets",
+            s.max, s.mean, s.facets
+        ),
+        None => "not measured (a stage is not certified)".to_string(),
+    }
+}
+
+fn print_rational(r: &C1Report, output: &std::path::Path, verdict: &str, json: bool) {
+    if json {
+        let value = serde_json::json!({
+            "mode": "rational",
+            "degree": r.degree,
+            "alpha": r.alpha,
+            "residualBefore": residual_stats(r.residual_before),
+            "residualAfter": residual_stats(r.residual_after),
+            "before": stats(r.jumps_before),
+            "after": stats(r.jumps_after),
+            "objectiveBefore": r.objective_before,
+            "objectiveAfter": r.objective_after,
+            "steps": r.steps,
+            "weights": r.weights,
+            "groups": r.groups,
+            "conditions": r.conditions,
+            "weightRange": r.weight_range,
+            "records": r.records,
+            "verdict": verdict,
+            "seconds": r.seconds,
+        });
+        println!("{value}");
+        return;
+    }
+    let res = |s: ism_fit::c1::ResidualStats| {
+        format!(
+            "max {:.3e}, mean {:.3e} over {} facets",
+            s.max, s.mean, s.facets
+        )
+    };
+    println!("wrote {}", output.display());
+    println!("  C¹ residual (ISM-402) before  {}", res(r.residual_before));
+    println!("  C¹ residual (ISM-402) after   {}", res(r.residual_after));
+    println!(
+        "  normal jump (ISM-401) before  {}",
+        show_jumps(r.jumps_before)
+    );
+    println!(
+        "  normal jump (ISM-401) after   {}",
+        show_jumps(r.jumps_after)
+    );
+    println!(
+        "  objective        {:.4e} -> {:.4e} ({} steps, {} weights in {} groups, {} conditions)",
+        r.objective_before,
+        r.objective_after,
+        r.steps.len(),
+        r.weights,
+        r.groups,
+        r.conditions
+    );
+    println!(
+        "  stage            rational degree {}, {} records, weights in [{:.4}, {:.4}], alpha {:e}",
+        r.degree, r.records, r.weight_range[0], r.weight_range[1], r.alpha
+    );
+    println!("  time             {:.2} s", r.seconds);
+    println!("  validate         {verdict}");
+}
+
+fn write_and_validate(
+    model: &ism_format::Model,
+    output: &std::path::Path,
+) -> anyhow::Result<ism_validate::Verdict> {
+    io::write_path(model, output, None, io::WriteOptions::default())
+        .with_context(|| format!("cannot write {}", output.display()))?;
+    Ok(ism_validate::validate(model, &ism_validate::Options::default()).verdict)
+}
+
+fn exit(verdict: ism_validate::Verdict) -> ExitCode {
+    if verdict == ism_validate::Verdict::Valid {
+        ExitCode::SUCCESS
+    } else {
+        ExitCode::from(1)
+    }
+}
+
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let doc = io::read_path(&args.model)
         .with_context(|| format!("cannot read {}", args.model.display()))?;
+    if args.rational {
+        let defaults = C1Options::default();
+        let options = C1Options {
+            degree: args.degree,
+            alpha: args.alpha.unwrap_or(defaults.alpha),
+            iterations: args.iterations.unwrap_or(defaults.iterations),
+        };
+        let smoothed = smooth_rational(&doc.model, &options)?;
+        let verdict = write_and_validate(&smoothed.model, &args.output)?;
+        print_rational(&smoothed.report, &args.output, verdict.as_str(), args.json);
+        return Ok(exit(verdict));
+    }
+    let defaults = SmoothOptions::default();
     let options = SmoothOptions {
-        iterations: args.iterations,
-        alpha: args.alpha,
+        iterations: args.iterations.unwrap_or(defaults.iterations),
+        alpha: args.alpha.unwrap_or(defaults.alpha),
     };
     let smoothed = smooth(&doc.model, &options)?;
-    io::write_path(
-        &smoothed.model,
-        &args.output,
-        None,
-        io::WriteOptions::default(),
-    )
-    .with_context(|| format!("cannot write {}", args.output.display()))?;
-    let verdict =
-        ism_validate::validate(&smoothed.model, &ism_validate::Options::default()).verdict;
+    let verdict = write_and_validate(&smoothed.model, &args.output)?;
     let r = &smoothed.report;
     if args.json {
         let value = serde_json::json!({
@@ -91,13 +209,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         });
         println!("{value}");
     } else {
-        let show = |s: Option<ism_fit::smooth::JumpStats>| match s {
-            Some(s) => format!(
-                "max {:.3}°, mean {:.3}° over {} facets",
-                s.max, s.mean, s.facets
-            ),
-            None => "not measured (a stage is not certified)".to_string(),
-        };
+        let show = show_jumps;
         println!("wrote {}", args.output.display());
         println!("  normal jump (ISM-401) before  {}", show(r.before));
         println!("  normal jump (ISM-401) after   {}", show(r.after));
@@ -116,9 +228,5 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         println!("  time             {:.2} s", r.seconds);
         println!("  validate         {}", verdict.as_str());
     }
-    Ok(if verdict == ism_validate::Verdict::Valid {
-        ExitCode::SUCCESS
-    } else {
-        ExitCode::from(1)
-    })
+    Ok(exit(verdict))
 }

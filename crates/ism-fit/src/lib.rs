@@ -27,6 +27,7 @@
 //! ```
 #![deny(missing_docs)]
 
+pub mod c1;
 pub mod complex;
 pub mod expr;
 pub mod fit;
