@@ -14,7 +14,7 @@ Minimizes the paper's (000 §8) sum over interior facets of |n_σ − n_σ'|² a
 shape on the facet, plus alpha·|β − β₀|² (β the logits of the solitary control points), by
 per-face Levenberg–Marquardt sweeps. A model whose first stages are a stratified block (as `ism
 fit` writes) has that block optimized; any other model keeps its stages and gets a new stratified
-block in front of them (rational weights are not optimized). Control points of edges the shape
+block in front of them (rational weights are not optimized here: see --rational). Control points of edges the shape
 crosses stay fixed, so the shape still crosses every edge where it did. The output is valid by
 construction and checked by the validator.
 
@@ -31,7 +31,8 @@ weights' spread small). --iterations counts Levenberg–Marquardt steps there (d
 --alpha defaults to 1e-4. Positive weights with fixed points are a diffeomorphism (Thm. 6.4), so
 the output is valid by construction. Reported: ISM-402 relative residual and ISM-401 normal jump
 (max, mean over crossed facets) before and after. Any positive weights move the shape's crossings
-along the edges, so the shape moves too.
+along the edges, so the shape moves too (spec/examples/circle-linear.ism.json: ISM-402 max 0.52 ->
+0.017, normal jump max 36.9° -> 2.5°, mean 20.0° -> 1.1°).
 
 The normal jump is reported with the measure of `ism validate --quality` (ISM-401): per facet
 the largest angle between the two sides' normals; max and mean over facets.
@@ -43,7 +44,7 @@ Examples:
   ism smooth linear-sphere.ism.json -o sphere-c1.ismb --rational --degree 4 --alpha 1e-3 --json
 
 Exit status: 0 when the output validates; 1 when it does not; 2 on unreadable input, bad
-arguments or a failed write.";
+arguments, an input --rational refuses (other stages, moved control points) or a failed write.";
 
 /// Arguments of `ism smooth`.
 #[derive(clap::Args)]
