@@ -13,6 +13,13 @@ The shape is g = 0 with g given by --expr (variables x, y[, z]; + - * / ^, sin c
 abs, PI, E) or by --preset. Note: unary minus binds tighter than ^, so write 0-x^2, not -x^2.
 Vertices where g is exactly 0 get the value +1e-12·max|g| (they count as outside).
 
+The map is the stratified Bézier scheme (one solitary point per edge, triangle and tetrahedron,
+softmax-parametrized), stored as parametric stages. --rational adds a degree-2 rational stage with
+fixed control points and a weight exp(β) per vertex and edge of the crossing cells, optimized
+together with the points (every positive weight keeps the map a diffeomorphism); the crossings of
+the edges stay exact. It lowers the error on a given complex, at the price of a face record per
+weight.
+
 Presets: circle (paper 001 Fig. 4), taubin (000 §9.2), sphere, torus, genus2.
 
 --mesh FILE (.obj, .glb, .gltf): g is the signed distance to the triangles, negative where the
@@ -26,6 +33,7 @@ Examples:
   ism fit --preset circle -o circle.ism.json --svg circle.svg
   ism fit --expr \"x^2 + 2*y^2 - 0.5\" --domain -1,1,-1,1 --resolution 6 --tolerance 1e-4 -o e.ismb
   ism fit --preset torus --resolution 8 --tolerance 2e-3 -o torus.ismb --json
+  ism fit --preset taubin --resolution 8 --rational -o taubin.ism.json --svg taubin.svg
   ism fit --mesh bunny.obj --resolution 8 --tolerance 2e-3 -o bunny.ismb
 
 Exit status: 0 when the fit meets the tolerance and the model passes the structural checks;
@@ -71,6 +79,10 @@ pub struct Args {
     /// Only place the edge crossings; do not optimize the interior control points.
     #[arg(long)]
     no_optimize: bool,
+    /// Also fit a degree-2 rational stage: a weight per vertex and edge of the crossing cells,
+    /// optimized with the Bézier points (weights = exp(β), valid for every β).
+    #[arg(long)]
+    rational: bool,
     /// Skip the Plantinga–Vegter refinement (topology not guaranteed).
     #[arg(long)]
     no_topology: bool,
@@ -157,6 +169,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     }
     options.max_simplices = args.max_simplices;
     options.optimize = !args.no_optimize;
+    options.rational = args.rational;
     options.topology =
         !args.no_topology && mesh_sharpest.is_none_or(|a| a <= ism_fit::mesh::PV_SHARPEST_EDGE);
 

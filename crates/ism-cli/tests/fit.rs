@@ -494,3 +494,84 @@ fn open_mesh_is_refused() {
     );
     assert!(!model.exists());
 }
+
+#[test]
+fn rational_weights_are_fitted_written_and_validated() {
+    let dir = tempfile::tempdir().unwrap();
+    let model = dir.path().join("taubin.ism.json");
+    let out = ism()
+        .args([
+            "fit",
+            "--preset",
+            "taubin",
+            "--resolution",
+            "8",
+            "--no-topology",
+            "--tolerance",
+            "2e-3",
+            "--rational",
+            "--json",
+            "-q",
+            "-o",
+        ])
+        .arg(&model)
+        .output()
+        .unwrap();
+    assert_eq!(
+        out.status.code(),
+        Some(0),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let r = report(&out.stdout);
+    assert!(r["maxDistance"].as_f64().unwrap() <= 2e-3);
+    assert_eq!(
+        (r["components"].clone(), r["euler"].clone()),
+        (2.into(), 0.into())
+    );
+    let written: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&model).unwrap()).unwrap();
+    let last = written["stages"]
+        .as_array()
+        .unwrap()
+        .last()
+        .unwrap()
+        .clone();
+    assert_eq!(last["kind"], "rational");
+    assert_eq!(last["direction"], "parametric");
+    let weights: Vec<f64> = last["faces"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .flat_map(|f| {
+            f["weights"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .map(|w| w.as_f64().unwrap())
+        })
+        .collect();
+    assert!(weights.len() > 10);
+    assert!(weights.iter().all(|&w| w > 0.0) && weights.iter().any(|&w| (w - 1.0).abs() > 1e-3));
+
+    let check = ism().arg("validate").arg(&model).output().unwrap();
+    assert_eq!(
+        check.status.code(),
+        Some(0),
+        "{}",
+        String::from_utf8_lossy(&check.stdout)
+    );
+    let samples = dir.path().join("s.npy");
+    let sampled = ism()
+        .args(["sample", "--surface", "2000", "-o"])
+        .arg(&samples)
+        .arg(&model)
+        .output()
+        .unwrap();
+    assert_eq!(
+        sampled.status.code(),
+        Some(0),
+        "{}",
+        String::from_utf8_lossy(&sampled.stderr)
+    );
+}

@@ -32,16 +32,18 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         let preset = Preset::find(&name)?;
         let g = preset.expression()?;
         let truth = (preset.components, preset.euler);
-        for pv in [true, false] {
+        for (pv, rational) in [(true, false), (true, true), (false, false)] {
             let mut options = FitOptions::new(preset.domain);
             options.resolution = res;
             options.tolerance = tol;
             options.topology = pv;
+            options.rational = rational;
             let fitted = fit(&g, &options, &mut |_| {})?;
             let r = &fitted.report;
             let topo = (r.topology.components, r.topology.euler);
             println!(
-                "| {name} | ISM, PV {} | Kuhn {res} + adaptive | {} | {} | {} | {:.2e} | {:?}{} | {:.1} s |",
+                "| {name} | ISM{}, PV {} | Kuhn {res} + adaptive | {} | {} | {} | {:.2e} | {:?}{} | {:.1} s |",
+                if rational { " + rational" } else { "" },
                 if pv { "on" } else { "off" },
                 r.simplices,
                 r.parameters,
@@ -51,7 +53,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                 if topo == truth { " = true" } else { " ≠ true" },
                 r.seconds
             );
-            if pv {
+            if pv && !rational {
                 let (cells, stored, err) = linear_error(&g, &fitted.complex);
                 println!("| {name} | linear, same complex | (as above) | {cells} | 0 | {stored} | {err:.2e} | | |");
             }

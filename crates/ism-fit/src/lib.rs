@@ -36,6 +36,7 @@ pub mod interval;
 pub mod isocontour;
 pub mod mesh;
 pub mod presets;
+pub mod rational;
 pub mod smooth;
 pub mod strata;
 pub mod svg;

@@ -19,6 +19,8 @@ use std::collections::HashMap;
 
 use ism_format::model::{Direction, FaceRecord, Stage, StageKind};
 
+use crate::rational::LocalRational;
+
 /// Bound on each logit. Softmax coordinates then stay above `e^{−2·6}/(k+1) ≈ 1.5·10⁻⁶`, so no
 /// control point approaches its face's boundary, where the Jacobian determinant would approach 0
 /// and certification would need deep subdivision.
@@ -59,18 +61,30 @@ struct Term {
     delta: [f64; M],
 }
 
-/// The stratified map on one top simplex, in its local vertex order.
+/// The stratified map on one top simplex, in its local vertex order, optionally after the
+/// fitter's rational stage ([`crate::rational`]).
 #[derive(Clone, Debug)]
 pub struct LocalStrata {
     m: usize,
     /// `strata[j − 1]`: the terms of stratum `j`.
     strata: Vec<Vec<Term>>,
+    /// Applied to `u` before the strata.
+    pre: Option<LocalRational>,
 }
 
 impl LocalStrata {
-    /// `w = Y(u)`: strata `n, n−1, …, 1` in turn.
+    /// This map after `r`: `u ↦ Y(R(u))` (the rational stage is stored last, so it acts first).
+    pub fn after(mut self, r: LocalRational) -> LocalStrata {
+        self.pre = (!r.is_identity()).then_some(r);
+        self
+    }
+
+    /// `w = Y(u)`: the rational stage if any, then strata `n, n−1, …, 1` in turn.
     pub fn eval(&self, u: &[f64; M]) -> [f64; M] {
-        let mut v = *u;
+        let mut v = match &self.pre {
+            Some(r) => r.eval(u),
+            None => *u,
+        };
         for terms in self.strata.iter().rev() {
             let mut out = v;
             for t in terms {
@@ -180,7 +194,11 @@ impl StratifiedMap {
             }
             strata[len - 2].push(term);
         }
-        LocalStrata { m, strata }
+        LocalStrata {
+            m,
+            strata,
+            pre: None,
+        }
     }
 
     /// The stages of a model: stratum `j` as a parametric Bézier stage of degree `j + 1`, edges
