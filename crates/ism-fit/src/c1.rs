@@ -948,13 +948,13 @@ mod tests {
         model
     }
 
-    #[test]
-    fn exact_solution_of_eq6_makes_the_shape_c1() {
-        // Thm. 8.1 check. With all weights 1 except q₀₁ = q_{e₀+e₁} and q₀₂ (edges {0,1}, {0,2}),
-        // eq. (6) reads q₀ⱼ (f₀ + fⱼ)/2 = (fⱼ + g′(p₀))/2 for j = 1, 2, with g′ the linear function
-        // of σ′ extended to p₀ (the right side is the blossom of a linear function).
-        let linear = two_triangles();
-        let eval = ism_geom::ModelEval::new(&linear).unwrap();
+    /// Thm. 8.1's exact solution on two triangles: all weights 1 except `q₀₁ = q_{e₀+e₁}` and
+    /// `q₀₂` (edges `{0,1}`, `{0,2}`), where eq. (6) reads `q₀ⱼ (f₀ + fⱼ)/2 = (fⱼ + g′(p₀))/2` for
+    /// `j = 1, 2`, with `g′` the linear function of `σ′` extended to `p₀` (the right side is the
+    /// blossom of a linear function). `None` when that solution is not positive; else the model
+    /// and `g′(p₀) − f₀` (zero iff the linear shape has no corner).
+    fn exact_c1(linear: &Model) -> Option<(Model, f64)> {
+        let eval = ism_geom::ModelEval::new(linear).unwrap();
         let w = eval.barycentric(1, linear.vertex(0));
         let g = (0..3)
             .map(|i| w[i] * linear.values[linear.simplex(1)[i] as usize])
@@ -962,8 +962,9 @@ mod tests {
         let f = &linear.values;
         let q01 = (f[1] + g) / (f[0] + f[1]);
         let q02 = (f[2] + g) / (f[0] + f[2]);
-        assert!(q01 > 0.0 && q02 > 0.0, "{q01} {q02}");
-        assert!((g - f[0]).abs() > 0.1, "the linear shape has a corner");
+        if !(q01 > 0.0 && q02 > 0.0) {
+            return None;
+        }
         let mut model = linear.clone();
         let mut stage = Stage::identity(StageKind::Rational, 2);
         for (face, q) in [(vec![0, 1], q01), (vec![0, 2], q02)] {
@@ -974,6 +975,14 @@ mod tests {
             });
         }
         model.stages = vec![stage];
+        Some((model, g - f[0]))
+    }
+
+    #[test]
+    fn exact_solution_of_eq6_makes_the_shape_c1() {
+        let linear = two_triangles();
+        let (model, corner) = exact_c1(&linear).unwrap();
+        assert!(corner.abs() > 0.1, "the linear shape has a corner");
         let ours = residuals(&model).unwrap();
         assert_eq!(ours.len(), 1);
         assert!(ours[0].relative < 1e-14, "{ours:?}");
@@ -1117,6 +1126,29 @@ mod tests {
                 }
                 model.stages = vec![stage];
                 assert_matches_validator(&model);
+            }
+
+            /// Thm. 8.1 on random pairs of triangles: where eq. (6) has the positive solution of
+            /// [`exact_c1`], the residual vanishes and so does the normal jump (ISM-401).
+            #[test]
+            fn exact_positive_solutions_remove_the_jump(
+                p0 in (-1.5f64..-0.2, -0.8f64..0.8),
+                p3 in (0.2f64..1.5, -0.8f64..0.8),
+                f in (0.1f64..1.5, -1.5f64..-0.2, 0.2f64..1.5, 0.1f64..1.5),
+                signs in (any::<bool>(), any::<bool>()),
+            ) {
+                let mut linear = two_triangles();
+                linear.vertices = vec![p0.0, p0.1, 0.0, -1.0, 0.0, 1.0, p3.0, p3.1];
+                let s = |neg: bool| if neg { -1.0 } else { 1.0 };
+                linear.values = vec![s(signs.0) * f.0, f.1, f.2, s(signs.1) * f.3];
+                let exact = exact_c1(&linear);
+                prop_assume!(exact.is_some());
+                let (model, _) = exact.unwrap();
+                let ours = residuals(&model).unwrap();
+                prop_assert_eq!(ours.len(), 1);
+                prop_assert!(ours[0].relative < 1e-12, "{:?}", ours);
+                let after = normal_jumps(&model).unwrap();
+                prop_assert!(after.max < 1e-4, "{:?}", after);
             }
 
             /// Random values on a small grid: the objective never increases, the output is valid.
