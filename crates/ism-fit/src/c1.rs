@@ -929,6 +929,40 @@ mod tests {
     }
 
     #[test]
+    fn the_level_is_subtracted() {
+        // F = c with values f is F − t = c − t with values f − t: the same shape, the same
+        // conditions (eq. (6) is on f − c), the same weights.
+        let model = example("circle-linear.ism.json");
+        let mut shifted = model.clone();
+        shifted.values.iter_mut().for_each(|f| *f += 0.3);
+        shifted.level = 0.3;
+        let a = smooth_rational(&model, &C1Options::default()).unwrap();
+        let b = smooth_rational(&shifted, &C1Options::default()).unwrap();
+        let (ra, rb) = (&a.report, &b.report);
+        assert_eq!(ra.weights, rb.weights);
+        // The input's figures agree to rounding; the fits to the stopping rule's accuracy (the
+        // rounding of f − c changes the path of the iteration, not its limit).
+        let close = |x: f64, y: f64, rel: f64| (x - y).abs() <= rel * x.abs();
+        assert!(close(ra.residual_before.max, rb.residual_before.max, 1e-12));
+        assert!(close(
+            ra.residual_before.mean,
+            rb.residual_before.mean,
+            1e-12
+        ));
+        assert!(close(ra.objective_before, rb.objective_before, 1e-12));
+        assert!(
+            close(ra.objective_after, rb.objective_after, 1e-6),
+            "{ra:?} {rb:?}"
+        );
+        assert!(
+            close(ra.residual_after.max, rb.residual_after.max, 1e-3),
+            "{ra:?} {rb:?}"
+        );
+        let (ja, jb) = (ra.jumps_after.unwrap(), rb.jumps_after.unwrap());
+        assert!((ja.max - jb.max).abs() < 1e-2, "{ja:?} {jb:?}");
+    }
+
+    #[test]
     fn a_larger_alpha_keeps_the_weights_closer_together() {
         let model = example("circle-linear.ism.json");
         let spread = |alpha: f64| {
