@@ -28,6 +28,9 @@ generalized winding number exceeds 1/2; the domain is the mesh's bounding box pa
 the mesh (also relative to its diagonal). A closed mesh's topology (components, Euler
 characteristic) must be reproduced; an open, non-manifold or inconsistently oriented mesh is
 refused (exit 2): its signed distance jumps where the winding number crosses 1/2 off the surface.
+The Plantinga–Vegter phase stops at cells shorter than half the median mesh edge (or the
+tolerance): at a crease the test fails at every size. Meshes whose normals turn by more than 60°
+at an edge skip it altogether; the topology is checked against the mesh's either way.
 
 Examples:
   ism fit --preset circle -o circle.ism.json --svg circle.svg
@@ -119,6 +122,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     }
     let mut mesh: Option<MeshInfo> = None;
     let mut mesh_sharpest: Option<f64> = None;
+    let mut mesh_edge: Option<f64> = None;
     type Setup<'a> = (
         Box<dyn ImplicitFunction>,
         Vec<f64>,
@@ -130,6 +134,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             let (g, domain, name, info) = mesh_setup(&args)?;
             mesh = Some(info);
             mesh_sharpest = Some(g.sharpest_edge());
+            mesh_edge = Some(g.mesh().median_edge_length());
             (Box::new(g), domain, name, None)
         }
         (Some(name), _) => {
@@ -172,6 +177,12 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     options.rational = args.rational;
     options.topology =
         !args.no_topology && mesh_sharpest.is_none_or(|a| a <= ism_fit::mesh::PV_SHARPEST_EDGE);
+    if let Some(edge) = mesh_edge {
+        // Creases fail the Plantinga–Vegter test at every size; below half a typical mesh edge
+        // (or the tolerance) the test can only find them, not features the mesh has, and the
+        // topology is checked against the mesh's afterwards.
+        options.pv_min_edge = (0.5 * edge).max(options.tolerance);
+    }
 
     let bar = if args.quiet {
         indicatif::ProgressBar::hidden()

@@ -400,6 +400,30 @@ fn obj_and_glb_meshes_fit_validate_and_keep_the_sphere_topology() {
 }
 
 #[test]
+fn a_low_poly_mesh_with_creases_fits_with_the_topology_phase_on() {
+    // The icosahedron's normals turn by 41.8° at every edge: under the 60° skip, so the
+    // Plantinga–Vegter phase runs, and it fails near the creases at every cell size. It must
+    // stop at the mesh's scale instead of spending the simplex budget there (it did, for 5 min).
+    let dir = tempfile::tempdir().unwrap();
+    let (points, tris) = icosphere(0, 1.0, [0.0; 3]);
+    assert_eq!(tris.len(), 20);
+    let obj = dir.path().join("ico.obj");
+    std::fs::write(&obj, obj_text(&points, &tris)).unwrap();
+    let r = fit_mesh(
+        &obj,
+        &dir.path().join("ico.ismb"),
+        &["--resolution", "4", "--tolerance", "5e-2"],
+    );
+    assert_eq!(r["toleranceMet"], true);
+    assert!(r["simplices"].as_u64().unwrap() < 20_000, "{r}");
+    assert_eq!(
+        (r["components"].as_u64(), r["euler"].as_i64()),
+        (Some(1), Some(2))
+    );
+    assert_eq!(r["topologyMatchesPreset"], true);
+}
+
+#[test]
 fn two_balls_give_two_components() {
     let dir = tempfile::tempdir().unwrap();
     let (mut points, mut tris) = icosphere(1, 0.3, [-0.45, 0.0, 0.0]);

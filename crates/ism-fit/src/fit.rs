@@ -45,6 +45,11 @@ pub struct FitOptions {
     pub rational: bool,
     /// Refine until every cell passes the Plantinga–Vegter test.
     pub topology: bool,
+    /// The topology phase leaves cells whose longest edge is at most this long (0: no limit).
+    /// For a mesh with creases the test fails near a crease at every cell size, so without a
+    /// limit the phase would spend the whole simplex budget there; the mesh fit then checks the
+    /// topology against the mesh's instead.
+    pub pv_min_edge: f64,
 }
 
 impl FitOptions {
@@ -59,6 +64,7 @@ impl FitOptions {
             optimize: true,
             rational: false,
             topology: true,
+            pv_min_edge: 0.0,
         }
     }
 }
@@ -271,6 +277,16 @@ impl Fitter<'_> {
             &mut r,
         );
         r.iter().fold(0.0f64, |m, x| m.max(x.abs()))
+    }
+
+    fn longest_edge_length(&self, c: u32) -> f64 {
+        let (a, b) = self.complex.longest_edge(c);
+        let (pa, pb) = (self.complex.point(a), self.complex.point(b));
+        pa.iter()
+            .zip(pb)
+            .map(|(x, y)| (x - y) * (x - y))
+            .sum::<f64>()
+            .sqrt()
     }
 
     fn pv_passes(&self, c: u32) -> bool {
@@ -701,6 +717,11 @@ fn check_options(g: &dyn ImplicitFunction, o: &FitOptions) -> Result<(), FitErro
             "tolerance must be a positive number".into(),
         ));
     }
+    if !(o.pv_min_edge >= 0.0 && o.pv_min_edge.is_finite()) {
+        return Err(FitError::Options(
+            "the topology phase's smallest cell edge must be a finite number ≥ 0".into(),
+        ));
+    }
     let cells: usize = grid_cells(&o.domain, o.resolution)
         .iter()
         .product::<usize>()
@@ -756,7 +777,7 @@ pub fn fit(
                 f.complex
                     .live_cells()
                     .into_par_iter()
-                    .filter(|&c| !f.pv_passes(c))
+                    .filter(|&c| f.longest_edge_length(c) > options.pv_min_edge && !f.pv_passes(c))
                     .collect()
             };
             progress(&Progress {

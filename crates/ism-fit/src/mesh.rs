@@ -320,6 +320,29 @@ impl TriangleMesh {
         norm(sub(hi, lo))
     }
 
+    /// Median length of the triangles' edges (each edge counted once per triangle side); 0 for
+    /// an empty mesh. The median, not the minimum, so a few slivers do not decide it.
+    pub fn median_edge_length(&self) -> f64 {
+        let mut lengths: Vec<f64> = self
+            .triangles
+            .iter()
+            .flat_map(|t| (0..3).map(move |k| (t[k], t[(k + 1) % 3])))
+            .filter_map(|(a, b)| {
+                let (pa, pb) = (
+                    self.positions.get(a as usize)?,
+                    self.positions.get(b as usize)?,
+                );
+                Some(norm(sub(*pa, *pb)))
+            })
+            .filter(|l| l.is_finite())
+            .collect();
+        if lengths.is_empty() {
+            return 0.0;
+        }
+        let mid = lengths.len() / 2;
+        *lengths.select_nth_unstable_by(mid, f64::total_cmp).1
+    }
+
     /// The fitting domain: the bounding box padded by `margin × diagonal` on every side
     /// (`x0,x1,y0,y1,z0,z1`).
     pub fn domain(&self, margin: f64) -> Vec<f64> {
