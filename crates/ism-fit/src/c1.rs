@@ -62,7 +62,8 @@ use crate::smooth::{normal_jumps, JumpStats};
 /// denominator `Σ q_I B_I` of every simplex within a factor 3000 of its numerator's scale, so the
 /// validator's sampled `det DX` (ISM-403) and the Newton inversion of `X` (ISM-401 samples, the
 /// sampler) stay well conditioned, and a C¹ fit that would need more spread is a sign that the
-/// positive solution does not exist (the paper's open question), not one to chase.
+/// positive solution does not exist (the paper's open question), not one to chase. An input
+/// weight outside the range that the fit touches starts (and, if not moved, ends) at the bound.
 pub const MAX_LOG_WEIGHT: f64 = 4.0;
 
 /// A stored control point counts as fixed when it is within this of `J/d` in every face-local
@@ -339,6 +340,15 @@ fn check_input(model: &Model, options: &C1Options) -> Result<(u32, InputWeights)
                             expected,
                         });
                     }
+                }
+                if let Some(j) = record.weights.iter().position(|&q| q <= 0.0) {
+                    return Err(C1Error::Stage {
+                        stage: 0,
+                        message: format!(
+                            "face {:?}: weight {j} is {}; expected a positive weight",
+                            record.face, record.weights[j]
+                        ),
+                    });
                 }
                 weights.insert(record.face.clone(), record.weights.clone());
             }
@@ -1121,6 +1131,10 @@ mod tests {
             smooth_rational(&broken, &o),
             Err(C1Error::Structure(_))
         ));
+        let mut negative = good.clone();
+        negative.stages[0].faces[0].weights[0] = -1.0;
+        let e = smooth_rational(&negative, &o).err().unwrap();
+        assert!(e.to_string().contains("positive weight"), "{e}");
         let mut weights_off = good;
         weights_off.stages[0].faces[0].weights.push(1.0);
         assert!(matches!(
