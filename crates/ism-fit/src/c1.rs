@@ -948,6 +948,8 @@ mod tests {
         shifted.level = 0.3;
         let a = smooth_rational(&model, &C1Options::default()).unwrap();
         let b = smooth_rational(&shifted, &C1Options::default()).unwrap();
+        // The validator subtracts the level too (ISM-402 on f − c).
+        assert_matches_validator(&b.model);
         let (ra, rb) = (&a.report, &b.report);
         assert_eq!(ra.weights, rb.weights);
         // The input's figures agree to rounding; the fits to the stopping rule's accuracy (the

@@ -153,8 +153,15 @@ pub fn check(model: &Model, stages: &mut [StageReport], stage_ok: &[bool]) -> Ve
                 let net2 = index.dense_net(s2, &index.records(s2));
                 let ids1 = model.simplex(s1);
                 let ids2 = model.simplex(s2);
-                let f1: Vec<f64> = ids1.iter().map(|&v| model.values[v as usize]).collect();
-                let f2: Vec<f64> = ids2.iter().map(|&v| model.values[v as usize]).collect();
+                // The condition is about the shape F = c, so about f − c, and only where the shape
+                // meets the facet (its vertex values straddle the level).
+                let level = model.level;
+                let facet_values = || key[..n].iter().map(|&v| model.values[v as usize] - level);
+                if !(facet_values().any(|x| x < 0.0) && facet_values().any(|x| x > 0.0)) {
+                    return None;
+                }
+                let f1: Vec<f64> = ids1.iter().map(|&v| model.values[v as usize] - level).collect();
+                let f2: Vec<f64> = ids2.iter().map(|&v| model.values[v as usize] - level).collect();
                 let fhat = |f: &[f64], b: &[f64; 4]| (0..m).map(|i| f[i] * b[i]).sum::<f64>();
                 let p0 = model.vertex(ids1[a1] as usize);
                 let w = eval.as_ref()?.barycentric(s2, p0);
