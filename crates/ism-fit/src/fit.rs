@@ -985,7 +985,8 @@ pub fn dense_error(
     let samples: usize = per_cell.iter().map(|x| x.2).sum();
     Ok(DenseError {
         max: per_cell.iter().map(|x| x.0).fold(0.0, f64::max),
-        mean: per_cell.iter().map(|x| x.1).sum::<f64>() / samples.max(1) as f64,
+        // `+ 0.0`: an empty float sum is −0.0, and a shape-free model should report 0.
+        mean: per_cell.iter().map(|x| x.1).sum::<f64>() / samples.max(1) as f64 + 0.0,
         samples,
         cells: per_cell.len(),
     })
