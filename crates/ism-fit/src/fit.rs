@@ -40,7 +40,7 @@ pub struct FitOptions {
     pub optimize: bool,
     /// Also optimize the weights of a degree-2 rational stage ([`crate::rational`]) on the
     /// vertices and edges of crossing cells (with `optimize`). Off by default: on a fixed
-    /// complex the weights cut the error 2–8×, but each weight costs a face record, and the
+    /// complex the weights cut the max error 1.3–13×, but each weight costs a face record, and the
     /// adaptive loop mostly reaches a tolerance with as few simplices without them (BENCHMARKS.md).
     pub rational: bool,
     /// Refine until every cell passes the Plantinga–Vegter test.
