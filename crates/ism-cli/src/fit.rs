@@ -84,7 +84,7 @@ pub struct Args {
     no_optimize: bool,
     /// Also fit a degree-2 rational stage: a weight per vertex and edge of the crossing cells,
     /// optimized with the Bézier points (weights = exp(β), valid for every β).
-    #[arg(long)]
+    #[arg(long, conflicts_with = "hermite")]
     rational: bool,
     /// Skip the Plantinga–Vegter refinement (topology not guaranteed).
     #[arg(long)]

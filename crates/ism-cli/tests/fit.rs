@@ -137,6 +137,12 @@ fn bad_arguments_exit_2() {
         vec!["fit", "--expr", "x + y", "--domain", "0,1,0,1,0"],
         vec!["fit", "--expr", "x + y", "--domain", "1,0,0,1"],
         vec!["fit", "--preset", "circle", "--tolerance", "-1"],
+        vec![
+            "fit",
+            "--hermite",
+            "../../spec/examples/hermite/ellipse.hermite.json",
+            "--rational",
+        ],
     ] {
         let out = ism().args(&args).arg("-o").arg(&model).output().unwrap();
         assert_eq!(
