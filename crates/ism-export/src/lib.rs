@@ -7,7 +7,7 @@
 //!   reference and cost baseline.
 //! - [`mesh`]: the [`Mesh`] type and its [`Topology`](mesh::Topology) summary.
 //! - Writers streaming to any `impl Write`: [`obj`], [`gltf`] (`.gltf`/`.glb` via `gltf-json`),
-//!   [`vtk`] (legacy `.vtk` and XML `.vtu`); [`format`] picks one from a file name.
+//!   [`vtk`] (legacy `.vtk` and XML `.vtu`); [`format`](mod@format) picks one from a file name.
 //! - [`volume`]: the complex with `F` as VTK Bézier cells (exact for one polynomial stage).
 //! - [`import`]: `.vtu` / `.vtk` / `.msh` simplicial meshes with a point field → linear ISM.
 //!

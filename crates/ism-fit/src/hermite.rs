@@ -7,7 +7,7 @@
 //!
 //! How it is met here:
 //! - The map is a stratified Bézier block ([`StratifiedMap`], valid by construction: solitary
-//!   points through a softmax), applied first and stored parametric like [`crate::fit`] writes it;
+//!   points through a softmax), applied first and stored parametric like [`crate::fit()`] writes it;
 //!   any stages of an edited model that are not such a block stay, unchanged, after it
 //!   ([`Layered`]), so `X = S ∘ Y⁻¹` with `S` the kept stages.
 //! - On an edge only the edge stratum acts, so the crossing is placed exactly by the edge's

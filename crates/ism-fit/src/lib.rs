@@ -4,7 +4,7 @@
 //!   [`presets`]: circle, Taubin's curve, sphere, torus, genus-2 surface.
 //! - [`complex`]: Kuhn/Freudenthal triangulation of a box, conforming longest-edge bisection.
 //! - [`strata`]: the stratified Bézier map the fitter optimizes (valid by construction).
-//! - [`fit`]: the adaptive loop (Plantinga–Vegter topology refinement, edge roots, face-wise
+//! - [`fit`](mod@fit): the adaptive loop (Plantinga–Vegter topology refinement, edge roots, face-wise
 //!   Levenberg–Marquardt, refinement of cells above the tolerance) and its report.
 //! - [`isocontour`]: the linear isocomplex, its topology and samples; [`svg`]: 2D pictures.
 //!
