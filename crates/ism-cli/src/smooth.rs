@@ -14,9 +14,9 @@ Minimizes the paper's (000 §8) sum over interior facets of |n_σ − n_σ'|² a
 shape on the facet, plus alpha·|β − β₀|² (β the logits of the solitary control points), by
 per-face Levenberg–Marquardt sweeps. A model whose first stages are a stratified block (as `ism
 fit` writes) has that block optimized; any other model keeps its stages and gets a new stratified
-block in front of them (rational weights are not optimized here: see --rational). Control points of edges the shape
-crosses stay fixed, so the shape still crosses every edge where it did. The output is valid by
-construction and checked by the validator.
+block in front of them (rational weights are not optimized here: see --rational). Control points
+of edges the shape crosses stay fixed, so the shape still crosses every edge where it did. The
+output is valid by construction and checked by the validator.
 
 Smoothing trades position for smoothness; --alpha sets the balance (fitted circle, resolution 6:
 input jump max 16.3°, |g|/|∇g| max 6.7e-4; alpha 1e-3: 2.7°, 1.3e-3; alpha 0.1: 4.3°, 7.3e-4).
