@@ -8,7 +8,12 @@ ISM=${1:-target/release/ism}
 out=spec/examples/figures
 tmp=$(mktemp -d)
 trap 'rm -rf "$tmp"' EXIT
-fig() { name=$1; shift; "$ISM" fit "$@" -q -o "$tmp/$name.ism.json" --svg "$out/$name.svg" >/dev/null || true; echo "$out/$name.svg"; }
+# Exit 1 (tolerance not met) still writes the picture; anything else is an error.
+fig() {
+  name=$1; shift
+  "$ISM" fit "$@" -q -o "$tmp/$name.ism.json" --svg "$out/$name.svg" >/dev/null || [ $? -eq 1 ]
+  echo "$out/$name.svg"
+}
 fig circle-coarse --preset circle --resolution 4 --tolerance 1 --no-topology
 fig circle-fit --preset circle --resolution 6 --tolerance 1e-4
 fig taubin-fit --preset taubin --resolution 8 --tolerance 1e-3
