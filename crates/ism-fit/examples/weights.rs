@@ -16,7 +16,12 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         ]
     } else {
         args.chunks(2)
-            .map(|c| (c[0].clone(), c.get(1).and_then(|r| r.parse().ok()).unwrap_or(8)))
+            .map(|c| {
+                (
+                    c[0].clone(),
+                    c.get(1).and_then(|r| r.parse().ok()).unwrap_or(8),
+                )
+            })
             .collect()
     };
     println!("| shape | complex | map | simplices | stage parameters | stored numbers | max abs(g)/grad | mean | fit time |");
