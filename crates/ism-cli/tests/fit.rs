@@ -1,14 +1,8 @@
 //! `ism fit` end to end: presets and expressions, the written model validates, report, exit codes.
 
-use std::process::Command;
+mod common;
 
-fn ism() -> Command {
-    Command::new(env!("CARGO_BIN_EXE_ism"))
-}
-
-fn report(stdout: &[u8]) -> serde_json::Value {
-    serde_json::from_slice(stdout).expect("--json prints one JSON object")
-}
+use common::{assert_status, assert_validates, example, ism, json};
 
 #[test]
 fn circle_preset_fits_validates_and_draws() {
@@ -33,13 +27,8 @@ fn circle_preset_fits_validates_and_draws() {
         .arg(&svg)
         .output()
         .unwrap();
-    assert_eq!(
-        out.status.code(),
-        Some(0),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let r = report(&out.stdout);
+    assert_status(&out, 0);
+    let r = json(&out.stdout);
     assert_eq!(r["toleranceMet"], true);
     assert!(r["maxDistance"].as_f64().unwrap() <= 1e-4);
     assert_eq!(r["components"], 1);
@@ -49,13 +38,7 @@ fn circle_preset_fits_validates_and_draws() {
     let picture = std::fs::read_to_string(&svg).unwrap();
     assert!(picture.starts_with("<svg") && picture.contains("<circle"));
 
-    let check = ism().arg("validate").arg(&model).output().unwrap();
-    assert_eq!(
-        check.status.code(),
-        Some(0),
-        "{}",
-        String::from_utf8_lossy(&check.stdout)
-    );
+    assert_validates(&model);
 }
 
 #[test]
@@ -78,20 +61,9 @@ fn expression_with_negative_domain_fits() {
         .arg(&model)
         .output()
         .unwrap();
-    assert_eq!(
-        out.status.code(),
-        Some(0),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    assert_eq!(report(&out.stdout)["components"], 1);
-    let check = ism().arg("validate").arg(&model).output().unwrap();
-    assert_eq!(
-        check.status.code(),
-        Some(0),
-        "{}",
-        String::from_utf8_lossy(&check.stdout)
-    );
+    assert_status(&out, 0);
+    assert_eq!(json(&out.stdout)["components"], 1);
+    assert_validates(&model);
 }
 
 #[test]
@@ -116,20 +88,29 @@ fn tolerance_not_met_exits_1_but_writes_the_model() {
         .arg(&model)
         .output()
         .unwrap();
-    assert_eq!(
-        out.status.code(),
-        Some(1),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    assert_status(&out, 1);
     assert!(String::from_utf8_lossy(&out.stderr).contains("not met"));
     assert!(model.exists());
+}
+
+/// `ism ARGS -o MODEL` exits 2 and writes nothing.
+#[track_caller]
+fn assert_refused(args: &[&str], model: &std::path::Path) {
+    let out = ism().args(args).arg("-o").arg(model).output().unwrap();
+    assert_eq!(
+        out.status.code(),
+        Some(2),
+        "{args:?}: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(!model.exists(), "{args:?} wrote a file");
 }
 
 #[test]
 fn bad_arguments_exit_2() {
     let dir = tempfile::tempdir().unwrap();
     let model = dir.path().join("x.ism.json");
+    let handles = example("hermite/ellipse.hermite.json");
     for args in [
         vec!["fit", "--preset", "nope"],
         vec!["fit", "--expr", "x^2 + w", "--domain", "0,1,0,1"],
@@ -137,28 +118,16 @@ fn bad_arguments_exit_2() {
         vec!["fit", "--expr", "x + y", "--domain", "0,1,0,1,0"],
         vec!["fit", "--expr", "x + y", "--domain", "1,0,0,1"],
         vec!["fit", "--preset", "circle", "--tolerance", "-1"],
-        vec![
-            "fit",
-            "--hermite",
-            "../../spec/examples/hermite/ellipse.hermite.json",
-            "--rational",
-        ],
+        vec!["fit", "--hermite", handles.to_str().unwrap(), "--rational"],
     ] {
-        let out = ism().args(&args).arg("-o").arg(&model).output().unwrap();
-        assert_eq!(
-            out.status.code(),
-            Some(2),
-            "{args:?}: {}",
-            String::from_utf8_lossy(&out.stderr)
-        );
-        assert!(!model.exists(), "{args:?} wrote a file");
+        assert_refused(&args, &model);
     }
 }
 
 #[test]
 fn list_presets_names_all_five() {
     let out = ism().args(["fit", "--list-presets"]).output().unwrap();
-    assert_eq!(out.status.code(), Some(0));
+    assert_status(&out, 0);
     let text = String::from_utf8(out.stdout).unwrap();
     for name in ["circle", "taubin", "sphere", "torus", "genus2"] {
         assert!(text.contains(name), "{text}");
@@ -185,98 +154,20 @@ fn sphere_preset_fits_in_3d_with_the_true_topology_and_validates() {
         .arg(&model)
         .output()
         .unwrap();
-    assert_eq!(
-        out.status.code(),
-        Some(0),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let r = report(&out.stdout);
+    assert_status(&out, 0);
+    let r = json(&out.stdout);
     assert_eq!(
         (r["components"].as_u64(), r["euler"].as_i64()),
         (Some(1), Some(2))
     );
     assert_eq!(r["topologyMatchesPreset"], true);
-    let check = ism().arg("validate").arg(&model).output().unwrap();
-    assert_eq!(
-        check.status.code(),
-        Some(0),
-        "{}",
-        String::from_utf8_lossy(&check.stdout)
-    );
+    assert_validates(&model);
 }
 
 /// An icosphere of radius `r` around `centre` (`level` subdivisions), outward triangles.
 fn icosphere(level: usize, r: f64, centre: [f64; 3]) -> (Vec<[f64; 3]>, Vec<[u32; 3]>) {
-    let t = (1.0 + 5f64.sqrt()) / 2.0;
-    let unit = |p: [f64; 3]| {
-        let l = (p[0] * p[0] + p[1] * p[1] + p[2] * p[2]).sqrt();
-        p.map(|x| x / l)
-    };
-    let mut points: Vec<[f64; 3]> = [
-        [-1.0, t, 0.0],
-        [1.0, t, 0.0],
-        [-1.0, -t, 0.0],
-        [1.0, -t, 0.0],
-        [0.0, -1.0, t],
-        [0.0, 1.0, t],
-        [0.0, -1.0, -t],
-        [0.0, 1.0, -t],
-        [t, 0.0, -1.0],
-        [t, 0.0, 1.0],
-        [-t, 0.0, -1.0],
-        [-t, 0.0, 1.0],
-    ]
-    .map(unit)
-    .to_vec();
-    let mut tris: Vec<[u32; 3]> = vec![
-        [0, 11, 5],
-        [0, 5, 1],
-        [0, 1, 7],
-        [0, 7, 10],
-        [0, 10, 11],
-        [1, 5, 9],
-        [5, 11, 4],
-        [11, 10, 2],
-        [10, 7, 6],
-        [7, 1, 8],
-        [3, 9, 4],
-        [3, 4, 2],
-        [3, 2, 6],
-        [3, 6, 8],
-        [3, 8, 9],
-        [4, 9, 5],
-        [2, 4, 11],
-        [6, 2, 10],
-        [8, 6, 7],
-        [9, 8, 1],
-    ];
-    for _ in 0..level {
-        let mut mid = std::collections::HashMap::new();
-        let mut next = Vec::new();
-        for tri in &tris {
-            let m = [0, 1, 2].map(|k| {
-                let (a, b) = (tri[k], tri[(k + 1) % 3]);
-                *mid.entry((a.min(b), a.max(b))).or_insert_with(|| {
-                    let (p, q) = (points[a as usize], points[b as usize]);
-                    points.push(unit([p[0] + q[0], p[1] + q[1], p[2] + q[2]]));
-                    (points.len() - 1) as u32
-                })
-            });
-            next.extend([
-                [tri[0], m[0], m[2]],
-                [tri[1], m[1], m[0]],
-                [tri[2], m[2], m[1]],
-                [m[0], m[1], m[2]],
-            ]);
-        }
-        tris = next;
-    }
-    let points = points
-        .iter()
-        .map(|p| [0, 1, 2].map(|k| centre[k] + r * p[k]))
-        .collect();
-    (points, tris)
+    let mesh = ism_fit::mesh::TriangleMesh::icosphere(level, r, centre);
+    (mesh.positions, mesh.triangles)
 }
 
 fn obj_text(points: &[[f64; 3]], tris: &[[u32; 3]]) -> String {
@@ -350,20 +241,9 @@ fn fit_mesh(mesh: &std::path::Path, model: &std::path::Path, extra: &[&str]) -> 
         .arg(model)
         .output()
         .unwrap();
-    assert_eq!(
-        out.status.code(),
-        Some(0),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let check = ism().arg("validate").arg(model).output().unwrap();
-    assert_eq!(
-        check.status.code(),
-        Some(0),
-        "{}",
-        String::from_utf8_lossy(&check.stdout)
-    );
-    report(&out.stdout)
+    assert_status(&out, 0);
+    assert_validates(model);
+    json(&out.stdout)
 }
 
 #[test]
@@ -489,14 +369,7 @@ fn bad_meshes_and_conflicting_arguments_exit_2() {
             "0,1,0,1",
         ],
     ] {
-        let out = ism().args(&args).arg("-o").arg(&model).output().unwrap();
-        assert_eq!(
-            out.status.code(),
-            Some(2),
-            "{args:?}: {}",
-            String::from_utf8_lossy(&out.stderr)
-        );
-        assert!(!model.exists(), "{args:?} wrote a file");
+        assert_refused(&args, &model);
     }
 }
 
@@ -516,7 +389,7 @@ fn open_mesh_is_refused() {
         .arg(&model)
         .output()
         .unwrap();
-    assert_eq!(out.status.code(), Some(2));
+    assert_status(&out, 2);
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(
         stderr.contains("not a closed manifold (3 boundary"),
@@ -547,13 +420,8 @@ fn rational_weights_are_fitted_written_and_validated() {
         .arg(&model)
         .output()
         .unwrap();
-    assert_eq!(
-        out.status.code(),
-        Some(0),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let r = report(&out.stdout);
+    assert_status(&out, 0);
+    let r = json(&out.stdout);
     assert!(r["maxDistance"].as_f64().unwrap() <= 2e-3);
     assert_eq!(
         (r["components"].clone(), r["euler"].clone()),
@@ -584,13 +452,7 @@ fn rational_weights_are_fitted_written_and_validated() {
     assert!(weights.len() > 10);
     assert!(weights.iter().all(|&w| w > 0.0) && weights.iter().any(|&w| (w - 1.0).abs() > 1e-3));
 
-    let check = ism().arg("validate").arg(&model).output().unwrap();
-    assert_eq!(
-        check.status.code(),
-        Some(0),
-        "{}",
-        String::from_utf8_lossy(&check.stdout)
-    );
+    assert_validates(&model);
     let samples = dir.path().join("s.npy");
     let sampled = ism()
         .args(["sample", "--surface", "2000", "-o"])
@@ -598,10 +460,5 @@ fn rational_weights_are_fitted_written_and_validated() {
         .arg(&model)
         .output()
         .unwrap();
-    assert_eq!(
-        sampled.status.code(),
-        Some(0),
-        "{}",
-        String::from_utf8_lossy(&sampled.stderr)
-    );
+    assert_status(&sampled, 0);
 }

@@ -1,29 +1,13 @@
 //! `ism fit --hermite` end to end: the example handles file, editing a model, bad handles.
 
+mod common;
+
 use std::path::PathBuf;
-use std::process::Command;
 
-fn ism() -> Command {
-    Command::new(env!("CARGO_BIN_EXE_ism"))
-}
+use common::{assert_status, assert_validates, example, ism, json};
 
-fn example() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-        .join("../../spec/examples/hermite/ellipse.hermite.json")
-}
-
-fn json(stdout: &[u8]) -> serde_json::Value {
-    serde_json::from_slice(stdout).expect("--json prints one JSON object")
-}
-
-fn validates(model: &std::path::Path) {
-    let check = ism().arg("validate").arg(model).output().unwrap();
-    assert_eq!(
-        check.status.code(),
-        Some(0),
-        "{}",
-        String::from_utf8_lossy(&check.stdout)
-    );
+fn handles() -> PathBuf {
+    example("hermite/ellipse.hermite.json")
 }
 
 #[test]
@@ -33,19 +17,14 @@ fn example_handles_fit_validate_and_draw() {
     let svg = dir.path().join("ellipse.svg");
     let out = ism()
         .args(["fit", "--json", "--hermite"])
-        .arg(example())
+        .arg(handles())
         .arg("-o")
         .arg(&model)
         .arg("--svg")
         .arg(&svg)
         .output()
         .unwrap();
-    assert_eq!(
-        out.status.code(),
-        Some(0),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    assert_status(&out, 0);
     let r = json(&out.stdout);
     assert_eq!(r["handles"].as_array().unwrap().len(), 18);
     assert!(r["maxPositionError"].as_f64().unwrap() < 1e-9);
@@ -57,11 +36,11 @@ fn example_handles_fit_validate_and_draw() {
     assert!(r["objectiveAfter"].as_f64().unwrap() < r["objectiveBefore"].as_f64().unwrap());
     assert_eq!(r["verdict"], "valid");
     assert!(std::fs::read_to_string(&svg).unwrap().starts_with("<svg"));
-    validates(&model);
+    assert_validates(&model);
 
     // Edit the result: the handles file names the model, turns one normal and moves a crossing.
     let mut data: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(example()).unwrap()).unwrap();
+        serde_json::from_str(&std::fs::read_to_string(handles()).unwrap()).unwrap();
     let obj = data.as_object_mut().unwrap();
     for key in ["dimension", "vertices", "simplices", "values"] {
         obj.remove(key);
@@ -80,23 +59,18 @@ fn example_handles_fit_validate_and_draw() {
         .arg(&edited)
         .output()
         .unwrap();
-    assert_eq!(
-        out.status.code(),
-        Some(0),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    assert_status(&out, 0);
     let r = json(&out.stdout);
     assert_eq!(r["blockAdded"], false);
     assert!(r["maxPositionError"].as_f64().unwrap() < 1e-9, "{r}");
-    validates(&edited);
+    assert_validates(&edited);
 }
 
 #[test]
 fn bad_handles_exit_2_with_the_handle_named() {
     let dir = tempfile::tempdir().unwrap();
     let mut data: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(example()).unwrap()).unwrap();
+        serde_json::from_str(&std::fs::read_to_string(handles()).unwrap()).unwrap();
     let n = &mut data["handles"][3]["normal"];
     *n = serde_json::json!([-n[0].as_f64().unwrap(), -n[1].as_f64().unwrap()]);
     let bad = dir.path().join("bad.hermite.json");
@@ -108,7 +82,7 @@ fn bad_handles_exit_2_with_the_handle_named() {
         .arg(dir.path().join("x.ism.json"))
         .output()
         .unwrap();
-    assert_eq!(out.status.code(), Some(2));
+    assert_status(&out, 2);
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains("handle 3") && err.contains("outside"), "{err}");
     assert!(!dir.path().join("x.ism.json").exists());

@@ -2,16 +2,11 @@
 //! (ISM-401, the measure of `ism validate --quality`), and the output validates; with `--rational`,
 //! linear models get a rational stage with a smaller C¹ residual (ISM-402).
 
-use std::path::{Path, PathBuf};
-use std::process::Command;
+mod common;
 
-fn ism() -> Command {
-    Command::new(env!("CARGO_BIN_EXE_ism"))
-}
+use std::path::Path;
 
-fn json(stdout: &[u8]) -> serde_json::Value {
-    serde_json::from_slice(stdout).expect("--json prints one JSON object")
-}
+use common::{assert_status, assert_validates, example, ism, json};
 
 fn smooth(input: &Path, output: &Path, extra: &[&str]) -> serde_json::Value {
     let out = ism()
@@ -23,19 +18,8 @@ fn smooth(input: &Path, output: &Path, extra: &[&str]) -> serde_json::Value {
         .args(extra)
         .output()
         .unwrap();
-    assert_eq!(
-        out.status.code(),
-        Some(0),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let check = ism().arg("validate").arg(output).output().unwrap();
-    assert_eq!(
-        check.status.code(),
-        Some(0),
-        "{}",
-        String::from_utf8_lossy(&check.stdout)
-    );
+    assert_status(&out, 0);
+    assert_validates(output);
     json(&out.stdout)
 }
 
@@ -48,7 +32,7 @@ fn fitted_circle_gets_smaller_jumps() {
         .arg(&fitted)
         .output()
         .unwrap();
-    assert_eq!(out.status.code(), Some(0));
+    assert_status(&out, 0);
     let r = smooth(&fitted, &dir.path().join("smooth.ism.json"), &[]);
     let (b, a) = (&r["before"], &r["after"]);
     assert!(
@@ -74,8 +58,7 @@ fn fitted_circle_gets_smaller_jumps() {
 #[test]
 fn sphere_example_gets_smaller_jumps() {
     let dir = tempfile::tempdir().unwrap();
-    let input =
-        PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../spec/examples/sphere.ism.json");
+    let input = example("sphere.ism.json");
     let r = smooth(
         &input,
         &dir.path().join("sphere.ismb"),
@@ -104,13 +87,7 @@ fn unreadable_input_exits_2() {
         .arg(dir.path().join("o.ism.json"))
         .output()
         .unwrap();
-    assert_eq!(out.status.code(), Some(2));
-}
-
-fn example(name: &str) -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-        .join("../../spec/examples")
-        .join(name)
+    assert_status(&out, 2);
 }
 
 /// `--rational` (JSON report): exit 0, the output validates, ISM-402 and ISM-401 drop.
@@ -159,7 +136,7 @@ fn rational_on_the_linear_circle() {
         .args(["--rational", "--degree", "2", "--json"])
         .output()
         .unwrap();
-    assert_eq!(out2.status.code(), Some(0));
+    assert_status(&out2, 0);
     let r2 = json(&out2.stdout);
     assert!(
         r2["objectiveAfter"].as_f64() <= r["objectiveAfter"].as_f64(),
@@ -175,7 +152,7 @@ fn rational_on_the_linear_circle() {
         .args(["--rational", "--degree", "3", "--alpha", "1e-3"])
         .output()
         .unwrap();
-    assert_eq!(text.status.code(), Some(0));
+    assert_status(&text, 0);
     let stdout = String::from_utf8_lossy(&text.stdout);
     for needle in [
         "ISM-402",
@@ -205,12 +182,7 @@ fn rational_on_a_linear_sphere() {
         .arg(&fitted)
         .output()
         .unwrap();
-    assert_eq!(
-        out.status.code(),
-        Some(0),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    assert_status(&out, 0);
     // Keep the complex and values only: the linear isocomplex.
     let mut model: serde_json::Value =
         serde_json::from_slice(&std::fs::read(&fitted).unwrap()).unwrap();
@@ -232,7 +204,7 @@ fn rational_refuses_other_stages_with_exit_2() {
         .arg("--rational")
         .output()
         .unwrap();
-    assert_eq!(out.status.code(), Some(2));
+    assert_status(&out, 2);
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains("stage 0") && err.contains("bezier"), "{err}");
     assert!(!dir.path().join("o.ism.json").exists());
@@ -245,5 +217,5 @@ fn rational_refuses_other_stages_with_exit_2() {
         .args(["--degree", "3"])
         .output()
         .unwrap();
-    assert_eq!(out.status.code(), Some(2));
+    assert_status(&out, 2);
 }

@@ -301,6 +301,82 @@ impl TriangleMesh {
         })
     }
 
+    /// An icosphere: the icosahedron subdivided `level` times (`20·4^level` triangles), its
+    /// vertices on the sphere of `radius` around `centre`, triangles facing outward. A closed,
+    /// consistently oriented test shape for fits, benchmarks and the CLI's tests.
+    pub fn icosphere(level: usize, radius: f64, centre: P3) -> TriangleMesh {
+        let t = (1.0 + 5f64.sqrt()) / 2.0;
+        let mut positions: Vec<P3> = [
+            [-1.0, t, 0.0],
+            [1.0, t, 0.0],
+            [-1.0, -t, 0.0],
+            [1.0, -t, 0.0],
+            [0.0, -1.0, t],
+            [0.0, 1.0, t],
+            [0.0, -1.0, -t],
+            [0.0, 1.0, -t],
+            [t, 0.0, -1.0],
+            [t, 0.0, 1.0],
+            [-t, 0.0, -1.0],
+            [-t, 0.0, 1.0],
+        ]
+        .iter()
+        .map(|p| p.map(|x| x / norm(*p)))
+        .collect();
+        let mut triangles: Vec<[u32; 3]> = vec![
+            [0, 11, 5],
+            [0, 5, 1],
+            [0, 1, 7],
+            [0, 7, 10],
+            [0, 10, 11],
+            [1, 5, 9],
+            [5, 11, 4],
+            [11, 10, 2],
+            [10, 7, 6],
+            [7, 1, 8],
+            [3, 9, 4],
+            [3, 4, 2],
+            [3, 2, 6],
+            [3, 6, 8],
+            [3, 8, 9],
+            [4, 9, 5],
+            [2, 4, 11],
+            [6, 2, 10],
+            [8, 6, 7],
+            [9, 8, 1],
+        ];
+        for _ in 0..level {
+            let mut mid: HashMap<(u32, u32), u32> = HashMap::new();
+            let mut next = Vec::new();
+            for t in &triangles {
+                let m = [0, 1, 2].map(|k| {
+                    let (a, b) = (t[k], t[(k + 1) % 3]);
+                    *mid.entry((a.min(b), a.max(b))).or_insert_with(|| {
+                        let p = positions[a as usize];
+                        let q = positions[b as usize];
+                        let s = [p[0] + q[0], p[1] + q[1], p[2] + q[2]];
+                        positions.push(s.map(|x| x / norm(s)));
+                        (positions.len() - 1) as u32
+                    })
+                });
+                next.extend([
+                    [t[0], m[0], m[2]],
+                    [t[1], m[1], m[0]],
+                    [t[2], m[2], m[1]],
+                    [m[0], m[1], m[2]],
+                ]);
+            }
+            triangles = next;
+        }
+        for p in &mut positions {
+            *p = [0, 1, 2].map(|k| centre[k] + radius * p[k]);
+        }
+        TriangleMesh {
+            positions,
+            triangles,
+        }
+    }
+
     /// Axis-aligned bounding box of the vertices.
     pub fn bounding_box(&self) -> (P3, P3) {
         let mut lo = [f64::INFINITY; 3];
@@ -1183,75 +1259,8 @@ mod tests {
         }
     }
 
-    /// An icosphere of radius 1 (`level` subdivisions of the icosahedron), outward.
     fn icosphere(level: usize) -> TriangleMesh {
-        let t = (1.0 + 5f64.sqrt()) / 2.0;
-        let mut positions: Vec<P3> = [
-            [-1.0, t, 0.0],
-            [1.0, t, 0.0],
-            [-1.0, -t, 0.0],
-            [1.0, -t, 0.0],
-            [0.0, -1.0, t],
-            [0.0, 1.0, t],
-            [0.0, -1.0, -t],
-            [0.0, 1.0, -t],
-            [t, 0.0, -1.0],
-            [t, 0.0, 1.0],
-            [-t, 0.0, -1.0],
-            [-t, 0.0, 1.0],
-        ]
-        .iter()
-        .map(|p| p.map(|x| x / norm(*p)))
-        .collect();
-        let mut triangles: Vec<[u32; 3]> = vec![
-            [0, 11, 5],
-            [0, 5, 1],
-            [0, 1, 7],
-            [0, 7, 10],
-            [0, 10, 11],
-            [1, 5, 9],
-            [5, 11, 4],
-            [11, 10, 2],
-            [10, 7, 6],
-            [7, 1, 8],
-            [3, 9, 4],
-            [3, 4, 2],
-            [3, 2, 6],
-            [3, 6, 8],
-            [3, 8, 9],
-            [4, 9, 5],
-            [2, 4, 11],
-            [6, 2, 10],
-            [8, 6, 7],
-            [9, 8, 1],
-        ];
-        for _ in 0..level {
-            let mut mid: HashMap<(u32, u32), u32> = HashMap::new();
-            let mut next = Vec::new();
-            for t in &triangles {
-                let m = [0, 1, 2].map(|k| {
-                    let (a, b) = (t[k], t[(k + 1) % 3]);
-                    *mid.entry((a.min(b), a.max(b))).or_insert_with(|| {
-                        let p = positions[a as usize];
-                        let q = positions[b as usize];
-                        let s = [p[0] + q[0], p[1] + q[1], p[2] + q[2]];
-                        positions.push(s.map(|x| x / norm(s)));
-                        (positions.len() - 1) as u32
-                    })
-                });
-                next.extend([
-                    [t[0], m[0], m[2]],
-                    [t[1], m[1], m[0]],
-                    [t[2], m[2], m[1]],
-                    [m[0], m[1], m[2]],
-                ]);
-            }
-            triangles = next;
-        }
-        TriangleMesh {
-            positions,
-            triangles,
-        }
+        TriangleMesh::icosphere(level, 1.0, [0.0; 3])
     }
 
     /// Deterministic points in a box (a fixed LCG: the tests need no RNG crate for this).
