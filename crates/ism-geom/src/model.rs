@@ -203,6 +203,17 @@ impl ModelEval {
         self.inv_edges.len()
     }
 
+    /// The inverse of simplex `s`'s edge matrix ([`edge_matrix`]), computed once in
+    /// [`ModelEval::new`] (which refuses degenerate simplices, so it always exists).
+    pub fn inv_edges(&self, s: usize) -> Mat {
+        let a = &self.inv_edges[s];
+        let mut out = [[0.0; MAX_VARS]; MAX_VARS];
+        for (r, row) in out.iter_mut().enumerate().take(self.n) {
+            row[..self.n].copy_from_slice(&a[r * 3..r * 3 + self.n]);
+        }
+        out
+    }
+
     /// The local map (all stages) of simplex `s`, built on first use.
     ///
     /// # Panics
@@ -467,7 +478,9 @@ fn sub(a: &[f64; 3], b: &[f64; 3]) -> [f64; 3] {
 }
 
 /// `E[x][l] = (v_{l+1} − v_0)_x`: columns are the edges from vertex 0.
-fn edge_matrix(model: &Model, ids: &[u32]) -> Mat {
+/// The edge matrix of the simplex with vertex ids `ids`: column `l` is `v_{l+1} − v_0`, so
+/// `p = v_0 + E·(w_1, …, w_n)`.
+pub fn edge_matrix(model: &Model, ids: &[u32]) -> Mat {
     let n = model.dim();
     let v0 = model.vertex(ids[0] as usize);
     let mut e = [[0.0; MAX_VARS]; MAX_VARS];

@@ -719,17 +719,7 @@ mod tests {
     }
 
     fn edges(model: &ism_format::Model, s: usize) -> Mat {
-        let ids = model.simplex(s);
-        let n = model.dim();
-        let v0 = model.vertex(ids[0] as usize);
-        let mut e = [[0.0; MAX_VARS]; MAX_VARS];
-        for l in 0..n {
-            let v = model.vertex(ids[l + 1] as usize);
-            for x in 0..n {
-                e[x][l] = v[x] - v0[x];
-            }
-        }
-        e
+        ism_geom::model::edge_matrix(model, model.simplex(s))
     }
 
     /// The bound must dominate sup ‖M‖/det M sampled densely (a necessary condition), and be

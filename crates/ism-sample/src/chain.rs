@@ -882,15 +882,7 @@ mod tests {
             let Some(patch) = eval.patch(s) else { continue };
             let map = eval.local_map(s);
             let ids = model.simplex(s);
-            let v0 = model.vertex(ids[0] as usize);
-            let mut e = [[0.0; MAX_VARS]; MAX_VARS];
-            for l in 0..n {
-                let v = model.vertex(ids[l + 1] as usize);
-                for x in 0..n {
-                    e[x][l] = v[x] - v0[x];
-                }
-            }
-            let inv = linalg::inverse(n, &e).unwrap();
+            let inv = eval.inv_edges(s);
             let values: Vec<f64> = ids.iter().map(|&v| model.values[v as usize]).collect();
             let Some(Ok(chain)) = chain_bound(map, &inv, &values, model.level, &[], splits) else {
                 panic!("simplex {s}: no chain bound");
@@ -957,15 +949,7 @@ mod tests {
                 let Some(patch) = eval.patch(s) else { continue };
                 let map = eval.local_map(s);
                 let ids = model.simplex(s);
-                let v0 = model.vertex(ids[0] as usize);
-                let mut e = [[0.0; MAX_VARS]; MAX_VARS];
-                for l in 0..n {
-                    let v = model.vertex(ids[l + 1] as usize);
-                    for x in 0..n {
-                        e[x][l] = v[x] - v0[x];
-                    }
-                }
-                let inv = linalg::inverse(n, &e).unwrap();
+                let inv = eval.inv_edges(s);
                 let values: Vec<f64> = ids.iter().map(|&v| model.values[v as usize]).collect();
                 let lin = (0..n)
                     .map(|x| {

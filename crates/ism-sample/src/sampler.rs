@@ -16,7 +16,7 @@ use rayon::prelude::*;
 use crate::error::{Result, SampleError};
 use crate::output::{Column, Header, SampleBlock, Sink};
 use crate::seed::{chunk_rng, chunk_sizes, Purpose, CHUNK};
-use crate::surface::{edge_matrix, SurfaceTable, Weighting};
+use crate::surface::{SurfaceTable, Weighting};
 
 /// Where volume samples are drawn.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -211,7 +211,10 @@ impl Sampler {
             let n = model.dim();
             let vols: Vec<f64> = (0..self.eval.num_simplices())
                 .into_par_iter()
-                .map(|s| ism_geom::linalg::det(n, &edge_matrix(model, s)).abs())
+                .map(|s| {
+                    ism_geom::linalg::det(n, &ism_geom::model::edge_matrix(model, model.simplex(s)))
+                        .abs()
+                })
                 .collect();
             let mut acc = 0.0;
             vols.iter()

@@ -111,21 +111,6 @@ pub struct SurfaceTable {
     weighting: Weighting,
 }
 
-/// Edge matrix `E[x][l] = (v_{l+1} − v_0)_x`.
-pub(crate) fn edge_matrix(model: &Model, s: usize) -> Mat {
-    let n = model.dim();
-    let ids = model.simplex(s);
-    let v0 = model.vertex(ids[0] as usize);
-    let mut e = [[0.0; MAX_VARS]; MAX_VARS];
-    for l in 0..n {
-        let v = model.vertex(ids[l + 1] as usize);
-        for x in 0..n {
-            e[x][l] = v[x] - v0[x];
-        }
-    }
-    e
-}
-
 /// Diagonal of the model's bounding box (1 for an empty model).
 pub(crate) fn model_scale(model: &Model) -> f64 {
     let n = model.dim();
@@ -185,12 +170,9 @@ fn build_patch(
     let model = eval.model();
     let n = model.dim();
 
-    let e = edge_matrix(model, s);
-    let inv = linalg::inverse(n, &e).ok_or_else(|| SampleError::Numerical {
-        simplex: s,
-        reason: "degenerate simplex".into(),
-    })?;
     let ids = model.simplex(s);
+    let e = ism_geom::model::edge_matrix(model, ids);
+    let inv = eval.inv_edges(s);
     let f0 = model.values[ids[0] as usize];
     let mut g = [0.0; 3];
     for (x, gx) in g.iter_mut().enumerate().take(n) {
