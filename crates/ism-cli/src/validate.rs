@@ -9,10 +9,12 @@ const AFTER_HELP: &str = "\
 Examples:
   ism validate spec/examples/*.ism.json
   ism validate --json model.ismb > report.json
-  ism validate --quality --depth 24 --threads 1 model.ism.json
+  ism validate --quality --max-pieces 1000000 --threads 1 model.ism.json
 
 Each element (stage × top simplex) is certified valid by a theorem or by Bernstein coefficients of
-det DX with subdivision, rejected with a witness point, or left undetermined (never counted valid).
+det DX with subdivision (floating point with proven rounding bounds, then exact integer arithmetic
+where that cannot decide), rejected with a witness point proven by exact evaluation, or left
+undetermined when the piece budget runs out (never counted valid).
 Rules are defined in spec/validation.md; --json prints the report of spec/schema/report.schema.json
 (one report per file; several files give a JSON array).
 
@@ -37,15 +39,27 @@ pub struct Args {
     /// Worker threads (0: all cores).
     #[arg(long, default_value_t = 0)]
     threads: usize,
-    /// Subdivision depth limit of the positivity certificate.
-    #[arg(long, default_value_t = ism_validate::DEFAULT_DEPTH, value_parser = clap::value_parser!(u32).range(0..=64))]
-    depth: u32,
+    /// Pieces per element for the positivity certificate's subdivision (floating point; the exact
+    /// fallback gets a sixteenth as many). Undetermined only means this budget ran out.
+    #[arg(long, default_value_t = ism_validate::DEFAULT_MAX_PIECES, value_parser = parse_pieces)]
+    max_pieces: usize,
     /// Also report quality: C¹ residuals of rational stages, normal jumps, det DX range.
     #[arg(long)]
     quality: bool,
     /// Certify every element numerically even where a theorem applies.
     #[arg(long)]
     no_theorems: bool,
+}
+
+/// A piece budget: a positive whole number of at most 2^32 (bounds memory and time per element).
+fn parse_pieces(text: &str) -> Result<usize, String> {
+    match text.parse::<usize>() {
+        Ok(n) if (1..=1 << 32).contains(&n) => Ok(n),
+        _ => Err(format!(
+            "expected a whole number of pieces from 1 to {}",
+            1u64 << 32
+        )),
+    }
 }
 
 fn print_summary(path: &std::path::Path, report: &Report) {
@@ -130,7 +144,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let options = Options {
         max_issues: args.max_issues,
         threads: args.threads,
-        depth: args.depth,
+        max_pieces: args.max_pieces,
         quality: args.quality,
         theorems: !args.no_theorems,
     };

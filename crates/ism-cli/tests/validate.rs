@@ -60,7 +60,7 @@ fn json_report_carries_witness_and_certificates() {
         .unwrap();
     assert_eq!(out.status.code(), Some(1));
     let report: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
-    assert_eq!(report["reportVersion"], "1.0");
+    assert_eq!(report["reportVersion"], "2.0");
     assert_eq!(report["verdict"], "invalid");
     assert_eq!(report["stages"][0]["status"], "skipped");
     assert_eq!(report["stages"][1]["status"], "invalid");
@@ -94,7 +94,7 @@ fn unreadable_missing_and_bad_arguments_exit_2() {
         .unwrap();
     assert_eq!(out.status.code(), Some(2));
     let out = ism()
-        .args(["validate", "--depth", "x"])
+        .args(["validate", "--max-pieces", "x"])
         .arg(&bad)
         .output()
         .unwrap();

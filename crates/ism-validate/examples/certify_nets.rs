@@ -15,7 +15,7 @@ use std::io::{BufRead, Read};
 use std::time::Instant;
 
 use ism_format::multi_index;
-use ism_validate::{Decision, DenseNet, DetKernel, DEFAULT_DEPTH};
+use ism_validate::{Budget, Certificate, DenseNet, DetKernel};
 use rayon::prelude::*;
 
 #[derive(serde::Deserialize)]
@@ -88,10 +88,10 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         let start = Instant::now();
         verdicts = pool.install(|| {
             nets.par_iter()
-                .map(|net| match kernel.certify(net, DEFAULT_DEPTH) {
-                    Decision::Positive { pieces, .. } => (1u8, pieces),
-                    Decision::NonPositive { .. } => (0u8, 0),
-                    Decision::Undetermined { pieces, .. } => (2u8, pieces),
+                .map(|net| match kernel.certify(net, Budget::default()) {
+                    Certificate::Positive { pieces, .. } => (1u8, pieces),
+                    Certificate::NonPositive { .. } => (0u8, 0),
+                    Certificate::Undetermined { pieces, .. } => (2u8, pieces),
                 })
                 .collect::<Vec<(u8, usize)>>()
         });

@@ -26,14 +26,41 @@ const UNIT_ROUNDOFF: f64 = f64::EPSILON / 2.0;
 /// to the smallest subnormal, and no computation here has more than 10⁴ roundings on a path.
 const UNDERFLOW_SLACK: f64 = 1e4 * f64::MIN_POSITIVE;
 
-/// Hard cap on the pieces one element may be cut into, whatever the depth: bounds time and memory on
-/// hostile input (a piece holds at most `C(3·16+3, 3)` coefficients).
-pub const MAX_PIECES: usize = 1 << 14;
+/// Deepest floating-point bisection: corners stay exact dyadic doubles (each bisection adds at most
+/// one bit to a corner coordinate), so a candidate witness is the exact corner, and the exact path
+/// takes over long before rounding in the coefficients could matter.
+pub const MAX_FLOAT_DEPTH: u32 = 50;
 
-/// Default subdivision depth (bisections along any path). Every bisection halves one edge, so 3·n
-/// levels halve the diameter of a piece at least once; 18 levels reach pieces 1/64 the size of the
-/// simplex in 3D, enough for every example and for 99.9 % of random adjusted nets (BENCHMARKS.md).
-pub const DEFAULT_DEPTH: u32 = 18;
+/// How much work one element may take (spec/validation.md §4.4). Pieces, not depth: a piece count
+/// bounds time and memory whatever the shape of the subdivision tree.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Budget {
+    /// Pieces of the floating-point certificate.
+    pub pieces: usize,
+    /// Pieces of the exact path (each may also run the floating-point filter on up to 64
+    /// sub-pieces).
+    pub exact_pieces: usize,
+}
+
+/// Default floating-point pieces per element: a few milliseconds at the highest degrees.
+pub const DEFAULT_MAX_PIECES: usize = 1 << 16;
+
+impl Budget {
+    /// The budget for `pieces` floating-point pieces, and a sixteenth as many exact ones (an exact
+    /// bisection costs tens of floating-point ones).
+    pub fn new(pieces: usize) -> Budget {
+        Budget {
+            pieces,
+            exact_pieces: (pieces / 16).max(1),
+        }
+    }
+}
+
+impl Default for Budget {
+    fn default() -> Budget {
+        Budget::new(DEFAULT_MAX_PIECES)
+    }
+}
 
 /// One stage on one top simplex: the dense control net in local vertex order.
 #[derive(Clone, Debug, PartialEq)]
@@ -97,7 +124,8 @@ pub enum Decision {
         /// A certified lower bound of the polynomial on the simplex (min of value − error).
         lower_bound: f64,
     },
-    /// The polynomial is `≤ 0` (as computed) at a point of the closed simplex.
+    /// The polynomial is `≤ 0` as computed at this corner of a piece: a candidate witness, to be
+    /// proven exactly ([`crate::exact::witness_at`]).
     NonPositive {
         /// Barycentric point of the simplex.
         point: Vec<f64>,
@@ -106,7 +134,7 @@ pub enum Decision {
         /// Its rounding-error bound: `value + error ≤ 0` makes the sign certain.
         error: f64,
     },
-    /// Undecided at the depth or piece limit.
+    /// Undecided at the depth or piece limit, or a number was not finite.
     Undetermined {
         /// Depth reached.
         depth: u32,
@@ -126,16 +154,55 @@ impl Decision {
     }
 }
 
+/// The decision for one element: floating point, then exact.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Certificate {
+    /// Positive on the closed simplex.
+    Positive {
+        /// Whether the exact path decided it (otherwise the floating-point certificate did).
+        exact: bool,
+        /// Greatest subdivision depth used.
+        depth: u32,
+        /// Pieces examined (by the path that decided).
+        pieces: usize,
+        /// Certified lower bound of the floating-point certificate polynomial (of the net with
+        /// normalised weights); `None` for the exact path, whose coefficients carry an arbitrary
+        /// positive factor.
+        lower_bound: Option<f64>,
+    },
+    /// A point where the polynomial is `≤ 0`, proven by exact evaluation.
+    NonPositive(crate::exact::ExactWitness),
+    /// Neither path decided within the budget.
+    Undetermined {
+        /// Depth reached.
+        depth: u32,
+        /// Pieces examined by both paths.
+        pieces: usize,
+        /// Certified lower bound over the floating-point pieces left undecided (−∞ when the
+        /// floating-point path could not run).
+        lower_bound: f64,
+        /// Smallest value the floating-point path found at a piece corner.
+        upper_bound: f64,
+    },
+}
+
+impl Certificate {
+    /// Whether the sign is certified positive.
+    pub fn is_positive(&self) -> bool {
+        matches!(self, Certificate::Positive { .. })
+    }
+}
+
 /// The coefficient lines along one edge `(a, b)`, each listed by increasing exponent of `b`.
 type EdgeLines = ((usize, usize), Vec<Vec<u16>>);
 
 /// Table of the products `x_i · y_j → z_k` of a homogeneous convolution, as one row of output
 /// positions per `i`: `zrows[i · len_b + j] = k`.
 #[derive(Clone, Debug)]
-struct Convolution {
-    zrows: Vec<u16>,
-    len_b: usize,
-    out_len: usize,
+pub(crate) struct Convolution {
+    pub(crate) zrows: Vec<u16>,
+    pub(crate) len_b: usize,
+    pub(crate) out_len: usize,
     /// Most terms summed into one output coefficient.
     max_terms: usize,
 }
@@ -196,29 +263,31 @@ fn multinomials(m: usize, d: u32) -> Vec<f64> {
 /// shared across threads.
 #[derive(Clone, Debug)]
 pub struct DetKernel {
-    n: usize,
-    degree: u32,
-    rational: bool,
+    pub(crate) n: usize,
+    pub(crate) degree: u32,
+    pub(crate) rational: bool,
     /// Size of the determinant: `n` (polynomial) or `n + 1` (rational).
-    size: usize,
+    pub(crate) size: usize,
     /// Canonical index positions: for each multi-index of degree `d − 1`, the ranks of `I + e_k` in
     /// degree `d`, `k = 0..m`.
-    shift: Vec<[u16; 4]>,
+    pub(crate) shift: Vec<[u16; 4]>,
     /// Multinomials of degree `d − 1` and `d`.
     mult_entry: Vec<f64>,
     mult_first: Vec<f64>,
     /// Laplace levels: `conv[j]` multiplies column `j` by a minor of columns `j + 1..`.
-    conv: Vec<Convolution>,
+    pub(crate) conv: Vec<Convolution>,
     /// Degree of the determinant polynomial.
-    det_degree: u32,
+    pub(crate) det_degree: u32,
     mult_det: Vec<f64>,
     /// `γ_k` for the longest rounding path, with a safety factor.
     gamma: f64,
     /// Rank of `D·e_i` in the determinant's canonical order.
-    vertex_rank: [usize; 4],
+    pub(crate) vertex_rank: [usize; 4],
     /// For each edge `(a, b)`, `a < b`: the lines of coefficients along the edge, each listed by
     /// increasing exponent of `b`.
     lines: Vec<EdgeLines>,
+    /// Integer tables of the exact path, built on first use.
+    exact: std::sync::OnceLock<crate::exact::ExactTables>,
 }
 
 impl DetKernel {
@@ -313,7 +382,24 @@ impl DetKernel {
             gamma,
             vertex_rank,
             lines,
+            exact: std::sync::OnceLock::new(),
         }
+    }
+
+    /// The integer tables of the exact path (built once per kernel).
+    pub(crate) fn exact_tables(&self) -> &crate::exact::ExactTables {
+        self.exact
+            .get_or_init(|| crate::exact::ExactTables::new(self))
+    }
+
+    /// The lines of coefficients along edge `(a, b)`, `a < b`.
+    pub(crate) fn edge_lines(&self, a: usize, b: usize) -> &[Vec<u16>] {
+        &self
+            .lines
+            .iter()
+            .find(|(e, _)| *e == (a, b))
+            .expect("every edge has lines")
+            .1
     }
 
     /// Degree of the determinant polynomial: `n(d − 1)` or `(n + 1)d − n`.
@@ -443,15 +529,68 @@ impl DetKernel {
         BoundedCoefficients { values, errors }
     }
 
-    /// Decides the sign of the Jacobian polynomial of `net` on the closed simplex, subdividing up to
-    /// `max_depth` bisections along any path.
-    pub fn certify(&self, net: &DenseNet, max_depth: u32) -> Decision {
-        let coefficients = self.det_coefficients(net);
-        self.decide(coefficients, max_depth)
+    /// Decides the sign of the certificate polynomial of `net` on the closed simplex: the
+    /// floating-point certificate with at most `budget.pieces` pieces, then, if that did not
+    /// decide, the exact path of [`crate::exact`]. Every witness is proven exactly.
+    pub fn certify(&self, net: &DenseNet, budget: Budget) -> Certificate {
+        let mut bounds = (f64::NEG_INFINITY, f64::INFINITY, 0u32, 0usize);
+        if let Some(scaled) = normalized(net) {
+            let coefficients = self.det_coefficients(&scaled);
+            match self.decide_piece(coefficients, unit_corners(self.n + 1), 0, budget.pieces) {
+                Decision::Positive {
+                    depth,
+                    pieces,
+                    lower_bound,
+                } => {
+                    return Certificate::Positive {
+                        exact: false,
+                        depth,
+                        pieces,
+                        lower_bound: Some(lower_bound),
+                    }
+                }
+                Decision::NonPositive { point, .. } => {
+                    if let Some(w) = crate::exact::witness_at(net, &point) {
+                        return Certificate::NonPositive(w);
+                    }
+                }
+                Decision::Undetermined {
+                    depth,
+                    pieces,
+                    lower_bound,
+                    upper_bound,
+                } => bounds = (lower_bound, upper_bound, depth, pieces),
+            }
+        }
+        match crate::exact::decide(self, net, budget.exact_pieces) {
+            crate::exact::ExactDecision::Positive { depth, pieces } => Certificate::Positive {
+                exact: true,
+                depth,
+                pieces,
+                lower_bound: None,
+            },
+            crate::exact::ExactDecision::NonPositive(w) => Certificate::NonPositive(w),
+            crate::exact::ExactDecision::Undetermined { depth, pieces } => {
+                Certificate::Undetermined {
+                    depth: depth.max(bounds.2),
+                    pieces: pieces + bounds.3,
+                    lower_bound: bounds.0,
+                    upper_bound: bounds.1,
+                }
+            }
+        }
     }
 
-    /// The sign decision for given coefficients (the second half of [`DetKernel::certify`]).
-    pub fn decide(&self, coefficients: BoundedCoefficients, max_depth: u32) -> Decision {
+    /// The floating-point sign decision on one piece with corners `corners` (barycentric, at
+    /// subdivision depth `depth`), using at most `budget` pieces. Sound for any input: a value or
+    /// bound that is not finite leaves the piece undecided, never certified.
+    pub fn decide_piece(
+        &self,
+        coefficients: BoundedCoefficients,
+        corners: [[f64; 4]; 4],
+        depth: u32,
+        budget: usize,
+    ) -> Decision {
         let m = self.n + 1;
         struct Piece {
             values: Vec<f64>,
@@ -459,33 +598,39 @@ impl DetKernel {
             corners: [[f64; 4]; 4],
             depth: u32,
         }
-        let mut corners = [[0.0; 4]; 4];
-        for (i, c) in corners.iter_mut().enumerate().take(m) {
-            c[i] = 1.0;
-        }
         let mut stack = vec![Piece {
             values: coefficients.values,
             errors: coefficients.errors,
             corners,
-            depth: 0,
+            depth,
         }];
         let mut pieces = 0usize;
-        let mut deepest = 0u32;
+        let mut deepest = depth;
         let mut lower = f64::INFINITY;
-        let mut undecided: Option<(f64, f64)> = None;
+        let mut undecided: Option<f64> = None;
         let mut upper = f64::INFINITY;
         while let Some(piece) = stack.pop() {
             pieces += 1;
             deepest = deepest.max(piece.depth);
+            // NaN and infinities (overflow) decide nothing: the piece goes to the exact path.
+            let finite = piece
+                .values
+                .iter()
+                .chain(&piece.errors)
+                .all(|x| x.is_finite());
+            if !finite {
+                undecided = Some(f64::NEG_INFINITY);
+                break;
+            }
             for i in 0..m {
-                let r = self.vertex_rank[i];
-                let value = piece.values[r];
+                let value = piece.values[self.vertex_rank[i]];
                 upper = upper.min(value);
-                if value <= 0.0 || value.is_nan() {
+                if value <= 0.0 {
+                    // A candidate only: the caller proves it exactly or goes on exactly.
                     return Decision::NonPositive {
                         point: piece.corners[i][..m].to_vec(),
                         value,
-                        error: piece.errors[r],
+                        error: piece.errors[self.vertex_rank[i]],
                     };
                 }
             }
@@ -499,8 +644,8 @@ impl DetKernel {
                 lower = lower.min(low);
                 continue;
             }
-            if piece.depth >= max_depth || pieces + stack.len() >= MAX_PIECES {
-                let (l, _) = undecided.get_or_insert((low, upper));
+            if piece.depth >= MAX_FLOAT_DEPTH || pieces + stack.len() >= budget {
+                let l = undecided.get_or_insert(low);
                 *l = l.min(low);
                 continue;
             }
@@ -535,7 +680,7 @@ impl DetKernel {
                 pieces,
                 lower_bound: lower,
             },
-            Some((l, _)) => Decision::Undetermined {
+            Some(l) => Decision::Undetermined {
                 depth: deepest,
                 pieces,
                 lower_bound: l,
@@ -555,12 +700,7 @@ impl DetKernel {
         b: usize,
     ) -> ((Vec<f64>, Vec<f64>), (Vec<f64>, Vec<f64>)) {
         let (a, b, swap) = if a < b { (a, b, false) } else { (b, a, true) };
-        let lines = &self
-            .lines
-            .iter()
-            .find(|(e, _)| *e == (a, b))
-            .expect("every edge has lines")
-            .1;
+        let lines = self.edge_lines(a, b);
         let (mut lv, mut le) = (vec![0.0; values.len()], vec![0.0; values.len()]);
         let (mut rv, mut re) = (vec![0.0; values.len()], vec![0.0; values.len()]);
         let mut tv = Vec::new();
@@ -603,8 +743,48 @@ impl DetKernel {
     }
 }
 
+/// The corners of the whole simplex: the unit vectors of `R^m`.
+pub(crate) fn unit_corners(m: usize) -> [[f64; 4]; 4] {
+    let mut corners = [[0.0; 4]; 4];
+    for (i, c) in corners.iter_mut().enumerate().take(m) {
+        c[i] = 1.0;
+    }
+    corners
+}
+
+/// The net with its weights scaled by one power of two so that the largest lies in `[1, 2)`: the
+/// same map (a common factor of the weights cancels in `P/Q`) and, since the scaling is exact, the
+/// same exact certificate polynomial up to the positive factor `2^{-k(n+1)}` — but with no overflow
+/// in the floating-point kernel. `None` when a weight is not finite or would lose bits (weights
+/// spread over more than the exponent range): such nets go to the exact path.
+pub fn normalized(net: &DenseNet) -> Option<std::borrow::Cow<'_, DenseNet>> {
+    if !net.is_rational() {
+        return Some(std::borrow::Cow::Borrowed(net));
+    }
+    let max = net.weights.iter().copied().fold(0.0f64, f64::max);
+    if !(max.is_finite() && max > 0.0) {
+        return None;
+    }
+    // 2^-k with k = ⌊log₂ max⌋, formed from bits; outside the normal range the net goes exact.
+    let k = max.log2().floor() as i32;
+    if !(-1022..=1022).contains(&k) {
+        return None;
+    }
+    let factor = f64::from_bits(((1023 - k) as u64) << 52);
+    let inverse = f64::from_bits(((1023 + k) as u64) << 52);
+    let mut scaled = net.clone();
+    for w in &mut scaled.weights {
+        let s = *w * factor;
+        if !(s.is_finite() && s > 0.0 && s * inverse == *w) {
+            return None;
+        }
+        *w = s;
+    }
+    Some(std::borrow::Cow::Owned(scaled))
+}
+
 /// The pair of corners farthest apart (in barycentric coordinates), ties to the first pair.
-fn longest_edge(corners: &[[f64; 4]; 4], m: usize) -> (usize, usize) {
+pub(crate) fn longest_edge(corners: &[[f64; 4]; 4], m: usize) -> (usize, usize) {
     let mut best = (0, 1);
     let mut len = -1.0;
     for a in 0..m {
@@ -660,7 +840,7 @@ mod tests {
                             "n={n} d={d} rational={rational}: {v} ± {e}"
                         );
                     }
-                    assert!(kernel.certify(&net, 0).is_positive());
+                    assert!(kernel.certify(&net, Budget::new(1)).is_positive());
                 }
             }
         }
@@ -671,23 +851,19 @@ mod tests {
         let kernel = DetKernel::new(1, 4, false);
         // Ordered (Prop. 5.4): certified.
         assert!(kernel
-            .certify(&one_d([0.2, 0.5, 0.8]), DEFAULT_DEPTH)
+            .certify(&one_d([0.2, 0.5, 0.8]), Budget::default())
             .is_positive());
         // b31 and b13 exchanged beyond the midpoint: det < 0 at t = 1/2.
-        match kernel.certify(&one_d([0.9, 0.5, 0.1]), DEFAULT_DEPTH) {
-            Decision::NonPositive {
-                point,
-                value,
-                error,
-            } => {
-                assert!(value + error <= 0.0, "{value} ± {error}");
-                assert_eq!(point.len(), 2);
+        match kernel.certify(&one_d([0.9, 0.5, 0.1]), Budget::default()) {
+            Certificate::NonPositive(w) => {
+                assert!(w.polynomial_value <= 0.0 && w.det <= 0.0, "{w:?}");
+                assert_eq!(w.point.len(), 2);
             }
             other => panic!("expected a witness, got {other:?}"),
         }
         // Exactly exchanged (b31 = 3/4 ↔ b13 = 1/4): det = 0 at t = 1/2, never certified.
         assert!(!kernel
-            .certify(&one_d([0.75, 0.5, 0.25]), DEFAULT_DEPTH)
+            .certify(&one_d([0.75, 0.5, 0.25]), Budget::default())
             .is_positive());
     }
 
@@ -712,9 +888,12 @@ mod tests {
         let net = one_d([0.4, 0.38, 0.62]);
         let c = kernel.det_coefficients(&net);
         assert!(c.values.iter().any(|&v| v < 0.0), "{:?}", c.values);
-        match kernel.certify(&net, DEFAULT_DEPTH) {
-            Decision::Positive {
-                depth, lower_bound, ..
+        match kernel.certify(&net, Budget::default()) {
+            Certificate::Positive {
+                exact: false,
+                depth,
+                lower_bound: Some(lower_bound),
+                ..
             } => assert!(depth > 0 && lower_bound > 0.0),
             other => panic!("{other:?}"),
         }

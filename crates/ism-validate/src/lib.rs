@@ -45,6 +45,7 @@
 #![deny(missing_docs)]
 
 pub mod certify;
+pub mod exact;
 pub mod invariance;
 pub mod net;
 pub mod positivity;
@@ -58,7 +59,7 @@ use std::time::Instant;
 
 use ism_format::{io, Model, Rule, Severity};
 
-pub use certify::{Decision, DenseNet, DetKernel, DEFAULT_DEPTH};
+pub use certify::{Budget, Certificate, Decision, DenseNet, DetKernel, DEFAULT_MAX_PIECES};
 pub use report::{Message, Report, StageReport, Verdict, Witness, REPORT_VERSION};
 
 /// Default cap on the messages a report lists (all are counted).
@@ -71,8 +72,9 @@ pub struct Options {
     pub max_issues: usize,
     /// Worker threads; 0 uses rayon's global pool (all cores).
     pub threads: usize,
-    /// Subdivision depth limit of the positivity certificate.
-    pub depth: u32,
+    /// Floating-point pieces per element of the positivity certificate (the exact path gets a
+    /// sixteenth as many; see [`Budget`]).
+    pub max_pieces: usize,
     /// Run the quality layer.
     pub quality: bool,
     /// Use theorems where they apply (off: certify every touched simplex numerically).
@@ -84,7 +86,7 @@ impl Default for Options {
         Options {
             max_issues: DEFAULT_MAX_ISSUES,
             threads: 0,
-            depth: DEFAULT_DEPTH,
+            max_pieces: DEFAULT_MAX_PIECES,
             quality: false,
             theorems: true,
         }
@@ -215,7 +217,7 @@ fn run(model: &Model, options: &Options) -> Report {
     // Layer 3.
     let t = Instant::now();
     let popts = positivity::PositivityOptions {
-        depth: options.depth,
+        budget: certify::Budget::new(options.max_pieces),
         theorems: options.theorems,
     };
     let mut positivity_messages = Vec::new();
@@ -282,7 +284,7 @@ fn run(model: &Model, options: &Options) -> Report {
         verdict,
         issues,
         stages,
-        depth_limit: options.depth,
+        piece_budget: options.max_pieces,
         timing,
     }
 }

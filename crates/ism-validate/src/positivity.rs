@@ -6,7 +6,7 @@ use std::collections::BTreeMap;
 use ism_format::{multi_index, Location, Model, Rule, StageKind};
 use rayon::prelude::*;
 
-use crate::certify::{Decision, DenseNet, DetKernel};
+use crate::certify::{Budget, Certificate, DetKernel};
 use crate::net::{SimplexRecords, StageIndex};
 use crate::report::{Bounds, Message, StageReport, Witness};
 use crate::theorem;
@@ -30,15 +30,15 @@ pub enum Outcome {
     },
     /// A point where `det ≤ 0`.
     Invalid(Witness),
-    /// Undecided within the depth.
+    /// Undecided within the piece budget.
     Undetermined(Bounds),
 }
 
 /// Settings of the positivity layer.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct PositivityOptions {
-    /// Subdivision depth.
-    pub depth: u32,
+    /// Work allowed per element.
+    pub budget: Budget,
     /// Use the theorems (turn off to force numeric certification, e.g. for benchmarks and tests).
     pub theorems: bool,
 }
@@ -157,7 +157,6 @@ pub fn check_stage(model: &Model, k: usize, options: PositivityOptions) -> Stage
     } else {
         None
     };
-    let geom_lookup = ism_geom::StageLookup::new(stage, k);
     let decide = |s: usize| -> Outcome {
         // A stage-wide theorem covers every simplex, touched or not: no lookup needed.
         if let StageClass::Theorem(name) = class {
@@ -202,13 +201,11 @@ pub fn check_stage(model: &Model, k: usize, options: PositivityOptions) -> Stage
             return Outcome::Undetermined(Bounds {
                 depth: 0,
                 pieces: 0,
-                lower: f64::NEG_INFINITY,
-                upper: f64::INFINITY,
+                lower: None,
+                upper: None,
             });
         };
-        outcome_of(kernel.certify(&net, options.depth), &net, || {
-            witness_det(model, stage, &geom_lookup, s)
-        })
+        outcome_of(kernel.certify(&net, options.budget))
     };
     let tally = (0..model.num_simplices())
         .into_par_iter()
@@ -231,7 +228,7 @@ pub fn check_stage(model: &Model, k: usize, options: PositivityOptions) -> Stage
             match outcome {
                 Outcome::Invalid(w) => {
                     let text = format!(
-                        "det DX = {:.6e} ≤ 0 at barycentric point {:?} of simplex {s} (stage {k}); the stage folds there",
+                        "det DX = {:.6e} ≤ 0 (exact) at barycentric point {:?} of simplex {s} (stage {k}); the stage folds there",
                         w.det, w.point
                     );
                     Message { witness: Some(w), ..Message::new(Rule::JacobianPositive, loc, text) }
@@ -241,8 +238,13 @@ pub fn check_stage(model: &Model, k: usize, options: PositivityOptions) -> Stage
                         format!("degree {} is beyond this validator's numeric certificate; positivity not decided", stage.degree)
                     } else {
                         format!(
-                            "positivity of det DX not decided at depth {} ({} pieces): lower bound {:.3e}, smallest value {:.3e}",
-                            b.depth, b.pieces, b.lower, b.upper
+                            "positivity of det DX not decided within the piece budget ({} pieces, depth {}){}",
+                            b.pieces,
+                            b.depth,
+                            match (b.lower, b.upper) {
+                                (Some(l), Some(u)) => format!(": lower bound {l:.3e}, smallest value {u:.3e}"),
+                                _ => String::new(),
+                            }
                         )
                     };
                     Message { bounds: Some(b), ..Message::new(Rule::Undetermined, loc, text) }
@@ -342,36 +344,29 @@ fn simplex_theorem(
     }
 }
 
-/// Turns a sign decision into an outcome; `det` evaluates the stored map's Jacobian independently
-/// at a witness.
-pub fn outcome_of(
-    decision: Decision,
-    net: &DenseNet,
-    det: impl FnOnce() -> Box<dyn Fn(&[f64]) -> f64>,
-) -> Outcome {
-    let _ = net;
-    match decision {
-        Decision::Positive {
-            depth, lower_bound, ..
-        } => Outcome::Valid {
-            method: theorem::SUBDIVISION,
+/// Turns an element's certificate into an outcome.
+pub fn outcome_of(certificate: Certificate) -> Outcome {
+    match certificate {
+        Certificate::Positive {
+            exact,
             depth,
-            lower_bound: Some(lower_bound),
+            lower_bound,
+            ..
+        } => Outcome::Valid {
+            method: if exact {
+                theorem::EXACT_SUBDIVISION
+            } else {
+                theorem::SUBDIVISION
+            },
+            depth,
+            lower_bound,
         },
-        Decision::NonPositive {
-            point,
-            value,
-            error,
-        } => {
-            let det = det()(&point);
-            Outcome::Invalid(Witness {
-                point,
-                det,
-                polynomial_value: value,
-                error_bound: error,
-            })
-        }
-        Decision::Undetermined {
+        Certificate::NonPositive(w) => Outcome::Invalid(Witness {
+            point: w.point,
+            det: w.det,
+            polynomial_value: w.polynomial_value,
+        }),
+        Certificate::Undetermined {
             depth,
             pieces,
             lower_bound,
@@ -379,32 +374,8 @@ pub fn outcome_of(
         } => Outcome::Undetermined(Bounds {
             depth,
             pieces,
-            lower: lower_bound,
-            upper: upper_bound,
+            lower: lower_bound.is_finite().then_some(lower_bound),
+            upper: upper_bound.is_finite().then_some(upper_bound),
         }),
     }
-}
-
-/// Evaluates `det DX` at a barycentric point.
-pub type DetAt = Box<dyn Fn(&[f64]) -> f64>;
-
-/// `det DX` of the stored map of stage `k` at a barycentric point of simplex `s`, evaluated by
-/// `ism-geom` (an evaluation independent of the certificate's coefficients).
-fn witness_det(
-    model: &Model,
-    stage: &ism_format::Stage,
-    lookup: &ism_geom::StageLookup,
-    s: usize,
-) -> DetAt {
-    let local = ism_geom::LocalStage::new(stage, lookup, model.simplex(s));
-    let n = model.dim();
-    Box::new(move |point: &[f64]| match &local {
-        Ok(local) => {
-            let mut w = [0.0; 4];
-            w[..point.len()].copy_from_slice(point);
-            let (_, j) = local.jacobian_stored(&w);
-            ism_geom::linalg::det(n, &j)
-        }
-        Err(_) => f64::NAN,
-    })
 }

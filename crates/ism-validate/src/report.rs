@@ -10,7 +10,7 @@ use ism_format::{Location, Rule, Severity};
 use serde::{Deserialize, Serialize};
 
 /// Version of the report format this crate writes.
-pub const REPORT_VERSION: &str = "1.0";
+pub const REPORT_VERSION: &str = "2.0";
 
 /// The verdict of a whole file.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize, PartialOrd, Ord)]
@@ -35,20 +35,20 @@ impl Verdict {
     }
 }
 
-/// A point where `det DX ≤ 0`.
+/// A point where `det DX ≤ 0`, proven by exact rational evaluation of the stored map's Jacobian at
+/// exactly this point (spec/validation.md §4.4).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(rename_all = "camelCase")]
 pub struct Witness {
-    /// Barycentric coordinates in the top simplex, in its stored vertex order.
+    /// Barycentric coordinates in the top simplex, in its stored vertex order; the point is
+    /// `(w₁ … wₙ)` with `w₀ = 1 − (w₁ + … + wₙ)` exactly.
     pub point: Vec<f64>,
-    /// `det DX` of the stored map there, evaluated directly (reduced barycentric coordinates).
+    /// `det DX` of the stored map there (reduced barycentric coordinates): the exact value rounded
+    /// to the nearest double, never above 0.
     pub det: f64,
-    /// The certificate polynomial's value there (equal to `det` for polynomial stages; `N` for
-    /// rational ones) and its rounding-error bound.
+    /// The certificate polynomial there (`det DX` for polynomial stages; `N = Q^{n+1} det DX` for
+    /// rational ones), rounded the same way.
     pub polynomial_value: f64,
-    /// Rounding-error bound of `polynomial_value`; `polynomial_value + error ≤ 0` makes the sign
-    /// certain.
-    pub error_bound: f64,
 }
 
 /// Bounds left when subdivision stopped (ISM-302).
@@ -59,10 +59,13 @@ pub struct Bounds {
     pub depth: u32,
     /// Pieces examined.
     pub pieces: usize,
-    /// Certified lower bound of the certificate polynomial on the simplex.
-    pub lower: f64,
-    /// Smallest value found (an upper bound of its minimum).
-    pub upper: f64,
+    /// Certified lower bound of the floating-point certificate polynomial over the pieces left
+    /// undecided; absent when the floating-point path could not run (numbers beyond its range).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub lower: Option<f64>,
+    /// Smallest value found at a piece corner (an upper bound of the minimum); absent likewise.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub upper: Option<f64>,
 }
 
 /// One diagnostic of the report.
@@ -235,8 +238,8 @@ pub struct Report {
     pub issues: Issues,
     /// Layer 3 per stage.
     pub stages: Vec<StageReport>,
-    /// Subdivision depth limit used.
-    pub depth_limit: u32,
+    /// Floating-point pieces allowed per element (the exact path gets a sixteenth as many).
+    pub piece_budget: usize,
     /// Time per layer.
     pub timing: Timing,
 }

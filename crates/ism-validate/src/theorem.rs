@@ -21,8 +21,11 @@ pub const THM_6_4: &str = "000 Thm. 6.4: rational, fixed control points";
 pub const THM_6_5: &str = "000 Thm. 6.5: adjusted quadratic rational";
 /// 2D rational stage with a compatible control net: valid for every choice of positive weights.
 pub const SOTTILE_ZHU: &str = "004 Thm. III.4: Sottile-Zhu compatible net";
-/// Bernstein coefficients of det DX, positive after subdivision.
+/// Bernstein coefficients of det DX, positive after subdivision (floating point with rigorous
+/// rounding bounds).
 pub const SUBDIVISION: &str = "Bernstein coefficients with subdivision";
+/// Bernstein coefficients of det DX, positive after subdivision in exact integer arithmetic.
+pub const EXACT_SUBDIVISION: &str = "exact Bernstein coefficients with subdivision";
 
 /// Whether the 2D control net is *compatible* (`004` Def. III.1/III.3): for every triple of lattice
 /// points `I` (as `(I₁, I₂)`) that is affinely independent and whose control points (as `(b₁, b₂)`)
