@@ -125,7 +125,7 @@ fn vectors() -> Vec<Vector> {
         },
         Vector {
             name: "fig2-quartic-fold-2d",
-            description: "000 Fig. 2 on the shared diagonal: quartic edge points b31 and b13 exchanged past the midpoint; \
+            description: "Mello & Velho 2009 Fig. 2 on the shared diagonal: quartic edge points b31 and b13 exchanged past the midpoint; \
                           both triangles fold.",
             model: square().stage(StageBuilder::bezier(4).face(&[0, 2], &fig2, &[]).build()).build_unchecked(),
             verdict: "invalid",
@@ -134,7 +134,7 @@ fn vectors() -> Vec<Vector> {
         },
         Vector {
             name: "fig2-exact-swap",
-            description: "000 Fig. 2 exactly: b31 = (1/4, 3/4) and b13 = (3/4, 1/4); det DX = 0 at the edge midpoint.",
+            description: "Mello & Velho 2009 Fig. 2 exactly: b31 = (1/4, 3/4) and b13 = (3/4, 1/4); det DX = 0 at the edge midpoint.",
             model: tet().stage(StageBuilder::bezier(4).face(&[0, 1], &[0.25, 0.75, 0.5, 0.5, 0.75, 0.25], &[]).build()).build_unchecked(),
             verdict: "invalid",
             issues: vec![("ISM-301", element(0, 0, 4))],
@@ -142,7 +142,7 @@ fn vectors() -> Vec<Vector> {
         },
         Vector {
             name: "quartic-fold-3d",
-            description: "A tetrahedron whose quartic edge (0, 1) folds (000 Fig. 2 inside a 3D model).",
+            description: "A tetrahedron whose quartic edge (0, 1) folds (Mello & Velho 2009 Fig. 2 inside a 3D model).",
             model: tet().stage(StageBuilder::bezier(4).face(&[0, 1], &fig2, &[]).build()).build_unchecked(),
             verdict: "invalid",
             issues: vec![("ISM-301", element(0, 0, 4))],

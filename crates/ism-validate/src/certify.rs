@@ -7,7 +7,7 @@
 //! - polynomial stage of degree `d`: `det ∂(X₁..Xₙ)/∂(w₁..wₙ)` (reduced barycentric coordinates,
 //!   `w₀ = 1 − Σ`), degree `n(d − 1)`; the identity has `det = 1`;
 //! - rational stage: `N = det[V, ∂₁V, …, ∂ₙV]` with `V = (Q, P₁, …, Pₙ)`, degree `(n + 1)d − n`;
-//!   `det DX = N / Q^{n+1}` with `Q > 0`, so `N` has the sign of `det DX` (ism-math §4).
+//!   `det DX = N / Q^{n+1}` with `Q > 0`, so `N` has the sign of `det DX` (spec/mathematics.md §4).
 //!
 //! # Why this is not in `ism-geom`
 //! The kernel carries, for every coefficient, the same computation on absolute values; with the
@@ -805,7 +805,7 @@ pub(crate) fn longest_edge(corners: &[[f64; 4]; 4], m: usize) -> (usize, usize) 
 mod tests {
     use super::*;
 
-    /// The degree-4 1-D net of `000` Fig. 2 with the interior points at positions `t` (second
+    /// The degree-4 1-D net of Mello & Velho 2009 Fig. 2 with the interior points at positions `t` (second
     /// coordinate) in canonical order `31, 22, 13`.
     fn one_d(t: [f64; 3]) -> DenseNet {
         let mut points = vec![[1.0, 0.0, 0.0, 0.0]];

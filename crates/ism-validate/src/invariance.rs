@@ -1,7 +1,7 @@
 //! Layer 2: invariance (ISM-201..204, spec/validation.md §3).
 //!
 //! Every stored control point must lie in the open face that owns it — positive coordinates that
-//! sum to 1 — which makes the stage K-invariant (`000` Prop. 5.1); weights must be positive and
+//! sum to 1 — which makes the stage K-invariant (Mello & Velho 2009 Prop. 5.1); weights must be positive and
 //! monotonic coefficients strictly increasing from 0.
 
 use ism_format::{Location, Model, Rule, StageKind};

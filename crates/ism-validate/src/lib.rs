@@ -29,12 +29,12 @@
 //!         .stage(stage)
 //!         .build_unchecked()
 //! };
-//! // A quadratic stage bending the diagonal: certified by 000 Prop. 5.6.
+//! // A quadratic stage bending the diagonal: certified by Mello & Velho 2009 Prop. 5.6.
 //! let report = validate(&square(StageBuilder::bezier(2).face(&[0, 2], &[0.6, 0.4], &[]).build()), &Options::default());
 //! assert_eq!(report.verdict, Verdict::Valid);
-//! assert_eq!(report.stages[0].certificates["000 Prop. 5.6: adjusted quadratic"], 2);
+//! assert_eq!(report.stages[0].certificates["Mello & Velho 2009 Prop. 5.6: adjusted quadratic"], 2);
 //!
-//! // A quartic stage whose edge points cross over (000 Fig. 2): det DX < 0 somewhere, with a witness.
+//! // A quartic stage whose edge points cross over (Mello & Velho 2009 Fig. 2): det DX < 0 somewhere, with a witness.
 //! let folded = StageBuilder::bezier(4).face(&[0, 2], &[0.1, 0.9, 0.5, 0.5, 0.9, 0.1], &[]).build();
 //! let report = validate(&square(folded), &Options::default());
 //! assert_eq!(report.verdict, Verdict::Invalid);

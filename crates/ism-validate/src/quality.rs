@@ -2,9 +2,9 @@
 //! file invalid.
 //!
 //! - ISM-401: the angle between the normals of `O` computed in the two simplices of an interior
-//!   facet, at points of `O` on the facet (`000` §8: the normal of a curved isocomplex jumps unless
+//!   facet, at points of `O` on the facet (Mello & Velho 2009 §8: the normal of a curved isocomplex jumps unless
 //!   the stages are fitted to avoid it).
-//! - ISM-402: the C¹ residual of a rational stage at an interior facet, `000` §8 eq. (6), with
+//! - ISM-402: the C¹ residual of a rational stage at an interior facet, Mello & Velho 2009 §8 eq. (6), with
 //!   `f̂(b_I) = Σ f(vᵢ) b_Iⁱ` for general control points.
 //! - ISM-403: the range of `det DX` of each stage, sampled.
 

@@ -1,33 +1,33 @@
 //! Theorems that certify a stage without computation (spec/validation.md §4.2), and the
-//! Sottile–Zhu compatibility test for 2D rational stages (`004` Thm. III.4).
+//! Sottile–Zhu compatibility test for 2D rational stages (Sottile & Zhu Thm. III.4).
 
 use ism_format::multi_index;
 
 use crate::certify::DenseNet;
 
 /// Every stage of the implicit direction whose coefficients strictly increase from 0: `g_v' > 0`.
-pub const MONOTONIC: &str = "000 §4: monotonic, strictly increasing coefficients";
+pub const MONOTONIC: &str = "Mello & Velho 2009 §4: monotonic, strictly increasing coefficients";
 /// No moved control point touches the simplex.
 pub const IDENTITY: &str = "identity: no moved control point";
 /// Adjusted quadratic Bézier stage (also stratum G₁).
-pub const PROP_5_6: &str = "000 Prop. 5.6: adjusted quadratic";
+pub const PROP_5_6: &str = "Mello & Velho 2009 Prop. 5.6: adjusted quadratic";
 /// One free control point, at the centre index of a face.
-pub const PROP_5_7: &str = "000 Prop. 5.7: solitary control point";
+pub const PROP_5_7: &str = "Mello & Velho 2009 Prop. 5.7: solitary control point";
 /// Stratum G₂ of the stratified scheme in 3D.
-pub const PROP_5_9: &str = "000 Prop. 5.9: stratum G2 in 3D";
+pub const PROP_5_9: &str = "Mello & Velho 2009 Prop. 5.9: stratum G2 in 3D";
 /// Rational stage with every control point fixed.
-pub const THM_6_4: &str = "000 Thm. 6.4: rational, fixed control points";
+pub const THM_6_4: &str = "Mello & Velho 2009 Thm. 6.4: rational, fixed control points";
 /// Adjusted quadratic rational stage.
-pub const THM_6_5: &str = "000 Thm. 6.5: adjusted quadratic rational";
+pub const THM_6_5: &str = "Mello & Velho 2009 Thm. 6.5: adjusted quadratic rational";
 /// 2D rational stage with a compatible control net: valid for every choice of positive weights.
-pub const SOTTILE_ZHU: &str = "004 Thm. III.4: Sottile-Zhu compatible net";
+pub const SOTTILE_ZHU: &str = "Sottile & Zhu Thm. III.4: compatible net";
 /// Bernstein coefficients of det DX, positive after subdivision (floating point with rigorous
 /// rounding bounds).
 pub const SUBDIVISION: &str = "Bernstein coefficients with subdivision";
 /// Bernstein coefficients of det DX, positive after subdivision in exact integer arithmetic.
 pub const EXACT_SUBDIVISION: &str = "exact Bernstein coefficients with subdivision";
 
-/// Whether the 2D control net is *compatible* (`004` Def. III.1/III.3): for every triple of lattice
+/// Whether the 2D control net is *compatible* (Sottile & Zhu Def. III.1/III.3): for every triple of lattice
 /// points `I` (as `(I₁, I₂)`) that is affinely independent and whose control points (as `(b₁, b₂)`)
 /// are too, the two triangles have the same orientation; and one such triple exists. Distinct vertex
 /// images hold for every adjusted net. Orientation of the control points uses Shewchuk's exact

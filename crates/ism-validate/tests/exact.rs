@@ -511,7 +511,7 @@ fn subnormal_coordinates_are_sound() {
 
 #[test]
 fn an_exact_zero_is_rejected_with_the_zero_as_witness() {
-    // 000 Fig. 2 exactly exchanged (b31 = 3/4 ↔ b13 = 1/4): det = 0 at t = 1/2, a dyadic point.
+    // Mello & Velho 2009 Fig. 2 exactly exchanged (b31 = 3/4 ↔ b13 = 1/4): det = 0 at t = 1/2, a dyadic point.
     let mut points = vec![[1.0, 0.0, 0.0, 0.0]];
     points.extend([0.75, 0.5, 0.25].iter().map(|&x| [1.0 - x, x, 0.0, 0.0]));
     points.push([0.0, 1.0, 0.0, 0.0]);

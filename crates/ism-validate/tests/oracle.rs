@@ -238,7 +238,7 @@ fn dense_nets_match_geom() {
 }
 
 /// The certificate polynomial evaluated by geom's Bernstein code equals geom's det (polynomial
-/// stages) or det · Q^{n+1} (rational stages) — the two routes of ism-math §4.
+/// stages) or det · Q^{n+1} (rational stages) — the two routes of spec/mathematics.md §4.
 #[test]
 fn det_polynomial_matches_pointwise_jacobian() {
     let mut rng = ChaCha8Rng::seed_from_u64(9);
@@ -277,7 +277,7 @@ fn det_polynomial_matches_pointwise_jacobian() {
     }
 }
 
-/// `000` Fig. 2 inside an edge of a 2D model: rejected with a witness on that edge.
+/// Mello & Velho 2009 Fig. 2 inside an edge of a 2D model: rejected with a witness on that edge.
 #[test]
 fn fig2_quartic_edge_map_is_rejected() {
     let model = ism_format::builder::ModelBuilder::new(2)
