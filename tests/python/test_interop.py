@@ -74,8 +74,7 @@ def split_container(data: bytes) -> tuple[dict, bytes]:
 def container_rule(data: bytes) -> tuple[str, int] | None:
     """The first container-level failure of §7.1 steps 1-9 as (rule, offset), or None."""
     if data[:8] != MAGIC:
-        text = data[3:] if data.startswith(b"\xef\xbb\xbf") else data
-        stripped = text.lstrip(b" \t\n\x0c\r")
+        stripped = data.lstrip(b" \t\n\r")  # RFC 8259 whitespace; no byte-order mark (§7.5)
         return None if stripped[:1] == b"{" else ("ISM-001", 0)
     if len(data) < HEADER_LEN:
         return ("ISM-004", len(data))

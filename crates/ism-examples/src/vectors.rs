@@ -52,8 +52,9 @@ fn with_stage(stage: Stage) -> Model {
     m
 }
 
+/// The model's bytes as they are: vectors are files readers refuse, which writers do not write.
 fn encode(model: &Model, encoding: Encoding) -> Vec<u8> {
-    io::to_vec(
+    io::to_vec_unchecked(
         model,
         encoding,
         WriteOptions {
@@ -186,7 +187,7 @@ pub fn reader_vectors() -> Vec<ReaderVector> {
         "huge-sequence-length",
         B,
         huge_binary_length(),
-        Rule::LimitExceeded,
+        Rule::Malformed,
     );
     push(
         "huge-array-length",
@@ -437,6 +438,340 @@ pub fn reader_vectors() -> Vec<ReaderVector> {
         encode(&with_stage(s), J),
         Rule::CoefficientCount,
     );
+    v.extend(strictness_vectors());
+    v
+}
+
+/// The compact JSON text of `model` with `members` (JSON text starting with `,`) inserted before
+/// the closing brace.
+fn json_with(model: &Model, members: &str) -> Vec<u8> {
+    let mut text = String::from_utf8(
+        io::to_vec_unchecked(model, Encoding::Json, WriteOptions::default()).expect("encodes"),
+    )
+    .expect("UTF-8");
+    assert_eq!(text.pop(), Some('}'));
+    text.push_str(members);
+    text.push('}');
+    text.into_bytes()
+}
+
+/// A MessagePack file of `model` whose top-level map gets `entries` more entries, `bytes` appended.
+fn msgpack_with(model: &Model, entries: u8, bytes: &[u8]) -> Vec<u8> {
+    let mut out = encode(model, Encoding::MessagePack);
+    let map = out[HEADER_LEN];
+    assert!((0x80..0x90).contains(&map), "the model is a fixmap");
+    out[HEADER_LEN] = map + entries;
+    assert!(out[HEADER_LEN] < 0x90, "still a fixmap");
+    out.extend_from_slice(bytes);
+    reseal_payload(&mut out);
+    out
+}
+
+/// A binary file of `model` whose payload tail (the last `cut` bytes) is replaced by `tail`.
+fn binary_with_tail(model: &Model, cut: usize, tail: &[u8]) -> Vec<u8> {
+    let mut out = encode(model, Encoding::Binary);
+    out.truncate(out.len() - cut);
+    out.extend_from_slice(tail);
+    reseal_payload(&mut out);
+    out
+}
+
+/// The binary `string` (and `json`) encoding: u64 length, then the bytes.
+fn binary_string(text: &str) -> Vec<u8> {
+    let mut out = (text.len() as u64).to_le_bytes().to_vec();
+    out.extend_from_slice(text.as_bytes());
+    out
+}
+
+/// Nested arrays `[[…[0]…]]`, `levels` deep, as JSON text.
+fn nested_json(levels: usize) -> String {
+    format!("{}0{}", "[".repeat(levels), "]".repeat(levels))
+}
+
+/// One vector per decision of issue 18 (spec §7.8 and the rules it settles): each file breaks
+/// exactly one rule that the spec used to leave open.
+fn strictness_vectors() -> Vec<ReaderVector> {
+    use Encoding::{Binary as B, Json as J, MessagePack as M};
+    let mut v = Vec::new();
+    let mut push = |name, encoding, bytes, rule| {
+        v.push(ReaderVector {
+            name,
+            encoding,
+            bytes,
+            rule,
+        })
+    };
+    let tri = triangle();
+    // MessagePack: maps with str keys only, str not bin, the model is a map (spec §7.3).
+    push(
+        "msgpack-integer-key",
+        M,
+        msgpack_with(&tri, 1, &[0x01, 0x00]),
+        Rule::Malformed,
+    );
+    let mut array_model = encode(&tri, M);
+    array_model.truncate(HEADER_LEN);
+    array_model.extend_from_slice(&[0x92, 0xa3, b'1', b'.', b'0', 0x02]);
+    reseal_payload(&mut array_model);
+    push("msgpack-model-as-array", M, array_model, Rule::Malformed);
+    let mut bin = encode(&tri, M);
+    let key = b"\xa7version\xa3";
+    let at = bin
+        .windows(key.len())
+        .position(|w| w == key)
+        .expect("version key")
+        + key.len()
+        - 1;
+    bin.splice(at..at + 1, [0xc4, 0x03]);
+    reseal_payload(&mut bin);
+    push("msgpack-bin-string", M, bin, Rule::Malformed);
+    let mut map32 = encode(&tri, M);
+    map32.splice(HEADER_LEN..HEADER_LEN + 1, [0xdf, 0xff, 0xff, 0xff, 0xff]);
+    reseal_payload(&mut map32);
+    push("msgpack-map32-length", M, map32, Rule::Malformed);
+
+    // Nesting depth: at most MAX_DEPTH arrays and objects, the model being level 1 (spec §7.8).
+    let too_deep = ism_format::MAX_DEPTH; // extras at level 2 .. MAX_DEPTH + 1
+    push(
+        "json-extras-too-deep",
+        J,
+        json_with(&tri, &format!(",\"extras\":{}", nested_json(too_deep))),
+        Rule::Malformed,
+    );
+    let mut deep = b"\xa6extras".to_vec();
+    deep.extend(std::iter::repeat_n(0x91u8, too_deep));
+    deep.push(0xc0);
+    push(
+        "msgpack-extras-too-deep",
+        M,
+        msgpack_with(&tri, 1, &deep),
+        Rule::Malformed,
+    );
+    push(
+        "binary-extras-too-deep",
+        B,
+        binary_with_tail(&tri, 12, &binary_string(&nested_json(too_deep))),
+        Rule::Malformed,
+    );
+    let mut staged = tri.clone();
+    staged.stages.push(Stage::identity(StageKind::Bezier, 1));
+    push(
+        "binary-stage-extras-too-deep",
+        B,
+        {
+            // The stage's extras (4 + 8 bytes), then the model's three empty sequences and extras.
+            let mut tail = binary_string(&nested_json(too_deep - 2));
+            tail.extend_from_slice(&[0u8; 24]);
+            tail.extend_from_slice(&binary_string("null"));
+            binary_with_tail(&staged, 12 + 24 + 12, &tail)
+        },
+        Rule::Malformed,
+    );
+
+    // json data (extras, extensions) is carried unchanged, so it must be representable unchanged
+    // in every encoding (spec §2.7, §7.8).
+    push(
+        "json-extras-big-integer",
+        J,
+        json_with(&tri, ",\"extras\":[18446744073709551616]"),
+        Rule::Malformed,
+    );
+    push(
+        "json-extras-number-overflow",
+        J,
+        json_with(&tri, ",\"extras\":{\"x\":1e400}"),
+        Rule::Malformed,
+    );
+    push(
+        "json-extras-duplicate-key",
+        J,
+        json_with(&tri, ",\"extras\":{\"a\":1,\"b\":2,\"a\":3}"),
+        Rule::Malformed,
+    );
+    let mut nan = b"\xa6extras\x91\xcb".to_vec();
+    nan.extend_from_slice(&f64::NAN.to_be_bytes());
+    push(
+        "msgpack-extras-nan",
+        M,
+        msgpack_with(&tri, 1, &nan),
+        Rule::Malformed,
+    );
+    // Binary json text is canonical (spec §7.7): `1e+16` is spelled `1e16`.
+    push(
+        "binary-extras-not-canonical",
+        B,
+        binary_with_tail(&tri, 12, &binary_string("[1e+16]")),
+        Rule::Malformed,
+    );
+    push(
+        "binary-extras-whitespace",
+        B,
+        binary_with_tail(&tri, 12, &binary_string("{\"a\": 1}")),
+        Rule::Malformed,
+    );
+
+    // Keys unique everywhere; binary extension names strictly increasing (spec §7.4, §7.8).
+    push(
+        "json-duplicate-member",
+        J,
+        json_with(&tri, ",\"dimension\":2"),
+        Rule::Malformed,
+    );
+    push(
+        "json-extensions-duplicate-key",
+        J,
+        json_with(
+            &tri,
+            ",\"extensionsUsed\":[\"EXT_a\"],\"extensions\":{\"EXT_a\":1,\"EXT_a\":2}",
+        ),
+        Rule::Malformed,
+    );
+    let mut with_ext = tri.clone();
+    with_ext.extensions_used = vec!["EXT_a".into(), "EXT_b".into()];
+    let ext_entry = |name: &str, value: &str| {
+        let mut out = binary_string(name);
+        out.extend(binary_string(value));
+        out
+    };
+    let extensions_tail = |entries: &[(&str, &str)]| {
+        let mut out = (entries.len() as u64).to_le_bytes().to_vec();
+        for (name, value) in entries {
+            out.extend(ext_entry(name, value));
+        }
+        out.extend(binary_string("null"));
+        out
+    };
+    push(
+        "binary-extensions-unsorted",
+        B,
+        binary_with_tail(
+            &with_ext,
+            20,
+            &extensions_tail(&[("EXT_b", "1"), ("EXT_a", "2")]),
+        ),
+        Rule::Malformed,
+    );
+    push(
+        "binary-extensions-duplicate-key",
+        B,
+        binary_with_tail(
+            &with_ext,
+            20,
+            &extensions_tail(&[("EXT_a", "1"), ("EXT_a", "2")]),
+        ),
+        Rule::Malformed,
+    );
+    let mut listed_twice = tri.clone();
+    listed_twice.extensions_used = vec!["EXT_a".into(), "EXT_b".into(), "EXT_a".into()];
+    push(
+        "extension-listed-twice",
+        J,
+        encode(&listed_twice, J),
+        Rule::ExtensionsListed,
+    );
+
+    // Numbers: JSON text rounds to the nearest f64; one that rounds to infinity is ISM-006 (spec §7.2).
+    let text = String::from_utf8(json_with(&tri, "")).expect("UTF-8");
+    push(
+        "json-number-overflow",
+        J,
+        text.replacen("[-1.0,", "[-1e400,", 1).into_bytes(),
+        Rule::Malformed,
+    );
+    push(
+        "json-index-too-large",
+        J,
+        text.replacen("[0,1,2]", "[0,1,4294967296]", 1).into_bytes(),
+        Rule::Malformed,
+    );
+    push(
+        "json-index-with-exponent",
+        J,
+        text.replacen("[0,1,2]", "[0,1,2e0]", 1).into_bytes(),
+        Rule::Malformed,
+    );
+
+    // Detection and whitespace: RFC 8259 only, no byte-order mark (spec §7.5).
+    let mut ff = b"\x0c".to_vec();
+    ff.extend_from_slice(text.as_bytes());
+    push("json-form-feed", J, ff, Rule::BadMagic);
+    let mut bom = b"\xEF\xBB\xBF".to_vec();
+    bom.extend_from_slice(text.as_bytes());
+    push("json-bom", J, bom, Rule::BadMagic);
+    let mut bom = io::to_vec_unchecked(
+        &tri,
+        J,
+        WriteOptions {
+            pretty: false,
+            json_in_container: true,
+        },
+    )
+    .expect("encodes");
+    bom.splice(HEADER_LEN..HEADER_LEN, *b"\xEF\xBB\xBF");
+    reseal_payload(&mut bom);
+    push("checksummed-json-bom", J, bom, Rule::Malformed);
+
+    // Optional strings are strings: `null` is not absence (spec §2.6, §7.2).
+    push(
+        "metadata-name-null",
+        J,
+        text.replacen("\"metadata\":{}", "\"metadata\":{\"name\":null}", 1)
+            .into_bytes(),
+        Rule::Malformed,
+    );
+    push(
+        "stage-name-null",
+        J,
+        text.replacen(
+            "\"stages\":[]",
+            "\"stages\":[{\"kind\":\"bezier\",\"degree\":1,\"name\":null}]",
+            1,
+        )
+        .into_bytes(),
+        Rule::Malformed,
+    );
+    push(
+        "level-null",
+        J,
+        text.replacen("\"level\":0.0", "\"level\":null", 1)
+            .into_bytes(),
+        Rule::Malformed,
+    );
+
+    // Versions: canonical decimal, no leading zeros (spec §2.1).
+    push(
+        "version-leading-zero",
+        J,
+        text.replacen("\"1.0\"", "\"01.0\"", 1).into_bytes(),
+        Rule::Malformed,
+    );
+
+    // Locations are real pointers (spec §9): a text that ends inside the model.
+    push("json-open-brace", J, b"{".to_vec(), Rule::Malformed);
+
+    // Binary errors name the member and the byte (spec §7.4).
+    let mut kind = encode(&staged, B);
+    let pattern: &[u8] = &[
+        1, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 1, 0, 0, 0, 0, 0, 0, 0, 0,
+    ];
+    let at = kind
+        .windows(pattern.len())
+        .position(|w| w == pattern)
+        .expect("stage header")
+        + 8;
+    kind[at] = 7;
+    reseal_payload(&mut kind);
+    push("binary-bad-kind", B, kind, Rule::Malformed);
+    let mut tag = encode(&tri, B);
+    // version (8 + 3 bytes), dimension (1 byte): metadata.name's presence tag.
+    tag[HEADER_LEN + 12] = 2;
+    reseal_payload(&mut tag);
+    push("binary-bad-presence-tag", B, tag, Rule::Malformed);
+    let mut short = encode(&tri, B);
+    // Cut inside `vertices` (its length prefix at payload offset 16), checksums made valid.
+    short.truncate(HEADER_LEN + 16 + 8 + 20);
+    reseal_payload(&mut short);
+    push("binary-short-payload", B, short, Rule::Malformed);
     v
 }
 

@@ -3,8 +3,9 @@
 use std::io::{Read, Write};
 use std::path::Path;
 
+use crate::decode::MAX_DEPTH;
 use crate::error::{Error, Result};
-use crate::model::{Model, Version, FORMAT_VERSION};
+use crate::model::{JsonValue, Model, Version, FORMAT_VERSION};
 use crate::rules::{Location, Rule, Severity};
 
 /// The eight magic bytes that open a container: `\x89 I S M \r \n \x1a \n` (spec §7.1).
@@ -372,12 +373,13 @@ fn decode(bytes: &[u8], options: &ReadOptions) -> Result<Document> {
             byte_len: bytes.len() as u64,
         });
     }
-    let text_start = bytes.strip_prefix(b"\xEF\xBB\xBF").unwrap_or(bytes);
-    match text_start.iter().find(|b| !b.is_ascii_whitespace()) {
+    // Detection (spec §7.5): JSON whitespace only (RFC 8259: space, tab, LF, CR), no byte-order mark.
+    match bytes
+        .iter()
+        .find(|b| !matches!(b, b' ' | b'\t' | b'\n' | b'\r'))
+    {
         Some(b'{') => {
-            // A UTF-8 byte-order mark is skipped (spec §7.5); offsets still count from the file start.
-            let bom = (bytes.len() - text_start.len()) as u64;
-            let model = decode_json(text_start, bom)?;
+            let model = decode_json(bytes, 0)?;
             check_version(&model)?;
             Ok(Document {
                 model,
@@ -415,122 +417,47 @@ fn check_version(model: &Model) -> Result<Version> {
     Ok(version)
 }
 
-/// Peeks at `version` when full decoding failed, so a newer major is reported as such rather than
-/// as whatever shape change it brought.
-fn probe_version_json(bytes: &[u8]) -> Option<Result<()>> {
-    #[derive(serde::Deserialize)]
-    struct Probe {
-        version: String,
+/// After a payload failed to decode: when it is nonetheless well-formed (spec §7.8) and names a
+/// version of another major, that is the error to report (spec §8.1), not the shape change it brought.
+fn version_first(error: Error, probed: Option<String>) -> Error {
+    if let Some(version) = probed {
+        let model_version = Model {
+            version,
+            ..Model::new(0)
+        };
+        if let Err(e @ Error::Format(_)) = check_version(&model_version) {
+            if e.rule() == Some(Rule::UnsupportedVersion) {
+                return e;
+            }
+        }
     }
-    let probe: Probe = serde_json::from_slice(bytes).ok()?;
-    let model_version = Model {
-        version: probe.version,
-        ..Model::new(0)
-    };
-    Some(check_version(&model_version).map(|_| ()))
+    error
 }
 
 fn decode_json(bytes: &[u8], base: u64) -> Result<Model> {
-    let de = &mut serde_json::Deserializer::from_slice(bytes);
-    match serde_path_to_error::deserialize::<_, Model>(&mut *de) {
-        Ok(model) => {
-            // Only white space may follow the object (spec §7.2).
-            de.end().map_err(|e| {
-                let offset = line_column_offset(bytes, e.line(), e.column()).map(|o| o + base);
-                Error::format(
-                    Rule::Malformed,
-                    Location {
-                        offset,
-                        ..Location::default()
-                    },
-                    format!("JSON: {e}"),
-                )
-            })?;
-            Ok(model)
-        }
-        Err(err) => {
-            if let Some(Err(version_error)) = probe_version_json(bytes) {
-                return Err(version_error);
-            }
-            let pointer = path_to_pointer(err.path());
-            let inner = err.into_inner();
-            let offset = line_column_offset(bytes, inner.line(), inner.column()).map(|o| o + base);
-            Err(Error::format(
-                Rule::Malformed,
-                Location {
-                    pointer: Some(pointer),
-                    offset,
-                    ..Location::default()
-                },
-                format!("JSON: {inner}"),
-            ))
-        }
-    }
+    crate::decode::Decoder::new(crate::decode::JsonTokens::new(bytes, base))
+        .model()
+        .map_err(|e| {
+            version_first(
+                e,
+                crate::decode::probe_version(crate::decode::JsonTokens::new(bytes, base)),
+            )
+        })
 }
 
 fn decode_msgpack(bytes: &[u8], base: u64) -> Result<Model> {
-    let mut cursor = std::io::Cursor::new(bytes);
-    let result = {
-        let de = &mut rmp_serde::Deserializer::new(&mut cursor);
-        serde_path_to_error::deserialize::<_, Model>(de)
-    };
-    match result {
-        Ok(model) => {
-            if (cursor.position() as usize) < bytes.len() {
-                return Err(Error::format(
-                    Rule::Malformed,
-                    Location::offset(base + cursor.position()),
-                    "bytes follow the MessagePack document",
-                ));
-            }
-            Ok(model)
-        }
-        Err(err) => {
-            let pointer = path_to_pointer(err.path());
-            Err(Error::format(
-                Rule::Malformed,
-                Location {
-                    pointer: Some(pointer),
-                    offset: Some(base + cursor.position()),
-                    ..Location::default()
-                },
-                format!("MessagePack: {}", err.into_inner()),
-            ))
-        }
-    }
+    crate::decode::Decoder::new(crate::decode::MsgpackTokens::new(bytes, base))
+        .model()
+        .map_err(|e| {
+            version_first(
+                e,
+                crate::decode::probe_version(crate::decode::MsgpackTokens::new(bytes, base)),
+            )
+        })
 }
 
-fn path_to_pointer(path: &serde_path_to_error::Path) -> String {
-    use serde_path_to_error::Segment;
-    let mut out = String::new();
-    for seg in path.iter() {
-        match seg {
-            Segment::Seq { index } => out.push_str(&format!("/{index}")),
-            Segment::Map { key } => {
-                out.push_str(&format!("/{}", crate::structure::escape_pointer(key)))
-            }
-            Segment::Enum { variant } => {
-                out.push_str(&format!("/{}", crate::structure::escape_pointer(variant)))
-            }
-            Segment::Unknown => out.push_str("/?"),
-        }
-    }
-    out
-}
-
-fn line_column_offset(bytes: &[u8], line: usize, column: usize) -> Option<u64> {
-    if line == 0 {
-        return None;
-    }
-    let mut offset = 0usize;
-    for _ in 1..line {
-        offset += bytes[offset..].iter().position(|&b| b == b'\n')? + 1;
-    }
-    Some((offset + column.saturating_sub(1)) as u64)
-}
-
-/// The bincode configuration of the binary encoding (spec §7.4): little-endian, fixed-width
-/// integers, lengths as u64.
+/// The bincode configuration that writes the binary encoding (spec §7.4): little-endian,
+/// fixed-width integers, lengths as u64.
 pub fn binary_config(
 ) -> bincode::config::Configuration<bincode::config::LittleEndian, bincode::config::Fixint> {
     bincode::config::standard()
@@ -539,54 +466,7 @@ pub fn binary_config(
 }
 
 fn decode_binary(bytes: &[u8], base: u64, allow_trailing: bool) -> Result<Model> {
-    // bincode trusts declared sequence lengths up to its configured limit; the limit is a type
-    // parameter, so pick the smallest power of two ≥ 8 × payload. Decoded Vec<T> memory is at most
-    // its encoded size times size_of::<T>() / 4 (u32 is the smallest element the model encodes),
-    // so a hostile length cannot allocate more than a small multiple of the input.
-    macro_rules! with_limit {
-        ($($bits:literal)*) => {{
-            let need = (bytes.len() as u64).saturating_mul(8).max(1 << 16);
-            let bits = 64 - need.leading_zeros();
-            match bits {
-                $( b if b <= $bits => bincode::decode_from_slice::<Model, _>(bytes, binary_config().with_limit::<{ 1usize << $bits }>()), )*
-                _ => bincode::decode_from_slice::<Model, _>(bytes, binary_config().with_limit::<{ 1usize << 40 }>()),
-            }
-        }};
-    }
-    let result = with_limit!(17 20 23 26 29 32 35 38);
-    match result {
-        Ok((model, used)) => {
-            if used < bytes.len() && !allow_trailing {
-                return Err(Error::format(
-                    Rule::Malformed,
-                    Location::offset(base + used as u64),
-                    format!("{} bytes follow the binary model", bytes.len() - used),
-                ));
-            }
-            Ok(model)
-        }
-        Err(e) => {
-            let rule = if matches!(e, bincode::error::DecodeError::LimitExceeded) {
-                Rule::LimitExceeded
-            } else {
-                Rule::Malformed
-            };
-            let at = match &e {
-                bincode::error::DecodeError::UnexpectedEnd { .. } => {
-                    Some(base + bytes.len() as u64)
-                }
-                _ => None,
-            };
-            Err(Error::format(
-                rule,
-                Location {
-                    offset: at,
-                    ..Location::default()
-                },
-                format!("binary: {e}"),
-            ))
-        }
-    }
+    crate::binary::BinaryDecoder::new(bytes, base).model(allow_trailing)
 }
 
 /// Options for writing.
@@ -599,28 +479,47 @@ pub struct WriteOptions {
     pub json_in_container: bool,
 }
 
-/// Encodes a model's payload (without container).
+/// Encodes a model's payload (without container) in the canonical form of spec §7.7.
+///
+/// The writer refuses what a reader refuses (spec §7.7): a non-finite number (with the rule a reader
+/// reports for it), `extras` or extension data nested deeper than [`MAX_DEPTH`] (ISM-006). It
+/// always writes its own format version, [`FORMAT_VERSION`] (spec §8.1).
 ///
 /// # Errors
-/// Only if serialization itself fails (e.g. non-finite numbers in JSON).
+/// The first such problem, with its JSON pointer.
 pub fn encode_payload(model: &Model, encoding: Encoding, pretty: bool) -> Result<Vec<u8>> {
+    check_writable(model)?;
+    encode_raw(&own_version(model), encoding, pretty)
+}
+
+/// The model as this writer writes it: with its own version.
+fn own_version(model: &Model) -> std::borrow::Cow<'_, Model> {
+    let own = FORMAT_VERSION.to_string();
+    if model.version == own {
+        std::borrow::Cow::Borrowed(model)
+    } else {
+        std::borrow::Cow::Owned(Model {
+            version: own,
+            ..model.clone()
+        })
+    }
+}
+
+fn encode_raw(model: &Model, encoding: Encoding, pretty: bool) -> Result<Vec<u8>> {
     let fail = |what: &str, e: String| {
         Error::format(Rule::Malformed, Location::default(), format!("{what}: {e}"))
     };
     match encoding {
         Encoding::Json => {
-            if let Some(pointer) = first_non_finite(model) {
+            // serde_json would write NaN and infinity as `null`.
+            if let Some((_, location)) = first_non_finite(model) {
                 return Err(Error::format(
                     Rule::NonFinite,
-                    Location::pointer(pointer),
+                    location,
                     "JSON cannot represent NaN or infinity; use the binary or MessagePack encoding",
                 ));
             }
-            if pretty {
-                serde_json::to_vec_pretty(model).map_err(|e| fail("JSON", e.to_string()))
-            } else {
-                serde_json::to_vec(model).map_err(|e| fail("JSON", e.to_string()))
-            }
+            crate::canonical::to_json_vec(model, pretty).map_err(|e| fail("JSON", e.to_string()))
         }
         Encoding::MessagePack => {
             rmp_serde::to_vec_named(model).map_err(|e| fail("MessagePack", e.to_string()))
@@ -630,30 +529,128 @@ pub fn encode_payload(model: &Model, encoding: Encoding, pretty: bool) -> Result
     }
 }
 
-/// JSON pointer of the first NaN or infinity among the model's numbers (JSON would write `null`).
-fn first_non_finite(model: &Model) -> Option<String> {
+/// Checks that a model can be written as a file readers accept at the encoding level: every
+/// number finite, `json` data at most [`MAX_DEPTH`] deep (spec §7.7, §7.8).
+///
+/// # Errors
+/// The first problem, with the rule and location a reader would report.
+pub fn check_writable(model: &Model) -> Result<()> {
+    if let Some((rule, location)) = first_non_finite(model) {
+        return Err(Error::format(
+            rule,
+            location,
+            "NaN or infinity: readers refuse non-finite numbers, so writers do too",
+        ));
+    }
+    let deep = |value: &JsonValue, above: usize, pointer: String| {
+        let mut pointer = pointer;
+        too_deep(&value.0, above, &mut pointer).then(|| {
+            Error::format(
+                Rule::Malformed,
+                Location::pointer(pointer),
+                format!("arrays and objects nested deeper than {MAX_DEPTH} levels; readers refuse them, so writers do too"),
+            )
+        })
+    };
+    // Containers above each json member: the model (1), `extensions` (2), `stages` and a stage (3).
+    for (k, stage) in model.stages.iter().enumerate() {
+        if let Some(e) = deep(&stage.extras, 3, format!("/stages/{k}/extras")) {
+            return Err(e);
+        }
+    }
+    for (name, value) in &model.extensions {
+        let pointer = format!("/extensions/{}", crate::structure::escape_pointer(name));
+        if let Some(e) = deep(value, 2, pointer) {
+            return Err(e);
+        }
+    }
+    match deep(&model.extras, 1, "/extras".into()) {
+        Some(e) => Err(e),
+        None => Ok(()),
+    }
+}
+
+/// Whether `value`, below `above` arrays and objects, nests deeper than [`MAX_DEPTH`]; `pointer`
+/// is left at the first array or object too deep. Recursion stops at the limit.
+fn too_deep(value: &serde_json::Value, above: usize, pointer: &mut String) -> bool {
+    use serde_json::Value;
+    let children: Box<dyn Iterator<Item = (String, &Value)>> = match value {
+        Value::Array(items) => Box::new(items.iter().enumerate().map(|(i, v)| (i.to_string(), v))),
+        Value::Object(map) => Box::new(
+            map.iter()
+                .map(|(k, v)| (crate::structure::escape_pointer(k), v)),
+        ),
+        _ => return false,
+    };
+    if above + 1 > MAX_DEPTH {
+        return true;
+    }
+    for (token, child) in children {
+        let len = pointer.len();
+        pointer.push('/');
+        pointer.push_str(&token);
+        if too_deep(child, above + 1, pointer) {
+            return true;
+        }
+        pointer.truncate(len);
+    }
+    false
+}
+
+/// The first NaN or infinity among the model's numbers, with the rule and location a reader
+/// reports for it (spec §9: ISM-102, ISM-111, ISM-114, ISM-126).
+fn first_non_finite(model: &Model) -> Option<(Rule, Location)> {
     let find = |xs: &[f64]| xs.iter().position(|x| !x.is_finite());
     if let Some(i) = find(&model.vertices) {
-        return Some(format!("/vertices/{i}"));
+        return Some((
+            Rule::VertexArray,
+            Location {
+                vertex: Some(i / model.dim().max(1)),
+                ..Location::pointer(format!("/vertices/{i}"))
+            },
+        ));
     }
     if let Some(i) = find(&model.values) {
-        return Some(format!("/values/{i}"));
+        return Some((
+            Rule::ValueArray,
+            Location {
+                vertex: Some(i),
+                ..Location::pointer(format!("/values/{i}"))
+            },
+        ));
     }
     if !model.level.is_finite() {
-        return Some("/level".into());
+        return Some((Rule::Level, Location::pointer("/level")));
     }
     for (k, stage) in model.stages.iter().enumerate() {
         for (r, rec) in stage.faces.iter().enumerate() {
+            let at = |what: &str, i: usize| {
+                Some((
+                    Rule::NonFinite,
+                    Location {
+                        stage: Some(k),
+                        face: Some(rec.face.clone()),
+                        ..Location::pointer(format!("/stages/{k}/faces/{r}/{what}/{i}"))
+                    },
+                ))
+            };
             if let Some(i) = find(&rec.points) {
-                return Some(format!("/stages/{k}/faces/{r}/points/{i}"));
+                return at("points", i);
             }
             if let Some(i) = find(&rec.weights) {
-                return Some(format!("/stages/{k}/faces/{r}/weights/{i}"));
+                return at("weights", i);
             }
         }
         for (r, map) in stage.vertex_maps.iter().enumerate() {
             if let Some(i) = find(&map.coefficients) {
-                return Some(format!("/stages/{k}/vertexMaps/{r}/coefficients/{i}"));
+                return Some((
+                    Rule::NonFinite,
+                    Location {
+                        stage: Some(k),
+                        vertex: Some(map.vertex as usize),
+                        ..Location::pointer(format!("/stages/{k}/vertexMaps/{r}/coefficients/{i}"))
+                    },
+                ));
             }
         }
     }
@@ -674,26 +671,39 @@ pub fn header(encoding: Encoding, version: Version, payload: &[u8]) -> [u8; HEAD
     h
 }
 
-/// Encodes a whole file in memory.
+/// Encodes a whole file in memory, in the canonical form of spec §7.7: a file this crate reads.
 ///
 /// # Errors
-/// As [`encode_payload`]; also ISM-006 when the model's `version` does not parse.
+/// As [`encode_payload`].
 pub fn to_vec(model: &Model, encoding: Encoding, options: WriteOptions) -> Result<Vec<u8>> {
     let payload = encode_payload(model, encoding, options.pretty)?;
+    Ok(wrap(payload, encoding, options, FORMAT_VERSION))
+}
+
+/// Encodes a model as it is, without the checks of [`to_vec`] and with its own `version` (also in
+/// the container header, when it parses): for test vectors, which are files readers refuse.
+///
+/// # Errors
+/// ISM-126 for a non-finite number in JSON, which cannot hold one.
+#[doc(hidden)]
+pub fn to_vec_unchecked(
+    model: &Model,
+    encoding: Encoding,
+    options: WriteOptions,
+) -> Result<Vec<u8>> {
+    let payload = encode_raw(model, encoding, options.pretty)?;
+    let version = model.parsed_version().unwrap_or(FORMAT_VERSION);
+    Ok(wrap(payload, encoding, options, version))
+}
+
+fn wrap(payload: Vec<u8>, encoding: Encoding, options: WriteOptions, version: Version) -> Vec<u8> {
     if encoding == Encoding::Json && !options.json_in_container {
-        return Ok(payload);
+        return payload;
     }
-    let version = model.parsed_version().ok_or_else(|| {
-        Error::format(
-            Rule::Malformed,
-            Location::pointer("/version"),
-            format!("version {:?} is not \"major.minor\"", model.version),
-        )
-    })?;
     let mut out = Vec::with_capacity(HEADER_LEN + payload.len());
     out.extend_from_slice(&header(encoding, version, &payload));
     out.extend_from_slice(&payload);
-    Ok(out)
+    out
 }
 
 /// Writes a whole file to a writer.

@@ -30,7 +30,10 @@
 //! ```
 #![deny(missing_docs)]
 
+mod binary;
 pub mod builder;
+pub mod canonical;
+mod decode;
 pub mod error;
 pub mod io;
 pub mod model;
@@ -38,6 +41,7 @@ pub mod multi_index;
 pub mod rules;
 pub mod structure;
 
+pub use decode::MAX_DEPTH;
 pub use error::{Error, Result};
 pub use io::{Document, Encoding};
 pub use model::{

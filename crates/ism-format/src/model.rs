@@ -1,6 +1,6 @@
 //! The ISM data model: one serde type per object of `spec/ism-format.md`.
 //!
-//! Field order matters: the binary encoding (§7.3 of the spec) writes fields in declaration order.
+//! Field order matters: the binary encoding (§7.4 of the spec) writes fields in declaration order.
 
 use std::collections::BTreeMap;
 
@@ -11,7 +11,7 @@ use serde::{Deserialize, Serialize};
 /// The format version this crate writes, and the newest it reads.
 pub const FORMAT_VERSION: Version = Version { major: 1, minor: 0 };
 
-/// `major.minor` format version (spec §3).
+/// `major.minor` format version (spec §2.1, §8.1).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Hash)]
 pub struct Version {
     /// Incompatible revisions.
@@ -21,11 +21,16 @@ pub struct Version {
 }
 
 impl Version {
-    /// Parses `"1.0"`; `None` when the text is not two decimal integers separated by a dot.
+    /// Parses `"1.0"`; `None` unless the text is two decimal integers of at most 65535, without
+    /// leading zeros, separated by a dot (spec §2.1: `"01.0"` is not a version).
     pub fn parse(text: &str) -> Option<Version> {
         let (a, b) = text.split_once('.')?;
-        let digits =
-            |s: &str| !s.is_empty() && s.len() <= 5 && s.bytes().all(|c| c.is_ascii_digit());
+        let digits = |s: &str| {
+            !s.is_empty()
+                && s.len() <= 5
+                && s.bytes().all(|c| c.is_ascii_digit())
+                && (s.len() == 1 || !s.starts_with('0'))
+        };
         if !digits(a) || !digits(b) {
             return None;
         }
@@ -42,9 +47,10 @@ impl std::fmt::Display for Version {
     }
 }
 
-/// Any JSON value, carried verbatim by every encoding (spec §2.9: `extras`, `extensions`).
+/// Any JSON value, carried verbatim by every encoding (spec §2.7: `extras`, `extensions`).
 ///
-/// The binary encoding stores it as its compact JSON text, so all three encodings keep it exactly.
+/// The binary encoding stores it as its canonical compact JSON text (spec §7.7), so all three
+/// encodings keep it exactly.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, JsonSchema, Default)]
 #[serde(transparent)]
 pub struct JsonValue(pub serde_json::Value);
@@ -54,9 +60,7 @@ impl Encode for JsonValue {
         &self,
         encoder: &mut E,
     ) -> Result<(), bincode::error::EncodeError> {
-        let text = serde_json::to_string(&self.0)
-            .map_err(|e| bincode::error::EncodeError::OtherString(e.to_string()))?;
-        text.encode(encoder)
+        crate::canonical::json_text(&self.0).encode(encoder)
     }
 }
 
@@ -88,7 +92,9 @@ impl JsonValue {
 )]
 pub struct Model {
     /// Format version `"major.minor"`; this specification is `"1.0"`.
-    #[schemars(regex(pattern = r"^[0-9]{1,5}\.[0-9]{1,5}$"))]
+    #[schemars(regex(
+        pattern = r"^(0|[1-9][0-9]{0,3}|[1-5][0-9]{4}|6[0-4][0-9]{3}|65[0-4][0-9]{2}|655[0-2][0-9]|6553[0-5])\.(0|[1-9][0-9]{0,3}|[1-5][0-9]{4}|6[0-4][0-9]{3}|65[0-4][0-9]{2}|655[0-2][0-9]|6553[0-5])$"
+    ))]
     pub version: String,
     /// Space dimension `n`: 2 (curves in the plane) or 3 (surfaces in space).
     #[schemars(range(min = 2, max = 3))]
@@ -99,8 +105,13 @@ pub struct Model {
     /// Vertex coordinates, flat: `n` numbers per vertex.
     pub vertices: Vec<f64>,
     /// Top simplices, flat: `n + 1` vertex indices each, positively oriented.
+    #[schemars(extend(
+        "minItems" = 3,
+        "items" = {"type": "integer", "format": "uint32", "minimum": 0, "maximum": 4294967295u64}
+    ))]
     pub simplices: Vec<u32>,
     /// The vertex function `f`: one nonzero number per vertex.
+    #[schemars(extend("items" = {"type": "number", "format": "double", "not": {"const": 0}}))]
     pub values: Vec<f64>,
     /// The level `c` of the shape `F = c`.
     #[serde(default)]
@@ -122,21 +133,25 @@ pub struct Model {
     pub extras: JsonValue,
 }
 
-/// Descriptive metadata (spec §2.8). Every member is optional.
+/// Descriptive metadata (spec §2.6). Every member is optional.
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize, JsonSchema, Encode, Decode)]
 #[serde(rename_all = "camelCase")]
 pub struct Metadata {
     /// A short human-readable name.
     #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[schemars(with = "String")]
     pub name: Option<String>,
     /// The program that wrote the file.
     #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[schemars(with = "String")]
     pub generator: Option<String>,
     /// Length unit of the vertex coordinates, e.g. `"m"` or `"mm"`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[schemars(with = "String")]
     pub units: Option<String>,
     /// Free text.
     #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[schemars(with = "String")]
     pub description: Option<String>,
 }
 
@@ -203,6 +218,7 @@ pub struct Stage {
     pub direction: Direction,
     /// Optional label.
     #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[schemars(with = "String")]
     pub name: Option<String>,
     /// Moved control points (and weights) of Bézier and rational stages, one record per face.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
@@ -220,6 +236,11 @@ pub struct Stage {
 #[serde(rename_all = "camelCase")]
 pub struct FaceRecord {
     /// The face: its `k + 1` global vertex ids, strictly increasing.
+    #[schemars(extend(
+        "minItems" = 1,
+        "maxItems" = 4,
+        "items" = {"type": "integer", "format": "uint32", "minimum": 0, "maximum": 4294967295u64}
+    ))]
     pub face: Vec<u32>,
     /// Control points, flat: `k + 1` barycentric coordinates (w.r.t. `face`) per owned multi-index,
     /// in canonical order.
@@ -235,6 +256,7 @@ pub struct FaceRecord {
 #[serde(rename_all = "camelCase")]
 pub struct VertexMap {
     /// Global vertex id.
+    #[schemars(extend("maximum" = 4294967295u64))]
     pub vertex: u32,
     /// The `d + 1` Bernstein coefficients `a_0 = 0 < a_1 < … < a_d`.
     pub coefficients: Vec<f64>,

@@ -46,7 +46,7 @@ rules! {
     Truncated = "ISM-004", Error, "The file holds the whole header and the declared payload";
     UnknownEncoding = "ISM-005", Error, "The encoding tag is 1 (JSON), 2 (MessagePack) or 3 (binary)";
     Malformed = "ISM-006", Error, "The payload decodes as the declared encoding and matches the data model";
-    LimitExceeded = "ISM-007", Error, "The payload fits the reader's resource limits";
+    LimitExceeded = "ISM-007", Error, "The declared payload length fits the reader's limit";
     ExtensionRequired = "ISM-008", Error, "Every extension in extensionsRequired is supported by the reader";
     VersionMismatch = "ISM-009", Error, "The container version equals the payload's version member";
     TrailingData = "ISM-010", Error, "No bytes follow the declared payload";
@@ -67,7 +67,7 @@ rules! {
     Level = "ISM-114", Error, "level is finite";
     NonManifold = "ISM-150", Warning, "Every vertex and edge has a manifold neighbourhood";
     UnusedVertex = "ISM-151", Warning, "Every vertex belongs to a simplex";
-    ExtensionsListed = "ISM-152", Error, "extensionsRequired and the keys of extensions are listed in extensionsUsed";
+    ExtensionsListed = "ISM-152", Error, "extensionsRequired and the keys of extensions are listed in extensionsUsed, each name once";
     // Stages (spec §5).
     StageDegree = "ISM-120", Error, "A stage's degree is between 1 and the maximum degree";
     FaceSorted = "ISM-121", Error, "A face record's vertex ids are strictly increasing";

@@ -362,6 +362,21 @@ fn check_values(model: &Model, c: &mut Collector) {
 }
 
 fn check_extensions(model: &Model, c: &mut Collector) {
+    for (member, names) in [
+        ("extensionsUsed", &model.extensions_used),
+        ("extensionsRequired", &model.extensions_required),
+    ] {
+        let mut seen = HashSet::new();
+        for (i, name) in names.iter().enumerate() {
+            if !seen.insert(name) {
+                c.push(
+                    Rule::ExtensionsListed,
+                    Location::pointer(format!("/{member}/{i}")),
+                    format!("extension {name:?} is listed twice in {member}"),
+                );
+            }
+        }
+    }
     for (i, name) in model.extensions_required.iter().enumerate() {
         if !model.extensions_used.contains(name) {
             c.push(

@@ -130,7 +130,8 @@ fn newer_major_version_is_refused_clearly() {
     let mut model = sample_model();
     model.version = "2.0".into();
     for enc in Encoding::ALL {
-        let bytes = io::to_vec(&model, enc, WriteOptions::default()).unwrap();
+        // The writer writes only its own version; the raw encoder writes what the model says.
+        let bytes = io::to_vec_unchecked(&model, enc, WriteOptions::default()).unwrap();
         let err = io::from_slice(&bytes).unwrap_err();
         assert_eq!(err.rule(), Some(Rule::UnsupportedVersion), "{enc:?}: {err}");
         assert!(err.to_string().contains("2.0"), "{err}");
@@ -289,7 +290,8 @@ fn structural_errors_name_the_place() {
         let mut m = sample_model();
         mutate(&mut m);
         for enc in [Encoding::MessagePack, Encoding::Binary] {
-            let bytes = io::to_vec(&m, enc, WriteOptions::default()).unwrap();
+            // Writers refuse non-finite numbers; the raw encoder makes the broken file.
+            let bytes = io::to_vec_unchecked(&m, enc, WriteOptions::default()).unwrap();
             let err = io::from_slice(&bytes).unwrap_err();
             let d = &err.diagnostics()[0];
             assert_eq!(
@@ -306,18 +308,26 @@ fn failed_writes_leave_no_file() {
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("out.ism.json");
     let mut m = sample_model();
-    m.vertices[0] = f64::NAN; // JSON cannot carry NaN: serialization fails
+    m.vertices[0] = f64::NAN; // readers refuse NaN (ISM-102), so the writer does too
     let before: Vec<_> = std::fs::read_dir(dir.path()).unwrap().collect();
     assert!(before.is_empty());
     let err = io::write_path(&m, &path, Some(Encoding::Json), WriteOptions::default()).unwrap_err();
-    assert_eq!(err.rule(), Some(Rule::NonFinite));
+    assert_eq!(err.rule(), Some(Rule::VertexArray));
     assert_eq!(
         std::fs::read_dir(dir.path()).unwrap().count(),
         0,
         "no partial or temporary file"
     );
-    m.version = "not a version".into();
-    assert!(io::write_path(&m, &path, Some(Encoding::Binary), WriteOptions::default()).is_err());
+    m.vertices[0] = 0.0;
+    // Nested deeper than readers accept (spec §7.8): ISM-006 before anything is written.
+    let mut deep = serde_json::json!(1);
+    for _ in 0..ism_format::MAX_DEPTH {
+        deep = serde_json::json!([deep]);
+    }
+    m.extras = ism_format::JsonValue(deep);
+    let err =
+        io::write_path(&m, &path, Some(Encoding::Binary), WriteOptions::default()).unwrap_err();
+    assert_eq!(err.rule(), Some(Rule::Malformed));
     assert_eq!(
         std::fs::read_dir(dir.path()).unwrap().count(),
         0,
@@ -357,11 +367,14 @@ fn header_is_32_bytes_and_crc_protected() {
 }
 
 #[test]
-fn json_with_bom_reads_and_trailing_text_is_refused() {
+fn json_with_bom_and_trailing_text_are_refused() {
     let json = io::to_vec(&sample_model(), Encoding::Json, WriteOptions::default()).unwrap();
+    // spec §7.5: no byte-order mark, in plain JSON (ISM-001) as in checksummed JSON (ISM-006).
     let mut with_bom = b"\xEF\xBB\xBF".to_vec();
     with_bom.extend_from_slice(&json);
-    assert_eq!(io::from_slice(&with_bom).unwrap().model, sample_model());
+    let err = io::from_slice(&with_bom).unwrap_err();
+    assert_eq!(err.rule(), Some(Rule::BadMagic));
+    assert_eq!(err.diagnostics()[0].location.offset, Some(0));
     let mut trailing = json.clone();
     trailing.extend_from_slice(b"  \n garbage");
     let err = io::from_slice(&trailing).unwrap_err();

@@ -1,8 +1,10 @@
-//! Round trips JSON ↔ MessagePack ↔ binary are bit-exact, for generated models (proptest).
+//! Round trips JSON ↔ MessagePack ↔ binary are bit-exact, for generated models (proptest); and
+//! whatever the writer writes, the reader reads (spec §7.7), with nested extras up to and beyond the
+//! depth limit and non-finite numbers among the generated models.
 
 use ism_format::io::{self, ReadOptions, WriteOptions};
 use ism_format::{
-    Direction, Encoding, FaceRecord, JsonValue, Metadata, Model, Stage, StageKind, VertexMap,
+    Direction, Encoding, FaceRecord, JsonValue, Metadata, Model, Rule, Stage, StageKind, VertexMap,
 };
 use proptest::prelude::*;
 
@@ -29,6 +31,22 @@ fn json_value() -> impl Strategy<Value = JsonValue> {
         ]
     })
     .prop_map(JsonValue)
+}
+
+/// JSON data wrapped in `levels` arrays and objects, alternating: reaches and crosses the nesting
+/// limit of spec §7.8 (the model's extras may nest `MAX_DEPTH - 1` levels).
+fn nested_json_value() -> impl Strategy<Value = JsonValue> {
+    (0..=ism_format::MAX_DEPTH + 2, json_value(), "[a-z]{1,3}").prop_map(|(levels, inner, key)| {
+        let mut v = inner.0;
+        for level in 0..levels {
+            v = if level % 2 == 0 {
+                serde_json::Value::Array(vec![v])
+            } else {
+                serde_json::json!({ key.clone(): v })
+            };
+        }
+        JsonValue(v)
+    })
 }
 
 fn stage() -> impl Strategy<Value = Stage> {
@@ -92,7 +110,7 @@ fn model() -> impl Strategy<Value = Model> {
         prop::collection::vec(stage(), 0..3),
         prop::option::of("[ -~]{0,12}"),
         prop::collection::btree_map("[A-Z]{2}_[a-z]{1,6}", json_value(), 0..2),
-        json_value(),
+        prop_oneof![json_value(), nested_json_value()],
     )
         .prop_map(
             |(dimension, vertices, simplices, values, level, stages, name, extensions, extras)| {
@@ -128,11 +146,88 @@ fn unchecked() -> ReadOptions {
     }
 }
 
+/// Models a writer may have to refuse: any model, with at most one number made non-finite.
+fn any_model() -> impl Strategy<Value = Model> {
+    (
+        model(),
+        0usize..6,
+        prop_oneof![Just(f64::NAN), Just(f64::INFINITY), Just(f64::NEG_INFINITY)],
+    )
+        .prop_map(|(mut m, which, bad)| {
+            match which {
+                0 if !m.vertices.is_empty() => m.vertices[0] = bad,
+                1 if !m.values.is_empty() => m.values[0] = bad,
+                2 => m.level = bad,
+                3 => {
+                    if let Some(r) = m
+                        .stages
+                        .iter_mut()
+                        .flat_map(|s| s.faces.iter_mut())
+                        .find(|r| !r.points.is_empty())
+                    {
+                        r.points[0] = bad;
+                    }
+                }
+                _ => {}
+            }
+            m
+        })
+}
+
+/// Whether a model's numbers are all finite and its json data within the depth limit.
+fn writable(m: &Model) -> bool {
+    io::check_writable(m).is_ok()
+}
+
 proptest! {
     #![proptest_config(ProptestConfig { cases: 400, ..ProptestConfig::default() })]
 
+    /// A file the writer writes is a file the reader reads, in every encoding; what it refuses, a
+    /// reader refuses too. Re-encoding what was read gives the same bytes in every encoding
+    /// (spec §7.7: one canonical form per encoding).
     #[test]
-    fn every_encoding_round_trips_bit_exactly(m in model()) {
+    fn whatever_the_writer_writes_the_reader_reads(m in any_model()) {
+        for enc in Encoding::ALL {
+            match io::to_vec(&m, enc, WriteOptions::default()) {
+                Ok(bytes) => {
+                    prop_assert!(writable(&m));
+                    let doc = io::from_slice_with(&bytes, &unchecked());
+                    prop_assert!(doc.is_ok(), "{enc:?}: wrote a file it refuses: {:?}", doc.err());
+                    let read = doc.unwrap().model;
+                    prop_assert_eq!(bits(&read), bits(&m));
+                    for other in Encoding::ALL {
+                        prop_assert_eq!(
+                            io::to_vec(&read, other, WriteOptions::default()).unwrap(),
+                            io::to_vec(&m, other, WriteOptions::default()).unwrap(),
+                            "{:?} -> {:?}", enc, other
+                        );
+                    }
+                }
+                Err(e) => {
+                    prop_assert!(!writable(&m));
+                    let rule = e.rule().unwrap();
+                    prop_assert!(
+                        matches!(rule, Rule::Malformed | Rule::VertexArray | Rule::ValueArray | Rule::Level | Rule::NonFinite),
+                        "{e}"
+                    );
+                    // The same model written without the checks is refused by the reader.
+                    if rule == Rule::Malformed {
+                        let raw = io::to_vec_unchecked(&m, enc, WriteOptions::default()).unwrap();
+                        let refused = io::from_slice_with(&raw, &unchecked()).err().and_then(|e| e.rule());
+                        prop_assert_eq!(refused, Some(Rule::Malformed), "{:?}: {}", enc, e);
+                    } else if enc != Encoding::Json {
+                        // (JSON cannot hold the number at all.) The structural checks may stop
+                        // at an earlier rule (spec §9), but the file is refused.
+                        let raw = io::to_vec_unchecked(&m, enc, WriteOptions::default()).unwrap();
+                        prop_assert!(io::from_slice(&raw).is_err(), "{:?}: {}", enc, e);
+                    }
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn every_encoding_round_trips_bit_exactly(m in model().prop_filter("writable", writable)) {
         let reference = bits(&m);
         for enc in Encoding::ALL {
             for json_in_container in [false, true] {
@@ -145,7 +240,7 @@ proptest! {
     }
 
     #[test]
-    fn chained_conversions_are_bit_exact(m in model()) {
+    fn chained_conversions_are_bit_exact(m in model().prop_filter("writable", writable)) {
         let mut current = m.clone();
         for enc in [Encoding::Json, Encoding::MessagePack, Encoding::Binary, Encoding::Json, Encoding::Binary] {
             let bytes = io::to_vec(&current, enc, WriteOptions::default()).unwrap();
