@@ -1,7 +1,7 @@
 //! ISM example and benchmark models: Kuhn-triangulated grids, vertex values from implicit
-//! functions, stage generators whose output the theorems of `ism-math.md` §3 certify as simplicial
+//! functions, stage generators whose output the theorems of `mathematics.md` §3 certify as simplicial
 //! diffeomorphisms, the named examples of `spec/examples/`, and the broken files of
-//! `spec/vectors/reader/`.
+//! `spec/vectors/reader/` and the expected bytes of `spec/vectors/writer/`.
 //!
 //! Everything is deterministic: the same arguments (and seed) give the same bytes.
 //!
@@ -29,6 +29,7 @@ mod grid;
 pub mod named;
 mod stages;
 pub mod vectors;
+pub mod writer_vectors;
 
 pub use faces::{faces_of_dimension, FaceRng};
 pub use grid::{kuhn_grid_2d, kuhn_grid_3d, set_values, Aabb, VALUE_NUDGE};

@@ -69,3 +69,35 @@ fn reader_vectors_on_disk_match_the_generators() {
         "stray files in spec/vectors/reader; {REGENERATE}"
     );
 }
+
+#[test]
+fn writer_vectors_on_disk_match_the_generators() {
+    use ism_examples::writer_vectors::{writer_output, writer_vectors, OUTPUTS};
+    let dir = spec_dir("vectors/writer");
+    let vectors = writer_vectors();
+    for vector in &vectors {
+        let input = std::fs::read(dir.join(format!("{}.input.json", vector.name)))
+            .unwrap_or_else(|e| panic!("{}: {e}; {REGENERATE}", vector.name));
+        assert!(
+            input == vector.input.as_bytes(),
+            "{} input is stale; {REGENERATE}",
+            vector.name
+        );
+        for (suffix, encoding, pretty) in OUTPUTS {
+            let path = dir.join(format!("{}.{suffix}", vector.name));
+            let on_disk = std::fs::read(&path)
+                .unwrap_or_else(|e| panic!("{}: {e}; {REGENERATE}", path.display()));
+            assert!(
+                on_disk == writer_output(vector, encoding, pretty).unwrap(),
+                "{} is stale; {REGENERATE}",
+                path.display()
+            );
+        }
+    }
+    let count = std::fs::read_dir(&dir).unwrap().count();
+    assert_eq!(
+        count,
+        vectors.len() * (1 + OUTPUTS.len()),
+        "stray files in spec/vectors/writer; {REGENERATE}"
+    );
+}

@@ -1,4 +1,5 @@
-//! `ism-make-examples`: (re)writes `spec/examples/` and, with `--vectors`, `spec/vectors/reader/`.
+//! `ism-make-examples`: (re)writes `spec/examples/` and, with `--vectors`, `spec/vectors/reader/`
+//! and `spec/vectors/writer/`.
 
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -8,7 +9,7 @@ use clap::Parser;
 const AFTER_HELP: &str = "\
 Examples:
   cargo run -p ism-examples --bin ism-make-examples                 # rewrite spec/examples/
-  cargo run -p ism-examples --bin ism-make-examples -- --vectors    # also spec/vectors/reader/
+  cargo run -p ism-examples --bin ism-make-examples -- --vectors    # also spec/vectors/{reader,writer}/
   ism-make-examples --examples-dir /tmp/ex --no-examples --vectors --vectors-dir /tmp/vec
   ism-make-examples --no-examples --large 1000000 /tmp/large.ismb   # benchmark model (any encoding)
 
@@ -31,6 +32,9 @@ struct Args {
     /// Directory of the reader test vectors.
     #[arg(long, default_value = "spec/vectors/reader")]
     vectors_dir: PathBuf,
+    /// Directory of the writer test vectors.
+    #[arg(long, default_value = "spec/vectors/writer")]
+    writer_vectors_dir: PathBuf,
     /// Also write `large_stratified_model(TETS)` to FILE (encoding from the extension: .ism.json,
     /// .ism.msgpack, .ismb).
     #[arg(long, num_args = 2, value_names = ["TETS", "FILE"])]
@@ -59,6 +63,9 @@ fn run(args: &Args) -> anyhow::Result<usize> {
     }
     if args.vectors {
         count += ism_examples::vectors::write_reader_vectors(&args.vectors_dir)
+            .map_err(anyhow::Error::msg)?
+            .len();
+        count += ism_examples::writer_vectors::write_writer_vectors(&args.writer_vectors_dir)
             .map_err(anyhow::Error::msg)?
             .len();
     }
