@@ -1,0 +1,1379 @@
+#!/usr/bin/env python3
+"""ismpy: an independent ISM reader and writer, written from spec/ism-format.md alone.
+
+It reads and writes all three encodings (JSON, MessagePack, binary) and the container, and reports every
+reader rule of spec §9 (ISM-0xx, ISM-1xx) with the location of spec §7.8 and §9. No Rust and no JSON or
+MessagePack library is used for reading (the standard `json` module is too lenient: it accepts NaN,
+duplicate keys and big integers), so the spec, not a library, decides every byte.
+
+Command line (the protocol of tools/conformance):
+
+    ismpy.py read FILE                 prints {"ok": true} (exit 0) or {"rule": ..., "location": {...}}
+                                       (exit 1): the first error a reader reports
+    ismpy.py convert IN OUT ENCODING   reads IN and writes OUT in ENCODING: json, json-pretty, msgpack,
+                                       binary (exit 0), or prints the error as `read` does (exit 1)
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import struct
+import sys
+import zlib
+
+MAGIC = b"\x89ISM\r\n\x1a\n"
+HEADER_LEN = 32
+MAJOR, MINOR = 1, 0
+MAX_DEPTH = 64
+MAX_DEGREE = 16
+DEFAULT_PAYLOAD_LIMIT = 8 << 30
+KINDS = ["bezier", "rational", "monotonic"]
+DIRECTIONS = ["implicit", "parametric"]
+
+
+class IsmError(Exception):
+    """A reader error: a rule id and a location (spec §9)."""
+
+    def __init__(self, rule: str, message: str, pointer=None, offset=None, **extra):
+        super().__init__(f"{rule}: {message}")
+        self.rule = rule
+        self.location = {}
+        if pointer is not None:
+            self.location["pointer"] = pointer
+        if offset is not None:
+            self.location["offset"] = offset
+        self.location.update({k: v for k, v in extra.items() if v is not None})
+
+
+def escape_token(token: str) -> str:
+    return token.replace("~", "~0").replace("/", "~1")
+
+
+def pointer_of(path: list) -> str:
+    return "".join("/" + (escape_token(p) if isinstance(p, str) else str(p)) for p in path)
+
+
+class Fail(Exception):
+    """A tokenizer failure at a file offset; the decoder adds the pointer."""
+
+    def __init__(self, offset: int, message: str):
+        super().__init__(message)
+        self.offset = offset
+
+
+# ------------------------------------------------------------------------------------------ tokens
+# A head is (kind, value): ("null", None), ("bool", b), ("int", i), ("float", x), ("str", s),
+# ("array", count or None), ("object", count or None). JSON integer tokens are ("int", i) with the
+# f64 value available by float(i) -- except that f64 members need correct rounding of huge integers,
+# which float(int) gives (round-half-even).
+
+
+class JsonTokens:
+    """RFC 8259 text, strictly (spec §7.2): whitespace space/tab/LF/CR, no BOM."""
+
+    WS = b" \t\n\r"
+
+    def __init__(self, data: bytes, base: int):
+        self.b = data
+        self.at = 0
+        self.base = base
+
+    def fail(self, at: int, message: str) -> Fail:
+        return Fail(self.base + at, message)
+
+    def found(self, expected: str) -> Fail:
+        return self.fail(self.at, f"expected {expected}")
+
+    def peek(self):
+        return self.b[self.at] if self.at < len(self.b) else None
+
+    def ws(self):
+        while self.at < len(self.b) and self.b[self.at] in self.WS:
+            self.at += 1
+
+    def string(self) -> str:
+        self.at += 1
+        out = []
+        b = self.b
+        while True:
+            run = self.at
+            while self.at < len(b) and b[self.at] != 0x22 and b[self.at] != 0x5C and b[self.at] >= 0x20:
+                self.at += 1
+            try:
+                out.append(b[run : self.at].decode("utf-8"))
+            except UnicodeDecodeError as e:
+                raise self.fail(run + e.start, "invalid UTF-8")
+            c = self.peek()
+            if c is None:
+                raise self.fail(self.at, "end of text in a string")
+            if c == 0x22:
+                self.at += 1
+                return "".join(out)
+            if c == 0x5C:
+                esc = self.at
+                self.at += 1
+                e = self.peek()
+                simple = {0x22: '"', 0x5C: "\\", 0x2F: "/", 0x62: "\b", 0x66: "\f", 0x6E: "\n", 0x72: "\r", 0x74: "\t"}
+                if e in simple:
+                    out.append(simple[e])
+                    self.at += 1
+                elif e == 0x75:
+                    self.at += 1
+                    hi = self.hex4(esc)
+                    if 0xD800 <= hi < 0xDC00:
+                        if b[self.at : self.at + 2] != b"\\u":
+                            raise self.fail(esc, "unpaired surrogate")
+                        self.at += 2
+                        lo = self.hex4(esc)
+                        if not 0xDC00 <= lo < 0xE000:
+                            raise self.fail(esc, "unpaired surrogate")
+                        out.append(chr(0x10000 + ((hi - 0xD800) << 10) + (lo - 0xDC00)))
+                    elif 0xDC00 <= hi < 0xE000:
+                        raise self.fail(esc, "unpaired surrogate")
+                    else:
+                        out.append(chr(hi))
+                else:
+                    raise self.fail(esc, "invalid escape")
+            else:
+                raise self.fail(self.at, "control character in a string")
+
+    def hex4(self, esc: int) -> int:
+        digits = self.b[self.at : self.at + 4]
+        if len(digits) != 4 or not all(c in b"0123456789abcdefABCDEF" for c in digits):
+            raise self.fail(esc, "invalid \\u escape")
+        self.at += 4
+        return int(digits, 16)
+
+    def digits(self) -> int:
+        start = self.at
+        while self.at < len(self.b) and 0x30 <= self.b[self.at] <= 0x39:
+            self.at += 1
+        return self.at - start
+
+    def number(self):
+        start = self.at
+        if self.peek() == 0x2D:
+            self.at += 1
+        c = self.peek()
+        if c == 0x30:
+            self.at += 1
+        elif c is not None and 0x31 <= c <= 0x39:
+            self.digits()
+        else:
+            raise self.found("a digit")
+        integer = True
+        if self.peek() == 0x2E:
+            integer = False
+            self.at += 1
+            if self.digits() == 0:
+                raise self.found("a digit")
+        if self.peek() in (0x65, 0x45):
+            integer = False
+            self.at += 1
+            if self.peek() in (0x2B, 0x2D):
+                self.at += 1
+            if self.digits() == 0:
+                raise self.found("a digit")
+        text = self.b[start : self.at].decode("ascii")
+        value = float(text)  # correctly rounded, ties to even
+        if not math.isfinite(value):
+            raise self.fail(start, f"{text[:30]} does not round to a finite f64")
+        if integer:
+            return ("int", int(text), value)
+        return ("float", value, value)
+
+    def literal(self, word: bytes, head):
+        if self.b[self.at : self.at + len(word)] == word:
+            self.at += len(word)
+            return head
+        raise self.found("a value")
+
+    def head(self):
+        self.ws()
+        start = self.at
+        c = self.peek()
+        if c == 0x7B:
+            self.at += 1
+            h = ("object", None)
+        elif c == 0x5B:
+            self.at += 1
+            h = ("array", None)
+        elif c == 0x22:
+            h = ("str", self.string())
+        elif c == 0x74:
+            h = self.literal(b"true", ("bool", True))
+        elif c == 0x66:
+            h = self.literal(b"false", ("bool", False))
+        elif c == 0x6E:
+            h = self.literal(b"null", ("null", None))
+        elif c is not None and (c == 0x2D or 0x30 <= c <= 0x39):
+            kind, v, f = self.number()
+            h = (kind, v) if kind == "float" else ("int", v, f)
+        else:
+            raise self.found("a value")
+        return h, self.base + start
+
+    def next_element(self, seq: dict) -> bool:
+        self.ws()
+        if seq["first"]:
+            seq["first"] = False
+            if self.peek() == 0x5D:
+                self.at += 1
+                return False
+            return True
+        c = self.peek()
+        if c == 0x2C:
+            self.at += 1
+            return True
+        if c == 0x5D:
+            self.at += 1
+            return False
+        raise self.found("',' or ']'")
+
+    def next_key(self, seq: dict):
+        self.ws()
+        if seq["first"]:
+            seq["first"] = False
+            if self.peek() == 0x7D:
+                self.at += 1
+                return None
+        else:
+            c = self.peek()
+            if c == 0x2C:
+                self.at += 1
+                self.ws()
+            elif c == 0x7D:
+                self.at += 1
+                return None
+            else:
+                raise self.found("',' or '}'")
+        if self.peek() != 0x22:
+            raise self.found("a string key")
+        offset = self.base + self.at
+        key = self.string()
+        self.ws()
+        if self.peek() != 0x3A:
+            raise self.found("':'")
+        self.at += 1
+        return key, offset
+
+    def end(self):
+        self.ws()
+        if self.at < len(self.b):
+            raise self.fail(self.at, "only whitespace may follow the object")
+
+
+class MsgpackTokens:
+    """MessagePack, strictly (spec §7.3): maps with str keys, str strings, no bin/ext."""
+
+    def __init__(self, data: bytes, base: int):
+        self.b = data
+        self.at = 0
+        self.base = base
+
+    def fail(self, at: int, message: str) -> Fail:
+        return Fail(self.base + at, message)
+
+    def take(self, n: int, start: int) -> bytes:
+        if len(self.b) - self.at < n:
+            raise self.fail(start, "value runs past the payload")
+        out = self.b[self.at : self.at + n]
+        self.at += n
+        return out
+
+    def uint(self, n: int, start: int) -> int:
+        return int.from_bytes(self.take(n, start), "big")
+
+    def count(self, n: int, per: int, start: int) -> int:
+        count = self.uint(n, start)
+        if count > (len(self.b) - self.at) // per:
+            raise self.fail(start, f"declares {count} entries; too few bytes remain")
+        return count
+
+    def str_of(self, n: int, start: int) -> str:
+        if n > len(self.b) - self.at:
+            raise self.fail(start, "str runs past the payload")
+        data_at = self.at
+        data = self.take(n, start)
+        try:
+            return data.decode("utf-8")
+        except UnicodeDecodeError as e:
+            raise self.fail(data_at + e.start, "invalid UTF-8")
+
+    def head(self):
+        start = self.at
+        if self.at >= len(self.b):
+            raise self.fail(start, "end of payload; expected a value")
+        m = self.b[self.at]
+        self.at += 1
+        if m <= 0x7F:
+            h = ("int", m, float(m))
+        elif m <= 0x8F:
+            h = ("object", m & 0x0F)
+        elif m <= 0x9F:
+            h = ("array", m & 0x0F)
+        elif m <= 0xBF:
+            h = ("str", self.str_of(m & 0x1F, start))
+        elif m == 0xC0:
+            h = ("null", None)
+        elif m == 0xC2:
+            h = ("bool", False)
+        elif m == 0xC3:
+            h = ("bool", True)
+        elif m == 0xCA:
+            h = ("float", struct.unpack(">f", self.take(4, start))[0])
+        elif m == 0xCB:
+            h = ("float", struct.unpack(">d", self.take(8, start))[0])
+        elif 0xCC <= m <= 0xCF:
+            v = self.uint(1 << (m - 0xCC), start)
+            h = ("int", v, float(v))
+        elif 0xD0 <= m <= 0xD3:
+            n = 1 << (m - 0xD0)
+            v = int.from_bytes(self.take(n, start), "big", signed=True)
+            h = ("int", v, float(v))
+        elif 0xD9 <= m <= 0xDB:
+            h = ("str", self.str_of(self.uint(1 << (m - 0xD9), start), start))
+        elif m in (0xDC, 0xDD):
+            h = ("array", self.count(2 if m == 0xDC else 4, 1, start))
+        elif m in (0xDE, 0xDF):
+            h = ("object", self.count(2 if m == 0xDE else 4, 2, start))
+        elif m >= 0xE0:
+            h = ("int", m - 256, float(m - 256))
+        else:  # bin, ext, fixext, 0xc1
+            raise self.fail(start, f"format 0x{m:02x} is not allowed")
+        return h, self.base + start
+
+    def next_element(self, seq: dict) -> bool:
+        if seq["left"] == 0:
+            return False
+        seq["left"] -= 1
+        return True
+
+    def next_key(self, seq: dict):
+        if not self.next_element(seq):
+            return None
+        h, offset = self.head()
+        if h[0] != "str":
+            raise Fail(offset, "map keys must be str")
+        return h[1], offset
+
+    def end(self):
+        if self.at < len(self.b):
+            raise self.fail(self.at, "bytes follow the MessagePack value")
+
+
+# ------------------------------------------------------------------------------------------ decoder
+
+
+class Decoder:
+    """The typed model decoder over either tokenizer (spec §7.2, §7.3, §7.8)."""
+
+    def __init__(self, tok, path=None, depth=0):
+        self.tok = tok
+        self.path = list(path or [])
+        self.depth = depth
+
+    def at(self, offset, message) -> IsmError:
+        return IsmError("ISM-006", message, pointer=pointer_of(self.path), offset=offset)
+
+    def call(self, f, *args):
+        try:
+            return f(*args)
+        except Fail as e:
+            raise self.at(e.offset, str(e)) from None
+
+    def head(self):
+        return self.call(self.tok.head)
+
+    def enter(self, offset):
+        self.depth += 1
+        if self.depth > MAX_DEPTH:
+            raise self.at(offset, "nested too deep")
+
+    @staticmethod
+    def seq(head) -> dict:
+        return {"first": True, "left": head[1]}
+
+    def obj(self, member):
+        h, offset = self.head()
+        if h[0] != "object":
+            raise self.at(offset, f"expected an object, found {h[0]}")
+        self.enter(offset)
+        seq = self.seq(h)
+        seen = set()
+        while True:
+            nk = self.call(self.tok.next_key, seq)
+            if nk is None:
+                break
+            key, key_offset = nk
+            self.path.append(key)
+            if key in seen:
+                raise self.at(key_offset, f"{key!r} given twice")
+            seen.add(key)
+            member(key)
+            self.path.pop()
+        self.depth -= 1
+        return offset
+
+    def array(self, element):
+        h, offset = self.head()
+        if h[0] != "array":
+            raise self.at(offset, f"expected an array, found {h[0]}")
+        self.enter(offset)
+        seq = self.seq(h)
+        i = 0
+        while self.call(self.tok.next_element, seq):
+            self.path.append(i)
+            element()
+            self.path.pop()
+            i += 1
+        self.depth -= 1
+
+    def string_at(self):
+        h, offset = self.head()
+        if h[0] != "str":
+            raise self.at(offset, f"expected a string, found {h[0]}")
+        return h[1], offset
+
+    def uint(self, top: int) -> int:
+        h, offset = self.head()
+        if h[0] != "int" or not 0 <= h[1] <= top:
+            raise self.at(offset, f"expected an integer from 0 to {top}")
+        return h[1]
+
+    def f64(self) -> float:
+        h, offset = self.head()
+        if h[0] == "int":
+            return h[2]
+        if h[0] == "float":
+            return h[1]
+        raise self.at(offset, f"expected a number, found {h[0]}")
+
+    def list_of(self, read) -> list:
+        out = []
+        self.array(lambda: out.append(read()))
+        return out
+
+    def data(self):
+        """JSON data (spec §2): extras, extension payloads, unknown members."""
+        h, offset = self.head()
+        kind = h[0]
+        if kind in ("null", "bool", "str"):
+            return h[1]
+        if kind == "int":
+            if not -(1 << 63) <= h[1] <= (1 << 64) - 1:
+                raise self.at(offset, "integer outside the range of JSON data")
+            return h[1]
+        if kind == "float":
+            if not math.isfinite(h[1]):
+                raise self.at(offset, "non-finite number in JSON data")
+            return h[1]
+        self.enter(offset)
+        seq = self.seq(h)
+        if kind == "array":
+            out = []
+            while self.call(self.tok.next_element, seq):
+                self.path.append(len(out))
+                out.append(self.data())
+                self.path.pop()
+        else:
+            out = {}
+            while True:
+                nk = self.call(self.tok.next_key, seq)
+                if nk is None:
+                    break
+                key, key_offset = nk
+                self.path.append(key)
+                if key in out:
+                    raise self.at(key_offset, f"{key!r} given twice")
+                out[key] = self.data()
+                self.path.pop()
+        self.depth -= 1
+        return out
+
+    def missing(self, offset, members):
+        for name, present in members:
+            if not present:
+                raise self.at(offset, f"missing required member {name!r}")
+
+    def metadata(self) -> dict:
+        m = {}
+
+        def member(key):
+            if key in ("name", "generator", "units", "description"):
+                m[key] = self.string_at()[0]
+            else:
+                self.data()
+
+        self.obj(member)
+        return {k: m[k] for k in ("name", "generator", "units", "description") if k in m}
+
+    def face_record(self) -> dict:
+        r = {"points": [], "weights": []}
+
+        def member(key):
+            if key == "face":
+                r["face"] = self.list_of(lambda: self.uint(0xFFFFFFFF))
+            elif key in ("points", "weights"):
+                r[key] = self.list_of(self.f64)
+            else:
+                self.data()
+
+        offset = self.obj(member)
+        self.missing(offset, [("face", "face" in r)])
+        return {"face": r["face"], "points": r["points"], "weights": r["weights"]}
+
+    def vertex_map(self) -> dict:
+        r = {}
+
+        def member(key):
+            if key == "vertex":
+                r[key] = self.uint(0xFFFFFFFF)
+            elif key == "coefficients":
+                r[key] = self.list_of(self.f64)
+            else:
+                self.data()
+
+        offset = self.obj(member)
+        self.missing(offset, [("vertex", "vertex" in r), ("coefficients", "coefficients" in r)])
+        return {"vertex": r["vertex"], "coefficients": r["coefficients"]}
+
+    def stage(self) -> dict:
+        s = {"direction": "implicit", "name": None, "faces": [], "vertexMaps": [], "extras": None}
+
+        def member(key):
+            if key in ("kind", "direction"):
+                value, offset = self.string_at()
+                allowed = KINDS if key == "kind" else DIRECTIONS
+                if value not in allowed:
+                    raise self.at(offset, f"{key} {value!r} not one of {allowed}")
+                s[key] = value
+            elif key == "degree":
+                s[key] = self.uint(0xFFFFFFFF)
+            elif key == "name":
+                s[key] = self.string_at()[0]
+            elif key == "faces":
+                s[key] = self.list_of(self.face_record)
+            elif key == "vertexMaps":
+                s[key] = self.list_of(self.vertex_map)
+            elif key == "extras":
+                s[key] = self.data()
+            else:
+                self.data()
+
+        offset = self.obj(member)
+        self.missing(offset, [("kind", "kind" in s), ("degree", "degree" in s)])
+        return s
+
+    def model(self) -> dict:
+        m = new_model()
+        present = set()
+
+        def member(key):
+            present.add(key)
+            if key == "version":
+                m[key] = self.string_at()[0]
+            elif key == "dimension":
+                m[key] = self.uint(255)
+            elif key == "metadata":
+                m[key] = self.metadata()
+            elif key in ("vertices", "values"):
+                m[key] = self.list_of(self.f64)
+            elif key == "simplices":
+                m[key] = self.list_of(lambda: self.uint(0xFFFFFFFF))
+            elif key == "level":
+                m[key] = self.f64()
+            elif key == "stages":
+                m[key] = self.list_of(self.stage)
+            elif key in ("extensionsUsed", "extensionsRequired"):
+                m[key] = self.list_of(lambda: self.string_at()[0])
+            elif key == "extensions":
+                ext = {}
+
+                def entry(name):
+                    ext[name] = self.data()
+
+                self.obj(entry)
+                m[key] = ext
+            elif key == "extras":
+                m[key] = self.data()
+            else:
+                self.data()
+
+        offset = self.obj(member)
+        self.missing(offset, [(k, k in present) for k in ("version", "dimension", "vertices", "simplices", "values")])
+        self.call(self.tok.end)
+        return m
+
+
+def new_model() -> dict:
+    return {
+        "version": "",
+        "dimension": 0,
+        "metadata": {},
+        "vertices": [],
+        "simplices": [],
+        "values": [],
+        "level": 0.0,
+        "stages": [],
+        "extensionsUsed": [],
+        "extensionsRequired": [],
+        "extensions": {},
+        "extras": None,
+    }
+
+
+def probe_version(tok):
+    """The top-level `version` of a well-formed payload (spec §7.8, last paragraph), else None."""
+    try:
+        d = Decoder(tok)
+        value = d.data()
+        d.call(tok.end)
+    except IsmError:
+        return None
+    if isinstance(value, dict) and isinstance(value.get("version"), str):
+        return value["version"]
+    return None
+
+
+# ------------------------------------------------------------------------------------------ binary
+
+
+class BinaryDecoder:
+    """The binary grammar of spec §7.4."""
+
+    MIN = {"f64": 8, "u32": 4, "string": 8, "stage": 37, "record": 24, "vmap": 12, "ext": 16}
+
+    def __init__(self, data: bytes, base: int):
+        self.b = data
+        self.at = 0
+        self.base = base
+        self.path = []
+
+    def fail(self, at, message) -> IsmError:
+        return IsmError("ISM-006", message, pointer=pointer_of(self.path), offset=self.base + at)
+
+    def take(self, n: int) -> bytes:
+        if len(self.b) - self.at < n:
+            raise self.fail(self.at, "field runs past the payload")
+        out = self.b[self.at : self.at + n]
+        self.at += n
+        return out
+
+    def u8(self):
+        return self.take(1)[0]
+
+    def u32(self):
+        return struct.unpack("<I", self.take(4))[0]
+
+    def f64(self):
+        return struct.unpack("<d", self.take(8))[0]
+
+    def length(self, minimum: int) -> int:
+        start = self.at
+        (n,) = struct.unpack("<Q", self.take(8))
+        if n > (len(self.b) - self.at) // minimum:
+            raise self.fail(start, f"declares {n} elements; too few bytes remain")
+        return n
+
+    def string(self) -> str:
+        n = self.length(1)
+        at = self.at
+        data = self.take(n)
+        try:
+            return data.decode("utf-8")
+        except UnicodeDecodeError as e:
+            raise self.fail(at + e.start, "invalid UTF-8")
+
+    def optional_string(self):
+        start = self.at
+        tag = self.u8()
+        if tag == 0:
+            return None
+        if tag == 1:
+            return self.string()
+        raise self.fail(start, f"presence tag {tag}")
+
+    def member(self, name, read):
+        self.path.append(name)
+        value = read()
+        self.path.pop()
+        return value
+
+    def f64s(self):
+        n = self.length(8)
+        return list(struct.unpack(f"<{n}d", self.take(8 * n)))
+
+    def u32s(self):
+        n = self.length(4)
+        return list(struct.unpack(f"<{n}I", self.take(4 * n)))
+
+    def seq(self, minimum, read):
+        n = self.length(minimum)
+        out = []
+        for i in range(n):
+            self.path.append(i)
+            out.append(read())
+            self.path.pop()
+        return out
+
+    def data(self, depth: int):
+        start = self.at
+        text = self.string()
+        d = Decoder(JsonTokens(text.encode("utf-8"), self.base + start + 8), self.path, depth)
+        value = d.data()
+        d.call(d.tok.end)
+        if json_text(value) != text:
+            raise self.fail(start, "JSON text is not canonical")
+        return value
+
+    def enum(self, name, names):
+        start = self.at
+        self.path.append(name)
+        i = self.u32()
+        if i >= len(names):
+            raise self.fail(start, f"{name} {i} out of range")
+        self.path.pop()
+        return names[i]
+
+    def stage(self) -> dict:
+        s = {"kind": self.enum("kind", KINDS)}
+        s["degree"] = self.member("degree", self.u32)
+        s["direction"] = self.enum("direction", DIRECTIONS)
+        s["name"] = self.member("name", self.optional_string)
+
+        def record():
+            return {
+                "face": self.member("face", self.u32s),
+                "points": self.member("points", self.f64s),
+                "weights": self.member("weights", self.f64s),
+            }
+
+        def vmap():
+            return {"vertex": self.member("vertex", self.u32), "coefficients": self.member("coefficients", self.f64s)}
+
+        s["faces"] = self.member("faces", lambda: self.seq(24, record))
+        s["vertexMaps"] = self.member("vertexMaps", lambda: self.seq(12, vmap))
+        s["extras"] = self.member("extras", lambda: self.data(3))
+        return s
+
+    def extensions(self) -> dict:
+        n = self.length(16)
+        out = {}
+        previous = None
+        for _ in range(n):
+            key_at = self.at
+            key = self.string()
+            self.path.append(key)
+            if previous is not None and key.encode("utf-8") <= previous.encode("utf-8"):
+                raise self.fail(key_at, "extension names not strictly increasing")
+            out[key] = self.data(2)
+            self.path.pop()
+            previous = key
+        return out
+
+    def model(self, allow_trailing: bool) -> dict:
+        m = new_model()
+        m["version"] = self.member("version", self.string)
+        m["dimension"] = self.member("dimension", self.u8)
+
+        def metadata():
+            meta = {}
+            for key in ("name", "generator", "units", "description"):
+                value = self.member(key, self.optional_string)
+                if value is not None:
+                    meta[key] = value
+            return meta
+
+        m["metadata"] = self.member("metadata", metadata)
+        m["vertices"] = self.member("vertices", self.f64s)
+        m["simplices"] = self.member("simplices", self.u32s)
+        m["values"] = self.member("values", self.f64s)
+        m["level"] = self.member("level", self.f64)
+        m["stages"] = self.member("stages", lambda: self.seq(37, self.stage))
+        for key in ("extensionsUsed", "extensionsRequired"):
+            m[key] = self.member(key, lambda: self.seq(8, self.string))
+        m["extensions"] = self.member("extensions", self.extensions)
+        m["extras"] = self.member("extras", lambda: self.data(1))
+        if self.at < len(self.b) and not allow_trailing:
+            raise self.fail(self.at, "bytes follow the model")
+        return m
+
+
+# ------------------------------------------------------------------------------------------ reading
+
+
+def parse_version(text: str):
+    parts = text.split(".")
+    if len(parts) != 2:
+        return None
+    out = []
+    for p in parts:
+        if not (1 <= len(p) <= 5 and p.isascii() and p.isdigit()) or (len(p) > 1 and p[0] == "0") or int(p) > 65535:
+            return None
+        out.append(int(p))
+    return tuple(out)
+
+
+def check_version(text: str):
+    version = parse_version(text)
+    if version is None:
+        raise IsmError("ISM-006", f"version {text!r} is not major.minor", pointer="/version")
+    if version[0] != MAJOR:
+        raise IsmError("ISM-002", f"version {text}; this reader implements {MAJOR}", pointer="/version")
+    return version
+
+
+def decode_map_encoding(tokens_of, payload: bytes, base: int) -> dict:
+    try:
+        return Decoder(tokens_of(payload, base)).model()
+    except IsmError as error:
+        probed = probe_version(tokens_of(payload, base))
+        if probed is not None:
+            try:
+                check_version(probed)
+            except IsmError as e:
+                if e.rule == "ISM-002":
+                    raise e from None
+        raise
+
+
+def decode(data: bytes, payload_limit: int = DEFAULT_PAYLOAD_LIMIT):
+    """Container, encoding and version (spec §7.1, §7.5): returns (model, encoding)."""
+    if data[:8] == MAGIC:
+        if len(data) < HEADER_LEN:
+            raise IsmError("ISM-004", "truncated header", offset=len(data))
+        if zlib.crc32(data[:28]) != struct.unpack_from("<I", data, 28)[0]:
+            raise IsmError("ISM-003", "header CRC", offset=28)
+        major, minor, tag = struct.unpack_from("<HHB", data, 8)
+        if major != MAJOR:
+            raise IsmError("ISM-002", f"major version {major}", offset=8)
+        if tag not in (1, 2, 3):
+            raise IsmError("ISM-005", f"encoding tag {tag}", offset=12)
+        if data[13:16] != b"\0\0\0":
+            raise IsmError("ISM-006", "reserved bytes", offset=13)
+        (length,) = struct.unpack_from("<Q", data, 16)
+        if length > payload_limit:
+            raise IsmError("ISM-007", "payload length above the limit", offset=16)
+        if len(data) - HEADER_LEN < length:
+            raise IsmError("ISM-004", "truncated payload", offset=len(data))
+        if len(data) > HEADER_LEN + length:
+            raise IsmError("ISM-010", "trailing data", offset=HEADER_LEN + length)
+        payload = data[HEADER_LEN:]
+        if zlib.crc32(payload) != struct.unpack_from("<I", data, 24)[0]:
+            raise IsmError("ISM-003", "payload CRC", offset=24)
+        if tag == 1:
+            model = decode_map_encoding(JsonTokens, payload, HEADER_LEN)
+        elif tag == 2:
+            model = decode_map_encoding(MsgpackTokens, payload, HEADER_LEN)
+        else:
+            model = BinaryDecoder(payload, HEADER_LEN).model(allow_trailing=minor > MINOR)
+        version = check_version(model["version"])
+        if version != (major, minor):
+            raise IsmError("ISM-009", "header and payload versions differ", pointer="/version")
+        return model, {1: "json", 2: "msgpack", 3: "binary"}[tag]
+    stripped = data.lstrip(b" \t\n\r")
+    if stripped[:1] != b"{":
+        raise IsmError("ISM-001", "not an ISM file", offset=0)
+    model = decode_map_encoding(JsonTokens, data, 0)
+    check_version(model["version"])
+    return model, "json"
+
+
+def read(data: bytes, supported_extensions=()) -> dict:
+    """Reads a file: every reader rule of spec §9; raises IsmError with the first error."""
+    model, _ = decode(data)
+    for i, name in enumerate(model["extensionsRequired"]):
+        if name not in supported_extensions:
+            raise IsmError("ISM-008", f"extension {name} not supported", pointer=f"/extensionsRequired/{i}")
+    errors = structural_errors(model)
+    if errors:
+        raise errors[0]
+    return model
+
+
+# ------------------------------------------------------------------------------------------ structure (§3, §5, §9)
+
+
+def orientation(model, ids):
+    n = model["dimension"]
+    v = model["vertices"]
+    p = [v[i * n : i * n + n] for i in ids]
+    e = [[p[k + 1][c] - p[0][c] for c in range(n)] for k in range(n)]
+    if n == 2:
+        det = e[0][0] * e[1][1] - e[0][1] * e[1][0]
+    else:
+        det = (
+            e[0][0] * (e[1][1] * e[2][2] - e[1][2] * e[2][1])
+            - e[0][1] * (e[1][0] * e[2][2] - e[1][2] * e[2][0])
+            + e[0][2] * (e[1][0] * e[2][1] - e[1][1] * e[2][0])
+        )
+    longest = 0.0
+    for a in range(n + 1):
+        for b in range(a + 1, n + 1):
+            d2 = 0.0
+            for c in range(n):
+                d2 += (p[a][c] - p[b][c]) ** 2
+            longest = max(longest, math.sqrt(d2))
+    return det, longest
+
+
+def structural_errors(model: dict) -> list:
+    """The structural errors (not warnings) of spec §9 in the reader's order."""
+    out = []
+    n = model["dimension"]
+    if n not in (2, 3):
+        return [IsmError("ISM-101", "dimension", pointer="/dimension")]
+    verts, sims, vals = model["vertices"], model["simplices"], model["values"]
+    if len(verts) % n:
+        out.append(IsmError("ISM-102", "vertex count", pointer="/vertices"))
+    for i, x in enumerate(verts):
+        if not math.isfinite(x):
+            out.append(IsmError("ISM-102", "non-finite coordinate", pointer=f"/vertices/{i}", vertex=i // n))
+    m = n + 1
+    if len(sims) % m or not sims:
+        out.append(IsmError("ISM-103", "simplex array", pointer="/simplices"))
+        return out
+    nv = len(verts) // n
+    for i, idx in enumerate(sims):
+        if idx >= nv:
+            out.append(IsmError("ISM-104", "index range", pointer=f"/simplices/{i}", simplex=i // m))
+    if out:
+        return out
+    simplices = [sims[s * m : s * m + m] for s in range(len(sims) // m)]
+
+    def at_simplex(rule, s, **extra):
+        return IsmError(rule, rule, pointer=f"/simplices/{m * s}", simplex=s, **extra)
+
+    repeated = set()
+    for s, ids in enumerate(simplices):
+        if len(set(ids)) < m:
+            repeated.add(s)
+            out.append(at_simplex("ISM-105", s))
+            continue
+        det, longest = orientation(model, ids)
+        if abs(det) <= 1e-12 * longest**n or not math.isfinite(det):
+            out.append(at_simplex("ISM-107", s))
+        elif det < 0:
+            out.append(at_simplex("ISM-106", s))
+    keys = sorted((tuple(sorted(ids)), s) for s, ids in enumerate(simplices) if s not in repeated)
+    for (k0, _), (k1, s1) in zip(keys, keys[1:]):
+        if k0 == k1:
+            out.append(at_simplex("ISM-108", s1))
+    facets = []
+    for s, ids in enumerate(simplices):
+        if s in repeated:
+            continue
+        for skip in range(m):
+            rest = [x for j, x in enumerate(ids) if j != skip]
+            inversions = sum(1 for a in range(len(rest)) for b in range(a + 1, len(rest)) if rest[a] > rest[b])
+            odd = (skip % 2 == 1) != (inversions % 2 == 1)
+            facets.append((tuple(sorted(rest)), odd, s))  # side +1 (odd False) sorts first
+    facets.sort()
+    i = 0
+    while i < len(facets):
+        j = i + 1
+        while j < len(facets) and facets[j][0] == facets[i][0]:
+            j += 1
+        group = facets[i:j]
+        face = list(group[0][0])
+        if len(group) > 2:
+            out.append(at_simplex("ISM-109", group[2][2], face=face))
+        elif len(group) == 2 and group[0][1] == group[1][1] and group[0][2] != group[1][2]:
+            out.append(at_simplex("ISM-110", group[1][2], face=face))
+        i = j
+    level = model["level"]
+    if not math.isfinite(level):
+        out.append(IsmError("ISM-114", "level", pointer="/level"))
+    if len(vals) != nv:
+        out.append(IsmError("ISM-111", "value count", pointer="/values"))
+    for v, x in enumerate(vals):
+        if not math.isfinite(x):
+            out.append(IsmError("ISM-111", "non-finite value", pointer=f"/values/{v}", vertex=v))
+        elif x == 0:
+            out.append(IsmError("ISM-112", "zero value", pointer=f"/values/{v}", vertex=v))
+        elif x == level:
+            out.append(IsmError("ISM-113", "value at level", pointer=f"/values/{v}", vertex=v))
+    used = model["extensionsUsed"]
+    for member in ("extensionsUsed", "extensionsRequired"):
+        seen = set()
+        for i, name in enumerate(model[member]):
+            if name in seen:
+                out.append(IsmError("ISM-152", "listed twice", pointer=f"/{member}/{i}"))
+            seen.add(name)
+    for i, name in enumerate(model["extensionsRequired"]):
+        if name not in used:
+            out.append(IsmError("ISM-152", "not listed", pointer=f"/extensionsRequired/{i}"))
+    for name in sorted(model["extensions"], key=lambda k: k.encode("utf-8")):
+        if name not in used:
+            out.append(IsmError("ISM-152", "not listed", pointer=f"/extensions/{escape_token(name)}"))
+    vertex_sets = [set(ids) for ids in simplices]
+    for k, stage in enumerate(model["stages"]):
+        base = f"/stages/{k}"
+        d = stage["degree"]
+        if not 1 <= d <= MAX_DEGREE:
+            out.append(IsmError("ISM-120", "degree", pointer=f"{base}/degree", stage=k))
+            continue
+        if stage["kind"] == "monotonic":
+            if stage["faces"]:
+                out.append(IsmError("ISM-127", "kind", pointer=f"{base}/faces", stage=k))
+            seen = set()
+            for r, vm in enumerate(stage["vertexMaps"]):
+                loc = {"stage": k, "vertex": vm["vertex"]}
+                if vm["vertex"] >= nv or vm["vertex"] in seen:
+                    out.append(IsmError("ISM-128", "vertex map", pointer=f"{base}/vertexMaps/{r}/vertex", **loc))
+                seen.add(vm["vertex"])
+                coefficients = vm["coefficients"]
+                if len(coefficients) != d + 1:
+                    out.append(IsmError("ISM-129", "count", pointer=f"{base}/vertexMaps/{r}/coefficients", **loc))
+                bad = [j for j, x in enumerate(coefficients) if not math.isfinite(x)]
+                if bad:
+                    out.append(IsmError("ISM-126", "non-finite", pointer=f"{base}/vertexMaps/{r}/coefficients/{bad[0]}", **loc))
+            continue
+        if stage["vertexMaps"]:
+            out.append(IsmError("ISM-127", "kind", pointer=f"{base}/vertexMaps", stage=k))
+        first_record = {}
+        for r, rec in enumerate(stage["faces"]):
+            face = rec["face"]
+            loc = {"stage": k, "face": list(face)}
+            where = f"{base}/faces/{r}"
+            size = len(face)
+            if not 1 <= size <= n + 1:
+                out.append(IsmError("ISM-122", "not a face", pointer=f"{where}/face", **loc))
+                continue
+            if any(a >= b for a, b in zip(face, face[1:])):
+                out.append(IsmError("ISM-121", "not sorted", pointer=f"{where}/face", **loc))
+                continue
+            if any(v >= nv for v in face) or not any(set(face) <= vs for vs in vertex_sets):
+                out.append(IsmError("ISM-122", "not a face", pointer=f"{where}/face", **loc))
+                continue
+            key = tuple(face)
+            if key in first_record:
+                out.append(IsmError("ISM-123", "duplicate", pointer=f"{where}/face", **loc))
+            else:
+                first_record[key] = r
+            owned = math.comb(d - 1, size - 1) if d >= size else 0
+            if owned == 0:
+                out.append(IsmError("ISM-124", "owns nothing", pointer=f"{where}/points", **loc))
+                continue
+            if len(rec["points"]) != owned * size:
+                out.append(IsmError("ISM-124", "point count", pointer=f"{where}/points", **loc))
+            if len(rec["weights"]) != (owned if stage["kind"] == "rational" else 0):
+                out.append(IsmError("ISM-125", "weight count", pointer=f"{where}/weights", **loc))
+            for what in ("points", "weights"):
+                bad = [j for j, x in enumerate(rec[what]) if not math.isfinite(x)]
+                if bad:
+                    out.append(IsmError("ISM-126", "non-finite", pointer=f"{where}/{what}/{bad[0]}", **loc))
+    return out
+
+
+# ------------------------------------------------------------------------------------------ writing (§7.7)
+
+
+def format_f64(x: float) -> str:
+    """The canonical spelling of spec §7.7, from Python's shortest round-trip repr."""
+    if x == 0:
+        return "-0.0" if math.copysign(1.0, x) < 0 else "0.0"
+    sign = "-" if x < 0 else ""
+    r = repr(abs(x))
+    mantissa, _, exp = r.partition("e")
+    whole, _, frac = mantissa.partition(".")
+    digits = whole + frac
+    point = len(whole) + (int(exp) if exp else 0)
+    stripped = digits.lstrip("0")
+    point -= len(digits) - len(stripped)
+    digits = stripped.rstrip("0")
+    length = len(digits)
+    if 0 < point <= 16:
+        body = digits + "0" * (point - length) + ".0" if length <= point else digits[:point] + "." + digits[point:]
+    elif -5 < point <= 0:
+        body = "0." + "0" * -point + digits
+    else:
+        body = digits[0] + ("." + digits[1:] if length > 1 else "") + "e" + str(point - 1)
+    return sign + body
+
+
+ESCAPES = {'"': '\\"', "\\": "\\\\", "\b": "\\b", "\t": "\\t", "\n": "\\n", "\f": "\\f", "\r": "\\r"}
+
+
+def json_string(s: str) -> str:
+    return '"' + "".join(ESCAPES.get(c, f"\\u{ord(c):04x}" if ord(c) < 0x20 else c) for c in s) + '"'
+
+
+def to_json(value, indent=None, level=0) -> str:
+    """Canonical JSON text: compact (indent None) or pretty (two spaces per level)."""
+    if value is None:
+        return "null"
+    if value is True:
+        return "true"
+    if value is False:
+        return "false"
+    if isinstance(value, int):
+        return str(value)
+    if isinstance(value, float):
+        return format_f64(value)
+    if isinstance(value, str):
+        return json_string(value)
+    if isinstance(value, list):
+        items = [to_json(v, indent, level + 1) for v in value]
+        open_, close = "[", "]"
+    else:
+        items = [json_string(k) + (": " if indent else ":") + to_json(v, indent, level + 1) for k, v in value.items()]
+        open_, close = "{", "}"
+    if not items:
+        return open_ + close
+    if indent is None:
+        return open_ + ",".join(items) + close
+    pad = "\n" + "  " * (level + 1)
+    return open_ + pad + ("," + pad).join(items) + "\n" + "  " * level + close
+
+
+def json_text(value) -> str:
+    return to_json(value)
+
+
+def canonical_members(model: dict) -> dict:
+    """The model as the ordered members a writer writes (§7.7), f64 members as floats."""
+    fl = lambda xs: [float(x) for x in xs]  # noqa: E731
+    out = {
+        "version": f"{MAJOR}.{MINOR}",
+        "dimension": model["dimension"],
+        "metadata": {k: model["metadata"][k] for k in ("name", "generator", "units", "description") if model["metadata"].get(k) is not None},
+        "vertices": fl(model["vertices"]),
+        "simplices": list(model["simplices"]),
+        "values": fl(model["values"]),
+        "level": float(model["level"]),
+        "stages": [],
+    }
+    for s in model["stages"]:
+        stage = {"kind": s["kind"], "degree": s["degree"], "direction": s.get("direction", "implicit")}
+        if s.get("name") is not None:
+            stage["name"] = s["name"]
+        if s.get("faces"):
+            stage["faces"] = []
+            for r in s["faces"]:
+                rec = {"face": list(r["face"]), "points": fl(r.get("points", []))}
+                if r.get("weights"):
+                    rec["weights"] = fl(r["weights"])
+                stage["faces"].append(rec)
+        if s.get("vertexMaps"):
+            stage["vertexMaps"] = [{"vertex": v["vertex"], "coefficients": fl(v["coefficients"])} for v in s["vertexMaps"]]
+        if s.get("extras") is not None:
+            stage["extras"] = s["extras"]
+        out["stages"].append(stage)
+    for key in ("extensionsUsed", "extensionsRequired"):
+        if model.get(key):
+            out[key] = list(model[key])
+    if model.get("extensions"):
+        out["extensions"] = {k: model["extensions"][k] for k in sorted(model["extensions"], key=lambda k: k.encode("utf-8"))}
+    if model.get("extras") is not None:
+        out["extras"] = model["extras"]
+    return out
+
+
+def check_writable(model: dict):
+    """Writers refuse what readers refuse (§7.7): non-finite numbers, data nested too deep."""
+    n = max(model["dimension"], 1)
+    for i, x in enumerate(model["vertices"]):
+        if not math.isfinite(x):
+            raise IsmError("ISM-102", "non-finite", pointer=f"/vertices/{i}", vertex=i // n)
+    for i, x in enumerate(model["values"]):
+        if not math.isfinite(x):
+            raise IsmError("ISM-111", "non-finite", pointer=f"/values/{i}", vertex=i)
+    if not math.isfinite(model["level"]):
+        raise IsmError("ISM-114", "non-finite", pointer="/level")
+    for k, s in enumerate(model["stages"]):
+        for r, rec in enumerate(s.get("faces", [])):
+            for what in ("points", "weights"):
+                for j, x in enumerate(rec.get(what, [])):
+                    if not math.isfinite(x):
+                        raise IsmError("ISM-126", "non-finite", pointer=f"/stages/{k}/faces/{r}/{what}/{j}", stage=k, face=list(rec["face"]))
+        for r, vm in enumerate(s.get("vertexMaps", [])):
+            for j, x in enumerate(vm["coefficients"]):
+                if not math.isfinite(x):
+                    raise IsmError("ISM-126", "non-finite", pointer=f"/stages/{k}/vertexMaps/{r}/coefficients/{j}", stage=k, vertex=vm["vertex"])
+
+    def depth(value, above, pointer):
+        if isinstance(value, (list, dict)):
+            if above + 1 > MAX_DEPTH:
+                raise IsmError("ISM-006", "nested too deep", pointer=pointer)
+            items = enumerate(value) if isinstance(value, list) else value.items()
+            for k, v in items:
+                depth(v, above + 1, f"{pointer}/{escape_token(str(k))}")
+
+    for k, s in enumerate(model["stages"]):
+        depth(s.get("extras"), 3, f"/stages/{k}/extras")
+    for name, value in model["extensions"].items():
+        depth(value, 2, f"/extensions/{escape_token(name)}")
+    depth(model["extras"], 1, "/extras")
+
+
+def msgpack(value, out: bytearray):
+    """The canonical MessagePack of §7.7: smallest formats, floats as float 64."""
+    if value is None:
+        out.append(0xC0)
+    elif value is True or value is False:
+        out.append(0xC3 if value else 0xC2)
+    elif isinstance(value, int):
+        if 0 <= value < 128:
+            out.append(value)
+        elif value >= 0:
+            for fmt, marker, top in (("B", 0xCC, 1 << 8), (">H", 0xCD, 1 << 16), (">I", 0xCE, 1 << 32), (">Q", 0xCF, 1 << 64)):
+                if value < top:
+                    out.append(marker)
+                    out += struct.pack(fmt, value)
+                    break
+        elif value >= -32:
+            out.append(value + 256)
+        else:
+            for fmt, marker, low in (("b", 0xD0, -(1 << 7)), (">h", 0xD1, -(1 << 15)), (">i", 0xD2, -(1 << 31)), (">q", 0xD3, -(1 << 63))):
+                if value >= low:
+                    out.append(marker)
+                    out += struct.pack(fmt, value)
+                    break
+    elif isinstance(value, float):
+        out.append(0xCB)
+        out += struct.pack(">d", value)
+    elif isinstance(value, str):
+        data = value.encode("utf-8")
+        header(len(data), 0xA0, 32, (0xD9, 0xDA, 0xDB), out, allow8=True)
+        out += data
+    elif isinstance(value, list):
+        header(len(value), 0x90, 16, (None, 0xDC, 0xDD), out)
+        for v in value:
+            msgpack(v, out)
+    else:
+        header(len(value), 0x80, 16, (None, 0xDE, 0xDF), out)
+        for k, v in value.items():
+            msgpack(k, out)
+            msgpack(v, out)
+
+
+def header(n: int, fix: int, fix_limit: int, markers, out: bytearray, allow8=False):
+    if n < fix_limit:
+        out.append(fix | n)
+    elif allow8 and n < 256:
+        out += bytes([markers[0], n])
+    elif n < 1 << 16:
+        out.append(markers[1])
+        out += struct.pack(">H", n)
+    else:
+        out.append(markers[2])
+        out += struct.pack(">I", n)
+
+
+class BinaryWriter:
+    """The binary grammar of §7.4."""
+
+    def __init__(self):
+        self.out = bytearray()
+
+    def put(self, fmt, *values):
+        self.out += struct.pack(fmt, *values)
+
+    def string(self, s: str):
+        data = s.encode("utf-8")
+        self.put("<Q", len(data))
+        self.out += data
+
+    def optional(self, value):
+        if value is None:
+            self.put("<B", 0)
+        else:
+            self.put("<B", 1)
+            self.string(value)
+
+    def f64s(self, xs):
+        self.put("<Q", len(xs))
+        self.put(f"<{len(xs)}d", *xs)
+
+    def u32s(self, xs):
+        self.put("<Q", len(xs))
+        self.put(f"<{len(xs)}I", *xs)
+
+    def model(self, m: dict) -> bytes:
+        self.string(f"{MAJOR}.{MINOR}")
+        self.put("<B", m["dimension"])
+        for key in ("name", "generator", "units", "description"):
+            self.optional(m["metadata"].get(key))
+        self.f64s(m["vertices"])
+        self.u32s(m["simplices"])
+        self.f64s(m["values"])
+        self.put("<d", m["level"])
+        self.put("<Q", len(m["stages"]))
+        for s in m["stages"]:
+            self.put("<III", KINDS.index(s["kind"]), s["degree"], DIRECTIONS.index(s.get("direction", "implicit")))
+            self.optional(s.get("name"))
+            self.put("<Q", len(s.get("faces", [])))
+            for r in s.get("faces", []):
+                self.u32s(r["face"])
+                self.f64s(r.get("points", []))
+                self.f64s(r.get("weights", []))
+            self.put("<Q", len(s.get("vertexMaps", [])))
+            for v in s.get("vertexMaps", []):
+                self.put("<I", v["vertex"])
+                self.f64s(v["coefficients"])
+            self.string(json_text(s.get("extras")))
+        for key in ("extensionsUsed", "extensionsRequired"):
+            self.put("<Q", len(m[key]))
+            for name in m[key]:
+                self.string(name)
+        names = sorted(m["extensions"], key=lambda k: k.encode("utf-8"))
+        self.put("<Q", len(names))
+        for name in names:
+            self.string(name)
+            self.string(json_text(m["extensions"][name]))
+        self.string(json_text(m["extras"]))
+        return bytes(self.out)
+
+
+def container(payload: bytes, tag: int, major: int = MAJOR, minor: int = MINOR) -> bytes:
+    head = MAGIC + struct.pack("<HHB3xQI", major, minor, tag, len(payload), zlib.crc32(payload))
+    return head + struct.pack("<I", zlib.crc32(head)) + payload
+
+
+def write(model: dict, encoding: str) -> bytes:
+    """The canonical file of `model` in `encoding`: json, json-pretty, msgpack or binary."""
+    check_writable(model)
+    if encoding in ("json", "json-pretty"):
+        return to_json(canonical_members(model), indent=2 if encoding == "json-pretty" else None).encode("utf-8")
+    if encoding == "msgpack":
+        out = bytearray()
+        msgpack(canonical_members(model), out)
+        return container(bytes(out), 2)
+    if encoding == "binary":
+        return container(BinaryWriter().model(model), 3)
+    raise ValueError(f"unknown encoding {encoding}")
+
+
+# ------------------------------------------------------------------------------------------ command line
+
+
+def main(argv: list) -> int:
+    if len(argv) >= 2 and argv[0] == "read":
+        try:
+            with open(argv[1], "rb") as f:
+                read(f.read())
+        except IsmError as e:
+            print(json.dumps({"rule": e.rule, "location": e.location, "message": str(e)}))
+            return 1
+        print(json.dumps({"ok": True}))
+        return 0
+    if len(argv) >= 4 and argv[0] == "convert":
+        try:
+            with open(argv[1], "rb") as f:
+                model = read(f.read())
+            data = write(model, argv[3])
+        except IsmError as e:
+            print(json.dumps({"rule": e.rule, "location": e.location, "message": str(e)}))
+            return 1
+        with open(argv[2], "wb") as f:
+            f.write(data)
+        return 0
+    print(__doc__, file=sys.stderr)
+    return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
