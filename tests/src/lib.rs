@@ -3,6 +3,12 @@
 
 use std::path::PathBuf;
 
+/// The repository's README, whose Rust example is compiled as a doctest here (`no_run`: its paths
+/// are relative to the repository root, and doctests run in `tests/`).
+#[doc = include_str!("../../README.md")]
+#[cfg(doctest)]
+pub struct ReadmeExample;
+
 /// The repository root.
 pub fn repo_root() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR"))

@@ -38,8 +38,24 @@ pub struct Args {
 }
 
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
-    let doc = io::read_path(&args.input)
-        .with_context(|| format!("cannot read {}", args.input.display()))?;
+    if let Some(encoding) = args
+        .to
+        .or_else(|| Encoding::from_path(&args.output))
+        .filter(|&e| e != Encoding::Json)
+    {
+        for (given, flag) in [(args.pretty, "--pretty"), (args.container, "--container")] {
+            if given {
+                anyhow::bail!(
+                    "{flag} applies to JSON output only; {} is written as {} (always in the \
+                     container, never indented)",
+                    args.output.display(),
+                    encoding.name()
+                );
+            }
+        }
+    }
+    let doc =
+        io::read_path(&args.input).map_err(|e| crate::args::cannot_read_model(&args.input, e))?;
     let encoding = args
         .to
         .or_else(|| Encoding::from_path(&args.output))
@@ -54,7 +70,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         json_in_container: args.container,
     };
     io::write_path(&doc.model, &args.output, Some(encoding), options)
-        .with_context(|| format!("cannot write {}", args.output.display()))?;
+        .map_err(|e| crate::args::cannot_write_model(&args.output, e))?;
     eprintln!(
         "{} ({}) -> {} ({})",
         args.input.display(),

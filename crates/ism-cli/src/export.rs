@@ -37,7 +37,7 @@ pub struct Args {
     /// Output file: .obj, .gltf, .glb, .vtk or .vtu.
     output: PathBuf,
     /// Chordal tolerance in model units.
-    #[arg(long, default_value_t = 1e-3)]
+    #[arg(long, default_value_t = 1e-3, value_parser = crate::args::positive, allow_hyphen_values = true)]
     tolerance: f64,
     /// Most halvings of a patch edge.
     #[arg(long, default_value_t = 8)]
@@ -48,21 +48,18 @@ pub struct Args {
     /// Write the complex with F as a higher-order field (VTK outputs only).
     #[arg(long)]
     volume: bool,
-    /// Worker threads (default: all cores).
-    #[arg(long)]
-    threads: Option<usize>,
+    #[command(flatten)]
+    threads: crate::args::Threads,
+    /// No progress display.
+    #[arg(long, short)]
+    quiet: bool,
     /// Print a JSON summary on stdout.
     #[arg(long)]
     json: bool,
 }
 
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
-    if let Some(t) = args.threads {
-        rayon::ThreadPoolBuilder::new()
-            .num_threads(t.max(1))
-            .build_global()
-            .context("cannot start the worker threads")?;
-    }
+    args.threads.install()?;
     let format = ExportFormat::from_path(&args.output).with_context(|| {
         format!(
             "cannot tell the output format of {}: use .obj, .gltf, .glb, .vtk or .vtu",
@@ -75,8 +72,8 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             format.extension()
         );
     }
-    let doc = io::read_path(&args.input)
-        .with_context(|| format!("cannot read {}", args.input.display()))?;
+    let doc =
+        io::read_path(&args.input).map_err(|e| crate::args::cannot_read_model(&args.input, e))?;
     let model = doc.model;
     let name = model.metadata.name.clone();
     let start = Instant::now();
@@ -91,7 +88,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             };
             r.map_err(std::io::Error::other)
         })
-        .with_context(|| format!("cannot write {}", args.output.display()))?;
+        .map_err(|e| crate::args::cannot_write(&args.output, &e))?;
         eprintln!(
             "{} -> {}: {} cells, {} control points; F is {}",
             args.input.display(),
@@ -127,7 +124,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     ism_format::io::write_atomic(&args.output, |w| {
         write_mesh(&mesh, format, name.as_deref(), w).map_err(std::io::Error::other)
     })
-    .with_context(|| format!("cannot write {}", args.output.display()))?;
+    .map_err(|e| crate::args::cannot_write(&args.output, &e))?;
     let t = mesh.topology();
     let what = if mesh.dimension == 3 {
         "triangles"

@@ -8,9 +8,16 @@ use ism_fit::mesh::{MeshCheck, MeshDistance, TriangleMesh};
 use ism_fit::{Expression, FitOptions, ImplicitFunction, Preset, PRESETS};
 use ism_format::io;
 
+/// The help after the options: the expression grammar, then [`AFTER_HELP`].
+fn after_help() -> String {
+    format!(
+        "The shape is g = 0 with g given by --expr (variables x, y[, z]) or by --preset. \
+         Expression grammar:\n{}\n\n{AFTER_HELP}",
+        ism_fit::expr::GRAMMAR
+    )
+}
+
 const AFTER_HELP: &str = "\
-The shape is g = 0 with g given by --expr (variables x, y[, z]; + - * / ^, sin cos tan exp ln sqrt
-abs, PI, E) or by --preset. Note: unary minus binds tighter than ^, so write 0-x^2, not -x^2.
 Vertices where g is exactly 0 get the value +1e-12·max|g| (they count as outside).
 
 The map is the stratified Bézier scheme (one solitary point per edge, triangle and tetrahedron,
@@ -35,6 +42,7 @@ at an edge skip it altogether; the topology is checked against the mesh's either
 Examples:
   ism fit --preset circle -o circle.ism.json --svg circle.svg
   ism fit --expr \"x^2 + 2*y^2 - 0.5\" --domain -1,1,-1,1 --resolution 6 --tolerance 1e-4 -o e.ismb
+  ism fit --expr \"-x^2 - y^2 + 0.25\" --domain -1,1,-1,1 -o disc.ismb   (a leading - is fine)
   ism fit --preset torus --resolution 8 --tolerance 2e-3 -o torus.ismb --json
   ism fit --preset taubin --resolution 8 --rational -o taubin.ism.json --svg taubin.svg
   ism fit --mesh bunny.obj --resolution 8 --tolerance 2e-3 -o bunny.ismb
@@ -45,12 +53,17 @@ or closed mesh was not reproduced (the model is still written); 2 on bad argumen
 
 /// Arguments of `ism fit`.
 #[derive(clap::Args)]
-#[command(after_help = AFTER_HELP)]
+#[command(after_help = after_help())]
+#[command(group(
+    clap::ArgGroup::new("source")
+        .args(["expr", "preset", "mesh", "hermite", "list_presets"])
+        .required(true)
+))]
 pub struct Args {
-    /// The implicit function g (the shape is g = 0).
-    #[arg(long, conflicts_with = "preset", required_unless_present_any = ["preset", "list_presets", "mesh", "hermite"])]
+    /// The implicit function g (the shape is g = 0); grammar below.
+    #[arg(long, allow_hyphen_values = true, conflicts_with = "preset")]
     expr: Option<String>,
-    /// Domain box: x0,x1,y0,y1[,z0,z1]; its length sets the dimension.
+    /// Domain box: x0,x1,y0,y1 (2D) or x0,x1,y0,y1,z0,z1 (3D); its length sets the dimension.
     #[arg(
         long,
         value_delimiter = ',',
@@ -65,16 +78,16 @@ pub struct Args {
     #[arg(long, conflicts_with_all = ["expr", "preset", "hermite"])]
     mesh: Option<PathBuf>,
     /// With --mesh and no --domain: pad the bounding box by this fraction of its diagonal.
-    #[arg(long, default_value_t = 0.05)]
+    #[arg(long, default_value_t = 0.05, value_parser = crate::args::non_negative, allow_hyphen_values = true)]
     mesh_margin: f64,
     /// List the presets and exit.
     #[arg(long)]
     list_presets: bool,
     /// Initial grid cells along the longest side of the domain.
-    #[arg(long, default_value_t = 8)]
+    #[arg(long, default_value_t = 8, value_parser = crate::args::resolution, allow_hyphen_values = true)]
     resolution: usize,
     /// Largest allowed |g|/|∇g| on the shape [default: 1e-3 × the domain's longest side].
-    #[arg(long)]
+    #[arg(long, value_parser = crate::args::positive, allow_hyphen_values = true)]
     tolerance: Option<f64>,
     /// Stop refining at this many simplices.
     #[arg(long, default_value_t = 200_000)]
@@ -101,12 +114,15 @@ pub struct Args {
     /// Hide the progress bar.
     #[arg(long, short)]
     quiet: bool,
-    /// Hermite handles file (JSON): build the free-form model it defines (000 §9.1).
+    #[command(flatten)]
+    threads: crate::args::Threads,
+    /// Hermite handles file (JSON): build the free-form model it defines (Mello & Velho 2009, §9.1).
     #[arg(long, conflicts_with_all = ["expr", "preset"], long_help = crate::hermite::HELP)]
     hermite: Option<PathBuf>,
 }
 
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
+    args.threads.install()?;
     if let Some(handles) = &args.hermite {
         let (output, svg) = (args.output.as_deref(), args.svg.as_deref());
         return crate::hermite::run(handles, output, svg, args.json);
@@ -138,7 +154,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             (Box::new(g), domain, name, None)
         }
         (Some(name), _) => {
-            let p = Preset::find(name)?;
+            let p = Preset::find(name).context("--preset")?;
             (
                 Box::new(p.expression()?),
                 p.domain.to_vec(),
@@ -158,7 +174,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
                 );
             }
             (
-                Box::new(Expression::parse(text, domain.len() / 2)?),
+                Box::new(Expression::parse(text, domain.len() / 2).context("--expr")?),
                 domain,
                 "fit".to_string(),
                 None,
@@ -215,7 +231,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         .filter(|d| d.severity == ism_format::Severity::Error)
         .collect();
     io::write_path(&model, &output, None, io::WriteOptions::default())
-        .with_context(|| format!("cannot write {}", output.display()))?;
+        .map_err(|e| crate::args::cannot_write_model(&output, e))?;
     if let Some(svg) = &args.svg {
         let title = format!(
             "{name}: {} triangles, {} parameters, max |g|/|∇g| {:.2e}",
@@ -223,7 +239,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         );
         let text = ism_fit::svg::picture(&model, &title)?;
         io::write_atomic(svg, |w| std::io::Write::write_all(w, text.as_bytes()))
-            .with_context(|| format!("cannot write {}", svg.display()))?;
+            .map_err(|e| crate::args::cannot_write(svg, &e))?;
     }
 
     let r = &fitted.report;
@@ -380,9 +396,6 @@ fn mesh_setup(args: &Args) -> anyhow::Result<(MeshDistance, Vec<f64>, String, Me
             "warning: {} faces inward; fitted with its orientation reversed",
             path.display()
         );
-    }
-    if !(args.mesh_margin.is_finite() && args.mesh_margin >= 0.0) {
-        bail!("--mesh-margin must be a number ≥ 0");
     }
     let domain = match &args.domain {
         Some(d) if d.len() != 6 => bail!("--domain with --mesh needs 6 numbers, got {}", d.len()),

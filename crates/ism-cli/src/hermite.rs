@@ -48,7 +48,7 @@ pub fn run(
     }
     let fitted = fit_hermite(&model, &data.handles, &data.options())?;
     io::write_path(&fitted.model, output, None, io::WriteOptions::default())
-        .with_context(|| format!("cannot write {}", output.display()))?;
+        .map_err(|e| crate::args::cannot_write_model(output, e))?;
     let r = &fitted.report;
     if let Some(svg) = svg {
         let title = format!(
@@ -59,7 +59,7 @@ pub fn run(
         );
         let picture = ism_fit::svg::picture(&fitted.model, &title)?;
         io::write_atomic(svg, |w| std::io::Write::write_all(w, picture.as_bytes()))
-            .with_context(|| format!("cannot write {}", svg.display()))?;
+            .map_err(|e| crate::args::cannot_write(svg, &e))?;
     }
     let verdict = ism_validate::validate(&fitted.model, &ism_validate::Options::default()).verdict;
     let valid = verdict == ism_validate::Verdict::Valid;

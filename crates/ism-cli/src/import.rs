@@ -60,7 +60,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         Some(encoding),
         io::WriteOptions::default(),
     )
-    .with_context(|| format!("cannot write {}", args.output.display()))?;
+    .map_err(|e| crate::args::cannot_write_model(&args.output, e))?;
     eprintln!(
         "{} -> {}: dimension {}, {} vertices, {} simplices ({} re-oriented), values from {:?}, {} unused nodes dropped",
         args.input.display(),

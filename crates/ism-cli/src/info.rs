@@ -3,7 +3,6 @@
 use std::path::PathBuf;
 use std::process::ExitCode;
 
-use anyhow::Context;
 use ism_format::{io, Document};
 use serde::Serialize;
 
@@ -12,7 +11,10 @@ Examples:
   ism info spec/examples/sphere.ism.json
   ism info --json model.ismb | jq .stages
 
-Exit status: 0 when the file reads, 2 when it does not (the error names the rule, e.g. ISM-003).";
+Exit status, as `ism validate`'s:
+  0  the file reads and the model is well-formed
+  1  the file decodes but the model breaks a structural rule (ISM-1xx); the errors are listed
+  2  the file cannot be read: container, encoding or I/O (the error names the rule, e.g. ISM-003)";
 
 /// Arguments of `ism info`.
 #[derive(clap::Args)]
@@ -162,8 +164,28 @@ fn summarize(path: &std::path::Path, doc: &Document) -> Summary {
 }
 
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
-    let doc = io::read_path(&args.file)
-        .with_context(|| format!("cannot read {}", args.file.display()))?;
+    let doc = match io::read_path(&args.file) {
+        Ok(doc) => doc,
+        Err(ism_format::Error::Structure(errors)) => {
+            eprintln!(
+                "{}: the file decodes, but the model breaks {} structural rule(s) \
+                 (spec/ism-format.md §9):",
+                args.file.display(),
+                errors.len()
+            );
+            for d in errors.iter().take(10) {
+                eprintln!("  {d}");
+            }
+            if errors.len() > 10 {
+                eprintln!(
+                    "  … {} more; `ism validate` lists them all",
+                    errors.len() - 10
+                );
+            }
+            return Ok(ExitCode::from(1));
+        }
+        Err(e) => return Err(crate::args::cannot_read_model(&args.file, e)),
+    };
     let s = summarize(&args.file, &doc);
     if args.json {
         println!("{}", serde_json::to_string_pretty(&s)?);

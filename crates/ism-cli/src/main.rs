@@ -4,6 +4,7 @@ use std::process::ExitCode;
 
 use clap::{Parser, Subcommand};
 
+mod args;
 mod convert;
 mod export;
 mod fit;
@@ -18,7 +19,8 @@ mod validate;
 const AFTER_HELP: &str = "\
 Exit status:
   0  success (for `validate`: every stage certified)
-  1  `validate` found an invalid or undetermined element
+  1  `validate` found an invalid or undetermined element; `info` read a structurally invalid
+     model; `fit`, `smooth`, `export`: the result falls short (see each command's help)
   2  unreadable input, bad arguments, or a failed write
 
 Examples:
@@ -51,9 +53,10 @@ enum Command {
     Sample(sample::Args),
     /// Evaluate F, its sign and gradient at given points.
     Query(query::Args),
-    /// Build an ISM by adaptive fitting of an implicit function (a preset or an expression).
+    /// Build an ISM by adaptive fitting: an expression or preset, a closed triangle mesh, or Hermite
+    /// data.
     Fit(fit::Args),
-    /// Reduce the normal jumps of the shape across facets (paper 000 §8).
+    /// Reduce the normal jumps of the shape across facets (Mello & Velho 2009, §8).
     Smooth(smooth::Args),
 }
 

@@ -41,8 +41,8 @@ pub struct Args {
 }
 
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
-    let doc = io::read_path(&args.model)
-        .with_context(|| format!("cannot read {}", args.model.display()))?;
+    let doc =
+        io::read_path(&args.model).map_err(|e| crate::args::cannot_read_model(&args.model, e))?;
     let model = doc.model;
     let bytes = if args.points.as_os_str() == "-" {
         let mut buf = Vec::new();
@@ -57,6 +57,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let pts = points::parse_points(&bytes, model.dim())
         .with_context(|| format!("cannot read points from {}", args.points.display()))?;
     let format = choose_format(args.out.format, args.out.output.as_deref())?;
+    crate::sample::refuse_binary_on_terminal(format, args.out.output.as_deref())?;
     let bar = progress_bar((pts.len() / model.dim().max(1)) as u64, args.out.quiet);
     let mut sampler = Sampler::new(&model)?;
     if let Some(bar) = &bar {
@@ -64,7 +65,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         sampler = sampler.progress(move |done| bar.set_position(done));
     }
     let pool = rayon::ThreadPoolBuilder::new()
-        .num_threads(args.out.threads.unwrap_or(0))
+        .num_threads(args.out.threads.count())
         .build()?;
     pool.install(|| {
         write_output(args.out.output.as_deref(), format, |sink| {

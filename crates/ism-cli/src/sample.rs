@@ -44,9 +44,10 @@ pub struct Args {
     #[arg(long = "near-surface", value_name = "N", requires = "sigma")]
     near_surface: Option<u64>,
     /// Standard deviation of the --near-surface displacement (model units).
-    #[arg(long, value_name = "S")]
+    #[arg(long, value_name = "S", value_parser = crate::args::positive, allow_hyphen_values = true)]
     sigma: Option<f64>,
-    /// With --volume: sample this box instead of |K|: lo_x,lo_y[,lo_z],hi_x,hi_y[,hi_z].
+    /// With --volume: sample this box instead of |K|: lo_x,lo_y,hi_x,hi_y (2D) or
+    /// lo_x,lo_y,lo_z,hi_x,hi_y,hi_z (3D).
     #[arg(
         long = "box",
         value_name = "LO,HI",
@@ -71,9 +72,8 @@ pub(crate) struct OutputArgs {
     /// csv on standard output.
     #[arg(long, value_parser = parse_format)]
     pub(crate) format: Option<OutputFormat>,
-    /// Worker threads (default: all cores).
-    #[arg(long, short = 'j')]
-    pub(crate) threads: Option<usize>,
+    #[command(flatten)]
+    pub(crate) threads: crate::args::Threads,
     /// No progress bar.
     #[arg(long, short)]
     pub(crate) quiet: bool,
@@ -106,6 +106,23 @@ pub(crate) fn choose_format(
             format!("cannot tell the format of {} from its extension; use --format ply|ply-ascii|csv|npy", p.display())
         }),
     }
+}
+
+/// Binary formats (NPY, binary PLY) are refused on standard output when it is a terminal.
+pub(crate) fn refuse_binary_on_terminal(
+    format: OutputFormat,
+    output: Option<&Path>,
+) -> anyhow::Result<()> {
+    let to_stdout = output.is_none_or(|p| p.as_os_str() == "-");
+    let binary = matches!(format, OutputFormat::Npy | OutputFormat::PlyBinary);
+    if to_stdout && binary && std::io::stdout().is_terminal() {
+        bail!(
+            "--format {} is binary and standard output is a terminal; give -o FILE or redirect \
+             standard output (csv and ply-ascii are text)",
+            format.name()
+        );
+    }
+    Ok(())
 }
 
 /// A progress bar on standard error when it is a terminal and not `--quiet`.
@@ -142,9 +159,7 @@ pub(crate) fn write_output(
             match (written, failure) {
                 (Ok(()), _) => Ok(()),
                 (Err(_), Some(e)) => Err(e.into()),
-                (Err(e), None) => {
-                    Err(anyhow::Error::new(e).context(format!("cannot write {}", path.display())))
-                }
+                (Err(e), None) => Err(crate::args::cannot_write(path, &e)),
             }
         }
         _ => {
@@ -160,8 +175,8 @@ pub(crate) fn write_output(
 }
 
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
-    let doc = io::read_path(&args.model)
-        .with_context(|| format!("cannot read {}", args.model.display()))?;
+    let doc =
+        io::read_path(&args.model).map_err(|e| crate::args::cannot_read_model(&args.model, e))?;
     let model = doc.model;
     let n = model.dim();
     let mut jobs = Vec::new();
@@ -188,6 +203,9 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     } else if args.bbox.is_some() {
         bail!("--box applies to --volume only");
     }
+    if args.sigma.is_some() && args.near_surface.is_none() {
+        bail!("--sigma applies to --near-surface only");
+    }
     if let Some(c) = args.near_surface {
         let sigma = args.sigma.context("--near-surface needs --sigma")?;
         jobs.push(Job::NearSurface(c, sigma));
@@ -198,6 +216,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         _ => bail!("give only one of --surface, --volume, --near-surface per run"),
     };
     let format = choose_format(args.out.format, args.out.output.as_deref())?;
+    refuse_binary_on_terminal(format, args.out.output.as_deref())?;
     let total = match job {
         Job::Surface(c) | Job::Volume(c, _) | Job::NearSurface(c, _) => c,
     };
@@ -208,7 +227,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         sampler = sampler.progress(move |done| bar.set_position(done));
     }
     let pool = rayon::ThreadPoolBuilder::new()
-        .num_threads(args.out.threads.unwrap_or(0))
+        .num_threads(args.out.threads.count())
         .build()?;
     pool.install(|| {
         write_output(args.out.output.as_deref(), format, |sink| match job {

@@ -4,8 +4,7 @@
 use std::path::PathBuf;
 use std::process::ExitCode;
 
-use anyhow::Context;
-use ism_fit::c1::{smooth_rational, C1Options, C1Report};
+use ism_fit::c1::{smooth_rational, C1Error, C1Options, C1Report};
 use ism_fit::smooth::{smooth, SmoothOptions};
 use ism_format::io;
 
@@ -61,7 +60,7 @@ pub struct Args {
     iterations: Option<usize>,
     /// Weight of the proximity term alpha·|β − β₀|² (0: jumps only) [default: 1e-3; with
     /// --rational: of the spread penalty alpha·Σ(β − β̄)², default 1e-4].
-    #[arg(long)]
+    #[arg(long, value_parser = crate::args::non_negative, allow_hyphen_values = true)]
     alpha: Option<f64>,
     /// Fit the weights of a rational stage with fixed control points to the C¹ condition of
     /// 000 Thm. 8.1 instead (input: no stage, or one such rational stage).
@@ -73,6 +72,11 @@ pub struct Args {
     /// Print the report as JSON on stdout.
     #[arg(long)]
     json: bool,
+    #[command(flatten)]
+    threads: crate::args::Threads,
+    /// No progress display.
+    #[arg(long, short)]
+    quiet: bool,
 }
 
 fn stats(s: Option<ism_fit::smooth::JumpStats>) -> serde_json::Value {
@@ -163,7 +167,7 @@ fn write_and_validate(
     output: &std::path::Path,
 ) -> anyhow::Result<ism_validate::Verdict> {
     io::write_path(model, output, None, io::WriteOptions::default())
-        .with_context(|| format!("cannot write {}", output.display()))?;
+        .map_err(|e| crate::args::cannot_write_model(output, e))?;
     Ok(ism_validate::validate(model, &ism_validate::Options::default()).verdict)
 }
 
@@ -176,8 +180,9 @@ fn exit(verdict: ism_validate::Verdict) -> ExitCode {
 }
 
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
-    let doc = io::read_path(&args.model)
-        .with_context(|| format!("cannot read {}", args.model.display()))?;
+    args.threads.install()?;
+    let doc =
+        io::read_path(&args.model).map_err(|e| crate::args::cannot_read_model(&args.model, e))?;
     if args.rational {
         let defaults = C1Options::default();
         let options = C1Options {
@@ -185,7 +190,16 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             alpha: args.alpha.unwrap_or(defaults.alpha),
             iterations: args.iterations.unwrap_or(defaults.iterations),
         };
-        let smoothed = smooth_rational(&doc.model, &options)?;
+        let smoothed = smooth_rational(&doc.model, &options).map_err(|e| match e {
+            C1Error::StageCount(k) => anyhow::anyhow!(
+                "--rational: {} has {k} stages, but the C¹ condition (Mello & Velho 2009, \
+                 Thm. 8.1) is for a model with no stage or a single implicit rational stage with \
+                 fixed control points; smooth it without --rational, or give --rational the \
+                 linear model (no stage)",
+                args.model.display()
+            ),
+            e => anyhow::Error::new(e).context("--rational"),
+        })?;
         let verdict = write_and_validate(&smoothed.model, &args.output)?;
         print_rational(&smoothed.report, &args.output, verdict.as_str(), args.json);
         return Ok(exit(verdict));

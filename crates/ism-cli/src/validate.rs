@@ -9,7 +9,8 @@ const AFTER_HELP: &str = "\
 Examples:
   ism validate spec/examples/*.ism.json
   ism validate --json model.ismb > report.json
-  ism validate --quality --max-pieces 1000000 --threads 1 model.ism.json
+  ism validate --quality --max-pieces 1000000 -j 1 model.ism.json
+  ism validate --max-issues 500 model.ism.json     (list up to 500 messages)
 
 Each element (stage × top simplex) is certified valid by a theorem or by Bernstein coefficients of
 det DX with subdivision (floating point with proven rounding bounds, then exact integer arithmetic
@@ -33,12 +34,15 @@ pub struct Args {
     /// Print the machine-readable report (JSON) instead of the summary.
     #[arg(long)]
     json: bool,
-    /// Most messages listed per file (all are counted).
-    #[arg(long, default_value_t = ism_validate::DEFAULT_MAX_ISSUES)]
-    max_issues: usize,
-    /// Worker threads (0: all cores).
-    #[arg(long, default_value_t = 0)]
-    threads: usize,
+    /// Most messages listed per file (all are counted) [default: 20 in the text summary, 100 with
+    /// --json].
+    #[arg(long)]
+    max_issues: Option<usize>,
+    #[command(flatten)]
+    threads: crate::args::Threads,
+    /// No progress display.
+    #[arg(long, short)]
+    quiet: bool,
     /// Pieces per element for the positivity certificate's subdivision (floating point; the exact
     /// fallback gets a sixteenth as many). Undetermined only means this budget ran out.
     #[arg(long, default_value_t = ism_validate::DEFAULT_MAX_PIECES, value_parser = parse_pieces)]
@@ -62,7 +66,10 @@ fn parse_pieces(text: &str) -> Result<usize, String> {
     }
 }
 
-fn print_summary(path: &std::path::Path, report: &Report) {
+/// Messages the text summary lists when --max-issues is not given.
+const TEXT_MAX_ISSUES: usize = 20;
+
+fn print_summary(path: &std::path::Path, report: &Report, listed: usize) {
     let verdict = match report.verdict {
         Verdict::Valid => "VALID",
         Verdict::Invalid => "INVALID",
@@ -124,26 +131,34 @@ fn print_summary(path: &std::path::Path, report: &Report) {
             }
         );
     }
-    // Messages are already ordered errors first; show the first few.
-    for m in report.issues.messages.iter().take(20) {
+    // Messages are already ordered errors first; show the first `listed`.
+    let shown = report.issues.messages.len().min(listed);
+    for m in &report.issues.messages[..shown] {
         println!(
             "  {} {:?} ({}): {}",
             m.code, m.severity, m.location, m.message
         );
     }
-    if report.issues.messages.len() > 20 || report.issues.truncated {
-        let total = report.issues.num_errors + report.issues.num_warnings + report.issues.num_infos;
+    let total = report.issues.num_errors + report.issues.num_warnings + report.issues.num_infos;
+    if total > shown {
         println!(
-            "  … {} more (use --json or --max-issues)",
-            total.saturating_sub(20.min(report.issues.messages.len()))
+            "  … {} more not listed (counted above; raise --max-issues to list them)",
+            total - shown
         );
     }
 }
 
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
+    // The report keeps at least the default number of messages, so `--json` does not lose any
+    // to the shorter text listing.
+    let listed = args.max_issues.unwrap_or(if args.json {
+        ism_validate::DEFAULT_MAX_ISSUES
+    } else {
+        TEXT_MAX_ISSUES
+    });
     let options = Options {
-        max_issues: args.max_issues,
-        threads: args.threads,
+        max_issues: args.max_issues.unwrap_or(ism_validate::DEFAULT_MAX_ISSUES),
+        threads: args.threads.count(),
         max_pieces: args.max_pieces,
         quality: args.quality,
         theorems: !args.no_theorems,
@@ -159,7 +174,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
                 if args.json {
                     reports.push(serde_json::to_value(&report)?);
                 } else {
-                    print_summary(path, &report);
+                    print_summary(path, &report, listed);
                 }
             }
             Err(err) => {

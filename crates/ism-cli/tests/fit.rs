@@ -66,6 +66,42 @@ fn expression_with_negative_domain_fits() {
     assert_validates(&model);
 }
 
+/// Issue 16: `--expr -x^2-y^2+0.25` (no `=`, leading minus) is the disc of radius 0.5, i.e. a circle:
+/// one component, Euler characteristic 0, not the two branches of a hyperbola.
+#[test]
+fn leading_minus_expression_is_a_circle() {
+    let dir = tempfile::tempdir().unwrap();
+    let model = dir.path().join("disc.ismb");
+    let out = ism()
+        .args([
+            "fit",
+            "--expr",
+            "-x^2-y^2+0.25",
+            "--domain",
+            "-1,1,-1,1",
+            "--json",
+            "-q",
+            "-o",
+        ])
+        .arg(&model)
+        .output()
+        .unwrap();
+    assert_status(&out, 0);
+    let r = json(&out.stdout);
+    assert_eq!(r["components"], 1);
+    assert_eq!(r["euler"], 0);
+    assert_validates(&model);
+}
+
+#[test]
+fn help_documents_the_expression_grammar() {
+    let out = ism().args(["fit", "--help"]).output().unwrap();
+    assert_status(&out, 0);
+    let text = String::from_utf8(out.stdout).unwrap();
+    assert!(text.contains("-x^2 = -(x^2)"), "{text}");
+    assert!(text.contains("right to left"), "{text}");
+}
+
 #[test]
 fn tolerance_not_met_exits_1_but_writes_the_model() {
     let dir = tempfile::tempdir().unwrap();

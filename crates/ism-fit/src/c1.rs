@@ -105,6 +105,13 @@ pub enum C1Error {
         /// What is wrong and what was expected.
         message: String,
     },
+    /// More than one stage: Thm. 8.1 concerns a single rational map.
+    #[error(
+        "the model has {0} stages; rational C¹ smoothing needs no stage or a single implicit \
+         rational stage with fixed control points (eq. (6) of Mello & Velho 2009, Thm. 8.1, is \
+         exact only there)"
+    )]
+    StageCount(usize),
     /// A control point of the input's rational stage is moved.
     #[error(
         "stage 0, face {face:?}, owned index {index}: control point {found:?} is moved (expected the \
@@ -354,16 +361,7 @@ fn check_input(model: &Model, options: &C1Options) -> Result<(u32, InputWeights)
             }
             d
         }
-        stages => {
-            return Err(C1Error::Stage {
-                stage: 1,
-                message: format!(
-                    "{} stages; expected at most one (an implicit rational stage with fixed \
-                     control points): eq. (6) is exact only for a single rational stage",
-                    stages.len()
-                ),
-            })
-        }
+        stages => return Err(C1Error::StageCount(stages.len())),
     };
     if degree < n || degree > MAX_DEGREE {
         return Err(C1Error::Options(format!(
@@ -1092,7 +1090,7 @@ mod tests {
         let e = smooth_rational(&example("two-stage.ism.json"), &o)
             .err()
             .unwrap();
-        assert!(matches!(e, C1Error::Stage { .. }), "{e}");
+        assert!(matches!(e, C1Error::StageCount(2)), "{e}");
         // Fixed points and non-uniform weights: in the theorem's setting, accepted.
         let degree5 = smooth_rational(&example("rational-degree5.ism.json"), &o).unwrap();
         assert_eq!(degree5.report.degree, 5);

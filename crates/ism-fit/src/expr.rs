@@ -4,8 +4,10 @@
 //! gradient comes from `exmex`'s exact symbolic partial derivatives, and both the value and the
 //! gradient are also compiled over [`Interval`] for the Plantinga–Vegter test.
 //!
-//! Syntax caveat inherited from `exmex`: unary operators bind tighter than binary ones, so
-//! `-x^2` means `(-x)^2`. Write `0-x^2` or `-(x^2)`.
+//! The text is read by this module's own parser with the conventional precedence of mathematics,
+//! Python and Julia (see [`GRAMMAR`]), then handed to `exmex` fully parenthesized: `exmex` alone
+//! lets unary minus bind tighter than `^` (`-x^2` would be `(-x)^2`) and has no exponent notation
+//! (`1e-3`).
 
 use exmex::prelude::*;
 use exmex::{BinOp, FlatEx, MakeOperators, NumberMatcher, Operator};
@@ -15,6 +17,318 @@ use crate::FitError;
 
 /// Names of the coordinates, in order.
 pub const VARIABLES: [&str; 3] = ["x", "y", "z"];
+
+/// The expression grammar, as the CLI's help shows it.
+pub const GRAMMAR: &str = "\
+  expr    = term   { (\"+\" | \"-\") term }            left to right
+  term    = unary  { (\"*\" | \"/\") unary }            left to right
+  unary   = (\"-\" | \"+\") unary | power
+  power   = atom [ (\"^\" | \"**\") unary ]             right to left: 2^3^2 = 2^9
+  atom    = number | x | y | z | constant | function \"(\" expr \")\" | \"(\" expr \")\"
+  number  = digits [\".\" digits] [(\"e\" | \"E\") [\"+\" | \"-\"] digits], e.g. 0.28, .5, 1e-3
+  constant: PI π E e TAU τ
+  function: sqrt cbrt exp ln log log2 log10 sin cos tan asin acos atan sinh cosh tanh asinh acosh atanh
+So -x^2 = -(x^2), 2^-x = 2^(-x), a/b*c = (a/b)*c, as in mathematics, Python and Julia.";
+
+/// Functions of one argument the grammar accepts (those `exmex` can differentiate).
+const FUNCTIONS: &[&str] = &[
+    "sqrt", "cbrt", "exp", "ln", "log", "log2", "log10", "sin", "cos", "tan", "asin", "acos",
+    "atan", "sinh", "cosh", "tanh", "asinh", "acosh", "atanh",
+];
+
+/// Named constants.
+const CONSTANTS: &[&str] = &["PI", "π", "E", "e", "TAU", "τ"];
+
+/// A parsed expression tree.
+#[derive(Clone, Debug, PartialEq)]
+enum Node {
+    Number(f64),
+    /// A variable or a named constant.
+    Name(String),
+    Negate(Box<Node>),
+    Binary(char, Box<Node>, Box<Node>),
+    Call(String, Box<Node>),
+}
+
+impl Node {
+    /// The tree as `exmex` text with every operation parenthesized, so `exmex`'s own priorities
+    /// never decide anything. Numbers are written by `f64`'s `Display`: the shortest decimal that
+    /// reads back to the same double, never in exponent notation (which `exmex` lacks).
+    fn to_exmex(&self, out: &mut String) {
+        match self {
+            Node::Number(v) => out.push_str(&format!("{v}")),
+            Node::Name(n) => out.push_str(n),
+            Node::Negate(a) => {
+                out.push_str("(-(");
+                a.to_exmex(out);
+                out.push_str("))");
+            }
+            Node::Binary(op, a, b) => {
+                out.push_str("((");
+                a.to_exmex(out);
+                out.push(')');
+                out.push(*op);
+                out.push('(');
+                b.to_exmex(out);
+                out.push_str("))");
+            }
+            Node::Call(f, a) => {
+                out.push_str(f);
+                out.push('(');
+                a.to_exmex(out);
+                out.push(')');
+            }
+        }
+    }
+}
+
+#[derive(Clone, Debug, PartialEq)]
+enum Token {
+    Number(f64),
+    Name(String),
+    /// One of `+ - * / ^` (`**` is read as `^`).
+    Op(char),
+    Open,
+    Close,
+}
+
+impl Token {
+    fn describe(&self) -> String {
+        match self {
+            Token::Number(v) => format!("the number {v}"),
+            Token::Name(n) => format!("`{n}`"),
+            Token::Op(c) => format!("`{c}`"),
+            Token::Open => "`(`".to_string(),
+            Token::Close => "`)`".to_string(),
+        }
+    }
+}
+
+/// Splits `text` into tokens with their character positions (1-based, for messages).
+fn tokenize(text: &str) -> Result<Vec<(Token, usize)>, String> {
+    let chars: Vec<char> = text.chars().collect();
+    let mut tokens = Vec::new();
+    let mut i = 0;
+    let is_name_start = |c: char| c.is_alphabetic() || c == '_';
+    while i < chars.len() {
+        let c = chars[i];
+        let start = i;
+        if c.is_whitespace() {
+            i += 1;
+            continue;
+        }
+        if c.is_ascii_digit() || (c == '.' && chars.get(i + 1).is_some_and(|d| d.is_ascii_digit()))
+        {
+            while i < chars.len() && chars[i].is_ascii_digit() {
+                i += 1;
+            }
+            if i < chars.len() && chars[i] == '.' {
+                i += 1;
+                while i < chars.len() && chars[i].is_ascii_digit() {
+                    i += 1;
+                }
+            }
+            // An exponent only when digits follow: `2e` stays the number 2 and the name `e`.
+            if i < chars.len() && (chars[i] == 'e' || chars[i] == 'E') {
+                let mut j = i + 1;
+                if j < chars.len() && (chars[j] == '+' || chars[j] == '-') {
+                    j += 1;
+                }
+                if j < chars.len() && chars[j].is_ascii_digit() {
+                    while j < chars.len() && chars[j].is_ascii_digit() {
+                        j += 1;
+                    }
+                    i = j;
+                }
+            }
+            let literal: String = chars[start..i].iter().collect();
+            let value: f64 = literal
+                .parse()
+                .map_err(|_| format!("`{literal}` at character {} is not a number", start + 1))?;
+            if !value.is_finite() {
+                return Err(format!(
+                    "`{literal}` at character {} is too large for a double",
+                    start + 1
+                ));
+            }
+            tokens.push((Token::Number(value), start + 1));
+        } else if is_name_start(c) {
+            while i < chars.len() && (is_name_start(chars[i]) || chars[i].is_ascii_digit()) {
+                i += 1;
+            }
+            tokens.push((Token::Name(chars[start..i].iter().collect()), start + 1));
+        } else {
+            let token = match c {
+                '*' if chars.get(i + 1) == Some(&'*') => {
+                    i += 1;
+                    Token::Op('^')
+                }
+                '+' | '-' | '*' | '/' | '^' => Token::Op(c),
+                '(' => Token::Open,
+                ')' => Token::Close,
+                _ => {
+                    return Err(format!(
+                    "unexpected character `{c}` at character {}; the grammar has + - * / ^ ** ( )",
+                    start + 1
+                ))
+                }
+            };
+            i += 1;
+            tokens.push((token, start + 1));
+        }
+    }
+    Ok(tokens)
+}
+
+/// Recursive descent over [`GRAMMAR`].
+struct Parser {
+    tokens: Vec<(Token, usize)>,
+    at: usize,
+    /// Characters in the text, for "at the end" messages.
+    len: usize,
+}
+
+impl Parser {
+    fn peek(&self) -> Option<&Token> {
+        self.tokens.get(self.at).map(|(t, _)| t)
+    }
+
+    fn position(&self) -> String {
+        match self.tokens.get(self.at) {
+            Some((t, p)) => format!("{} at character {p}", t.describe()),
+            None => format!("the end of the expression (character {})", self.len + 1),
+        }
+    }
+
+    fn expr(&mut self) -> Result<Node, String> {
+        let mut left = self.term()?;
+        while let Some(Token::Op(op @ ('+' | '-'))) = self.peek() {
+            let op = *op;
+            self.at += 1;
+            let right = self.term()?;
+            left = Node::Binary(op, Box::new(left), Box::new(right));
+        }
+        Ok(left)
+    }
+
+    fn term(&mut self) -> Result<Node, String> {
+        let mut left = self.unary()?;
+        while let Some(Token::Op(op @ ('*' | '/'))) = self.peek() {
+            let op = *op;
+            self.at += 1;
+            let right = self.unary()?;
+            left = Node::Binary(op, Box::new(left), Box::new(right));
+        }
+        Ok(left)
+    }
+
+    fn unary(&mut self) -> Result<Node, String> {
+        match self.peek() {
+            Some(Token::Op('-')) => {
+                self.at += 1;
+                Ok(Node::Negate(Box::new(self.unary()?)))
+            }
+            Some(Token::Op('+')) => {
+                self.at += 1;
+                self.unary()
+            }
+            _ => self.power(),
+        }
+    }
+
+    fn power(&mut self) -> Result<Node, String> {
+        let base = self.atom()?;
+        if let Some(Token::Op('^')) = self.peek() {
+            self.at += 1;
+            let exponent = self.unary()?;
+            return Ok(Node::Binary('^', Box::new(base), Box::new(exponent)));
+        }
+        Ok(base)
+    }
+
+    fn atom(&mut self) -> Result<Node, String> {
+        let expected = "expected a number, a variable, a constant, a function or `(`";
+        let after = match self.at.checked_sub(1).and_then(|k| self.tokens.get(k)) {
+            Some((t, _)) => format!(" after {}", t.describe()),
+            None => String::new(),
+        };
+        let Some((token, _)) = self.tokens.get(self.at).cloned() else {
+            return Err(format!("{expected}{after}, found {}", self.position()));
+        };
+        match token {
+            Token::Number(v) => {
+                self.at += 1;
+                Ok(Node::Number(v))
+            }
+            Token::Open => {
+                self.at += 1;
+                let inner = self.expr()?;
+                self.close()?;
+                Ok(inner)
+            }
+            Token::Name(name) => {
+                let is_call = matches!(self.tokens.get(self.at + 1), Some((Token::Open, _)));
+                if is_call {
+                    if !FUNCTIONS.contains(&name.as_str()) {
+                        return Err(format!(
+                            "unknown function `{name}` at {}; known: {}",
+                            self.position(),
+                            FUNCTIONS.join(" ")
+                        ));
+                    }
+                    self.at += 2;
+                    let argument = self.expr()?;
+                    self.close()?;
+                    return Ok(Node::Call(name, Box::new(argument)));
+                }
+                if FUNCTIONS.contains(&name.as_str()) {
+                    return Err(format!(
+                        "function `{name}` at {} needs its argument in parentheses",
+                        self.position()
+                    ));
+                }
+                self.at += 1;
+                Ok(Node::Name(name))
+            }
+            Token::Op(_) | Token::Close => {
+                Err(format!("{expected}{after}, found {}", self.position()))
+            }
+        }
+    }
+
+    fn close(&mut self) -> Result<(), String> {
+        if let Some(Token::Close) = self.peek() {
+            self.at += 1;
+            Ok(())
+        } else {
+            Err(format!("expected `)`, found {}", self.position()))
+        }
+    }
+}
+
+/// Parses `text` by [`GRAMMAR`] and returns it as fully parenthesized `exmex` text. Names other
+/// than functions are passed on; [`Expression::parse`] checks them against the variables.
+fn to_exmex_text(text: &str) -> Result<String, String> {
+    let tokens = tokenize(text)?;
+    if tokens.is_empty() {
+        return Err("the expression is empty".to_string());
+    }
+    let mut parser = Parser {
+        tokens,
+        at: 0,
+        len: text.chars().count(),
+    };
+    let tree = parser.expr()?;
+    if parser.at < parser.tokens.len() {
+        return Err(format!(
+            "expected an operator (+ - * / ^) or the end, found {}",
+            parser.position()
+        ));
+    }
+    let mut out = String::new();
+    tree.to_exmex(&mut out);
+    Ok(out)
+}
 
 /// Interval enclosures of a function and its gradient over a box.
 #[derive(Clone, Debug, PartialEq)]
@@ -146,8 +460,10 @@ fn slots_of(names: &[String], dim: usize, text: &str) -> Result<Vec<usize>, FitE
                 .ok_or_else(|| FitError::Expression {
                     text: text.to_string(),
                     message: format!(
-                        "unknown variable `{name}`; a {dim}-D expression may use {}",
-                        VARIABLES[..dim].join(", ")
+                        "unknown variable `{name}`; a {dim}-D expression may use {} and the \
+                         constants {}",
+                        VARIABLES[..dim].join(", "),
+                        CONSTANTS.join(" ")
                     ),
                 })
         })
@@ -184,7 +500,8 @@ impl Expression {
             text: text.to_string(),
             message,
         };
-        let ex = exmex::parse::<f64>(text).map_err(|e| err(e.to_string()))?;
+        let exmex_text = to_exmex_text(text).map_err(err)?;
+        let ex = exmex::parse::<f64>(&exmex_text).map_err(|e| err(e.to_string()))?;
         let slots = slots_of(ex.var_names(), dim, text)?;
         let mut partials = vec![None; dim];
         for (var_index, &coord) in slots.iter().enumerate() {
@@ -370,13 +687,84 @@ mod tests {
         ));
     }
 
+    fn at(text: &str, p: &[f64]) -> f64 {
+        Expression::parse(text, p.len()).unwrap().value(p)
+    }
+
+    // Expected values by hand arithmetic, with the precedence of mathematics, Python and Julia.
     #[test]
-    fn unary_minus_binds_tighter_than_power() {
-        // Documented exmex behaviour; the presets are written with it in mind.
+    fn unary_minus_binds_looser_than_power() {
+        assert_eq!(at("-x^2", &[2.0]), -4.0);
+        assert_eq!(at("-2^2 + 0*x", &[1.0]), -4.0);
+        assert_eq!(at("(-x)^2", &[2.0]), 4.0);
+        assert_eq!(at("0-x^2", &[2.0]), -4.0);
+        assert_eq!(at("- -x", &[3.0]), 3.0);
+        assert_eq!(at("+x", &[3.0]), 3.0);
+        // The issue's circle: -x²-y²+0.25 at (0.5, 0.25) is -0.25 - 0.0625 + 0.25.
+        assert_eq!(at("-x^2-y^2+0.25", &[0.5, 0.25]), -0.0625);
+        // The exponent may carry a sign: 2^-x = 2^(-x).
+        assert_eq!(at("2^-x", &[1.0]), 0.5);
+        assert_eq!(at("x*-y", &[2.0, 3.0]), -6.0);
+    }
+
+    #[test]
+    fn binary_operators_associate_conventionally() {
+        // ^ to the right: 2^(3^2) = 2^9.
+        assert_eq!(at("x^3^2", &[2.0]), 512.0);
+        assert_eq!(at("x**3**2", &[2.0]), 512.0);
+        // * and / to the left, at one level: (8/4)/2 and (8/4)*2.
+        assert_eq!(at("x/4/2", &[8.0]), 1.0);
+        assert_eq!(at("x/4*2", &[8.0]), 4.0);
+        // + and - to the left, at one level: (2-3)-4 and (2-3)+4.
+        assert_eq!(at("x-3-4", &[2.0]), -5.0);
+        assert_eq!(at("x-3+4", &[2.0]), 3.0);
+        // * before +, ^ before *: 1 + (2·(3^2)) = 19.
+        assert_eq!(at("x + 2*3^2", &[1.0]), 19.0);
+        assert_eq!(at("2*x^2/4", &[3.0]), 4.5);
+    }
+
+    #[test]
+    fn numbers_constants_and_functions() {
+        assert_eq!(at("1e-3*x", &[2000.0]), 2.0);
+        assert_eq!(at("2.5E+1 - x", &[5.0]), 20.0);
+        assert_eq!(at(".5*x", &[4.0]), 2.0);
+        assert_eq!(at("sqrt(x) - 0.5", &[0.25]), 0.0);
+        assert_eq!(at("-sqrt(x)^2", &[9.0]), -9.0);
+        assert_eq!(at("PI*x", &[1.0]), std::f64::consts::PI);
+        // The gradient of -x² is -2x.
         let e = Expression::parse("-x^2", 1).unwrap();
-        assert_eq!(e.value(&[2.0]), 4.0);
-        let e = Expression::parse("0-x^2", 1).unwrap();
-        assert_eq!(e.value(&[2.0]), -4.0);
+        let mut g = [0.0];
+        e.gradient(&[3.0], &mut g);
+        assert_eq!(g, [-6.0]);
+    }
+
+    fn message(text: &str) -> String {
+        match Expression::parse(text, 2) {
+            Err(FitError::Expression { message, .. }) => message,
+            other => panic!("{text}: {other:?}"),
+        }
+    }
+
+    #[test]
+    fn syntax_errors_say_where_and_what_was_expected() {
+        assert_eq!(
+            message("x^^2"),
+            "expected a number, a variable, a constant, a function or `(` after `^`, found `^` at \
+             character 3"
+        );
+        assert_eq!(
+            message("x + (y"),
+            "expected `)`, found the end of the expression (character 7)"
+        );
+        assert_eq!(
+            message("2e"),
+            "expected an operator (+ - * / ^) or the end, found `e` at character 2"
+        );
+        assert!(message("sin x").contains("needs its argument in parentheses"));
+        assert!(message("foo(x)").starts_with("unknown function `foo`"));
+        assert!(message("x # y").starts_with("unexpected character `#` at character 3"));
+        assert_eq!(message("  "), "the expression is empty");
+        assert!(message("x - ").contains("found the end of the expression"));
     }
 
     fn torus() -> Expression {

@@ -45,6 +45,12 @@ pub use expr::{Expression, ImplicitFunction};
 pub use fit::{fit, FitOptions, FitReport, Fitted, Progress};
 pub use presets::{Preset, PRESETS};
 
+/// `(x, y[, z])` for messages.
+fn show_point(p: &[f64]) -> String {
+    let parts: Vec<String> = p.iter().map(|x| format!("{x}")).collect();
+    format!("({})", parts.join(", "))
+}
+
 /// Errors of this crate.
 #[derive(Debug, thiserror::Error)]
 pub enum FitError {
@@ -57,8 +63,55 @@ pub enum FitError {
         message: String,
     },
     /// Inconsistent or out-of-range options.
-    #[error("options: {0}")]
+    #[error("{0}")]
     Options(String),
+    /// `g` is not a finite number at a point of the domain.
+    #[error(
+        "g is {value} at {}: it is not defined there (e.g. sqrt or ln of a negative number, or a \
+         division by zero); choose a domain where g is finite",
+        show_point(.point)
+    )]
+    Undefined {
+        /// Where.
+        point: Vec<f64>,
+        /// The value `g` returned there (NaN or ±∞).
+        value: f64,
+    },
+    /// `g` changes sign along an edge without passing through zero: a pole or a jump.
+    #[error(
+        "g changes sign between {} and {} without a zero: |g| grows to {value:.3e} near {} (a pole \
+         or a jump, as 1/x has at x = 0); the shape g = 0 must lie where g is continuous",
+        show_point(.from),
+        show_point(.to),
+        show_point(.near)
+    )]
+    NoRoot {
+        /// One end of the edge.
+        from: Vec<f64>,
+        /// The other end.
+        to: Vec<f64>,
+        /// Where the sign changes.
+        near: Vec<f64>,
+        /// `|g|` there.
+        value: f64,
+    },
+    /// `g` has one sign at every vertex after the topology phase: no shape to fit.
+    #[error(
+        "g has no zero set in the domain: it is {} at all {vertices} vertices sampled (smallest \
+         |g| = {smallest:.3e}, at {}); check the expression and the domain",
+        if *.positive { "positive" } else { "negative" },
+        show_point(.at)
+    )]
+    NoZeroSet {
+        /// Whether `g` is positive (else negative) everywhere sampled.
+        positive: bool,
+        /// Number of vertices sampled.
+        vertices: usize,
+        /// The smallest `|g|` among them.
+        smallest: f64,
+        /// Where.
+        at: Vec<f64>,
+    },
     /// A mesh file that cannot be read, or a mesh that cannot define a distance.
     #[error("mesh {}: {message}", path.display())]
     Mesh {

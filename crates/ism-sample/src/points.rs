@@ -1,8 +1,9 @@
 //! Reading query points: CSV / whitespace-separated text, or NPY arrays.
 //!
-//! Text: one point per line, `n` numbers separated by commas, spaces or tabs; a first line that
-//! does not parse as numbers is taken as a header (its field names may pick the columns `x y [z]`);
-//! blank lines and lines starting with `#` are skipped. NPY: a C-order array of shape `(N, n)` of
+//! Text: one point per line, exactly `n` numbers separated by commas, spaces or tabs; a first line
+//! that does not parse as numbers is taken as a header, and when its field names include `x y [z]`
+//! those columns are picked and other columns may follow (e.g. `ism query`'s own output); blank
+//! lines and lines starting with `#` are skipped. NPY: a C-order array of shape `(N, n)` of
 //! `<f8` or `<f4`, or a structured array with fields `x`, `y` (and `z`) of `<f8`/`<f4`. The format is
 //! detected from the NPY magic bytes.
 
@@ -44,6 +45,8 @@ fn split_fields(line: &str) -> impl Iterator<Item = &str> {
 pub fn parse_text(text: &str, dim: usize) -> Result<Vec<f64>> {
     let mut out = Vec::new();
     let mut columns: Option<Vec<usize>> = None;
+    // Whether a header named the coordinate columns; without one a line holds exactly `dim`.
+    let mut named = false;
     let mut seen_data = false;
     for (i, line) in text.lines().enumerate() {
         let line = line.trim();
@@ -69,10 +72,22 @@ pub fn parse_text(text: &str, dim: usize) -> Result<Vec<f64>> {
                         .position(|f| f.trim_matches('"').eq_ignore_ascii_case(name))
                 })
                 .collect();
+            named = picked.is_some();
             columns = Some(picked.unwrap_or_else(|| (0..dim).collect()));
             continue;
         }
         seen_data = true;
+        if !named && fields.len() > dim {
+            return Err(points_err(
+                Some(format!("line {}", i + 1)),
+                format!(
+                    "{} numbers, expected {dim} (the model is {dim}-D); a header line naming \
+                     the columns x, y{} lets other columns follow",
+                    fields.len(),
+                    if dim == 3 { ", z" } else { "" }
+                ),
+            ));
+        }
         let cols = columns.get_or_insert_with(|| (0..dim).collect());
         for &c in cols.iter() {
             match numbers.get(c) {
@@ -290,6 +305,15 @@ mod tests {
             .unwrap_err()
             .to_string()
             .contains("line 1"));
+        // Issue 16: four numbers on a line of a 3-D query are refused, naming the line.
+        let err = parse_text("0 0 0\n1 2 3 4\n", 3).unwrap_err().to_string();
+        assert!(
+            err.contains("line 2") && err.contains("4 numbers, expected 3"),
+            "{err}"
+        );
+        // A header naming the columns lets others follow; one that does not name them does not.
+        assert_eq!(parse_text("x,y,f\n1,2,9\n", 2).unwrap(), vec![1.0, 2.0]);
+        assert!(parse_text("a,b\n1,2,9\n", 2).is_err());
     }
 
     #[test]

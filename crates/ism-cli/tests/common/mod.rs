@@ -40,3 +40,32 @@ pub fn assert_validates(model: &Path) {
     let check = ism().arg("validate").arg(model).output().unwrap();
     assert_status(&check, 0);
 }
+
+/// A pseudo-terminal: `(controller, terminal)`. Give `terminal` to a child as standard output or
+/// error and the child sees a terminal there; what it writes can be read from `controller`.
+#[cfg(unix)]
+pub fn pseudo_terminal() -> (std::fs::File, std::fs::File) {
+    use rustix::pty::{grantpt, openpt, ptsname, unlockpt, OpenptFlags};
+    use std::os::unix::ffi::OsStrExt;
+    let controller = openpt(OpenptFlags::RDWR | OpenptFlags::NOCTTY).expect("openpt");
+    grantpt(&controller).expect("grantpt");
+    unlockpt(&controller).expect("unlockpt");
+    let name = ptsname(&controller, Vec::new()).expect("ptsname");
+    let terminal = std::fs::OpenOptions::new()
+        .read(true)
+        .write(true)
+        .open(std::ffi::OsStr::from_bytes(name.as_bytes()))
+        .expect("open the terminal side");
+    (std::fs::File::from(controller), terminal)
+}
+
+/// Asserts exit status 2 and that standard error contains every one of `words`; returns stderr.
+#[track_caller]
+pub fn assert_refused_with(out: &Output, words: &[&str]) -> String {
+    assert_status(out, 2);
+    let stderr = String::from_utf8_lossy(&out.stderr).into_owned();
+    for w in words {
+        assert!(stderr.contains(w), "{w:?} not in: {stderr}");
+    }
+    stderr
+}

@@ -1,0 +1,111 @@
+//! Arguments shared by several subcommands, and value parsers that name what they expect (clap puts
+//! the argument's name in front: `invalid value '0' for '--tolerance <T>': must be …`).
+
+use std::path::Path;
+
+/// `-j/--threads N`, the same spelling on every command that runs in parallel.
+#[derive(clap::Args, Clone, Copy, Debug)]
+pub(crate) struct Threads {
+    /// Worker threads (0 or absent: all cores).
+    #[arg(short = 'j', long = "threads", value_name = "N")]
+    pub(crate) threads: Option<usize>,
+}
+
+impl Threads {
+    /// The count to hand to rayon (0: all cores).
+    pub(crate) fn count(self) -> usize {
+        self.threads.unwrap_or(0)
+    }
+
+    /// Sizes rayon's global pool (used by the libraries' parallel loops).
+    pub(crate) fn install(self) -> anyhow::Result<()> {
+        if let Some(t) = self.threads.filter(|&t| t > 0) {
+            rayon::ThreadPoolBuilder::new()
+                .num_threads(t)
+                .build_global()
+                .map_err(|e| anyhow::anyhow!("cannot start {t} worker threads: {e}"))?;
+        }
+        Ok(())
+    }
+}
+
+fn number(s: &str) -> Result<f64, String> {
+    s.trim()
+        .parse::<f64>()
+        .map_err(|_| format!("expected a number, found {s:?}"))
+}
+
+/// A finite number `> 0`.
+pub(crate) fn positive(s: &str) -> Result<f64, String> {
+    let x = number(s)?;
+    if x.is_finite() && x > 0.0 {
+        Ok(x)
+    } else {
+        Err(format!("must be a positive number, found {s}"))
+    }
+}
+
+/// A finite number `≥ 0`.
+pub(crate) fn non_negative(s: &str) -> Result<f64, String> {
+    let x = number(s)?;
+    if x.is_finite() && x >= 0.0 {
+        Ok(x)
+    } else {
+        Err(format!("must be a number ≥ 0, found {s}"))
+    }
+}
+
+/// `fit --resolution`: grid cells along the longest side, 1 to 512.
+pub(crate) fn resolution(s: &str) -> Result<usize, String> {
+    match s.trim().parse::<usize>() {
+        Ok(r) if (1..=512).contains(&r) => Ok(r),
+        _ => Err(format!("must be a whole number from 1 to 512, found {s}")),
+    }
+}
+
+/// The operating system's reason for a failed write of `path`, without the temporary file's name
+/// that `tempfile` puts in its messages (the caller names the destination once).
+pub(crate) fn os_message(path: &Path, e: &std::io::Error) -> String {
+    if let Some(code) = e.raw_os_error() {
+        return std::io::Error::from_raw_os_error(code).to_string();
+    }
+    match e.kind() {
+        // Our own writers' failures (`io::Error::other`) carry their message.
+        std::io::ErrorKind::Other => e.to_string(),
+        std::io::ErrorKind::NotFound => match path.parent() {
+            Some(dir) if !dir.as_os_str().is_empty() && !dir.is_dir() => {
+                format!("the directory {} does not exist", dir.display())
+            }
+            _ => e.kind().to_string(),
+        },
+        kind => kind.to_string(),
+    }
+}
+
+/// `cannot write PATH: REASON` for an error of [`ism_format::io::write_atomic`].
+pub(crate) fn cannot_write(path: &Path, e: &std::io::Error) -> anyhow::Error {
+    anyhow::anyhow!("cannot write {}: {}", path.display(), os_message(path, e))
+}
+
+/// As [`cannot_write`] for an error of [`ism_format::io::write_path`]: an I/O failure shows only
+/// the operating system's reason; an encoding failure keeps its own message.
+pub(crate) fn cannot_write_model(path: &Path, e: ism_format::Error) -> anyhow::Error {
+    match &e {
+        ism_format::Error::Io { error, .. } => cannot_write(path, error),
+        _ => anyhow::Error::new(e).context(format!("cannot write {}", path.display())),
+    }
+}
+
+/// `cannot read PATH: REASON` for an error of [`ism_format::io::read_path`], naming the path once.
+pub(crate) fn cannot_read_model(path: &Path, e: ism_format::Error) -> anyhow::Error {
+    match &e {
+        ism_format::Error::Io { error, .. } => {
+            anyhow::anyhow!(
+                "cannot read {}: {}",
+                path.display(),
+                os_message(path, error)
+            )
+        }
+        _ => anyhow::Error::new(e).context(format!("cannot read {}", path.display())),
+    }
+}
