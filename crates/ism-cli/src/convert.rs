@@ -35,6 +35,9 @@ pub struct Args {
     /// Put JSON output inside the checksummed container.
     #[arg(long)]
     container: bool,
+    /// No progress display.
+    #[arg(long, short)]
+    quiet: bool,
 }
 
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
@@ -54,6 +57,8 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             }
         }
     }
+    let progress = crate::progress::Progress::new(args.quiet);
+    progress.phase(format!("reading {}", args.input.display()));
     let doc =
         io::read_path(&args.input).map_err(|e| crate::args::cannot_read_model(&args.input, e))?;
     let encoding = args
@@ -69,8 +74,10 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         pretty: args.pretty,
         json_in_container: args.container,
     };
+    progress.phase(format!("writing {}", args.output.display()));
     io::write_path(&doc.model, &args.output, Some(encoding), options)
         .map_err(|e| crate::args::cannot_write_model(&args.output, e))?;
+    progress.finish();
     eprintln!(
         "{} ({}) -> {} ({})",
         args.input.display(),

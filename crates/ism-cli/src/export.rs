@@ -72,6 +72,8 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             format.extension()
         );
     }
+    let progress = crate::progress::Progress::new(args.quiet);
+    progress.phase(format!("reading {}", args.input.display()));
     let doc =
         io::read_path(&args.input).map_err(|e| crate::args::cannot_read_model(&args.input, e))?;
     let model = doc.model;
@@ -79,8 +81,10 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let start = Instant::now();
 
     if args.volume {
+        progress.phase("building the Bézier volume field of F");
         let (grid, note) =
             ism_export::volume::volume_grid(&model).context("cannot build the volume field")?;
+        progress.phase(format!("writing {}", args.output.display()));
         ism_format::io::write_atomic(&args.output, |w| {
             let r = match format {
                 ExportFormat::Vtu => grid.write_vtu(w),
@@ -89,6 +93,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             r.map_err(std::io::Error::other)
         })
         .map_err(|e| crate::args::cannot_write(&args.output, &e))?;
+        progress.finish();
         eprintln!(
             "{} -> {}: {} cells, {} control points; F is {}",
             args.input.display(),
@@ -101,12 +106,18 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     }
 
     let (mesh, report) = if args.linear {
+        progress.phase("extracting the linear isocomplex (marching simplices)");
         (
             marching(&model).context("cannot extract the linear isocomplex")?,
             None,
         )
     } else {
+        progress.phase("preparing the model's stages for evaluation and inversion");
         let eval = ModelEval::new(&model).context("cannot evaluate the model")?;
+        progress.phase(format!(
+            "extracting the curved shape: refining patches to --tolerance {}, inverting the stages",
+            args.tolerance
+        ));
         let options = ExtractOptions {
             tolerance: args.tolerance,
             max_depth: args.max_depth,
@@ -114,6 +125,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         match extract(&eval, &options) {
             Ok((mesh, report)) => (mesh, Some(report)),
             Err(e @ ism_export::Error::Inversion { .. }) => {
+                progress.finish();
                 eprintln!("error: {e}");
                 return Ok(ExitCode::from(1));
             }
@@ -121,11 +133,14 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         }
     };
     let extract_seconds = start.elapsed().as_secs_f64();
+    progress.phase(format!("writing {}", args.output.display()));
     ism_format::io::write_atomic(&args.output, |w| {
         write_mesh(&mesh, format, name.as_deref(), w).map_err(std::io::Error::other)
     })
     .map_err(|e| crate::args::cannot_write(&args.output, &e))?;
+    progress.phase("checking the mesh's topology");
     let t = mesh.topology();
+    progress.finish();
     let what = if mesh.dimension == 3 {
         "triangles"
     } else {

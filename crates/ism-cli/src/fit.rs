@@ -136,6 +136,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         }
         return Ok(ExitCode::SUCCESS);
     }
+    let progress = crate::progress::Progress::new(args.quiet);
     let mut mesh: Option<MeshInfo> = None;
     let mut mesh_sharpest: Option<f64> = None;
     let mut mesh_edge: Option<f64> = None;
@@ -147,7 +148,9 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     );
     let (expression, domain, name, preset): Setup = match (&args.preset, &args.expr) {
         (None, None) if args.mesh.is_some() => {
-            let (g, domain, name, info) = mesh_setup(&args)?;
+            progress.phase("reading the mesh and building its signed distance");
+            let (g, domain, name, info, warnings) = mesh_setup(&args)?;
+            progress.suspend(|| warnings.iter().for_each(|w| eprintln!("warning: {w}")));
             mesh = Some(info);
             mesh_sharpest = Some(g.sharpest_edge());
             mesh_edge = Some(g.mesh().median_edge_length());
@@ -200,16 +203,6 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         options.pv_min_edge = (0.5 * edge).max(options.tolerance);
     }
 
-    let bar = if args.quiet {
-        indicatif::ProgressBar::hidden()
-    } else {
-        let bar = indicatif::ProgressBar::new_spinner();
-        bar.set_style(
-            indicatif::ProgressStyle::with_template("{spinner} [{elapsed}] {msg}")
-                .unwrap_or_else(|_| indicatif::ProgressStyle::default_spinner()),
-        );
-        bar
-    };
     let tolerance = options.tolerance;
     let fitted = ism_fit::fit(&*expression, &options, &mut |p| {
         let worst = if p.worst.is_nan() {
@@ -217,13 +210,12 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         } else {
             format!("{:.3e}", p.worst)
         };
-        bar.set_message(format!(
-            "{:<8} {} simplices, worst |g|/|∇g| {} (target {:.1e})",
+        progress.phase(format!(
+            "fitting, {} phase: {} simplices, worst |g|/|∇g| {} (target {:.1e})",
             p.phase, p.simplices, worst, tolerance
         ));
-        bar.tick();
     })?;
-    bar.finish_and_clear();
+    progress.phase("checking the model's structure");
     let model = fitted.to_model(&name);
 
     let structural: Vec<_> = ism_format::structure::check(&model, 20)
@@ -232,6 +224,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         .collect();
     io::write_path(&model, &output, None, io::WriteOptions::default())
         .map_err(|e| crate::args::cannot_write_model(&output, e))?;
+    progress.finish();
     if let Some(svg) = &args.svg {
         let title = format!(
             "{name}: {} triangles, {} parameters, max |g|/|∇g| {:.2e}",
@@ -355,8 +348,13 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
 /// What the report needs to know about a mesh: its check, diagonal, and whether it was flipped.
 type MeshInfo = (MeshCheck, f64, bool);
 
-/// `--mesh`: the signed distance, the domain, the name, and the [`MeshInfo`].
-fn mesh_setup(args: &Args) -> anyhow::Result<(MeshDistance, Vec<f64>, String, MeshInfo)> {
+/// `--mesh`: reads the mesh and builds its signed distance.
+/// What [`mesh_setup`] prepares: the signed distance, the domain, the name, the [`MeshInfo`],
+/// and the warnings to print.
+type MeshSetup = (MeshDistance, Vec<f64>, String, MeshInfo, Vec<String>);
+
+fn mesh_setup(args: &Args) -> anyhow::Result<MeshSetup> {
+    let mut warnings = Vec::new();
     let path = args.mesh.as_ref().context("missing --mesh")?;
     let loaded = TriangleMesh::load(path)?;
     let g = MeshDistance::new(loaded).map_err(|e| match e {
@@ -383,19 +381,19 @@ fn mesh_setup(args: &Args) -> anyhow::Result<(MeshDistance, Vec<f64>, String, Me
     }
     let sharpest = g.sharpest_edge();
     if sharpest > ism_fit::mesh::PV_SHARPEST_EDGE && !args.no_topology {
-        eprintln!(
-            "warning: {} has edges where the normal turns by {:.0}°: the Plantinga–Vegter test cannot \
+        warnings.push(format!(
+            "{} has edges where the normal turns by {:.0}°: the Plantinga–Vegter test cannot \
              pass there at any cell size, so it is skipped (as with --no-topology); the topology is \
              checked against the mesh's instead",
             path.display(),
             sharpest.to_degrees()
-        );
+        ));
     }
     if g.flipped() {
-        eprintln!(
-            "warning: {} faces inward; fitted with its orientation reversed",
+        warnings.push(format!(
+            "{} faces inward; fitted with its orientation reversed",
             path.display()
-        );
+        ));
     }
     let domain = match &args.domain {
         Some(d) if d.len() != 6 => bail!("--domain with --mesh needs 6 numbers, got {}", d.len()),
@@ -408,5 +406,5 @@ fn mesh_setup(args: &Args) -> anyhow::Result<(MeshDistance, Vec<f64>, String, Me
         .unwrap_or("mesh")
         .to_string();
     let info = (check, g.mesh().diagonal(), g.flipped());
-    Ok((g, domain, name, info))
+    Ok((g, domain, name, info, warnings))
 }

@@ -35,6 +35,9 @@ pub struct Args {
     /// The level c of the shape F = c.
     #[arg(long, default_value_t = 0.0)]
     level: f64,
+    /// No progress display.
+    #[arg(long, short)]
+    quiet: bool,
 }
 
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
@@ -42,6 +45,11 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         field: args.field.clone(),
         level: args.level,
     };
+    let progress = crate::progress::Progress::new(args.quiet);
+    progress.phase(format!(
+        "reading {} and orienting its simplices",
+        args.input.display()
+    ));
     let (mut model, report) = import_path(&args.input, &options)
         .with_context(|| format!("cannot import {}", args.input.display()))?;
     model.metadata.name = args
@@ -54,6 +62,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             args.output.display()
         )
     })?;
+    progress.phase(format!("writing {}", args.output.display()));
     io::write_path(
         &model,
         &args.output,
@@ -61,6 +70,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         io::WriteOptions::default(),
     )
     .map_err(|e| crate::args::cannot_write_model(&args.output, e))?;
+    progress.finish();
     eprintln!(
         "{} -> {}: dimension {}, {} vertices, {} simplices ({} re-oriented), values from {:?}, {} unused nodes dropped",
         args.input.display(),

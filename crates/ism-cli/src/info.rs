@@ -25,6 +25,9 @@ pub struct Args {
     /// Print the summary as JSON.
     #[arg(long)]
     json: bool,
+    /// No progress display.
+    #[arg(long, short)]
+    quiet: bool,
 }
 
 #[derive(Serialize)]
@@ -164,9 +167,12 @@ fn summarize(path: &std::path::Path, doc: &Document) -> Summary {
 }
 
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
+    let progress = crate::progress::Progress::new(args.quiet);
+    progress.phase(format!("reading {}", args.file.display()));
     let doc = match io::read_path(&args.file) {
         Ok(doc) => doc,
         Err(ism_format::Error::Structure(errors)) => {
+            progress.finish();
             eprintln!(
                 "{}: the file decodes, but the model breaks {} structural rule(s) \
                  (spec/ism-format.md §9):",
@@ -186,7 +192,9 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         }
         Err(e) => return Err(crate::args::cannot_read_model(&args.file, e)),
     };
+    progress.phase("counting the faces of the complex");
     let s = summarize(&args.file, &doc);
+    progress.finish();
     if args.json {
         println!("{}", serde_json::to_string_pretty(&s)?);
         return Ok(ExitCode::SUCCESS);

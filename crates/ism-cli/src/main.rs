@@ -11,6 +11,7 @@ mod fit;
 mod hermite;
 mod import;
 mod info;
+mod progress;
 mod query;
 mod sample;
 mod smooth;

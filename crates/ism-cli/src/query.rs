@@ -8,7 +8,7 @@ use anyhow::Context;
 use ism_format::io;
 use ism_sample::{points, Sampler};
 
-use crate::sample::{choose_format, progress_bar, write_output, OutputArgs};
+use crate::sample::{choose_format, write_output, OutputArgs};
 
 const AFTER_HELP: &str = "\
 Input points: CSV or whitespace-separated text, n numbers per line (a header line may name the
@@ -41,9 +41,12 @@ pub struct Args {
 }
 
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
+    let progress = crate::progress::Progress::new(args.out.quiet);
+    progress.phase(format!("reading {}", args.model.display()));
     let doc =
         io::read_path(&args.model).map_err(|e| crate::args::cannot_read_model(&args.model, e))?;
     let model = doc.model;
+    progress.phase(format!("reading points from {}", args.points.display()));
     let bytes = if args.points.as_os_str() == "-" {
         let mut buf = Vec::new();
         std::io::stdin()
@@ -58,12 +61,14 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         .with_context(|| format!("cannot read points from {}", args.points.display()))?;
     let format = choose_format(args.out.format, args.out.output.as_deref())?;
     crate::sample::refuse_binary_on_terminal(format, args.out.output.as_deref())?;
-    let bar = progress_bar((pts.len() / model.dim().max(1)) as u64, args.out.quiet);
+    progress.phase("preparing the model's stages for evaluation");
     let mut sampler = Sampler::new(&model)?;
-    if let Some(bar) = &bar {
-        let bar = bar.clone();
-        sampler = sampler.progress(move |done| bar.set_position(done));
-    }
+    let counter = progress.counted(
+        "evaluating",
+        (pts.len() / model.dim().max(1)) as u64,
+        "points",
+    );
+    sampler = sampler.progress(move |done| counter.set(done));
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(args.out.threads.count())
         .build()?;
@@ -72,8 +77,6 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             sampler.query(&pts, sink)
         })
     })?;
-    if let Some(bar) = bar {
-        bar.finish_and_clear();
-    }
+    progress.finish();
     Ok(ExitCode::SUCCESS)
 }

@@ -125,20 +125,6 @@ pub(crate) fn refuse_binary_on_terminal(
     Ok(())
 }
 
-/// A progress bar on standard error when it is a terminal and not `--quiet`.
-pub(crate) fn progress_bar(total: u64, quiet: bool) -> Option<indicatif::ProgressBar> {
-    if quiet || !std::io::stderr().is_terminal() {
-        return None;
-    }
-    let bar = indicatif::ProgressBar::new(total);
-    if let Ok(style) = indicatif::ProgressStyle::with_template(
-        "{bar:40} {pos}/{len} points ({per_sec}, eta {eta})",
-    ) {
-        bar.set_style(style);
-    }
-    Some(bar)
-}
-
 /// Runs `produce` into a writer of `format` at `output` (atomically) or on standard output.
 pub(crate) fn write_output(
     output: Option<&Path>,
@@ -175,6 +161,8 @@ pub(crate) fn write_output(
 }
 
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
+    let progress = crate::progress::Progress::new(args.out.quiet);
+    progress.phase(format!("reading {}", args.model.display()));
     let doc =
         io::read_path(&args.model).map_err(|e| crate::args::cannot_read_model(&args.model, e))?;
     let model = doc.model;
@@ -220,15 +208,17 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let total = match job {
         Job::Surface(c) | Job::Volume(c, _) | Job::NearSurface(c, _) => c,
     };
-    let bar = progress_bar(total, args.out.quiet);
+    progress.phase("preparing the model's stages for evaluation and inversion");
     let mut sampler = Sampler::new(&model)?.seed(args.seed);
-    if let Some(bar) = &bar {
-        let bar = bar.clone();
-        sampler = sampler.progress(move |done| bar.set_position(done));
-    }
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(args.out.threads.count())
         .build()?;
+    if matches!(job, Job::Surface(_) | Job::NearSurface(..)) {
+        progress.phase("measuring the curved area of every patch of the shape");
+        pool.install(|| sampler.surface_table().map(|_| ()))?;
+    }
+    let counter = progress.counted("sampling", total, "points");
+    sampler = sampler.progress(move |done| counter.set(done));
     pool.install(|| {
         write_output(args.out.output.as_deref(), format, |sink| match job {
             Job::Surface(c) => sampler.surface(c, sink),
@@ -236,8 +226,6 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             Job::NearSurface(c, sigma) => sampler.near_surface(c, sigma, sink),
         })
     })?;
-    if let Some(bar) = bar {
-        bar.finish_and_clear();
-    }
+    progress.finish();
     Ok(ExitCode::SUCCESS)
 }

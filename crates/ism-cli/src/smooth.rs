@@ -165,10 +165,15 @@ fn print_rational(r: &C1Report, output: &std::path::Path, verdict: &str, json: b
 fn write_and_validate(
     model: &ism_format::Model,
     output: &std::path::Path,
+    progress: &crate::progress::Progress,
 ) -> anyhow::Result<ism_validate::Verdict> {
+    progress.phase(format!("writing {}", output.display()));
     io::write_path(model, output, None, io::WriteOptions::default())
         .map_err(|e| crate::args::cannot_write_model(output, e))?;
-    Ok(ism_validate::validate(model, &ism_validate::Options::default()).verdict)
+    progress.phase("validating the output");
+    let verdict = ism_validate::validate(model, &ism_validate::Options::default()).verdict;
+    progress.finish();
+    Ok(verdict)
 }
 
 fn exit(verdict: ism_validate::Verdict) -> ExitCode {
@@ -181,6 +186,8 @@ fn exit(verdict: ism_validate::Verdict) -> ExitCode {
 
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     args.threads.install()?;
+    let progress = crate::progress::Progress::new(args.quiet);
+    progress.phase(format!("reading {}", args.model.display()));
     let doc =
         io::read_path(&args.model).map_err(|e| crate::args::cannot_read_model(&args.model, e))?;
     if args.rational {
@@ -190,6 +197,10 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             alpha: args.alpha.unwrap_or(defaults.alpha),
             iterations: args.iterations.unwrap_or(defaults.iterations),
         };
+        progress.phase(
+            "fitting the rational weights to the C¹ condition (Levenberg–Marquardt), measuring the \
+             normal jumps",
+        );
         let smoothed = smooth_rational(&doc.model, &options).map_err(|e| match e {
             C1Error::StageCount(k) => anyhow::anyhow!(
                 "--rational: {} has {k} stages, but the C¹ condition (Mello & Velho 2009, \
@@ -200,7 +211,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             ),
             e => anyhow::Error::new(e).context("--rational"),
         })?;
-        let verdict = write_and_validate(&smoothed.model, &args.output)?;
+        let verdict = write_and_validate(&smoothed.model, &args.output, &progress)?;
         print_rational(&smoothed.report, &args.output, verdict.as_str(), args.json);
         return Ok(exit(verdict));
     }
@@ -209,8 +220,12 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         iterations: args.iterations.unwrap_or(defaults.iterations),
         alpha: args.alpha.unwrap_or(defaults.alpha),
     };
+    progress.phase(format!(
+        "smoothing: {} sweeps over the free control points, measuring the normal jumps",
+        options.iterations
+    ));
     let smoothed = smooth(&doc.model, &options)?;
-    let verdict = write_and_validate(&smoothed.model, &args.output)?;
+    let verdict = write_and_validate(&smoothed.model, &args.output, &progress)?;
     let r = &smoothed.report;
     if args.json {
         let value = serde_json::json!({

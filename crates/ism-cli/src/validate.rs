@@ -163,9 +163,14 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         quality: args.quality,
         theorems: !args.no_theorems,
     };
+    let progress = crate::progress::Progress::new(args.quiet);
     let mut worst = 0u8;
     let mut reports = Vec::new();
     for path in &args.files {
+        progress.phase(format!(
+            "validating {}: structure, invariance, positivity certificates",
+            path.display()
+        ));
         match ism_validate::validate_path(path, &options) {
             Ok(report) => {
                 if report.verdict != Verdict::Valid {
@@ -174,12 +179,12 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
                 if args.json {
                     reports.push(serde_json::to_value(&report)?);
                 } else {
-                    print_summary(path, &report, listed);
+                    progress.suspend(|| print_summary(path, &report, listed));
                 }
             }
             Err(err) => {
                 worst = 2;
-                eprintln!("error: {}: {err}", path.display());
+                progress.suspend(|| eprintln!("error: {}: {err}", path.display()));
                 if args.json {
                     reports.push(serde_json::json!({
                         "file": { "path": path.display().to_string() },
@@ -190,6 +195,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             }
         }
     }
+    progress.finish();
     if args.json {
         let out = if reports.len() == 1 {
             reports.pop().expect("one report")
