@@ -327,81 +327,164 @@ pub struct ExactWitness {
     pub polynomial_value: f64,
 }
 
+/// An exact dyadic number `m · 2^e`: sums and products of doubles without rounding and without
+/// the gcd a rational type would take after every operation.
+#[derive(Clone, Debug)]
+struct Dyadic {
+    m: BigInt,
+    e: i64,
+}
+
+impl Dyadic {
+    fn zero() -> Dyadic {
+        Dyadic {
+            m: BigInt::zero(),
+            e: 0,
+        }
+    }
+
+    fn from_f64(x: f64) -> Option<Dyadic> {
+        let (m, e) = dyadic(x)?;
+        Some(Dyadic { m, e })
+    }
+
+    fn from_int(x: BigInt) -> Dyadic {
+        Dyadic { m: x, e: 0 }
+    }
+
+    fn add(&self, other: &Dyadic) -> Dyadic {
+        if self.m.is_zero() {
+            return other.clone();
+        }
+        if other.m.is_zero() {
+            return self.clone();
+        }
+        let e = self.e.min(other.e);
+        Dyadic {
+            m: (&self.m << (self.e - e) as usize) + (&other.m << (other.e - e) as usize),
+            e,
+        }
+    }
+
+    fn neg(&self) -> Dyadic {
+        Dyadic {
+            m: -&self.m,
+            e: self.e,
+        }
+    }
+
+    fn sub(&self, other: &Dyadic) -> Dyadic {
+        self.add(&other.neg())
+    }
+
+    fn mul(&self, other: &Dyadic) -> Dyadic {
+        if self.m.is_zero() || other.m.is_zero() {
+            return Dyadic::zero();
+        }
+        Dyadic {
+            m: &self.m * &other.m,
+            e: self.e + other.e,
+        }
+    }
+
+    fn to_rational(&self) -> BigRational {
+        if self.e >= 0 {
+            BigRational::from_integer(&self.m << self.e as usize)
+        } else {
+            BigRational::new(self.m.clone(), BigInt::one() << (-self.e) as usize)
+        }
+    }
+}
+
 /// The stored map's Jacobian determinant at `point`, exactly, from the definitions: for a
 /// polynomial stage `det DX`; for a rational one `(N, Q)` with `det DX = N / Q^{n+1}`.
 /// `point` is read as `(w₁ … wₙ)` with `w₀ = 1 − Σ`; `None` when that point is outside the closed
 /// simplex or a number is not finite.
 pub fn jacobian_at(net: &DenseNet, point: &[f64]) -> Option<(BigRational, BigRational)> {
+    let (value, q) = jacobian_dyadic(net, point)?;
+    Some((value.to_rational(), q.to_rational()))
+}
+
+fn jacobian_dyadic(net: &DenseNet, point: &[f64]) -> Option<(Dyadic, Dyadic)> {
     let n = net.n;
     let m = n + 1;
     let d = net.degree;
-    let mut w = vec![BigRational::zero(); m];
-    let mut rest = BigRational::one();
+    let mut w = vec![Dyadic::zero(); m];
+    let mut rest = Dyadic::from_int(BigInt::one());
     for i in 1..m {
-        w[i] = rational(point[i])?;
-        if w[i].is_negative() {
+        w[i] = Dyadic::from_f64(point[i])?;
+        if w[i].m.is_negative() {
             return None;
         }
-        rest -= &w[i];
+        rest = rest.sub(&w[i]);
     }
-    if rest.is_negative() {
+    if rest.m.is_negative() {
         return None;
     }
     w[0] = rest;
     // Powers of each coordinate up to d.
-    let powers: Vec<Vec<BigRational>> = w
+    let powers: Vec<Vec<Dyadic>> = w
         .iter()
         .map(|x| {
-            let mut p = vec![BigRational::one()];
+            let mut p = vec![Dyadic::from_int(BigInt::one())];
             for k in 1..=d as usize {
-                let next = &p[k - 1] * x;
+                let next = p[k - 1].mul(x);
                 p.push(next);
             }
             p
         })
         .collect();
-    let bernstein = |index: &[u32]| -> BigRational {
-        index.iter().enumerate().fold(
-            BigRational::from_integer(multinomial(index)),
-            |a, (i, &e)| a * &powers[i][e as usize],
+    // B_J(w), or None when it vanishes (a coordinate 0 with a positive exponent): at a corner or
+    // on a face most terms do, and skipping them is what keeps a witness cheap.
+    let bernstein = |index: &[u32]| -> Option<Dyadic> {
+        if index.iter().zip(&w).any(|(&e, x)| e > 0 && x.m.is_zero()) {
+            return None;
+        }
+        Some(
+            index
+                .iter()
+                .enumerate()
+                .fold(Dyadic::from_int(multinomial(index)), |a, (i, &e)| {
+                    a.mul(&powers[i][e as usize])
+                }),
         )
     };
     // v_I: rows of the homogeneous vector (rational: q(1, b); polynomial: b₁ … bₙ).
     let rational_stage = net.is_rational();
     let size = if rational_stage { m } else { n };
-    let component = |i: usize, r: usize| -> Option<BigRational> {
+    let component = |i: usize, r: usize| -> Option<Dyadic> {
         if rational_stage {
-            let q = rational(net.weights[i])?;
+            let q = Dyadic::from_f64(net.weights[i])?;
             Some(if r == 0 {
                 q
             } else {
-                q * rational(net.points[i][r])?
+                q.mul(&Dyadic::from_f64(net.points[i][r])?)
             })
         } else {
-            rational(net.points[i][r + 1])
+            Dyadic::from_f64(net.points[i][r + 1])
         }
     };
-    let all = multi_index::all(m, d);
-    let lower = multi_index::all(m, d - 1);
-    let mut matrix = vec![vec![BigRational::zero(); size]; size];
-    let mut q_value = BigRational::one();
+    let mut matrix = vec![vec![Dyadic::zero(); size]; size];
+    let mut q_value = Dyadic::from_int(BigInt::one());
     let mut col = 0;
     if rational_stage {
         // Column 0: V(w) itself.
-        for (i, index) in all.chunks(m).enumerate() {
-            let b = bernstein(index);
+        for (i, index) in multi_index::all(m, d).chunks(m).enumerate() {
+            let Some(b) = bernstein(index) else { continue };
             for (r, row) in matrix.iter_mut().enumerate() {
-                row[0] += component(i, r)? * &b;
+                row[0] = row[0].add(&component(i, r)?.mul(&b));
             }
         }
         q_value = matrix[0][0].clone();
         col = 1;
     }
-    // Columns ∂V/∂w_k − ∂V/∂w₀ = d Σ_J (v_{J+e_k} − v_{J+e₀}) B_J(w), |J| = d − 1.
+    // Columns ∂V/∂w_k − ∂V/∂w₀ = d Σ_J (v_{J+e_k} − v_{J+e₀}) B_J(w), |J| = d − 1 (the positive
+    // factor d is applied once, to the determinant's value).
+    let lower = multi_index::all(m, d - 1);
     let mut shifted = vec![0u32; m];
     for k in 1..m {
         for index in lower.chunks(m) {
-            let b = bernstein(index) * BigRational::from_integer(BigInt::from(d));
+            let Some(b) = bernstein(index) else { continue };
             shifted.copy_from_slice(index);
             shifted[k] += 1;
             let ik = multi_index::rank(&shifted);
@@ -409,46 +492,133 @@ pub fn jacobian_at(net: &DenseNet, point: &[f64]) -> Option<(BigRational, BigRat
             shifted[0] += 1;
             let i0 = multi_index::rank(&shifted);
             for (r, row) in matrix.iter_mut().enumerate() {
-                row[col] += (component(ik, r)? - component(i0, r)?) * &b;
+                row[col] = row[col].add(&component(ik, r)?.sub(&component(i0, r)?).mul(&b));
             }
         }
         col += 1;
     }
-    Some((determinant(matrix), q_value))
+    let scale = Dyadic::from_int(num_traits::pow(BigInt::from(d), n));
+    Some((determinant(&matrix).mul(&scale), q_value))
 }
 
 /// Determinant by cofactor expansion (size ≤ 4).
-fn determinant(a: Vec<Vec<BigRational>>) -> BigRational {
-    fn rec(a: &[Vec<BigRational>], rows: &[usize], col: usize) -> BigRational {
+fn determinant(a: &[Vec<Dyadic>]) -> Dyadic {
+    fn rec(a: &[Vec<Dyadic>], rows: &[usize], col: usize) -> Dyadic {
         if rows.is_empty() {
-            return BigRational::one();
+            return Dyadic::from_int(BigInt::one());
         }
-        let mut sum = BigRational::zero();
+        let mut sum = Dyadic::zero();
         for (pos, &r) in rows.iter().enumerate() {
-            if a[r][col].is_zero() {
+            if a[r][col].m.is_zero() {
                 continue;
             }
             let rest: Vec<usize> = rows.iter().copied().filter(|&x| x != r).collect();
-            let term = &a[r][col] * rec(a, &rest, col + 1);
-            if pos % 2 == 0 {
-                sum += term;
+            let term = a[r][col].mul(&rec(a, &rest, col + 1));
+            sum = if pos % 2 == 0 {
+                sum.add(&term)
             } else {
-                sum -= term;
-            }
+                sum.sub(&term)
+            };
         }
         sum
     }
     let rows: Vec<usize> = (0..a.len()).collect();
-    rec(&a, &rows, 0)
+    rec(a, &rows, 0)
+}
+
+/// Smallest magnitude of a nonzero coordinate for which Shewchuk's predicates are exact here: with
+/// every nonzero input at least 2^-200, no product or expansion term of `orient2d`/`orient3d`
+/// reaches the subnormal range, where the adaptive predicates lose exactness.
+const PREDICATE_FLOOR: f64 = 6.223015277861142e-61; // 2^-200
+
+/// Exact sign of `det DX` at vertex `i` of a polynomial element by Shewchuk's adaptive predicates
+/// (`robust`): there `det DX = dⁿ det[P₁ − P₀ … Pₙ − P₀]` with `P_k` the control point at
+/// `(d − 1)eᵢ + e_k`, an orientation. Returns the determinant (sign exact, magnitude approximate),
+/// or `None` when the predicates do not apply (dimension, rational stage, tiny inputs).
+fn vertex_det_by_predicate(net: &DenseNet, vertex: usize) -> Option<f64> {
+    let n = net.n;
+    if net.is_rational() || !(1..=3).contains(&n) {
+        return None;
+    }
+    let m = n + 1;
+    let d = net.degree;
+    let mut index = vec![0u32; m];
+    let p = |k: usize, index: &mut Vec<u32>| -> [f64; 3] {
+        index.iter_mut().for_each(|x| *x = 0);
+        index[vertex] = d - 1;
+        index[k] += 1;
+        let b = net.points[multi_index::rank(index)];
+        [b[1], b[2], b[3]]
+    };
+    let pts: Vec<[f64; 3]> = (0..m).map(|k| p(k, &mut index)).collect();
+    let small = pts
+        .iter()
+        .flat_map(|x| &x[..n])
+        .any(|&x| x != 0.0 && !(x.abs() >= PREDICATE_FLOOR && x.is_finite()));
+    if small {
+        return None;
+    }
+    let scale = f64::from(d).powi(n as i32);
+    let det = match n {
+        1 => {
+            // det = x₁ − x₀: its sign is the comparison.
+            let diff = pts[1][0] - pts[0][0];
+            if pts[1][0] > pts[0][0] {
+                diff.max(f64::MIN_POSITIVE)
+            } else if pts[1][0] < pts[0][0] {
+                diff.min(-f64::MIN_POSITIVE)
+            } else {
+                0.0
+            }
+        }
+        2 => {
+            let c = |x: [f64; 3]| robust::Coord { x: x[0], y: x[1] };
+            // det[P₁ − P₀, P₂ − P₀] = orient2d(P₁, P₂, P₀).
+            robust::orient2d(c(pts[1]), c(pts[2]), c(pts[0]))
+        }
+        _ => {
+            let c = |x: [f64; 3]| robust::Coord3D {
+                x: x[0],
+                y: x[1],
+                z: x[2],
+            };
+            // robust's orient3d(a, b, c, d) = det[a − d; b − d; c − d] (checked against the dyadic
+            // evaluation in the tests), so det[P₁ − P₀, P₂ − P₀, P₃ − P₀] = orient3d(P₁, P₂, P₃, P₀).
+            robust::orient3d(c(pts[1]), c(pts[2]), c(pts[3]), c(pts[0]))
+        }
+    };
+    Some(det * scale)
 }
 
 /// The witness at `point` if the certificate polynomial is exactly `≤ 0` there.
 pub fn witness_at(net: &DenseNet, point: &[f64]) -> Option<ExactWitness> {
-    let (value, q) = jacobian_at(net, point)?;
-    if value.is_positive() {
+    let m = net.n + 1;
+    // At a vertex of the simplex, an exact orientation predicate decides (the common case: a fold
+    // shows first at a corner).
+    if let Some(vertex) = (0..m).find(|&i| point[i] == 1.0) {
+        if point
+            .iter()
+            .enumerate()
+            .all(|(j, &x)| j == vertex || x == 0.0)
+        {
+            if let Some(det) = vertex_det_by_predicate(net, vertex) {
+                // The sign is exact; a zero is reported as 0, a negative value as it came.
+                let det = if det == 0.0 { 0.0 } else { det };
+                return (det <= 0.0).then(|| ExactWitness {
+                    point: point.to_vec(),
+                    det,
+                    polynomial_value: det,
+                });
+            }
+        }
+    }
+    let (value, q) = jacobian_dyadic(net, point)?;
+    if value.m.is_positive() {
         return None;
     }
+    let value = value.to_rational();
     let det = if net.is_rational() {
+        let q = q.to_rational();
         let mut qn = BigRational::one();
         for _ in 0..=net.n {
             qn *= &q;
@@ -574,6 +744,45 @@ pub fn decide(kernel: &DetKernel, net: &DenseNet, budget: usize) -> ExactDecisio
         ExactDecision::Positive {
             depth: deepest,
             pieces,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::{Rng, SeedableRng};
+
+    /// The orientation predicate at a vertex and the dyadic evaluation agree in sign, on nets that
+    /// fold at a vertex and nets that do not, in 1D, 2D and 3D.
+    #[test]
+    fn vertex_predicate_agrees_with_the_dyadic_evaluation() {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
+        for n in 1..=3usize {
+            for d in 1..=4u32 {
+                for _ in 0..200 {
+                    let mut net = DenseNet::identity(n, d);
+                    for p in net.points.iter_mut() {
+                        for c in p.iter_mut().take(n + 1) {
+                            *c += rng.random_range(-0.4..0.4);
+                        }
+                    }
+                    for vertex in 0..=n {
+                        let mut point = vec![0.0; n + 1];
+                        point[vertex] = 1.0;
+                        let by_predicate = vertex_det_by_predicate(&net, vertex).unwrap();
+                        let (exact, _) = jacobian_dyadic(&net, &point).unwrap();
+                        assert_eq!(
+                            by_predicate.partial_cmp(&0.0),
+                            exact.m.sign().cmp(&num_bigint::Sign::NoSign).into(),
+                            "n={n} d={d} vertex {vertex}: {by_predicate} vs {:?}",
+                            exact.to_rational()
+                        );
+                        let rel = (by_predicate - to_f64_signed(&exact.to_rational())).abs();
+                        assert!(rel <= 1e-9 * by_predicate.abs().max(1e-300), "{rel}");
+                    }
+                }
+            }
         }
     }
 }

@@ -28,7 +28,9 @@ pub fn face_key(ids: &[u32]) -> FaceKey {
 pub struct StageIndex<'a> {
     model: &'a Model,
     stage: &'a Stage,
-    faces: FastMap<FaceKey, usize>,
+    /// Built on first use: a stage certified by a stage-wide theorem never looks up a face, so it
+    /// costs O(records) and no hashing.
+    faces: std::sync::OnceLock<FastMap<FaceKey, usize>>,
     /// All local multi-indices of degree `d` in `n + 1` variables, flat.
     all: Vec<u32>,
     /// Per record: every stored point equals the correctly rounded fixed point `J/d`.
@@ -61,12 +63,6 @@ impl SimplexRecords {
 impl<'a> StageIndex<'a> {
     /// Indexes the face records of `stage`; the model must have passed the structural checks.
     pub fn new(model: &'a Model, stage: &'a Stage) -> StageIndex<'a> {
-        let faces = stage
-            .faces
-            .iter()
-            .enumerate()
-            .map(|(r, rec)| (face_key(&rec.face), r))
-            .collect();
         let d = stage.degree;
         let fixed = stage
             .faces
@@ -82,7 +78,7 @@ impl<'a> StageIndex<'a> {
         StageIndex {
             model,
             stage,
-            faces,
+            faces: std::sync::OnceLock::new(),
             all: multi_index::all(model.dim() + 1, d),
             fixed,
         }
@@ -110,7 +106,15 @@ impl<'a> StageIndex<'a> {
         let ids = self.model.simplex(s);
         let m = ids.len();
         let mut out = SimplexRecords::default();
-        if self.faces.is_empty() {
+        let faces = self.faces.get_or_init(|| {
+            self.stage
+                .faces
+                .iter()
+                .enumerate()
+                .map(|(r, rec)| (face_key(&rec.face), r))
+                .collect()
+        });
+        if faces.is_empty() {
             return out;
         }
         for mask in 1usize..(1 << m) {
@@ -123,7 +127,7 @@ impl<'a> StageIndex<'a> {
                 }
             }
             key[..len].sort_unstable();
-            out.records[mask] = self.faces.get(&key).copied();
+            out.records[mask] = faces.get(&key).copied();
         }
         out
     }
