@@ -341,6 +341,7 @@ def main():
     ap.add_argument("--amplitude", type=float, default=None, help="perturbation bound (default per degree)")
     ap.add_argument("--near", action="store_true", help="also nets moved to their fold threshold")
     ap.add_argument("--near-steps", type=int, default=40, help="bisection steps toward the threshold")
+    ap.add_argument("--near-count", type=int, default=None, help="elements of the near sets (default --count)")
     ap.add_argument("--no-rational", action="store_true")
     ap.add_argument("--whole-process", action="store_true", help="also end-to-end on a 3,042-element file")
     ap.add_argument("--seed", type=int, default=1)
@@ -365,7 +366,7 @@ def main():
                 if which == "general":
                     nets = general_nets(rng, args.count, n, d, amp)
                 else:
-                    nets = near_nets(rng, args.count, n, d, amp, args.binary, args.near_steps, tmp)
+                    nets = near_nets(rng, args.near_count or args.count, n, d, amp, args.binary, args.near_steps, tmp)
                 path = os.path.join(tmp, f"bezier{n}{d}.bin")
                 write_nets(path, n, d, nets)
                 count = nets.shape[0]

@@ -536,7 +536,13 @@ impl DetKernel {
         let mut bounds = (f64::NEG_INFINITY, f64::INFINITY, 0u32, 0usize);
         if let Some(scaled) = normalized(net) {
             let coefficients = self.det_coefficients(&scaled);
-            match self.decide_piece(coefficients, unit_corners(self.n + 1), 0, budget.pieces) {
+            match self.decide_piece(
+                coefficients,
+                unit_corners(self.n + 1),
+                0,
+                budget.pieces,
+                MAX_FLOAT_DEPTH,
+            ) {
                 Decision::Positive {
                     depth,
                     pieces,
@@ -590,6 +596,7 @@ impl DetKernel {
         corners: [[f64; 4]; 4],
         depth: u32,
         budget: usize,
+        max_depth: u32,
     ) -> Decision {
         let m = self.n + 1;
         struct Piece {
@@ -644,7 +651,7 @@ impl DetKernel {
                 lower = lower.min(low);
                 continue;
             }
-            if piece.depth >= MAX_FLOAT_DEPTH || pieces + stack.len() >= budget {
+            if piece.depth >= max_depth || pieces + stack.len() >= budget {
                 let l = undecided.get_or_insert(low);
                 *l = l.min(low);
                 continue;

@@ -35,6 +35,12 @@ use crate::certify::{BoundedCoefficients, Decision, DenseNet, DetKernel};
 /// at a true zero costs little.
 const FILTER_PIECES: usize = 64;
 
+/// Pieces the floating-point filter may use on the whole simplex, from the exactly computed
+/// coefficients: rounded once, they carry bounds many orders tighter than the floating-point
+/// kernel's, so most elements the kernel could not decide (minima down to 1e-12 of the scale) are
+/// decided here by floating-point subdivision alone, without exact bisection.
+const ROOT_FILTER_PIECES: usize = 1 << 12;
+
 /// Deepest exact bisection. Corners are tracked in doubles, which hold the dyadic corners exactly
 /// to about 52 bisections and approximately beyond; a witness is proven at the point actually
 /// printed, so approximate corners cost at most a missed witness, never a false one.
@@ -700,7 +706,18 @@ pub fn decide(kernel: &DetKernel, net: &DenseNet, budget: usize) -> ExactDecisio
         }
         if !corner_unproven {
             let filtered = to_float(&piece.values);
-            match kernel.decide_piece(filtered, piece.corners, piece.depth, FILTER_PIECES) {
+            let filter = if piece.depth == 0 {
+                ROOT_FILTER_PIECES
+            } else {
+                FILTER_PIECES
+            };
+            match kernel.decide_piece(
+                filtered,
+                piece.corners,
+                piece.depth,
+                filter,
+                MAX_EXACT_DEPTH,
+            ) {
                 Decision::Positive { .. } => continue,
                 Decision::NonPositive { point, .. } => {
                     if let Some(w) = witness_at(net, &point) {

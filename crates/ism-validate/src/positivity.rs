@@ -71,6 +71,12 @@ fn classify_stage(model: &Model, index: &StageIndex<'_>, theorems: bool) -> Stag
                 .all(|r| index.is_trivial(r) || stage.faces[r].face.len() == j + 1);
             if stratum && j == 2 && n == 3 {
                 StageClass::Theorem(theorem::PROP_5_9)
+            } else if stratum && j == n {
+                // The stratum G_n: every moving record is a top simplex's own centre point, so a
+                // simplex carries at most one and Prop. 5.7 covers each — decided once for the
+                // stage, with no face lookup per simplex (simplices without a record are the
+                // identity, which the theorem covers too).
+                StageClass::Theorem(theorem::PROP_5_7)
             } else {
                 StageClass::PerSimplex
             }

@@ -7,6 +7,7 @@
 //! Euler characteristic of the link: 1 (disk) when it has boundary, 2 (sphere) when closed.
 
 use ism_format::{Location, Model, Rule};
+use rayon::prelude::*;
 
 use crate::report::Message;
 
@@ -33,28 +34,32 @@ impl Dsu {
     }
 }
 
-/// Sorted `(key, simplex)` pairs of the `k`-vertex faces of every simplex.
+/// Sorted `(key, simplex)` pairs of the `k`-vertex faces of every simplex (built and sorted on every
+/// core: on a million tetrahedra these lists hold millions of entries).
 fn faces_of_size(model: &Model, k: usize) -> Vec<([u32; 4], u32)> {
     let m = model.dim() + 1;
-    let mut out = Vec::new();
-    for (s, ids) in model.simplex_iter().enumerate() {
-        for mask in 0u32..(1 << m) {
-            if mask.count_ones() as usize != k {
-                continue;
-            }
-            let mut key = [u32::MAX; 4];
-            let mut len = 0;
-            for (i, &id) in ids.iter().enumerate() {
-                if mask & (1 << i) != 0 {
-                    key[len] = id;
-                    len += 1;
+    let masks: Vec<u32> = (0u32..(1 << m))
+        .filter(|mask| mask.count_ones() as usize == k)
+        .collect();
+    let mut out: Vec<([u32; 4], u32)> = (0..model.num_simplices())
+        .into_par_iter()
+        .flat_map_iter(|s| {
+            let ids = model.simplex(s);
+            masks.iter().map(move |&mask| {
+                let mut key = [u32::MAX; 4];
+                let mut len = 0;
+                for (i, &id) in ids.iter().enumerate() {
+                    if mask & (1 << i) != 0 {
+                        key[len] = id;
+                        len += 1;
+                    }
                 }
-            }
-            key[..len].sort_unstable();
-            out.push((key, s as u32));
-        }
-    }
-    out.sort_unstable();
+                key[..len].sort_unstable();
+                (key, s as u32)
+            })
+        })
+        .collect();
+    out.par_sort_unstable();
     out
 }
 
@@ -118,47 +123,52 @@ pub fn non_manifold(model: &Model) -> Vec<Message> {
                 dsu.union(pos(s1) as u32, pos(s2) as u32);
             }
         }
-        for (key, range) in &star {
-            let roots: std::collections::BTreeSet<u32> =
-                range.clone().map(|i| dsu.find(i as u32)).collect();
-            let face: Vec<u32> = key[..k].to_vec();
-            let first = list[range.start].1 as usize;
-            let mut bad = None;
-            if roots.len() > 1 {
-                bad = Some(format!(
-                    "its star falls into {} parts joined only at this {}",
-                    roots.len(),
-                    if k == 1 { "vertex" } else { "edge" }
-                ));
-            } else if k == 1 && n == 3 {
-                // Euler characteristic of the link: edges − triangles + tetrahedra around the vertex.
-                let v = key[0];
-                let tets = range.len();
-                let mut edges = std::collections::BTreeSet::new();
-                let mut tris = std::collections::BTreeMap::<[u32; 2], usize>::new();
-                for i in range.clone() {
-                    let ids = model.simplex(list[i].1 as usize);
-                    let others: Vec<u32> = ids.iter().copied().filter(|&x| x != v).collect();
-                    for &a in &others {
-                        edges.insert(a);
-                    }
-                    for a in 0..others.len() {
-                        for b in (a + 1)..others.len() {
-                            let t = [others[a].min(others[b]), others[a].max(others[b])];
-                            *tris.entry(t).or_default() += 1;
+        // Flatten the union–find once; then every star is checked on its own, on every core.
+        let root: Vec<u32> = (0..list.len() as u32).map(|i| dsu.find(i)).collect();
+        let found: Vec<Message> = star
+            .par_iter()
+            .filter_map(|(key, range)| {
+                let roots: std::collections::BTreeSet<u32> =
+                    range.clone().map(|i| root[i]).collect();
+                let face: Vec<u32> = key[..k].to_vec();
+                let first = list[range.start].1 as usize;
+                let mut bad = None;
+                if roots.len() > 1 {
+                    bad = Some(format!(
+                        "its star falls into {} parts joined only at this {}",
+                        roots.len(),
+                        if k == 1 { "vertex" } else { "edge" }
+                    ));
+                } else if k == 1 && n == 3 {
+                    // Euler characteristic of the link: edges − triangles + tetrahedra around the
+                    // vertex.
+                    let v = key[0];
+                    let tets = range.len();
+                    let mut edges = std::collections::BTreeSet::new();
+                    let mut tris = std::collections::BTreeMap::<[u32; 2], usize>::new();
+                    for i in range.clone() {
+                        let ids = model.simplex(list[i].1 as usize);
+                        let others: Vec<u32> = ids.iter().copied().filter(|&x| x != v).collect();
+                        for &a in &others {
+                            edges.insert(a);
+                        }
+                        for a in 0..others.len() {
+                            for b in (a + 1)..others.len() {
+                                let t = [others[a].min(others[b]), others[a].max(others[b])];
+                                *tris.entry(t).or_default() += 1;
+                            }
                         }
                     }
+                    let boundary = tris.values().any(|&c| c == 1);
+                    let chi = edges.len() as i64 - tris.len() as i64 + tets as i64;
+                    let expect = if boundary { 1 } else { 2 };
+                    if chi != expect {
+                        bad = Some(format!(
+                            "its link has Euler characteristic {chi}; a manifold vertex has a disk (1) or sphere (2) link"
+                        ));
+                    }
                 }
-                let boundary = tris.values().any(|&c| c == 1);
-                let chi = edges.len() as i64 - tris.len() as i64 + tets as i64;
-                let expect = if boundary { 1 } else { 2 };
-                if chi != expect {
-                    bad = Some(format!(
-                        "its link has Euler characteristic {chi}; a manifold vertex has a disk (1) or sphere (2) link"
-                    ));
-                }
-            }
-            if let Some(why) = bad {
+                let why = bad?;
                 let mut loc = Location {
                     simplex: Some(first),
                     ..Location::pointer(format!("/simplices/{}", first * m))
@@ -172,13 +182,14 @@ pub fn non_manifold(model: &Model) -> Vec<Message> {
                     loc.face = Some(face);
                 }
                 let what = if k == 1 { "vertex" } else { "edge" };
-                out.push(Message::new(
+                Some(Message::new(
                     Rule::NonManifold,
                     loc,
                     format!("non-manifold {what}: {why}"),
-                ));
-            }
-        }
+                ))
+            })
+            .collect();
+        out.extend(found);
     };
     if n == 3 {
         check(2, &mut out);
