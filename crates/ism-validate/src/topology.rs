@@ -78,109 +78,132 @@ fn groups(list: &[([u32; 4], u32)]) -> Vec<([u32; 4], std::ops::Range<usize>)> {
     out
 }
 
+/// The ids of `simplex` other than those of the face `key` (first `k` entries), in stored order.
+fn others(ids: &[u32], key: &[u32; 4], k: usize) -> ([u32; 4], usize) {
+    let mut out = [u32::MAX; 4];
+    let mut len = 0;
+    for &id in ids {
+        if !key[..k].contains(&id) {
+            out[len] = id;
+            len += 1;
+        }
+    }
+    (out, len)
+}
+
+/// Why the star of one face (`k` vertices; its simplices `members`) is not a manifold star, if it
+/// is not. Everything is local to the star, so stars are checked independently, on every core.
+///
+/// Two simplices of the star are joined when they share a facet held by exactly these two (a facet
+/// held by more is an ISM-109 error and joins nothing). Such a facet contains the face, so every
+/// simplex holding it is in the star: sorting the star's facets through the face finds them all.
+fn star_defect(model: &Model, key: &[u32; 4], k: usize, members: &[u32]) -> Option<String> {
+    let n = model.dim();
+    let r = members.len();
+    // (facet key, local index) for each facet of each member that contains the face: the face's
+    // ids plus all but one of the member's other ids.
+    let mut facets: Vec<([u32; 4], u32)> = Vec::with_capacity(r * (n + 1 - k));
+    for (local, &s) in members.iter().enumerate() {
+        let (rest, len) = others(model.simplex(s as usize), key, k);
+        for skip in 0..len {
+            let mut f = [u32::MAX; 4];
+            f[..k].copy_from_slice(&key[..k]);
+            let mut at = k;
+            for (j, &id) in rest[..len].iter().enumerate() {
+                if j != skip {
+                    f[at] = id;
+                    at += 1;
+                }
+            }
+            f[..at].sort_unstable();
+            facets.push((f, local as u32));
+        }
+    }
+    facets.sort_unstable();
+    let mut dsu = Dsu::new(r);
+    for (key, range) in groups(&facets) {
+        let _ = key;
+        if range.len() == 2 {
+            dsu.union(facets[range.start].1, facets[range.start + 1].1);
+        }
+    }
+    let mut roots: Vec<u32> = (0..r as u32).map(|i| dsu.find(i)).collect();
+    roots.sort_unstable();
+    roots.dedup();
+    if roots.len() > 1 {
+        return Some(format!(
+            "its star falls into {} parts joined only at this {}",
+            roots.len(),
+            if k == 1 { "vertex" } else { "edge" }
+        ));
+    }
+    if k == 1 && n == 3 {
+        // Euler characteristic of the link: vertices − edges + triangles of the link, i.e. the
+        // star's edges, triangles and tetrahedra through the vertex.
+        let mut verts: Vec<u32> = Vec::with_capacity(3 * r);
+        let mut tris: Vec<[u32; 2]> = Vec::with_capacity(3 * r);
+        for &s in members {
+            let (o, len) = others(model.simplex(s as usize), key, 1);
+            verts.extend_from_slice(&o[..len]);
+            for a in 0..len {
+                for b in (a + 1)..len {
+                    tris.push([o[a].min(o[b]), o[a].max(o[b])]);
+                }
+            }
+        }
+        verts.sort_unstable();
+        verts.dedup();
+        tris.sort_unstable();
+        // A link edge held once is on the boundary of the link.
+        let mut boundary = false;
+        let mut distinct = 0usize;
+        let mut i = 0;
+        while i < tris.len() {
+            let mut j = i + 1;
+            while j < tris.len() && tris[j] == tris[i] {
+                j += 1;
+            }
+            boundary |= j - i == 1;
+            distinct += 1;
+            i = j;
+        }
+        let chi = verts.len() as i64 - distinct as i64 + r as i64;
+        let expect = if boundary { 1 } else { 2 };
+        if chi != expect {
+            return Some(format!(
+                "its link has Euler characteristic {chi}; a manifold vertex has a disk (1) or sphere (2) link"
+            ));
+        }
+    }
+    None
+}
+
 /// ISM-150 warnings. The model must have passed the structural checks that index vertices.
 pub fn non_manifold(model: &Model) -> Vec<Message> {
     let n = model.dim();
     let m = n + 1;
     let mut out = Vec::new();
-    // Facets with their simplices; only properly shared ones (exactly two) connect stars.
-    let facets = faces_of_size(model, n);
-    let facet_groups = groups(&facets);
-    // Star of a face: the simplices of its group in the face list. Connectivity through facets that
-    // contain the face: for each facet shared by two simplices, union them in the star of every
-    // sub-face of the facet.
     let check = |k: usize, out: &mut Vec<Message>| {
         let list = faces_of_size(model, k);
         let star = groups(&list);
-        let lookup = |key: &[u32; 4]| star.binary_search_by(|(k2, _)| k2.cmp(key)).ok();
-        let mut dsu = Dsu::new(list.len());
-        for (_, range) in &facet_groups {
-            if range.len() != 2 {
-                continue;
-            }
-            let (key, s1) = facets[range.start];
-            let s2 = facets[range.start + 1].1;
-            let len = key.iter().take_while(|&&x| x != u32::MAX).count();
-            for mask in 0u32..(1 << len) {
-                if mask.count_ones() as usize != k {
-                    continue;
-                }
-                let sub: Vec<u32> = (0..len)
-                    .filter(|i| mask & (1 << i) != 0)
-                    .map(|i| key[i])
-                    .collect();
-                let mut sk = [u32::MAX; 4];
-                sk[..k].copy_from_slice(&sub);
-                let Some(g) = lookup(&sk) else { continue };
-                let range = star[g].1.clone();
-                let pos = |s: u32| {
-                    range.start
-                        + list[range.clone()]
-                            .iter()
-                            .position(|x| x.1 == s)
-                            .expect("in star")
-                };
-                dsu.union(pos(s1) as u32, pos(s2) as u32);
-            }
-        }
-        // Flatten the union–find once; then every star is checked on its own, on every core.
-        let root: Vec<u32> = (0..list.len() as u32).map(|i| dsu.find(i)).collect();
         let found: Vec<Message> = star
             .par_iter()
             .filter_map(|(key, range)| {
-                let roots: std::collections::BTreeSet<u32> =
-                    range.clone().map(|i| root[i]).collect();
-                let face: Vec<u32> = key[..k].to_vec();
-                let first = list[range.start].1 as usize;
-                let mut bad = None;
-                if roots.len() > 1 {
-                    bad = Some(format!(
-                        "its star falls into {} parts joined only at this {}",
-                        roots.len(),
-                        if k == 1 { "vertex" } else { "edge" }
-                    ));
-                } else if k == 1 && n == 3 {
-                    // Euler characteristic of the link: edges − triangles + tetrahedra around the
-                    // vertex.
-                    let v = key[0];
-                    let tets = range.len();
-                    let mut edges = std::collections::BTreeSet::new();
-                    let mut tris = std::collections::BTreeMap::<[u32; 2], usize>::new();
-                    for i in range.clone() {
-                        let ids = model.simplex(list[i].1 as usize);
-                        let others: Vec<u32> = ids.iter().copied().filter(|&x| x != v).collect();
-                        for &a in &others {
-                            edges.insert(a);
-                        }
-                        for a in 0..others.len() {
-                            for b in (a + 1)..others.len() {
-                                let t = [others[a].min(others[b]), others[a].max(others[b])];
-                                *tris.entry(t).or_default() += 1;
-                            }
-                        }
-                    }
-                    let boundary = tris.values().any(|&c| c == 1);
-                    let chi = edges.len() as i64 - tris.len() as i64 + tets as i64;
-                    let expect = if boundary { 1 } else { 2 };
-                    if chi != expect {
-                        bad = Some(format!(
-                            "its link has Euler characteristic {chi}; a manifold vertex has a disk (1) or sphere (2) link"
-                        ));
-                    }
-                }
-                let why = bad?;
-                let mut loc = Location {
-                    simplex: Some(first),
-                    ..Location::pointer(format!("/simplices/{}", first * m))
-                };
-                if k == 1 {
-                    loc = Location {
+                let members: Vec<u32> = list[range.clone()].iter().map(|x| x.1).collect();
+                let why = star_defect(model, key, k, &members)?;
+                let first = members[0] as usize;
+                let loc = if k == 1 {
+                    Location {
                         vertex: Some(key[0] as usize),
                         ..Location::pointer(format!("/vertices/{}", key[0] as usize * n))
-                    };
+                    }
                 } else {
-                    loc.face = Some(face);
-                }
+                    Location {
+                        simplex: Some(first),
+                        face: Some(key[..k].to_vec()),
+                        ..Location::pointer(format!("/simplices/{}", first * m))
+                    }
+                };
                 let what = if k == 1 { "vertex" } else { "edge" };
                 Some(Message::new(
                     Rule::NonManifold,
