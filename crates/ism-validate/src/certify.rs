@@ -599,18 +599,22 @@ impl DetKernel {
         max_depth: u32,
     ) -> Decision {
         let m = self.n + 1;
+        let len = coefficients.values.len();
         struct Piece {
-            values: Vec<f64>,
-            errors: Vec<f64>,
+            /// Values, then error bounds.
+            coef: Vec<f64>,
             corners: [[f64; 4]; 4],
             depth: u32,
         }
+        let mut coef = coefficients.values;
+        coef.extend_from_slice(&coefficients.errors);
         let mut stack = vec![Piece {
-            values: coefficients.values,
-            errors: coefficients.errors,
+            coef,
             corners,
             depth,
         }];
+        // Buffers of finished pieces, reused by their children: no allocation per bisection.
+        let mut pool: Vec<Vec<f64>> = Vec::new();
         let mut pieces = 0usize;
         let mut deepest = depth;
         let mut lower = f64::INFINITY;
@@ -619,46 +623,45 @@ impl DetKernel {
         while let Some(piece) = stack.pop() {
             pieces += 1;
             deepest = deepest.max(piece.depth);
+            let (values, errors) = piece.coef.split_at(len);
             // NaN and infinities (overflow) decide nothing: the piece goes to the exact path.
-            let finite = piece
-                .values
-                .iter()
-                .chain(&piece.errors)
-                .all(|x| x.is_finite());
-            if !finite {
+            if !piece.coef.iter().all(|x| x.is_finite()) {
                 undecided = Some(f64::NEG_INFINITY);
                 break;
             }
             for i in 0..m {
-                let value = piece.values[self.vertex_rank[i]];
+                let value = values[self.vertex_rank[i]];
                 upper = upper.min(value);
                 if value <= 0.0 {
                     // A candidate only: the caller proves it exactly or goes on exactly.
                     return Decision::NonPositive {
                         point: piece.corners[i][..m].to_vec(),
                         value,
-                        error: piece.errors[self.vertex_rank[i]],
+                        error: errors[self.vertex_rank[i]],
                     };
                 }
             }
-            let low = piece
-                .values
+            let low = values
                 .iter()
-                .zip(&piece.errors)
+                .zip(errors)
                 .map(|(v, e)| v - e)
                 .fold(f64::INFINITY, f64::min);
             if low > 0.0 {
                 lower = lower.min(low);
+                pool.push(piece.coef);
                 continue;
             }
             if piece.depth >= max_depth || pieces + stack.len() >= budget {
                 let l = undecided.get_or_insert(low);
                 *l = l.min(low);
+                pool.push(piece.coef);
                 continue;
             }
             let (a, b) = longest_edge(&piece.corners, m);
-            let ((left_v, left_e), (right_v, right_e)) =
-                self.bisect(&piece.values, &piece.errors, a, b);
+            let mut left = pool.pop().unwrap_or_default();
+            let mut right = pool.pop().unwrap_or_default();
+            self.bisect(&piece.coef, a, b, &mut left, &mut right);
+            pool.push(piece.coef);
             let mut mid = [0.0; 4];
             for (c, x) in mid.iter_mut().enumerate().take(m) {
                 *x = 0.5 * (piece.corners[a][c] + piece.corners[b][c]);
@@ -669,14 +672,12 @@ impl DetKernel {
             let mut cb = piece.corners;
             cb[a] = mid;
             stack.push(Piece {
-                values: right_v,
-                errors: right_e,
+                coef: right,
                 corners: cb,
                 depth: piece.depth + 1,
             });
             stack.push(Piece {
-                values: left_v,
-                errors: left_e,
+                coef: left,
                 corners: ca,
                 depth: piece.depth + 1,
             });
@@ -696,28 +697,29 @@ impl DetKernel {
         }
     }
 
-    /// Splits the simplex at the midpoint of edge `(a, b)`: coefficients of the child that keeps
-    /// vertex `a` and of the child that keeps vertex `b`, with propagated error bounds.
-    #[allow(clippy::type_complexity)]
-    fn bisect(
-        &self,
-        values: &[f64],
-        errors: &[f64],
-        a: usize,
-        b: usize,
-    ) -> ((Vec<f64>, Vec<f64>), (Vec<f64>, Vec<f64>)) {
+    /// Splits the simplex at the midpoint of edge `(a, b)`. `piece` holds the values then the
+    /// error bounds (`2L` numbers); `left` and `right` (recycled buffers) receive those of the child
+    /// that keeps vertex `a` and of the child that keeps vertex `b`, with propagated bounds.
+    fn bisect(&self, piece: &[f64], a: usize, b: usize, left: &mut Vec<f64>, right: &mut Vec<f64>) {
         let (a, b, swap) = if a < b { (a, b, false) } else { (b, a, true) };
-        let lines = self.edge_lines(a, b);
-        let (mut lv, mut le) = (vec![0.0; values.len()], vec![0.0; values.len()]);
-        let (mut rv, mut re) = (vec![0.0; values.len()], vec![0.0; values.len()]);
-        let mut tv = Vec::new();
-        let mut te = Vec::new();
-        for line in lines {
+        let (left, right) = if swap { (right, left) } else { (left, right) };
+        let len_all = piece.len() / 2;
+        left.clear();
+        left.resize(piece.len(), 0.0);
+        right.clear();
+        right.resize(piece.len(), 0.0);
+        let (values, errors) = piece.split_at(len_all);
+        let (lv, le) = left.split_at_mut(len_all);
+        let (rv, re) = right.split_at_mut(len_all);
+        // A line holds at most D + 1 ≤ 62 coefficients (degree 16 rational in 3D).
+        let mut tv = [0.0f64; 64];
+        let mut te = [0.0f64; 64];
+        for line in self.edge_lines(a, b) {
             let len = line.len();
-            tv.clear();
-            te.clear();
-            tv.extend(line.iter().map(|&r| values[r as usize]));
-            te.extend(line.iter().map(|&r| errors[r as usize]));
+            for (j, &r) in line.iter().enumerate() {
+                tv[j] = values[r as usize];
+                te[j] = errors[r as usize];
+            }
             // De Casteljau at t = 1/2 along the line (index j = exponent of b). After step s, entry 0
             // is the left child's coefficient s and entry len−1−s the right child's coefficient
             // len−1−s.
@@ -741,11 +743,6 @@ impl DetKernel {
                 rv[line[len - 1 - step] as usize] = tv[len - 1 - step];
                 re[line[len - 1 - step] as usize] = te[len - 1 - step];
             }
-        }
-        if swap {
-            ((rv, re), (lv, le))
-        } else {
-            ((lv, le), (rv, re))
         }
     }
 }
