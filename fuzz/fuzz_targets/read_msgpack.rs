@@ -7,7 +7,8 @@ libfuzzer_sys::fuzz_target!(|payload: &[u8]| {
     let mut bytes = io::header(Encoding::MessagePack, FORMAT_VERSION, payload).to_vec();
     bytes.extend_from_slice(payload);
     if let Ok(doc) = io::from_slice(&bytes) {
-        let again = io::to_vec(&doc.model, Encoding::MessagePack, Default::default()).expect("re-encode");
+        let again =
+            io::to_vec(&doc.model, Encoding::MessagePack, Default::default()).expect("re-encode");
         assert_eq!(io::from_slice(&again).expect("re-read").model, doc.model);
     }
 });

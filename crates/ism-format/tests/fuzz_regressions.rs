@@ -4,7 +4,8 @@
 
 use std::path::{Path, PathBuf};
 
-use ism_format::{io, Encoding, FORMAT_VERSION};
+use ism_format::io::{self, ReadOptions, WriteOptions};
+use ism_format::{Encoding, Model, FORMAT_VERSION};
 
 fn files(dir: &Path) -> Vec<PathBuf> {
     let mut out: Vec<PathBuf> = std::fs::read_dir(dir)
@@ -18,10 +19,63 @@ fn files(dir: &Path) -> Vec<PathBuf> {
     out
 }
 
+/// The model as a writer writes it back: its own version (spec §8.1).
+fn as_written(model: &Model) -> Model {
+    Model {
+        version: FORMAT_VERSION.to_string(),
+        ..model.clone()
+    }
+}
+
 fn check_any(bytes: &[u8]) {
     if let Ok(doc) = io::from_slice(bytes) {
         let again = io::to_vec(&doc.model, doc.encoding, Default::default()).expect("re-encode");
-        assert_eq!(io::from_slice(&again).expect("re-read").model, doc.model);
+        assert_eq!(
+            io::from_slice(&again).expect("re-read").model,
+            as_written(&doc.model)
+        );
+    }
+}
+
+/// The property of the `cross_encoding` fuzz target (spec §7.7): whatever reads, in any encoding,
+/// is written in each encoding, reads back equal, and re-encodes to the same canonical bytes,
+/// whichever encoding it came from.
+fn check_cross(bytes: &[u8]) {
+    let unchecked = ReadOptions {
+        check_structure: false,
+        ..ReadOptions::default()
+    };
+    let Ok(doc) = io::from_slice_with(bytes, &unchecked) else {
+        return;
+    };
+    let binary = |m: &Model| io::encode_payload(m, Encoding::Binary, false).unwrap();
+    let mut canonical = Vec::new();
+    for encoding in Encoding::ALL {
+        match io::to_vec(&doc.model, encoding, WriteOptions::default()) {
+            Ok(written) => {
+                let again =
+                    io::from_slice_with(&written, &unchecked).expect("a written file reads");
+                assert_eq!(binary(&again.model), binary(&as_written(&doc.model)));
+                assert_eq!(
+                    io::to_vec(&again.model, encoding, WriteOptions::default()).unwrap(),
+                    written
+                );
+                canonical.push(written);
+            }
+            Err(e) => {
+                assert!(io::check_writable(&doc.model).is_err(), "{encoding:?}: {e}");
+                assert!(canonical.is_empty(), "{encoding:?}: {e}");
+            }
+        }
+    }
+    for written in &canonical {
+        let model = io::from_slice_with(written, &unchecked).unwrap().model;
+        for (encoding, expected) in Encoding::ALL.into_iter().zip(&canonical) {
+            assert_eq!(
+                &io::to_vec(&model, encoding, WriteOptions::default()).unwrap(),
+                expected
+            );
+        }
     }
 }
 
@@ -41,9 +95,13 @@ fn fuzz_corpus_and_crashes_are_handled() {
             ("read_binary", Some(Encoding::Binary)),
             ("read_msgpack", Some(Encoding::MessagePack)),
             ("read_json", Some(Encoding::Json)),
+            ("cross_encoding", None),
         ] {
             for file in files(&root.join(kind).join(target)) {
                 let bytes = std::fs::read(&file).unwrap();
+                if target == "cross_encoding" {
+                    check_cross(&bytes);
+                }
                 match encoding {
                     None => check_any(&bytes),
                     Some(e) => check_payload(e, &bytes),
