@@ -611,6 +611,31 @@ impl Tokens for MsgpackTokens<'_> {
     }
 }
 
+/// The keys of one object so far: a short list for the few members of the model's objects, a hash
+/// set once an object grows (hostile files may hold millions of unknown keys).
+#[derive(Default)]
+struct SeenKeys {
+    few: Vec<String>,
+    many: HashSet<String>,
+}
+
+impl SeenKeys {
+    /// Adds `key`; false when it was there already.
+    fn insert(&mut self, key: &str) -> bool {
+        if self.many.is_empty() {
+            if self.few.iter().any(|k| k == key) {
+                return false;
+            }
+            if self.few.len() < 16 {
+                self.few.push(key.to_string());
+                return true;
+            }
+            self.many.extend(self.few.drain(..));
+        }
+        self.many.insert(key.to_string())
+    }
+}
+
 /// One step of a JSON pointer.
 #[derive(Clone, Debug)]
 pub(crate) enum Seg {
@@ -708,12 +733,17 @@ impl<T: Tokens> Decoder<T> {
         };
         self.enter(offset)?;
         let mut seq = Seq::new(count);
-        let mut seen = HashSet::new();
+        let mut seen = SeenKeys::default();
         loop {
             let next = self.tok.next_key(&mut seq).map_err(|f| self.err(f))?;
             let Some((key, key_offset)) = next else { break };
-            self.path.push(Seg::Key(key.clone()));
-            if !seen.insert(key.clone()) {
+            let repeated = !seen.insert(&key);
+            self.path.push(Seg::Key(key));
+            let Some(Seg::Key(key)) = self.path.last() else {
+                unreachable!("just pushed")
+            };
+            let key = key.clone();
+            if repeated {
                 return Err(self.at(key_offset, format!("member {key:?} given twice")));
             }
             member(self, &key, key_offset)?;

@@ -193,3 +193,30 @@ fn binary_errors_name_the_member_and_the_byte() {
         );
     }
 }
+
+#[test]
+fn a_member_given_twice_is_found_among_many_unknown_members() {
+    let text = String::from_utf8(
+        io::to_vec(&triangle(), Encoding::Json, WriteOptions::default()).unwrap(),
+    )
+    .unwrap();
+    for count in [1usize, 15, 16, 17, 40] {
+        let unknown: String = (0..count).map(|i| format!(",\"u{i}\":{i}")).collect();
+        let ok = format!("{}{unknown}}}", &text[..text.len() - 1]);
+        assert!(io::from_slice(ok.as_bytes()).is_ok(), "{count}");
+        for repeated in ["u0", "version"] {
+            let bad = format!("{}{unknown},\"{repeated}\":0}}", &text[..text.len() - 1]);
+            let e = io::from_slice(bad.as_bytes()).unwrap_err();
+            let d = &e.diagnostics()[0];
+            assert_eq!(d.rule, Rule::Malformed, "{count} {repeated}");
+            assert_eq!(
+                d.location.pointer.as_deref(),
+                Some(&*format!("/{repeated}"))
+            );
+            assert_eq!(
+                d.location.offset,
+                Some(bad.rfind(&format!("\"{repeated}\"")).unwrap() as u64)
+            );
+        }
+    }
+}
