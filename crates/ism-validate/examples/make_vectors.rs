@@ -141,6 +141,16 @@ fn vectors() -> Vec<Vector> {
             folds: vec![],
         },
         Vector {
+            name: "edge-point-on-vertex",
+            description: "A quadratic edge point stored as (1e-17, 1.0): positive and summing to 1 in f64, but in reduced \
+                          coordinates (b0 = 1 - b2 = 0) it sits on vertex 2, where det DX = 0 exactly. No theorem applies \
+                          (spec/validation.md §4.2); the witness is the exact zero at the vertex.",
+            model: square().stage(StageBuilder::bezier(2).face(&[0, 2], &[1e-17, 1.0], &[]).build()).build_unchecked(),
+            verdict: "invalid",
+            issues: vec![("ISM-301", element(0, 0, 3)), ("ISM-301", element(0, 1, 3))],
+            folds: vec![],
+        },
+        Vector {
             name: "quartic-fold-3d",
             description: "A tetrahedron whose quartic edge (0, 1) folds (Mello & Velho 2009 Fig. 2 inside a 3D model).",
             model: tet().stage(StageBuilder::bezier(4).face(&[0, 1], &fig2, &[]).build()).build_unchecked(),

@@ -12,6 +12,41 @@ use ism_format::{multi_index, Model, Stage, StageKind};
 
 use crate::certify::DenseNet;
 
+/// Whether a stored point (positive coordinates on its face, summing to 1 within the ISM-202
+/// tolerance) is in its open face in reduced coordinates, whichever vertex is dropped: the map uses
+/// `(b₁ … bₙ)` and `b₀ = 1 − Σ`, so the dropped coordinate is really `1 − Σ_{i≠j} b_i`, which can be
+/// 0 (or negative) although the stored `b_j > 0` — e.g. `(1e-17, 1.0)` puts an edge point on the
+/// vertex, where det DX = 0. The theorems of spec/validation.md §4.2 apply only when every such
+/// `1 − Σ_{i≠j} b_i` is `> 0`, decided exactly: the floating-point sum of positive numbers is within
+/// `k·u` of the exact one, and only sums within that of 1 are summed exactly.
+pub fn reduced_adjusted(point: &[f64]) -> bool {
+    if point.len() < 2 {
+        return point.iter().all(|&x| x > 0.0);
+    }
+    (0..point.len()).all(|j| {
+        let others = point
+            .iter()
+            .enumerate()
+            .filter(|&(i, _)| i != j)
+            .map(|(_, &x)| x);
+        let approx: f64 = others.clone().sum();
+        // At most 3 positive terms: relative error ≤ 2u(1 + 2u); 8u is a wide margin.
+        let margin = 8.0 * f64::EPSILON * approx.abs();
+        if approx + margin < 1.0 {
+            true
+        } else if approx - margin >= 1.0 {
+            false
+        } else {
+            let exact = others
+                .filter_map(crate::exact::rational)
+                .fold(num_rational::BigRational::from_integer(0.into()), |a, x| {
+                    a + x
+                });
+            exact < num_rational::BigRational::from_integer(1.into())
+        }
+    })
+}
+
 /// A face key: sorted global vertex ids, padded with `u32::MAX`.
 pub type FaceKey = [u32; 4];
 
@@ -35,6 +70,9 @@ pub struct StageIndex<'a> {
     all: Vec<u32>,
     /// Per record: every stored point equals the correctly rounded fixed point `J/d`.
     fixed: Vec<bool>,
+    /// Per record: every stored point stays in its open face in every simplex's reduced
+    /// coordinates (see [`reduced_adjusted`]): the hypothesis of the theorems.
+    adjusted: Vec<bool>,
 }
 
 /// Which faces of one top simplex carry records: `records[mask]` for the face made of the local
@@ -75,9 +113,18 @@ impl<'a> StageIndex<'a> {
                     .all(|(&j, &x)| x == f64::from(j) / f64::from(d))
             })
             .collect();
+        let adjusted = stage
+            .faces
+            .iter()
+            .map(|rec| {
+                let k1 = rec.face.len();
+                k1 == 0 || rec.points.chunks(k1).all(reduced_adjusted)
+            })
+            .collect();
         StageIndex {
             model,
             stage,
+            adjusted,
             faces: std::sync::OnceLock::new(),
             all: multi_index::all(model.dim() + 1, d),
             fixed,
@@ -92,6 +139,12 @@ impl<'a> StageIndex<'a> {
     /// Whether record `r` stores exactly the fixed points (each coordinate the f64 nearest `J_j/d`).
     pub fn is_fixed(&self, r: usize) -> bool {
         self.fixed[r]
+    }
+
+    /// Whether record `r` keeps every point in its open face whichever of its vertices a simplex
+    /// drops in reduced coordinates (the theorems' "adjusted" hypothesis).
+    pub fn is_adjusted(&self, r: usize) -> bool {
+        self.adjusted[r]
     }
 
     /// Whether record `r` is a vertex record storing the vertex itself (`[1.0]`), which moves

@@ -59,6 +59,11 @@ fn classify_stage(model: &Model, index: &StageIndex<'_>, theorems: bool) -> Stag
     if !theorems {
         return StageClass::PerSimplex;
     }
+    // The theorems assume adjusted nets; a record that is adjusted only within rounding (an edge
+    // point at its vertex in reduced coordinates) sends its simplices to the numeric certificate.
+    if stage.kind != StageKind::Monotonic && !(0..stage.faces.len()).all(|r| index.is_adjusted(r)) {
+        return StageClass::PerSimplex;
+    }
     match stage.kind {
         StageKind::Monotonic => StageClass::Theorem(theorem::MONOTONIC),
         StageKind::Bezier if d == 2 => StageClass::Theorem(theorem::PROP_5_6),
@@ -184,7 +189,8 @@ pub fn check_stage(model: &Model, k: usize, options: PositivityOptions) -> Stage
                 lower_bound: None,
             };
         }
-        if options.theorems {
+        let adjusted = records.iter().all(|(_, r)| index.is_adjusted(r));
+        if options.theorems && adjusted {
             if let Some(name) =
                 simplex_theorem(&index, &records, &moving, stage.kind, stage.degree, n)
             {
@@ -196,7 +202,12 @@ pub fn check_stage(model: &Model, k: usize, options: PositivityOptions) -> Stage
             }
         }
         let net = index.dense_net(s, &records);
-        if options.theorems && rational && n == 2 && theorem::sottile_zhu_compatible(&net) {
+        if options.theorems
+            && adjusted
+            && rational
+            && n == 2
+            && theorem::sottile_zhu_compatible(&net)
+        {
             return Outcome::Valid {
                 method: theorem::SOTTILE_ZHU,
                 depth: 0,

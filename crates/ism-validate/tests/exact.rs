@@ -558,3 +558,43 @@ fn a_corner_degenerate_to_round_off_is_decided_exactly() {
         check(&net, &cert, &grid(m, 16), "corner-degenerate");
     }
 }
+
+#[test]
+fn an_edge_point_on_its_vertex_in_reduced_coordinates_is_not_certified_by_a_theorem() {
+    // (1e-17, 1.0) passes ISM-201 (positive) and ISM-202 (sums to 1.0 in f64), but the map uses
+    // b₀ = 1 − b₂ = 0 in the simplex whose local vertex 0 is global vertex 0: the edge point sits
+    // on vertex 2 and det DX = 0 there. Mello & Velho 2009 Prop. 5.6 must not be applied.
+    use ism_format::builder::{ModelBuilder, StageBuilder};
+    let square = |stage| {
+        ModelBuilder::new(2)
+            .vertex(&[0.0, 0.0], -1.0)
+            .vertex(&[1.0, 0.0], 1.0)
+            .vertex(&[1.0, 1.0], 1.0)
+            .vertex(&[0.0, 1.0], 1.0)
+            .simplex(&[0, 1, 2])
+            .simplex(&[0, 2, 3])
+            .stage(stage)
+            .build_unchecked()
+    };
+    let stage = StageBuilder::bezier(2)
+        .face(&[0, 2], &[1e-17, 1.0], &[])
+        .build();
+    let report = ism_validate::validate(&square(stage), &ism_validate::Options::default());
+    assert_eq!(
+        report.verdict,
+        ism_validate::Verdict::Invalid,
+        "{report:#?}"
+    );
+    let witness = report.issues.messages[0].witness.as_ref().unwrap();
+    assert_eq!(witness.det, 0.0, "{witness:?}");
+    // The same point kept a hair inside its face is certified by the theorem.
+    let stage = StageBuilder::bezier(2)
+        .face(&[0, 2], &[1e-9, 1.0 - 1e-9], &[])
+        .build();
+    let report = ism_validate::validate(&square(stage), &ism_validate::Options::default());
+    assert_eq!(report.verdict, ism_validate::Verdict::Valid);
+    assert_eq!(
+        report.stages[0].certificates[ism_validate::theorem::PROP_5_6],
+        2
+    );
+}
