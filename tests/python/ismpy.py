@@ -914,7 +914,8 @@ def orientation(model, ids):
         for b in range(a + 1, n + 1):
             d2 = 0.0
             for c in range(n):
-                d2 += (p[a][c] - p[b][c]) ** 2
+                d = p[a][c] - p[b][c]
+                d2 += d * d  # not ** 2, which raises OverflowError instead of giving inf
             longest = max(longest, math.sqrt(d2))
     return det, longest
 
@@ -953,7 +954,8 @@ def structural_errors(model: dict) -> list:
             out.append(at_simplex("ISM-105", s))
             continue
         det, longest = orientation(model, ids)
-        if abs(det) <= 1e-12 * longest**n or not math.isfinite(det):
+        scale = longest * longest * (longest if n == 3 else 1.0)
+        if abs(det) <= 1e-12 * scale or not math.isfinite(det):
             out.append(at_simplex("ISM-107", s))
         elif det < 0:
             out.append(at_simplex("ISM-106", s))
