@@ -46,6 +46,12 @@ const ROOT_FILTER_PIECES: usize = 1 << 12;
 /// printed, so approximate corners cost at most a missed witness, never a false one.
 pub const MAX_EXACT_DEPTH: u32 = 160;
 
+/// Largest exact piece, in bits (coefficients × their longest length): integer de Casteljau adds up
+/// to `D` bits per bisection, so deep pieces of high-degree elements grow; past 4 Mbit (512 KiB) a
+/// piece is left undecided. With the depth limit this bounds the exact path's memory per thread to
+/// about 80 MiB whatever the input.
+pub const MAX_EXACT_PIECE_BITS: u64 = 1 << 22;
+
 /// The exact value of a finite double as `(m, e)` with `x = m · 2^e`; `None` when not finite.
 pub fn dyadic(x: f64) -> Option<(BigInt, i64)> {
     if !x.is_finite() {
@@ -727,7 +733,12 @@ pub fn decide(kernel: &DetKernel, net: &DenseNet, budget: usize) -> ExactDecisio
                 Decision::Undetermined { .. } => {}
             }
         }
-        if pieces + stack.len() >= budget || piece.depth >= MAX_EXACT_DEPTH {
+        let size =
+            piece.values.iter().map(BigInt::bits).max().unwrap_or(0) * piece.values.len() as u64;
+        if pieces + stack.len() >= budget
+            || piece.depth >= MAX_EXACT_DEPTH
+            || size > MAX_EXACT_PIECE_BITS
+        {
             undecided = true;
             continue;
         }
