@@ -662,15 +662,7 @@ impl DetKernel {
             let mut right = pool.pop().unwrap_or_default();
             self.bisect(&piece.coef, a, b, &mut left, &mut right);
             pool.push(piece.coef);
-            let mut mid = [0.0; 4];
-            for (c, x) in mid.iter_mut().enumerate().take(m) {
-                *x = 0.5 * (piece.corners[a][c] + piece.corners[b][c]);
-            }
-            // Child keeping a (b moved to the midpoint) and child keeping b.
-            let mut ca = piece.corners;
-            ca[b] = mid;
-            let mut cb = piece.corners;
-            cb[a] = mid;
+            let (ca, cb) = split_corners(&piece.corners, a, b, m);
             stack.push(Piece {
                 coef: right,
                 corners: cb,
@@ -745,6 +737,25 @@ impl DetKernel {
             }
         }
     }
+}
+
+/// The corners of the two children of a bisection at the midpoint of edge `(a, b)`: the child
+/// keeping `a` (`b` moved to the midpoint) and the child keeping `b`.
+pub(crate) fn split_corners(
+    corners: &[[f64; 4]; 4],
+    a: usize,
+    b: usize,
+    m: usize,
+) -> ([[f64; 4]; 4], [[f64; 4]; 4]) {
+    let mut mid = [0.0; 4];
+    for (c, x) in mid.iter_mut().enumerate().take(m) {
+        *x = 0.5 * (corners[a][c] + corners[b][c]);
+    }
+    let mut ca = *corners;
+    ca[b] = mid;
+    let mut cb = *corners;
+    cb[a] = mid;
+    (ca, cb)
 }
 
 /// The corners of the whole simplex: the unit vectors of `R^m`.

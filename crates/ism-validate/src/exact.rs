@@ -744,14 +744,7 @@ pub fn decide(kernel: &DetKernel, net: &DenseNet, budget: usize) -> ExactDecisio
         }
         let (a, b) = crate::certify::longest_edge(&piece.corners, m);
         let (left, right) = bisect(kernel, &piece.values, a, b);
-        let mut mid = [0.0; 4];
-        for (c, x) in mid.iter_mut().enumerate().take(m) {
-            *x = 0.5 * (piece.corners[a][c] + piece.corners[b][c]);
-        }
-        let mut ca = piece.corners;
-        ca[b] = mid;
-        let mut cb = piece.corners;
-        cb[a] = mid;
+        let (ca, cb) = crate::certify::split_corners(&piece.corners, a, b, m);
         stack.push(Piece {
             values: right,
             corners: cb,
