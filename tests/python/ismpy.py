@@ -438,7 +438,7 @@ class Decoder:
 
     def uint(self, top: int) -> int:
         h, offset = self.head()
-        if h[0] != "int" or not 0 <= h[1] <= top:
+        if h[0] != "int" or not 0 <= h[1] <= top or math.copysign(1.0, h[2]) < 0:  # `-0` has a sign
             raise self.at(offset, f"expected an integer from 0 to {top}")
         return h[1]
 

@@ -685,6 +685,12 @@ fn strictness_vectors() -> Vec<ReaderVector> {
         Rule::Malformed,
     );
     push(
+        "json-index-minus-zero",
+        J,
+        text.replacen("[0,1,2]", "[0,1,-0]", 1).into_bytes(),
+        Rule::Malformed,
+    );
+    push(
         "json-index-with-exponent",
         J,
         text.replacen("[0,1,2]", "[0,1,2e0]", 1).into_bytes(),

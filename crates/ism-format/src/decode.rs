@@ -789,7 +789,14 @@ impl<T: Tokens> Decoder<T> {
     fn uint(&mut self, max: u32) -> Result<u32> {
         match self.head()? {
             (Head::Num(n), offset) => match n.int {
-                Some(i) if n.integer && (0..=i128::from(max)).contains(&i) => Ok(i as u32),
+                // `-0` is a sign: refused like any other (spec §7.2).
+                Some(i)
+                    if n.integer
+                        && (0..=i128::from(max)).contains(&i)
+                        && !n.value.is_sign_negative() =>
+                {
+                    Ok(i as u32)
+                }
                 _ => Err(self.at(
                     offset,
                     format!("expected an integer from 0 to {max}; found the number {n}"),
