@@ -93,12 +93,16 @@ fn unreadable_missing_and_bad_arguments_exit_2() {
         .output()
         .unwrap();
     assert_eq!(out.status.code(), Some(2));
-    let out = ism()
-        .args(["validate", "--max-pieces", "x"])
-        .arg(&bad)
-        .output()
-        .unwrap();
-    assert_eq!(out.status.code(), Some(2));
+    for budget in ["x", "0", "-3"] {
+        let out = ism()
+            .args(["validate", &format!("--max-pieces={budget}")])
+            .arg(&bad)
+            .output()
+            .unwrap();
+        assert_eq!(out.status.code(), Some(2), "--max-pieces={budget}");
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(err.contains("--max-pieces"), "{err}");
+    }
 }
 
 #[test]
