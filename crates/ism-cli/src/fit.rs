@@ -27,7 +27,7 @@ together with the points (every positive weight keeps the map a diffeomorphism);
 the edges stay exact. It lowers the error on a given complex, at the price of a face record per
 weight.
 
-Presets: circle (paper 001 Fig. 4), taubin (000 §9.2), sphere, torus, genus2.
+Presets: circle (Mello & Velho 2010, Fig. 4), taubin (Mello & Velho 2009, §9.2), sphere, torus, genus2.
 
 --mesh FILE (.obj, .glb, .gltf): g is the signed distance to the triangles, negative where the
 generalized winding number exceeds 1/2; the domain is the mesh's bounding box padded by
@@ -348,11 +348,11 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
 /// What the report needs to know about a mesh: its check, diagonal, and whether it was flipped.
 type MeshInfo = (MeshCheck, f64, bool);
 
-/// `--mesh`: reads the mesh and builds its signed distance.
 /// What [`mesh_setup`] prepares: the signed distance, the domain, the name, the [`MeshInfo`],
 /// and the warnings to print.
 type MeshSetup = (MeshDistance, Vec<f64>, String, MeshInfo, Vec<String>);
 
+/// `--mesh`: reads the mesh and builds its signed distance.
 fn mesh_setup(args: &Args) -> anyhow::Result<MeshSetup> {
     let mut warnings = Vec::new();
     let path = args.mesh.as_ref().context("missing --mesh")?;

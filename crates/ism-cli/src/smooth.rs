@@ -9,7 +9,7 @@ use ism_fit::smooth::{smooth, SmoothOptions};
 use ism_format::io;
 
 const AFTER_HELP: &str = "\
-Minimizes the paper's (000 §8) sum over interior facets of |n_σ − n_σ'|² at the points of the
+Minimizes Mello & Velho's (2009, §8) sum over interior facets of |n_σ − n_σ'|² at the points of the
 shape on the facet, plus alpha·|β − β₀|² (β the logits of the solitary control points), by
 per-face Levenberg–Marquardt sweeps. A model whose first stages are a stratified block (as `ism
 fit` writes) has that block optimized; any other model keeps its stages and gets a new stratified
@@ -20,7 +20,7 @@ output is valid by construction and checked by the validator.
 Smoothing trades position for smoothness; --alpha sets the balance (fitted circle, resolution 6:
 input jump max 16.3°, |g|/|∇g| max 6.7e-4; alpha 1e-3: 2.7°, 1.3e-3; alpha 0.1: 4.3°, 7.3e-4).
 
-With --rational (000 §8 Thm. 8.1, eq. (6)): the input must be a linear isocomplex (no stage) or
+With --rational (Mello & Velho 2009, §8, Thm. 8.1, eq. (6)): the input must be a linear isocomplex (no stage) or
 have one implicit rational stage with every control point fixed. The output has one rational stage
 of degree --degree (default: the input stage's, or the dimension n as in the paper) with fixed
 control points and weights q = exp(β), |β| ≤ 4, fitted by sparse Levenberg–Marquardt to minimize
@@ -63,7 +63,7 @@ pub struct Args {
     #[arg(long, value_parser = crate::args::non_negative, allow_hyphen_values = true)]
     alpha: Option<f64>,
     /// Fit the weights of a rational stage with fixed control points to the C¹ condition of
-    /// 000 Thm. 8.1 instead (input: no stage, or one such rational stage).
+    /// Mello & Velho 2009, Thm. 8.1 instead (input: no stage, or one such rational stage).
     #[arg(long)]
     rational: bool,
     /// Degree of the rational stage (with --rational) [default: the input stage's, or n].

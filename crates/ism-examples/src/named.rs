@@ -1,5 +1,5 @@
 //! The named examples of `spec/examples/`, each a genuine simplicial diffeomorphism by one of the
-//! constructions of ism-math §3 (adjusted quadratic, solitary points, strata, fixed-point rational,
+//! constructions of `spec/mathematics.md` §3 (adjusted quadratic, solitary points, strata, fixed-point rational,
 //! monotonic, and compositions of those).
 
 use std::path::Path;
@@ -15,7 +15,7 @@ use crate::{
 /// The generator string written into every example's metadata.
 pub const GENERATOR: &str = concat!("ism-make-examples ", env!("CARGO_PKG_VERSION"));
 
-/// Radius of the papers' circle (`001` Fig. 4): `x² + y² − 0.28²`.
+/// Radius of the papers' circle (Mello & Velho 2010, Fig. 4): `x² + y² − 0.28²`.
 pub const CIRCLE_RADIUS: f64 = 0.28;
 
 /// The circle's implicit function.
@@ -45,7 +45,7 @@ fn named(mut model: Model, name: &str, description: &str) -> Model {
 }
 
 /// The 4 × 4 Kuhn triangulation of `[−0.5, 0.5]²` with the circle's values: the linear isocomplex
-/// of `001` Fig. 4, far from the circle.
+/// of Mello & Velho 2010, Fig. 4, far from the circle.
 fn circle_grid() -> Model {
     kuhn_grid_2d(4, 4, Aabb::cube(-0.5, 0.5), circle).expect("fixed, valid grid")
 }

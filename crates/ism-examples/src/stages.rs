@@ -1,4 +1,4 @@
-//! Stage generators, each one a construction that the theorems of `ism-math.md` §3 certify as a
+//! Stage generators, each one a construction that the theorems of `spec/mathematics.md` §3 certify as a
 //! simplicial diffeomorphism for every parameter they accept.
 
 use ism_format::multi_index::{owned, owned_count};
@@ -33,7 +33,7 @@ pub fn solitary_point(seed: u64, face: &[u32], amplitude: f64) -> Vec<f64> {
 
 /// A Bézier stage of degree `j + 1` whose only records are the solitary centre points of every
 /// `j`-face, each moved by [`solitary_point`]: the stratum `G_j` of the stratified scheme
-/// (ism-math §3.2), a diffeomorphism for every position in 2D and 3D.
+/// (`spec/mathematics.md` §3.2), a diffeomorphism for every position in 2D and 3D.
 pub fn stratum_stage(model: &Model, j: usize, seed: u64, amplitude: f64) -> Stage {
     let faces = faces_of_dimension(model, j);
     let records: Vec<FaceRecord> = faces
@@ -50,7 +50,7 @@ pub fn stratum_stage(model: &Model, j: usize, seed: u64, amplitude: f64) -> Stag
     stage
 }
 
-/// The stratified scheme `G = G_1 ∘ G_2 ∘ … ∘ G_n` (ism-math §3.2) as `n` Bézier stages: one
+/// The stratified scheme `G = G_1 ∘ G_2 ∘ … ∘ G_n` (`spec/mathematics.md` §3.2) as `n` Bézier stages: one
 /// [`stratum_stage`] per face dimension `j = 1..n`, with a solitary point on EVERY `j`-face.
 ///
 /// Returned in application order (`stages[0]` first), which for `G_1 ∘ … ∘ G_n` is
@@ -66,7 +66,7 @@ pub fn stratified_stages(model: &Model, seed: u64, amplitude: f64) -> Vec<Stage>
 
 /// A quadratic Bézier stage moving the middle control point of every edge along the edge:
 /// `(½ + a·r/2, ½ − a·r/2)` with `r ∈ [−1, 1)`. Adjusted and of degree 2, hence a diffeomorphism
-/// (ism-math §3.2, `000` Prop. 5.6).
+/// (`spec/mathematics.md` §3.2, Mello & Velho 2009, Prop. 5.6).
 pub fn quadratic_edge_stage(model: &Model, seed: u64, amplitude: f64) -> Stage {
     let mut stage = stratum_stage(model, 1, seed, amplitude);
     stage.name = Some("quadratic edges".into());
@@ -74,8 +74,8 @@ pub fn quadratic_edge_stage(model: &Model, seed: u64, amplitude: f64) -> Stage {
 }
 
 /// A cubic Bézier stage moving the centre point (index `111`) of every triangle of the complex
-/// (in 2D: of every top simplex, a solitary point per simplex, `000` Prop. 5.7; in 3D: the stratum
-/// `G_2`, `000` Prop. 5.9). A diffeomorphism in both cases.
+/// (in 2D: of every top simplex, a solitary point per simplex, Mello & Velho 2009, Prop. 5.7; in 3D: the stratum
+/// `G_2`, Mello & Velho 2009, Prop. 5.9). A diffeomorphism in both cases.
 pub fn cubic_face_point_stage(model: &Model, seed: u64, amplitude: f64) -> Stage {
     let mut stage = stratum_stage(model, 2, seed, amplitude);
     stage.name = Some("cubic face points".into());
@@ -84,7 +84,7 @@ pub fn cubic_face_point_stage(model: &Model, seed: u64, amplitude: f64) -> Stage
 
 /// A rational stage of degree `degree` with every control point fixed (`b_I = I/d`) and the weights
 /// `weight(face, J)` for the multi-index `J` owned by `face` (sorted global ids). Fixed points with
-/// positive weights make a diffeomorphism for every `n` (`000` Thm. 6.4). Faces whose weights are
+/// positive weights make a diffeomorphism for every `n` (Mello & Velho 2009, Thm. 6.4). Faces whose weights are
 /// all 1 are left out (they equal the default). Non-positive or non-finite weights are replaced
 /// by 1, so the result is always a valid stage.
 pub fn rational_fixed_points_stage(
@@ -146,7 +146,7 @@ pub fn seeded_weights(seed: u64, spread: f64) -> impl Fn(&[u32], &[u32]) -> f64 
 
 /// A monotonic stage of degree `degree` with a map on every used vertex: coefficients
 /// `a_0 = 0`, `a_j = a_{j−1} + (1 + a·r_j)/d` with `r_j ∈ [−1, 1)` and `a = min(amplitude, 0.9)`,
-/// strictly increasing, so each `g_v` is increasing and the stage a diffeomorphism (`000` §4).
+/// strictly increasing, so each `g_v` is increasing and the stage a diffeomorphism (Mello & Velho 2009, §4).
 pub fn monotonic_stage(model: &Model, degree: u32, seed: u64, amplitude: f64) -> Stage {
     let a = clamp_amplitude(amplitude);
     let vertices = faces_of_dimension(model, 0);
@@ -263,7 +263,7 @@ pub fn level_crossing_stage(model: &Model, g: impl Fn(&[f64]) -> f64 + Sync) -> 
 ///    term pinning the free additive constant, clamped to `|log λ| ≤ 3`);
 /// 2. the quadratic stage of [`level_crossing_stage`] solving `X₁(X₀(t*)) = t₀`.
 ///
-/// Both are diffeomorphisms by construction (monotonic: `000` §4; adjusted quadratic), so their
+/// Both are diffeomorphisms by construction (monotonic: Mello & Velho 2009, §4; adjusted quadratic), so their
 /// composition is. Returned in application order.
 pub fn level_crossing_stages(model: &Model, g: impl Fn(&[f64]) -> f64 + Sync) -> Vec<Stage> {
     /// Ridge weight: small against the edge equations (weight 1), enough to make the system

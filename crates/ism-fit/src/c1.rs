@@ -1,5 +1,5 @@
 //! Rational C¹ smoothing: fit the weights of a rational stage with fixed control points so that the
-//! shape is C¹ across the interior facets it crosses (paper `000` §8, Thm. 8.1 and eq. (6)).
+//! shape is C¹ across the interior facets it crosses (Mello & Velho 2009, §8, Thm. 8.1 and eq. (6)).
 //!
 //! With `X|_σ = Σ q_I b_I B_I / Σ q_I B_I`, fixed control points `b_I = I/d` and `F = f̂ ∘ X`,
 //! `F − c = u/v` with `u = Σ q_I (f̂(b_I) − c) B_I` and `v = Σ q_I B_I`; on `O` (`u = 0`) the gradient
@@ -27,7 +27,7 @@
 //! The minimizer is a global sparse Levenberg–Marquardt on `β` with steps kept in the gauge
 //! subspace (zero mean per group) and clamped to `|β| ≤` [`MAX_LOG_WEIGHT`]; a step is accepted
 //! only if it lowers `E`, so the objective never increases. Every positive weight with fixed
-//! control points gives a diffeomorphism (`000` Thm. 6.4), so the output is valid by construction
+//! control points gives a diffeomorphism (Mello & Velho 2009, Thm. 6.4), so the output is valid by construction
 //! and the validator certifies it by that theorem.
 //!
 //! Input: a model without stages (a linear isocomplex), or whose only stage is an implicit rational

@@ -1,4 +1,4 @@
-//! Adaptive polygonization of an implicit function (paper `000` §9.2, ism-math §6).
+//! Adaptive polygonization of an implicit function (Mello & Velho 2009, §9.2, `spec/mathematics.md` §6).
 //!
 //! 1. The Kuhn triangulation of the domain box, `f = g` at the vertices, identity map.
 //! 2. Topology: every cell whose bounding box fails the Plantinga–Vegter test

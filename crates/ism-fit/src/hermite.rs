@@ -1,4 +1,4 @@
-//! Free-form modeling from Hermite data (paper `000` §9.1, ism-math §6 first bullet).
+//! Free-form modeling from Hermite data (Mello & Velho 2009, §9.1, `spec/mathematics.md` §6 first bullet).
 //!
 //! Input: a simplicial complex with nonzero vertex values (or an existing model to edit) and, per
 //! sign-changing edge `ε`, a crossing point `p(ε)` and a unit normal `n(ε)`. Output: a model whose

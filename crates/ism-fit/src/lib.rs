@@ -1,4 +1,7 @@
-//! ISM fitting: adaptive polygonization of implicit functions (papers `000` §9.2, `001` §6).
+//! ISM fitting: adaptive polygonization of implicit functions, after Mello & Velho, *Simplicial
+//! Diffeomorphisms* (IMPA technical report TR-2009-05, 2009, §9.2; Computer Aided Geometric Design
+//! 27, 2010, §6), cited below as "Mello & Velho 2009" and "2010"; `spec/mathematics.md` restates
+//! what this crate uses.
 //!
 //! - [`expr`]: `g` from text (`exmex`), exact symbolic gradient, interval enclosures;
 //!   [`presets`]: circle, Taubin's curve, sphere, torus, genus-2 surface.

@@ -26,7 +26,7 @@ pub struct Preset {
 pub const PRESETS: &[Preset] = &[
     Preset {
         name: "circle",
-        description: "circle x²+y²−0.28² of paper 001, Fig. 4",
+        description: "circle x²+y²−0.28² of Mello & Velho 2010, Fig. 4",
         dim: 2,
         expr: "x^2 + y^2 - 0.28^2",
         domain: &[-0.5, 0.5, -0.5, 0.5],
@@ -35,7 +35,7 @@ pub const PRESETS: &[Preset] = &[
     },
     Preset {
         name: "taubin",
-        description: "Taubin's quartic curve of paper 000 §9.2",
+        description: "Taubin's quartic curve of Mello & Velho 2009, §9.2",
         dim: 2,
         expr: "0.004 + 0.110*x - 0.177*y - 0.174*x^2 + 0.224*x*y - 0.303*y^2 - 0.168*x^3 + 0.327*x^2*y \
                - 0.087*x*y^2 - 0.013*y^3 + 0.235*x^4 - 0.667*x^3*y + 0.745*x^2*y^2 - 0.029*x*y^3 + 0.072*y^4",

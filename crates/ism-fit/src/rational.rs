@@ -1,4 +1,4 @@
-//! The rational stage the fitter optimizes beside the strata (ism-math §3.3, paper `000` §6).
+//! The rational stage the fitter optimizes beside the strata (`spec/mathematics.md` §3.3, Mello & Velho 2009, §6).
 //!
 //! A degree-2 rational map whose control points are all fixed at `I/2` and whose weights are free:
 //! `R(u)ᵢ = (qᵢ uᵢ² + Σ_{j≠i} q_{ij} uᵢ uⱼ) / (Σᵢ qᵢ uᵢ² + 2 Σ_{i<j} q_{ij} uᵢ uⱼ)`, with `qᵢ` the

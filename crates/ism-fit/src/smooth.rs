@@ -1,4 +1,4 @@
-//! Smoothing: reduce the normal jumps of the shape across interior facets (paper `000` §8).
+//! Smoothing: reduce the normal jumps of the shape across interior facets (Mello & Velho 2009, §8).
 //!
 //! A curved isocomplex is in general not smooth across a facet `δ`: the normals computed in the
 //! two simplices `σ, σ′` at a point of `O ∩ δ` differ. [`smooth`] minimizes

@@ -1,4 +1,4 @@
-//! The stratified map the fitter optimizes (ism-math §3.2, paper `000` §5.4), stored parametric.
+//! The stratified map the fitter optimizes (`spec/mathematics.md` §3.2, Mello & Velho 2009, §5.4), stored parametric.
 //!
 //! Stratum `G_j` moves the solitary centre control point of every `j`-face; on a simplex it is the
 //! degree-`(j+1)` Bézier map whose only non-fixed points are those centres:
@@ -6,7 +6,7 @@
 //! diffeomorphism for every position of its points in their open faces (2D and 3D, Props. 5.6,
 //! 5.7, 5.9), so the composition is valid by construction.
 //!
-//! The fitter works in the parametric direction (paper `000` §9.2): the map `Y` carries the linear
+//! The fitter works in the parametric direction (Mello & Velho 2009, §9.2): the map `Y` carries the linear
 //! patch `θ_σ` onto the curve. The model stores stratum `j` as stage `j − 1` with
 //! `direction: parametric`, so `X⁻¹ = Y_0 ∘ Y_1 ∘ … ∘ Y_{n−1}`: the interior stratum acts first
 //! on `u` and the edge stratum last. Positions are kept as logits through a softmax, so every

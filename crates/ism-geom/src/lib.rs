@@ -1,5 +1,6 @@
 //! ISM math kernel: Bernstein–Bézier polynomials on simplices, simplicial diffeomorphism stages,
-//! and whole-model evaluation.
+//! and whole-model evaluation. The mathematics (Mello & Velho, *Simplicial Diffeomorphisms*, 2009
+//! report and 2010 CAGD paper) is restated in `spec/mathematics.md`.
 //!
 //! - [`bernstein`]: dense Bernstein polynomials in the canonical multi-index order — de Casteljau
 //!   evaluation (exact at vertices), derivatives, products, degree elevation, edge subdivision and

@@ -315,7 +315,7 @@ proptest! {
         prop_assert!(map.param_solve(&interior(&mut rng, m)).is_none());
     }
 
-    /// `000` §3 Prop. 3.1: for a polynomial stage `det(reduced) = det(H) / d`.
+    /// Mello & Velho 2009, §3 Prop. 3.1: for a polynomial stage `det(reduced) = det(H) / d`.
     #[test]
     fn reduced_and_homogeneous_jacobian_routes_agree(seed in any::<u64>(), n in 2usize..=3, d in 1u32..=6) {
         let mut rng = Rng(seed);

@@ -1,6 +1,6 @@
-//! The injectivity theorems of `000` as property tests: `det DX > 0` at sampled points (lattice
+//! The injectivity theorems of Mello & Velho 2009 as property tests: `det DX > 0` at sampled points (lattice
 //! points of every simplex, boundary included) for every construction the theorems cover, and the
-//! degree-4 1-D counterexample (`000` Fig. 2) has `det < 0` somewhere.
+//! degree-4 1-D counterexample (Mello & Velho 2009, Fig. 2) has `det < 0` somewhere.
 
 // Index loops over barycentric coordinates mirror the formulas under test.
 #![allow(clippy::needless_range_loop)]
@@ -48,7 +48,7 @@ fn grid(n: usize, rng: &mut Rng) -> Model {
 proptest! {
     #![proptest_config(ProptestConfig { cases: 40, ..ProptestConfig::default() })]
 
-    /// `000` Prop. 5.6: adjusted quadratic ⇒ diffeo (any n).
+    /// Mello & Velho 2009, Prop. 5.6: adjusted quadratic ⇒ diffeo (any n).
     #[test]
     fn adjusted_quadratic_stages_have_positive_jacobian(seed in any::<u64>(), n in 2usize..=3) {
         let mut rng = Rng(seed);
@@ -59,7 +59,7 @@ proptest! {
         prop_assert!(d > 0.0, "min det {}", d);
     }
 
-    /// `000` Prop. 5.7: one solitary free point anywhere in its open face ⇒ diffeo.
+    /// Mello & Velho 2009, Prop. 5.7: one solitary free point anywhere in its open face ⇒ diffeo.
     #[test]
     fn solitary_stages_have_positive_jacobian(seed in any::<u64>(), n in 2usize..=3) {
         let mut rng = Rng(seed);
@@ -71,7 +71,7 @@ proptest! {
         }
     }
 
-    /// `000` §5.4: every stratum `G_j` is a diffeo for n ≤ 3, hence so is the composition.
+    /// Mello & Velho 2009, §5.4: every stratum `G_j` is a diffeo for n ≤ 3, hence so is the composition.
     #[test]
     fn stratified_compositions_have_positive_jacobian(seed in any::<u64>(), n in 2usize..=3) {
         let mut rng = Rng(seed);
@@ -81,7 +81,7 @@ proptest! {
         prop_assert!(d > 0.0, "min det {}", d);
     }
 
-    /// `000` Thm. 6.4: fixed control points with any positive weights ⇒ diffeo, any degree.
+    /// Mello & Velho 2009, Thm. 6.4: fixed control points with any positive weights ⇒ diffeo, any degree.
     #[test]
     fn fixed_point_rational_stages_have_positive_jacobian(seed in any::<u64>(), n in 2usize..=3, d in 1u32..=5) {
         let mut rng = Rng(seed);
@@ -92,7 +92,7 @@ proptest! {
         prop_assert!(m > 0.0, "min det {}", m);
     }
 
-    /// `000` §4: monotonic stages with strictly increasing coefficients are diffeos.
+    /// Mello & Velho 2009, §4: monotonic stages with strictly increasing coefficients are diffeos.
     #[test]
     fn monotonic_stages_have_positive_jacobian(seed in any::<u64>(), n in 2usize..=3, d in 1u32..=5) {
         let mut rng = Rng(seed);
@@ -117,7 +117,7 @@ fn edge_stage(x: [f64; 3]) -> Stage {
     st
 }
 
-/// `000` Fig. 2: an adjusted degree-4 map with `b13` and `b31` exchanged is not injective. The
+/// Mello & Velho 2009, Fig. 2: an adjusted degree-4 map with `b13` and `b31` exchanged is not injective. The
 /// text does not give the figure's positions; ordered positions 0.1, 0.5, 0.9 with the two ends
 /// exchanged reproduce it. Checked three ways: the 1-D stage (an edge as a 1-simplex), the 2-D
 /// stage on a triangle containing that edge, and the 1-D Bernstein derivative.

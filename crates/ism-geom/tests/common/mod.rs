@@ -1,6 +1,6 @@
 //! Test-model generators: Kuhn grids and random valid stages of every kind.
 //!
-//! Every generator documents why its stages are valid (a theorem of `000`, or a bound), so the
+//! Every generator documents why its stages are valid (a theorem of Mello & Velho 2009, or a bound), so the
 //! property tests that use them test the kernel, not luck.
 #![allow(dead_code, clippy::needless_range_loop)]
 
@@ -163,7 +163,7 @@ fn stage(kind: StageKind, degree: u32) -> Stage {
 }
 
 /// Adjusted quadratic: one random point per edge, coordinates in `[0.02, 0.98]`. A diffeo by
-/// `000` Prop. 5.6 (any `n`).
+/// Mello & Velho 2009, Prop. 5.6 (any `n`).
 pub fn adjusted_quadratic(model: &Model, rng: &mut Rng) -> Stage {
     let mut st = stage(StageKind::Bezier, 2);
     for f in faces(model, 2) {
@@ -178,7 +178,7 @@ pub fn adjusted_quadratic(model: &Model, rng: &mut Rng) -> Stage {
 }
 
 /// Stratum `G_j`: the solitary centre point of every `j`-face, degree `j + 1`, each in the open face
-/// with coordinates ≥ 0.01. A diffeo for n ≤ 3 (`000` Prop. 5.7–5.9).
+/// with coordinates ≥ 0.01. A diffeo for n ≤ 3 (Mello & Velho 2009, Prop. 5.7–5.9).
 pub fn stratum(model: &Model, rng: &mut Rng, j: usize) -> Stage {
     let mut st = stage(StageKind::Bezier, j as u32 + 1);
     for f in faces(model, j + 1) {
@@ -192,7 +192,7 @@ pub fn stratum(model: &Model, rng: &mut Rng, j: usize) -> Stage {
     st
 }
 
-/// One solitary free point: a random face of dimension `j`, degree `j + 1` (`000` Prop. 5.7).
+/// One solitary free point: a random face of dimension `j`, degree `j + 1` (Mello & Velho 2009, Prop. 5.7).
 pub fn solitary(model: &Model, rng: &mut Rng, j: usize) -> Stage {
     let all = faces(model, j + 1);
     let f = all[rng.below(all.len())].clone();
@@ -214,7 +214,7 @@ pub fn stratified(model: &Model, rng: &mut Rng) -> Vec<Stage> {
 }
 
 /// Every control point fixed, random positive weights in `[0.05, 20]` on every face (vertices
-/// included). A diffeo for any degree (`000` Thm. 6.4).
+/// included). A diffeo for any degree (Mello & Velho 2009, Thm. 6.4).
 pub fn rational_fixed(model: &Model, rng: &mut Rng, d: u32) -> Stage {
     let mut st = stage(StageKind::Rational, d);
     for k1 in 1..=model.dim() + 1 {
@@ -270,7 +270,7 @@ pub fn near_identity_bezier(model: &Model, rng: &mut Rng, d: u32, eps: f64) -> S
 }
 
 /// Monotonic: per vertex, strictly increasing coefficients `0 < a_1 < … < a_d` (increments in
-/// `[0.05, 1]`). A diffeo (`000` §4).
+/// `[0.05, 1]`). A diffeo (Mello & Velho 2009, §4).
 pub fn monotonic(model: &Model, rng: &mut Rng, d: u32) -> Stage {
     let mut st = stage(StageKind::Monotonic, d);
     for v in 0..model.num_vertices() as u32 {
