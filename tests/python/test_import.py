@@ -131,3 +131,87 @@ def test_import_refuses_a_value_on_the_level_and_a_missing_field(written):
     r = run_import(src, d / "x.ism.json", "--field", "nope")
     assert r.returncode == 2 and "no point field" in r.stderr
     assert not (d / "x.ism.json").exists()
+
+
+def vtk_grid(pts, tets, field):
+    """The same mesh as a vtkUnstructuredGrid with float64 points and the field "phi" (active)."""
+    import vtk
+    from vtk.util import numpy_support
+
+    points = vtk.vtkPoints()
+    points.SetDataTypeToDouble()
+    points.SetData(numpy_support.numpy_to_vtk(np.ascontiguousarray(pts, dtype=np.float64), deep=True))
+    grid = vtk.vtkUnstructuredGrid()
+    grid.SetPoints(points)
+    for t in tets:
+        grid.InsertNextCell(vtk.VTK_TETRA, 4, [int(i) for i in t])
+    phi = numpy_support.numpy_to_vtk(np.ascontiguousarray(field, dtype=np.float64), deep=True)
+    phi.SetName("phi")
+    grid.GetPointData().SetScalars(phi)
+    return grid
+
+
+def write_vtk(grid, path: Path, **settings) -> Path:
+    import vtk
+
+    w = vtk.vtkXMLUnstructuredGridWriter()
+    w.SetInputData(grid)
+    w.SetFileName(str(path))
+    for name, value in settings.items():
+        getattr(w, name)(*([] if value is None else [value]))
+    assert w.Write() == 1
+    return path
+
+
+@pytest.fixture(scope="module")
+def compressed(tmp_path_factory):
+    """The ball as real writers write it: meshio's default (inline base64, zlib) and lzma, and
+    vtkXMLUnstructuredGridWriter's default (appended base64, zlib), its LZ4 and LZMA compressors,
+    raw appended data, inline binary, 64-bit headers and no compression; each with its own ASCII
+    reference written by the same library."""
+    d = tmp_path_factory.mktemp("compressed")
+    pts, tets, field = kuhn_ball()
+    mesh = meshio.Mesh(pts, [("tetra", tets)], point_data={"phi": field})
+    meshio.write(d / "meshio-ascii.vtu", mesh, binary=False)
+    meshio.write(d / "meshio-default.vtu", mesh)
+    meshio.write(d / "meshio-lzma.vtu", mesh, compression="lzma")
+    grid = vtk_grid(pts, tets, field)
+    write_vtk(grid, d / "vtk-ascii.vtu", SetDataModeToAscii=None)
+    write_vtk(grid, d / "vtk-default.vtu")
+    write_vtk(grid, d / "vtk-lz4.vtu", SetCompressorTypeToLZ4=None)
+    write_vtk(grid, d / "vtk-lzma.vtu", SetCompressorTypeToLZMA=None)
+    write_vtk(grid, d / "vtk-raw.vtu", SetEncodeAppendedData=0)
+    write_vtk(grid, d / "vtk-inline.vtu", SetDataModeToBinary=None)
+    write_vtk(grid, d / "vtk-uint64.vtu", SetHeaderTypeToUInt64=None, SetEncodeAppendedData=0)
+    write_vtk(grid, d / "vtk-uncompressed.vtu", SetCompressorTypeToNone=None)
+    return d
+
+
+def imported(src: Path, out: Path) -> dict:
+    r = run_import(src, out, "--field", "phi")
+    assert r.returncode == 0, r.stderr
+    return json.loads(out.read_text())
+
+
+@pytest.mark.parametrize(
+    "name",
+    ["meshio-default", "meshio-lzma", "vtk-default", "vtk-lz4", "vtk-lzma", "vtk-raw", "vtk-inline", "vtk-uint64",
+     "vtk-uncompressed"],
+)
+def test_compressed_vtu_imports_like_ascii(compressed, name):
+    d = compressed
+    text = (d / f"{name}.vtu").read_bytes()
+    if name != "vtk-uncompressed":
+        assert b"compressor=" in text  # the writer did compress
+    if name in ("vtk-raw", "vtk-uint64"):
+        assert b'encoding="raw"' in text
+    # Ground truth: the arrays the writers were given (float64 throughout, so bit for bit), and
+    # the simplices of the same library's ASCII file (integers: exact in ASCII).
+    pts, tets, field = kuhn_ball()
+    model = imported(d / f"{name}.vtu", d / f"{name}.ism.json")
+    assert model["dimension"] == 3
+    assert model["vertices"] == pts.ravel().tolist()
+    assert model["values"] == field.tolist()
+    reference = imported(d / f"{name.split('-')[0]}-ascii.vtu", d / f"{name}-ref.ism.json")
+    assert model["simplices"] == reference["simplices"]
+    assert len(model["simplices"]) == 4 * len(tets)

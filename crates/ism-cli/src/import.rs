@@ -9,7 +9,8 @@ use ism_export::import::{import_path, ImportOptions};
 use ism_format::{io, Encoding};
 
 const AFTER_HELP: &str = "\
-Reads .vtu (VTK XML, ASCII or uncompressed binary), .vtk (legacy ASCII) or .msh (Gmsh 4.1 ASCII).
+Reads .vtu (VTK XML: ASCII, inline binary or appended arrays, uncompressed or compressed with zlib,
+LZ4 or LZMA, as meshio and VTK write them), .vtk (legacy ASCII) or .msh (Gmsh 4.1 ASCII).
 Tetrahedra give a 3D model, otherwise triangles give a 2D one (planar in z). Quadratic cells keep
 their corner nodes. Cells are re-oriented positively. The values come from --field (default: the
 active or first scalar point array); a value equal to --level is refused. The model has no stage.

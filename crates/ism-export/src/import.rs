@@ -1,6 +1,7 @@
 //! Import of simplicial meshes with a point scalar field into a linear ISM (no stage): VTK XML
-//! `.vtu` (ASCII or uncompressed base64 `binary` arrays), legacy `.vtk` (ASCII), Gmsh `.msh` 4.1
-//! (ASCII).
+//! `.vtu` (ASCII, inline base64 `binary` or `appended` base64/raw arrays, uncompressed or
+//! compressed with zlib, LZ4 or LZMA — what meshio and `vtkXMLUnstructuredGridWriter` write by
+//! default; the layout is described in `vtu_data.rs`), legacy `.vtk` (ASCII), Gmsh `.msh` 4.1 (ASCII).
 //!
 //! Tetrahedra make a 3D model (triangles in the same file are taken as boundary faces and
 //! dropped); otherwise triangles make a 2D model (the file must be planar in `z`). Quadratic cells
@@ -12,9 +13,9 @@
 
 use std::path::Path;
 
-use base64::Engine;
 use ism_format::Model;
 
+use crate::vtu_data::{Compressor, Layout};
 use crate::{Error, Result};
 
 /// Input mesh formats.
@@ -113,6 +114,12 @@ pub fn import_path(path: &Path, options: &ImportOptions) -> Result<(Model, Impor
 /// # Errors
 /// [`Error::Import`] for malformed content or an unsupported variant.
 pub fn read_mesh(bytes: &[u8], format: ImportFormat) -> Result<RawMesh> {
+    // Raw appended data is binary inside XML: cut it out before the text is parsed.
+    let (bytes, raw) = match format {
+        ImportFormat::Vtu => split_raw_appended(bytes)?,
+        _ => (std::borrow::Cow::Borrowed(bytes), None),
+    };
+    let bytes: &[u8] = &bytes;
     let text = std::str::from_utf8(bytes).map_err(|e| {
         Error::import(
             format.name(),
@@ -121,7 +128,7 @@ pub fn read_mesh(bytes: &[u8], format: ImportFormat) -> Result<RawMesh> {
         )
     })?;
     match format {
-        ImportFormat::Vtu => read_vtu(text),
+        ImportFormat::Vtu => read_vtu(text, raw),
         ImportFormat::VtkLegacy => read_legacy(text),
         ImportFormat::Msh => read_msh(text),
     }
@@ -179,7 +186,42 @@ fn parse_numbers(text: &str, fmt: &'static str, at: &str) -> Result<Vec<f64>> {
         .collect()
 }
 
-fn read_vtu(text: &str) -> Result<RawMesh> {
+/// A `.vtu` file's XML text (as bytes) and its raw appended data, if any.
+type SplitVtu<'a> = (std::borrow::Cow<'a, [u8]>, Option<&'a [u8]>);
+
+/// The file without the bytes of a raw `AppendedData` section (after its `_` up to
+/// `</AppendedData>`), and those bytes; the file itself when it has none.
+fn split_raw_appended(bytes: &[u8]) -> Result<SplitVtu<'_>> {
+    fn find(hay: &[u8], needle: &[u8], from: usize) -> Option<usize> {
+        hay.get(from..)?
+            .windows(needle.len())
+            .position(|w| w == needle)
+            .map(|i| i + from)
+    }
+    let Some(tag) = find(bytes, b"<AppendedData", 0) else {
+        return Ok((std::borrow::Cow::Borrowed(bytes), None));
+    };
+    let err = |m: &str| Error::import("vtu", "AppendedData".to_string(), m.to_string());
+    let open_end = find(bytes, b">", tag).ok_or_else(|| err("unterminated tag"))?;
+    let attributes = String::from_utf8_lossy(&bytes[tag..open_end]);
+    if !attributes.contains("encoding=\"raw\"") && !attributes.contains("encoding='raw'") {
+        return Ok((std::borrow::Cow::Borrowed(bytes), None));
+    }
+    let underscore = find(bytes, b"_", open_end).ok_or_else(|| err("no '_' before the data"))?;
+    let close = bytes
+        .windows(b"</AppendedData>".len())
+        .rposition(|w| w == b"</AppendedData>")
+        .filter(|&c| c > underscore)
+        .ok_or_else(|| err("no </AppendedData>"))?;
+    let mut text = bytes[..=underscore].to_vec();
+    text.extend_from_slice(&bytes[close..]);
+    Ok((
+        std::borrow::Cow::Owned(text),
+        Some(&bytes[underscore + 1..close]),
+    ))
+}
+
+fn read_vtu(text: &str, raw_appended: Option<&[u8]>) -> Result<RawMesh> {
     const FMT: &str = "vtu";
     let doc = roxmltree::Document::parse(text)
         .map_err(|e| Error::import(FMT, None, format!("XML: {e}")))?;
@@ -191,14 +233,16 @@ fn read_vtu(text: &str) -> Result<RawMesh> {
             "expected type=\"UnstructuredGrid\"",
         ));
     }
-    if root.attribute("compressor").is_some() {
-        return Err(Error::import(
-            FMT,
-            "VTKFile".to_string(),
-            "compressed arrays are not supported: write ASCII or uncompressed binary",
-        ));
-    }
-    let header64 = root.attribute("header_type") == Some("UInt64");
+    let layout = Layout {
+        header64: root.attribute("header_type") == Some("UInt64"),
+        compressor: Compressor::from_attribute(root.attribute("compressor"))?,
+    };
+    let appended_node = root.children().find(|n| n.has_tag_name("AppendedData"));
+    // Base64 appended text after its `_` marker.
+    let appended_text = appended_node.and_then(|n| {
+        let t = n.text().unwrap_or("");
+        t.trim_start().strip_prefix('_')
+    });
     if root
         .attribute("byte_order")
         .is_some_and(|b| b != "LittleEndian")
@@ -238,14 +282,33 @@ fn read_vtu(text: &str) -> Result<RawMesh> {
             .and_then(|c| c.parse().ok())
             .unwrap_or(1usize);
         let body = node.text().unwrap_or("");
+        let ty = node.attribute("type").unwrap_or("");
         let values = match node.attribute("format").unwrap_or("ascii") {
             "ascii" => parse_numbers(body, FMT, &at)?,
-            "binary" => decode_binary(body, node.attribute("type").unwrap_or(""), header64, &at)?,
+            "binary" => numbers_from_le(&layout.inline(body, &at)?, ty, &at)?,
+            "appended" => {
+                let offset: usize = node
+                    .attribute("offset")
+                    .and_then(|o| o.trim().parse().ok())
+                    .ok_or_else(|| Error::import(FMT, at.clone(), "missing or bad offset"))?;
+                let bytes = match (raw_appended, appended_text) {
+                    (Some(raw), _) => layout.appended_raw(raw, offset, &at)?,
+                    (None, Some(text)) => layout.appended_base64(text, offset, &at)?,
+                    (None, None) => {
+                        return Err(Error::import(
+                            FMT,
+                            at,
+                            "format \"appended\" but no AppendedData section with a '_' marker",
+                        ))
+                    }
+                };
+                numbers_from_le(&bytes, ty, &at)?
+            }
             other => {
                 return Err(Error::import(
                     FMT,
                     at,
-                    format!("format {other:?} is not supported (use ascii or binary)"),
+                    format!("format {other:?} is not supported (ascii, binary or appended)"),
                 ))
             }
         };
@@ -320,36 +383,9 @@ fn read_vtu(text: &str) -> Result<RawMesh> {
     Ok(raw)
 }
 
-/// Decodes an inline base64 `binary` DataArray: a byte-count header (UInt32 or UInt64) then the
-/// little-endian values.
-fn decode_binary(body: &str, ty: &str, header64: bool, at: &str) -> Result<Vec<f64>> {
+/// Little-endian values of VTK type `ty`, as `f64`.
+fn numbers_from_le(data: &[u8], ty: &str, at: &str) -> Result<Vec<f64>> {
     const FMT: &str = "vtu";
-    let clean: String = body.chars().filter(|c| !c.is_ascii_whitespace()).collect();
-    let bytes = base64::engine::general_purpose::STANDARD
-        .decode(clean.as_bytes())
-        .map_err(|e| Error::import(FMT, at.to_string(), format!("base64: {e}")))?;
-    let hlen = if header64 { 8 } else { 4 };
-    if bytes.len() < hlen {
-        return Err(Error::import(
-            FMT,
-            at.to_string(),
-            "binary array shorter than its header",
-        ));
-    }
-    let declared = if header64 {
-        u64::from_le_bytes(bytes[..8].try_into().expect("8 bytes")) as usize
-    } else {
-        u32::from_le_bytes(bytes[..4].try_into().expect("4 bytes")) as usize
-    };
-    let data = &bytes[hlen..];
-    if declared > data.len() {
-        return Err(Error::import(
-            FMT,
-            at.to_string(),
-            format!("header declares {declared} bytes, {} present", data.len()),
-        ));
-    }
-    let data = &data[..declared];
     macro_rules! conv {
         ($t:ty) => {
             data.chunks_exact(std::mem::size_of::<$t>())
@@ -879,6 +915,7 @@ pub fn to_model(raw: &RawMesh, options: &ImportOptions) -> Result<(Model, Import
 #[cfg(test)]
 mod tests {
     use super::*;
+    use base64::Engine;
 
     const LEGACY: &str = "# vtk DataFile Version 4.2\ntwo tets\nASCII\nDATASET UNSTRUCTURED_GRID\nPOINTS 6 double\n\
 0 0 0  1 0 0  0 1 0  0 0 1  1 1 1  9 9 9\nCELLS 3 14\n4 0 1 2 3\n4 1 3 2 4\n3 0 1 2\nCELL_TYPES 3\n10 10 5\n\

@@ -55,6 +55,7 @@ pub mod mesh;
 pub mod obj;
 pub mod volume;
 pub mod vtk;
+mod vtu_data;
 
 pub use error::{Error, Result};
 pub use mesh::Mesh;
