@@ -211,8 +211,9 @@ impl UnstructuredGrid {
         Ok(())
     }
 
-    /// Writes the legacy `.vtk` form (ASCII, file version 4.2). The active normals become
-    /// `NORMALS`, the active scalars `SCALARS`, every other array a `FIELD` entry.
+    /// Writes the legacy `.vtk` form (ASCII, file version 4.2). The normals become `VECTORS` (not
+    /// the `NORMALS` attribute, which meshio's legacy reader refuses; VTK reads both, and keeps the
+    /// array's name), the active scalars `SCALARS`, every other array a `FIELD` entry.
     ///
     /// # Errors
     /// [`crate::Error::Io`] when the writer fails.
@@ -347,7 +348,7 @@ fn write_legacy_data<W: Write>(
         match (a.attribute, &a.values) {
             (Attribute::Normals, ArrayValues::Float(_)) if !normals_done && a.components == 3 => {
                 normals_done = true;
-                writeln!(out, "NORMALS {} double", legacy_name(&a.name))?;
+                writeln!(out, "VECTORS {} double", legacy_name(&a.name))?;
                 write_array_values(out, a)?;
             }
             (Attribute::Scalars, values) if !scalars_done => {
@@ -585,7 +586,7 @@ mod tests {
         g.write_legacy("tet", &mut legacy).unwrap();
         let text = String::from_utf8(legacy).unwrap();
         assert!(text.contains("CELLS 4 16\n3 0 2 1\n"));
-        assert!(text.contains("NORMALS Normals double"));
+        assert!(text.contains("VECTORS Normals double"));
         assert!(text.contains("SCALARS GradientNorm double 1"));
         assert!(text.contains("FIELD FieldData 1\nSourceSimplex 1 4 long"));
         assert!(text.contains("CELL_DATA 4"));
