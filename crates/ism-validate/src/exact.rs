@@ -13,14 +13,16 @@
 //!
 //! Witnesses are proven independently of the coefficients: [`witness_at`] evaluates the stored
 //! map's Jacobian pointwise from its definition (Bernstein sums at the point, then the
-//! determinant) in rational arithmetic, at exactly the point the report prints.
+//! determinant) in exact dyadic arithmetic — or, at a vertex of a polynomial element, by Shewchuk's
+//! exact orientation predicates — at exactly the point the report prints.
 //!
 //! # Why `num-bigint` and `num-rational`
 //! Both are the rust-num project's maintained, pure-Rust big-number crates and are already in the
 //! workspace's dependency tree, so they add no build time and no C toolchain (`rug` needs GMP).
 //! Coefficients stay integers on purpose: `BigRational` would reduce by a gcd after every operation,
-//! and the hot loop here is additions of numbers with a common denominator. `BigRational` is used
-//! only for the pointwise witness, where clarity matters more than speed.
+//! and the hot loop here is additions of numbers with a common denominator; witnesses use a small
+//! dyadic type (`m · 2^e` in big integers) for the same reason, and `BigRational` only to round a
+//! final value to a double.
 
 use num_bigint::BigInt;
 use num_rational::BigRational;
@@ -331,9 +333,10 @@ fn to_float(values: &[BigInt]) -> BoundedCoefficients {
 /// A point of the closed simplex where the certificate polynomial is `≤ 0`, proven exactly.
 #[derive(Clone, Debug, PartialEq)]
 pub struct ExactWitness {
-    /// Barycentric coordinates as printed; `w₀ = 1 − (w₁ + … + wₙ)` holds exactly.
+    /// Barycentric coordinates as printed: the proven point is `(w₁ … wₙ)` with `w₀ = 1 − Σ wᵢ`
+    /// (equal to the printed `w₀` for corners of pieces to depth 50, rounded beyond).
     pub point: Vec<f64>,
-    /// `det DX` there (reduced coordinates), rounded toward nothing positive.
+    /// `det DX` there (reduced coordinates), rounded to a double of the proven sign.
     pub det: f64,
     /// The certificate polynomial there (`det DX`, or `N` for rational stages), likewise rounded.
     pub polynomial_value: f64,

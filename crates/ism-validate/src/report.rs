@@ -43,8 +43,8 @@ pub struct Witness {
     /// Barycentric coordinates in the top simplex, in its stored vertex order; the point is
     /// `(w₁ … wₙ)` with `w₀ = 1 − (w₁ + … + wₙ)` exactly.
     pub point: Vec<f64>,
-    /// `det DX` of the stored map there (reduced barycentric coordinates): the exact value rounded
-    /// to the nearest double, never above 0.
+    /// `det DX` of the stored map there (reduced barycentric coordinates), rounded to a double of
+    /// the proven sign: never above 0, and 0 exactly when the value is 0.
     pub det: f64,
     /// The certificate polynomial there (`det DX` for polynomial stages; `N = Q^{n+1} det DX` for
     /// rational ones), rounded the same way.
