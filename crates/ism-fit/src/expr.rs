@@ -19,8 +19,7 @@ use crate::FitError;
 pub const VARIABLES: [&str; 3] = ["x", "y", "z"];
 
 /// The expression grammar, as the CLI's help shows it.
-pub const GRAMMAR: &str = "\
-  expr    = term   { (\"+\" | \"-\") term }            left to right
+pub const GRAMMAR: &str = "  expr    = term   { (\"+\" | \"-\") term }            left to right
   term    = unary  { (\"*\" | \"/\") unary }            left to right
   unary   = (\"-\" | \"+\") unary | power
   power   = atom [ (\"^\" | \"**\") unary ]             right to left: 2^3^2 = 2^9
@@ -742,6 +741,17 @@ mod tests {
         match Expression::parse(text, 2) {
             Err(FitError::Expression { message, .. }) => message,
             other => panic!("{text}: {other:?}"),
+        }
+    }
+
+    #[test]
+    fn grammar_lines_are_aligned() {
+        // Every rule line is indented by two spaces (a `\` continuation would strip the first).
+        for line in GRAMMAR.lines().take(8) {
+            assert!(
+                line.starts_with("  ") && !line.starts_with("   "),
+                "{line:?}"
+            );
         }
     }
 
