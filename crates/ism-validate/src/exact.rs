@@ -90,7 +90,7 @@ pub fn to_f64_signed(x: &BigRational) -> f64 {
         f64::INFINITY
     });
     if x.is_positive() {
-        f.max(f64::MIN_POSITIVE * f64::EPSILON)
+        f.max(0.0)
     } else if x.is_zero() {
         0.0
     } else {

@@ -121,8 +121,7 @@ fn star_defect(model: &Model, key: &[u32; 4], k: usize, members: &[u32]) -> Opti
     }
     facets.sort_unstable();
     let mut dsu = Dsu::new(r);
-    for (key, range) in groups(&facets) {
-        let _ = key;
+    for (_, range) in groups(&facets) {
         if range.len() == 2 {
             dsu.union(facets[range.start].1, facets[range.start + 1].1);
         }
