@@ -3,8 +3,8 @@
 //!
 //! The oracle evaluates the Jacobian of a dense net at a point by de Casteljau's algorithm in
 //! rational arithmetic: `d − 1` steps leave the points `p_k` with `∂V/∂w_k = d·p_k` — a different
-//! algorithm from the validator's (Bernstein coefficients of the determinant by convolution, and a
-//! pointwise Bernstein sum for witnesses). For each random family `b(λ) = (1 − λ)·I/d + λ·r` of
+//! algorithm from the validator's (Bernstein coefficients of the determinant by convolution, and,
+//! for witnesses, a pointwise Bernstein sum in dyadic integers or an orientation predicate). For each random family `b(λ) = (1 − λ)·I/d + λ·r` of
 //! adjusted nets the threshold `λ*` where the map first folds is located by bisection on a grid of
 //! sample points; then
 //!
