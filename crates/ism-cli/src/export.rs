@@ -25,8 +25,10 @@ Examples:
   ism export spec/examples/sphere.ism.json sphere-linear.obj --linear
   ism export spec/examples/sphere.ism.json sphere-volume.vtu --volume
 
-Exit status: 0 on success; 1 when a stage cannot be inverted on the shape (the model is not a
-valid diffeomorphism there); 2 for an unreadable model, bad arguments or a failed write.";
+Exit status: 0 on success; 2 for an unreadable model, bad arguments, a failed write, or a
+numerical failure (a stage inversion that does not converge: the point and residual are printed;
+`ism validate` tells whether the model itself is valid). Export never exits 1: it does not decide
+validity.";
 
 /// Arguments of `ism export`.
 #[derive(clap::Args)]
@@ -126,8 +128,11 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             Ok((mesh, report)) => (mesh, Some(report)),
             Err(e @ ism_export::Error::Inversion { .. }) => {
                 progress.finish();
-                eprintln!("error: {e}");
-                return Ok(ExitCode::from(1));
+                eprintln!(
+                    "error: numerical failure: {e}; run `ism validate` on the model to tell a \
+                     numerical problem from an invalid model"
+                );
+                return Ok(ExitCode::from(2));
             }
             Err(e) => return Err(e).context("cannot extract the shape"),
         }

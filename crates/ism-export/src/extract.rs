@@ -258,8 +258,9 @@ fn facet_of(ids: &[u32], e1: [usize; 2], e2: [usize; 2]) -> [u32; 3] {
 ///
 /// # Errors
 /// [`Error::Unsupported`] for a dimension other than 2 or 3 or a bad option, [`Error::Inversion`]
-/// when a stage cannot be inverted at some patch point (the model is not a valid diffeomorphism
-/// there).
+/// when a stage inversion does not converge at some patch point: a numerical failure (the inverse
+/// is safeguarded and judged relative to the stage's scale, so on a valid model this should not
+/// happen; an invalid model may also cause it — validation, not extraction, decides).
 pub fn extract(eval: &ModelEval, options: &ExtractOptions) -> Result<(Mesh, ExtractReport)> {
     let n = eval.dim();
     if options.tolerance.is_nan() || options.tolerance <= 0.0 || !options.tolerance.is_finite() {

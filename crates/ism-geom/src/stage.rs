@@ -35,10 +35,56 @@ macro_rules! dispatch {
     };
 }
 
-/// Target of the inverse: max-norm of `X(w) − u`. Values are barycentric coordinates of order 1,
-/// so this is about 5 000 ulps — reachable by Newton in double precision for any stage whose
-/// Jacobian is not nearly singular, and far below any geometric tolerance of the format.
+/// Acceptance threshold of the inverse for a well-scaled stage: max-norm of `X(w) − u`. Values
+/// are barycentric coordinates of order 1, so this is about 5 000 ulps — far below any geometric
+/// tolerance of the format. Newton itself iterates to [`NEWTON_TARGET`] (much tighter), so that a
+/// result is never accepted at the threshold's edge, where a re-evaluation of `X(w)` with other
+/// rounding (value-only instead of value-and-Jacobian) lands on the other side of it: that was
+/// "stage inversion did not converge … (residual 1.0000056e-12)" on valid rational models
+/// (issue 19). For a stage whose evaluation at the solution cannot be that accurate (a large
+/// Jacobian amplifies the rounding of `w` itself) the threshold grows with the stage's scale:
+/// see [`acceptance_tolerance`].
 pub const INVERSE_TOLERANCE: f64 = 1e-12;
+
+/// What Newton aims for before stopping: a hundredth of [`INVERSE_TOLERANCE`], reached by one
+/// more quadratic step from there, or the rounding floor of the stage at the point, whichever is
+/// larger. Stopping only here leaves a margin of 100× between the solver and the acceptance test.
+const NEWTON_TARGET: f64 = INVERSE_TOLERANCE / 100.0;
+
+/// Rounding floor of `X(w) − u`, in units of `f64::EPSILON · scale` (scale from
+/// [`rounding_scale`]): evaluating a stage sums `O(count)` products of order-1 terms, and `w`
+/// itself carries half an ulp per entry, amplified by the Jacobian. 64 ulps of the scale is a
+/// generous allowance for both at the degrees of the format (≤ 16).
+const ROUNDING_ULPS: f64 = 64.0;
+
+/// Acceptance floor, in the same units: a residual this many ulps of the scale is rounding, not a
+/// failure to converge. 4× the Newton floor, so the solver's stopping point is always accepted.
+const ACCEPT_ULPS: f64 = 4.0 * ROUNDING_ULPS;
+
+/// Scale of the rounding error of `X(w) − u` at `w` with homogeneous Jacobian `h`:
+/// `1 + max_i Σ_j |h_ij| |w_j|`. The first term is the values' own magnitude (barycentric, ≤ 1);
+/// the second is how much half an ulp in every `w_j` moves `X`.
+fn rounding_scale(m: usize, w: &Bary, h: &Mat) -> f64 {
+    let mut worst = 0.0f64;
+    for i in 0..m {
+        let row: f64 = (0..m).map(|j| (h[i][j] * w[j]).abs()).sum();
+        worst = worst.max(row);
+    }
+    1.0 + worst
+}
+
+/// The residual accepted as converged for a stage of rounding scale `scale` (see
+/// [`rounding_scale`]): [`INVERSE_TOLERANCE`] for a well-scaled stage, `ACCEPT_ULPS · ε · scale`
+/// when that is larger (a stage with a Jacobian of 10⁴ cannot be evaluated more accurately than
+/// ~10⁴ ulps at any floating-point `w`, so demanding 1e-12 there would fail on valid models).
+/// Non-finite scales give the plain tolerance (NaN never passes).
+pub fn acceptance_tolerance(scale: f64) -> f64 {
+    if scale.is_finite() {
+        INVERSE_TOLERANCE.max(ACCEPT_ULPS * f64::EPSILON * scale)
+    } else {
+        INVERSE_TOLERANCE
+    }
+}
 
 /// Newton iterations tried before falling back to continuation. Newton converges quadratically
 /// from a good start, so a valid stage either converges in far fewer or is in a region where
@@ -61,6 +107,9 @@ const MAP_POLISH_ITERATIONS: u32 = 4;
 /// a valid one needs a handful (steps double after each success).
 const CONTINUATION_MAX_STEPS: u32 = 200;
 
+/// Bisection steps of the edge safeguard: halving `[0, 1]` 64 times reaches adjacent doubles.
+const EDGE_BISECTION_STEPS: u32 = 64;
+
 /// Tolerance of intermediate continuation points: they only need to be good starting guesses.
 const CONTINUATION_INTERMEDIATE_TOLERANCE: f64 = 1e-9;
 
@@ -78,7 +127,8 @@ pub struct InverseResult {
     pub iterations: u32,
     /// Max-norm of `X(w) − u` at the returned `w` (after projecting `u` onto the simplex).
     pub residual: f64,
-    /// `residual ≤ INVERSE_TOLERANCE` (and, for a map, every stage converged).
+    /// `residual ≤` [`acceptance_tolerance`] of the point (`INVERSE_TOLERANCE` for a well-scaled
+    /// stage), and, for a map, every stage converged.
     pub converged: bool,
 }
 
@@ -738,12 +788,38 @@ impl LocalStage {
                 }
             }
         }
-        let r = residual(m, &self.eval_stored(&w), &u);
+        if k1 == 2 {
+            // Safeguard on an edge: the stage maps the edge onto itself fixing its ends, so
+            // `t ↦ S((1 − t) e_a + t e_b)_b` increases from 0 to 1 and bisection cannot fail.
+            let (a, b) = (sup[0], sup[1]);
+            let (mut lo, mut hi) = (0.0f64, 1.0f64);
+            for _ in 0..EDGE_BISECTION_STEPS {
+                let mid = 0.5 * (lo + hi);
+                if mid <= lo || mid >= hi {
+                    break;
+                }
+                iterations += 1;
+                let mut x = [0.0; MAX_VARS];
+                x[a] = 1.0 - mid;
+                x[b] = mid;
+                if self.eval_stored(&x)[b] < u[b] {
+                    lo = mid;
+                } else {
+                    hi = mid;
+                }
+            }
+            let t = 0.5 * (lo + hi);
+            w = [0.0; MAX_VARS];
+            w[a] = 1.0 - t;
+            w[b] = t;
+        }
+        let (val, jac) = self.homogeneous_jacobian_stored(&w);
+        let r = residual(m, &val, &u);
         InverseResult {
             w,
             iterations,
             residual: r,
-            converged: r <= INVERSE_TOLERANCE,
+            converged: r <= acceptance_tolerance(rounding_scale(m, &w, &jac)),
         }
     }
 
@@ -767,6 +843,13 @@ impl LocalStage {
             NewtonSettings {
                 max_iter,
                 tol,
+                // Final solves aim well inside the acceptance threshold; intermediate
+                // continuation points only need to be good starts.
+                target: if tol <= INVERSE_TOLERANCE {
+                    NEWTON_TARGET
+                } else {
+                    tol
+                },
                 polish,
             },
             iterations,
@@ -780,7 +863,12 @@ impl LocalStage {
 #[derive(Clone, Copy)]
 struct NewtonSettings {
     max_iter: u32,
+    /// Residual accepted (raised to the rounding floor of the point when that is larger, see
+    /// [`acceptance_tolerance`]).
     tol: f64,
+    /// Residual Newton iterates towards before stopping (≤ `tol`; raised to the rounding floor):
+    /// stopping well inside the acceptance threshold keeps a re-evaluation from crossing it.
+    target: f64,
     /// After reaching `tol`, take one more step and keep it if it lowers the residual: Newton
     /// converges quadratically, so this lands at rounding level for the price of one iteration.
     polish: bool,
@@ -789,8 +877,10 @@ struct NewtonSettings {
 /// Damped Newton for `S(w) = target` with unknowns on `sup` only (the others stay exactly 0), in
 /// barycentric coordinates based at `sup[0]`. `jac` returns the value and a homogeneous Jacobian
 /// that is correct on tangent vectors (`Σ v = 0`). Steps stop short of the face boundary
-/// (the solution is in the open face) and are halved until the residual decreases. Returns the
-/// solution and its residual once the residual reaches `settings.tol`.
+/// (the solution is in the open face) and are halved until the residual decreases. Iterates until
+/// the residual reaches `settings.target` (or the rounding floor `ROUNDING_ULPS · ε · scale` of the
+/// point, [`rounding_scale`]) or stops decreasing; returns the solution and its residual when that
+/// is within `settings.tol` or the acceptance floor ([`acceptance_tolerance`]), `None` otherwise.
 #[allow(clippy::too_many_arguments)]
 fn newton_solve(
     m: usize,
@@ -806,8 +896,25 @@ fn newton_solve(
     let (mut val, mut h) = jac(&w);
     let mut r = residual(m, &val, target);
     let mut polishing = false;
+    // Accepted residual at the current point: the caller's tolerance, or the point's rounding
+    // floor when the stage's scale makes that larger.
+    let accept = |w: &Bary, h: &Mat| {
+        let scale = rounding_scale(m, w, h);
+        let floor = if scale.is_finite() {
+            ACCEPT_ULPS * f64::EPSILON * scale
+        } else {
+            0.0
+        };
+        settings.tol.max(floor)
+    };
     for _ in 0..=settings.max_iter {
-        if r <= settings.tol {
+        let scale = rounding_scale(m, &w, &h);
+        let floor = if scale.is_finite() {
+            ROUNDING_ULPS * f64::EPSILON * scale
+        } else {
+            0.0
+        };
+        if r <= settings.target.max(floor) {
             if !settings.polish || polishing || r == 0.0 {
                 return Some((w, r, val, h));
             }
@@ -823,7 +930,7 @@ fn newton_solve(
             }
         }
         let Some(delta) = linalg::solve(k, &a, &rhs) else {
-            return (r <= settings.tol).then_some((w, r, val, h));
+            return (r <= accept(&w, &h)).then_some((w, r, val, h));
         };
         let mut full = [0.0; MAX_VARS];
         let mut sum = 0.0;
@@ -860,13 +967,14 @@ fn newton_solve(
             alpha *= 0.5;
         }
         if !accepted {
-            return (r <= settings.tol).then_some((w, r, val, h));
+            // No step lowers the residual: rounding level (accepted) or a stall (refused).
+            return (r <= accept(&w, &h)).then_some((w, r, val, h));
         }
         if polishing {
             return Some((w, r, val, h));
         }
     }
-    (r <= settings.tol).then_some((w, r, val, h))
+    (r <= accept(&w, &h)).then_some((w, r, val, h))
 }
 
 /// Homogeneous `m × m` matrix acting on tangent vectors like the reduced `n × n` matrix `r`
@@ -1063,7 +1171,7 @@ impl LocalMap {
                 w,
                 iterations,
                 residual,
-                converged: all && residual <= INVERSE_TOLERANCE,
+                converged: all && self.accepts(&w, residual),
             };
         }
         let mut support = [0usize; MAX_VARS];
@@ -1078,6 +1186,7 @@ impl LocalMap {
             let settings = NewtonSettings {
                 max_iter: MAP_POLISH_ITERATIONS,
                 tol: INVERSE_TOLERANCE,
+                target: NEWTON_TARGET,
                 polish: true,
             };
             let jac = |x: &Bary| {
@@ -1095,8 +1204,30 @@ impl LocalMap {
             w,
             iterations,
             residual,
-            converged: residual <= INVERSE_TOLERANCE,
+            converged: self.accepts(&w, residual),
         }
+    }
+
+    /// Whether `|X(w) − u|∞ = residual` counts as converged: [`INVERSE_TOLERANCE`], or the
+    /// rounding floor of the whole map at `w` ([`acceptance_tolerance`] of a scale
+    /// `stages · (1 + ‖DX(w)‖∞)`: every stage rounds its output, and the later stages' Jacobians
+    /// amplify it). The Jacobian is only computed when the plain tolerance is missed.
+    fn accepts(&self, w: &Bary, residual: f64) -> bool {
+        if residual <= INVERSE_TOLERANCE {
+            return true;
+        }
+        if residual.is_nan() {
+            return false;
+        }
+        let n = self.m - 1;
+        let Some(j) = self.jacobian(w).1 else {
+            return false;
+        };
+        let norm = (0..n)
+            .map(|k| (0..n).map(|l| j[k][l].abs()).sum::<f64>())
+            .fold(0.0, f64::max);
+        let scale = self.stages.len().max(1) as f64 * (1.0 + norm);
+        residual <= acceptance_tolerance(scale)
     }
 }
 
@@ -1190,6 +1321,7 @@ impl LocalMap {
         let settings = NewtonSettings {
             max_iter: NEAR_MAX_ITERATIONS,
             tol: INVERSE_TOLERANCE,
+            target: NEWTON_TARGET,
             polish: false,
         };
         // A singular parametric stage anywhere on the path makes the result unusable: flag it.
