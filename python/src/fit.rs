@@ -1,0 +1,401 @@
+//! `ism.fit`, `ism.fit_mesh`, `ism.fit_hermite` and smoothing: glue over `ism-fit`, with the
+//! option handling of `ism fit`, `ism fit --hermite` and `ism smooth` and the reports of their
+//! `--json` output (same member names).
+
+use ism_fit::c1::{smooth_rational, C1Options};
+use ism_fit::hermite::{fit_hermite as hermite, HermiteData};
+use ism_fit::mesh::MeshDistance;
+use ism_fit::smooth::{smooth as smooth_model, JumpStats, SmoothOptions};
+use ism_fit::{Expression, FitOptions, ImplicitFunction, Preset, PRESETS};
+use pyo3::exceptions::PyValueError;
+use pyo3::prelude::*;
+
+use crate::errors::raise;
+use crate::model::Model;
+use crate::worker::{run, Stop};
+
+fn stats(s: Option<JumpStats>) -> serde_json::Value {
+    match s {
+        Some(s) => serde_json::json!({"facets": s.facets, "max": s.max, "mean": s.mean}),
+        None => serde_json::Value::Null,
+    }
+}
+
+fn verdict(model: &ism_format::Model) -> &'static str {
+    ism_validate::validate(model, &ism_validate::Options::default())
+        .verdict
+        .as_str()
+}
+
+/// `ism smooth` without writing: the smoothed model and the `--json` report.
+pub(crate) fn smooth(
+    model: &ism_format::Model,
+    iterations: Option<usize>,
+    alpha: Option<f64>,
+    rational: bool,
+    degree: Option<u32>,
+) -> Result<(ism_format::Model, serde_json::Value), String> {
+    if rational {
+        let defaults = C1Options::default();
+        let options = C1Options {
+            degree,
+            alpha: alpha.unwrap_or(defaults.alpha),
+            iterations: iterations.unwrap_or(defaults.iterations),
+        };
+        let s = smooth_rational(model, &options).map_err(|e| e.to_string())?;
+        let r = &s.report;
+        let res = |s: ism_fit::c1::ResidualStats| serde_json::json!({"facets": s.facets, "max": s.max, "mean": s.mean});
+        let report = serde_json::json!({
+            "mode": "rational",
+            "degree": r.degree,
+            "alpha": r.alpha,
+            "residualBefore": res(r.residual_before),
+            "residualAfter": res(r.residual_after),
+            "before": stats(r.jumps_before),
+            "after": stats(r.jumps_after),
+            "objectiveBefore": r.objective_before,
+            "objectiveAfter": r.objective_after,
+            "steps": r.steps,
+            "weights": r.weights,
+            "groups": r.groups,
+            "conditions": r.conditions,
+            "weightRange": r.weight_range,
+            "records": r.records,
+            "verdict": verdict(&s.model),
+            "seconds": r.seconds,
+            "fitSeconds": r.fit_seconds,
+        });
+        return Ok((s.model, report));
+    }
+    let defaults = SmoothOptions::default();
+    let options = SmoothOptions {
+        iterations: iterations.unwrap_or(defaults.iterations),
+        alpha: alpha.unwrap_or(defaults.alpha),
+    };
+    let s = smooth_model(model, &options).map_err(|e| e.to_string())?;
+    let r = &s.report;
+    let report = serde_json::json!({
+        "before": stats(r.before),
+        "after": stats(r.after),
+        "objectiveBefore": r.objective_before,
+        "objectiveAfter": r.objective_after,
+        "sweeps": r.sweeps,
+        "facets": r.facets,
+        "samples": r.samples,
+        "freeFaces": r.free_faces,
+        "blockAdded": r.block_added,
+        "verdict": verdict(&s.model),
+        "seconds": r.seconds,
+    });
+    Ok((s.model, report))
+}
+
+/// Options shared by the three `fit` entry points.
+struct FitArgs {
+    resolution: usize,
+    tolerance: Option<f64>,
+    max_simplices: usize,
+    optimize: bool,
+    rational: bool,
+    topology: bool,
+}
+
+impl FitArgs {
+    fn options(&self, domain: &[f64]) -> PyResult<FitOptions> {
+        if self.resolution == 0 {
+            return Err(PyValueError::new_err("resolution: expected at least 1"));
+        }
+        if let Some(t) = self.tolerance {
+            if !(t.is_finite() && t > 0.0) {
+                return Err(PyValueError::new_err(format!(
+                    "tolerance: expected a positive number, got {t}"
+                )));
+            }
+        }
+        let mut o = FitOptions::new(domain);
+        o.resolution = self.resolution;
+        if let Some(t) = self.tolerance {
+            o.tolerance = t;
+        }
+        o.max_simplices = self.max_simplices;
+        o.optimize = self.optimize;
+        o.rational = self.rational;
+        o.topology = self.topology;
+        Ok(o)
+    }
+}
+
+/// Expected topology: `(what, components, euler)`.
+type Expected = Option<(&'static str, usize, i64)>;
+
+fn run_fit(
+    py: Python<'_>,
+    g: Box<dyn ImplicitFunction + Send>,
+    options: FitOptions,
+    name: String,
+    expected: Expected,
+    mesh: Option<serde_json::Value>,
+) -> PyResult<(Model, Bound<'_, PyAny>)> {
+    let result = run(py, 0, Stop::Detach, None, move |_| {
+        let fitted = ism_fit::fit(&*g, &options, &mut |_| {}).map_err(|e| e.to_string())?;
+        let model = fitted.to_model(&name);
+        let structural = ism_format::structure::check(&model, 20)
+            .into_iter()
+            .filter(|d| d.severity == ism_format::Severity::Error)
+            .count();
+        let r = &fitted.report;
+        let topology_ok =
+            expected.is_none_or(|(_, c, e)| c == r.topology.components && e == r.topology.euler);
+        let report = serde_json::json!({
+            "simplices": r.simplices,
+            "vertices": r.vertices,
+            "crossingSimplices": r.crossing_simplices,
+            "parameters": r.parameters,
+            "storedNumbers": r.stored_numbers,
+            "maxDistance": r.max_distance,
+            "meanDistance": r.mean_distance,
+            "samples": r.samples,
+            "bisections": r.bisections,
+            "pvFailures": r.pv_failures,
+            "components": r.topology.components,
+            "euler": r.topology.euler,
+            "toleranceMet": r.tolerance_met,
+            "topologyMatches": topology_ok,
+            "topologyReference": expected.map(|(what, _, _)| what),
+            "mesh": mesh,
+            "structuralErrors": structural,
+            "seconds": r.seconds,
+        });
+        Ok::<_, String>((model, report))
+    })?;
+    let (model, report) = result.map_err(|m| raise(py, "FitError", &m, &[]))?;
+    Ok((Model::new(model, None), crate::value_to_py(py, &report)?))
+}
+
+/// Fits an ISM to the zero set of ``expr`` (variables x, y[, z]) over ``domain``
+/// (x0, x1, y0, y1[, z0, z1]), or of a named ``preset``, as ``ism fit`` does.
+#[pyfunction]
+#[pyo3(signature = (expr = None, domain = None, *, preset = None, resolution = 8, tolerance = None, max_simplices = 200_000, optimize = true, rational = false, topology = true))]
+#[allow(clippy::too_many_arguments)]
+pub fn fit<'py>(
+    py: Python<'py>,
+    expr: Option<String>,
+    domain: Option<Vec<f64>>,
+    preset: Option<String>,
+    resolution: usize,
+    tolerance: Option<f64>,
+    max_simplices: usize,
+    optimize: bool,
+    rational: bool,
+    topology: bool,
+) -> PyResult<(Model, Bound<'py, PyAny>)> {
+    let args = FitArgs {
+        resolution,
+        tolerance,
+        max_simplices,
+        optimize,
+        rational,
+        topology,
+    };
+    let fail = |e: &dyn std::fmt::Display| raise(py, "FitError", &e.to_string(), &[]);
+    let (g, domain, name, expected): (
+        Box<dyn ImplicitFunction + Send>,
+        Vec<f64>,
+        String,
+        Expected,
+    ) = match (preset, expr) {
+        (Some(_), Some(_)) => return Err(PyValueError::new_err("give expr or preset, not both")),
+        (Some(name), None) => {
+            if domain.is_some() {
+                return Err(PyValueError::new_err("a preset has its own domain"));
+            }
+            let p: &Preset = Preset::find(&name).map_err(|e| fail(&e))?;
+            (
+                Box::new(p.expression().map_err(|e| fail(&e))?),
+                p.domain.to_vec(),
+                p.name.to_string(),
+                Some(("the true shape", p.components, p.euler)),
+            )
+        }
+        (None, Some(text)) => {
+            let domain = domain.ok_or_else(|| {
+                PyValueError::new_err("expr needs domain = (x0, x1, y0, y1[, z0, z1])")
+            })?;
+            if domain.len() != 4 && domain.len() != 6 {
+                return Err(PyValueError::new_err(format!(
+                    "domain needs 4 numbers (2D) or 6 (3D), got {}",
+                    domain.len()
+                )));
+            }
+            let e = Expression::parse(&text, domain.len() / 2).map_err(|e| fail(&e))?;
+            (Box::new(e), domain, "fit".to_string(), None)
+        }
+        (None, None) => return Err(PyValueError::new_err("give expr with domain, or preset")),
+    };
+    let options = args.options(&domain)?;
+    run_fit(py, g, options, name, expected, None)
+}
+
+/// Fits an ISM to a closed triangle mesh (vertices (N, 3), faces (M, 3)): the shape is the zero
+/// set of the signed distance, as ``ism fit --mesh``.
+#[pyfunction]
+#[pyo3(signature = (vertices, faces, *, domain = None, margin = 0.05, resolution = 8, tolerance = None, max_simplices = 200_000, optimize = true, rational = false, topology = true, name = "mesh"))]
+#[allow(clippy::too_many_arguments)]
+pub fn fit_mesh<'py>(
+    py: Python<'py>,
+    vertices: &Bound<'py, PyAny>,
+    faces: &Bound<'py, PyAny>,
+    domain: Option<Vec<f64>>,
+    margin: f64,
+    resolution: usize,
+    tolerance: Option<f64>,
+    max_simplices: usize,
+    optimize: bool,
+    rational: bool,
+    topology: bool,
+    name: &str,
+) -> PyResult<(Model, Bound<'py, PyAny>)> {
+    let mesh = crate::tools::triangle_mesh(vertices, faces)?;
+    if !(margin.is_finite() && margin >= 0.0) {
+        return Err(PyValueError::new_err("margin: expected a number >= 0"));
+    }
+    let g = MeshDistance::new(mesh).map_err(|e| raise(py, "FitError", &e.to_string(), &[]))?;
+    let check = g.check();
+    if !check.is_closed_manifold() {
+        return Err(raise(
+            py,
+            "FitError",
+            &format!(
+                "the mesh is not a closed manifold ({} boundary, {} non-manifold, {} misoriented \
+                 edges): the signed distance would jump where the winding number crosses 1/2 off \
+                 the surface; close and orient the mesh first",
+                check.boundary_edges, check.nonmanifold_edges, check.misoriented_edges
+            ),
+            &[],
+        ));
+    }
+    let domain = match domain {
+        Some(d) if d.len() != 6 => {
+            return Err(PyValueError::new_err(format!(
+                "domain with a mesh needs 6 numbers, got {}",
+                d.len()
+            )))
+        }
+        Some(d) => d,
+        None => g.mesh().domain(margin),
+    };
+    let args = FitArgs {
+        resolution,
+        tolerance,
+        max_simplices,
+        optimize,
+        rational,
+        topology,
+    };
+    let mut options = args.options(&domain)?;
+    // As `ism fit --mesh`: creases fail the Plantinga–Vegter test at every size, so sharp meshes
+    // skip it, and the test stops at half a typical mesh edge.
+    options.topology = topology && g.sharpest_edge() <= ism_fit::mesh::PV_SHARPEST_EDGE;
+    options.pv_min_edge = (0.5 * g.mesh().median_edge_length()).max(options.tolerance);
+    let diagonal = g.mesh().diagonal();
+    let info = serde_json::json!({
+        "vertices": check.vertices,
+        "triangles": check.triangles,
+        "closedManifold": check.is_closed_manifold(),
+        "components": check.components,
+        "euler": check.euler,
+        "flipped": g.flipped(),
+        "diagonal": diagonal,
+    });
+    let components = check.components;
+    let euler = check.euler;
+    run_fit(
+        py,
+        Box::new(g),
+        options,
+        name.to_string(),
+        Some(("the mesh", components, euler)),
+        Some(info),
+    )
+}
+
+/// Fits a model to Hermite data (positions and normals on sign-changing edges; ``data`` is the
+/// handles document of spec/hermite.md as a dict or JSON text); ``model`` is the base model when
+/// the document has no complex of its own.
+#[pyfunction]
+#[pyo3(signature = (data, model = None))]
+pub fn fit_hermite<'py>(
+    py: Python<'py>,
+    data: &Bound<'py, PyAny>,
+    model: Option<&Bound<'py, Model>>,
+) -> PyResult<(Model, Bound<'py, PyAny>)> {
+    let text: String = match data.extract::<String>() {
+        Ok(t) => t,
+        Err(_) => crate::py_to_value(data, "data")?.to_string(),
+    };
+    let base = model.map(|m| (*m.get().inner).clone());
+    let result = run(py, 0, Stop::Detach, None, move |_| {
+        let data = HermiteData::from_json(&text).map_err(|e| e.to_string())?;
+        if data.model.is_some() && base.is_none() {
+            return Err(
+                "the handles name a model file; read it with ism.read and pass it as model="
+                    .to_string(),
+            );
+        }
+        let model = data.base_model(base).map_err(|e| e.to_string())?;
+        let fitted = hermite(&model, &data.handles, &data.options()).map_err(|e| e.to_string())?;
+        let r = &fitted.report;
+        let handles: Vec<_> = r
+            .handles
+            .iter()
+            .map(|h| {
+                serde_json::json!({
+                    "edge": h.edge,
+                    "target": h.target,
+                    "achieved": h.achieved,
+                    "positionError": h.position_error,
+                    "angleBefore": h.angle_before,
+                    "angleAfter": h.angle_after,
+                })
+            })
+            .collect();
+        let report = serde_json::json!({
+            "handles": handles,
+            "maxPositionError": r.max_position_error,
+            "maxAngleBefore": r.max_angle_before,
+            "maxAngleAfter": r.max_angle_after,
+            "meanAngleBefore": r.mean_angle_before,
+            "meanAngleAfter": r.mean_angle_after,
+            "objectiveBefore": r.objective_before,
+            "objectiveAfter": r.objective_after,
+            "freeFaces": r.free_faces,
+            "blockAdded": r.block_added,
+            "valuesAdjusted": r.values_adjusted,
+            "simplices": fitted.model.num_simplices(),
+            "verdict": verdict(&fitted.model),
+            "seconds": r.seconds,
+        });
+        Ok::<_, String>((fitted.model, report))
+    })?;
+    let (model, report) = result.map_err(|m| raise(py, "FitError", &m, &[]))?;
+    Ok((Model::new(model, None), crate::value_to_py(py, &report)?))
+}
+
+/// The fit presets: list of dicts (name, dimension, description, domain, components, euler).
+#[pyfunction]
+pub fn presets(py: Python<'_>) -> PyResult<Bound<'_, PyAny>> {
+    let list: Vec<_> = PRESETS
+        .iter()
+        .map(|p| {
+            serde_json::json!({
+                "name": p.name,
+                "dimension": p.dim,
+                "description": p.description,
+                "domain": p.domain,
+                "components": p.components,
+                "euler": p.euler,
+            })
+        })
+        .collect();
+    crate::value_to_py(py, &serde_json::Value::Array(list))
+}

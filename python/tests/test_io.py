@@ -1,0 +1,167 @@
+"""Reading and writing: every example in every encoding and source kind, bit-exact round trips
+compared with `ism convert`, arrays compared with the JSON text read by Python's json module, and
+models rebuilt from their own arrays."""
+
+from __future__ import annotations
+
+import gc
+import io
+import json
+
+import numpy as np
+import pytest
+
+import ism
+from conftest import ENCODINGS, EXAMPLE_NAMES, EXAMPLES, cli
+
+
+def test_version():
+    assert isinstance(ism.__version__, str) and ism.__version__.count(".") == 2
+    assert ism.FORMAT_VERSION == "1.0"
+
+
+@pytest.mark.parametrize("name", EXAMPLE_NAMES)
+def test_every_source_and_encoding_reads_the_same_model(name):
+    models = []
+    for enc, ext in ENCODINGS.items():
+        path = EXAMPLES / (name + ext)
+        data = path.read_bytes()
+        by_path = ism.read(path)
+        by_str = ism.read(str(path))
+        by_bytes = ism.read(data)
+        by_file = ism.read(io.BytesIO(data))
+        with open(path, "rb") as f:
+            by_handle = ism.read(f)
+        for m in (by_path, by_str, by_bytes, by_file, by_handle):
+            assert m.encoding == enc
+            assert m == by_path
+        models.append(by_path)
+    assert models[0] == models[1] == models[2]
+
+
+@pytest.mark.parametrize("name", EXAMPLE_NAMES)
+def test_arrays_match_the_json_text(name):
+    doc = json.loads((EXAMPLES / (name + ".ism.json")).read_text())
+    m = ism.read(EXAMPLES / (name + ".ismb"))
+    n = doc["dimension"]
+    assert m.dimension == n
+    assert m.vertices.dtype == np.float64 and m.vertices.shape == (len(doc["vertices"]) // n, n)
+    assert m.simplices.dtype == np.uint32 and m.simplices.shape == (len(doc["simplices"]) // (n + 1), n + 1)
+    # Python's float parser is correctly rounded: equal arrays mean bit-equal numbers.
+    assert m.vertices.ravel().tolist() == doc["vertices"]
+    assert m.simplices.ravel().tolist() == doc["simplices"]
+    assert m.values.tolist() == doc["values"]
+    assert m.level == doc.get("level", 0.0)
+    assert m.metadata == doc.get("metadata", {})
+    assert m.extras == doc.get("extras")
+    assert len(m.stages) == len(doc.get("stages", []))
+    for st, sd in zip(m.stages, doc.get("stages", [])):
+        assert st.kind == sd["kind"] and st.degree == sd["degree"]
+        assert st.direction == sd.get("direction", "implicit")
+        faces = sd.get("faces", [])
+        assert st.num_faces == len(faces)
+        assert st.face_vertices.tolist() == [v for f in faces for v in f["face"]]
+        assert np.diff(st.face_offsets).tolist() == [len(f["face"]) for f in faces]
+        assert st.points.tolist() == [x for f in faces for x in f.get("points", [])]
+        assert np.diff(st.point_offsets).tolist() == [len(f.get("points", [])) for f in faces]
+        assert st.weights.tolist() == [x for f in faces for x in f.get("weights", [])]
+        maps = sd.get("vertexMaps", [])
+        assert st.map_vertices.tolist() == [v["vertex"] for v in maps]
+        assert st.coefficients.tolist() == [x for v in maps for x in v["coefficients"]]
+
+
+@pytest.mark.parametrize("name", EXAMPLE_NAMES)
+@pytest.mark.parametrize("enc", list(ENCODINGS))
+def test_writing_is_bit_identical_to_ism_convert(name, enc, tmp_path):
+    src = EXAMPLES / (name + ".ism.json")
+    out = tmp_path / ("cli" + ENCODINGS[enc])
+    cli("convert", src, out, "--quiet")
+    m = ism.read(src)
+    assert m.to_bytes(enc) == out.read_bytes()
+    # Through a path (encoding from the extension) and a file object.
+    mine = tmp_path / ("py" + ENCODINGS[enc])
+    m.write(mine)
+    assert mine.read_bytes() == out.read_bytes()
+    buf = io.BytesIO()
+    m.write(buf, enc)
+    assert buf.getvalue() == out.read_bytes()
+    # And back: the bytes read give the same model.
+    assert ism.loads(out.read_bytes()) == m
+
+
+@pytest.mark.parametrize("name", EXAMPLE_NAMES)
+def test_pretty_and_container_json_match_the_cli(name, tmp_path):
+    src = EXAMPLES / (name + ".ismb")
+    m = ism.read(src)
+    out = tmp_path / "p.ism.json"
+    cli("convert", src, out, "--pretty", "--quiet")
+    assert m.to_bytes("json", pretty=True) == out.read_bytes()
+    out2 = tmp_path / "c.ism.json"
+    cli("convert", src, out2, "--container", "--quiet")
+    assert m.to_bytes("json", container=True) == out2.read_bytes()
+
+
+@pytest.mark.parametrize("name", EXAMPLE_NAMES)
+def test_model_rebuilt_from_its_arrays_is_the_same(name):
+    m = ism.read(EXAMPLES / (name + ".ismb"))
+    stages = [ism.Stage.from_tables(**s.tables()) for s in m.stages]
+    again = ism.Model(
+        m.vertices,
+        m.simplices,
+        m.values,
+        m.level,
+        stages,
+        metadata=m.metadata,
+        extras=m.extras,
+        extensions_used=m.extensions_used,
+        extensions_required=m.extensions_required,
+        extensions=m.extensions,
+    )
+    assert again == m
+    for enc in ENCODINGS:
+        assert again.to_bytes(enc) == m.to_bytes(enc)
+    # The per-face constructor gives the same stages.
+    for s in m.stages:
+        assert ism.Stage(s.kind, s.degree, s.direction, faces=s.faces, vertex_maps=s.vertex_maps, name=s.name, extras=s.extras) == s
+
+
+def test_arrays_outlive_the_model():
+    m = ism.read(EXAMPLES / "sphere.ismb")
+    expected = m.vertices.copy(), m.simplices.copy(), m.values.copy(), m.stages[1].points.copy()
+    v, s, f, p = m.vertices, m.simplices, m.values, m.stages[1].points
+    del m
+    gc.collect()
+    # Allocate and free enough to reuse freed memory, then read the arrays again.
+    junk = [ism.read(EXAMPLES / "torus.ismb").vertices.copy() for _ in range(20)]
+    del junk
+    gc.collect()
+    assert np.array_equal(v, expected[0]) and np.array_equal(s, expected[1])
+    assert np.array_equal(f, expected[2]) and np.array_equal(p, expected[3])
+    # The views keep the model alive through numpy's base chain.
+    assert isinstance(v.base, ism.Model)
+
+
+def test_arrays_are_read_only():
+    m = ism.read(EXAMPLES / "circle-curved.ismb")
+    for a in (m.vertices, m.simplices, m.values, m.stages[0].points):
+        with pytest.raises(ValueError):
+            a[0] = 0
+
+
+def test_pickle_round_trip():
+    import pickle
+
+    m = ism.read(EXAMPLES / "two-stage.ismb")
+    assert pickle.loads(pickle.dumps(m)) == m
+
+
+def test_metadata_and_extras_are_python_objects():
+    v = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])
+    extras = {"a": [1, 2.5, None, True], "b": {"c": "text"}}
+    m = ism.Model(v, [[0, 1, 2]], [-1.0, 1.0, 1.0], 0.0, metadata={"name": "tri", "units": "mm"}, extras=extras)
+    back = ism.loads(m.to_bytes("binary"))
+    assert back.metadata == {"name": "tri", "units": "mm"}
+    assert back.extras == extras
+    # Python's own JSON view of the file agrees.
+    doc = json.loads(m.to_bytes("json"))
+    assert doc["extras"] == extras and doc["metadata"]["name"] == "tri"

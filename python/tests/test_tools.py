@@ -1,0 +1,237 @@
+"""The tools through the Python API against the `ism` CLI on the same input: validation reports,
+samples and queries bit for bit, exports byte for byte, fits and smoothing byte for byte."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+import ism
+from conftest import EXAMPLE_NAMES, EXAMPLES, SCHEMA, VECTORS, cli
+
+VALIDATE = sorted((VECTORS / "validate").glob("*.ism.json"))
+
+
+def without_timing(report):
+    report = dict(report)
+    report.pop("timing", None)
+    return report
+
+
+def schema_check(report):
+    import jsonschema
+
+    jsonschema.validate(report, json.loads((SCHEMA / "report.schema.json").read_text()))
+
+
+@pytest.mark.parametrize("path", [EXAMPLES / (n + ".ismb") for n in EXAMPLE_NAMES] + VALIDATE, ids=lambda p: p.name)
+def test_validate_matches_the_cli(path):
+    expected = json.loads(cli("validate", "--json", "--quiet", path, check=False).stdout)
+    report = ism.validate(path)
+    got = report.to_dict()
+    schema_check(got)
+    assert without_timing(got) == without_timing(expected)
+    # The model method gives the same report without the file member.
+    from_model = ism.read(path, check=False).validate().to_dict()
+    schema_check(from_model)
+    expected.pop("file")
+    assert without_timing(from_model) == without_timing(expected)
+    assert report.verdict == expected["verdict"]
+    assert report.rules == [m["code"] for m in expected["issues"]["messages"]]
+
+
+@pytest.mark.parametrize("path", VALIDATE, ids=lambda p: p.name)
+def test_validate_vectors_give_their_rules_and_locations(path):
+    expect = json.loads(path.with_name(path.name.replace(".ism.json", ".expect.json")).read_text())
+    report = ism.validate(path)
+    assert report.verdict == expect["verdict"]
+    got = [(m["code"], m["location"]) for m in report.diagnostics]
+    want = [(i["code"], i["location"]) for i in expect.get("issues", [])]
+    for pair in want:
+        assert pair in got, (pair, got)
+
+
+def test_validate_options_match_the_cli():
+    path = EXAMPLES / "rational-degree5.ismb"
+    expected = json.loads(cli("validate", "--json", "--quiet", "--quality", "--no-theorems", "--max-pieces", "50", path, check=False).stdout)
+    got = ism.validate(path, quality=True, theorems=False, max_pieces=50).to_dict()
+    assert without_timing(got) == without_timing(expected)
+
+
+SAMPLED = ["sphere", "circle-curved", "torus", "rational-degree5", "two-stage"]
+
+
+@pytest.mark.parametrize("name", SAMPLED)
+@pytest.mark.parametrize("seed", [0, 7])
+def test_samples_are_bit_identical_to_the_cli(name, seed, tmp_path):
+    path = EXAMPLES / (name + ".ismb")
+    m = ism.read(path)
+    cases = [
+        (["--surface", "1500"], lambda: m.sample_surface(1500, seed)),
+        (["--volume", "1500"], lambda: m.sample_volume(1500, seed)),
+        (["--near-surface", "1500", "--sigma", "0.01"], lambda: m.sample_near_surface(1500, 0.01, seed)),
+    ]
+    lo, hi = m.vertices.min(axis=0) - 0.1, m.vertices.max(axis=0) + 0.1
+    box = ",".join(repr(float(x)) for x in [*lo, *hi])
+    cases.append((["--volume", "700", "--box", box], lambda: m.sample_volume(700, seed, box=(lo.tolist(), hi.tolist()))))
+    for i, (args, run) in enumerate(cases):
+        out = tmp_path / f"{i}.npy"
+        cli("sample", path, *args, "--seed", seed, "-o", out, "--quiet")
+        expected = np.load(out)
+        got = run()
+        assert got.dtype == expected.dtype, args
+        assert got.tobytes() == expected.tobytes(), args
+
+
+def test_samples_do_not_depend_on_threads():
+    m = ism.read(EXAMPLES / "torus.ismb")
+    assert m.sample_surface(3000, 5, threads=1).tobytes() == m.sample_surface(3000, 5, threads=2).tobytes()
+
+
+@pytest.mark.parametrize("name", ["sphere", "circle-curved", "stratified-3d", "monotonic"])
+def test_query_is_bit_identical_to_the_cli(name, tmp_path):
+    path = EXAMPLES / (name + ".ismb")
+    m = ism.read(path)
+    rng = np.random.default_rng(3)
+    lo, hi = m.vertices.min(axis=0) - 0.2, m.vertices.max(axis=0) + 0.2
+    pts = rng.uniform(lo, hi, size=(2000, m.dimension))
+    np.save(tmp_path / "p.npy", pts)
+    cli("query", path, tmp_path / "p.npy", "-o", tmp_path / "q.npy", "--quiet")
+    expected = np.load(tmp_path / "q.npy")
+    got = m.query(pts)
+    assert got.dtype == expected.dtype
+    assert got.tobytes() == expected.tobytes()
+    # A list of lists works too, and a float32 array is widened exactly.
+    assert m.query(pts[:5].tolist()).tobytes() == expected[:5].tobytes()
+
+
+FORMATS = [".obj", ".gltf", ".glb", ".vtk", ".vtu"]
+
+
+@pytest.mark.parametrize("name", ["sphere", "circle-curved"])
+@pytest.mark.parametrize("ext", FORMATS)
+def test_export_is_byte_identical_to_the_cli(name, ext, tmp_path):
+    path = EXAMPLES / (name + ".ismb")
+    m = ism.read(path)
+    for extra, kwargs in ([], {}), (["--linear"], {"linear": True}), (["--tolerance", "0.01", "--max-depth", "4"], {"tolerance": 0.01, "max_depth": 4}):
+        cli_out = tmp_path / ("cli" + ext)
+        py_out = tmp_path / ("py" + ext)
+        summary = json.loads(cli("export", path, cli_out, "--json", "--quiet", *extra).stdout)
+        got = m.export(py_out, **kwargs)
+        assert py_out.read_bytes() == cli_out.read_bytes(), (ext, extra)
+        for key in ("vertices", "cells", "components", "euler_characteristic", "boundary_edges", "enclosed_measure"):
+            assert got[key] == summary[key], key
+    if ext in (".vtk", ".vtu"):
+        cli("export", path, tmp_path / ("cv" + ext), "--volume", "--quiet")
+        m.export(tmp_path / ("pv" + ext), volume=True)
+        assert (tmp_path / ("pv" + ext)).read_bytes() == (tmp_path / ("cv" + ext)).read_bytes()
+
+
+@pytest.mark.parametrize("name", ["sphere", "torus", "circle-curved", "stratified-3d"])
+def test_extract_surface_matches_the_exported_mesh(name, tmp_path):
+    import meshio
+
+    path = EXAMPLES / (name + ".ismb")
+    m = ism.read(path)
+    s = m.extract_surface(2e-3)
+    out = tmp_path / "s.vtu"
+    summary = json.loads(cli("export", path, out, "--tolerance", "2e-3", "--json", "--quiet").stdout)
+    assert s.report["vertices"] == summary["vertices"] == len(s.positions)
+    assert s.report["cells"] == summary["cells"] == len(s.cells)
+    assert s.report["euler_characteristic"] == summary["euler_characteristic"]
+    # The mesh meshio reads from the CLI's .vtu is the same mesh.
+    mesh = meshio.read(out)
+    assert np.array_equal(mesh.points[:, : m.dimension], s.positions)
+    assert np.array_equal(mesh.cells[0].data, s.cells)
+    assert s.positions.shape[1] == m.dimension and s.cells.shape[1] == m.dimension
+    if m.dimension == 2:
+        loops = s.polylines()
+        assert sum(len(p) - 1 for p in loops) == len(s.cells)
+    # Every vertex is on the shape: F = c there (query agrees within the extraction tolerance).
+    q = m.query(s.positions)
+    assert np.all(q["simplex"] >= 0)
+    assert np.max(np.abs(q["f"] - m.level) / np.linalg.norm(np.column_stack([q["gx"], q["gy"]] + ([q["gz"]] if m.dimension == 3 else [])), axis=1)) < 1e-9
+
+
+def test_fit_expression_matches_the_cli(tmp_path):
+    out = tmp_path / "e.ismb"
+    expected = json.loads(cli("fit", "--expr", "x^2 + 2*y^2 - 0.5", "--domain", "-1,1,-1,1", "--resolution", "5", "--tolerance", "1e-3", "-o", out, "--json", "--quiet").stdout)
+    m, report = ism.fit("x^2 + 2*y^2 - 0.5", (-1, 1, -1, 1), resolution=5, tolerance=1e-3)
+    assert m.to_bytes("binary") == out.read_bytes()
+    for key in ("simplices", "vertices", "parameters", "maxDistance", "meanDistance", "toleranceMet", "components", "euler"):
+        assert report[key] == expected[key], key
+
+
+def test_fit_preset_matches_the_cli(tmp_path):
+    out = tmp_path / "c.ism.json"
+    cli("fit", "--preset", "circle", "--resolution", "5", "-o", out, "--quiet")
+    m, report = ism.fit(preset="circle", resolution=5)
+    assert m.to_bytes("json") == out.read_bytes()
+    assert report["topologyMatches"] is True
+    assert {p["name"] for p in ism.presets()} >= {"circle", "sphere", "torus"}
+
+
+def test_fit_mesh_matches_the_cli(tmp_path):
+    import trimesh
+
+    sphere = trimesh.creation.icosphere(subdivisions=2, radius=0.5)
+    # Vertices renumbered in order of first use, so that the OBJ reader (which numbers them that
+    # way) builds the very mesh the arrays hold; repr() writes every float exactly.
+    order = list(dict.fromkeys(sphere.faces.ravel().tolist()))
+    new = {old: i for i, old in enumerate(order)}
+    vertices = sphere.vertices[order]
+    faces = np.vectorize(new.get)(sphere.faces)
+    obj = tmp_path / "ico.obj"
+    obj.write_text("".join(f"v {x!r} {y!r} {z!r}\n" for x, y, z in vertices.tolist()) + "".join(f"f {a + 1} {b + 1} {c + 1}\n" for a, b, c in faces.tolist()))
+    # The OBJ reader (tobj) keeps coordinates as float32: give the binding those numbers too.
+    back = trimesh.Trimesh(vertices.astype(np.float32).astype(np.float64), faces, process=False)
+    out = tmp_path / "m.ismb"
+    expected = json.loads(cli("fit", "--mesh", obj, "--resolution", "4", "--tolerance", "2e-2", "-o", out, "--json", "--quiet", check=False).stdout)
+    m, report = ism.fit_mesh(back.vertices, back.faces, resolution=4, tolerance=2e-2, name="ico")
+    assert m.to_bytes("binary") == out.read_bytes()
+    assert report["maxDistance"] == expected["maxDistance"]
+    assert report["components"] == 1 and report["euler"] == 2
+
+
+def test_fit_hermite_matches_the_cli(tmp_path):
+    handles = EXAMPLES / "hermite" / "ellipse.hermite.json"
+    out = tmp_path / "h.ismb"
+    expected = json.loads(cli("fit", "--hermite", handles, "-o", out, "--json", check=False).stdout)
+    m, report = ism.fit_hermite(json.loads(handles.read_text()))
+    assert m.to_bytes("binary") == out.read_bytes()
+    assert report["maxAngleAfter"] == expected["maxAngleAfter"]
+    assert report["verdict"] == expected["verdict"]
+
+
+@pytest.mark.parametrize("rational", [False, True])
+def test_smooth_matches_the_cli(rational, tmp_path):
+    path = EXAMPLES / ("circle-linear.ismb" if rational else "circle-curved.ismb")
+    out = tmp_path / "s.ismb"
+    args = ["--rational"] if rational else ["--iterations", "2"]
+    expected = json.loads(cli("smooth", path, "-o", out, "--json", "--quiet", *args, check=False).stdout)
+    m = ism.read(path)
+    smoothed, report = m.smooth(rational=True) if rational else m.smooth(iterations=2)
+    assert smoothed.to_bytes("binary") == out.read_bytes()
+    assert report["after"] == expected["after"] and report["verdict"] == expected["verdict"]
+
+
+def test_progress_callback_and_cancellation():
+    m = ism.read(EXAMPLES / "sphere.ismb")
+    seen = []
+    pts = m.sample_surface(50_000, 1, progress=lambda done, total: seen.append((done, total)))
+    assert len(pts) == 50_000
+    assert seen and seen[-1] == (50_000, 50_000)
+    assert all(a[0] <= b[0] for a, b in zip(seen, seen[1:]))
+
+    class Stop(Exception):
+        pass
+
+    def stop(done, total):
+        raise Stop
+
+    with pytest.raises(Stop):
+        m.sample_surface(2_000_000, 1, progress=stop)
+    # The model is still usable, and gives the same samples as before.
+    assert m.sample_surface(50_000, 1).tobytes() == pts.tobytes()
