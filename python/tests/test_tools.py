@@ -235,3 +235,31 @@ def test_progress_callback_and_cancellation():
         m.sample_surface(2_000_000, 1, progress=stop)
     # The model is still usable, and gives the same samples as before.
     assert m.sample_surface(50_000, 1).tobytes() == pts.tobytes()
+
+
+def test_ctrl_c_interrupts_a_long_call():
+    import subprocess
+    import sys
+
+    child = f"""
+import os, signal, threading, time
+import ism
+m = ism.read({str(EXAMPLES / "sphere.ismb")!r})
+m.sample_surface(10, 1)  # the surface table is built before the clock starts
+threading.Timer(0.5, lambda: os.kill(os.getpid(), signal.SIGINT)).start()
+t0 = time.time()
+try:
+    m.sample_surface(20_000_000, 1)
+    print("finished", time.time() - t0)
+except KeyboardInterrupt:
+    print("interrupted", time.time() - t0)
+# Still usable afterwards.
+print(len(m.sample_surface(1000, 2)))
+"""
+    done = subprocess.run([sys.executable, "-c", child], capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr
+    lines = done.stdout.split()
+    assert lines[0] == "interrupted", done.stdout
+    # The worker sees the flag at its next block of rows: well under the full run's time.
+    assert float(lines[1]) < 5.0, done.stdout
+    assert lines[2] == "1000"
