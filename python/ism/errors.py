@@ -72,7 +72,8 @@ class ExportError(ISMError):
 
 
 class InversionError(ExportError):
-    """A stage could not be inverted on the shape: the model is not a valid diffeomorphism there."""
+    """A stage inversion did not converge on the shape: a numerical failure (``validate()`` tells
+    whether the model itself is valid)."""
 
 
 class FitError(ISMError):
