@@ -933,9 +933,7 @@ impl Model {
     }
 
     /// Pickling goes through the binary encoding (bit-exact).
-    fn __reduce__<'py>(
-        slf: &Bound<'py, Self>,
-    ) -> PyResult<Reduced<'py>> {
+    fn __reduce__<'py>(slf: &Bound<'py, Self>) -> PyResult<Reduced<'py>> {
         let py = slf.py();
         let f = py.import("ism._ism")?.getattr("read_bytes")?;
         let bytes = slf.get().to_bytes(py, "binary", false, false)?;
