@@ -160,16 +160,6 @@ fn split<T: Clone>(flat: &[T], offsets: &[u32], name: &str) -> PyResult<Vec<Vec<
         .collect()
 }
 
-fn offsets_of(parts: impl Iterator<Item = usize>) -> Vec<u32> {
-    let mut out = vec![0u32];
-    let mut total = 0usize;
-    for n in parts {
-        total += n;
-        out.push(u32::try_from(total).unwrap_or(u32::MAX));
-    }
-    out
-}
-
 /// One stage of a model: kind, degree, direction and its tables.
 ///
 /// Tables, flat with offsets (entry `i` of a table is `data[offsets[i]:offsets[i+1]]`):
@@ -207,22 +197,42 @@ impl Stage {
 
     fn flat(&self) -> &Tables {
         self.tables.get_or_init(|| {
+            // One pass over the records with every table allocated once (the flat layout is a copy
+            // of the per-record model; this is most of what reading a table costs).
             let f = &self.inner.faces;
             let m = &self.inner.vertex_maps;
-            Tables {
-                face_offsets: offsets_of(f.iter().map(|r| r.face.len())),
-                face_vertices: f.iter().flat_map(|r| r.face.iter().copied()).collect(),
-                point_offsets: offsets_of(f.iter().map(|r| r.points.len())),
-                points: f.iter().flat_map(|r| r.points.iter().copied()).collect(),
-                weight_offsets: offsets_of(f.iter().map(|r| r.weights.len())),
-                weights: f.iter().flat_map(|r| r.weights.iter().copied()).collect(),
-                map_vertices: m.iter().map(|v| v.vertex).collect(),
-                coefficient_offsets: offsets_of(m.iter().map(|v| v.coefficients.len())),
-                coefficients: m
-                    .iter()
-                    .flat_map(|v| v.coefficients.iter().copied())
-                    .collect(),
+            let mut t = Tables {
+                face_offsets: Vec::with_capacity(f.len() + 1),
+                face_vertices: Vec::with_capacity(f.iter().map(|r| r.face.len()).sum()),
+                point_offsets: Vec::with_capacity(f.len() + 1),
+                points: Vec::with_capacity(f.iter().map(|r| r.points.len()).sum()),
+                weight_offsets: Vec::with_capacity(f.len() + 1),
+                weights: Vec::with_capacity(f.iter().map(|r| r.weights.len()).sum()),
+                map_vertices: Vec::with_capacity(m.len()),
+                coefficient_offsets: Vec::with_capacity(m.len() + 1),
+                coefficients: Vec::with_capacity(m.iter().map(|v| v.coefficients.len()).sum()),
+            };
+            // u32 offsets: a readable file holds at most 8 GiB of payload (io::Limits), i.e. fewer
+            // than 2^30 numbers; saturating is unreachable short of a 32 GiB table in memory.
+            let offset = |n: usize| u32::try_from(n).unwrap_or(u32::MAX);
+            t.face_offsets.push(0);
+            t.point_offsets.push(0);
+            t.weight_offsets.push(0);
+            for r in f {
+                t.face_vertices.extend_from_slice(&r.face);
+                t.points.extend_from_slice(&r.points);
+                t.weights.extend_from_slice(&r.weights);
+                t.face_offsets.push(offset(t.face_vertices.len()));
+                t.point_offsets.push(offset(t.points.len()));
+                t.weight_offsets.push(offset(t.weights.len()));
             }
+            t.coefficient_offsets.push(0);
+            for v in m {
+                t.map_vertices.push(v.vertex);
+                t.coefficients.extend_from_slice(&v.coefficients);
+                t.coefficient_offsets.push(offset(t.coefficients.len()));
+            }
+            t
         })
     }
 }
