@@ -21,7 +21,20 @@ use pyo3::types::{PyBytes, PyDict, PyList, PyTuple};
 use crate::errors::format_error;
 
 /// An Iso-Simplicial Model: a simplicial complex with a value per vertex, a level and a sequence
-/// of stages; its shape is the level set `F = level` of the deformed function.
+/// of stages; its shape is the level set `F = level` of the deformed function. Immutable; its
+/// arrays are read-only numpy views that keep the model's memory alive.
+///
+/// >>> import ism, numpy as np
+/// >>> bend = ism.Stage("bezier", 2, faces=[([0, 2], [0.6, 0.4])])
+/// >>> square = ism.Model(np.array([[0, 0], [1, 0], [1, 1], [0, 1]], float),
+/// ...                    [[0, 1, 2], [0, 2, 3]], [-1.0, 1, 1, 1], 0.0, [bend],
+/// ...                    metadata={"name": "square"})
+/// >>> square.simplices.dtype, square.stages[0].points
+/// (dtype('uint32'), array([0.6, 0.4]))
+/// >>> ism.loads(square.to_bytes("msgpack")) == square
+/// True
+/// >>> square.validate().verdict
+/// 'valid'
 #[pyclass(frozen, module = "ism", name = "Model")]
 pub struct Model {
     pub(crate) inner: Arc<ism_format::Model>,

@@ -438,6 +438,11 @@ impl Model {
     /// with the fields of ``ism sample --surface`` (x, y[, z], nx, ny[, nz], f, simplex),
     /// bit-identical to the CLI's for the same ``seed``. ``progress(done, total)`` is called
     /// between blocks of rows.
+    ///
+    /// >>> import ism
+    /// >>> pts = ism.read("spec/examples/circle-curved.ismb").sample_surface(500, seed=3)
+    /// >>> pts.dtype.names, len(pts)
+    /// (('x', 'y', 'nx', 'ny', 'f', 'simplex'), 500)
     #[pyo3(signature = (n, seed = 0, *, threads = 0, progress = None))]
     fn sample_surface<'py>(
         slf: &Bound<'py, Self>,
@@ -500,6 +505,11 @@ impl Model {
 
     /// Evaluates points (array (N, n)): a structured array with the fields of ``ism query``
     /// (x, y[, z], simplex, f, sign, gx, gy[, gz]); simplex −1, f and ∇F NaN outside the complex.
+    ///
+    /// >>> import ism
+    /// >>> q = ism.read("spec/examples/sphere.ismb").query([[0.0, 0.0, 0.0], [9.0, 9.0, 9.0]])
+    /// >>> q["simplex"].tolist(), q["sign"].tolist()
+    /// ([516, -1], [-1, 0])
     #[pyo3(signature = (points, *, threads = 0, progress = None))]
     fn query<'py>(
         slf: &Bound<'py, Self>,

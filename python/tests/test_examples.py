@@ -48,3 +48,19 @@ def test_walkthrough_draws_a_picture(tmp_path):
     assert img.ndim == 3 and img.shape[0] > 300 and img.shape[1] > 300
     # Not blank: the curve (black) and the samples' normals (red) are drawn.
     assert (img[..., :3].max(axis=2) < 0.1).sum() > 500
+
+
+def test_docstring_examples_run(monkeypatch):
+    """Every `>>>` example in the package's docstrings (Python and Rust halves) runs from the
+    repository root and prints what it shows."""
+    import doctest
+
+    import ism.errors
+
+    monkeypatch.chdir(Path(__file__).resolve().parents[2])
+    total = 0
+    for module in (ism, ism.errors):
+        result = doctest.testmod(module, optionflags=doctest.NORMALIZE_WHITESPACE, verbose=False)
+        assert result.failed == 0
+        total += result.attempted
+    assert total >= 20
