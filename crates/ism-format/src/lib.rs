@@ -35,6 +35,7 @@ pub mod builder;
 pub mod canonical;
 mod decode;
 pub mod error;
+pub mod indexed;
 pub mod io;
 pub mod model;
 pub mod multi_index;
@@ -43,6 +44,7 @@ pub mod structure;
 
 pub use decode::MAX_DEPTH;
 pub use error::{Error, Result};
+pub use indexed::{FaceId, IndexedModel, SimplexId, StageTable, Topology, VertexId};
 pub use io::{Document, Encoding};
 pub use model::{
     Direction, FaceRecord, JsonValue, Metadata, Model, Stage, StageKind, Version, VertexMap,

@@ -4,6 +4,9 @@
 
 use std::collections::HashSet;
 
+use rayon::prelude::*;
+
+use crate::indexed::{FacetDefect, Topology};
 use crate::model::{Model, StageKind};
 use crate::multi_index::owned_count;
 use crate::rules::{Diagnostic, Location, Rule};
@@ -73,6 +76,12 @@ impl Collector {
 
 /// Checks every structural requirement; returns errors and warnings, at most `max` of them.
 pub fn check(model: &Model, max: usize) -> Vec<Diagnostic> {
+    check_indexed(model, max).0
+}
+
+/// [`check`], also returning the topology it built (whenever the arrays could be indexed: every
+/// length and index in range, not stopped by `max`). [`crate::IndexedModel::new`] keeps it.
+pub(crate) fn check_indexed(model: &Model, max: usize) -> (Vec<Diagnostic>, Option<Topology>) {
     let mut c = Collector {
         out: Vec::new(),
         max,
@@ -85,15 +94,15 @@ pub fn check(model: &Model, max: usize) -> Vec<Diagnostic> {
         )
     }) {
         // Later checks index vertices through simplices; stop before they would misread.
-        return c.out;
+        return (c.out, None);
     }
-    check_simplices(model, &mut c);
+    let topology = check_simplices(model, &mut c);
     check_values(model, &mut c);
     check_extensions(model, &mut c);
-    if !c.full() {
-        check_stages(model, &mut c);
+    if let (false, Some(t)) = (c.full(), topology.as_ref()) {
+        check_stages(model, t, &mut c);
     }
-    c.out
+    (c.out, topology)
 }
 
 fn check_arrays(model: &Model, c: &mut Collector) {
@@ -164,148 +173,109 @@ fn simplex_location(s: usize, m: usize) -> Location {
     }
 }
 
-fn check_simplices(model: &Model, c: &mut Collector) {
+fn check_simplices(model: &Model, c: &mut Collector) -> Option<Topology> {
     let n = model.dim();
     let m = n + 1;
-    let mut repeated = vec![false; model.num_simplices()];
-    for (s, ids) in model.simplex_iter().enumerate() {
-        let mut sorted = ids.to_vec();
-        sorted.sort_unstable();
-        if sorted.windows(2).any(|w| w[0] == w[1]) {
-            repeated[s] = true;
-            c.push(
+    // Per-simplex checks in parallel; only the (rare) failures are formatted, in simplex order.
+    #[derive(Clone, Copy, PartialEq)]
+    enum Status {
+        Ok,
+        Repeated,
+        Degenerate(f64, f64),
+        Inverted(f64),
+    }
+    let status: Vec<Status> = (0..model.num_simplices())
+        .into_par_iter()
+        .map(|s| {
+            let ids = model.simplex(s);
+            if (0..m).any(|a| ids[a + 1..].contains(&ids[a])) {
+                return Status::Repeated;
+            }
+            let (det, longest) = orientation(model, s);
+            let tol = DEGENERACY_TOLERANCE * longest.powi(n as i32);
+            if det.abs() <= tol || !det.is_finite() {
+                Status::Degenerate(det, longest)
+            } else if det < 0.0 {
+                Status::Inverted(det)
+            } else {
+                Status::Ok
+            }
+        })
+        .collect();
+    let repeated: Vec<bool> = status.iter().map(|&t| t == Status::Repeated).collect();
+    for (s, &t) in status.iter().enumerate() {
+        match t {
+            Status::Ok => {}
+            Status::Repeated => c.push(
                 Rule::RepeatedIndex,
                 simplex_location(s, m),
-                format!("vertices {ids:?} repeat an index"),
-            );
-            continue;
-        }
-        let (det, longest) = orientation(model, s);
-        let tol = DEGENERACY_TOLERANCE * longest.powi(n as i32);
-        if det.abs() <= tol || !det.is_finite() {
-            c.push(
+                format!("vertices {:?} repeat an index", model.simplex(s)),
+            ),
+            Status::Degenerate(det, longest) => c.push(
                 Rule::Degenerate,
                 simplex_location(s, m),
                 format!("det = {det:e}, longest edge {longest:e}: relative volume at most {DEGENERACY_TOLERANCE:e}"),
-            );
-        } else if det < 0.0 {
-            c.push(
+            ),
+            Status::Inverted(det) => c.push(
                 Rule::Inverted,
                 simplex_location(s, m),
                 format!("det = {det:e} < 0; expected positive orientation (swap two vertices)"),
-            );
+            ),
         }
     }
     if c.full() {
-        return;
+        return None;
     }
-    // Duplicate simplices and facet sharing: sort keys instead of hashing, which keeps memory flat
-    // and is faster on millions of simplices.
-    let mut keys: Vec<([u32; 4], u32)> = model
-        .simplex_iter()
-        .enumerate()
-        .filter(|(s, _)| !repeated[*s])
-        .map(|(s, ids)| {
-            let mut k = [u32::MAX; 4];
-            k[..m].copy_from_slice(ids);
-            k[..m].sort_unstable();
-            (k, s as u32)
-        })
-        .collect();
-    keys.sort_unstable();
-    for w in keys.windows(2) {
-        if w[0].0 == w[1].0 {
-            c.push(
-                Rule::DuplicateSimplex,
-                simplex_location(w[1].1 as usize, m),
-                format!("same vertex set as simplex {}", w[0].1),
-            );
-        }
+    // Duplicate simplices and facet sharing come out of indexing the complex: sorting face keys,
+    // not hashing, keeps memory flat on millions of simplices.
+    let (topology, duplicates, defects) = Topology::build(model, &repeated);
+    for (s, first) in duplicates {
+        c.push(
+            Rule::DuplicateSimplex,
+            simplex_location(s as usize, m),
+            format!("same vertex set as simplex {first}"),
+        );
     }
-    drop(keys);
-    // Each facet with the side its simplex lies on: opposite vertex i gets sign (-1)^i times the
-    // parity of the permutation that sorts the remaining ids. Two positively oriented simplices that
-    // share a facet properly see it with opposite signs.
-    let mut facets: Vec<([u32; 3], bool, u32)> = Vec::with_capacity(model.num_simplices() * m);
-    for (s, ids) in model.simplex_iter().enumerate() {
-        if repeated[s] {
-            continue;
-        }
-        for skip in 0..m {
-            let mut k = [u32::MAX; 3];
-            let mut len = 0;
-            for (j, &id) in ids.iter().enumerate() {
-                if j != skip {
-                    k[len] = id;
-                    len += 1;
-                }
+    for defect in defects {
+        match defect {
+            FacetDefect::Overshared { face, simplices } => {
+                let loc = Location {
+                    face: Some(face),
+                    ..simplex_location(simplices[2] as usize, m)
+                };
+                c.push(
+                    Rule::FacetOvershared,
+                    loc,
+                    format!(
+                        "facet shared by {} simplices {simplices:?}; at most 2 allowed",
+                        simplices.len()
+                    ),
+                );
             }
-            let mut odd = skip % 2 == 1;
-            // Insertion sort counting swaps gives the permutation parity.
-            for a in 1..len {
-                let mut b = a;
-                while b > 0 && k[b - 1] > k[b] {
-                    k.swap(b - 1, b);
-                    odd = !odd;
-                    b -= 1;
-                }
+            FacetDefect::Overlap {
+                face,
+                first,
+                second,
+            } => {
+                let loc = Location {
+                    face: Some(face),
+                    ..simplex_location(second as usize, m)
+                };
+                c.push(
+                    Rule::Overlap,
+                    loc,
+                    format!(
+                        "simplices {first} and {second} lie on the same side of their shared facet"
+                    ),
+                );
             }
-            facets.push((k, odd, s as u32));
-        }
-    }
-    facets.sort_unstable();
-    let mut i = 0;
-    while i < facets.len() {
-        let mut j = i + 1;
-        while j < facets.len() && facets[j].0 == facets[i].0 {
-            j += 1;
-        }
-        let group = &facets[i..j];
-        let face: Vec<u32> = group[0]
-            .0
-            .iter()
-            .copied()
-            .filter(|&x| x != u32::MAX)
-            .collect();
-        if group.len() > 2 {
-            let sims: Vec<u32> = group.iter().map(|g| g.2).collect();
-            let loc = Location {
-                face: Some(face),
-                ..simplex_location(group[2].2 as usize, m)
-            };
-            c.push(
-                Rule::FacetOvershared,
-                loc,
-                format!(
-                    "facet shared by {} simplices {sims:?}; at most 2 allowed",
-                    group.len()
-                ),
-            );
-        } else if group.len() == 2 && group[0].1 == group[1].1 && group[0].2 != group[1].2 {
-            let loc = Location {
-                face: Some(face),
-                ..simplex_location(group[1].2 as usize, m)
-            };
-            c.push(
-                Rule::Overlap,
-                loc,
-                format!(
-                    "simplices {} and {} lie on the same side of their shared facet",
-                    group[0].2, group[1].2
-                ),
-            );
         }
         if c.full() {
-            return;
+            return Some(topology);
         }
-        i = j;
     }
-    let mut used = vec![false; model.num_vertices()];
-    for &id in &model.simplices {
-        used[id as usize] = true;
-    }
-    for (v, u) in used.iter().enumerate() {
-        if !u {
+    for v in 0..model.num_vertices() {
+        if topology.vertex_simplices(v).is_empty() {
             let loc = Location {
                 vertex: Some(v),
                 ..Location::pointer(format!("/vertices/{}", v * n))
@@ -317,6 +287,7 @@ fn check_simplices(model: &Model, c: &mut Collector) {
             );
         }
     }
+    Some(topology)
 }
 
 fn check_values(model: &Model, c: &mut Collector) {
@@ -402,49 +373,9 @@ pub fn escape_pointer(token: &str) -> String {
     token.replace('~', "~0").replace('/', "~1")
 }
 
-/// Vertex → incident simplices, compressed rows.
-struct Incidence {
-    start: Vec<usize>,
-    simplices: Vec<u32>,
-}
-
-impl Incidence {
-    fn new(model: &Model) -> Incidence {
-        let nv = model.num_vertices();
-        let mut start = vec![0usize; nv + 1];
-        for &id in &model.simplices {
-            start[id as usize + 1] += 1;
-        }
-        for v in 0..nv {
-            start[v + 1] += start[v];
-        }
-        let mut fill = start.clone();
-        let mut simplices = vec![0u32; model.simplices.len()];
-        for (s, ids) in model.simplex_iter().enumerate() {
-            for &id in ids {
-                simplices[fill[id as usize]] = s as u32;
-                fill[id as usize] += 1;
-            }
-        }
-        Incidence { start, simplices }
-    }
-
-    fn is_face(&self, model: &Model, face: &[u32]) -> bool {
-        let v = face[0] as usize;
-        self.simplices[self.start[v]..self.start[v + 1]]
-            .iter()
-            .any(|&s| face.iter().all(|id| model.simplex(s as usize).contains(id)))
-    }
-}
-
-fn check_stages(model: &Model, c: &mut Collector) {
+fn check_stages(model: &Model, topology: &Topology, c: &mut Collector) {
     let n = model.dim();
     let nv = model.num_vertices();
-    let incidence = if model.stages.iter().any(|s| !s.faces.is_empty()) {
-        Some(Incidence::new(model))
-    } else {
-        None
-    };
     for (k, stage) in model.stages.iter().enumerate() {
         let base = format!("/stages/{k}");
         let at = |suffix: String| Location {
@@ -516,10 +447,6 @@ fn check_stages(model: &Model, c: &mut Collector) {
                         format!("a {} stage has faces, not vertexMaps", stage.kind.as_str()),
                     );
                 }
-                let Some(incidence) = incidence.as_ref() else {
-                    // No stage has face records, so this one has none to check.
-                    continue;
-                };
                 // Duplicates by sorting (face, record) pairs: no hashing of millions of slices.
                 let mut order: Vec<(&[u32], usize)> = stage
                     .faces
@@ -561,9 +488,7 @@ fn check_stages(model: &Model, c: &mut Collector) {
                         );
                         continue;
                     }
-                    if rec.face.iter().any(|&v| v as usize >= nv)
-                        || !incidence.is_face(model, &rec.face)
-                    {
+                    if topology.find(model, &rec.face).is_none() {
                         c.push(
                             Rule::NotAFace,
                             loc("/face"),
