@@ -3,7 +3,8 @@
 //!
 //! `bench_format make DIR [TETS]`  build the model, write it in every encoding (timed), and dump
 //!                                 the raw tetrahedra/points/values as .npy for the peer.
-//! `bench_format read FILE [--no-check] [--repeat K]`  read a file (timed; best of K).
+//! `bench_format read FILE [--no-check | --indexed] [--repeat K]`  read a file (timed; best of K;
+//!                                 `--indexed` also builds the IndexedModel).
 
 use std::io::Write;
 use std::path::Path;
@@ -81,24 +82,53 @@ fn make(dir: &Path, tets: usize) -> Result<(), Box<dyn std::error::Error>> {
     Ok(())
 }
 
-fn read(file: &Path, check: bool, repeat: usize) -> Result<(), Box<dyn std::error::Error>> {
+/// CPU seconds (user + system) of this process so far.
+fn cpu_seconds() -> f64 {
+    // /proc/self/stat fields 14 and 15: utime and stime in clock ticks (100 per second on Linux).
+    let stat = std::fs::read_to_string("/proc/self/stat").unwrap_or_default();
+    let after = stat.rsplit_once(')').map_or("", |(_, rest)| rest);
+    let fields: Vec<&str> = after.split_whitespace().collect();
+    let tick = |i: usize| {
+        fields
+            .get(i)
+            .and_then(|x| x.parse::<f64>().ok())
+            .unwrap_or(0.0)
+    };
+    (tick(11) + tick(12)) / 100.0
+}
+
+/// `mode`: "checked", "unchecked" or "indexed" (checked, keeping the index).
+fn read(file: &Path, mode: &str, repeat: usize) -> Result<(), Box<dyn std::error::Error>> {
     let options = ReadOptions {
-        check_structure: check,
+        check_structure: mode == "checked",
         ..ReadOptions::default()
     };
     let mut best = f64::INFINITY;
-    let mut doc = None;
+    let mut best_cpu = f64::INFINITY;
+    let mut out = None;
     for _ in 0..repeat {
-        drop(doc.take());
-        let t = Instant::now();
+        drop(out.take());
+        let (t, c) = (Instant::now(), cpu_seconds());
         let f = std::fs::File::open(file)?;
         let d = io::read_with(std::io::BufReader::new(f), &options)?;
+        let summary = if mode == "indexed" {
+            let indexed = ism_format::IndexedModel::new(d.model)?;
+            (
+                d.encoding,
+                d.byte_len,
+                indexed.num_simplices(),
+                Some(indexed),
+            )
+        } else {
+            (d.encoding, d.byte_len, d.model.num_simplices(), None)
+        };
         best = best.min(t.elapsed().as_secs_f64());
-        doc = Some(d);
+        best_cpu = best_cpu.min(cpu_seconds() - c);
+        out = Some(summary);
     }
-    let doc = doc.expect("repeat ≥ 1");
-    println!("{{\"op\":\"read\",\"encoding\":\"{}\",\"check\":{check},\"bytes\":{},\"seconds\":{best:.4},\"simplices\":{}}}",
-        doc.encoding.name(), doc.byte_len, doc.model.num_simplices());
+    let (encoding, bytes, simplices, _) = out.expect("repeat ≥ 1");
+    println!("{{\"op\":\"read\",\"encoding\":\"{}\",\"mode\":\"{mode}\",\"bytes\":{bytes},\"seconds\":{best:.4},\"cpu_seconds\":{best_cpu:.2},\"simplices\":{simplices}}}",
+        encoding.name());
     Ok(())
 }
 
@@ -113,7 +143,13 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                 .unwrap_or(1_000_000),
         ),
         Some("read") => {
-            let check = !args.iter().any(|a| a == "--no-check");
+            let mode = if args.iter().any(|a| a == "--no-check") {
+                "unchecked"
+            } else if args.iter().any(|a| a == "--indexed") {
+                "indexed"
+            } else {
+                "checked"
+            };
             let repeat = args
                 .iter()
                 .position(|a| a == "--repeat")
@@ -121,10 +157,11 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                 .map(|s| s.parse())
                 .transpose()?
                 .unwrap_or(3);
-            read(Path::new(&args[1]), check, repeat)
+            read(Path::new(&args[1]), mode, repeat)
         }
-        _ => {
-            Err("usage: bench_format make DIR [TETS] | read FILE [--no-check] [--repeat K]".into())
-        }
+        _ => Err(
+            "usage: bench_format make DIR [TETS] | read FILE [--no-check | --indexed] [--repeat K]"
+                .into(),
+        ),
     }
 }

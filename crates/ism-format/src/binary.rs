@@ -59,11 +59,17 @@ impl<'a> BinaryDecoder<'a> {
     }
 
     fn take(&mut self, n: usize, what: &str) -> Result<&'a [u8]> {
+        self.take_with(n, || what.to_string())
+    }
+
+    /// [`Self::take`] with the description built only on failure (no allocation per record).
+    fn take_with(&mut self, n: usize, what: impl FnOnce() -> String) -> Result<&'a [u8]> {
         if self.remaining() < n {
             return Err(self.fail(
                 self.at,
                 format!(
-                    "{what} needs {n} bytes; the payload ends after {}",
+                    "{} needs {n} bytes; the payload ends after {}",
+                    what(),
                     self.remaining()
                 ),
             ));
@@ -91,7 +97,7 @@ impl<'a> BinaryDecoder<'a> {
     /// element, so nothing is allocated for elements the payload cannot hold.
     fn length(&mut self, min: usize, what: &str) -> Result<usize> {
         let start = self.at;
-        let bytes = self.take(8, &format!("the length of {what}"))?;
+        let bytes = self.take_with(8, || format!("the length of {what}"))?;
         let n = u64::from_le_bytes(bytes.try_into().expect("8 bytes"));
         let left = self.remaining();
         if n > (left / min) as u64 {
@@ -127,8 +133,12 @@ impl<'a> BinaryDecoder<'a> {
         }
     }
 
-    fn member<T>(&mut self, name: &str, read: impl FnOnce(&mut Self) -> Result<T>) -> Result<T> {
-        self.path.push(Seg::Key(name.to_string()));
+    fn member<T>(
+        &mut self,
+        name: &'static str,
+        read: impl FnOnce(&mut Self) -> Result<T>,
+    ) -> Result<T> {
+        self.path.push(Seg::Key(name.into()));
         let out = read(self)?;
         self.path.pop();
         Ok(out)
@@ -253,7 +263,7 @@ impl<'a> BinaryDecoder<'a> {
         for _ in 0..n {
             let key_at = self.at;
             let key = self.string("an extension name")?;
-            self.path.push(Seg::Key(key.clone()));
+            self.path.push(Seg::Key(key.clone().into()));
             if let Some(prev) = &previous {
                 if key.as_bytes() <= prev.as_bytes() {
                     return Err(self.fail(

@@ -639,8 +639,47 @@ impl SeenKeys {
 /// One step of a JSON pointer.
 #[derive(Clone, Debug)]
 pub(crate) enum Seg {
-    Key(String),
+    /// A member name: borrowed for the names of the format (no allocation per record), owned for
+    /// keys read from the file.
+    Key(std::borrow::Cow<'static, str>),
     Index(usize),
+}
+
+/// The member names of the format as static strings, so that tracking the path of a million
+/// face records allocates nothing; other keys (extras, extensions) stay owned.
+fn intern(key: String) -> std::borrow::Cow<'static, str> {
+    const NAMES: &[&str] = &[
+        "face",
+        "points",
+        "weights",
+        "vertex",
+        "coefficients",
+        "kind",
+        "degree",
+        "direction",
+        "name",
+        "faces",
+        "vertexMaps",
+        "extras",
+        "version",
+        "dimension",
+        "metadata",
+        "vertices",
+        "simplices",
+        "values",
+        "level",
+        "stages",
+        "extensionsUsed",
+        "extensionsRequired",
+        "extensions",
+        "generator",
+        "units",
+        "description",
+    ];
+    match NAMES.iter().find(|&&n| n == key) {
+        Some(&n) => std::borrow::Cow::Borrowed(n),
+        None => std::borrow::Cow::Owned(key),
+    }
 }
 
 /// The RFC 6901 pointer of a path.
@@ -738,11 +777,8 @@ impl<T: Tokens> Decoder<T> {
             let next = self.tok.next_key(&mut seq).map_err(|f| self.err(f))?;
             let Some((key, key_offset)) = next else { break };
             let repeated = !seen.insert(&key);
-            self.path.push(Seg::Key(key));
-            let Some(Seg::Key(key)) = self.path.last() else {
-                unreachable!("just pushed")
-            };
-            let key = key.clone();
+            let key = intern(key);
+            self.path.push(Seg::Key(key.clone()));
             if repeated {
                 return Err(self.at(key_offset, format!("member {key:?} given twice")));
             }
@@ -888,7 +924,7 @@ impl<T: Tokens> Decoder<T> {
                 loop {
                     let next = self.tok.next_key(&mut seq).map_err(|f| self.err(f))?;
                     let Some((key, key_offset)) = next else { break };
-                    self.path.push(Seg::Key(key.clone()));
+                    self.path.push(Seg::Key(key.clone().into()));
                     if out.contains_key(&key) {
                         return Err(self.at(key_offset, format!("member {key:?} given twice")));
                     }

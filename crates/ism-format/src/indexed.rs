@@ -117,8 +117,9 @@ pub struct Topology {
     simplex_faces: Vec<Vec<u32>>,
     /// `n + 1` per simplex: the simplex across the facet opposite each local vertex, or [`NONE`].
     neighbours: Vec<u32>,
-    /// Simplex ids ordered by their sorted vertex ids (binary search for a top face).
-    top_order: Vec<u32>,
+    /// Per dimension `k` (`1 ≤ k < n`): `nv + 1` offsets; the faces whose smallest vertex is `v`
+    /// are `first_face[k][v] .. first_face[k][v + 1]`.
+    first_face: Vec<Vec<u32>>,
     /// Vertex → incident simplices, compressed rows (`incidence_start` has `nv + 1` entries).
     incidence_start: Vec<usize>,
     incidence: Vec<u32>,
@@ -159,127 +160,9 @@ impl Topology {
         let ns = model.num_simplices();
         let ok = |s: usize| !skip.get(s).copied().unwrap_or(false);
 
-        // Top faces: simplex ids by sorted vertex ids; duplicates are adjacent.
-        let mut top: Vec<([u32; 4], u32)> = (0..ns)
-            .into_par_iter()
-            .filter(|&s| ok(s))
-            .map(|s| {
-                let mut k = [u32::MAX; 4];
-                k[..m].copy_from_slice(model.simplex(s));
-                k[..m].sort_unstable();
-                (k, s as u32)
-            })
-            .collect();
-        top.par_sort_unstable();
-        let duplicates: Vec<(u32, u32)> = top
-            .windows(2)
-            .filter(|w| w[0].0 == w[1].0)
-            .map(|w| (w[1].1, w[0].1))
-            .collect();
-        let top_order: Vec<u32> = top.into_iter().map(|(_, s)| s).collect();
-
-        let mut faces = vec![Vec::new(); m];
-        let mut simplex_faces = vec![Vec::new(); m];
-        let mut neighbours = vec![NONE; ns * m];
-        let mut defects = Vec::new();
-        for k in 1..n {
-            let size = k + 1;
-            let locals = local_faces(m, size);
-            let per = locals.len();
-            // (key, side << 40 | simplex << 8 | local face index): sorted by key, then side, then
-            // simplex, the order in which defects are reported.
-            let mut entries: Vec<([u32; 4], u64)> = (0..ns)
-                .into_par_iter()
-                .filter(|&s| ok(s))
-                .flat_map_iter(|s| {
-                    let ids = model.simplex(s);
-                    locals.iter().enumerate().map(move |(j, pos)| {
-                        let (key, odd) = sorted_key(ids, pos, size);
-                        // The facet opposite local vertex i carries sign (-1)^i: positions are
-                        // sorted, so the missing one is the first i with pos[i] != i.
-                        let missing = (0..m).find(|&i| i >= size || pos[i] as usize != i);
-                        let side = odd ^ missing.is_some_and(|i| i % 2 == 1);
-                        (key, (u64::from(side) << 40) | ((s as u64) << 8) | j as u64)
-                    })
-                })
-                .collect();
-            entries.par_sort_unstable();
-            let mut table = Vec::new();
-            let mut of_simplex = vec![NONE; ns * per];
-            let mut i = 0;
-            let mut id = 0u32;
-            while i < entries.len() {
-                let mut j = i + 1;
-                while j < entries.len() && entries[j].0 == entries[i].0 {
-                    j += 1;
-                }
-                table.extend_from_slice(&entries[i].0[..size]);
-                for &(_, v) in &entries[i..j] {
-                    let s = ((v >> 8) & 0xffff_ffff) as usize;
-                    of_simplex[s * per + (v & 0xff) as usize] = id;
-                }
-                if k == n - 1 {
-                    let group = &entries[i..j];
-                    let simplex = |g: &([u32; 4], u64)| ((g.1 >> 8) & 0xffff_ffff) as u32;
-                    let side = |g: &([u32; 4], u64)| g.1 >> 40;
-                    let face = entries[i].0[..size].to_vec();
-                    if group.len() > 2 {
-                        defects.push(FacetDefect::Overshared {
-                            face,
-                            simplices: group.iter().map(simplex).collect(),
-                        });
-                    } else if group.len() == 2 {
-                        let (a, b) = (simplex(&group[0]), simplex(&group[1]));
-                        if side(&group[0]) == side(&group[1]) {
-                            if a != b {
-                                defects.push(FacetDefect::Overlap {
-                                    face,
-                                    first: a,
-                                    second: b,
-                                });
-                            }
-                        } else {
-                            // Local face j of a facet-sized subset omits exactly one position.
-                            let opposite = |g: &([u32; 4], u64)| {
-                                let pos = &locals[(g.1 & 0xff) as usize];
-                                (0..m).find(|&i| !pos[..size].contains(&(i as u8)))
-                            };
-                            if let (Some(oa), Some(ob)) = (opposite(&group[0]), opposite(&group[1]))
-                            {
-                                neighbours[a as usize * m + oa] = b;
-                                neighbours[b as usize * m + ob] = a;
-                            }
-                        }
-                    }
-                }
-                id += 1;
-                i = j;
-            }
-            faces[k] = table;
-            simplex_faces[k] = of_simplex;
-        }
-        if n == 1 {
-            // Facets are vertices: pair the (at most two) segments at each vertex.
-            let mut at: Vec<[u32; 2]> = vec![[NONE; 2]; nv];
-            for s in (0..ns).filter(|&s| ok(s)) {
-                for (i, &v) in model.simplex(s).iter().enumerate() {
-                    let slot = &mut at[v as usize];
-                    let code = (s as u32) << 1 | i as u32;
-                    if slot[0] == NONE {
-                        slot[0] = code;
-                    } else if slot[1] == NONE {
-                        slot[1] = code;
-                    }
-                }
-            }
-            for pair in at.iter().filter(|p| p[1] != NONE) {
-                let (a, ia) = ((pair[0] >> 1) as usize, (pair[0] & 1) as usize);
-                let (b, ib) = ((pair[1] >> 1) as usize, (pair[1] & 1) as usize);
-                neighbours[a * m + (1 - ia)] = b as u32;
-                neighbours[b * m + (1 - ib)] = a as u32;
-            }
-        }
-
+        // Vertex → incident simplices first: every face is then found from its smallest vertex,
+        // so all the sorting below is of a vertex's star (tens of entries), in parallel, instead
+        // of one global sort of millions of keys.
         let mut incidence_start = vec![0usize; nv + 1];
         for s in (0..ns).filter(|&s| ok(s)) {
             for &v in model.simplex(s) {
@@ -297,14 +180,144 @@ impl Topology {
                 fill[v as usize] += 1;
             }
         }
+        drop(fill);
+        let star = |v: usize| &incidence[incidence_start[v]..incidence_start[v + 1]];
+
+        // Faces of each dimension `k` whose smallest vertex is `v`: (key, side, simplex, local
+        // face index) sorted by key, side, simplex — the order in which defects are reported.
+        type Entry = ([u32; 4], bool, u32, u8);
+        let entries_of = |v: usize, size: usize| -> Vec<Entry> {
+            let locals = local_faces(m, size);
+            let mut out = Vec::new();
+            for &s in star(v) {
+                let ids = model.simplex(s as usize);
+                for (j, pos) in locals.iter().enumerate() {
+                    if !pos[..size].iter().any(|&p| ids[p as usize] == v as u32) {
+                        continue;
+                    }
+                    let (key, odd) = sorted_key(ids, pos, size);
+                    if key[0] != v as u32 {
+                        continue;
+                    }
+                    // The facet opposite local vertex i carries sign (-1)^i: positions are sorted,
+                    // so the missing one is the first i with pos[i] != i.
+                    let missing = (0..m).find(|&i| i >= size || pos[i] as usize != i);
+                    let side = odd ^ missing.is_some_and(|i| i % 2 == 1);
+                    out.push((key, side, s, j as u8));
+                }
+            }
+            out.sort_unstable();
+            out
+        };
+
+        // Top faces: duplicates share their smallest vertex.
+        let duplicates: Vec<(u32, u32)> = (0..nv)
+            .into_par_iter()
+            .flat_map_iter(|v| {
+                let e = entries_of(v, m);
+                let mut found = Vec::new();
+                for w in e.windows(2) {
+                    if w[0].0 == w[1].0 {
+                        found.push((w[1].2, w[0].2));
+                    }
+                }
+                found
+            })
+            .collect();
+
+        let mut faces = vec![Vec::new(); m];
+        let mut simplex_faces = vec![Vec::new(); m];
+        let mut first_face = vec![Vec::new(); m];
+        let mut neighbours = vec![NONE; ns * m];
+        let mut defects = Vec::new();
+        for k in 1..n {
+            let size = k + 1;
+            let locals = local_faces(m, size);
+            let per = locals.len();
+            let groups: Vec<Vec<Entry>> = (0..nv)
+                .into_par_iter()
+                .map(|v| entries_of(v, size))
+                .collect();
+            let mut table = Vec::new();
+            let mut of_simplex = vec![NONE; ns * per];
+            let mut first = Vec::with_capacity(nv + 1);
+            let mut id = 0u32;
+            for entries in &groups {
+                first.push(id);
+                let mut i = 0;
+                while i < entries.len() {
+                    let mut j = i + 1;
+                    while j < entries.len() && entries[j].0 == entries[i].0 {
+                        j += 1;
+                    }
+                    let group = &entries[i..j];
+                    table.extend_from_slice(&group[0].0[..size]);
+                    for &(_, _, s, local) in group {
+                        of_simplex[s as usize * per + local as usize] = id;
+                    }
+                    if k == n - 1 {
+                        let face = group[0].0[..size].to_vec();
+                        if group.len() > 2 {
+                            defects.push(FacetDefect::Overshared {
+                                face,
+                                simplices: group.iter().map(|g| g.2).collect(),
+                            });
+                        } else if group.len() == 2 {
+                            let (a, b) = (group[0].2, group[1].2);
+                            if group[0].1 == group[1].1 {
+                                if a != b {
+                                    defects.push(FacetDefect::Overlap {
+                                        face,
+                                        first: a,
+                                        second: b,
+                                    });
+                                }
+                            } else {
+                                // A facet-sized subset omits exactly one local position.
+                                let opposite = |g: &Entry| {
+                                    let pos = &locals[g.3 as usize];
+                                    (0..m).find(|&i| !pos[..size].contains(&(i as u8)))
+                                };
+                                if let (Some(oa), Some(ob)) =
+                                    (opposite(&group[0]), opposite(&group[1]))
+                                {
+                                    neighbours[a as usize * m + oa] = b;
+                                    neighbours[b as usize * m + ob] = a;
+                                }
+                            }
+                        }
+                    }
+                    id += 1;
+                    i = j;
+                }
+            }
+            first.push(id);
+            faces[k] = table;
+            simplex_faces[k] = of_simplex;
+            first_face[k] = first;
+        }
+        if n == 1 {
+            // Facets are vertices: pair the (at most two) segments at each vertex.
+            for v in 0..nv {
+                if let [a, b] = star(v) {
+                    let (a, b) = (*a as usize, *b as usize);
+                    let ia = model.simplex(a).iter().position(|&x| x as usize == v);
+                    let ib = model.simplex(b).iter().position(|&x| x as usize == v);
+                    if let (Some(ia), Some(ib)) = (ia, ib) {
+                        neighbours[a * m + (1 - ia)] = b as u32;
+                        neighbours[b * m + (1 - ib)] = a as u32;
+                    }
+                }
+            }
+        }
         let topology = Topology {
             n,
             num_vertices: nv,
             num_simplices: ns,
             faces,
             simplex_faces,
+            first_face,
             neighbours,
-            top_order,
             incidence_start,
             incidence,
         };
@@ -411,29 +424,31 @@ impl Topology {
                 },
             );
         }
+        let v = face[0] as usize;
+        if v >= self.num_vertices {
+            return None;
+        }
         if k == self.n {
-            let m = self.n + 1;
-            let key = |s: u32| {
-                let mut k = [u32::MAX; 4];
-                k[..m].copy_from_slice(model.simplex(s as usize));
-                k[..m].sort_unstable();
-                k
-            };
-            let mut want = [u32::MAX; 4];
-            want[..m].copy_from_slice(face);
-            let at = self.top_order.partition_point(|&s| key(s) < want);
             return self
-                .top_order
-                .get(at)
-                .filter(|&&s| key(s) == want)
+                .vertex_simplices(v)
+                .iter()
+                .find(|&&s| {
+                    let mut key = [0u32; 4];
+                    key[..size].copy_from_slice(model.simplex(s as usize));
+                    key[..size].sort_unstable();
+                    key[..size] == *face
+                })
                 .map(|&s| FaceId {
                     dim: k as u8,
                     index: s,
                 });
         }
+        // Faces with smallest vertex `v` are contiguous and sorted: a search among a few dozen.
         let table = &self.faces[k];
-        let count = table.len() / size;
-        let (mut lo, mut hi) = (0usize, count);
+        let (mut lo, mut hi) = (
+            self.first_face[k][v] as usize,
+            self.first_face[k][v + 1] as usize,
+        );
         while lo < hi {
             let mid = (lo + hi) / 2;
             match table[mid * size..(mid + 1) * size].cmp(face) {
@@ -469,7 +484,13 @@ pub struct StageTable {
 }
 
 impl StageTable {
-    fn build(model: &Model, topology: &Topology, stage_index: usize) -> StageTable {
+    /// `faces`: the face of each record, as the structural check found it.
+    fn build(
+        model: &Model,
+        topology: &Topology,
+        stage_index: usize,
+        faces: &[Option<FaceId>],
+    ) -> StageTable {
         let stage = &model.stages[stage_index];
         let d = stage.degree;
         let n = topology.dim();
@@ -519,10 +540,8 @@ impl StageTable {
                         Vec::new()
                     });
                 }
-                for (r, rec) in stage.faces.iter().enumerate() {
-                    let Some(id) = topology.find(model, &rec.face) else {
-                        continue;
-                    };
+                for (r, (rec, id)) in stage.faces.iter().zip(faces).enumerate() {
+                    let Some(id) = *id else { continue };
                     let (k, i) = (id.dim as usize, id.index as usize);
                     let owned = owned_count(k + 1, d);
                     table.record[k][i] = r as u32;
@@ -637,13 +656,15 @@ impl IndexedModel {
         let (errors, warnings): (Vec<_>, Vec<_>) = diagnostics
             .into_iter()
             .partition(|d| d.severity == Severity::Error);
-        let topology = match topology {
-            Some(t) if errors.is_empty() => t,
+        let (topology, record_faces) = match topology {
+            Some((t, faces)) if errors.is_empty() && faces.len() == model.stages.len() => {
+                (t, faces)
+            }
             _ => return Err(Error::Structure(errors)),
         };
         let stages = (0..model.stages.len())
             .into_par_iter()
-            .map(|i| StageTable::build(&model, &topology, i))
+            .map(|i| StageTable::build(&model, &topology, i, &record_faces[i]))
             .collect();
         Ok(IndexedModel {
             inner: Arc::new(Inner {

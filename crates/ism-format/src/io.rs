@@ -225,6 +225,60 @@ pub fn from_slice_with(bytes: &[u8], options: &ReadOptions) -> Result<Document> 
     Ok(doc)
 }
 
+/// A checked, indexed model as read, with how it was stored.
+#[derive(Clone, Debug)]
+pub struct IndexedDocument {
+    /// The model with its topology and flat stage tables.
+    pub model: crate::IndexedModel,
+    /// The encoding found by sniffing.
+    pub encoding: Encoding,
+    /// The container header, when the file had one.
+    pub container: Option<ContainerInfo>,
+    /// Total bytes read.
+    pub byte_len: u64,
+}
+
+/// Reads bytes and indexes the model: the structural check runs once and its topology is kept
+/// (`options.check_structure` is ignored: an indexed model is always checked).
+///
+/// # Errors
+/// As [`from_slice`].
+pub fn from_slice_indexed(bytes: &[u8], options: &ReadOptions) -> Result<IndexedDocument> {
+    let unchecked = ReadOptions {
+        check_structure: false,
+        ..*options
+    };
+    let doc = from_slice_with(bytes, &unchecked)?;
+    Ok(IndexedDocument {
+        model: crate::IndexedModel::new(doc.model)?,
+        encoding: doc.encoding,
+        container: doc.container,
+        byte_len: doc.byte_len,
+    })
+}
+
+/// Reads a file and indexes the model; see [`from_slice_indexed`].
+///
+/// # Errors
+/// As [`from_slice`], plus [`Error::Io`] naming the path.
+pub fn read_path_indexed(path: impl AsRef<Path>) -> Result<IndexedDocument> {
+    let path = path.as_ref();
+    let options = ReadOptions::default();
+    let named = |e: std::io::Error| Error::io(Some(path.to_path_buf()), e);
+    let file = std::fs::File::open(path).map_err(named)?;
+    let mut bytes = Vec::new();
+    // Bounded like `read_with`: one byte past the limit detects "too long".
+    file.take(
+        options
+            .limits
+            .max_payload_bytes
+            .saturating_add(HEADER_LEN as u64 + 1),
+    )
+    .read_to_end(&mut bytes)
+    .map_err(named)?;
+    from_slice_indexed(&bytes, &options)
+}
+
 fn check_extensions(model: &Model, options: &ReadOptions) -> Result<()> {
     for (i, name) in model.extensions_required.iter().enumerate() {
         if !options.supported_extensions.contains(&name.as_str()) {

@@ -6,10 +6,10 @@ use std::collections::HashSet;
 
 use rayon::prelude::*;
 
-use crate::indexed::{FacetDefect, Topology};
+use crate::indexed::{FaceId, FacetDefect, Topology};
 use crate::model::{Model, StageKind};
 use crate::multi_index::owned_count;
-use crate::rules::{Diagnostic, Location, Rule};
+use crate::rules::{Diagnostic, Location, Rule, Severity};
 
 /// Highest stage degree a conforming reader must accept and may refuse beyond (spec §5).
 ///
@@ -58,34 +58,56 @@ pub fn orientation(model: &Model, s: usize) -> (f64, f64) {
     (det, longest)
 }
 
+/// Collects up to `max` errors and, separately, up to `max` warnings: warnings never crowd out an
+/// error or stop the checks, so a file with many unused vertices still has its stages checked.
 struct Collector {
     out: Vec<Diagnostic>,
     max: usize,
+    errors: usize,
+    warnings: usize,
 }
 
 impl Collector {
+    fn new(max: usize) -> Collector {
+        Collector {
+            out: Vec::new(),
+            max,
+            errors: 0,
+            warnings: 0,
+        }
+    }
     fn push(&mut self, rule: Rule, location: Location, message: String) {
-        if self.out.len() < self.max {
+        let count = match rule.severity() {
+            Severity::Error => &mut self.errors,
+            _ => &mut self.warnings,
+        };
+        if *count < self.max {
+            *count += 1;
             self.out.push(Diagnostic::new(rule, location, message));
         }
     }
+    /// Whether the error budget is spent (later checks would only add unreported errors).
     fn full(&self) -> bool {
-        self.out.len() >= self.max
+        self.errors >= self.max
     }
 }
 
-/// Checks every structural requirement; returns errors and warnings, at most `max` of them.
+/// Checks every structural requirement; returns errors and warnings, at most `max` of each.
 pub fn check(model: &Model, max: usize) -> Vec<Diagnostic> {
     check_indexed(model, max).0
 }
 
+/// Per stage, the face each record names (`None` where it names none); empty when the stage
+/// checks did not run.
+pub(crate) type RecordFaces = Vec<Vec<Option<FaceId>>>;
+
 /// [`check`], also returning the topology it built (whenever the arrays could be indexed: every
 /// length and index in range, not stopped by `max`). [`crate::IndexedModel::new`] keeps it.
-pub(crate) fn check_indexed(model: &Model, max: usize) -> (Vec<Diagnostic>, Option<Topology>) {
-    let mut c = Collector {
-        out: Vec::new(),
-        max,
-    };
+pub(crate) fn check_indexed(
+    model: &Model,
+    max: usize,
+) -> (Vec<Diagnostic>, Option<(Topology, RecordFaces)>) {
+    let mut c = Collector::new(max);
     check_arrays(model, &mut c);
     if c.out.iter().any(|d| {
         matches!(
@@ -99,10 +121,11 @@ pub(crate) fn check_indexed(model: &Model, max: usize) -> (Vec<Diagnostic>, Opti
     let topology = check_simplices(model, &mut c);
     check_values(model, &mut c);
     check_extensions(model, &mut c);
-    if let (false, Some(t)) = (c.full(), topology.as_ref()) {
-        check_stages(model, t, &mut c);
-    }
-    (c.out, topology)
+    let record_faces = match (c.full(), topology.as_ref()) {
+        (false, Some(t)) => check_stages(model, t, &mut c),
+        _ => Vec::new(),
+    };
+    (c.out, topology.map(|t| (t, record_faces)))
 }
 
 fn check_arrays(model: &Model, c: &mut Collector) {
@@ -373,10 +396,21 @@ pub fn escape_pointer(token: &str) -> String {
     token.replace('~', "~0").replace('/', "~1")
 }
 
-fn check_stages(model: &Model, topology: &Topology, c: &mut Collector) {
+/// Checks the stages; returns, per stage, the face each record names (`None` where it names no
+/// face of the complex, and for monotonic stages no entries).
+fn check_stages(model: &Model, topology: &Topology, c: &mut Collector) -> Vec<Vec<Option<FaceId>>> {
     let n = model.dim();
     let nv = model.num_vertices();
+    let mut record_faces = Vec::with_capacity(model.stages.len());
     for (k, stage) in model.stages.iter().enumerate() {
+        // Face lookups are the costly part: in parallel, once, kept for the stage tables.
+        let found: Vec<Option<FaceId>> = stage
+            .faces
+            .par_iter()
+            .map(|rec| topology.find(model, &rec.face))
+            .collect();
+        record_faces.push(found);
+        let found = &record_faces[k];
         let base = format!("/stages/{k}");
         let at = |suffix: String| Location {
             stage: Some(k),
@@ -447,25 +481,22 @@ fn check_stages(model: &Model, topology: &Topology, c: &mut Collector) {
                         format!("a {} stage has faces, not vertexMaps", stage.kind.as_str()),
                     );
                 }
-                // Duplicates by sorting (face, record) pairs: no hashing of millions of slices.
-                let mut order: Vec<(&[u32], usize)> = stage
-                    .faces
-                    .iter()
-                    .enumerate()
-                    .map(|(r, f)| (f.face.as_slice(), r))
+                // Duplicates by face id: the first record of each face, in one pass.
+                let mut first_record: Vec<Vec<u32>> = (0..=n)
+                    .map(|k| vec![u32::MAX; topology.face_slots(k)])
                     .collect();
-                order.sort_unstable();
                 let mut first_of = vec![usize::MAX; stage.faces.len()];
-                for w in order.windows(2) {
-                    if w[0].0 == w[1].0 {
-                        first_of[w[1].1] = if first_of[w[0].1] == usize::MAX {
-                            w[0].1
+                for (r, id) in found.iter().enumerate() {
+                    if let Some(id) = id {
+                        let slot = &mut first_record[id.dim as usize][id.index as usize];
+                        if *slot == u32::MAX {
+                            *slot = r as u32;
                         } else {
-                            first_of[w[0].1]
-                        };
+                            first_of[r] = *slot as usize;
+                        }
                     }
                 }
-                drop(order);
+                drop(first_record);
                 for (r, rec) in stage.faces.iter().enumerate() {
                     let loc = |suffix: &str| Location {
                         face: Some(rec.face.clone()),
@@ -488,7 +519,7 @@ fn check_stages(model: &Model, topology: &Topology, c: &mut Collector) {
                         );
                         continue;
                     }
-                    if topology.find(model, &rec.face).is_none() {
+                    if found[r].is_none() {
                         c.push(
                             Rule::NotAFace,
                             loc("/face"),
@@ -551,10 +582,11 @@ fn check_stages(model: &Model, topology: &Topology, c: &mut Collector) {
                         );
                     }
                     if c.full() {
-                        return;
+                        return record_faces;
                     }
                 }
             }
         }
     }
+    record_faces
 }
