@@ -634,7 +634,7 @@ struct Inner {
     model: Model,
     topology: Topology,
     stages: Vec<StageTable>,
-    warnings: Vec<crate::rules::Diagnostic>,
+    diagnostics: Vec<crate::rules::Diagnostic>,
 }
 
 impl PartialEq for IndexedModel {
@@ -651,11 +651,53 @@ impl IndexedModel {
     /// [`Error::Structure`] with every structural error found (at most
     /// [`crate::structure::DEFAULT_MAX_DIAGNOSTICS`]).
     pub fn new(model: Model) -> Result<IndexedModel> {
-        let (diagnostics, topology) =
-            crate::structure::check_indexed(&model, crate::structure::DEFAULT_MAX_DIAGNOSTICS);
-        let (errors, warnings): (Vec<_>, Vec<_>) = diagnostics
+        IndexedModel::build(model, crate::structure::DEFAULT_MAX_DIAGNOSTICS, |_| true)
+    }
+
+    /// Indexes `model` for evaluation, refusing only what makes indexing or the stage tables
+    /// impossible — array shapes and index ranges, a simplex repeating a vertex, stage records that
+    /// name no face, name one twice, have the wrong lengths or non-finite numbers — and keeping every
+    /// other structural error (orientation, overlaps, values at the level, …) in
+    /// [`IndexedModel::diagnostics`]. Fitters evaluate intermediate models that are not yet valid
+    /// files; readers use [`IndexedModel::new`].
+    ///
+    /// # Errors
+    /// [`Error::Structure`] with the errors that prevent indexing.
+    pub fn for_evaluation(model: Model) -> Result<IndexedModel> {
+        IndexedModel::build(model, usize::MAX, |rule| {
+            use crate::rules::Rule::*;
+            matches!(
+                rule,
+                Dimension
+                    | VertexArray
+                    | SimplexArray
+                    | IndexRange
+                    | RepeatedIndex
+                    | StageDegree
+                    | KindMismatch
+                    | NotAFace
+                    | FaceSorted
+                    | DuplicateFace
+                    | PointCount
+                    | WeightCount
+                    | CoefficientCount
+                    | VertexMapIndex
+                    | NonFinite
+            )
+        })
+    }
+
+    /// Runs the check (at most `max` errors), refuses when an error `fatal` deems fatal is found,
+    /// and otherwise builds the stage tables.
+    fn build(
+        model: Model,
+        max: usize,
+        fatal: impl Fn(crate::rules::Rule) -> bool,
+    ) -> Result<IndexedModel> {
+        let (diagnostics, topology) = crate::structure::check_indexed(&model, max);
+        let (errors, diagnostics): (Vec<_>, Vec<_>) = diagnostics
             .into_iter()
-            .partition(|d| d.severity == Severity::Error);
+            .partition(|d| d.severity == Severity::Error && fatal(d.rule));
         let (topology, record_faces) = match topology {
             Some((t, faces)) if errors.is_empty() && faces.len() == model.stages.len() => {
                 (t, faces)
@@ -671,7 +713,7 @@ impl IndexedModel {
                 model,
                 topology,
                 stages,
-                warnings,
+                diagnostics,
             }),
         })
     }
@@ -699,9 +741,10 @@ impl IndexedModel {
         &self.inner.stages
     }
 
-    /// Structural warnings found while checking (e.g. unused vertices).
-    pub fn warnings(&self) -> &[crate::rules::Diagnostic] {
-        &self.inner.warnings
+    /// The structural diagnostics that did not prevent indexing: warnings (e.g. unused vertices)
+    /// and, for [`IndexedModel::for_evaluation`], the errors it tolerates.
+    pub fn diagnostics(&self) -> &[crate::rules::Diagnostic] {
+        &self.inner.diagnostics
     }
 
     /// The model, without the index (a copy when the index is shared).

@@ -34,6 +34,10 @@ pub enum GeomError {
         /// Number of vertices.
         count: usize,
     },
+    /// The model breaks a structural rule evaluation depends on (spec §2–5): the rule, where, and
+    /// what was expected.
+    #[error("{0}")]
+    Structure(Box<ism_format::Diagnostic>),
     /// Degree 0 or above [`crate::MAX_DEGREE`].
     #[error("stage {stage}: degree {degree}; expected 1 to {max}", max = crate::MAX_DEGREE)]
     Degree {
@@ -99,3 +103,13 @@ pub enum GeomError {
 
 /// Result alias of this crate.
 pub type Result<T> = std::result::Result<T, GeomError>;
+
+impl From<ism_format::Error> for GeomError {
+    /// The first diagnostic of a structural error (indexing reports nothing else).
+    fn from(e: ism_format::Error) -> GeomError {
+        match e.diagnostics().first() {
+            Some(d) => GeomError::Structure(Box::new(d.clone())),
+            None => GeomError::Shape(e.to_string()),
+        }
+    }
+}

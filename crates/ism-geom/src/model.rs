@@ -9,14 +9,14 @@
 
 use std::sync::OnceLock;
 
-use ism_format::{multi_index, Model, StageKind};
+use ism_format::{IndexedModel, Model};
 use rayon::prelude::*;
 
 use crate::error::{GeomError, Result};
 use crate::linalg;
 use crate::spatial::{SimplexBox, SpatialIndex};
-use crate::stage::{InverseResult, LocalMap, StageLookup};
-use crate::{Bary, Mat, MAX_DEGREE, MAX_VARS};
+use crate::stage::{InverseResult, LocalMap};
+use crate::{Bary, Mat, MAX_VARS};
 
 /// Barycentric slack accepted by point location: a point whose smallest barycentric coordinate is
 /// above `−LOCATE_TOLERANCE` counts as inside. Coordinates are computed from an inverted edge matrix,
@@ -66,12 +66,12 @@ pub struct ParamPoint {
 
 /// Evaluator of a whole model, built once.
 pub struct ModelEval {
-    model: Model,
+    /// Shared, not copied: an `Arc` inside.
+    model: IndexedModel,
     n: usize,
     /// Per simplex, the inverse edge matrix `A` (row-major `n × n` in a `3 × 3`): reduced
     /// barycentric `w_{1..n} = A (p − v_0)`.
     inv_edges: Vec<[f64; 9]>,
-    lookups: Vec<StageLookup>,
     maps: Vec<OnceLock<LocalMap>>,
     index: SpatialIndex,
 }
@@ -86,33 +86,34 @@ impl std::fmt::Debug for ModelEval {
 }
 
 impl ModelEval {
-    /// Checks the array shapes and stage records, inverts every edge matrix and builds the spatial
-    /// index (in parallel).
+    /// Indexes `model` for evaluation ([`IndexedModel::for_evaluation`]: shapes, index ranges and
+    /// stage records are checked), inverts every edge matrix and builds the spatial index (in
+    /// parallel). Copies the model; [`ModelEval::from_indexed`] shares an indexed one instead.
     ///
     /// # Errors
-    /// Dimension outside `1..=3`, inconsistent array lengths, vertex ids out of range, degenerate
-    /// simplices, stage degrees outside `1..=16`, face records or vertex maps of the wrong length.
+    /// [`GeomError::Structure`] for a model that cannot be indexed (the structural rule and where),
+    /// [`GeomError::Degenerate`] for a simplex without an inverse edge matrix.
     pub fn new(model: &Model) -> Result<ModelEval> {
         let n = model.dim();
         if !(1..=3).contains(&n) {
             return Err(GeomError::Dimension(n));
         }
-        let m = n + 1;
-        if model.vertices.len() % n != 0 || model.simplices.len() % m != 0 {
-            return Err(GeomError::Shape(format!(
-                "{} vertex coordinates and {} simplex ids are not multiples of {n} and {m}",
-                model.vertices.len(),
-                model.simplices.len()
-            )));
+        let indexed = IndexedModel::for_evaluation(model.clone()).map_err(GeomError::from)?;
+        ModelEval::from_indexed(&indexed)
+    }
+
+    /// An evaluator sharing `model`'s topology and stage tables (no copy): inverts every edge
+    /// matrix and builds the spatial index (in parallel).
+    ///
+    /// # Errors
+    /// [`GeomError::Degenerate`] for a simplex without an inverse edge matrix.
+    pub fn from_indexed(indexed: &IndexedModel) -> Result<ModelEval> {
+        let model: &Model = indexed;
+        let n = model.dim();
+        if !(1..=3).contains(&n) {
+            return Err(GeomError::Dimension(n));
         }
         let nv = model.num_vertices();
-        if model.values.len() != nv {
-            return Err(GeomError::Shape(format!(
-                "{} values for {nv} vertices",
-                model.values.len()
-            )));
-        }
-        check_stages(model, m)?;
         let ns = model.num_simplices();
         let inv_edges = (0..ns)
             .into_par_iter()
@@ -162,22 +163,15 @@ impl ModelEval {
             })
             .collect();
         let index = SpatialIndex::build(n, boxes);
-        let lookups = model
-            .stages
-            .iter()
-            .enumerate()
-            .map(|(i, s)| StageLookup::new(s, i))
-            .collect();
         let maps = if model.stages.is_empty() {
             Vec::new()
         } else {
             (0..ns).map(|_| OnceLock::new()).collect()
         };
         Ok(ModelEval {
-            model: model.clone(),
+            model: indexed.clone(),
             n,
             inv_edges,
-            lookups,
             maps,
             index,
         })
@@ -185,6 +179,11 @@ impl ModelEval {
 
     /// The model evaluated.
     pub fn model(&self) -> &Model {
+        &self.model
+    }
+
+    /// The model evaluated, with its topology and stage tables.
+    pub fn indexed(&self) -> &IndexedModel {
         &self.model
     }
 
@@ -232,8 +231,8 @@ impl ModelEval {
             return IDENTITY[m].get_or_init(|| LocalMap::from_stages(m, Vec::new()));
         }
         self.maps[s].get_or_init(|| {
-            LocalMap::new(&self.model.stages, &self.lookups, self.model.simplex(s))
-                .expect("stage records were checked in ModelEval::new")
+            LocalMap::from_indexed(&self.model, s)
+                .expect("an indexed model's stage tables are complete")
         })
     }
 
@@ -491,59 +490,4 @@ pub fn edge_matrix(model: &Model, ids: &[u32]) -> Mat {
         }
     }
     e
-}
-
-/// Checks what [`crate::stage::LocalStage::new`] would reject, once for the whole model.
-fn check_stages(model: &Model, m: usize) -> Result<()> {
-    for (si, stage) in model.stages.iter().enumerate() {
-        let d = stage.degree;
-        if d == 0 || d > MAX_DEGREE {
-            return Err(GeomError::Degree {
-                stage: si,
-                degree: d,
-            });
-        }
-        match stage.kind {
-            StageKind::Monotonic => {
-                for (ri, vm) in stage.vertex_maps.iter().enumerate() {
-                    if vm.coefficients.len() != d as usize + 1 {
-                        return Err(GeomError::VertexMap {
-                            stage: si,
-                            record: ri,
-                            vertex: vm.vertex,
-                            found: vm.coefficients.len(),
-                            expected: d as usize + 1,
-                        });
-                    }
-                }
-            }
-            StageKind::Bezier | StageKind::Rational => {
-                for (ri, rec) in stage.faces.iter().enumerate() {
-                    let k1 = rec.face.len();
-                    let err = |what, found, expected| GeomError::FaceRecord {
-                        stage: si,
-                        record: ri,
-                        face: rec.face.clone(),
-                        what,
-                        found,
-                        expected,
-                    };
-                    if k1 == 0 || k1 > m {
-                        return Err(err("face", k1, m));
-                    }
-                    let owned = multi_index::owned_count(k1, d);
-                    if rec.points.len() != owned * k1 {
-                        return Err(err("points", rec.points.len(), owned * k1));
-                    }
-                    if stage.kind == StageKind::Rational
-                        && !rec.weights.is_empty()
-                        && rec.weights.len() != owned
-                    {
-                        return Err(err("weights", rec.weights.len(), owned));
-                    }
-                }
-            }
-        }
-    }
-    Ok(())
 }

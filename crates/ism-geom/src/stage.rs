@@ -17,7 +17,8 @@
 
 use std::collections::HashMap;
 
-use ism_format::{multi_index, Direction, Model, Stage, StageKind};
+use ism_format::indexed::{local_faces, NONE};
+use ism_format::{multi_index, Direction, FaceId, IndexedModel, Model, Stage, StageKind};
 
 use crate::error::{GeomError, Result};
 use crate::linalg;
@@ -276,6 +277,137 @@ impl LocalStage {
         Ok(local)
     }
 
+    /// Builds stage `stage_index` of an indexed model on its top simplex `s`, reading every control
+    /// point from the stage's flat tables (O(1) per multi-index: the simplex's face ids come from
+    /// the topology, no face key is hashed).
+    pub fn from_indexed(model: &IndexedModel, stage_index: usize, s: usize) -> Result<LocalStage> {
+        let stage = model.stages.get(stage_index).ok_or(GeomError::NoStage {
+            index: stage_index,
+            count: model.stages.len(),
+        })?;
+        let count = model.num_simplices();
+        if s >= count {
+            return Err(GeomError::NoSimplex { index: s, count });
+        }
+        let table = model.stage(stage_index);
+        let topology = model.topology();
+        let simplex = model.simplex(s);
+        let m = simplex.len();
+        let d = table.degree();
+        if !(2..=MAX_VARS).contains(&m) {
+            return Err(GeomError::Dimension(m.saturating_sub(1)));
+        }
+        let per_vertex = d as usize + 1;
+        let identity = match stage.kind {
+            StageKind::Monotonic => simplex
+                .iter()
+                .all(|&v| table.vertex_records()[v as usize] == NONE),
+            _ => !(0..m).any(|k| {
+                (0..local_faces(m, k + 1).len()).any(|j| {
+                    table.records(k)[topology.simplex_face(model, s, k, j) as usize] != NONE
+                })
+            }),
+        };
+        let mut local = LocalStage {
+            kind: stage.kind,
+            direction: stage.direction,
+            degree: d,
+            m,
+            identity,
+            tables: tables(m, d),
+            points: Vec::new(),
+            weights: Vec::new(),
+            weighted: Vec::new(),
+            mono: Vec::new(),
+            mono_scaled: Vec::new(),
+            mono_deriv: Vec::new(),
+        };
+        if stage.kind == StageKind::Monotonic {
+            for &v in simplex {
+                let v = v as usize;
+                local
+                    .mono
+                    .extend_from_slice(&table.coefficients()[v * per_vertex..(v + 1) * per_vertex]);
+            }
+            local.finish_monotonic();
+            return Ok(local);
+        }
+        let rational = stage.kind == StageKind::Rational;
+        let n_idx = local.tables.exps.len();
+        local.points = Vec::with_capacity(n_idx);
+        if rational {
+            local.weights = Vec::with_capacity(n_idx);
+        }
+        for e in &local.tables.exps {
+            // Fixed default I/d, weight 1.
+            let mut b = [0.0; MAX_VARS];
+            for i in 0..m {
+                b[i] = f64::from(e[i]) / f64::from(d);
+            }
+            let mut q = 1.0;
+            if !local.identity {
+                // The support's local positions (a subset, in increasing order) name the face.
+                let mut mask = 0u8;
+                for i in 0..m {
+                    if e[i] > 0 {
+                        mask |= 1 << i;
+                    }
+                }
+                let size = mask.count_ones() as usize;
+                let j = local_faces(m, size)
+                    .iter()
+                    .position(|f| f[..size].iter().fold(0u8, |acc, &p| acc | 1 << p) == mask)
+                    .expect("every subset is listed");
+                let k = size - 1;
+                let face = FaceId {
+                    dim: k as u8,
+                    index: topology.simplex_face(model, s, k, j),
+                };
+                if table.record_of(face).is_some() {
+                    // Positions ordered by global id → the face's own vertex order t_0 < … < t_k.
+                    let mut pos: [usize; MAX_VARS] = [0; MAX_VARS];
+                    let mut len = 0;
+                    for i in 0..m {
+                        if e[i] > 0 {
+                            pos[len] = i;
+                            len += 1;
+                        }
+                    }
+                    pos[..len].sort_unstable_by_key(|&i| simplex[i]);
+                    let jexp: Vec<u32> = pos[..len].iter().map(|&i| u32::from(e[i])).collect();
+                    let r = rank_owned(&jexp);
+                    let points = table.face_points(face);
+                    b = [0.0; MAX_VARS];
+                    for (jj, &p) in pos[..len].iter().enumerate() {
+                        b[p] = points[r * size + jj];
+                    }
+                    if rational {
+                        q = table.face_weights(face)[r];
+                    }
+                }
+            }
+            local.points.push(b);
+            if rational {
+                local.weights.push(q);
+            }
+        }
+        if rational {
+            local.weighted = local
+                .points
+                .iter()
+                .zip(&local.weights)
+                .map(|(b, &q)| {
+                    let mut out = [0.0; MAX_VARS];
+                    for i in 0..m {
+                        out[i] = q * b[i];
+                    }
+                    out
+                })
+                .collect();
+        }
+        Ok(local)
+    }
+
     /// An identity stage (no records) of the given kind and degree in `m` variables.
     pub fn identity(kind: StageKind, degree: u32, m: usize) -> Result<LocalStage> {
         let stage = Stage::identity(kind, degree);
@@ -379,6 +511,13 @@ impl LocalStage {
                 None => self.mono.extend((0..=d).map(|j| j as f64 / d as f64)),
             }
         }
+        self.finish_monotonic();
+        Ok(())
+    }
+
+    /// Scaled coefficients and derivative coefficients of the monotonic maps in `mono`.
+    fn finish_monotonic(&mut self) {
+        let d = self.degree as usize;
         for coeffs in self.mono.chunks_exact(d + 1) {
             for (j, a) in coeffs.iter().enumerate() {
                 self.mono_scaled
@@ -392,7 +531,6 @@ impl LocalStage {
                 );
             }
         }
-        Ok(())
     }
 
     /// Map kind.
@@ -1084,6 +1222,19 @@ impl LocalMap {
             .iter()
             .zip(lookups)
             .map(|(s, l)| LocalStage::new(s, l, simplex))
+            .collect::<Result<Vec<_>>>()?;
+        Ok(LocalMap {
+            m,
+            stages: stages.into_iter().filter(|s| !s.is_identity()).collect(),
+        })
+    }
+
+    /// Builds every stage of an indexed model on its top simplex `s` (see
+    /// [`LocalStage::from_indexed`]).
+    pub fn from_indexed(model: &IndexedModel, s: usize) -> Result<LocalMap> {
+        let m = model.dim() + 1;
+        let stages = (0..model.stages.len())
+            .map(|i| LocalStage::from_indexed(model, i, s))
             .collect::<Result<Vec<_>>>()?;
         Ok(LocalMap {
             m,

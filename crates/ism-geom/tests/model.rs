@@ -287,21 +287,55 @@ fn malformed_records_are_reported_with_their_location() {
     st.faces[1].points.push(0.5);
     model.stages.push(st);
     let err = ModelEval::new(&model).unwrap_err();
-    assert!(
-        matches!(
-            err,
-            ism_geom::GeomError::FaceRecord {
-                stage: 0,
-                record: 1,
-                what: "points",
-                found: 3,
-                expected: 2,
-                ..
-            }
-        ),
+    // The structural rule (ISM-124), the record's JSON pointer and the stage.
+    let ism_geom::GeomError::Structure(d) = &err else {
+        panic!("expected a structural error, got {err}");
+    };
+    assert_eq!(d.rule, ism_format::Rule::PointCount, "{err}");
+    assert_eq!(
+        d.location.pointer.as_deref(),
+        Some("/stages/0/faces/1/points"),
         "{err}"
     );
+    assert_eq!(d.location.stage, Some(0));
     let mut degenerate = common::kuhn(2, 1, &mut rng);
     degenerate.vertices[0] = f64::NAN;
     assert!(ModelEval::new(&degenerate).is_err());
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 16, ..ProptestConfig::default() })]
+
+    /// The indexed route (flat stage tables addressed through the topology) builds exactly the
+    /// local maps of the independent route that hashes each face key of each simplex
+    /// (`StageLookup`), on every simplex of random stratified, rational, monotonic and adjusted
+    /// models.
+    #[test]
+    fn indexed_local_maps_equal_the_hashed_lookup_route(seed in any::<u64>(), n in 2usize..=3) {
+        let (model, _) = random_model(n, seed);
+        let indexed = ism_format::IndexedModel::new(model.clone()).unwrap();
+        let lookups: Vec<ism_geom::StageLookup> = model
+            .stages
+            .iter()
+            .enumerate()
+            .map(|(i, s)| ism_geom::StageLookup::new(s, i))
+            .collect();
+        let mut curved = 0;
+        for s in 0..model.num_simplices() {
+            for (k, stage) in model.stages.iter().enumerate() {
+                let a = ism_geom::LocalStage::from_indexed(&indexed, k, s).unwrap();
+                let b = ism_geom::LocalStage::new(stage, &lookups[k], model.simplex(s)).unwrap();
+                prop_assert_eq!(a.is_identity(), b.is_identity());
+                prop_assert_eq!(a.control_points(), b.control_points());
+                prop_assert_eq!(a.weights(), b.weights());
+                for i in 0..=n {
+                    if stage.kind == ism_format::StageKind::Monotonic {
+                        prop_assert_eq!(a.monotonic_coefficients(i), b.monotonic_coefficients(i));
+                    }
+                }
+                curved += usize::from(!a.is_identity());
+            }
+        }
+        prop_assert!(curved > 0, "the random models have curved simplices");
+    }
 }
