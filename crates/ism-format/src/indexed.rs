@@ -654,6 +654,16 @@ impl IndexedModel {
         IndexedModel::build(model, crate::structure::DEFAULT_MAX_DIAGNOSTICS, |_| true)
     }
 
+    /// [`IndexedModel::new`], giving the model back with the error when it is refused (a validator
+    /// still reports on it).
+    ///
+    /// # Errors
+    /// As [`IndexedModel::new`], with the model.
+    #[allow(clippy::result_large_err)]
+    pub fn new_or_model(model: Model) -> std::result::Result<IndexedModel, (Model, Error)> {
+        IndexedModel::build_or_model(model, crate::structure::DEFAULT_MAX_DIAGNOSTICS, |_| true)
+    }
+
     /// Indexes `model` for evaluation, refusing only what makes indexing or the stage tables
     /// impossible — array shapes and index ranges, a simplex repeating a vertex, stage records that
     /// name no face, name one twice, have the wrong lengths or non-finite numbers — and keeping every
@@ -694,6 +704,15 @@ impl IndexedModel {
         max: usize,
         fatal: impl Fn(crate::rules::Rule) -> bool,
     ) -> Result<IndexedModel> {
+        IndexedModel::build_or_model(model, max, fatal).map_err(|(_, e)| e)
+    }
+
+    #[allow(clippy::result_large_err)]
+    fn build_or_model(
+        model: Model,
+        max: usize,
+        fatal: impl Fn(crate::rules::Rule) -> bool,
+    ) -> std::result::Result<IndexedModel, (Model, Error)> {
         let (diagnostics, topology) = crate::structure::check_indexed(&model, max);
         let (errors, diagnostics): (Vec<_>, Vec<_>) = diagnostics
             .into_iter()
@@ -702,7 +721,7 @@ impl IndexedModel {
             Some((t, faces)) if errors.is_empty() && faces.len() == model.stages.len() => {
                 (t, faces)
             }
-            _ => return Err(Error::Structure(errors)),
+            _ => return Err((model, Error::Structure(errors))),
         };
         let stages = (0..model.stages.len())
             .into_par_iter()

@@ -57,7 +57,7 @@ pub mod topology;
 use std::path::Path;
 use std::time::Instant;
 
-use ism_format::{io, Model, Rule, Severity};
+use ism_format::{io, IndexedModel, Model, Rule, Severity};
 
 pub use certify::{Budget, Certificate, Decision, DenseNet, DetKernel, DEFAULT_MAX_PIECES};
 pub use report::{Message, Report, StageReport, Verdict, Witness, REPORT_VERSION};
@@ -118,18 +118,37 @@ pub enum Error {
     },
 }
 
-/// Validates a model in memory.
+/// Validates a model in memory (indexing a copy of it; [`validate_indexed`] shares an indexed
+/// model instead).
 pub fn validate(model: &Model, options: &Options) -> Report {
+    in_pool(options, || validate_owned(model.clone(), options))
+}
+
+/// Validates a structurally checked, indexed model (no copy).
+pub fn validate_indexed(model: &IndexedModel, options: &Options) -> Report {
+    in_pool(options, || run(model, Some(model), options))
+}
+
+/// Indexes `model` (the structural check runs once) and validates it; a model that cannot be
+/// indexed gets the structural layer's report.
+fn validate_owned(model: Model, options: &Options) -> Report {
+    match IndexedModel::new_or_model(model) {
+        Ok(indexed) => run(&indexed, Some(&indexed), options),
+        Err((model, _)) => run(&model, None, options),
+    }
+}
+
+fn in_pool(options: &Options, job: impl FnOnce() -> Report + Send) -> Report {
     if options.threads == 0 {
-        return run(model, options);
+        return job();
     }
     match rayon::ThreadPoolBuilder::new()
         .num_threads(options.threads)
         .build()
     {
-        Ok(pool) => pool.install(|| run(model, options)),
+        Ok(pool) => pool.install(job),
         // Falling back to the global pool only changes speed, never the result.
-        Err(_) => run(model, options),
+        Err(_) => job(),
     }
 }
 
@@ -162,24 +181,31 @@ pub fn validate_bytes(bytes: &[u8], options: &Options) -> Result<Report, Error> 
         ..io::ReadOptions::default()
     };
     let doc = io::from_slice_with(bytes, &read)?;
-    let mut report = validate(&doc.model, options);
+    let (encoding, byte_len) = (doc.encoding, doc.byte_len);
+    let mut report = in_pool(options, || validate_owned(doc.model, options));
     report.file = Some(report::FileInfo {
         path: String::new(),
-        encoding: doc.encoding.name().to_string(),
-        bytes: doc.byte_len,
+        encoding: encoding.name().to_string(),
+        bytes: byte_len,
     });
     Ok(report)
 }
 
-fn run(model: &Model, options: &Options) -> Report {
+/// The four layers; `indexed` is the model's index when it passed the structural check (then the
+/// check is not repeated), `None` when it did not.
+fn run(model: &Model, indexed: Option<&IndexedModel>, options: &Options) -> Report {
     let mut out = report::Collector::new(options.max_issues);
     let mut timing = report::Timing::default();
     let mut stages = Vec::new();
 
     // Layer 1.
     let t = Instant::now();
-    let structural = ism_format::structure::check(model, usize::MAX);
-    let structure_ok = !structural.iter().any(|d| d.severity == Severity::Error);
+    let structural = match indexed {
+        Some(ix) => ix.diagnostics().to_vec(),
+        None => ism_format::structure::check(model, usize::MAX),
+    };
+    let structure_ok =
+        indexed.is_some() && !structural.iter().any(|d| d.severity == Severity::Error);
     let indexable = !structural.iter().any(|d| {
         matches!(
             d.rule,
@@ -241,7 +267,10 @@ fn run(model: &Model, options: &Options) -> Report {
             });
             continue;
         }
-        let outcome = positivity::check_stage(model, k, popts);
+        let Some(ix) = indexed else {
+            unreachable!("stage_ok implies structure_ok, which implies an index")
+        };
+        let outcome = positivity::check_stage(ix, k, popts);
         stages.push(outcome.report);
         positivity_messages.extend(outcome.messages);
     }
@@ -251,9 +280,9 @@ fn run(model: &Model, options: &Options) -> Report {
     timing.positivity = t.elapsed().as_secs_f64();
 
     // Layer 4.
-    if options.quality && structure_ok {
+    if let (true, Some(ix)) = (options.quality && structure_ok, indexed) {
         let t = Instant::now();
-        for m in quality::check(model, &mut stages, &stage_ok) {
+        for m in quality::check(ix, &mut stages, &stage_ok) {
             out.push(m);
         }
         timing.quality = t.elapsed().as_secs_f64();

@@ -1,14 +1,8 @@
 //! Per-stage index of face records and expansion of one stage on one top simplex into its dense
 //! control net (the storage rules of spec/ism-format.md §5.2, restated in spec/validation.md §4.1).
 
-use std::collections::HashMap;
-
-/// Face keys are small integer arrays hashed millions of times per stage; foldhash is several times
-/// faster than SipHash there and needs no DoS resistance (keys come from the model being checked,
-/// whose size is already bounded).
-type FastMap<K, V> = HashMap<K, V, foldhash::fast::RandomState>;
-
-use ism_format::{multi_index, Model, Stage, StageKind};
+use ism_format::indexed::local_faces;
+use ism_format::{multi_index, IndexedModel, Model, Stage, StageKind};
 
 use crate::certify::DenseNet;
 
@@ -58,14 +52,14 @@ pub fn face_key(ids: &[u32]) -> FaceKey {
     k
 }
 
-/// Face records of one Bézier or rational stage, keyed by face.
+/// Face records of one Bézier or rational stage, found through the indexed model's topology and
+/// stage table (no face key is hashed).
 #[derive(Debug)]
 pub struct StageIndex<'a> {
     model: &'a Model,
     stage: &'a Stage,
-    /// Built on first use: a stage certified by a stage-wide theorem never looks up a face, so it
-    /// costs O(records) and no hashing.
-    faces: std::sync::OnceLock<FastMap<FaceKey, usize>>,
+    topology: &'a ism_format::Topology,
+    table: &'a ism_format::StageTable,
     /// All local multi-indices of degree `d` in `n + 1` variables, flat.
     all: Vec<u32>,
     /// Per record: every stored point equals the correctly rounded fixed point `J/d`.
@@ -99,8 +93,10 @@ impl SimplexRecords {
 }
 
 impl<'a> StageIndex<'a> {
-    /// Indexes the face records of `stage`; the model must have passed the structural checks.
-    pub fn new(model: &'a Model, stage: &'a Stage) -> StageIndex<'a> {
+    /// The face records of stage `k` of a (structurally checked) indexed model.
+    pub fn new(indexed: &'a IndexedModel, k: usize) -> StageIndex<'a> {
+        let model: &'a Model = indexed;
+        let stage = &model.stages[k];
         let d = stage.degree;
         let fixed = stage
             .faces
@@ -124,8 +120,9 @@ impl<'a> StageIndex<'a> {
         StageIndex {
             model,
             stage,
+            topology: indexed.topology(),
+            table: indexed.stage(k),
             adjusted,
-            faces: std::sync::OnceLock::new(),
             all: multi_index::all(model.dim() + 1, d),
             fixed,
         }
@@ -156,31 +153,18 @@ impl<'a> StageIndex<'a> {
 
     /// The recorded faces of top simplex `s`.
     pub fn records(&self, s: usize) -> SimplexRecords {
-        let ids = self.model.simplex(s);
-        let m = ids.len();
+        let m = self.model.dim() + 1;
         let mut out = SimplexRecords::default();
-        let faces = self.faces.get_or_init(|| {
-            self.stage
-                .faces
-                .iter()
-                .enumerate()
-                .map(|(r, rec)| (face_key(&rec.face), r))
-                .collect()
-        });
-        if faces.is_empty() {
-            return out;
-        }
-        for mask in 1usize..(1 << m) {
-            let mut key = [u32::MAX; 4];
-            let mut len = 0;
-            for (i, &id) in ids.iter().enumerate() {
-                if mask & (1 << i) != 0 {
-                    key[len] = id;
-                    len += 1;
+        for size in 1..=m {
+            let k = size - 1;
+            let records = self.table.records(k);
+            for (j, pos) in local_faces(m, size).iter().enumerate() {
+                let r = records[self.topology.simplex_face(self.model, s, k, j) as usize];
+                if r != ism_format::indexed::NONE {
+                    let mask = pos[..size].iter().fold(0usize, |acc, &p| acc | 1 << p);
+                    out.records[mask] = Some(r as usize);
                 }
             }
-            key[..len].sort_unstable();
-            out.records[mask] = faces.get(&key).copied();
         }
         out
     }

@@ -3,7 +3,7 @@
 
 use std::collections::BTreeMap;
 
-use ism_format::{multi_index, Location, Model, Rule, StageKind};
+use ism_format::{multi_index, IndexedModel, Location, Model, Rule, StageKind};
 use rayon::prelude::*;
 
 use crate::certify::{Budget, Certificate, DetKernel};
@@ -157,10 +157,11 @@ impl Tally {
 }
 
 /// Checks stage `k` of a model that passed layers 1 and 2 for this stage.
-pub fn check_stage(model: &Model, k: usize, options: PositivityOptions) -> StageOutcome {
+pub fn check_stage(indexed: &IndexedModel, k: usize, options: PositivityOptions) -> StageOutcome {
+    let model: &Model = indexed;
     let stage = &model.stages[k];
     let n = model.dim();
-    let index = StageIndex::new(model, stage);
+    let index = StageIndex::new(indexed, k);
     let class = classify_stage(model, &index, options.theorems);
     let rational = stage.kind == StageKind::Rational;
     let kernel = if matches!(class, StageClass::PerSimplex) && stage.kind != StageKind::Monotonic {

@@ -8,7 +8,7 @@
 //!   `f̂(b_I) = Σ f(vᵢ) b_Iⁱ` for general control points.
 //! - ISM-403: the range of `det DX` of each stage, sampled.
 
-use ism_format::{multi_index, Location, Model, Rule, StageKind};
+use ism_format::{multi_index, IndexedModel, Location, Model, Rule, StageKind};
 use rayon::prelude::*;
 
 use crate::net::StageIndex;
@@ -32,40 +32,37 @@ const DET_SAMPLE_DEGREE: u32 = 4;
 /// An interior facet: sorted key and `[(simplex, opposite local position); 2]`.
 type InteriorFacet = ([u32; 4], [(usize, usize); 2]);
 
-/// The interior facets (shared by exactly two simplices).
-fn interior_facets(model: &Model) -> Vec<InteriorFacet> {
+/// The interior facets (shared by exactly two simplices), from the topology's facet neighbours,
+/// in increasing order of their sorted vertex ids.
+fn interior_facets(indexed: &IndexedModel) -> Vec<InteriorFacet> {
+    let model: &Model = indexed;
+    let topology = indexed.topology();
     let m = model.dim() + 1;
-    let mut list: Vec<([u32; 4], usize, usize)> = Vec::with_capacity(model.num_simplices() * m);
-    for (s, ids) in model.simplex_iter().enumerate() {
-        for skip in 0..m {
-            let mut key = [u32::MAX; 4];
-            let mut len = 0;
-            for (i, &id) in ids.iter().enumerate() {
-                if i != skip {
-                    key[len] = id;
-                    len += 1;
+    let mut out: Vec<InteriorFacet> = (0..model.num_simplices())
+        .into_par_iter()
+        .flat_map_iter(|s| {
+            let ids = model.simplex(s);
+            (0..m).filter_map(move |skip| {
+                let t = topology.neighbour(s, skip)?.0 as usize;
+                if t < s {
+                    return None; // each facet once, from its lower simplex
                 }
-            }
-            key[..len].sort_unstable();
-            list.push((key, s, skip));
-        }
-    }
-    list.sort_unstable();
-    let mut out = Vec::new();
-    let mut i = 0;
-    while i < list.len() {
-        let mut j = i + 1;
-        while j < list.len() && list[j].0 == list[i].0 {
-            j += 1;
-        }
-        if j - i == 2 {
-            out.push((
-                list[i].0,
-                [(list[i].1, list[i].2), (list[i + 1].1, list[i + 1].2)],
-            ));
-        }
-        i = j;
-    }
+                let mut key = [u32::MAX; 4];
+                let mut len = 0;
+                for (i, &id) in ids.iter().enumerate() {
+                    if i != skip {
+                        key[len] = id;
+                        len += 1;
+                    }
+                }
+                key[..len].sort_unstable();
+                let other = model.simplex(t);
+                let t_skip = (0..m).find(|&i| !key[..len].contains(&other[i]))?;
+                Some((key, [(s, skip), (t, t_skip)]))
+            })
+        })
+        .collect();
+    out.par_sort_unstable();
     out
 }
 
@@ -81,19 +78,23 @@ fn angle_degrees(a: &[f64; 3], b: &[f64; 3]) -> Option<f64> {
 
 /// Quality findings; fills `det_range` of the stage reports. Stages that failed earlier layers
 /// (`stage_ok[k] == false`) are skipped, and normal jumps need every stage valid.
-pub fn check(model: &Model, stages: &mut [StageReport], stage_ok: &[bool]) -> Vec<Message> {
+pub fn check(
+    indexed: &IndexedModel,
+    stages: &mut [StageReport],
+    stage_ok: &[bool],
+) -> Vec<Message> {
+    let model: &Model = indexed;
     let mut out = Vec::new();
     let n = model.dim();
     let m = n + 1;
-    let facets = interior_facets(model);
-    let eval = ism_geom::ModelEval::new(model).ok();
+    let facets = interior_facets(indexed);
+    let eval = ism_geom::ModelEval::from_indexed(indexed).ok();
 
     // ISM-403: det DX range per stage.
-    for (k, stage) in model.stages.iter().enumerate() {
+    for k in 0..model.stages.len() {
         if !stage_ok[k] {
             continue;
         }
-        let lookup = ism_geom::StageLookup::new(stage, k);
         let lattice: Vec<[f64; 4]> = multi_index::all(m, DET_SAMPLE_DEGREE)
             .chunks(m)
             .map(|i| {
@@ -107,7 +108,7 @@ pub fn check(model: &Model, stages: &mut [StageReport], stage_ok: &[bool]) -> Ve
         let (lo, hi) = (0..model.num_simplices())
             .into_par_iter()
             .map(|s| {
-                let Ok(local) = ism_geom::LocalStage::new(stage, &lookup, model.simplex(s)) else {
+                let Ok(local) = ism_geom::LocalStage::from_indexed(indexed, k, s) else {
                     return (f64::NAN, f64::NAN);
                 };
                 if local.is_identity() {
@@ -142,7 +143,7 @@ pub fn check(model: &Model, stages: &mut [StageReport], stage_ok: &[bool]) -> Ve
         if !stage_ok[k] || stage.kind != StageKind::Rational {
             continue;
         }
-        let index = StageIndex::new(model, stage);
+        let index = StageIndex::new(indexed, k);
         let d = stage.degree;
         let found: Vec<Message> = facets
             .par_iter()

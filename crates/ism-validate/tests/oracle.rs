@@ -125,7 +125,8 @@ fn agreement(n: usize, d: u32, kind: StageKind, count: usize, seed: u64, theorem
     };
     for _ in 0..count {
         let model = random_model(n, d, kind, &mut rng);
-        let out = positivity::check_stage(&model, 0, options);
+        let indexed = ism_format::IndexedModel::new(model.clone()).expect("structurally valid");
+        let out = positivity::check_stage(&indexed, 0, options);
         let local = ism_geom::LocalStage::from_model(&model, 0, 0).expect("geom builds the stage");
         let det = |w: &[f64; 4]| {
             let (_, j) = local.jacobian_stored(w);
@@ -228,7 +229,8 @@ fn dense_nets_match_geom() {
     for (n, d, kind) in cases() {
         for _ in 0..50 {
             let model = random_model(n, d, kind, &mut rng);
-            let index = ism_validate::net::StageIndex::new(&model, &model.stages[0]);
+            let indexed = ism_format::IndexedModel::new(model.clone()).unwrap();
+            let index = ism_validate::net::StageIndex::new(&indexed, 0);
             let net = index.dense_net(0, &index.records(0));
             let local = ism_geom::LocalStage::from_model(&model, 0, 0).unwrap();
             assert_eq!(net.points.as_slice(), local.control_points());
@@ -246,7 +248,8 @@ fn det_polynomial_matches_pointwise_jacobian() {
         let kernel = ism_validate::DetKernel::new(n, d, kind == StageKind::Rational);
         for _ in 0..30 {
             let model = random_model(n, d, kind, &mut rng);
-            let index = ism_validate::net::StageIndex::new(&model, &model.stages[0]);
+            let indexed = ism_format::IndexedModel::new(model.clone()).unwrap();
+            let index = ism_validate::net::StageIndex::new(&indexed, 0);
             let net = index.dense_net(0, &index.records(0));
             let c = kernel.det_coefficients(&net);
             let poly =
