@@ -3,7 +3,7 @@
 use std::path::PathBuf;
 use std::process::ExitCode;
 
-use ism_format::{io, Document};
+use ism_format::io::{self, IndexedDocument};
 use serde::Serialize;
 
 const AFTER_HELP: &str = "\
@@ -65,45 +65,23 @@ struct Summary {
     extensions_used: Vec<String>,
 }
 
-/// Distinct faces of each dimension, by sorting vertex-id tuples.
-fn face_counts(model: &ism_format::Model) -> Vec<usize> {
-    let m = model.dim() + 1;
-    let mut counts = vec![0usize; m];
-    counts[0] = model.num_vertices();
-    for k in 2..=m {
-        let mut keys: Vec<[u32; 4]> = Vec::new();
-        for ids in model.simplex_iter() {
-            let mut sorted = [0u32; 4];
-            sorted[..m].copy_from_slice(ids);
-            sorted[..m].sort_unstable();
-            for_each_subset(&sorted[..m], k, &mut |sub| {
-                let mut key = [u32::MAX; 4];
-                key[..k].copy_from_slice(sub);
-                keys.push(key);
-            });
-        }
-        keys.sort_unstable();
-        keys.dedup();
-        counts[k - 1] = keys.len();
-    }
-    counts
+/// Faces of each dimension, from the topology the reader's structural check built (vertices:
+/// every vertex of the file).
+fn face_counts(model: &ism_format::IndexedModel) -> Vec<usize> {
+    let topology = model.topology();
+    (0..=model.dim())
+        .map(|k| {
+            if k == 0 {
+                model.num_vertices()
+            } else {
+                topology.num_faces(k)
+            }
+        })
+        .collect()
 }
 
-fn for_each_subset(ids: &[u32], k: usize, f: &mut impl FnMut(&[u32])) {
-    let m = ids.len();
-    for mask in 0u32..(1 << m) {
-        if mask.count_ones() as usize == k {
-            let sub: Vec<u32> = (0..m)
-                .filter(|i| mask & (1 << i) != 0)
-                .map(|i| ids[i])
-                .collect();
-            f(&sub);
-        }
-    }
-}
-
-fn summarize(path: &std::path::Path, doc: &Document) -> Summary {
-    let model = &doc.model;
+fn summarize(path: &std::path::Path, doc: &IndexedDocument) -> Summary {
+    let model: &ism_format::Model = &doc.model;
     let n = model.dim();
     let mut bbox = vec![[f64::INFINITY, f64::NEG_INFINITY]; n];
     for v in model.vertices.chunks_exact(n) {
@@ -157,7 +135,7 @@ fn summarize(path: &std::path::Path, doc: &Document) -> Summary {
         dimension: model.dimension,
         vertices: model.num_vertices(),
         simplices: model.num_simplices(),
-        faces_by_dimension: face_counts(model),
+        faces_by_dimension: face_counts(&doc.model),
         level: model.level,
         inside_vertices: model.values.iter().filter(|&&v| v < model.level).count(),
         bounding_box: bbox,
@@ -169,7 +147,7 @@ fn summarize(path: &std::path::Path, doc: &Document) -> Summary {
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let progress = crate::progress::Progress::new(args.quiet);
     progress.phase(format!("reading {}", args.file.display()));
-    let doc = match io::read_path(&args.file) {
+    let doc = match io::read_path_indexed(&args.file) {
         Ok(doc) => doc,
         Err(ism_format::Error::Structure(errors)) => {
             progress.finish();
@@ -192,7 +170,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         }
         Err(e) => return Err(crate::args::cannot_read_model(&args.file, e)),
     };
-    progress.phase("counting the faces of the complex");
+    progress.phase("summarizing");
     let s = summarize(&args.file, &doc);
     progress.finish();
     if args.json {

@@ -68,7 +68,7 @@ fn long_commands_name_their_phases_and_q_silences_them() {
             &["measuring the curved area", "sampling", "points"],
         ),
         (vec!["convert", sphere, bin], &["reading", "writing"]),
-        (vec!["info", sphere], &["reading", "counting the faces"]),
+        (vec!["info", sphere], &["reading", "summarizing"]),
         (
             vec![
                 "smooth",

@@ -91,10 +91,7 @@ pub fn check(
     let eval = ism_geom::ModelEval::from_indexed(indexed).ok();
 
     // ISM-403: det DX range per stage.
-    for k in 0..model.stages.len() {
-        if !stage_ok[k] {
-            continue;
-        }
+    for (k, _) in stage_ok.iter().enumerate().filter(|(_, &ok)| ok) {
         let lattice: Vec<[f64; 4]> = multi_index::all(m, DET_SAMPLE_DEGREE)
             .chunks(m)
             .map(|i| {
