@@ -168,6 +168,7 @@ def fit(
     optimize: bool = True,
     rational: bool = False,
     topology: bool = True,
+    progress: Optional[Callable[[str, int, float], Any]] = None,
 ) -> Tuple[Model, Dict[str, Any]]: ...
 def fit_mesh(
     vertices: npt.ArrayLike,
@@ -182,6 +183,7 @@ def fit_mesh(
     rational: bool = False,
     topology: bool = True,
     name: str = "mesh",
+    progress: Optional[Callable[[str, int, float], Any]] = None,
 ) -> Tuple[Model, Dict[str, Any]]: ...
 def fit_hermite(data: Any, model: Optional[Model] = None) -> Tuple[Model, Dict[str, Any]]: ...
 def presets() -> List[Dict[str, Any]]: ...

@@ -128,54 +128,66 @@ impl FitArgs {
 /// Expected topology: `(what, components, euler)`.
 type Expected = Option<(&'static str, usize, i64)>;
 
-fn run_fit(
-    py: Python<'_>,
+fn run_fit<'py>(
+    py: Python<'py>,
     g: Box<dyn ImplicitFunction + Send>,
     options: FitOptions,
     name: String,
     expected: Expected,
     mesh: Option<serde_json::Value>,
-) -> PyResult<(Model, Bound<'_, PyAny>)> {
-    let result = run(py, 0, Stop::Detach, None, move |_| {
-        let fitted = ism_fit::fit(&*g, &options, &mut |_| {}).map_err(|e| e.to_string())?;
-        let model = fitted.to_model(&name);
-        let structural = ism_format::structure::check(&model, 20)
-            .into_iter()
-            .filter(|d| d.severity == ism_format::Severity::Error)
-            .count();
-        let r = &fitted.report;
-        let topology_ok =
-            expected.is_none_or(|(_, c, e)| c == r.topology.components && e == r.topology.euler);
-        let report = serde_json::json!({
-            "simplices": r.simplices,
-            "vertices": r.vertices,
-            "crossingSimplices": r.crossing_simplices,
-            "parameters": r.parameters,
-            "storedNumbers": r.stored_numbers,
-            "maxDistance": r.max_distance,
-            "meanDistance": r.mean_distance,
-            "samples": r.samples,
-            "bisections": r.bisections,
-            "pvFailures": r.pv_failures,
-            "components": r.topology.components,
-            "euler": r.topology.euler,
-            "toleranceMet": r.tolerance_met,
-            "topologyMatches": topology_ok,
-            "topologyReference": expected.map(|(what, _, _)| what),
-            "mesh": mesh,
-            "structuralErrors": structural,
-            "seconds": r.seconds,
-        });
-        Ok::<_, String>((model, report))
-    })?;
+    progress: Option<&Bound<'py, PyAny>>,
+) -> PyResult<(Model, Bound<'py, PyAny>)> {
+    let result = run(
+        py,
+        0,
+        Stop::Detach,
+        progress.map(|p| (p, 0)),
+        move |control| {
+            let fitted = ism_fit::fit(&*g, &options, &mut |p| {
+                control.report_phase(p.phase, p.simplices, p.worst)
+            })
+            .map_err(|e| e.to_string())?;
+            let model = fitted.to_model(&name);
+            let structural = ism_format::structure::check(&model, 20)
+                .into_iter()
+                .filter(|d| d.severity == ism_format::Severity::Error)
+                .count();
+            let r = &fitted.report;
+            let topology_ok = expected
+                .is_none_or(|(_, c, e)| c == r.topology.components && e == r.topology.euler);
+            let report = serde_json::json!({
+                "simplices": r.simplices,
+                "vertices": r.vertices,
+                "crossingSimplices": r.crossing_simplices,
+                "parameters": r.parameters,
+                "storedNumbers": r.stored_numbers,
+                "maxDistance": r.max_distance,
+                "meanDistance": r.mean_distance,
+                "samples": r.samples,
+                "bisections": r.bisections,
+                "pvFailures": r.pv_failures,
+                "components": r.topology.components,
+                "euler": r.topology.euler,
+                "toleranceMet": r.tolerance_met,
+                "topologyMatches": topology_ok,
+                "topologyReference": expected.map(|(what, _, _)| what),
+                "mesh": mesh,
+                "structuralErrors": structural,
+                "seconds": r.seconds,
+            });
+            Ok::<_, String>((model, report))
+        },
+    )?;
     let (model, report) = result.map_err(|m| raise(py, "FitError", &m, &[]))?;
     Ok((Model::new(model, None), crate::value_to_py(py, &report)?))
 }
 
 /// Fits an ISM to the zero set of ``expr`` (variables x, y[, z]) over ``domain``
 /// (x0, x1, y0, y1[, z0, z1]), or of a named ``preset``, as ``ism fit`` does.
+/// ``progress(phase, simplices, worst)`` is called as the fit goes (worst = largest |g|/|∇g| so
+/// far, NaN before the first evaluation).
 #[pyfunction]
-#[pyo3(signature = (expr = None, domain = None, *, preset = None, resolution = 8, tolerance = None, max_simplices = 200_000, optimize = true, rational = false, topology = true))]
+#[pyo3(signature = (expr = None, domain = None, *, preset = None, resolution = 8, tolerance = None, max_simplices = 200_000, optimize = true, rational = false, topology = true, progress = None))]
 #[allow(clippy::too_many_arguments)]
 pub fn fit<'py>(
     py: Python<'py>,
@@ -188,6 +200,7 @@ pub fn fit<'py>(
     optimize: bool,
     rational: bool,
     topology: bool,
+    progress: Option<&Bound<'py, PyAny>>,
 ) -> PyResult<(Model, Bound<'py, PyAny>)> {
     let args = FitArgs {
         resolution,
@@ -233,13 +246,13 @@ pub fn fit<'py>(
         (None, None) => return Err(PyValueError::new_err("give expr with domain, or preset")),
     };
     let options = args.options(&domain)?;
-    run_fit(py, g, options, name, expected, None)
+    run_fit(py, g, options, name, expected, None, progress)
 }
 
 /// Fits an ISM to a closed triangle mesh (vertices (N, 3), faces (M, 3)): the shape is the zero
-/// set of the signed distance, as ``ism fit --mesh``.
+/// set of the signed distance, as ``ism fit --mesh``. ``progress`` as :func:`fit`.
 #[pyfunction]
-#[pyo3(signature = (vertices, faces, *, domain = None, margin = 0.05, resolution = 8, tolerance = None, max_simplices = 200_000, optimize = true, rational = false, topology = true, name = "mesh"))]
+#[pyo3(signature = (vertices, faces, *, domain = None, margin = 0.05, resolution = 8, tolerance = None, max_simplices = 200_000, optimize = true, rational = false, topology = true, name = "mesh", progress = None))]
 #[allow(clippy::too_many_arguments)]
 pub fn fit_mesh<'py>(
     py: Python<'py>,
@@ -254,6 +267,7 @@ pub fn fit_mesh<'py>(
     rational: bool,
     topology: bool,
     name: &str,
+    progress: Option<&Bound<'py, PyAny>>,
 ) -> PyResult<(Model, Bound<'py, PyAny>)> {
     let mesh = crate::tools::triangle_mesh(vertices, faces)?;
     if !(margin.is_finite() && margin >= 0.0) {
@@ -316,6 +330,7 @@ pub fn fit_mesh<'py>(
         name.to_string(),
         Some(("the mesh", components, euler)),
         Some(info),
+        progress,
     )
 }
 

@@ -21,8 +21,15 @@ use pyo3::prelude::*;
 const POLL: Duration = Duration::from_millis(50);
 
 enum Msg<T> {
-    Progress(u64),
+    Progress(Report),
     Done(std::thread::Result<T>),
+}
+
+/// A progress report: rows done (sampling, queries; the callback gets `(done, total)`) or a fit's
+/// phase (the callback gets `(phase, simplices, worst)`).
+enum Report {
+    Rows(u64),
+    Phase(&'static str, usize, f64),
 }
 
 /// What a job sees: the cancel flag and a way to report progress.
@@ -40,7 +47,14 @@ impl Control {
 
     /// Reports `done` units of work (rows); the caller's callback gets `(done, total)`.
     pub(crate) fn report(&self, done: u64) {
-        let _ = self.progress.send(Msg::Progress(done));
+        let _ = self.progress.send(Msg::Progress(Report::Rows(done)));
+    }
+
+    /// Reports a fit's phase; the caller's callback gets `(phase, simplices, worst)`.
+    pub(crate) fn report_phase(&self, phase: &'static str, simplices: usize, worst: f64) {
+        let _ = self
+            .progress
+            .send(Msg::Progress(Report::Phase(phase, simplices, worst)));
     }
 }
 
@@ -109,9 +123,15 @@ pub(crate) fn run<T: Send + 'static>(
         });
         rx = Some(back);
         // Progress first: every report that arrived, newest last.
-        while let Ok(Msg::Progress(done)) = prx.try_recv() {
+        while let Ok(Msg::Progress(report)) = prx.try_recv() {
             if let (Some((callback, total)), None) = (&progress, &pending) {
-                if let Err(e) = callback.call1((done, *total)) {
+                let called = match report {
+                    Report::Rows(done) => callback.call1((done, *total)),
+                    Report::Phase(phase, simplices, worst) => {
+                        callback.call1((phase, simplices, worst))
+                    }
+                };
+                if let Err(e) = called {
                     cancel.store(true, Ordering::Relaxed);
                     pending = Some(e);
                 }

@@ -263,3 +263,22 @@ print(len(m.sample_surface(1000, 2)))
     # The worker sees the flag at its next block of rows: well under the full run's time.
     assert float(lines[1]) < 5.0, done.stdout
     assert lines[2] == "1000"
+
+
+def test_fit_progress_reports_phases_and_callback_errors_propagate():
+    seen = []
+    m, report = ism.fit("x^2 + y^2 - 0.25", (-1, 1, -1, 1), resolution=5, progress=lambda phase, n, worst: seen.append((phase, n, worst)))
+    assert seen, "no progress reported"
+    assert all(isinstance(p, str) and p for p, _, _ in seen)
+    assert all(isinstance(n, int) and n > 0 for _, n, _ in seen)
+    # The callback sees the model grow to at most the final number of simplices.
+    assert max(n for _, n, _ in seen) <= report["simplices"]
+
+    class Stop(Exception):
+        pass
+
+    def stop(*_):
+        raise Stop
+
+    with pytest.raises(Stop):
+        ism.fit("x^2 + y^2 - 0.25", (-1, 1, -1, 1), resolution=5, progress=stop)
