@@ -64,11 +64,12 @@ def outputs(tmp_path_factory):
     r = subprocess.run([ism_bin(), "export", str(EXAMPLES / "quadratic-edges.ism.json"), str(d / "quadratic-volume.vtu"), "--volume"],
                        capture_output=True, text=True, check=False)
     assert r.returncode == 0, r.stderr
-    assert "exact" in r.stderr and "approximated" not in r.stderr, r.stderr
-    r = subprocess.run([ism_bin(), "export", str(EXAMPLES / "sphere.ism.json"), str(d / "sphere-volume.vtu"), "--volume"],
+    assert "certified" in r.stderr and "ESTIMATED" not in r.stderr, r.stderr
+    r = subprocess.run([ism_bin(), "export", str(EXAMPLES / "sphere.ism.json"), str(d / "sphere-volume.vtu"), "--volume",
+                        "--tolerance", str(TOLERANCE)],
                        capture_output=True, text=True, check=False)
     assert r.returncode == 0, r.stderr
-    assert "approximated" in r.stderr, r.stderr
+    assert "certified" in r.stderr and "ESTIMATED" not in r.stderr, r.stderr
     return d, out
 
 
@@ -211,7 +212,7 @@ def test_volume_of_the_sphere_contours_near_the_sphere(outputs):
     assert grid.GetCellType(0) == 78  # VTK_BEZIER_TETRAHEDRON
     assert len(pts) > 100
     r = np.linalg.norm(pts, axis=1)
-    # The degree-2 interpolant of F: near the exported surface, which is near |p| = 0.7.
+    # F within the certified field tolerance: near the exported surface, which is near |p| = 0.7.
     assert np.all(np.abs(r - 0.7) < 0.05), (r.min(), r.max())
 
 
@@ -227,3 +228,77 @@ def test_meshio_reads_the_linear_outputs(outputs):
             assert np.allclose(np.linalg.norm(normals, axis=1), 1.0, atol=1e-12)
     m = meshio.read(d / "circle.vtu")
     assert sum(len(c.data) for c in m.cells if c.type == "line") == summary["circle"]["cells"]
+
+
+def contour_topology(path: Path, level: float, subdivisions: int):
+    """Contour F = level of a --volume output in VTK: points, components and Euler characteristic
+    (V − E + F of the merged contour; 0 per closed curve in 2D, 2 − 2g per closed surface in 3D)."""
+    grid = read_vtu(path)
+    tess = vtk.vtkTessellatorFilter()
+    tess.SetInputData(grid)
+    tess.SetMaximumNumberOfSubdivisions(subdivisions)
+    tess.SetFieldCriterion(0, 1e-5)
+    tess.Update()
+    contour = vtk.vtkContourFilter()
+    contour.SetInputConnection(tess.GetOutputPort())
+    contour.SetInputArrayToProcess(0, 0, 0, vtk.vtkDataObject.FIELD_ASSOCIATION_POINTS, "F")
+    contour.SetValue(0, level)
+    clean = vtk.vtkCleanPolyData()
+    clean.SetInputConnection(contour.GetOutputPort())
+    clean.Update()
+    poly = clean.GetOutput()
+    conn = vtk.vtkPolyDataConnectivityFilter()
+    conn.SetInputData(poly)
+    conn.SetExtractionModeToAllRegions()
+    conn.Update()
+    edges = vtk.vtkExtractEdges()
+    edges.SetInputData(poly)
+    edges.Update()
+    v = poly.GetNumberOfPoints()
+    e = edges.GetOutput().GetNumberOfLines()
+    f = poly.GetNumberOfPolys()
+    euler = v - e + f if f else v - poly.GetNumberOfLines()
+    pts = vtk_to_numpy(poly.GetPoints().GetData()) if v else np.zeros((0, 3))
+    return pts, conn.GetNumberOfExtractedRegions(), euler
+
+
+def surface_distance(points: np.ndarray, obj: Path, dim: int) -> float:
+    if dim == 2:
+        verts, lines = read_obj_polyline(obj)
+        return float(segment_distance(points, verts[lines[:, 0]], verts[lines[:, 1]]).max())
+    # Distance to the nearest vertex of the dense (1e-4) export: an upper bound of the distance to
+    # the surface, so a pass is conservative (no spatial index package needed).
+    verts = trimesh.load(obj, process=False).vertices
+    worst = 0.0
+    for chunk in np.array_split(points, max(1, len(points) // 256)):
+        d2 = ((chunk[:, None, :] - verts[None, :, :]) ** 2).sum(axis=2)
+        worst = max(worst, float(np.sqrt(d2.min(axis=1)).max()))
+    return worst
+
+
+# Every example but the torus: its field needs 12,288 degree-6 cells to reach even 3e-3 (a
+# monotonic weight of 7 makes F steep there), more than VTK's Python tessellator handles in CI time.
+VOLUME_EXAMPLES = sorted(p.name for p in EXAMPLES.glob("*.ism.json") if p.name != "torus.ism.json")
+
+
+@pytest.mark.parametrize("model", VOLUME_EXAMPLES)
+def test_volume_contours_to_the_models_topology_near_its_surface(tmp_path, model):
+    """Issue 19: for every example (torus aside, see above), contouring the --volume field at the
+    level in VTK gives the surface export's components (and, for curves, its Euler characteristic:
+    VTK's tessellation of Bézier tetrahedra is not conforming across cells, so a 3D contour's V − E + F
+    is not the surface's), within a small distance of it; the stated bound meets the tolerance."""
+    surface = export(model, tmp_path / "s.obj", "--tolerance", "1e-4", "--max-depth", "12")
+    vol = export(model, tmp_path / "v.vtu", "--volume", "--tolerance", str(TOLERANCE))
+    assert vol["field_tolerance_met"], vol
+    assert vol["field_error_bound"] <= vol["field_tolerance"], vol
+    doc = json.loads((EXAMPLES / model).read_text())
+    dim, level = doc["dimension"], doc["level"]
+    pts, components, euler = contour_topology(tmp_path / "v.vtu", level, subdivisions=2 if dim == 2 else 1)
+    assert len(pts) > 10
+    assert components == surface["components"], (components, surface)
+    if dim == 2:
+        assert euler == surface["euler_characteristic"], (euler, surface)
+    # A field error of ε moves the level set by about ε/|∇F| (the default ε is the tolerance times
+    # the median |∇F|); VTK's tessellation of the Bézier cells adds its own chordal error, and the
+    # distance is measured to the nearest vertex of the export (an upper bound).
+    assert surface_distance(pts, tmp_path / "s.obj", dim) < 5e-2

@@ -61,16 +61,42 @@ fn every_extension_writes_a_file() {
     assert_eq!(glb.len() % 4, 0);
 }
 
+/// `--volume` states how far the written field is from F: certified for all-implicit models
+/// (within the tolerance asked for), an estimate (`field_error_certified: false`) for a model
+/// with a parametric stage; an explicit `--field-tolerance` is honoured.
 #[test]
-fn volume_export_names_exactness() {
+fn volume_export_states_its_field_error() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("q.vtu");
-    let o = export(&example("quadratic-edges.ism.json"), &out, &["--volume"]);
-    assert!(o.status.success());
-    let stderr = String::from_utf8_lossy(&o.stderr);
-    assert!(stderr.contains("F is exact"), "{stderr}");
-    let text = std::fs::read_to_string(&out).unwrap();
-    assert!(text.contains(r#"<PointData Scalars="F">"#));
+    for (model, certified) in [
+        ("quadratic-edges.ism.json", true),
+        ("sphere.ism.json", true),
+        ("two-stage.ism.json", false),
+    ] {
+        let o = export(
+            &example(model),
+            &out,
+            &["--volume", "--json", "--field-tolerance", "1e-4"],
+        );
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        let r: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+        assert_eq!(r["field_error_certified"], certified, "{model}: {r}");
+        assert_eq!(r["field_tolerance"], 1e-4, "{model}: {r}");
+        let bound = r["field_error_bound"].as_f64().unwrap();
+        assert!(bound <= 1e-4, "{model}: {r}");
+        assert_eq!(r["field_tolerance_met"], true, "{model}: {r}");
+        let stderr = String::from_utf8_lossy(&o.stderr);
+        assert!(stderr.contains("max |F_vtk − F| ≤"), "{stderr}");
+        let text = std::fs::read_to_string(&out).unwrap();
+        assert!(text.contains(r#"<PointData Scalars="F">"#));
+    }
+    // --field-tolerance needs --volume.
+    let o = export(
+        &example("sphere.ism.json"),
+        &dir.path().join("s.obj"),
+        &["--field-tolerance", "1e-3"],
+    );
+    assert_eq!(o.status.code(), Some(2));
 }
 
 #[test]

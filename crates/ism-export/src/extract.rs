@@ -112,6 +112,8 @@ impl Dyadic {
 /// A point of `O` with its derivative data.
 #[derive(Clone, Copy, Debug)]
 struct SurfacePoint {
+    /// Its preimage `w = X⁻¹(u)`: the starting guess for the inversions of nearby points.
+    w: Bary,
     p: [f64; 3],
     normal: [f64; 3],
     gradient_norm: f64,
@@ -135,14 +137,36 @@ impl Counters {
 }
 
 /// Maps `u ∈ θ_σ` to `O` and evaluates the outward normal there.
+///
+/// The cheapest exact route first: a map whose stages are all parametric is evaluated directly
+/// (`w = Y(u)`, `DX = DY⁻¹`, no Newton at all); otherwise Newton on the whole map starts from
+/// `guess` (the preimage of a neighbouring point, interpolated), which converges in two or three
+/// steps and returns the Jacobian with the solution; only when that fails (or there is no guess)
+/// does the robust stage-by-stage inverse run. All routes meet the same residual test.
 fn surface_point(
     eval: &ModelEval,
     s: usize,
     u: &Bary,
+    guess: Option<&Bary>,
     counters: &mut Counters,
 ) -> Result<SurfacePoint> {
-    let q = eval.param_point(s, u);
     counters.inversions += 1;
+    let map = eval.local_map(s);
+    let fast = if map.stages().is_empty() {
+        None
+    } else {
+        map.param_solve(u)
+            .or_else(|| guess.and_then(|g| map.inverse_near(u, g)))
+    };
+    if let Some(solved) = fast {
+        let p = eval.point(s, &solved.w);
+        if p.iter().all(|x| x.is_finite()) {
+            counters.max_residual = counters.max_residual.max(solved.residual);
+            let g = eval.gradient_from_jacobian(s, &solved.jacobian);
+            return Ok(finish_point(solved.w, p, g));
+        }
+    }
+    let q = eval.param_point(s, u);
     counters.max_residual = counters.max_residual.max(q.inverse.residual);
     if !q.inverse.converged || !q.p.iter().all(|x| x.is_finite()) {
         return Err(Error::Inversion {
@@ -152,17 +176,23 @@ fn surface_point(
         });
     }
     let g = eval.gradient_at(s, &q.w).unwrap_or([0.0; 3]);
+    Ok(finish_point(q.w, q.p, g))
+}
+
+/// The surface point at preimage `w`, position `p`, with the unit normal from the gradient `g`.
+fn finish_point(w: Bary, p: [f64; 3], g: [f64; 3]) -> SurfacePoint {
     let len = (g[0] * g[0] + g[1] * g[1] + g[2] * g[2]).sqrt();
     let normal = if len > 0.0 && len.is_finite() {
         [g[0] / len, g[1] / len, g[2] / len]
     } else {
         [0.0; 3]
     };
-    Ok(SurfacePoint {
-        p: q.p,
+    SurfacePoint {
+        w,
+        p,
         normal,
         gradient_norm: if len.is_finite() { len } else { 0.0 },
-    })
+    }
 }
 
 fn lerp(a: &Bary, b: &Bary, t: f64) -> Bary {
@@ -189,17 +219,19 @@ fn chord_error(a: [f64; 3], b: [f64; 3], t: f64, p: [f64; 3]) -> f64 {
 fn test_edge(
     eval: &ModelEval,
     s: usize,
-    (ua, pa): (&Bary, [f64; 3]),
-    (ub, pb): (&Bary, [f64; 3]),
+    (ua, a): (&Bary, &SurfacePoint),
+    (ub, b): (&Bary, &SurfacePoint),
     tol: f64,
     counters: &mut Counters,
 ) -> Result<(bool, Bary, SurfacePoint)> {
+    let (pa, pb) = (a.p, b.p);
     let um = lerp(ua, ub, 0.5);
-    let pm = surface_point(eval, s, &um, counters)?;
+    let pm = surface_point(eval, s, &um, Some(&lerp(&a.w, &b.w, 0.5)), counters)?;
     let mut split = chord_error(pa, pb, 0.5, pm.p) > tol;
     if !split {
         for t in [0.25, 0.75] {
-            let q = surface_point(eval, s, &lerp(ua, ub, t), counters)?;
+            let guess = lerp(&a.w, &b.w, t);
+            let q = surface_point(eval, s, &lerp(ua, ub, t), Some(&guess), counters)?;
             if chord_error(pa, pb, t, q.p) > tol {
                 split = true;
                 break;
@@ -342,8 +374,8 @@ fn extract_curve(
             let ids = eval.model().simplex(s);
             let mut c = Counters::default();
             let [c0, c1] = [patch.corners[0], patch.corners[1]];
-            let p0 = surface_point(eval, s, &c0.u, &mut c)?;
-            let p1 = surface_point(eval, s, &c1.u, &mut c)?;
+            let p0 = surface_point(eval, s, &c0.u, Some(&c0.u), &mut c)?;
+            let p1 = surface_point(eval, s, &c1.u, Some(&c1.u), &mut c)?;
             let e0 = corner_edge(ids, c0.edge);
             let e1 = corner_edge(ids, c1.edge);
             let mut piece = LocalPiece {
@@ -366,7 +398,7 @@ fn extract_curve(
             ) -> Result<()> {
                 if depth < options.max_depth {
                     let (split, um, pm) =
-                        test_edge(eval, s, (&a.0, a.1.p), (&b.0, b.1.p), options.tolerance, c)?;
+                        test_edge(eval, s, (&a.0, &a.1), (&b.0, &b.1), options.tolerance, c)?;
                     if split {
                         go(eval, s, a, (um, pm), depth + 1, options, piece, c)?;
                         let k = piece.keys.len() as u32;
@@ -376,7 +408,7 @@ fn extract_curve(
                     }
                 } else if options.max_depth > 0 {
                     let (split, _, _) =
-                        test_edge(eval, s, (&a.0, a.1.p), (&b.0, b.1.p), options.tolerance, c)?;
+                        test_edge(eval, s, (&a.0, &a.1), (&b.0, &b.1), options.tolerance, c)?;
                     c.depth_limited += u64::from(split);
                 }
                 Ok(())
@@ -485,14 +517,14 @@ impl SurfaceBuilder<'_> {
                 }
                 let (ua, ub) = (self.us[pair.0 as usize], self.us[pair.1 as usize]);
                 let (pa, pb) = (
-                    self.piece.points[pair.0 as usize].p,
-                    self.piece.points[pair.1 as usize].p,
+                    self.piece.points[pair.0 as usize],
+                    self.piece.points[pair.1 as usize],
                 );
                 let (split, um, pm) = test_edge(
                     self.eval,
                     self.s,
-                    (&ua, pa),
-                    (&ub, pb),
+                    (&ua, &pa),
+                    (&ub, &pb),
                     self.options.tolerance,
                     &mut self.counters,
                 )?;
@@ -652,16 +684,16 @@ fn extract_surface(
                 std::mem::swap(&mut ca, &mut cb);
             }
             let mut c = Counters::default();
-            let pa = surface_point(eval, s, &ca.u, &mut c)?;
-            let pb = surface_point(eval, s, &cb.u, &mut c)?;
+            let pa = surface_point(eval, s, &ca.u, Some(&ca.u), &mut c)?;
+            let pb = surface_point(eval, s, &cb.u, Some(&cb.u), &mut c)?;
             let mut params = Vec::new();
             #[allow(clippy::too_many_arguments)]
             fn go(
                 eval: &ModelEval,
                 s: usize,
                 (ua, ub): (&Bary, &Bary),
-                (da, pa): (Dyadic, [f64; 3]),
-                (db, pb): (Dyadic, [f64; 3]),
+                (da, pa): (Dyadic, &SurfacePoint),
+                (db, pb): (Dyadic, &SurfacePoint),
                 depth: u32,
                 options: &ExtractOptions,
                 params: &mut Vec<(Dyadic, SurfacePoint)>,
@@ -671,7 +703,7 @@ fn extract_surface(
                     return Ok(());
                 }
                 let (ta, tb) = (da.value(), db.value());
-                let (split, _, _) = test_edge(
+                let (split, _, probe) = test_edge(
                     eval,
                     s,
                     (&lerp(ua, ub, ta), pa),
@@ -689,13 +721,13 @@ fn extract_surface(
                 let dm = Dyadic::midpoint(da, db);
                 // Recompute the midpoint from the dyadic parameter so it is the same u the other
                 // side derives.
-                let pm = surface_point(eval, s, &lerp(ua, ub, dm.value()), c)?;
+                let pm = surface_point(eval, s, &lerp(ua, ub, dm.value()), Some(&probe.w), c)?;
                 go(
                     eval,
                     s,
                     (ua, ub),
                     (da, pa),
-                    (dm, pm.p),
+                    (dm, &pm),
                     depth + 1,
                     options,
                     params,
@@ -706,7 +738,7 @@ fn extract_surface(
                     eval,
                     s,
                     (ua, ub),
-                    (dm, pm.p),
+                    (dm, &pm),
                     (db, pb),
                     depth + 1,
                     options,
@@ -718,8 +750,8 @@ fn extract_surface(
                 eval,
                 s,
                 (&ca.u, &cb.u),
-                (Dyadic::ZERO, pa.p),
-                (Dyadic::ONE, pb.p),
+                (Dyadic::ZERO, &pa),
+                (Dyadic::ONE, &pb),
                 0,
                 options,
                 &mut params,
@@ -770,7 +802,7 @@ fn extract_surface(
             let mut corner_ids = Vec::with_capacity(k);
             for c in &patch.corners {
                 let (a, bb) = corner_edge(ids, c.edge);
-                let p = surface_point(eval, s, &c.u, &mut b.counters)?;
+                let p = surface_point(eval, s, &c.u, Some(&c.u), &mut b.counters)?;
                 corner_ids.push(b.vertex(VertexKey::Edge(a, bb), c.u, p));
             }
             let mut edges = Vec::with_capacity(k);
