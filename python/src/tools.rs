@@ -391,7 +391,14 @@ impl Model {
             move |_| -> Result<serde_json::Value, String> {
                 let name = model.metadata.name.clone();
                 if volume {
-                    let (grid, note) = ism_export::volume::volume_grid(&model)
+                    // The CLI's default field tolerance (issue 19): the surface tolerance times
+                    // the median |∇F| of the linear interpolant on the crossed simplices.
+                    let options = ism_export::volume::VolumeOptions {
+                        field_tolerance: ism_export::volume::default_field_tolerance(
+                            &model, tolerance,
+                        ),
+                    };
+                    let (grid, report) = ism_export::volume::volume_grid(&model, &options)
                         .map_err(|e| format!("cannot build the volume field: {e}"))?;
                     io::write_atomic(&out, |w| {
                         let r = match format {
@@ -406,7 +413,14 @@ impl Model {
                         "format": format.extension(),
                         "cells": grid.num_cells(),
                         "control_points": grid.points.len(),
-                        "field": note.to_string(),
+                        "field": report.note,
+                        "degree": report.degree,
+                        "refinement_levels": report.level,
+                        "field_error_bound": report.bound,
+                        "field_error_bound_everywhere": report.global_bound,
+                        "field_error_certified": report.certified,
+                        "field_tolerance": report.tolerance,
+                        "field_tolerance_met": report.met,
                     }));
                 }
                 let (mesh, report) = extract_mesh(&model, tolerance, max_depth, linear)
