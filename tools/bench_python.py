@@ -9,8 +9,10 @@ Needs the package installed from a release wheel (tools/setup.sh) and release bu
 `target/release/ism-make-examples --no-examples --large 1000000 LARGE.ismb`.
 
 Rows (best of --repeat; CPU = user + system of every thread, from getrusage; wall from the clock):
-1. read LARGE into numpy arrays (`ism.read`, checked, then vertices/simplices/values; and with every
-   stage's flat tables) vs the Rust checked read (`bench_format read FILE`, same `io::read_with`);
+1. read LARGE into numpy arrays (`ism.read`, checked, keeping the index; then vertices/simplices/
+   values; then also the faces and every stage's dense indexed tables, both views; then also the
+   per-record flat tables, copied) vs the Rust checked read that keeps the index
+   (`bench_format read FILE --indexed`, the same `io` calls);
 2. N surface samples into numpy (`ism.read(M).sample_surface(N, 1)`) vs `ism sample M --surface N
    --seed 1 -o x.npy` (read, table, sampling, NPY written), and the two results compared bit for bit;
 3. query of N points on LARGE (`m.query(points)`, model already read) vs the library's rate inside
@@ -91,7 +93,7 @@ def main() -> None:
     print("| --- | --- | --- | --- | --- |")
 
     # 1. Reading the large model.
-    py_runs, py_tables_runs, rust_runs = [], [], []
+    py_runs, py_dense_runs, py_tables_runs, rust_runs = [], [], [], []
     for _ in range(args.repeat):
         def read_arrays():
             m = ism.read(args.large)
@@ -99,16 +101,19 @@ def main() -> None:
 
         (m, arrays), cpu, wall = timed_self(read_arrays)
         py_runs.append((cpu, wall))
+        _, cpu_d, wall_d = timed_self(lambda: ([m.faces(k) for k in range(m.dimension + 1)], m.neighbours, [m.stage_tables(i) for i in range(len(m.stages))]))
+        py_dense_runs.append((cpu + cpu_d, wall + wall_d))
         _, cpu_t, wall_t = timed_self(lambda: [s.tables() for s in m.stages])
-        py_tables_runs.append((cpu + cpu_t, wall + wall_t))
+        py_tables_runs.append((cpu + cpu_d + cpu_t, wall + wall_d + wall_t))
         nv, ns = len(arrays[0]), len(arrays[1])
         del m, arrays
         gc.collect()
-        out, cpu, wall = timed_child([args.bench_format, "read", str(args.large), "--repeat", "1"])
+        out, cpu, wall = timed_child([args.bench_format, "read", str(args.large), "--indexed", "--repeat", "1"])
         rust_runs.append((cpu, json.loads(out.splitlines()[-1])["seconds"]))
     print(f"<!-- large model: {nv} vertices, {ns} tetrahedra, {args.large.stat().st_size} bytes -->")
     results.append(row(f"read {args.large.name} ({ns:,} tets) into numpy: vertices, simplices, values (views)", best(py_runs), best(rust_runs)))
-    results.append(row("… and every stage's flat face tables (copied)", best(py_tables_runs), best(rust_runs)))
+    results.append(row("… and the faces, neighbours and every stage's dense indexed tables (views)", best(py_dense_runs), best(rust_runs)))
+    results.append(row("… and every stage's per-record flat tables (copied)", best(py_tables_runs), best(rust_runs)))
 
     # 2. Surface samples.
     with tempfile.TemporaryDirectory() as tmp:

@@ -9,7 +9,9 @@
 use std::collections::BTreeMap;
 use std::sync::{Arc, Mutex, OnceLock};
 
-use ism_format::{io, Direction, Encoding, FaceRecord, JsonValue, StageKind, VertexMap};
+use ism_format::{
+    io, Direction, Encoding, FaceRecord, IndexedModel, JsonValue, StageKind, VertexMap,
+};
 use numpy::ndarray::{ArrayView1, ArrayView2};
 use numpy::{
     PyArray1, PyArray2, PyArrayMethods, PyReadonlyArray1, PyReadonlyArray2, PyUntypedArrayMethods,
@@ -37,21 +39,59 @@ use crate::errors::format_error;
 /// 'valid'
 #[pyclass(frozen, module = "ism", name = "Model")]
 pub struct Model {
-    pub(crate) inner: Arc<ism_format::Model>,
+    pub(crate) inner: Shared,
     encoding: Option<Encoding>,
     stages: OnceLock<Py<PyTuple>>,
+    /// The checked index (topology, dense stage tables): the reader's own for checked reads, built
+    /// on first use (from a copy of the model) otherwise.
+    index: OnceLock<Result<IndexedModel, ism_format::Error>>,
     /// The evaluator and surface table, built on first use by sampling and queries and kept.
     pub(crate) sampler: Mutex<Option<ism_sample::Sampler>>,
 }
 
+/// The model as the binding holds it: shared with worker threads without a copy. A checked read
+/// keeps the reader's [`IndexedModel`] (which owns the model); other models are plain.
+#[derive(Clone)]
+pub(crate) enum Shared {
+    Plain(Arc<ism_format::Model>),
+    Indexed(IndexedModel),
+}
+
+impl std::ops::Deref for Shared {
+    type Target = ism_format::Model;
+    fn deref(&self) -> &ism_format::Model {
+        match self {
+            Shared::Plain(m) => m,
+            Shared::Indexed(i) => i.model(),
+        }
+    }
+}
+
 impl Model {
     pub(crate) fn new(model: ism_format::Model, encoding: Option<Encoding>) -> Model {
+        Model::from_shared(Shared::Plain(Arc::new(model)), encoding)
+    }
+
+    fn from_shared(inner: Shared, encoding: Option<Encoding>) -> Model {
         Model {
-            inner: Arc::new(model),
+            inner,
             encoding,
             stages: OnceLock::new(),
+            index: OnceLock::new(),
             sampler: Mutex::new(None),
         }
+    }
+
+    /// The index, built on first use when the model was not read checked.
+    fn indexed(&self, py: Python<'_>) -> PyResult<&IndexedModel> {
+        if let Shared::Indexed(i) = &self.inner {
+            return Ok(i);
+        }
+        let model = &*self.inner;
+        self.index
+            .get_or_init(|| py.allow_threads(|| IndexedModel::new(model.clone())))
+            .as_ref()
+            .map_err(|e| format_error(py, e))
     }
 }
 
@@ -590,6 +630,16 @@ pub fn read_path(py: Python<'_>, path: std::path::PathBuf, check: bool) -> PyRes
         check_structure: check,
         ..io::ReadOptions::default()
     };
+    if check {
+        // The checked read keeps the topology its structural check builds.
+        return match py.allow_threads(|| io::read_path_indexed(&path)) {
+            Ok(doc) => Ok(Model::from_shared(
+                Shared::Indexed(doc.model),
+                Some(doc.encoding),
+            )),
+            Err(e) => Err(format_error(py, &e)),
+        };
+    }
     let result = py.allow_threads(|| {
         let file = std::fs::File::open(&path).map_err(|e| ism_format::Error::Io {
             path: Some(path.clone()),
@@ -611,6 +661,15 @@ pub fn read_bytes(py: Python<'_>, data: &[u8], check: bool) -> PyResult<Model> {
         check_structure: check,
         ..io::ReadOptions::default()
     };
+    if check {
+        return match py.allow_threads(|| io::from_slice_indexed(data, &options)) {
+            Ok(doc) => Ok(Model::from_shared(
+                Shared::Indexed(doc.model),
+                Some(doc.encoding),
+            )),
+            Err(e) => Err(format_error(py, &e)),
+        };
+    }
     match py.allow_threads(|| io::from_slice_with(data, &options)) {
         Ok(doc) => Ok(Model::new(doc.model, Some(doc.encoding))),
         Err(e) => Err(format_error(py, &e)),
@@ -792,6 +851,101 @@ impl Model {
             slf.as_any(),
             ArrayView1::from(slf.get().inner.values.as_slice()),
         )
+    }
+
+    /// The dimension-``k`` faces of the complex (1 <= k < n), (N_k, k + 1) uint32 sorted vertex
+    /// ids in increasing lexicographic order: the face numbering of :meth:`stage_tables`. A
+    /// read-only view of the checked index (zero-copy; built on first use for models not read with
+    /// ``check=True``). ``k = 0`` gives the vertex ids, ``k = n`` the simplices.
+    fn faces<'py>(slf: &Bound<'py, Self>, k: usize) -> PyResult<Bound<'py, PyAny>> {
+        let py = slf.py();
+        let me = slf.get();
+        let n = me.inner.dim();
+        if k == 0 {
+            let ids: Vec<u32> = (0..me.inner.num_vertices() as u32).collect();
+            return Ok(PyArray1::from_vec(py, ids)
+                .reshape([me.inner.num_vertices(), 1])?
+                .into_any());
+        }
+        if k == n {
+            return Ok(Model::simplices(slf)?.into_any());
+        }
+        if k > n {
+            return Err(PyValueError::new_err(format!(
+                "k: expected 0..={n}, got {k}"
+            )));
+        }
+        let table = me.indexed(py)?.topology().face_vertices(k);
+        let view = ArrayView2::from_shape((table.len() / (k + 1), k + 1), table)
+            .map_err(|e| PyValueError::new_err(e.to_string()))?;
+        Ok(view_of(slf.as_any(), view)?.into_any())
+    }
+
+    /// Facet neighbours, (Ns, n + 1) uint32: entry ``[s, i]`` is the simplex across the facet of
+    /// ``s`` opposite its local vertex ``i``, ``2**32 - 1`` on the boundary (a read-only view of
+    /// the index).
+    #[getter]
+    fn neighbours<'py>(slf: &Bound<'py, Self>) -> PyResult<Bound<'py, PyArray2<u32>>> {
+        let me = slf.get();
+        let table = me.indexed(slf.py())?.topology().neighbours();
+        let m = me.inner.dim() + 1;
+        let view = ArrayView2::from_shape((table.len() / m, m), table)
+            .map_err(|e| PyValueError::new_err(e.to_string()))?;
+        view_of(slf.as_any(), view)
+    }
+
+    /// The dense tables of stage ``i`` from the checked index (zero-copy read-only views), keyed by
+    /// face dimension ``k`` (0..=n) over the faces of :meth:`faces` ``(k)``:
+    /// ``points[k]`` (N_k, (k + 1)·C(d − 1, k)) owned control points (the identity's where the
+    /// file has no record), ``weights[k]`` (N_k, C(d − 1, k)) for rational stages,
+    /// ``records[k]`` (N_k,) the record index in :attr:`Stage.faces` or ``2**32 - 1``; monotonic
+    /// stages: ``coefficients`` (Nv, d + 1) and ``vertex_records`` (Nv,).
+    fn stage_tables<'py>(slf: &Bound<'py, Self>, i: usize) -> PyResult<Bound<'py, PyDict>> {
+        let py = slf.py();
+        let me = slf.get();
+        let index = me.indexed(py)?;
+        let table = index.stages().get(i).ok_or_else(|| {
+            PyValueError::new_err(format!(
+                "stage {i}: the model has {} stage(s)",
+                index.stages().len()
+            ))
+        })?;
+        let owner = slf.as_any();
+        let n = me.inner.dim();
+        let rows2 = |data: &[f64], rows: usize| -> PyResult<Bound<'py, PyAny>> {
+            let cols = data.len().checked_div(rows).unwrap_or(0);
+            let view = ArrayView2::from_shape((rows, cols), data)
+                .map_err(|e| PyValueError::new_err(e.to_string()))?;
+            Ok(view_of(owner, view)?.into_any())
+        };
+        let out = PyDict::new(py);
+        out.set_item("kind", table.kind().as_str())?;
+        out.set_item("degree", table.degree())?;
+        if table.kind() == StageKind::Monotonic {
+            out.set_item(
+                "coefficients",
+                rows2(table.coefficients(), me.inner.num_vertices())?,
+            )?;
+            out.set_item(
+                "vertex_records",
+                view_of(owner, ArrayView1::from(table.vertex_records()))?,
+            )?;
+            return Ok(out);
+        }
+        let (points, weights, records) = (PyList::empty(py), PyList::empty(py), PyList::empty(py));
+        for k in 0..=n {
+            let rows = index.topology().face_slots(k);
+            points.append(rows2(table.points(k), rows)?)?;
+            weights.append(rows2(
+                table.weights(k),
+                if table.weights(k).is_empty() { 0 } else { rows },
+            )?)?;
+            records.append(view_of(owner, ArrayView1::from(table.records(k)))?)?;
+        }
+        out.set_item("points", points)?;
+        out.set_item("weights", weights)?;
+        out.set_item("records", records)?;
+        Ok(out)
     }
 
     /// The level c of the shape F = c.

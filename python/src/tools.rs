@@ -5,8 +5,6 @@
 //! handed to numpy without a copy, so their fields, order and bits are those of
 //! `ism sample -o x.npy`.
 
-use std::sync::Arc;
-
 use ism_export::extract::{extract, ExtractOptions};
 use ism_export::format::{write_mesh, ExportFormat};
 use ism_format::io;
@@ -79,7 +77,7 @@ impl Model {
         // The evaluator and its surface table are kept between calls; a concurrent call builds
         // its own.
         let cached = me.sampler.lock().map(|mut s| s.take()).unwrap_or(None);
-        let model = Arc::clone(&me.inner);
+        let model = me.inner.clone();
         let (sampler, result) = run(
             py,
             threads,
@@ -308,7 +306,7 @@ impl Model {
         theorems: bool,
     ) -> PyResult<Bound<'py, PyAny>> {
         let options = validate_options(max_issues, threads, max_pieces, quality, theorems)?;
-        let model = Arc::clone(&self.inner);
+        let model = self.inner.clone();
         let report = run(py, 0, Stop::Detach, None, move |_| {
             ism_validate::validate(&model, &options)
         })?;
@@ -330,7 +328,7 @@ impl Model {
         threads: usize,
     ) -> PyResult<Bound<'py, PyAny>> {
         check_extract_args(tolerance, max_depth)?;
-        let model = Arc::clone(&self.inner);
+        let model = self.inner.clone();
         let (mesh, report) = run(py, threads, Stop::Detach, None, move |_| {
             extract_mesh(&model, tolerance, max_depth, linear)
         })?
@@ -381,7 +379,7 @@ impl Model {
                 format.extension()
             )));
         }
-        let model = Arc::clone(&self.inner);
+        let model = self.inner.clone();
         let out = path.clone();
         let result = run(
             py,
@@ -571,7 +569,7 @@ impl Model {
                 )));
             }
         }
-        let model = Arc::clone(&self.inner);
+        let model = self.inner.clone();
         let result = run(py, threads, Stop::Detach, None, move |_| {
             crate::fit::smooth(&model, iterations, alpha, rational, degree)
         })?;

@@ -165,3 +165,69 @@ def test_metadata_and_extras_are_python_objects():
     # Python's own JSON view of the file agrees.
     doc = json.loads(m.to_bytes("json"))
     assert doc["extras"] == extras and doc["metadata"]["name"] == "tri"
+
+
+NONE = 2**32 - 1
+
+
+@pytest.mark.parametrize("name", EXAMPLE_NAMES)
+def test_indexed_faces_neighbours_and_dense_stage_tables(name):
+    from itertools import combinations
+
+    m = ism.read(EXAMPLES / (name + ".ismb"))
+    n = m.dimension
+    simplices = m.simplices.tolist()
+    # Ground truth computed here: every k-face of every simplex, sorted, in lexicographic order.
+    for k in range(1, n):
+        expected = sorted({tuple(sorted(c)) for s in simplices for c in combinations(s, k + 1)})
+        assert m.faces(k).tolist() == [list(f) for f in expected]
+    # Facet neighbours: the other simplex sharing the facet opposite local vertex i.
+    owners = {}
+    for s, simplex in enumerate(simplices):
+        for i in range(n + 1):
+            owners.setdefault(tuple(sorted(simplex[:i] + simplex[i + 1 :])), []).append(s)
+    nb = m.neighbours
+    for s, simplex in enumerate(simplices):
+        for i in range(n + 1):
+            others = [t for t in owners[tuple(sorted(simplex[:i] + simplex[i + 1 :]))] if t != s]
+            assert nb[s, i] == (others[0] if others else NONE)
+    # The dense tables hold each record's numbers at its face's row.
+    rows = {k: {tuple(f): j for j, f in enumerate(m.faces(k).tolist())} for k in range(n)}
+    rows[n] = {tuple(sorted(s)): j for j, s in enumerate(simplices)}
+    for i, st in enumerate(m.stages):
+        tab = m.stage_tables(i)
+        assert tab["kind"] == st.kind and tab["degree"] == st.degree
+        if st.kind == "monotonic":
+            for r, (v, coefficients) in enumerate(st.vertex_maps):
+                assert tab["vertex_records"][v] == r
+                assert tab["coefficients"][v].tolist() == coefficients.tolist()
+            assert (tab["vertex_records"] != NONE).sum() == len(st.vertex_maps)
+            continue
+        per_dim = [0] * (n + 1)
+        for r, (face, points, weights) in enumerate(st.faces):
+            k = len(face) - 1
+            j = rows[k][tuple(face.tolist())]
+            per_dim[k] += 1
+            assert tab["records"][k][j] == r
+            assert tab["points"][k][j].tolist() == points.ravel().tolist()
+            if st.kind == "rational" and len(weights):
+                assert tab["weights"][k][j].tolist() == weights.tolist()
+        assert [(rec != NONE).sum() for rec in tab["records"]] == per_dim
+
+
+def test_indexed_views_outlive_the_model_and_unchecked_models_are_indexed_on_demand():
+    faces = ism.read(EXAMPLES / "torus.ismb").faces(2)
+    points = ism.read(EXAMPLES / "torus.ismb").stage_tables(1)["points"][1]
+    gc.collect()
+    again = ism.read(EXAMPLES / "torus.ismb")
+    assert np.array_equal(faces, again.faces(2))
+    assert np.array_equal(points, again.stage_tables(1)["points"][1])
+    with pytest.raises(ValueError):
+        faces[0, 0] = 1
+    # A model read without the check (or built in memory) is indexed on first use.
+    loose = ism.read(EXAMPLES / "torus.ismb", check=False)
+    assert np.array_equal(loose.faces(1), again.faces(1))
+    v = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])
+    broken = ism.Model(v, [[0, 2, 1]], [-1.0, 1.0, 1.0], check=False)  # negatively oriented
+    with pytest.raises(ism.StructureError):
+        broken.neighbours
