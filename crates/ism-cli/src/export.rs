@@ -5,7 +5,7 @@ use std::process::ExitCode;
 use std::time::Instant;
 
 use anyhow::Context;
-use ism_export::extract::{extract, ExtractOptions};
+use ism_export::extract::{extract_with_progress, ExtractOptions};
 use ism_export::format::{write_mesh, ExportFormat};
 use ism_export::marching::marching;
 use ism_format::io;
@@ -162,7 +162,24 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             tolerance: args.tolerance,
             max_depth: args.max_depth,
         };
-        match extract(&eval, &options) {
+        // Each counted phase of the extraction gets its own labelled bar (facets, then patches).
+        let current: std::sync::Mutex<Option<(String, crate::progress::Counter)>> =
+            std::sync::Mutex::new(None);
+        let report = |name: &str, done: u64, total: u64| {
+            let mut cur = current.lock().unwrap_or_else(|e| e.into_inner());
+            if cur.as_ref().is_none_or(|(n, _)| n != name) {
+                let unit = if name == ism_export::extract::phase::FACETS {
+                    "facets"
+                } else {
+                    "patches"
+                };
+                *cur = Some((name.to_string(), progress.counted(name, total, unit)));
+            }
+            if let Some((_, counter)) = cur.as_ref() {
+                counter.set(done);
+            }
+        };
+        match extract_with_progress(&eval, &options, &report) {
             Ok((mesh, report)) => (mesh, Some(report)),
             Err(e @ ism_export::Error::Inversion { .. }) => {
                 progress.finish();

@@ -39,13 +39,15 @@ impl Progress {
     /// [`Counter::set`] may be called from worker threads.
     pub(crate) fn counted(&self, name: &str, total: u64, unit: &str) -> Counter {
         if let Some(bar) = &self.bar {
-            bar.set_length(total);
+            // Position first, then the new style, then the length: a redraw between the calls
+            // never shows the previous phase's count against the new total.
             bar.set_position(0);
             let template =
                 format!("{{spinner}} {name} {{bar:30}} {{pos}}/{{len}} {unit} [{{elapsed}}]");
             if let Ok(style) = ProgressStyle::with_template(&template) {
                 bar.set_style(style);
             }
+            bar.set_length(total);
             bar.force_draw();
         }
         Counter {

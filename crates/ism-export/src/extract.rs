@@ -294,6 +294,30 @@ fn facet_of(ids: &[u32], e1: [usize; 2], e2: [usize; 2]) -> [u32; 3] {
 /// is safeguarded and judged relative to the stage's scale, so on a valid model this should not
 /// happen; an invalid model may also cause it — validation, not extraction, decides).
 pub fn extract(eval: &ModelEval, options: &ExtractOptions) -> Result<(Mesh, ExtractReport)> {
+    extract_with_progress(eval, options, &|_: &str, _: u64, _: u64| {})
+}
+
+/// Reports progress of [`extract_with_progress`]: `(phase, done, total)`; called from worker
+/// threads, in no particular order within a phase, with `done` counting the items begun.
+pub type ProgressFn<'a> = &'a (dyn Fn(&str, u64, u64) + Sync);
+
+/// Phase names of [`extract_with_progress`].
+pub mod phase {
+    /// Refining each facet's patch edge (decided once per facet), counted in facets.
+    pub const FACETS: &str = "refining the patch edges on facets";
+    /// Triangulating (or, in 2D, refining) each crossed simplex's patch, counted in patches.
+    pub const PATCHES: &str = "refining and mapping the patches";
+}
+
+/// [`extract`] with a progress callback (see [`ProgressFn`]).
+///
+/// # Errors
+/// As [`extract`].
+pub fn extract_with_progress(
+    eval: &ModelEval,
+    options: &ExtractOptions,
+    progress: ProgressFn<'_>,
+) -> Result<(Mesh, ExtractReport)> {
     let n = eval.dim();
     if options.tolerance.is_nan() || options.tolerance <= 0.0 || !options.tolerance.is_finite() {
         return Err(Error::Unsupported(format!(
@@ -312,8 +336,8 @@ pub fn extract(eval: &ModelEval, options: &ExtractOptions) -> Result<(Mesh, Extr
         .filter_map(|s| eval.patch(s).map(|p| (s, p)))
         .collect();
     match n {
-        2 => extract_curve(eval, options, &patches),
-        3 => extract_surface(eval, options, &patches),
+        2 => extract_curve(eval, options, &patches, progress),
+        3 => extract_surface(eval, options, &patches, progress),
         _ => Err(Error::Unsupported(format!(
             "extraction needs a 2D or 3D model, got dimension {n}"
         ))),
@@ -362,14 +386,47 @@ fn merge(pieces: Vec<LocalPiece>, dimension: usize, primitive: Primitive) -> Mes
     mesh
 }
 
+/// Counts finished items of one phase and reports every `PROGRESS_STRIDE`-th (and the last).
+struct PhaseCounter<'a> {
+    name: &'static str,
+    total: u64,
+    done: std::sync::atomic::AtomicU64,
+    progress: ProgressFn<'a>,
+}
+
+/// Items between progress reports: often enough for a display, rare enough to cost nothing.
+const PROGRESS_STRIDE: u64 = 64;
+
+impl<'a> PhaseCounter<'a> {
+    fn new(name: &'static str, total: usize, progress: ProgressFn<'a>) -> PhaseCounter<'a> {
+        progress(name, 0, total as u64);
+        PhaseCounter {
+            name,
+            total: total as u64,
+            done: std::sync::atomic::AtomicU64::new(0),
+            progress,
+        }
+    }
+
+    fn tick(&self) {
+        let d = self.done.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
+        if d % PROGRESS_STRIDE == 0 || d == self.total {
+            (self.progress)(self.name, d, self.total);
+        }
+    }
+}
+
 fn extract_curve(
     eval: &ModelEval,
     options: &ExtractOptions,
     patches: &[(usize, Patch)],
+    progress: ProgressFn<'_>,
 ) -> Result<(Mesh, ExtractReport)> {
+    let counter = PhaseCounter::new(phase::PATCHES, patches.len(), progress);
     let results: Vec<Result<(LocalPiece, Counters)>> = patches
         .par_iter()
         .map(|(s, patch)| {
+            counter.tick();
             let s = *s;
             let ids = eval.model().simplex(s);
             let mut c = Counters::default();
@@ -633,6 +690,7 @@ fn extract_surface(
     eval: &ModelEval,
     options: &ExtractOptions,
     patches: &[(usize, Patch)],
+    progress: ProgressFn<'_>,
 ) -> Result<(Mesh, ExtractReport)> {
     let model = eval.model();
     // 1. Facet table: (facet key, simplex, patch edge index), sorted so the owner comes first.
@@ -668,9 +726,11 @@ fn extract_surface(
         .collect();
 
     // 2. The owner of each facet decides its patch edge's refinement.
+    let counter = PhaseCounter::new(phase::FACETS, groups.len(), progress);
     let facet_results: Vec<Result<(FacetEdge, Counters)>> = groups
         .par_iter()
         .map(|&(first, _)| {
+            counter.tick();
             let (key, s, j) = entries[first];
             let s = s as usize;
             let patch = &patches[patch_of[&(s as u32)]].1;
@@ -776,9 +836,11 @@ fn extract_surface(
     }
 
     // 3. Each simplex triangulates its patch against the shared facet decisions.
+    let counter = PhaseCounter::new(phase::PATCHES, patches.len(), progress);
     let results: Vec<Result<(LocalPiece, Counters)>> = patches
         .par_iter()
         .map(|(s, patch)| {
+            counter.tick();
             let s = *s;
             let ids = model.simplex(s);
             let k = patch.corners.len();
