@@ -11,11 +11,11 @@ bin=target/release/examples/bench_format
 $bin make "$dir" "$tets"
 peak() { /usr/bin/time -f '{"peak_kib":%M}' "$@" 2>&1 >/dev/stderr | tail -n 1; }
 for f in large.ismb large.ism.msgpack large.ism.json; do
-  for mode in "" "--no-check"; do
+  for mode in "" "--no-check" "--indexed"; do
     $bin read "$dir/$f" $mode --repeat 3
     echo "{\"file\":\"$f\",\"mode\":\"${mode:-checked}\",\"single_read\":$(peak $bin read "$dir/$f" $mode --repeat 1)}"
   done
 done
 .venv/bin/python tools/bench_meshio.py "$dir"
-.venv/bin/python tools/bench_meshio.py read "$dir/large.vtu"
+.venv/bin/python tools/bench_meshio.py read "$dir/large.vtu" --repeat 3
 echo "{\"file\":\"large.vtu\",\"single_read\":$(peak .venv/bin/python tools/bench_meshio.py read "$dir/large.vtu")}"

@@ -89,6 +89,11 @@ pub fn local_faces(m: usize, size: usize) -> &'static [[u8; 4]] {
     &tables[m][size]
 }
 
+/// Vertices whose stars are sorted together (in parallel) before their faces are numbered: large
+/// enough to keep every core busy, small enough that the block's entries (~100 per vertex) stay a
+/// few megabytes.
+const STAR_BLOCK: usize = 8192;
+
 /// A defect of the facet pairing found while indexing (reported by the structural check).
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub(crate) enum FacetDefect {
@@ -153,6 +158,16 @@ impl Topology {
     pub(crate) fn build(
         model: &Model,
         skip: &[bool],
+    ) -> (Topology, Vec<(u32, u32)>, Vec<FacetDefect>) {
+        Topology::build_in_blocks(model, skip, STAR_BLOCK)
+    }
+
+    /// [`Topology::build`] with `block` vertices' stars sorted at a time (any `block ≥ 1` gives
+    /// the same result; tests use small blocks).
+    fn build_in_blocks(
+        model: &Model,
+        skip: &[bool],
+        block: usize,
     ) -> (Topology, Vec<(u32, u32)>, Vec<FacetDefect>) {
         let n = model.dim();
         let m = n + 1;
@@ -234,15 +249,20 @@ impl Topology {
             let size = k + 1;
             let locals = local_faces(m, size);
             let per = locals.len();
-            let groups: Vec<Vec<Entry>> = (0..nv)
-                .into_par_iter()
-                .map(|v| entries_of(v, size))
-                .collect();
             let mut table = Vec::new();
             let mut of_simplex = vec![NONE; ns * per];
             let mut first = Vec::with_capacity(nv + 1);
             let mut id = 0u32;
-            for entries in &groups {
+            // Stars in parallel, a block of vertices at a time: the sorted entries of a block are
+            // numbered in order and dropped, so the temporary memory stays a block's, not the
+            // whole complex's.
+            let groups = (0..nv).step_by(block.max(1)).flat_map(|start| {
+                (start..nv.min(start.saturating_add(block.max(1))))
+                    .into_par_iter()
+                    .map(|v| entries_of(v, size))
+                    .collect::<Vec<Vec<Entry>>>()
+            });
+            for entries in groups {
                 first.push(id);
                 let mut i = 0;
                 while i < entries.len() {
@@ -1003,6 +1023,18 @@ mod tests {
         assert_eq!(&mono.coefficients()[4 * 3..5 * 3], &[0.0, 0.5, 1.0]);
         assert_eq!(mono.vertex_records()[5], 0);
         assert_eq!(mono.vertex_records()[4], NONE);
+    }
+
+    #[test]
+    fn any_block_size_gives_the_same_topology() {
+        for (n, g) in [(2, 4), (3, 3)] {
+            let model = kuhn(n, g);
+            let skip = vec![false; model.num_simplices()];
+            let whole = Topology::build_in_blocks(&model, &skip, usize::MAX);
+            for block in [1, 3, 7] {
+                assert_eq!(Topology::build_in_blocks(&model, &skip, block), whole);
+            }
+        }
     }
 
     #[test]
