@@ -114,26 +114,15 @@ pub struct Smoothed {
 pub fn normal_jumps(model: &Model) -> Option<JumpStats> {
     let options = ism_validate::Options {
         quality: true,
-        max_issues: usize::MAX,
         ..ism_validate::Options::default()
     };
     let report = ism_validate::validate(model, &options);
-    let info = report.issues.messages.iter().find(|m| {
-        m.code == ism_format::Rule::NormalJump.id() && m.severity == ism_format::Severity::Info
-    })?;
-    // "{checked} interior facets cross the shape: normal jump max {max:.3}°, mean {mean:.3}°"
-    let facets = info.message.split_whitespace().next()?.parse().ok()?;
-    let mean = info
-        .message
-        .rsplit("mean ")
-        .next()?
-        .trim_end_matches('°')
-        .parse()
-        .ok()?;
+    // The validator's statistics as data, never its wording.
+    let jumps = report.quality.normal_jumps?;
     Some(JumpStats {
-        facets,
-        max: info.value?,
-        mean,
+        facets: jumps.facets,
+        max: jumps.max_degrees,
+        mean: jumps.mean_degrees,
     })
 }
 

@@ -60,7 +60,9 @@ use std::time::Instant;
 use ism_format::{io, IndexedModel, Model, Rule, Severity};
 
 pub use certify::{Budget, Certificate, Decision, DenseNet, DetKernel, DEFAULT_MAX_PIECES};
-pub use report::{Message, Report, StageReport, Verdict, Witness, REPORT_VERSION};
+pub use report::{
+    Message, NormalJumps, QualityStats, Report, StageReport, Verdict, Witness, REPORT_VERSION,
+};
 
 /// Default cap on the messages a report lists (all are counted).
 pub const DEFAULT_MAX_ISSUES: usize = 100;
@@ -247,6 +249,7 @@ fn run(model: &Model, indexed: Option<&IndexedModel>, options: &Options) -> Repo
         theorems: options.theorems,
     };
     let mut positivity_messages = Vec::new();
+    let mut quality_stats = report::QualityStats::default();
     for (k, stage) in model.stages.iter().enumerate() {
         if !stage_ok[k] {
             stages.push(StageReport {
@@ -282,7 +285,9 @@ fn run(model: &Model, indexed: Option<&IndexedModel>, options: &Options) -> Repo
     // Layer 4.
     if let (true, Some(ix)) = (options.quality && structure_ok, indexed) {
         let t = Instant::now();
-        for m in quality::check(ix, &mut stages, &stage_ok) {
+        let (found, stats) = quality::check(ix, &mut stages, &stage_ok);
+        quality_stats = stats;
+        for m in found {
             out.push(m);
         }
         timing.quality = t.elapsed().as_secs_f64();
@@ -315,5 +320,6 @@ fn run(model: &Model, indexed: Option<&IndexedModel>, options: &Options) -> Repo
         stages,
         piece_budget: options.max_pieces,
         timing,
+        quality: quality_stats,
     }
 }

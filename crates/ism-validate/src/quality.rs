@@ -12,7 +12,7 @@ use ism_format::{multi_index, IndexedModel, Location, Model, Rule, StageKind};
 use rayon::prelude::*;
 
 use crate::net::StageIndex;
-use crate::report::{Message, StageReport};
+use crate::report::{Message, NormalJumps, QualityStats, StageReport};
 
 /// A facet whose normals differ by more than this many degrees gets an ISM-401 warning: below
 /// about 5° shading hides a crease, so smaller jumps are reported only in the totals.
@@ -82,7 +82,8 @@ pub fn check(
     indexed: &IndexedModel,
     stages: &mut [StageReport],
     stage_ok: &[bool],
-) -> Vec<Message> {
+) -> (Vec<Message>, QualityStats) {
+    let mut stats = QualityStats::default();
     let model: &Model = indexed;
     let mut out = Vec::new();
     let n = model.dim();
@@ -293,15 +294,29 @@ pub fn check(
                     out.push(msg);
                 }
             }
-            let mut msg = Message::new(
-                Rule::NormalJump,
-                Location::default(),
-                format!("{checked} interior facets cross the shape: normal jump max {max:.3}°, mean {mean:.3}°"),
-            );
-            msg.severity = ism_format::Severity::Info;
-            msg.value = Some(max);
-            out.push(msg);
+            let jumps = NormalJumps {
+                facets: checked,
+                max_degrees: max,
+                mean_degrees: mean,
+            };
+            stats.normal_jumps = Some(jumps);
+            out.push(normal_jump_summary(&jumps));
         }
     }
-    out
+    (out, stats)
+}
+
+/// The ISM-401 summary message, rendered from the statistics.
+fn normal_jump_summary(j: &NormalJumps) -> Message {
+    let mut msg = Message::new(
+        Rule::NormalJump,
+        Location::default(),
+        format!(
+            "{} interior facets cross the shape: normal jump max {:.3}°, mean {:.3}°",
+            j.facets, j.max_degrees, j.mean_degrees
+        ),
+    );
+    msg.severity = ism_format::Severity::Info;
+    msg.value = Some(j.max_degrees);
+    msg
 }

@@ -242,6 +242,29 @@ pub struct Report {
     pub piece_budget: usize,
     /// Time per layer.
     pub timing: Timing,
+    /// The quality layer's statistics as data, for programs (the messages are rendered from them;
+    /// not part of the JSON report, whose schema is fixed).
+    #[serde(skip)]
+    pub quality: QualityStats,
+}
+
+/// Statistics of the quality layer (layer 4), as numbers.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct QualityStats {
+    /// ISM-401 over the interior facets the shape crosses; `None` when not computed (quality off,
+    /// or some stage not certified so that `X⁻¹` may not exist).
+    pub normal_jumps: Option<NormalJumps>,
+}
+
+/// The jump of the shape's normal across the interior facets it crosses (ISM-401).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct NormalJumps {
+    /// Interior facets crossed by the shape (where the jump was measured).
+    pub facets: usize,
+    /// Largest jump, degrees.
+    pub max_degrees: f64,
+    /// Mean jump, degrees.
+    pub mean_degrees: f64,
 }
 
 impl Report {
