@@ -4,7 +4,9 @@
 
 use std::collections::BTreeMap;
 
-use bincode::{Decode, Encode};
+// Encode only: the binary writer uses bincode; the reader is hand-written (binary.rs) so that
+// every error names its member and byte offset.
+use bincode::Encode;
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 
@@ -64,18 +66,6 @@ impl Encode for JsonValue {
     }
 }
 
-impl<C> Decode<C> for JsonValue {
-    fn decode<D: bincode::de::Decoder<Context = C>>(
-        decoder: &mut D,
-    ) -> Result<Self, bincode::error::DecodeError> {
-        let text = String::decode(decoder)?;
-        serde_json::from_str(&text)
-            .map(JsonValue)
-            .map_err(|e| bincode::error::DecodeError::OtherString(format!("embedded JSON: {e}")))
-    }
-}
-bincode::impl_borrow_decode!(JsonValue);
-
 impl JsonValue {
     /// Whether this is JSON `null` (how an absent `extras` reads).
     pub fn is_null(&self) -> bool {
@@ -84,7 +74,7 @@ impl JsonValue {
 }
 
 /// A complete Iso-Simplicial Model (spec §2).
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, JsonSchema, Encode, Decode)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, JsonSchema, Encode)]
 #[serde(rename_all = "camelCase")]
 #[schemars(
     title = "ISM model",
@@ -134,7 +124,7 @@ pub struct Model {
 }
 
 /// Descriptive metadata (spec §2.6). Every member is optional.
-#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize, JsonSchema, Encode, Decode)]
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize, JsonSchema, Encode)]
 #[serde(rename_all = "camelCase")]
 pub struct Metadata {
     /// A short human-readable name.
@@ -156,9 +146,7 @@ pub struct Metadata {
 }
 
 /// Kind of a stage's map (spec §5.2–5.4).
-#[derive(
-    Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize, JsonSchema, Encode, Decode,
-)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize, JsonSchema, Encode)]
 #[serde(rename_all = "lowercase")]
 pub enum StageKind {
     /// Polynomial Bernstein–Bézier map of degree `d`.
@@ -182,18 +170,7 @@ impl StageKind {
 
 /// Which way a stage's stored map points (spec §5.1).
 #[derive(
-    Clone,
-    Copy,
-    Debug,
-    Default,
-    PartialEq,
-    Eq,
-    Hash,
-    Serialize,
-    Deserialize,
-    JsonSchema,
-    Encode,
-    Decode,
+    Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Serialize, Deserialize, JsonSchema, Encode,
 )]
 #[serde(rename_all = "lowercase")]
 pub enum Direction {
@@ -205,7 +182,7 @@ pub enum Direction {
 }
 
 /// One simplicial diffeomorphism stage (spec §5).
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, JsonSchema, Encode, Decode)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, JsonSchema, Encode)]
 #[serde(rename_all = "camelCase")]
 pub struct Stage {
     /// The map kind.
@@ -232,7 +209,7 @@ pub struct Stage {
 }
 
 /// The control points (and weights) that a face owns (spec §5.2).
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, JsonSchema, Encode, Decode)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, JsonSchema, Encode)]
 #[serde(rename_all = "camelCase")]
 pub struct FaceRecord {
     /// The face: its `k + 1` global vertex ids, strictly increasing.
@@ -252,7 +229,7 @@ pub struct FaceRecord {
 }
 
 /// A monotonic stage's function `g_v` for one vertex (spec §5.4).
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, JsonSchema, Encode, Decode)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, JsonSchema, Encode)]
 #[serde(rename_all = "camelCase")]
 pub struct VertexMap {
     /// Global vertex id.
