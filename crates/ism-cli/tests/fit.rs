@@ -498,3 +498,34 @@ fn rational_weights_are_fitted_written_and_validated() {
         .unwrap();
     assert_status(&sampled, 0);
 }
+
+#[test]
+fn a_singular_curve_fits_and_names_its_singular_points() {
+    // The heart (x² + y² − 1)³ − x²y³ = 0 (issue 17): exit 2 with a degenerate simplex before.
+    let dir = tempfile::tempdir().unwrap();
+    let model = dir.path().join("heart.ismb");
+    let out = ism()
+        .args(["fit", "-q", "--json", "--expr", "(x^2+y^2-1)^3-x^2*y^3"])
+        .args(["--domain=-1.5,1.5,-1.5,1.5", "--tolerance", "0.03", "-o"])
+        .arg(&model)
+        .output()
+        .unwrap();
+    assert_eq!(
+        out.status.code(),
+        Some(0),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let r: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(r["topologyCertified"], false);
+    assert_eq!(r["topologyChecked"], false);
+    assert!(r["topologyMatchesPreset"].is_null());
+    assert_eq!(r["toleranceMet"], true);
+    let uncertain = r["uncertain"].as_array().unwrap();
+    assert!((4..=6).contains(&uncertain.len()), "{uncertain:?}");
+    assert!(r["maxDistance"].as_f64().unwrap() <= 0.03);
+    assert!(r["targetToShape"].as_f64().unwrap() <= r["targetToShapeBound"].as_f64().unwrap());
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(stderr.contains("singular point"), "{stderr}");
+    assert!(model.exists());
+}

@@ -365,6 +365,27 @@ pub trait ImplicitFunction: Sync {
             f64::INFINITY
         }
     }
+
+    /// A certified upper bound on the distance from `p` to the zero set, searching out to
+    /// `reach` (`∞` if nothing is found): by default [`crate::measure::bracket_distance`], which
+    /// holds for any continuous `g` whatever its gradient does.
+    fn distance_bound(&self, p: &[f64], reach: f64) -> f64 {
+        crate::measure::bracket_distance(self, p, reach)
+    }
+
+    /// Points on the zero set with a radius that every point of it lies within, about `spacing`
+    /// apart and at most `budget` of them, when the zero set is known explicitly (a mesh);
+    /// `None` otherwise (the zero set is then covered by interval boxes).
+    fn surface_points(&self, spacing: f64, budget: usize) -> Option<(Vec<[f64; 3]>, f64)> {
+        let _ = (spacing, budget);
+        None
+    }
+
+    /// Whether [`ImplicitFunction::surface_points`] gives points (the zero set is explicit) and
+    /// [`ImplicitFunction::distance_bound`] is the exact distance.
+    fn is_explicit(&self) -> bool {
+        false
+    }
 }
 
 /// `exmex` operators over [`Interval`], with the priorities of `exmex`'s float operators so a text

@@ -9,6 +9,9 @@
 //! - [`strata`]: the stratified Bézier map the fitter optimizes (valid by construction).
 //! - [`fit`](mod@fit): the adaptive loop (Plantinga–Vegter topology refinement, edge roots, face-wise
 //!   Levenberg–Marquardt, refinement of cells above the tolerance) and its report.
+//! - [`measure`]: the two-sided distance between a fitted shape and its target (certified
+//!   bounds, not first-order estimates); [`roundtrip`]: the encoding/export/sampling check a fit
+//!   passes before it is written.
 //! - [`isocontour`]: the linear isocomplex, its topology and samples; [`svg`]: 2D pictures.
 //!
 //! ```
@@ -37,9 +40,11 @@ pub mod fit;
 pub mod hermite;
 pub mod interval;
 pub mod isocontour;
+pub mod measure;
 pub mod mesh;
 pub mod presets;
 pub mod rational;
+pub mod roundtrip;
 pub mod smooth;
 pub mod strata;
 pub mod svg;

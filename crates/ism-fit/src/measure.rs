@@ -1,0 +1,1015 @@
+//! How far a fitted model's shape `S` is from the target `Z = {g = 0}`, in both directions,
+//! measured on the written model through the kernel (`ism-geom`), independently of the fitter.
+//!
+//! - **`S → Z`** (every point of the fit near the target): at each dense sample `s` of `S`,
+//!   [`bracket_distance`] finds a segment from `s` on which `g` changes sign; by the intermediate
+//!   value theorem it holds a zero, so its length bounds `dist(s, Z)` from above whatever `∇g` does
+//!   (a first-order `|g|/|∇g|` is 3× too small where the gradient vanishes to higher order). For a
+//!   mesh `|g|` is the exact distance to its triangles. The bound holds *at the samples*; between
+//!   two neighbouring samples the shape can stray by up to about the sample spacing, which the
+//!   report gives ([`Measure::shape_spacing`]).
+//! - **`Z → S`** (every point of the target near the fit): `Z` is covered by boxes that interval
+//!   arithmetic cannot clear of zeros (an expression), or by points of the mesh's triangles with a
+//!   known covering radius (a mesh). Each leaf box gets a point `z` of `Z` near its centre (a
+//!   [`bracket_point`]), and `z`'s distance to `S` is measured: the nearest point of a dense cloud
+//!   on `S`, improved by a few Gauss–Newton steps on its patch where it matters. Every point used
+//!   is a point of `S`, so a poor search only makes the figure larger. The largest of these is
+//!   the estimate; it can be low by at most the covering radius (half-diagonal of a leaf, or the
+//!   mesh points' radius), and adding that gives a certified bound: the distance to a set is
+//!   1-Lipschitz, so every point of `Z` in a box with centre `c` and half-diagonal `r` lies within
+//!   `dist(c, S) + r`, and within `dist(z, S) + r + |z − c|` of `S`. Boxes are split to
+//!   [`leaf_fraction`] of the tolerance, within [`TARGET_BUDGET`].
+//!
+//! Both are up to the kernel's evaluation of `S` and the rounding of `g` (its interval extension
+//! rounds outward).
+
+use rayon::prelude::*;
+use rstar::RTree;
+
+use crate::expr::ImplicitFunction;
+use crate::isocontour::{patch_samples, Bary};
+use ism_format::model::Model;
+
+/// Points of `Z` whose nearest cloud point on `S` is farther than this fraction of the tolerance
+/// are projected onto `S` (Gauss–Newton on the patch); boxes whose `dist(centre, S) + half` is
+/// below it are leaves at once (their bound is already small).
+pub const PROJECT_ABOVE: f64 = 0.5;
+
+/// Half-diagonal of the leaf boxes (or covering radius of mesh points) as a fraction of the
+/// tolerance: the `Z → S` estimate can be low by at most this much. 2D: a quarter of the
+/// tolerance; 3D: 4× the tolerance (at 1× the cover of the sphere preset took 30× the fit's own
+/// time, issue 17 measurements). Where the fit is, the points of `Z` found from its samples add
+/// a dense estimate; the boxes are there to find what the fit misses.
+pub fn leaf_fraction(n: usize) -> f64 {
+    if n == 2 {
+        0.25
+    } else {
+        4.0
+    }
+}
+
+/// Spacing of the cloud on `S` as a fraction of the tolerance (nearest cloud point first, then a
+/// projection when it is not close enough).
+fn cloud_fraction(n: usize) -> f64 {
+    if n == 2 {
+        0.25
+    } else {
+        2.0
+    }
+}
+
+/// At most this many boxes (or mesh points) in the `Z → S` cover; beyond it the boxes stay
+/// larger and the bound looser, never smaller than the truth.
+pub const TARGET_BUDGET: usize = 1_000_000;
+
+/// At most this many points in the cloud on `S` that the `Z → S` cover searches.
+pub const CLOUD_BUDGET: usize = 4_000_000;
+
+/// Sample level of the `S → Z` bound per patch (segment points − 1 in 2D, grid level per fan
+/// triangle in 3D).
+pub fn report_level(n: usize) -> usize {
+    if n == 2 {
+        64
+    } else {
+        8
+    }
+}
+
+/// A certified upper bound on the distance from `p` to `{g = 0}` for a continuous `g`: the
+/// shortest segment found from `p` along which `g` changes sign (it holds a zero). Searches along
+/// `−sign(g)∇g` first, then along the coordinate axes, out to `reach`; `∞` when no sign change is
+/// found (or `g` is not finite along the way). `0` where `g(p) = 0`.
+pub fn bracket_distance<G: ImplicitFunction + ?Sized>(g: &G, p: &[f64], reach: f64) -> f64 {
+    bracket_point(g, p, reach).map_or(f64::INFINITY, |x| x.0)
+}
+
+/// [`bracket_distance`] and the far end of its segment, within `1e-6` of the segment's length of
+/// a point where `g` changes sign (`None`: no sign change found).
+pub fn bracket_point<G: ImplicitFunction + ?Sized>(
+    g: &G,
+    p: &[f64],
+    reach: f64,
+) -> Option<(f64, [f64; 3])> {
+    let n = g.dim();
+    let mut grad = [0.0; 3];
+    let v = g.gradient(p, &mut grad[..n]);
+    let mut here = [0.0; 3];
+    here[..n].copy_from_slice(&p[..n]);
+    if v == 0.0 {
+        return Some((0.0, here));
+    }
+    if !v.is_finite() {
+        return None;
+    }
+    let norm = grad[..n].iter().map(|x| x * x).sum::<f64>().sqrt();
+    let estimate = if norm > 0.0 && norm.is_finite() {
+        v.abs() / norm
+    } else {
+        f64::INFINITY
+    };
+    let side = v > 0.0;
+    let at = |d: &[f64; 3], t: f64| -> f64 {
+        let mut q = [0.0; 3];
+        for k in 0..n {
+            q[k] = p[k] + t * d[k];
+        }
+        g.value(&q[..n])
+    };
+    // Along one direction: grow `t` until g has the other sign, then bisect the bracket down.
+    let search = |d: &[f64; 3], start: f64, limit: f64| -> f64 {
+        let (mut lo, mut t) = (0.0f64, start);
+        while t <= limit {
+            let x = at(d, t);
+            if x.is_nan() {
+                return f64::INFINITY;
+            }
+            if (x > 0.0) != side || x == 0.0 {
+                let mut hi = t;
+                // 2⁻²⁰ of the bracket: the bound is then within a millionth of the root found.
+                for _ in 0..20 {
+                    let mid = 0.5 * (lo + hi);
+                    let y = at(d, mid);
+                    if y.is_nan() {
+                        break;
+                    }
+                    if (y > 0.0) == side && y != 0.0 {
+                        lo = mid;
+                    } else {
+                        hi = mid;
+                    }
+                }
+                return hi;
+            }
+            lo = t;
+            t *= 1.5;
+        }
+        f64::INFINITY
+    };
+    let tiny = reach * 1e-9;
+    let mut best = f64::INFINITY;
+    let mut best_dir = [0.0; 3];
+    if estimate.is_finite() {
+        let s = if side { -1.0 } else { 1.0 };
+        let d = [s * grad[0] / norm, s * grad[1] / norm, s * grad[2] / norm];
+        best = search(&d, (0.5 * estimate).max(tiny), reach);
+        best_dir = d;
+    }
+    if best.is_infinite() || best > 4.0 * estimate {
+        // The gradient misleads (vanishes, or points past a fold): try the axes too.
+        for k in 0..n {
+            for s in [-1.0, 1.0] {
+                let mut d = [0.0; 3];
+                d[k] = s;
+                let limit = best.min(reach);
+                let start = if estimate.is_finite() {
+                    (0.5 * estimate).max(tiny)
+                } else {
+                    tiny.max(limit * 1e-6)
+                };
+                let t = search(&d, start, limit);
+                if t < best {
+                    best = t;
+                    best_dir = d;
+                }
+            }
+        }
+    }
+    best.is_finite().then(|| {
+        let mut q = [0.0; 3];
+        for k in 0..n {
+            q[k] = p[k] + best * best_dir[k];
+        }
+        (best, q)
+    })
+}
+
+/// One point of the cloud on `S`: where it is and where it came from.
+#[derive(Clone, Copy, Debug)]
+struct CloudPoint {
+    p: [f64; 3],
+    simplex: u32,
+    u: Bary,
+}
+
+impl rstar::RTreeObject for CloudPoint {
+    type Envelope = rstar::AABB<[f64; 3]>;
+    fn envelope(&self) -> Self::Envelope {
+        rstar::AABB::from_point(self.p)
+    }
+}
+
+impl rstar::PointDistance for CloudPoint {
+    fn distance_2(&self, q: &[f64; 3]) -> f64 {
+        (0..3).map(|k| (self.p[k] - q[k]).powi(2)).sum()
+    }
+}
+
+/// How the `Z → S` direction was covered.
+#[derive(Clone, Debug, PartialEq)]
+pub enum TargetCover {
+    /// Boxes that interval arithmetic could not clear of zeros of `g`.
+    Boxes {
+        /// Leaf boxes.
+        count: usize,
+        /// Their largest half-diagonal.
+        largest: f64,
+    },
+    /// Points on the mesh triangles; every point of the mesh lies within `radius` of one.
+    MeshPoints {
+        /// Points.
+        count: usize,
+        /// Covering radius.
+        radius: f64,
+    },
+    /// No interval extension and no mesh: the direction is not measured.
+    None,
+}
+
+/// A region where the fit may not be faithful (singular points of `g`, cells the topology phase
+/// could not certify), with the two-sided error there.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Region {
+    /// Centre.
+    pub centre: Vec<f64>,
+    /// Radius.
+    pub radius: f64,
+    /// Largest `S → Z` bound at the samples within the region.
+    pub shape_to_target: f64,
+    /// Largest `Z → S` bound of the cover within the region.
+    pub target_to_shape: f64,
+}
+
+/// The two-sided distance of a fit (see the module doc).
+#[derive(Clone, Debug, PartialEq)]
+pub struct Measure {
+    /// Largest certified bound of `dist(s, Z)` over the samples `s` of `S`.
+    pub shape_to_target: f64,
+    /// Mean of those bounds.
+    pub shape_to_target_mean: f64,
+    /// Where the largest is.
+    pub shape_to_target_at: Vec<f64>,
+    /// Number of samples of `S`.
+    pub samples: usize,
+    /// Largest distance from a sample to its nearest neighbour on the same patch: between
+    /// samples, `S → Z` can exceed its bound by about this much at most.
+    pub shape_spacing: f64,
+    /// Largest distance to `S` (an upper bound: a point of `S` that far was found) over points
+    /// of `Z` that cover it ([`Measure::cover`]; `∞` when not measured): an estimate of
+    /// `max dist(z, Z)` that can be low by at most the cover's radius.
+    pub target_to_shape: f64,
+    /// Certified bound of `max dist(z, S)` over all `z ∈ Z`: the estimate plus the covering
+    /// radius, or a box's `dist(centre, S) + half-diagonal` where no point of `Z` was found in it.
+    pub target_to_shape_bound: f64,
+    /// Where the largest estimate is.
+    pub target_to_shape_at: Vec<f64>,
+    /// How `Z` was covered.
+    pub cover: TargetCover,
+    /// Simplices the shape passes through.
+    pub cells: usize,
+    /// The error near each region the caller named.
+    pub regions: Vec<Region>,
+}
+
+impl Measure {
+    /// The two-sided distance: the larger direction.
+    pub fn max(&self) -> f64 {
+        self.shape_to_target.max(self.target_to_shape)
+    }
+}
+
+/// Patches a point of `Z` is projected onto (those of its nearest cloud points).
+const PROJECTION_PATCHES: usize = 8;
+
+/// Level of the lattice on a patch that picks the start of a projection.
+const PROJECTION_LATTICE: usize = 6;
+
+/// Gauss–Newton steps on a patch towards a point.
+const PROJECTION_STEPS: usize = 12;
+
+/// The kernel's view of a model's shape: patches and their points.
+struct Shape {
+    eval: ism_geom::ModelEval,
+    n: usize,
+    /// Per crossing simplex: its index and the patch corners in `u`.
+    patches: Vec<(usize, Vec<Bary>)>,
+    /// Simplex index → position in `patches`.
+    index: std::collections::HashMap<usize, usize>,
+}
+
+impl Shape {
+    fn new(model: &Model) -> Result<Shape, ism_geom::GeomError> {
+        let eval = ism_geom::ModelEval::new(model)?;
+        let n = model.dim();
+        let patches: Vec<(usize, Vec<Bary>)> = (0..model.num_simplices())
+            .filter_map(|s| {
+                let patch = eval.patch(s)?;
+                Some((s, patch.corners.iter().map(|c| c.u).collect()))
+            })
+            .collect();
+        let index = patches
+            .iter()
+            .enumerate()
+            .map(|(i, (s, _))| (*s, i))
+            .collect();
+        Ok(Shape {
+            eval,
+            n,
+            patches,
+            index,
+        })
+    }
+
+    fn point(&self, s: usize, u: &Bary) -> [f64; 3] {
+        let mut p = self.eval.param_point(s, u).p;
+        for x in p.iter_mut().skip(self.n) {
+            *x = 0.0;
+        }
+        p
+    }
+
+    /// One Gauss–Newton step from `u` (point `p`) towards `q` in the span of `dirs` (in `u`),
+    /// and the largest multiple of it (≤ 1) that stays in the simplex; `None` when singular.
+    fn gauss_newton(
+        &self,
+        s: usize,
+        u: &Bary,
+        p: &[f64; 3],
+        q: &[f64; 3],
+        dirs: &[Bary],
+        m: usize,
+    ) -> Option<(Bary, f64)> {
+        const H: f64 = 1e-7;
+        let cols: Vec<[f64; 3]> = dirs
+            .iter()
+            .map(|d| {
+                // A one-sided difference that stays in the simplex.
+                let h = if (0..m).all(|k| u[k] + H * d[k] >= 0.0) {
+                    H
+                } else {
+                    -H
+                };
+                let ph = self.point(s, &add4(u, d, h));
+                [(ph[0] - p[0]) / h, (ph[1] - p[1]) / h, (ph[2] - p[2]) / h]
+            })
+            .collect();
+        let r = [q[0] - p[0], q[1] - p[1], q[2] - p[2]];
+        let step: Vec<f64> = if cols.len() == 1 {
+            let a = dot3(&cols[0], &cols[0]);
+            if a <= 0.0 {
+                return None;
+            }
+            vec![dot3(&cols[0], &r) / a]
+        } else {
+            let (a, b, c) = (
+                dot3(&cols[0], &cols[0]),
+                dot3(&cols[0], &cols[1]),
+                dot3(&cols[1], &cols[1]),
+            );
+            let det = a * c - b * b;
+            if det.abs() <= 1e-300 {
+                return None;
+            }
+            let (r0, r1) = (dot3(&cols[0], &r), dot3(&cols[1], &r));
+            vec![(c * r0 - b * r1) / det, (a * r1 - b * r0) / det]
+        };
+        let mut delta = [0.0; 4];
+        for (d, a) in dirs.iter().zip(&step) {
+            delta = add4(&delta, d, *a);
+        }
+        // Stay on the patch: the step is in its plane; shorten it to stay in the simplex (a
+        // clamp would leave the plane, and the point would not be on S).
+        let mut t = 1.0f64;
+        for k in 0..m {
+            if delta[k] < 0.0 {
+                t = t.min(u[k] / -delta[k]);
+            }
+        }
+        delta
+            .iter()
+            .all(|x| x.is_finite())
+            .then_some((delta, t.max(0.0)))
+    }
+
+    /// [`Shape::project`] from the point of a coarse lattice on simplex `s`'s patch nearest to
+    /// `q`: a start near the closest point, where Gauss–Newton converges, rather than a cloud
+    /// point at the patch's boundary, where its steps are blocked by the simplex.
+    fn project_from_lattice(&self, s: usize, q: &[f64; 3]) -> f64 {
+        let Some(&i) = self.index.get(&s) else {
+            return f64::INFINITY;
+        };
+        let corners = &self.patches[i].1;
+        let start = patch_samples(corners, PROJECTION_LATTICE)
+            .into_iter()
+            .map(|u| CloudPoint {
+                p: self.point(s, &u),
+                simplex: s as u32,
+                u,
+            })
+            .min_by(|a, b| {
+                let d = |x: &CloudPoint| (0..3).map(|k| (x.p[k] - q[k]).powi(2)).sum::<f64>();
+                d(a).total_cmp(&d(b))
+            });
+        start.map_or(f64::INFINITY, |start| self.project(&start, q))
+    }
+
+    /// A point of `S` near `q`, starting from the cloud point `start`: Gauss–Newton on the patch
+    /// of its simplex (clamped to the simplex). Returns the smallest distance met.
+    fn project(&self, start: &CloudPoint, q: &[f64; 3]) -> f64 {
+        let dist = |p: &[f64; 3]| (0..3).map(|k| (p[k] - q[k]).powi(2)).sum::<f64>().sqrt();
+        let s = start.simplex as usize;
+        let Some(&i) = self.index.get(&s) else {
+            return dist(&start.p);
+        };
+        let corners = &self.patches[i].1;
+        let m = self.n + 1;
+        // Directions spanning the patch's plane in u.
+        let dirs: Vec<Bary> = match corners.len() {
+            2 => vec![sub4(&corners[1], &corners[0])],
+            k if k >= 3 => vec![
+                sub4(&corners[1], &corners[0]),
+                sub4(&corners[k - 1], &corners[0]),
+            ],
+            _ => return dist(&start.p),
+        };
+        let (mut u, mut p) = (start.u, start.p);
+        let mut best = dist(&p);
+        for _ in 0..PROJECTION_STEPS {
+            let mut step = self.gauss_newton(s, &u, &p, q, &dirs, m);
+            if step.is_some_and(|(_, t)| t < 1e-9) {
+                // Blocked by a face of the simplex the point is on: slide along the patch's
+                // edge on that face (the two corners with the same zero coordinate).
+                let active: Vec<usize> = (0..m).filter(|&k| u[k] <= 1e-15).collect();
+                let edge: Vec<&Bary> = corners
+                    .iter()
+                    .filter(|c| active.iter().all(|&k| c[k] == 0.0))
+                    .collect();
+                step = if edge.len() == 2 {
+                    self.gauss_newton(s, &u, &p, q, &[sub4(edge[1], edge[0])], m)
+                } else {
+                    None
+                };
+            }
+            let Some((delta, reach)) = step else {
+                break;
+            };
+            // Halve the step until it improves (at most 4 times).
+            let mut improved = false;
+            let mut t = reach;
+            for _ in 0..4 {
+                let mut ut = add4(&u, &delta, t);
+                for x in ut.iter_mut().take(m) {
+                    // Rounding only: the step was shortened to keep every coordinate ≥ 0.
+                    *x = x.max(0.0);
+                }
+                let pt = self.point(s, &ut);
+                let dt = dist(&pt);
+                if dt < best {
+                    best = dt;
+                    u = ut;
+                    p = pt;
+                    improved = true;
+                    break;
+                }
+                t *= 0.5;
+            }
+            if !improved {
+                break;
+            }
+        }
+        best
+    }
+}
+
+fn sub4(a: &Bary, b: &Bary) -> Bary {
+    [a[0] - b[0], a[1] - b[1], a[2] - b[2], a[3] - b[3]]
+}
+
+fn add4(a: &Bary, d: &Bary, t: f64) -> Bary {
+    [
+        a[0] + t * d[0],
+        a[1] + t * d[1],
+        a[2] + t * d[2],
+        a[3] + t * d[3],
+    ]
+}
+
+fn dot3(a: &[f64; 3], b: &[f64; 3]) -> f64 {
+    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+}
+
+fn distance(a: &[f64], b: &[f64; 3]) -> f64 {
+    a.iter()
+        .zip(b)
+        .map(|(x, y)| (x - y) * (x - y))
+        .sum::<f64>()
+        .sqrt()
+}
+
+/// Measures a model's shape against `g` (module doc). `tolerance` sets the resolution of the
+/// `Z → S` cover; `regions` are `(centre, radius)` pairs to report the error near.
+///
+/// # Errors
+/// The kernel's error when the model does not evaluate.
+pub fn measure<G: ImplicitFunction + ?Sized>(
+    g: &G,
+    model: &Model,
+    domain: &[f64],
+    tolerance: f64,
+    regions: &[(Vec<f64>, f64)],
+) -> Result<Measure, ism_geom::GeomError> {
+    let shape = Shape::new(model)?;
+    let n = shape.n;
+    let reach = domain
+        .chunks(2)
+        .map(|c| (c[1] - c[0]).powi(2))
+        .sum::<f64>()
+        .sqrt();
+
+    // S → Z at the report samples.
+    struct PatchResult {
+        max: f64,
+        at: [f64; 3],
+        sum: f64,
+        count: usize,
+        spacing: f64,
+        points: Vec<([f64; 3], f64)>,
+        /// Points of `Z` found from the samples (expressions).
+        zeros: Vec<[f64; 3]>,
+    }
+    let explicit = g.is_explicit();
+    let want_points = !regions.is_empty();
+    let per_patch: Vec<PatchResult> = shape
+        .patches
+        .par_iter()
+        .map(|(s, corners)| {
+            let us = patch_samples(corners, report_level(n));
+            let pts: Vec<[f64; 3]> = us.iter().map(|u| shape.point(*s, u)).collect();
+            let mut r = PatchResult {
+                max: 0.0,
+                at: pts[0],
+                sum: 0.0,
+                count: pts.len(),
+                spacing: 0.0,
+                points: Vec::new(),
+                zeros: Vec::new(),
+            };
+            for (i, p) in pts.iter().enumerate() {
+                let d = if explicit {
+                    g.distance_bound(&p[..n], reach)
+                } else {
+                    match bracket_point(g, &p[..n], reach) {
+                        Some((d, z)) => {
+                            r.zeros.push(z);
+                            d
+                        }
+                        None => f64::INFINITY,
+                    }
+                };
+                if d > r.max || d.is_nan() {
+                    r.max = if d.is_nan() { f64::INFINITY } else { d };
+                    r.at = *p;
+                }
+                r.sum += d;
+                let nearest = pts
+                    .iter()
+                    .enumerate()
+                    .filter(|(j, _)| *j != i)
+                    .map(|(_, q)| distance(&p[..], q))
+                    .fold(f64::INFINITY, f64::min);
+                if nearest.is_finite() {
+                    r.spacing = r.spacing.max(nearest);
+                }
+                if want_points {
+                    r.points.push((*p, d));
+                }
+            }
+            r
+        })
+        .collect();
+    let samples: usize = per_patch.iter().map(|r| r.count).sum();
+    let worst = per_patch.iter().max_by(|a, b| a.max.total_cmp(&b.max));
+    let shape_to_target = worst.map_or(0.0, |r| r.max);
+    let shape_to_target_at = worst.map_or(Vec::new(), |r| r.at[..n].to_vec());
+    let shape_spacing = per_patch.iter().map(|r| r.spacing).fold(0.0, f64::max);
+    let mean = per_patch.iter().map(|r| r.sum).sum::<f64>() / samples.max(1) as f64 + 0.0;
+
+    // Z → S.
+    let cloud = cloud(&shape, cloud_fraction(n) * tolerance);
+    let tree = RTree::bulk_load(cloud);
+    // The nearest cloud point: an upper bound of the distance to S; the largest ones are then
+    // tightened by projection ([`tighten`]).
+    let to_shape = |c: &[f64; 3]| -> f64 {
+        tree.nearest_neighbor(*c)
+            .map_or(f64::INFINITY, |q| distance(&q.p[..], c))
+    };
+    // From the nearest cloud points on up to PROJECTION_PATCHES different simplices: the closest
+    // point of S may lie on a neighbour of the nearest sample's patch.
+    let project = |c: &[f64; 3]| -> f64 {
+        let mut best = f64::INFINITY;
+        let mut seen: Vec<u32> = Vec::new();
+        for q in tree.nearest_neighbor_iter(*c).take(64) {
+            if seen.contains(&q.simplex) {
+                continue;
+            }
+            seen.push(q.simplex);
+            best = best
+                .min(distance(&q.p[..], c))
+                .min(shape.project(q, c))
+                .min(shape.project_from_lattice(q.simplex as usize, c));
+            if seen.len() == PROJECTION_PATCHES {
+                break;
+            }
+        }
+        best
+    };
+    // `(point of Z or box centre, estimate, certified bound)` per point or leaf.
+    let (points, cover): (Vec<TargetPoint>, TargetCover) = if shape.patches.is_empty() {
+        (Vec::new(), TargetCover::None)
+    } else if let Some((points, radius)) =
+        g.surface_points(leaf_fraction(n) * tolerance, TARGET_BUDGET)
+    {
+        let bounds = points
+            .par_iter()
+            .map(|q| {
+                let d = to_shape(q);
+                TargetPoint {
+                    at: *q,
+                    estimate: Some(d),
+                    bound: d + radius,
+                    box_term: Some(radius),
+                }
+            })
+            .collect();
+        (
+            bounds,
+            TargetCover::MeshPoints {
+                count: points.len(),
+                radius,
+            },
+        )
+    } else if g.enclose(&lo_of(domain), &hi_of(domain)).is_some() {
+        let leaves = box_cover(g, domain, tolerance, &to_shape);
+        let largest = leaves.iter().map(|l| l.1).fold(0.0, f64::max);
+        let count = leaves.len();
+        // The points of Z found from the fit's samples: dense where the fit is, so the estimate
+        // sees there what coarse boxes would not; the boxes find what the fit misses.
+        let near: Vec<TargetPoint> = per_patch
+            .par_iter()
+            .flat_map_iter(|r| &r.zeros)
+            .map(|z| {
+                let d = to_shape(z);
+                TargetPoint {
+                    at: *z,
+                    estimate: Some(d),
+                    bound: 0.0,
+                    box_term: None,
+                }
+            })
+            .collect();
+        (
+            leaves.into_iter().map(|l| l.0).chain(near).collect(),
+            TargetCover::Boxes { count, largest },
+        )
+    } else {
+        (Vec::new(), TargetCover::None)
+    };
+    let mut points = points;
+    tighten(&mut points, &project);
+    let measured = !matches!(cover, TargetCover::None);
+    let worst_estimate = points
+        .iter()
+        .filter_map(|t| t.estimate.map(|e| (e, t.at)))
+        .max_by(|a, b| a.0.total_cmp(&b.0));
+    let target_to_shape = if measured {
+        worst_estimate.map_or(0.0, |w| w.0)
+    } else {
+        f64::INFINITY
+    };
+    let target_at = worst_estimate.map_or(Vec::new(), |w| w.1[..n].to_vec());
+    let target_to_shape_bound = if measured {
+        points.iter().map(|t| t.bound).fold(0.0, f64::max)
+    } else {
+        f64::INFINITY
+    };
+    let leaves: Vec<([f64; 3], f64)> = if want_points {
+        points
+            .iter()
+            .map(|t| (t.at, t.estimate.unwrap_or(0.0)))
+            .collect()
+    } else {
+        Vec::new()
+    };
+
+    let regions = regions
+        .iter()
+        .map(|(centre, radius)| {
+            let near = |p: &[f64; 3]| distance(centre, p) <= *radius;
+            Region {
+                centre: centre.clone(),
+                radius: *radius,
+                shape_to_target: per_patch
+                    .iter()
+                    .flat_map(|r| &r.points)
+                    .filter(|(p, _)| near(p))
+                    .map(|x| x.1)
+                    .fold(0.0, f64::max),
+                target_to_shape: leaves
+                    .iter()
+                    .filter(|(p, _)| near(p))
+                    .map(|x| x.1)
+                    .fold(0.0, f64::max),
+            }
+        })
+        .collect();
+    Ok(Measure {
+        shape_to_target,
+        shape_to_target_mean: mean,
+        shape_to_target_at,
+        samples,
+        shape_spacing,
+        target_to_shape,
+        target_to_shape_bound,
+        target_to_shape_at: target_at,
+        cover,
+        cells: shape.patches.len(),
+        regions,
+    })
+}
+
+fn lo_of(domain: &[f64]) -> Vec<f64> {
+    domain.chunks(2).map(|c| c[0]).collect()
+}
+
+fn hi_of(domain: &[f64]) -> Vec<f64> {
+    domain.chunks(2).map(|c| c[1]).collect()
+}
+
+/// A cloud of points on `S` about `spacing` apart (within each patch), within [`CLOUD_BUDGET`].
+fn cloud(shape: &Shape, spacing: f64) -> Vec<CloudPoint> {
+    let n = shape.n;
+    let extents: Vec<f64> = shape
+        .patches
+        .par_iter()
+        .map(|(s, corners)| {
+            let ps: Vec<[f64; 3]> = corners.iter().map(|u| shape.point(*s, u)).collect();
+            let mut d = 0.0f64;
+            for a in &ps {
+                for b in &ps {
+                    d = d.max(distance(&a[..], b));
+                }
+            }
+            d
+        })
+        .collect();
+    let levels = |spacing: f64| -> Vec<usize> {
+        extents
+            .iter()
+            .map(|e| ((e / spacing).ceil() as usize).clamp(2, 4096))
+            .collect()
+    };
+    let count = |ls: &[usize]| -> usize {
+        ls.iter()
+            .map(|&l| {
+                if n == 2 {
+                    l + 1
+                } else {
+                    2 * (l + 1) * (l + 2) / 2
+                }
+            })
+            .sum()
+    };
+    let mut spacing = spacing;
+    let mut ls = levels(spacing);
+    while count(&ls) > CLOUD_BUDGET && ls.iter().any(|&l| l > 2) {
+        spacing *= 1.5;
+        ls = levels(spacing);
+    }
+    shape
+        .patches
+        .par_iter()
+        .zip(ls)
+        .flat_map_iter(|((s, corners), l)| {
+            patch_samples(corners, l)
+                .into_iter()
+                .map(move |u| CloudPoint {
+                    p: shape.point(*s, &u),
+                    simplex: *s as u32,
+                    u,
+                })
+        })
+        .collect()
+}
+
+/// Replaces the largest estimates by projections until the largest is a projected one: every
+/// estimate left is an upper bound no larger than it, so the maximum is what projecting all of
+/// them would give, at a fraction of the cost. Certified bounds that used an estimate are
+/// lowered with it.
+fn tighten(points: &mut [TargetPoint], project: &(dyn Fn(&[f64; 3]) -> f64 + Sync)) {
+    let mut order: Vec<usize> = (0..points.len())
+        .filter(|&i| points[i].estimate.is_some())
+        .collect();
+    order.sort_by(|&a, &b| {
+        let key = |i: usize| points[i].estimate.unwrap_or(0.0);
+        key(b).total_cmp(&key(a))
+    });
+    let mut done = 0;
+    let mut best = 0.0f64;
+    const BATCH: usize = 1024;
+    while done < order.len() && points[order[done]].estimate.unwrap_or(0.0) > best {
+        let batch = &order[done..(done + BATCH).min(order.len())];
+        let projected: Vec<f64> = batch.par_iter().map(|&i| project(&points[i].at)).collect();
+        for (&i, d) in batch.iter().zip(projected) {
+            let old = points[i].estimate.unwrap_or(f64::INFINITY);
+            if d < old {
+                points[i].estimate = Some(d);
+                if let Some(extra) = points[i].box_term {
+                    points[i].bound = points[i].bound.min(d + extra);
+                }
+            }
+            best = best.max(points[i].estimate.unwrap_or(0.0));
+        }
+        done += batch.len();
+    }
+}
+
+/// A point of the `Z → S` cover with its estimate and certified bound.
+#[derive(Clone, Copy, Debug)]
+struct TargetPoint {
+    /// A point of `Z` (or a box centre where none was found).
+    at: [f64; 3],
+    /// Its distance to `S` (an upper bound), when `at` is on `Z`.
+    estimate: Option<f64>,
+    /// Certified bound over the part of `Z` it stands for.
+    bound: f64,
+    /// What the bound adds to the estimate (`None`: the bound does not use the estimate).
+    box_term: Option<f64>,
+}
+
+/// The adaptive box cover of `Z` (module doc): leaves with their half-diagonal. A box is a leaf
+/// when interval arithmetic clears it of zeros (dropped), when `dist(centre, S) + half` is
+/// already below [`PROJECT_ABOVE`] of the tolerance, or when its half-diagonal is at most
+/// [`leaf_fraction`] of the tolerance; a leaf then gets a point of `Z` near its centre.
+fn box_cover<G: ImplicitFunction + ?Sized>(
+    g: &G,
+    domain: &[f64],
+    tolerance: f64,
+    to_shape: &(dyn Fn(&[f64; 3]) -> f64 + Sync),
+) -> Vec<(TargetPoint, f64)> {
+    let n = domain.len() / 2;
+    let mut leaf_half = leaf_fraction(n) * tolerance;
+    let sides: Vec<f64> = domain.chunks(2).map(|c| c[1] - c[0]).collect();
+    let longest = sides.iter().copied().fold(0.0, f64::max);
+    let per_axis: Vec<usize> = sides
+        .iter()
+        .map(|s| ((8.0 * s / longest).ceil() as usize).max(1))
+        .collect();
+    let mut level: Vec<(Vec<f64>, Vec<f64>)> = Vec::new();
+    let total: usize = per_axis.iter().product();
+    for idx in 0..total {
+        let mut rest = idx;
+        let (mut lo, mut hi) = (Vec::new(), Vec::new());
+        for (k, &m) in per_axis.iter().enumerate() {
+            let i = rest % m;
+            rest /= m;
+            let h = sides[k] / m as f64;
+            lo.push(domain[2 * k] + i as f64 * h);
+            hi.push(domain[2 * k] + (i + 1) as f64 * h);
+        }
+        level.push((lo, hi));
+    }
+    let mut leaves = Vec::new();
+    while !level.is_empty() {
+        // `(index, centre, half-diagonal, dist(centre, S))` of the boxes that may hold a zero.
+        let kept: Vec<(usize, [f64; 3], f64, f64)> = level
+            .par_iter()
+            .enumerate()
+            .filter_map(|(i, (lo, hi))| {
+                let keep = g
+                    .enclose(lo, hi)
+                    .is_none_or(|e| e.value.contains(0.0) || e.value.lo.is_nan());
+                if !keep {
+                    return None;
+                }
+                let mut c = [0.0; 3];
+                let mut half = 0.0;
+                for k in 0..n {
+                    c[k] = 0.5 * (lo[k] + hi[k]);
+                    half += (0.5 * (hi[k] - lo[k])).powi(2);
+                }
+                Some((i, c, half.sqrt(), to_shape(&c)))
+            })
+            .collect();
+        let splits = |k: &(usize, [f64; 3], f64, f64), leaf_half: f64| {
+            k.3 + k.2 > PROJECT_ABOVE * tolerance && k.2 > leaf_half
+        };
+        let to_split = kept.iter().filter(|k| splits(k, leaf_half)).count();
+        // Keep the work bounded: when splitting would blow the budget, the boxes stay leaves
+        // (a larger covering radius, so a looser certified bound, never a smaller one).
+        if leaves.len() + kept.len() + to_split * ((1 << n) - 1) > TARGET_BUDGET {
+            leaf_half = f64::INFINITY;
+        }
+        let (done, split): (Vec<_>, Vec<_>) = kept.into_iter().partition(|k| !splits(k, leaf_half));
+        leaves.par_extend(done.into_par_iter().map(|(_, c, half, d)| {
+            let box_bound = d + half;
+            let point = match bracket_point(g, &c[..n], 2.0 * half) {
+                Some((r, z)) => {
+                    let e = to_shape(&z);
+                    TargetPoint {
+                        at: z,
+                        estimate: Some(e),
+                        bound: box_bound.min(e + half + r),
+                        box_term: Some(half + r),
+                    }
+                }
+                None => TargetPoint {
+                    at: c,
+                    estimate: None,
+                    bound: box_bound,
+                    box_term: None,
+                },
+            };
+            (point, half)
+        }));
+        let mut next = Vec::with_capacity(split.len() << n);
+        for (i, ..) in split {
+            let (lo, hi) = &level[i];
+            for mask in 0..(1usize << n) {
+                let (mut l, mut h) = (lo.clone(), hi.clone());
+                for k in 0..n {
+                    let mid = 0.5 * (lo[k] + hi[k]);
+                    if mask & (1 << k) == 0 {
+                        h[k] = mid;
+                    } else {
+                        l[k] = mid;
+                    }
+                }
+                next.push((l, h));
+            }
+        }
+        level = next;
+    }
+    leaves
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::Expression;
+
+    #[test]
+    fn bracket_bounds_the_true_distance_where_the_gradient_vanishes() {
+        // g = (x² + y² − 1)³: the unit circle, with ∇g = 0 on it. |g|/|∇g| = (r² − 1)/(6r) is a
+        // sixth of the true distance |r − 1|·(r + 1)/(2r)·… ; the bracket must bound the truth
+        // (|r − 1|) from above and stay close to it.
+        let g = Expression::parse("(x^2 + y^2 - 1)^3", 2).unwrap();
+        for r in [0.5, 0.9, 0.99, 1.01, 1.2, 1.7] {
+            let p = [r * 0.6, r * 0.8];
+            let truth = (r - 1.0f64).abs();
+            let b = bracket_distance(&g, &p, 10.0);
+            assert!(b >= truth * (1.0 - 1e-12), "r = {r}: {b} < {truth}");
+            assert!(b <= truth * 1.001 + 1e-12, "r = {r}: {b} ≫ {truth}");
+            assert!(g.distance_estimate(&p) <= 0.5 * truth || r > 1.5);
+        }
+        // No zero within reach: ∞, never a finite claim.
+        let g = Expression::parse("x^2 + y^2 + 1", 2).unwrap();
+        assert!(bracket_distance(&g, &[0.3, 0.2], 10.0).is_infinite());
+    }
+
+    #[test]
+    fn bracket_bounds_the_distance_to_an_ellipse() {
+        // Thin ellipse x²/a² + y²/b² = 1, a = 1, b = 0.1: the closest point solved independently
+        // (dense parameter scan refined by ternary search).
+        let (a, b) = (1.0f64, 0.1f64);
+        let g = Expression::parse("x^2 + 100*y^2 - 1", 2).unwrap();
+        let truth = |p: [f64; 2]| -> f64 {
+            let d = |t: f64| ((a * t.cos() - p[0]).powi(2) + (b * t.sin() - p[1]).powi(2)).sqrt();
+            let n = 20_000;
+            let k = (0..n)
+                .map(|i| i as f64 * std::f64::consts::TAU / n as f64)
+                .min_by(|x, y| d(*x).total_cmp(&d(*y)))
+                .unwrap();
+            let (mut lo, mut hi) = (k - 1e-3, k + 1e-3);
+            for _ in 0..100 {
+                let (m1, m2) = (lo + (hi - lo) / 3.0, hi - (hi - lo) / 3.0);
+                if d(m1) < d(m2) {
+                    hi = m2;
+                } else {
+                    lo = m1;
+                }
+            }
+            d(0.5 * (lo + hi))
+        };
+        for p in [
+            [0.0, 0.15],
+            [0.9, 0.05],
+            [1.05, 0.0],
+            [0.3, -0.02],
+            [0.98, 0.03],
+        ] {
+            let t = truth(p);
+            let bound = bracket_distance(&g, &p, 10.0);
+            assert!(bound >= t * (1.0 - 1e-9), "{p:?}: {bound} < {t}");
+            assert!(bound <= 3.0 * t + 1e-12, "{p:?}: {bound} vs {t}");
+        }
+    }
+}
