@@ -794,8 +794,8 @@ impl Fitter<'_> {
             }
             let mut centre = vec![0.0; n];
             for &i in &members {
-                for k in 0..n {
-                    centre[k] += centres[i].0[k] / members.len() as f64;
+                for (c, x) in centre.iter_mut().zip(&centres[i].0) {
+                    *c += x / members.len() as f64;
                 }
             }
             let radius = members
