@@ -165,7 +165,13 @@ fn certified_valid_rational_models_export() {
         "-o".as_ref(),
         fitted.as_os_str(),
     ]);
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    // Exit 1 is fine here: since issue 17 the fit measures target → fit too, and this thin
+    // ellipsoid at 1e-2 is reported as not meeting the tolerance; the model is written anyway.
+    assert!(
+        matches!(o.status.code(), Some(0 | 1)) && fitted.exists(),
+        "{}",
+        String::from_utf8_lossy(&o.stderr)
+    );
     for (model, tolerance) in [(&smoothed, "1e-4"), (&fitted, "1e-3")] {
         let o = ism(&["validate".as_ref(), model.as_os_str(), "-q".as_ref()]);
         assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stdout));
