@@ -19,8 +19,8 @@
 //!   which record, if any, each face came from. A monotonic stage stores `d + 1` coefficients per
 //!   vertex. The layout is the one a numpy view wants: one contiguous array per table, fixed stride.
 //!
-//! Built in parallel (rayon): sorting the face keys of a million tetrahedra is the only
-//! superlinear step.
+//! Built in parallel (rayon), one vertex star at a time: every face is found from its smallest
+//! vertex, so the only sorting is of a star's few dozen entries (linear in the complex overall).
 
 use std::sync::{Arc, OnceLock};
 
