@@ -392,18 +392,7 @@ impl LocalStage {
             }
         }
         if rational {
-            local.weighted = local
-                .points
-                .iter()
-                .zip(&local.weights)
-                .map(|(b, &q)| {
-                    let mut out = [0.0; MAX_VARS];
-                    for i in 0..m {
-                        out[i] = q * b[i];
-                    }
-                    out
-                })
-                .collect();
+            local.finish_rational();
         }
         Ok(local)
     }
@@ -470,18 +459,7 @@ impl LocalStage {
             }
         }
         if rational {
-            self.weighted = self
-                .points
-                .iter()
-                .zip(&self.weights)
-                .map(|(b, &q)| {
-                    let mut out = [0.0; MAX_VARS];
-                    for i in 0..m {
-                        out[i] = q * b[i];
-                    }
-                    out
-                })
-                .collect();
+            self.finish_rational();
         }
         Ok(())
     }
@@ -513,6 +491,23 @@ impl LocalStage {
         }
         self.finish_monotonic();
         Ok(())
+    }
+
+    /// `q_I b_I` of the rational net in `points` and `weights`.
+    fn finish_rational(&mut self) {
+        let m = self.m;
+        self.weighted = self
+            .points
+            .iter()
+            .zip(&self.weights)
+            .map(|(b, &q)| {
+                let mut out = [0.0; MAX_VARS];
+                for i in 0..m {
+                    out[i] = q * b[i];
+                }
+                out
+            })
+            .collect();
     }
 
     /// Scaled coefficients and derivative coefficients of the monotonic maps in `mono`.
