@@ -1,0 +1,495 @@
+"""A VTK reader of Iso-Simplicial Models: ``ism.vtk_reader.ISMReader``.
+
+A ``VTKPythonAlgorithmBase`` source, usable in a plain VTK pipeline (the ``vtk`` wheel) and, through
+the decorated subclass in ``paraview/ism_reader_plugin.py``, as a ParaView reader::
+
+    from ism.vtk_reader import ISMReader
+    r = ISMReader()
+    r.SetFileName("spec/examples/sphere.ismb")      # .ism.json, .ismb or .ism.msgpack
+    r.SetTolerance(1e-3)
+    r.Update()
+    mb = r.GetOutputDataObject(0)                   # vtkMultiBlockDataSet
+
+The output is a ``vtkMultiBlockDataSet`` of two blocks (block names in the metadata key
+``vtkCompositeDataSet.NAME()``):
+
+0. ``"Surface"`` — ``vtkPolyData``: the curved shape ``F = c`` extracted at ``Tolerance`` by the
+   library (``Model.extract_surface``, what ``ism export`` writes): triangles (3D) or polylines
+   (2D models, ``z = 0``), point data ``Normals`` (∇F/|∇F|, set as the normals), ``F``
+   (``Model.query`` at the points) and ``Gradient`` (∇F in the simplex the point was extracted
+   from), cell data ``SourceSimplex``.
+1. ``"Volume"`` — ``vtkUnstructuredGrid`` of VTK Bézier cells (``VTK_BEZIER_TRIANGLE`` in 2D,
+   ``VTK_BEZIER_TETRAHEDRON`` in 3D, degrees in the cell data ``HigherOrderDegrees``, weights in
+   the point data ``RationalWeights`` when the cells are rational) carrying ``F`` as point data
+   and ``SourceSimplex`` as cell data; contouring ``F`` at the level gives the shape. How the
+   field relates to the model's ``F`` is in the field data (see :func:`volume_grid`):
+   ``FieldRepresentation`` (``"exact"`` or ``"approximate"``), ``FieldErrorBound`` (largest
+   ``|F_vtk − F|`` over the cells the level may cross; 0 when exact), ``FieldErrorCertified``
+   (1: a conservative bound, 0: an estimate) and ``FieldNote``.
+
+Both blocks also carry the field data ``Level`` (the model's ``c``) and ``ModelName``.
+
+A file that cannot be read (missing, not an ISM, structurally invalid) makes ``RequestData``
+report a VTK error (the ``ErrorEvent`` of the reader, else the output window, as
+``vtkErrorMacro`` does) and return 0: the pipeline's ``Update()`` fails and the output is empty —
+nothing is raised into the caller and nothing crashes.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from math import comb
+from typing import Any, Dict, List, Optional, Tuple
+
+import numpy as np
+from vtkmodules.util import numpy_support
+from vtkmodules.util.vtkAlgorithm import VTKPythonAlgorithmBase
+from vtkmodules.vtkCommonCore import (
+    vtkCommand,
+    vtkDoubleArray,
+    vtkIntArray,
+    vtkOutputWindow,
+    vtkPoints,
+    vtkStringArray,
+)
+from vtkmodules.vtkCommonDataModel import (
+    VTK_BEZIER_TETRAHEDRON,
+    VTK_BEZIER_TRIANGLE,
+    vtkCellArray,
+    vtkCompositeDataSet,
+    vtkHigherOrderTetra,
+    vtkHigherOrderTriangle,
+    vtkMultiBlockDataSet,
+    vtkPolyData,
+    vtkUnstructuredGrid,
+)
+from vtkmodules.vtkIOXML import vtkXMLUnstructuredGridReader
+
+import ism
+
+#: Surface tolerance used when none is set (the CLI's ``ism export`` default).
+DEFAULT_TOLERANCE = 1e-3
+
+SURFACE_BLOCK = 0
+VOLUME_BLOCK = 1
+
+
+def _array(values: np.ndarray, name: str) -> Any:
+    a = numpy_support.numpy_to_vtk(np.ascontiguousarray(values), deep=True)
+    a.SetName(name)
+    return a
+
+
+def _string_field(data: Any, name: str, text: str) -> None:
+    s = vtkStringArray()
+    s.SetName(name)
+    s.InsertNextValue(text)
+    data.GetFieldData().AddArray(s)
+
+
+def _double_field(data: Any, name: str, value: float) -> None:
+    a = vtkDoubleArray()
+    a.SetName(name)
+    a.InsertNextValue(float(value))
+    data.GetFieldData().AddArray(a)
+
+
+def _int_field(data: Any, name: str, value: int) -> None:
+    a = vtkIntArray()
+    a.SetName(name)
+    a.InsertNextValue(int(value))
+    data.GetFieldData().AddArray(a)
+
+
+def _cells(connectivity: np.ndarray) -> vtkCellArray:
+    """A ``vtkCellArray`` of equal-size cells from an (N, k) index array."""
+    conn = np.ascontiguousarray(connectivity, dtype=np.int64)
+    offsets = np.arange(0, conn.size + 1, conn.shape[1] if conn.ndim == 2 else 1, dtype=np.int64)
+    ca = vtkCellArray()
+    ca.SetData(
+        numpy_support.numpy_to_vtkIdTypeArray(offsets, deep=True),
+        numpy_support.numpy_to_vtkIdTypeArray(conn.ravel(), deep=True),
+    )
+    return ca
+
+
+def _xyz(positions: np.ndarray) -> np.ndarray:
+    p = np.asarray(positions, dtype=np.float64)
+    if p.shape[1] == 3:
+        return p
+    return np.column_stack([p, np.zeros((len(p), 3 - p.shape[1]))])
+
+
+def surface_polydata(model: Any, tolerance: float) -> vtkPolyData:
+    """The curved shape at ``tolerance`` (``Model.extract_surface``) as ``vtkPolyData``: triangles
+    (3D) or polylines (2D, ``z = 0``), point data ``Normals``, ``F``, ``Gradient``, cell data
+    ``SourceSimplex`` (per triangle; per polyline, the simplex of its first segment)."""
+    s = model.extract_surface(tolerance)
+    pd = vtkPolyData()
+    pts = vtkPoints()
+    pts.SetData(_array(_xyz(s.positions), "Points"))
+    pd.SetPoints(pts)
+    if s.dimension == 3:
+        pd.SetPolys(_cells(s.cells))
+        cell_simplex = np.asarray(s.cell_simplex, dtype=np.int64)
+    else:
+        lines = s.polylines()
+        ca = vtkCellArray()
+        first_segment = {int(a): i for i, (a, _) in enumerate(s.cells)}
+        cell_simplex_l: List[int] = []
+        for line in lines:
+            ca.InsertNextCell(len(line))
+            for v in line:
+                ca.InsertCellPoint(int(v))
+            cell_simplex_l.append(int(s.cell_simplex[first_segment[int(line[0])]]))
+        pd.SetLines(ca)
+        cell_simplex = np.array(cell_simplex_l, dtype=np.int64)
+    normals = _array(_xyz(s.normals), "Normals")
+    pd.GetPointData().SetNormals(normals)
+    # F is continuous, so the library's query gives it at the points whichever simplex it picks;
+    # ∇F may jump across faces (C⁰ models), so it is the extraction's own: normal × |∇F| in the
+    # simplex the point was extracted from.
+    f = np.asarray(model.query(s.positions)["f"], dtype=np.float64) if len(s.positions) else np.zeros(0)
+    grad = np.asarray(s.normals) * np.asarray(s.gradient_norm, dtype=np.float64)[:, None]
+    pd.GetPointData().AddArray(_array(f, "F"))
+    pd.GetPointData().AddArray(_array(_xyz(grad.reshape(len(f), -1)), "Gradient"))
+    pd.GetPointData().SetActiveScalars("F")
+    pd.GetCellData().AddArray(_array(cell_simplex, "SourceSimplex"))
+    _double_field(pd, "Tolerance", tolerance)
+    for key in ("euler_characteristic", "components", "enclosed_measure"):
+        if key in s.report and isinstance(s.report[key], (int, float)):
+            _double_field(pd, "".join(w.title() for w in key.split("_")), s.report[key])
+    return pd
+
+
+def _multi_indices(m: int, d: int) -> List[Tuple[int, ...]]:
+    """All multi-indices of degree ``d`` in ``m`` variables in the canonical order of the format
+    (spec/ism-format.md §4.3: lexicographically decreasing)."""
+    if m == 1:
+        return [(d,)]
+    return [(a,) + rest for a in range(d, -1, -1) for rest in _multi_indices(m - 1, d - a)]
+
+
+def _vtk_local_order(n: int, degree: int) -> List[Tuple[int, ...]]:
+    """The local multi-indices (ISM local vertex order) of the points of a VTK Bézier triangle or
+    tetrahedron of ``degree``, in VTK's point order — asked from VTK itself
+    (``vtkHigherOrderTriangle/Tetra.BarycentricIndex``). VTK's barycentric index puts the
+    cell's first vertex last, hence the rotation."""
+    cls = vtkHigherOrderTriangle if n == 2 else vtkHigherOrderTetra
+    count = comb(degree + n, n)
+    out = []
+    for i in range(count):
+        b = [0] * (n + 1)
+        cls.BarycentricIndex(i, b, degree)
+        out.append((b[n],) + tuple(b[:n]))
+    return out
+
+
+class _NotExact(Exception):
+    """The model's stage composition is not one (rational) Bézier cell per simplex."""
+
+
+def _single_cell_form(model: Any) -> Tuple[int, Optional[int], Optional[int]]:
+    """``(d, monotonic, net)``: the stage indices of the compositions this module writes exactly —
+    an optional degree-1 monotonic stage then an optional implicit Bézier or rational stage of
+    degree ``d`` (``d = 1`` and no net: the linear interpolant). Raises :class:`_NotExact`
+    otherwise."""
+    stages = list(model.stages)
+    monotonic = net = None
+    i = 0
+    if i < len(stages) and stages[i].kind == "monotonic" and stages[i].degree == 1 and stages[i].direction == "implicit":
+        monotonic = i
+        i += 1
+    if i < len(stages) and stages[i].kind in ("bezier", "rational") and stages[i].direction == "implicit":
+        net = i
+        i += 1
+    if i != len(stages):
+        raise _NotExact(
+            "stages " + " ∘ ".join(f"{s.kind}({s.degree}, {s.direction})" for s in reversed(stages))
+        )
+    return (stages[net].degree if net is not None else 1), monotonic, net
+
+
+def exact_bezier_grid(model: Any) -> vtkUnstructuredGrid:
+    """The complex with ``F`` as VTK Bézier cells that are *exactly* ``F`` (no approximation), for
+    models whose composed map on each simplex is one (rational) Bézier map: no stages (linear
+    ``F``), an implicit Bézier or rational stage of degree ``d``, optionally preceded by a
+    degree-1 monotonic stage. Raises :class:`_NotExact` for other compositions.
+
+    Why it is exact. A degree-1 monotonic stage is ``Y(w)_i = a_i w_i / Σ a_j w_j`` (``a_i`` the
+    vertex's coefficient ``a₁``); composed with a Bézier net ``b_I`` of degree ``d`` (``Σ a·w`` to the
+    power ``d`` is ``Σ a^I B_I(w)``) it is the rational map with weights ``Q_I = q_I a^I``
+    (``q_I`` the rational stage's weights, 1 for a Bézier stage). Then
+    ``F = Σ_I Q_I c_I B_I / Σ_I Q_I B_I`` with ``c_I = Σ_i f(s_i) b_I[i]``.
+
+    * All ``Q_I = 1``: ``F`` is the degree-``d`` polynomial with Bernstein coefficients ``c_I`` on
+      the linear simplex — a VTK Bézier cell of degree ``d`` with control points at ``I/d``.
+    * Otherwise a VTK *rational* Bézier cell interpolates geometry and field with the same rational
+      basis, so the linear geometry must be written rationally too: ``x(w) = (Σ w_i V_i) W / W`` with
+      ``W = Σ Q_I B_I``, degree ``d + 1``. By degree elevation (``w_i B_I^d = (I_i+1)/(d+1)
+      B^{d+1}_{I+e_i}``) the cell of degree ``d + 1`` has weights
+      ``q'_J = Σ_i J_i/(d+1) · Q_{J−e_i}``, field ``F_J = Σ_i J_i/(d+1) · Q_{J−e_i} c_{J−e_i} / q'_J``
+      and control points ``P_J = Σ_i J_i/(d+1) · Q_{J−e_i} V_i / q'_J`` (all positive weights).
+
+    Each control point depends only on the face that owns it (its key: the sorted pairs
+    (vertex id, exponent)), so neighbouring cells share it and the field is continuous.
+    """
+    n = model.dimension
+    if n not in (2, 3):
+        raise _NotExact(f"dimension {n}")
+    d, monotonic, net = _single_cell_form(model)
+    vertices = np.asarray(model.vertices, dtype=np.float64)
+    values = np.asarray(model.values, dtype=np.float64)
+    simplices = np.asarray(model.simplices, dtype=np.int64)
+    a = np.ones(len(vertices))
+    if monotonic is not None:
+        coeffs = model.stage_tables(monotonic)["coefficients"]
+        a = np.asarray(coeffs[:, 1], dtype=np.float64)
+    tables = model.stage_tables(net) if net is not None else None
+    rational = tables is not None and model.stages[net].kind == "rational"
+    face_row = [
+        {tuple(sorted(int(x) for x in row)): r for r, row in enumerate(model.faces(k))}
+        for k in range(min(n, d - 1) + 1)
+    ] if tables is not None else []
+    owned_rank: Dict[Tuple[int, Tuple[int, ...]], Dict[Tuple[int, ...], int]] = {}
+
+    def owned_index(m: int, exps: Tuple[int, ...]) -> int:
+        table = owned_rank.setdefault((m, (d,)), {})
+        if not table:
+            for r, j in enumerate(_multi_indices(m, d - m)):
+                table[j] = r
+        return table[tuple(e - 1 for e in exps)]
+
+    base: Dict[Tuple[Tuple[int, int], ...], Tuple[float, float]] = {}
+
+    def coefficient(key: Tuple[Tuple[int, int], ...]) -> Tuple[float, float]:
+        """``(c_I, Q_I)`` of the degree-``d`` multi-index whose support/exponents are ``key``."""
+        got = base.get(key)
+        if got is not None:
+            return got
+        ids = tuple(v for v, _ in key)
+        exps = tuple(e for _, e in key)
+        k = len(key) - 1
+        if tables is None:
+            c = sum(values[v] * e for v, e in key) / d
+            q = 1.0
+        else:
+            row = face_row[k][ids]
+            o = owned_index(k + 1, exps)
+            pts = tables["points"][k][row, o * (k + 1) : (o + 1) * (k + 1)]
+            c = float(np.dot(values[list(ids)], pts))
+            q = float(tables["weights"][k][row, o]) if rational else 1.0
+        for v, e in key:
+            q *= a[v] ** e
+        base[key] = (c, q)
+        return c, q
+
+    weighted = rational or bool(np.any(a != 1.0))
+    degree = d + 1 if weighted else d
+    order = _vtk_local_order(n, degree)
+    point_of: Dict[Tuple[Tuple[int, int], ...], int] = {}
+    pts_out: List[np.ndarray] = []
+    f_out: List[float] = []
+    w_out: List[float] = []
+    conn = np.empty((len(simplices), len(order)), dtype=np.int64)
+    for s, ids in enumerate(simplices):
+        for li, exps in enumerate(order):
+            key = tuple(sorted((int(ids[i]), e) for i, e in enumerate(exps) if e > 0))
+            pid = point_of.get(key)
+            if pid is None:
+                if weighted:
+                    qs, ns, xs = 0.0, 0.0, np.zeros(n)
+                    for j, (v, e) in enumerate(key):
+                        lower = key[:j] + (((v, e - 1),) if e > 1 else ()) + key[j + 1 :]
+                        c, q = coefficient(lower)
+                        t = e / degree * q
+                        qs += t
+                        ns += t * c
+                        xs += t * vertices[v]
+                    pts_out.append(xs / qs)
+                    f_out.append(ns / qs)
+                    w_out.append(qs)
+                else:
+                    c, _ = coefficient(key)
+                    pts_out.append(sum(e / d * vertices[v] for v, e in key))
+                    f_out.append(c)
+                pid = len(f_out) - 1
+                point_of[key] = pid
+            conn[s, li] = pid
+    grid = vtkUnstructuredGrid()
+    p = vtkPoints()
+    p.SetData(_array(_xyz(np.array(pts_out).reshape(-1, n)), "Points"))
+    grid.SetPoints(p)
+    offsets = np.arange(0, conn.size + 1, conn.shape[1], dtype=np.int64)
+    ca = vtkCellArray()
+    ca.SetData(
+        numpy_support.numpy_to_vtkIdTypeArray(offsets, deep=True),
+        numpy_support.numpy_to_vtkIdTypeArray(conn.ravel(), deep=True),
+    )
+    grid.SetCells(VTK_BEZIER_TRIANGLE if n == 2 else VTK_BEZIER_TETRAHEDRON, ca)
+    grid.GetPointData().AddArray(_array(np.array(f_out), "F"))
+    if weighted:
+        grid.GetPointData().SetRationalWeights(_array(np.array(w_out), "RationalWeights"))
+    grid.GetCellData().AddArray(_array(np.arange(len(simplices), dtype=np.int64), "SourceSimplex"))
+    _string_field(grid, "FieldRepresentation", "exact")
+    for name, value in (("FieldErrorBound", 0.0), ("FieldErrorBoundEverywhere", 0.0)):
+        _double_field(grid, name, value)
+    _int_field(grid, "FieldErrorCertified", 1)
+    _int_field(grid, "Degree", degree)
+    _int_field(grid, "RefinementLevels", 0)
+    kind = "rational " if weighted else ""
+    _string_field(
+        grid,
+        "FieldNote",
+        f"exact: one {kind}Bézier cell of degree {degree} per simplex (F_vtk = F up to rounding)",
+    )
+    return grid
+
+
+def volume_grid(model: Any, tolerance: float) -> vtkUnstructuredGrid:
+    """The complex with ``F`` as VTK Bézier cells: :func:`exact_bezier_grid` when the stage
+    composition is one (rational) Bézier map per simplex, else :func:`approximate_bezier_grid`.
+    The cell data ``HigherOrderDegrees`` gives every cell's degree."""
+    try:
+        grid = exact_bezier_grid(model)
+    except _NotExact as why:
+        grid = approximate_bezier_grid(model, tolerance)
+        note = grid.GetFieldData().GetAbstractArray("FieldNote")
+        note.SetValue(0, f"approximate ({why} is not one Bézier map per simplex): " + note.GetValue(0))
+    degree = int(grid.GetFieldData().GetArray("Degree").GetValue(0))
+    grid.GetCellData().SetHigherOrderDegrees(
+        _array(np.full((grid.GetNumberOfCells(), 3), degree, dtype=np.int32), "HigherOrderDegrees")
+    )
+    grid.GetPointData().SetActiveScalars("F")
+    return grid
+
+
+def approximate_bezier_grid(model: Any, tolerance: float) -> vtkUnstructuredGrid:
+    """The complex with ``F`` as polynomial VTK Bézier cells approximating ``F``.
+
+    The cells are those of the library's volume exporter (``ism export --volume``,
+    ``ism_export::volume``, reached through ``Model.export(volume=True)``): each simplex, red-refined
+    ``k`` times, carries the degree-``p`` polynomial interpolant of ``F`` on linear geometry, with
+    ``(p, k)`` chosen so the certified bound on ``|F_vtk − F|`` meets ``tolerance · median |∇F|``
+    (the library's default field tolerance; contouring then moves the surface by about
+    ``tolerance``). The field data says what was written: ``FieldErrorBound`` (on the cells the
+    level may cross), ``FieldErrorBoundEverywhere``, ``FieldErrorCertified`` (0 when the model has a
+    parametric stage: the bound is then a dense-sample estimate), ``FieldTolerance``, ``Degree``,
+    ``RefinementLevels``, ``FieldNote``.
+    """
+    with tempfile.TemporaryDirectory(prefix="ism-vtk-") as d:
+        path = os.path.join(d, "volume.vtu")
+        summary = model.export(path, tolerance=tolerance, volume=True)
+        reader = vtkXMLUnstructuredGridReader()
+        reader.SetFileName(path)
+        reader.Update()
+        grid = vtkUnstructuredGrid()
+        grid.DeepCopy(reader.GetOutput())
+    _string_field(grid, "FieldRepresentation", "approximate")
+    _double_field(grid, "FieldErrorBound", summary["field_error_bound"])
+    _double_field(grid, "FieldErrorBoundEverywhere", summary["field_error_bound_everywhere"])
+    _int_field(grid, "FieldErrorCertified", bool(summary["field_error_certified"]))
+    _double_field(grid, "FieldTolerance", summary["field_tolerance"])
+    _int_field(grid, "Degree", summary["degree"])
+    _int_field(grid, "RefinementLevels", summary["refinement_levels"])
+    _string_field(grid, "FieldNote", str(summary["field"]))
+    return grid
+
+
+def read_multiblock(path: str, tolerance: float = DEFAULT_TOLERANCE, *, surface: bool = True, volume: bool = True) -> vtkMultiBlockDataSet:
+    """Reads ``path`` into the reader's multiblock (raises ``ism.ISMError`` for a bad file)."""
+    model = ism.read(path)
+    mb = vtkMultiBlockDataSet()
+    mb.SetNumberOfBlocks(2)
+    blocks: List[Tuple[int, str, Optional[Any]]] = [
+        (SURFACE_BLOCK, "Surface", surface_polydata(model, tolerance) if surface else None),
+        (VOLUME_BLOCK, "Volume", volume_grid(model, tolerance) if volume else None),
+    ]
+    name = model.metadata.get("name", os.path.basename(path))
+    for index, label, data in blocks:
+        mb.GetMetaData(index).Set(vtkCompositeDataSet.NAME(), label)
+        if data is not None:
+            _double_field(data, "Level", model.level)
+            _string_field(data, "ModelName", name)
+            mb.SetBlock(index, data)
+    return mb
+
+
+class ISMReader(VTKPythonAlgorithmBase):
+    """VTK source reading an ``.ism.json`` / ``.ismb`` / ``.ism.msgpack`` file (see the module
+    docstring for the output). Properties: ``FileName``, ``Tolerance`` (surface tolerance, model
+    units), ``ReadSurface`` and ``ReadVolume`` (both on by default)."""
+
+    def __init__(self) -> None:
+        VTKPythonAlgorithmBase.__init__(self, nInputPorts=0, nOutputPorts=1, outputType="vtkMultiBlockDataSet")
+        self._file_name: Optional[str] = None
+        self._tolerance = DEFAULT_TOLERANCE
+        self._read_surface = True
+        self._read_volume = True
+        #: The last error message (``None`` after a successful read); also reported as a VTK error.
+        self.last_error: Optional[str] = None
+
+    # Properties (each setter marks the algorithm modified only on a change, as vtkSetMacro does).
+    def SetFileName(self, name: Optional[str]) -> None:
+        name = None if name is None else os.fspath(name)
+        if name != self._file_name:
+            self._file_name = name
+            self.Modified()
+
+    def GetFileName(self) -> Optional[str]:
+        return self._file_name
+
+    def SetTolerance(self, tolerance: float) -> None:
+        if float(tolerance) != self._tolerance:
+            self._tolerance = float(tolerance)
+            self.Modified()
+
+    def GetTolerance(self) -> float:
+        return self._tolerance
+
+    def SetReadSurface(self, on: bool) -> None:
+        if bool(on) != self._read_surface:
+            self._read_surface = bool(on)
+            self.Modified()
+
+    def GetReadSurface(self) -> bool:
+        return self._read_surface
+
+    def SetReadVolume(self, on: bool) -> None:
+        if bool(on) != self._read_volume:
+            self._read_volume = bool(on)
+            self.Modified()
+
+    def GetReadVolume(self) -> bool:
+        return self._read_volume
+
+    def _error(self, message: str) -> None:
+        """Reports an error as ``vtkErrorMacro`` does: to the ``ErrorEvent`` observers when there
+        are any, else to the output window."""
+        self.last_error = message
+        text = f"ERROR: In {__file__}\n{type(self).__name__} ({self.GetClassName()}): {message}\n"
+        if self.HasObserver(vtkCommand.ErrorEvent):
+            self.InvokeEvent(vtkCommand.ErrorEvent, text)
+        else:
+            vtkOutputWindow.GetInstance().DisplayErrorText(text)
+
+    def RequestData(self, request: Any, inInfo: Any, outInfo: Any) -> int:
+        output = vtkMultiBlockDataSet.GetData(outInfo, 0)
+        self.last_error = None
+        if not self._file_name:
+            self._error("no file name set (SetFileName)")
+            return 0
+        if not (self._tolerance > 0.0):
+            self._error(f"Tolerance must be positive, got {self._tolerance}")
+            return 0
+        try:
+            mb = read_multiblock(
+                self._file_name, self._tolerance, surface=self._read_surface, volume=self._read_volume
+            )
+        except (ism.ISMError, OSError, ValueError) as e:
+            self._error(f"cannot read {self._file_name}: {type(e).__name__}: {e}")
+            return 0
+        output.ShallowCopy(mb)
+        return 1
+
