@@ -153,7 +153,7 @@ def surface_polydata(model: Any, tolerance: float) -> vtkPolyData:
     f = np.asarray(model.query(s.positions)["f"], dtype=np.float64) if len(s.positions) else np.zeros(0)
     grad = np.asarray(s.normals) * np.asarray(s.gradient_norm, dtype=np.float64)[:, None]
     pd.GetPointData().AddArray(_array(f, "F"))
-    pd.GetPointData().AddArray(_array(_xyz(grad.reshape(len(f), -1)), "Gradient"))
+    pd.GetPointData().AddArray(_array(_xyz(grad), "Gradient"))
     pd.GetPointData().SetActiveScalars("F")
     pd.GetCellData().AddArray(_array(cell_simplex, "SourceSimplex"))
     _double_field(pd, "Tolerance", tolerance)

@@ -469,3 +469,20 @@ def test_vtk_pipeline_script_writes_files_vtk_reads_back(tmp_path):
         capture_output=True, text=True, timeout=300,
     )
     assert bad.returncode == 1 and "cannot read" in bad.stderr
+
+
+@pytest.mark.parametrize("dimension", [2, 3])
+def test_model_without_shape_gives_an_empty_surface_and_its_volume(tmp_path, dimension):
+    """All values above the level: no shape. The surface block is empty (not an error) and the
+    volume still carries F (linear here: one degree-1 cell per simplex, F at the vertices)."""
+    if dimension == 2:
+        m = ism.Model(np.array([[0, 0], [1, 0], [1, 1], [0, 1]], float), np.array([[0, 1, 2], [0, 2, 3]]), [1.0, 2, 3, 4], 0.0)
+    else:
+        m = ism.Model(np.eye(4, 3, -1), np.array([[0, 1, 2, 3]]), [1.0, 2, 3, 4], 0.0)
+    m.write(tmp_path / "m.ismb")
+    r, errors, mb = read(tmp_path / "m.ismb")
+    assert errors.messages == [] and mb.GetNumberOfBlocks() == 2
+    assert mb.GetBlock(0).GetNumberOfPoints() == 0 and mb.GetBlock(0).GetNumberOfCells() == 0
+    vol = mb.GetBlock(1)
+    assert vol.GetNumberOfCells() == m.num_simplices
+    assert sorted(vtk_to_numpy(vol.GetPointData().GetArray("F"))) == [1.0, 2.0, 3.0, 4.0]
