@@ -13,6 +13,7 @@ from paraview import servermanager
 from paraview.simple import (
     Clip,
     Contour,
+    Delete,
     ColorBy,
     ExtractBlock,
     GetActiveViewOrCreate,
@@ -55,6 +56,21 @@ check(cell_types == {VTK_BEZIER_TETRAHEDRON}, f"volume: {volume.GetNumberOfCells
 check(volume.GetPointData().GetRationalWeights() is not None, "volume has rational weights")
 check(volume.GetPointData().GetArray("F") is not None, "volume carries F")
 print("field:", volume.GetFieldData().GetAbstractArray("FieldNote").GetValue(0))
+
+# A bad file: ParaView reports the reader's error and carries on with an empty output.
+import os  # noqa: E402
+import tempfile  # noqa: E402
+
+with tempfile.TemporaryDirectory() as tmp:
+    bad_path = os.path.join(tmp, "bad.ismb")
+    with open(bad_path, "wb") as f:
+        f.write(b"not an ISM file" * 4)
+    bad = OpenDataFile(bad_path)
+    check(bad is not None and bad.GetXMLName() == "ISMReader", "a bad .ismb is still given to the ISM reader")
+    bad.UpdatePipeline()  # prints the reader's VTK error; must not raise or crash
+    bad_mb = servermanager.Fetch(bad)
+    check(bad_mb.GetNumberOfBlocks() == 0, "the bad file gives an empty output")
+    Delete(bad)
 
 # Render: the back half of the surface (y > 0; ParaView's Clip of the polydata) in a plain colour,
 # and the slice y = 0 of the volume coloured by F (ParaView linearises the Bézier cells to slice):
