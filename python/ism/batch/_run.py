@@ -275,6 +275,7 @@ def run(
                 result.tasks[fut.key] = it["id"]
                 ac.add(fut)
 
+            prog.t0 = time.monotonic()  # the rate counts from the first task, not the cluster's start
             for _ in range(min(limit, len(todo))):
                 submit_next()
             for fut in ac:
