@@ -1,6 +1,6 @@
 """Renders an ISM file with Cycles (CPU) after importing it through the extension: the README picture.
 
-    .venv-blender/bin/python blender/render.py spec/examples/torus.ismb blender/torus.png
+    .venv-blender/bin/python blender/render.py genus2.ismb blender/genus2.png --samples 32
 
 Run with the Python that has `bpy` (tools/setup.sh makes .venv-blender). Standalone, the script
 builds the extension zip (blender/build.py, wheel from target/wheels), installs it into a temporary
@@ -28,7 +28,8 @@ def render_file(model_path: str, png: str, *, width: int = 480, height: int = 36
     scene = bpy.context.scene
 
     mat = bpy.data.materials.new("ISM surface")
-    mat.use_nodes = True
+    if mat.node_tree is None:  # Blender < 5 makes node trees only on request
+        mat.use_nodes = True
     bsdf = mat.node_tree.nodes.get("Principled BSDF")
     bsdf.inputs["Base Color"].default_value = (0.85, 0.45, 0.15, 1.0)
     bsdf.inputs["Roughness"].default_value = 0.35
@@ -54,7 +55,8 @@ def render_file(model_path: str, png: str, *, width: int = 480, height: int = 36
     scene.collection.objects.link(sun)
     world = scene.world or bpy.data.worlds.new("ISM world")
     scene.world = world
-    world.use_nodes = True
+    if world.node_tree is None:
+        world.use_nodes = True
     world.node_tree.nodes["Background"].inputs["Color"].default_value = (0.9, 0.92, 0.95, 1.0)
     world.node_tree.nodes["Background"].inputs["Strength"].default_value = 0.6
 
