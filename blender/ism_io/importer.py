@@ -11,7 +11,7 @@ from __future__ import annotations
 import json
 import os
 from dataclasses import dataclass, field
-from typing import Any, Dict, List, Optional
+from typing import Any, List, Optional
 
 import bpy
 import numpy as np
@@ -267,19 +267,12 @@ def _remove(made: List[Any]) -> None:
 
 
 def summary_of_error(err: BaseException) -> str:
-    """One line for the operator report: the error's class, message and where it is."""
-    where: List[str] = []
-    for attr in ("rule", "pointer", "offset"):
-        v = getattr(err, attr, None)
-        if v not in (None, ""):
-            where.append(f"{attr} {v}")
-    diags: Dict[str, Any] = {}
-    for d in getattr(err, "diagnostics", [])[:3]:
-        diags[d.get("rule", "?")] = d.get("message", "")
-    extra = "; ".join(f"{k}: {v}" for k, v in diags.items())
+    """One line for the operator report: the error's class and message. The package's messages
+    already name the rule and the place (byte offset, JSON pointer, simplex); the rule and pointer
+    are added only where the message lacks them."""
     text = f"{type(err).__name__}: {err}"
-    if where:
-        text += f" ({', '.join(where)})"
-    if extra and extra not in text:
-        text += f" [{extra}]"
+    for attr in ("rule", "pointer"):
+        v = getattr(err, attr, None)
+        if v and str(v) not in text:
+            text += f" ({attr} {v})"
     return text
