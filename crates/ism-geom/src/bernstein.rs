@@ -120,20 +120,48 @@ fn shape(m: usize, d: u32) -> ShapeRef {
     }
 }
 
-/// One de Casteljau step with point `x`: degree-`t + 1` coefficients → degree-`t`.
-fn casteljau_step(m: usize, t: u32, up: &[usize], c: &[f64], x: &[f64]) -> Vec<f64> {
-    let count = multi_index::count(m, t);
-    let mut out = Vec::with_capacity(count);
-    for r in 0..count {
+/// One de Casteljau step with point `x`: degree-`t + 1` coefficients `c` → degree-`t` into `out`
+/// (`count(m, t)` entries). Zero weights are skipped, so a vertex or edge point mixes only the
+/// coefficients it touches (exact values at vertices).
+fn casteljau_into(m: usize, up: &[usize], c: &[f64], x: &[f64], out: &mut [f64]) {
+    for (r, o) in out.iter_mut().enumerate() {
         let mut s = 0.0;
         for i in 0..m {
             if x[i] != 0.0 {
                 s += x[i] * c[up[r * m + i]];
             }
         }
-        out.push(s);
+        *o = s;
     }
+}
+
+/// [`casteljau_into`] into a new vector.
+fn casteljau_step(m: usize, t: u32, up: &[usize], c: &[f64], x: &[f64]) -> Vec<f64> {
+    let mut out = vec![0.0; multi_index::count(m, t)];
+    casteljau_into(m, up, c, x, &mut out);
     out
+}
+
+/// De Casteljau from degree `d` down to 0 at `x` in one scratch buffer, whose two halves hold
+/// alternate levels (no allocation per level).
+fn casteljau_to_value(m: usize, d: u32, coeffs: &[f64], x: &[f64], scratch: &mut Vec<f64>) -> f64 {
+    let count = coeffs.len();
+    scratch.clear();
+    scratch.resize(2 * count, 0.0);
+    let (mut cur, mut next) = scratch.split_at_mut(count);
+    cur.copy_from_slice(coeffs);
+    for t in (0..d).rev() {
+        let len = multi_index::count(m, t);
+        casteljau_into(m, &shape(m, t).up, cur, x, &mut next[..len]);
+        std::mem::swap(&mut cur, &mut next);
+    }
+    cur[0]
+}
+
+thread_local! {
+    /// Scratch space of the de Casteljau loops (one per thread: evaluation and restriction are
+    /// called from rayon workers, millions of times, on small polynomials).
+    static SCRATCH: std::cell::RefCell<Vec<f64>> = const { std::cell::RefCell::new(Vec::new()) };
 }
 
 /// How to restrict polynomials to one sub-simplex by replacing the vertices one at a time: vertex
@@ -263,12 +291,10 @@ impl Bernstein {
     /// `p(w)` by de Casteljau (`w` has `m` entries; need not sum to 1: the homogeneous form is
     /// evaluated).
     pub fn eval(&self, w: &[f64]) -> f64 {
-        let m = self.m;
-        let mut c = self.coeffs.clone();
-        for t in (0..self.degree).rev() {
-            c = casteljau_step(m, t, &shape(m, t).up, &c, w);
-        }
-        c[0]
+        SCRATCH.with(|scratch| match scratch.try_borrow_mut() {
+            Ok(mut buf) => casteljau_to_value(self.m, self.degree, &self.coeffs, w, &mut buf),
+            Err(_) => casteljau_to_value(self.m, self.degree, &self.coeffs, w, &mut Vec::new()),
+        })
     }
 
     /// An enclosure of `p` over the box `w ∈ [w_i]` of barycentric coordinates, by de Casteljau in
@@ -450,7 +476,69 @@ impl Bernstein {
     pub fn replace_vertex(&self, a: usize, r: &[f64]) -> Bernstein {
         let m = self.m;
         let d = self.degree;
-        // levels[t] = blossom values b(r^t, e^J) for |J| = d − t.
+        // All levels in one buffer: level t (blossom values b(r^t, e^J), |J| = d − t) starts at
+        // offsets[t]; Σ_t count(m, d − t) = count(m + 1, d) entries.
+        let offsets: Vec<usize> = (0..=d)
+            .scan(0usize, |acc, t| {
+                let start = *acc;
+                *acc += multi_index::count(m, d - t);
+                Some(start)
+            })
+            .collect();
+        let total = offsets[d as usize] + 1;
+        let gather = |levels: &[f64]| -> Vec<f64> {
+            let mut j = [0u32; crate::MAX_VARS];
+            let out_shape = shape(m, d);
+            out_shape
+                .all
+                .chunks_exact(m)
+                .map(|i| {
+                    let j = &mut j[..m];
+                    j.copy_from_slice(i);
+                    let t = j[a];
+                    j[a] = 0;
+                    let lower = d - t;
+                    levels[offsets[t as usize] + shape(m, lower).rank(j, lower)]
+                })
+                .collect()
+        };
+        let fill = |levels: &mut Vec<f64>| -> Vec<f64> {
+            levels.clear();
+            levels.resize(total, 0.0);
+            levels[..self.coeffs.len()].copy_from_slice(&self.coeffs);
+            for t in 0..d as usize {
+                let (done, rest) = levels.split_at_mut(offsets[t + 1]);
+                let len = multi_index::count(m, d - t as u32 - 1);
+                casteljau_into(
+                    m,
+                    &shape(m, d - t as u32 - 1).up,
+                    &done[offsets[t]..],
+                    r,
+                    &mut rest[..len],
+                );
+            }
+            gather(levels)
+        };
+        let coeffs = if m <= crate::MAX_VARS && d as usize <= CACHED_DEGREE {
+            SCRATCH.with(|scratch| match scratch.try_borrow_mut() {
+                Ok(mut buf) => fill(&mut buf),
+                Err(_) => fill(&mut Vec::new()),
+            })
+        } else {
+            self.replace_vertex_general(a, r)
+        };
+        Bernstein {
+            m,
+            degree: d,
+            coeffs,
+        }
+    }
+
+    /// [`Bernstein::replace_vertex`] for any shape, with per-level vectors and the index tables
+    /// fetched once per call (for shapes beyond the cache, where fetching builds them).
+    fn replace_vertex_general(&self, a: usize, r: &[f64]) -> Vec<f64> {
+        let m = self.m;
+        let d = self.degree;
         let mut levels = vec![self.coeffs.clone()];
         for t in 0..d {
             let next = casteljau_step(
@@ -464,7 +552,7 @@ impl Bernstein {
         }
         let mut j = vec![0u32; m];
         let shapes: Vec<ShapeRef> = (0..=d).map(|t| shape(m, t)).collect();
-        let coeffs = shapes[d as usize]
+        shapes[d as usize]
             .all
             .chunks_exact(m)
             .map(|i| {
@@ -474,22 +562,71 @@ impl Bernstein {
                 let lower = d - t;
                 levels[t as usize][shapes[lower as usize].rank(&j, lower)]
             })
-            .collect();
-        Bernstein {
-            m,
-            degree: d,
-            coeffs,
-        }
+            .collect()
     }
 
     /// Splits edge `(a, b)` at its midpoint: the first child has vertex `b` replaced by the midpoint
     /// (the half where `w_a ≥ w_b`), the second has vertex `a` replaced. Both keep the parent's
     /// orientation and vertex order.
+    ///
+    /// Only the coefficients along the edge's direction mix: for each multi-index `J` of the other
+    /// variables, the line `c_{J + (L−k) e_a + k e_b}` (`k = 0..L`, `L = d − |J|`) is a univariate
+    /// Bernstein polynomial, and one de Casteljau triangle at `1/2` gives both halves (its first
+    /// and last diagonals). `O(d · count)` with no per-level allocation, and every sum is the one
+    /// [`Bernstein::replace_vertex`] forms (`0 + ½x + ½y`), so the result is bit-identical to it.
     pub fn split_edge(&self, a: usize, b: usize) -> (Bernstein, Bernstein) {
-        let mut mid = vec![0.0; self.m];
-        mid[a] = 0.5;
-        mid[b] = 0.5;
-        (self.replace_vertex(b, &mid), self.replace_vertex(a, &mid))
+        let m = self.m;
+        if a == b || a >= m || b >= m || m > 4 {
+            let mut mid = vec![0.0; m];
+            mid[a] = 0.5;
+            mid[b] = 0.5;
+            return (self.replace_vertex(b, &mid), self.replace_vertex(a, &mid));
+        }
+        let d = self.degree;
+        let sh = shape(m, d);
+        let count = self.coeffs.len();
+        let mut left = vec![0.0; count];
+        let mut right = vec![0.0; count];
+        let len = d as usize + 1;
+        let mut line = vec![0.0; len];
+        let mut ranks = vec![0usize; len];
+        let mut idx = [0u32; 4];
+        // The lower-indexed variable's term comes first in `replace_vertex`'s sums.
+        let a_first = a < b;
+        for i in sh.all.chunks_exact(m) {
+            if i[b] != 0 {
+                continue;
+            }
+            let l = i[a] as usize;
+            idx[..m].copy_from_slice(i);
+            for k in 0..=l {
+                idx[a] = (l - k) as u32;
+                idx[b] = k as u32;
+                ranks[k] = sh.rank(&idx[..m], d);
+                line[k] = self.coeffs[ranks[k]];
+            }
+            left[ranks[0]] = line[0];
+            right[ranks[l]] = line[l];
+            for level in 1..=l {
+                for j in 0..=(l - level) {
+                    // line[j] is the e_a-side term, line[j + 1] the e_b-side one.
+                    let (x, y) = (0.5 * line[j], 0.5 * line[j + 1]);
+                    line[j] = if a_first {
+                        (0.0 + x) + y
+                    } else {
+                        (0.0 + y) + x
+                    };
+                }
+                left[ranks[level]] = line[0];
+                right[ranks[l - level]] = line[l - level];
+            }
+        }
+        let child = |coeffs| Bernstein {
+            m,
+            degree: d,
+            coeffs,
+        };
+        (child(left), child(right))
     }
 
     /// Restriction to the sub-simplex with barycentric vertices `vertices[0..m]` (each `m` entries):
@@ -534,19 +671,25 @@ impl Bernstein {
         let k1 = vertices.len();
         let d = self.degree;
         let ups: Vec<ShapeRef> = (0..d).map(|t| shape(m, t)).collect();
+        let count = self.coeffs.len();
+        // Two halves of one buffer hold alternate de Casteljau levels.
+        let mut buf = vec![0.0; 2 * count];
         let coeffs = shape(k1, d)
             .all
             .chunks_exact(k1.max(1))
             .map(|i| {
-                let mut c = self.coeffs.clone();
+                let (mut cur, mut next) = buf.split_at_mut(count);
+                cur.copy_from_slice(&self.coeffs);
                 let mut t = d;
                 for (k, &e) in i.iter().enumerate() {
                     for _ in 0..e {
                         t -= 1;
-                        c = casteljau_step(m, t, &ups[t as usize].up, &c, &vertices[k]);
+                        let len = multi_index::count(m, t);
+                        casteljau_into(m, &ups[t as usize].up, cur, &vertices[k], &mut next[..len]);
+                        std::mem::swap(&mut cur, &mut next);
                     }
                 }
-                c[0]
+                cur[0]
             })
             .collect();
         Bernstein {
@@ -591,6 +734,39 @@ mod tests {
         [0.7, 0.1, 0.15, 0.05],
         [0.25, 0.25, 0.25, 0.25],
     ];
+
+    /// `split_edge`'s univariate triangle against the general vertex replacement (an independent
+    /// computation of the same blossom values): equal bit for bit, for every edge and shape.
+    #[test]
+    fn edge_split_equals_vertex_replacement_bit_for_bit() {
+        for m in 2..=4 {
+            for d in 0..=9 {
+                let p = sample(m, d, 31 + u64::from(d) + 100 * m as u64);
+                for a in 0..m {
+                    for b in 0..m {
+                        if a == b {
+                            continue;
+                        }
+                        let mut mid = vec![0.0; m];
+                        mid[a] = 0.5;
+                        mid[b] = 0.5;
+                        let (l, r) = p.split_edge(a, b);
+                        let general = |v: usize| p.replace_vertex_general(v, &mid);
+                        let bits = |c: &[f64]| c.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+                        assert_eq!(bits(l.coeffs()), bits(&general(b)), "m={m} d={d} ({a},{b})");
+                        assert_eq!(bits(r.coeffs()), bits(&general(a)), "m={m} d={d} ({a},{b})");
+                        // And the fast vertex replacement agrees with the general one.
+                        assert_eq!(bits(p.replace_vertex(b, &mid).coeffs()), bits(&general(b)));
+                        let w = [0.3, 0.1, 0.4, 0.2];
+                        assert_eq!(
+                            bits(p.replace_vertex(a, &w[..m]).coeffs()),
+                            bits(&p.replace_vertex_general(a, &w[..m]))
+                        );
+                    }
+                }
+            }
+        }
+    }
 
     #[test]
     fn casteljau_matches_power_form_and_vertices_are_exact() {
