@@ -95,6 +95,45 @@ fn dense_key(head: &[u32], radix: usize) -> usize {
 static SHAPES: [[OnceLock<Shape>; CACHED_DEGREE + 1]; 5] =
     [const { [const { OnceLock::new() }; CACHED_DEGREE + 1] }; 5];
 
+/// Where [`Bernstein::replace_vertex`] finds each output coefficient among its de Casteljau
+/// levels, for one cached shape `(m, d)`: level `t` (the blossom values `b(r^t, e^J)`,
+/// `|J| = d − t`) starts at `offsets[t]` of the flat level buffer, and output `r` with vertex
+/// `a` replaced is entry `gather[r · m + a]` (`t = I_a`, `J = I − I_a e_a`). A pure function of
+/// the shape, so computed once instead of a rank lookup per coefficient and call.
+#[derive(Debug)]
+struct ReplacePlan {
+    offsets: Vec<usize>,
+    gather: Vec<u32>,
+}
+
+impl ReplacePlan {
+    fn build(m: usize, d: u32) -> ReplacePlan {
+        let mut offsets = Vec::with_capacity(d as usize + 2);
+        let mut acc = 0usize;
+        for t in 0..=d {
+            offsets.push(acc);
+            acc += multi_index::count(m, d - t);
+        }
+        offsets.push(acc);
+        let top = shape(m, d);
+        let mut gather = Vec::with_capacity(top.multinom.len() * m);
+        let mut j = vec![0u32; m];
+        for i in top.all.chunks_exact(m.max(1)) {
+            for a in 0..m {
+                j.copy_from_slice(i);
+                let t = j[a];
+                j[a] = 0;
+                let lower = d - t;
+                gather.push((offsets[t as usize] + shape(m, lower).rank(&j, lower)) as u32);
+            }
+        }
+        ReplacePlan { offsets, gather }
+    }
+}
+
+static REPLACE_PLANS: [[OnceLock<ReplacePlan>; CACHED_DEGREE + 1]; 5] =
+    [const { [const { OnceLock::new() }; CACHED_DEGREE + 1] }; 5];
+
 /// A cached shape, or one built for a single use (beyond the cache).
 enum ShapeRef {
     Cached(&'static Shape),
@@ -151,8 +190,8 @@ fn casteljau_to_value(m: usize, d: u32, coeffs: &[f64], x: &[f64], scratch: &mut
     let (mut cur, mut next) = scratch.split_at_mut(count);
     cur.copy_from_slice(coeffs);
     for t in (0..d).rev() {
-        let len = multi_index::count(m, t);
-        casteljau_into(m, &shape(m, t).up, cur, x, &mut next[..len]);
+        let sh = shape(m, t);
+        casteljau_into(m, &sh.up, cur, x, &mut next[..sh.multinom.len()]);
         std::mem::swap(&mut cur, &mut next);
     }
     cur[0]
@@ -476,57 +515,36 @@ impl Bernstein {
     pub fn replace_vertex(&self, a: usize, r: &[f64]) -> Bernstein {
         let m = self.m;
         let d = self.degree;
-        // All levels in one buffer: level t (blossom values b(r^t, e^J), |J| = d − t) starts at
-        // offsets[t]; Σ_t count(m, d − t) = count(m + 1, d) entries.
-        let offsets: Vec<usize> = (0..=d)
-            .scan(0usize, |acc, t| {
-                let start = *acc;
-                *acc += multi_index::count(m, d - t);
-                Some(start)
-            })
-            .collect();
-        let total = offsets[d as usize] + 1;
-        let gather = |levels: &[f64]| -> Vec<f64> {
-            let mut j = [0u32; crate::MAX_VARS];
-            let out_shape = shape(m, d);
-            out_shape
-                .all
-                .chunks_exact(m)
-                .map(|i| {
-                    let j = &mut j[..m];
-                    j.copy_from_slice(i);
-                    let t = j[a];
-                    j[a] = 0;
-                    let lower = d - t;
-                    levels[offsets[t as usize] + shape(m, lower).rank(j, lower)]
-                })
-                .collect()
-        };
+        if m == 0 || m > crate::MAX_VARS || d as usize > CACHED_DEGREE {
+            return Bernstein {
+                m,
+                degree: d,
+                coeffs: self.replace_vertex_general(a, r),
+            };
+        }
+        let plan = REPLACE_PLANS[m][d as usize].get_or_init(|| ReplacePlan::build(m, d));
         let fill = |levels: &mut Vec<f64>| -> Vec<f64> {
+            let offsets = &plan.offsets;
             levels.clear();
-            levels.resize(total, 0.0);
+            levels.resize(offsets[d as usize + 1], 0.0);
             levels[..self.coeffs.len()].copy_from_slice(&self.coeffs);
             for t in 0..d as usize {
                 let (done, rest) = levels.split_at_mut(offsets[t + 1]);
-                let len = multi_index::count(m, d - t as u32 - 1);
-                casteljau_into(
-                    m,
-                    &shape(m, d - t as u32 - 1).up,
-                    &done[offsets[t]..],
-                    r,
-                    &mut rest[..len],
-                );
+                let len = offsets[t + 2] - offsets[t + 1];
+                let up = &shape(m, d - t as u32 - 1).up;
+                casteljau_into(m, up, &done[offsets[t]..], r, &mut rest[..len]);
             }
-            gather(levels)
+            plan.gather
+                .iter()
+                .skip(a)
+                .step_by(m)
+                .map(|&g| levels[g as usize])
+                .collect()
         };
-        let coeffs = if m <= crate::MAX_VARS && d as usize <= CACHED_DEGREE {
-            SCRATCH.with(|scratch| match scratch.try_borrow_mut() {
-                Ok(mut buf) => fill(&mut buf),
-                Err(_) => fill(&mut Vec::new()),
-            })
-        } else {
-            self.replace_vertex_general(a, r)
-        };
+        let coeffs = SCRATCH.with(|scratch| match scratch.try_borrow_mut() {
+            Ok(mut buf) => fill(&mut buf),
+            Err(_) => fill(&mut Vec::new()),
+        });
         Bernstein {
             m,
             degree: d,
@@ -684,8 +702,9 @@ impl Bernstein {
                 for (k, &e) in i.iter().enumerate() {
                     for _ in 0..e {
                         t -= 1;
-                        let len = multi_index::count(m, t);
-                        casteljau_into(m, &ups[t as usize].up, cur, &vertices[k], &mut next[..len]);
+                        let up = &ups[t as usize];
+                        let len = up.multinom.len();
+                        casteljau_into(m, &up.up, cur, &vertices[k], &mut next[..len]);
                         std::mem::swap(&mut cur, &mut next);
                     }
                 }
