@@ -685,38 +685,83 @@ impl Bernstein {
     /// entries each): a polynomial in `vertices.len()` variables whose coefficient `I` is the
     /// blossom at `vertices[i]` repeated `I_i` times. `O(count_out · count · m)`.
     pub fn restrict_to_face(&self, vertices: &[Vec<f64>]) -> Bernstein {
-        let m = self.m;
         let k1 = vertices.len();
         let d = self.degree;
-        let ups: Vec<ShapeRef> = (0..d).map(|t| shape(m, t)).collect();
-        let count = self.coeffs.len();
-        // Two halves of one buffer hold alternate de Casteljau levels.
-        let mut buf = vec![0.0; 2 * count];
-        let coeffs = shape(k1, d)
-            .all
-            .chunks_exact(k1.max(1))
-            .map(|i| {
-                let (mut cur, mut next) = buf.split_at_mut(count);
-                cur.copy_from_slice(&self.coeffs);
-                let mut t = d;
-                for (k, &e) in i.iter().enumerate() {
-                    for _ in 0..e {
-                        t -= 1;
-                        let up = &ups[t as usize];
-                        let len = up.multinom.len();
-                        casteljau_into(m, &up.up, cur, &vertices[k], &mut next[..len]);
-                        std::mem::swap(&mut cur, &mut next);
-                    }
-                }
-                cur[0]
-            })
-            .collect();
+        let out_shape = shape(k1, d);
+        let mut coeffs = vec![0.0; out_shape.multinom.len()];
+        if k1 == 0 {
+            return Bernstein {
+                m: 0,
+                degree: d,
+                coeffs,
+            };
+        }
+        // Coefficient I applies vertex 0 I_0 times, then vertex 1 I_1 times, …: indices sharing a
+        // prefix share those de Casteljau steps, so walk the prefix tree depth first (the same
+        // steps in the same order per coefficient as one chain each, hence the same bits).
+        let mut idx = vec![0u32; k1];
+        let ups: Vec<ShapeRef> = (0..d).map(|t| shape(self.m, t)).collect();
+        let walk = FaceWalk {
+            vertices,
+            ups: &ups,
+            out_shape: &out_shape,
+            degree: d,
+        };
+        self.face_prefix(&walk, 0, d, &self.coeffs, &mut idx, &mut coeffs);
         Bernstein {
             m: k1,
             degree: d,
             coeffs,
         }
     }
+
+    /// One node of [`Bernstein::restrict_to_face`]'s prefix tree: `cur` holds the blossom values
+    /// with `vertices[..k]` applied `idx[..k]` times (degree `t` left); fills every coefficient
+    /// with that prefix.
+    fn face_prefix(
+        &self,
+        walk: &FaceWalk<'_>,
+        k: usize,
+        t: u32,
+        cur: &[f64],
+        idx: &mut [u32],
+        out: &mut [f64],
+    ) {
+        let m = self.m;
+        let last = k + 1 == walk.vertices.len();
+        let mut c = cur.to_vec();
+        for e in 0..=t {
+            if e > 0 {
+                let lower = t - e;
+                c = casteljau_step(
+                    m,
+                    lower,
+                    &walk.ups[lower as usize].up,
+                    &c,
+                    &walk.vertices[k],
+                );
+            }
+            if last && e < t {
+                continue;
+            }
+            idx[k] = e;
+            if last {
+                out[walk.out_shape.rank(idx, walk.degree)] = c[0];
+            } else {
+                self.face_prefix(walk, k + 1, t - e, &c, idx, out);
+            }
+        }
+        idx[k] = 0;
+    }
+}
+
+/// What every node of [`Bernstein::face_prefix`]'s walk shares.
+struct FaceWalk<'a> {
+    vertices: &'a [Vec<f64>],
+    /// Index tables of degrees `0..d` in the parent's variables.
+    ups: &'a [ShapeRef],
+    out_shape: &'a Shape,
+    degree: u32,
 }
 
 #[cfg(test)]
@@ -753,6 +798,43 @@ mod tests {
         [0.7, 0.1, 0.15, 0.05],
         [0.25, 0.25, 0.25, 0.25],
     ];
+
+    /// The face restriction's prefix-tree walk against one de Casteljau chain per coefficient
+    /// (the definition): equal bit for bit.
+    #[test]
+    fn face_restriction_walk_equals_one_chain_per_coefficient() {
+        let pts = [
+            vec![0.2, 0.3, 0.1, 0.4],
+            vec![0.6, 0.1, 0.25, 0.05],
+            vec![0.1, 0.1, 0.7, 0.1],
+            vec![0.0, 0.5, 0.5, 0.0],
+        ];
+        for m in 2..=4 {
+            for d in 0..=7 {
+                let p = sample(m, d, 5 + u64::from(d));
+                for k1 in 1..=m {
+                    let verts: Vec<Vec<f64>> = pts[..k1].iter().map(|v| v[..m].to_vec()).collect();
+                    let fast = p.restrict_to_face(&verts);
+                    let slow: Vec<f64> = multi_index::all(k1, d)
+                        .chunks_exact(k1)
+                        .map(|i| {
+                            let mut c = p.coeffs().to_vec();
+                            let mut t = d;
+                            for (k, &e) in i.iter().enumerate() {
+                                for _ in 0..e {
+                                    t -= 1;
+                                    c = casteljau_step(m, t, &shape(m, t).up, &c, &verts[k]);
+                                }
+                            }
+                            c[0]
+                        })
+                        .collect();
+                    let bits = |c: &[f64]| c.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+                    assert_eq!(bits(fast.coeffs()), bits(&slow), "m={m} d={d} k1={k1}");
+                }
+            }
+        }
+    }
 
     /// `split_edge`'s univariate triangle against the general vertex replacement (an independent
     /// computation of the same blossom values): equal bit for bit, for every edge and shape.
