@@ -80,14 +80,52 @@ pub fn solve(k: usize, a: &Mat, b: &[f64; MAX_VARS]) -> Option<[f64; MAX_VARS]> 
 }
 
 /// Inverse of the upper-left `k × k` block; `None` when singular.
+///
+/// One elimination with partial pivoting applied to the `k` unit right-hand sides at once: the
+/// same operations, in the same order, as [`solve`] per column (so the same bits), with the
+/// factorisation done once instead of `k` times (this is on the sampler's per-candidate path).
 pub fn inverse(k: usize, a: &Mat) -> Option<Mat> {
-    let mut out = [[0.0; MAX_VARS]; MAX_VARS];
+    let mut m = *a;
+    // x[c] is the c-th right-hand side (a unit vector), stored as a row for contiguous access.
+    let mut x = [[0.0; MAX_VARS]; MAX_VARS];
+    for (c, col) in x.iter_mut().enumerate().take(k) {
+        col[c] = 1.0;
+    }
     for c in 0..k {
-        let mut e = [0.0; MAX_VARS];
-        e[c] = 1.0;
-        let col = solve(k, a, &e)?;
+        let p = (c..k).max_by(|&i, &j| m[i][c].abs().total_cmp(&m[j][c].abs()))?;
+        if m[p][c] == 0.0 || !m[p][c].is_finite() {
+            return None;
+        }
+        if p != c {
+            m.swap(p, c);
+            for col in x.iter_mut().take(k) {
+                col.swap(p, c);
+            }
+        }
+        for r in c + 1..k {
+            let f = m[r][c] / m[c][c];
+            for cc in c..k {
+                m[r][cc] -= f * m[c][cc];
+            }
+            for col in x.iter_mut().take(k) {
+                col[r] -= f * col[c];
+            }
+        }
+    }
+    let mut out = [[0.0; MAX_VARS]; MAX_VARS];
+    for (j, col) in x.iter_mut().enumerate().take(k) {
+        for c in (0..k).rev() {
+            let mut s = col[c];
+            for cc in c + 1..k {
+                s -= m[c][cc] * col[cc];
+            }
+            col[c] = s / m[c][c];
+        }
+        if !col[..k].iter().all(|v| v.is_finite()) {
+            return None;
+        }
         for r in 0..k {
-            out[r][c] = col[r];
+            out[r][j] = col[r];
         }
     }
     Some(out)
@@ -134,6 +172,30 @@ mod tests {
         for (i, row) in id.iter().take(3).enumerate() {
             for (j, v) in row.iter().take(3).enumerate() {
                 assert!((v - f64::from(u8::from(i == j))).abs() < 1e-14);
+            }
+        }
+        // The one-factorisation inverse equals the column-by-column solves bit for bit.
+        let mut s = 3u64;
+        for k in 1..=4 {
+            for _ in 0..200 {
+                let mut b = [[0.0; MAX_VARS]; MAX_VARS];
+                for row in b.iter_mut().take(k) {
+                    for v in row.iter_mut().take(k) {
+                        s = s
+                            .wrapping_mul(6364136223846793005)
+                            .wrapping_add(1442695040888963407);
+                        *v = (s >> 11) as f64 / (1u64 << 53) as f64 * 2.0 - 1.0;
+                    }
+                }
+                let fast = inverse(k, &b).unwrap();
+                for c in 0..k {
+                    let mut e = [0.0; MAX_VARS];
+                    e[c] = 1.0;
+                    let col = solve(k, &b, &e).unwrap();
+                    for r in 0..k {
+                        assert_eq!(fast[r][c].to_bits(), col[r].to_bits(), "k={k}");
+                    }
+                }
             }
         }
         assert!(solve(
