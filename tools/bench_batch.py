@@ -156,8 +156,9 @@ def main() -> None:
     io_item = (in_bytes + out_bytes) / n
     print(f"\nprojection: per item {per_item * 1000:.1f} ms worker CPU, {drv_item * 1000:.2f} ms scheduler+driver CPU, "
           f"{io_item / 1e3:.1f} kB read+written")  # fmt: skip
-    print("assumptions: machines of c=16 cores like this one's, one single-threaded worker per core; "
-          "one scheduler whose CPU per task stays at the measured driver+scheduler cost; a shared "
+    print("assumptions: machines of c=16 cores as fast per core as this VM's (which has 2), one "
+          "single-threaded worker per core, the same item mix; one scheduler (Dask's is one Python "
+          "process) whose CPU per task stays at the driver+scheduler cost measured here; a shared "
           "file system giving 1 GB/s in aggregate; no other bottleneck.")  # fmt: skip
     for N in (1, 10, 100, 1000):
         compute = N * 16 / per_item
