@@ -19,7 +19,7 @@ item's done marker and summary rows) and ``summary.parquet`` / ``summary.csv``. 
 engine's behaviour on faults.
 
 The engine is Dask (``dask.distributed``), chosen over Ray because it is pip-light (pure Python
-wheels; Ray is a ~70 MB binary wheel with its own object store and raylet processes), a
+wheels; Ray is a large binary wheel with its own object store and raylet processes), a
 ``LocalCluster`` runs the same code on one machine as a scheduler address does on many, its
 nannies restart a killed or over-memory worker and its scheduler re-runs that worker's tasks, and
 its dashboard (bokeh) shows the tasks' progress without extra setup. Both would do; on a 2-core CI
