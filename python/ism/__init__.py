@@ -120,7 +120,8 @@ def validate(source: Union[Source, Model], **options: Any) -> ValidationReport:
     """Validates a model, a path, ``bytes`` or a binary file object as ``ism validate --json``
     does (for files, the report's ``file`` member names path, encoding and size).
 
-    Options: ``max_issues``, ``threads``, ``max_pieces``, ``quality``, ``theorems``.
+    Options: ``max_issues``, ``threads``, ``max_pieces``, ``quality``, ``theorems``, and
+    ``progress(phase, done, total)`` (Ctrl-C or an exception from it stops the run).
     A file that cannot be read raises :class:`FileError` or :class:`FormatError`; structural
     errors are findings of the report, not exceptions.
     """
@@ -155,10 +156,11 @@ def fit_mesh(vertices: Any, faces: Any, **options: Any) -> "tuple[Model, dict]":
     return _fit_mesh(vertices, faces, **options)
 
 
-def fit_hermite(data: Any, model: Union[Model, None] = None) -> "tuple[Model, dict]":
+def fit_hermite(data: Any, model: Union[Model, None] = None, *, progress: Any = None) -> "tuple[Model, dict]":
     """Fits positions and normals on sign-changing edges (spec/hermite.md; ``data`` a dict or JSON
-    text), as ``ism fit --hermite``; returns ``(model, report)``."""
-    return _fit_hermite(data, model)
+    text), as ``ism fit --hermite``; returns ``(model, report)``. ``progress(phase, done, total)``
+    is called per sweep over the free faces; Ctrl-C or an exception from it stops the fit."""
+    return _fit_hermite(data, model, progress=progress)
 
 
 def _register_meshio() -> None:

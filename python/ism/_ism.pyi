@@ -13,6 +13,8 @@ FORMAT_VERSION: str
 
 _Path = Union[str, "PathLike[str]"]
 _Progress = Optional[Callable[[int, int], Any]]
+# (phase, done, total): validation, extraction, export, smoothing, Hermite fits; total 0 = not counted.
+_Steps = Optional[Callable[[str, int, int], Any]]
 
 class Stage:
     """One stage of a model: kind, degree, direction and flat tables (see ``python/README.md``)."""
@@ -138,11 +140,28 @@ class Model:
     def write_path(self, path: _Path, encoding: Optional[str] = None, *, pretty: bool = False, container: bool = False) -> None: ...
     def write(self, dest: Any, encoding: Optional[str] = None, *, pretty: bool = False, container: bool = False) -> None: ...
     def validate(
-        self, *, max_issues: int = 100, threads: int = 0, max_pieces: int = ..., quality: bool = False, theorems: bool = True
+        self,
+        *,
+        max_issues: int = 100,
+        threads: int = 0,
+        max_pieces: int = ...,
+        quality: bool = False,
+        theorems: bool = True,
+        progress: _Steps = None,
     ) -> ValidationReport: ...
-    def extract_surface(self, tolerance: float = 1e-3, *, max_depth: int = 8, linear: bool = False, threads: int = 0) -> Surface: ...
+    def extract_surface(
+        self, tolerance: float = 1e-3, *, max_depth: int = 8, linear: bool = False, threads: int = 0, progress: _Steps = None
+    ) -> Surface: ...
     def export(
-        self, path: _Path, *, tolerance: float = 1e-3, max_depth: int = 8, linear: bool = False, volume: bool = False, threads: int = 0
+        self,
+        path: _Path,
+        *,
+        tolerance: float = 1e-3,
+        max_depth: int = 8,
+        linear: bool = False,
+        volume: bool = False,
+        threads: int = 0,
+        progress: _Steps = None,
     ) -> Dict[str, Any]: ...
     def sample_surface(self, n: int, seed: int = 0, *, threads: int = 0, progress: _Progress = None) -> np.ndarray: ...
     def sample_volume(
@@ -151,7 +170,14 @@ class Model:
     def sample_near_surface(self, n: int, sigma: float, seed: int = 0, *, threads: int = 0, progress: _Progress = None) -> np.ndarray: ...
     def query(self, points: npt.ArrayLike, *, threads: int = 0, progress: _Progress = None) -> np.ndarray: ...
     def smooth(
-        self, *, iterations: Optional[int] = None, alpha: Optional[float] = None, rational: bool = False, degree: Optional[int] = None, threads: int = 0
+        self,
+        *,
+        iterations: Optional[int] = None,
+        alpha: Optional[float] = None,
+        rational: bool = False,
+        degree: Optional[int] = None,
+        threads: int = 0,
+        progress: _Steps = None,
     ) -> Tuple[Model, Dict[str, Any]]: ...
     def to_trimesh(self, tolerance: float = 1e-3, **options: Any) -> Any: ...
     def to_pyvista(self, tolerance: float = 1e-3, *, volume: bool = False, **options: Any) -> Any: ...
@@ -189,5 +215,5 @@ def fit_mesh(
     name: str = "mesh",
     progress: Optional[Callable[[str, int, float], Any]] = None,
 ) -> Tuple[Model, Dict[str, Any]]: ...
-def fit_hermite(data: Any, model: Optional[Model] = None) -> Tuple[Model, Dict[str, Any]]: ...
+def fit_hermite(data: Any, model: Optional[Model] = None, *, progress: _Steps = None) -> Tuple[Model, Dict[str, Any]]: ...
 def presets() -> List[Dict[str, Any]]: ...

@@ -2,24 +2,17 @@
 //! option handling of `ism fit`, `ism fit --hermite` and `ism smooth` and the reports of their
 //! `--json` output (same member names).
 
-use ism_fit::c1::{smooth_rational, C1Options};
-use ism_fit::hermite::{fit_hermite as hermite, HermiteData};
+use ism_fit::c1::smooth_rational_with_progress;
+use ism_fit::hermite::{fit_hermite_with_progress, HermiteData};
 use ism_fit::mesh::MeshDistance;
-use ism_fit::smooth::{smooth as smooth_model, JumpStats, SmoothOptions};
+use ism_fit::smooth::{smooth_with_progress, Mode};
 use ism_fit::{Expression, FitOptions, ImplicitFunction, Preset, PRESETS};
 use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
 
 use crate::errors::raise;
 use crate::model::Model;
-use crate::worker::{run, Stop};
-
-fn stats(s: Option<JumpStats>) -> serde_json::Value {
-    match s {
-        Some(s) => serde_json::json!({"facets": s.facets, "max": s.max, "mean": s.mean}),
-        None => serde_json::Value::Null,
-    }
-}
+use crate::worker::run;
 
 fn verdict(model: &ism_format::Model) -> &'static str {
     ism_validate::validate(model, &ism_validate::Options::default())
@@ -27,67 +20,26 @@ fn verdict(model: &ism_format::Model) -> &'static str {
         .as_str()
 }
 
-/// `ism smooth` without writing: the smoothed model and the `--json` report.
+/// `ism smooth` without writing: the smoothed model and the `--json` report (options, reports
+/// and their JSON are the library's, as the CLI's).
 pub(crate) fn smooth(
     model: &ism_format::Model,
-    iterations: Option<usize>,
-    alpha: Option<f64>,
-    rational: bool,
-    degree: Option<u32>,
+    mode: &Mode,
+    progress: &ism_format::Progress,
 ) -> Result<(ism_format::Model, serde_json::Value), String> {
-    if rational {
-        let defaults = C1Options::default();
-        let options = C1Options {
-            degree,
-            alpha: alpha.unwrap_or(defaults.alpha),
-            iterations: iterations.unwrap_or(defaults.iterations),
-        };
-        let s = smooth_rational(model, &options).map_err(|e| e.to_string())?;
-        let r = &s.report;
-        let res = |s: ism_fit::c1::ResidualStats| serde_json::json!({"facets": s.facets, "max": s.max, "mean": s.mean});
-        let report = serde_json::json!({
-            "mode": "rational",
-            "degree": r.degree,
-            "alpha": r.alpha,
-            "residualBefore": res(r.residual_before),
-            "residualAfter": res(r.residual_after),
-            "before": stats(r.jumps_before),
-            "after": stats(r.jumps_after),
-            "objectiveBefore": r.objective_before,
-            "objectiveAfter": r.objective_after,
-            "steps": r.steps,
-            "weights": r.weights,
-            "groups": r.groups,
-            "conditions": r.conditions,
-            "weightRange": r.weight_range,
-            "records": r.records,
-            "verdict": verdict(&s.model),
-            "seconds": r.seconds,
-            "fitSeconds": r.fit_seconds,
-        });
-        return Ok((s.model, report));
+    match mode {
+        Mode::Rational(options) => {
+            let s = smooth_rational_with_progress(model, options, progress)
+                .map_err(|e| e.to_string())?;
+            let report = s.report.to_json(verdict(&s.model));
+            Ok((s.model, report))
+        }
+        Mode::Jumps(options) => {
+            let s = smooth_with_progress(model, options, progress).map_err(|e| e.to_string())?;
+            let report = s.report.to_json(verdict(&s.model));
+            Ok((s.model, report))
+        }
     }
-    let defaults = SmoothOptions::default();
-    let options = SmoothOptions {
-        iterations: iterations.unwrap_or(defaults.iterations),
-        alpha: alpha.unwrap_or(defaults.alpha),
-    };
-    let s = smooth_model(model, &options).map_err(|e| e.to_string())?;
-    let r = &s.report;
-    let report = serde_json::json!({
-        "before": stats(r.before),
-        "after": stats(r.after),
-        "objectiveBefore": r.objective_before,
-        "objectiveAfter": r.objective_after,
-        "sweeps": r.sweeps,
-        "facets": r.facets,
-        "samples": r.samples,
-        "freeFaces": r.free_faces,
-        "blockAdded": r.block_added,
-        "verdict": verdict(&s.model),
-        "seconds": r.seconds,
-    });
-    Ok((s.model, report))
 }
 
 /// Options shared by the three `fit` entry points.
@@ -137,47 +89,32 @@ fn run_fit<'py>(
     mesh: Option<serde_json::Value>,
     progress: Option<&Bound<'py, PyAny>>,
 ) -> PyResult<(Model, Bound<'py, PyAny>)> {
-    let result = run(
-        py,
-        0,
-        Stop::Detach,
-        progress.map(|p| (p, 0)),
-        move |control| {
-            let fitted = ism_fit::fit(&*g, &options, &mut |p| {
-                control.report_phase(p.phase, p.simplices, p.worst)
-            })
-            .map_err(|e| e.to_string())?;
-            let model = fitted.to_model(&name);
-            let structural = ism_format::structure::check(&model, 20)
-                .into_iter()
-                .filter(|d| d.severity == ism_format::Severity::Error)
-                .count();
-            let r = &fitted.report;
-            let topology_ok = expected
-                .is_none_or(|(_, c, e)| c == r.topology.components && e == r.topology.euler);
-            let report = serde_json::json!({
-                "simplices": r.simplices,
-                "vertices": r.vertices,
-                "crossingSimplices": r.crossing_simplices,
-                "parameters": r.parameters,
-                "storedNumbers": r.stored_numbers,
-                "maxDistance": r.max_distance,
-                "meanDistance": r.mean_distance,
-                "samples": r.samples,
-                "bisections": r.bisections,
-                "pvFailures": r.pv_failures,
-                "components": r.topology.components,
-                "euler": r.topology.euler,
-                "toleranceMet": r.tolerance_met,
-                "topologyMatches": topology_ok,
-                "topologyReference": expected.map(|(what, _, _)| what),
-                "mesh": mesh,
-                "structuralErrors": structural,
-                "seconds": r.seconds,
-            });
-            Ok::<_, String>((model, report))
-        },
-    )?;
+    let result = run(py, 0, progress.map(|p| (p, 0)), move |control| {
+        let fitted = ism_fit::fit(&*g, &options, &control.fit_hook()).map_err(|e| e.to_string())?;
+        let model = fitted.to_model(&name);
+        let structural = ism_format::structure::check(&model, 20)
+            .into_iter()
+            .filter(|d| d.severity == ism_format::Severity::Error)
+            .count();
+        let r = &fitted.report;
+        let matches = expected.map(|(_, c, e)| c == r.topology.components && e == r.topology.euler);
+        // The library's report, plus what `ism fit --json` adds from its input.
+        let round_trip = ism_fit::roundtrip::round_trip(&model, r.topology, options.tolerance);
+        let mut report = r.to_json();
+        let mut add = |k: &str, v: serde_json::Value| report.insert(k.to_string(), v);
+        add("topologyChecked", matches.is_some().into());
+        add("topologyMatchesPreset", matches.into());
+        add("topologyMatches", matches.unwrap_or(true).into());
+        add(
+            "topologyReference",
+            expected.map(|(what, _, _)| what).into(),
+        );
+        add("mesh", mesh.into());
+        add("structuralErrors", structural.into());
+        add("roundTrip", ism_fit::roundtrip::to_json(&round_trip));
+        let report = serde_json::Value::Object(report);
+        Ok::<_, String>((model, report))
+    })?;
     let (model, report) = result.map_err(|m| raise(py, "FitError", &m, &[]))?;
     Ok((Model::new(model, None), crate::value_to_py(py, &report)?))
 }
@@ -275,18 +212,8 @@ pub fn fit_mesh<'py>(
     }
     let g = MeshDistance::new(mesh).map_err(|e| raise(py, "FitError", &e.to_string(), &[]))?;
     let check = g.check();
-    if !check.is_closed_manifold() {
-        return Err(raise(
-            py,
-            "FitError",
-            &format!(
-                "the mesh is not a closed manifold ({} boundary, {} non-manifold, {} misoriented \
-                 edges): the signed distance would jump where the winding number crosses 1/2 off \
-                 the surface; close and orient the mesh first",
-                check.boundary_edges, check.nonmanifold_edges, check.misoriented_edges
-            ),
-            &[],
-        ));
+    if let Some(why) = g.refusal() {
+        return Err(raise(py, "FitError", &format!("the mesh {why}"), &[]));
     }
     let domain = match domain {
         Some(d) if d.len() != 6 => {
@@ -307,10 +234,7 @@ pub fn fit_mesh<'py>(
         topology,
     };
     let mut options = args.options(&domain)?;
-    // As `ism fit --mesh`: creases fail the Plantinga–Vegter test at every size, so sharp meshes
-    // skip it, and the test stops at half a typical mesh edge.
-    options.topology = topology && g.sharpest_edge() <= ism_fit::mesh::PV_SHARPEST_EDGE;
-    options.pv_min_edge = (0.5 * g.mesh().median_edge_length()).max(options.tolerance);
+    g.adapt_options(&mut options, topology);
     let diagonal = g.mesh().diagonal();
     let info = serde_json::json!({
         "vertices": check.vertices,
@@ -337,19 +261,22 @@ pub fn fit_mesh<'py>(
 /// Fits a model to Hermite data (positions and normals on sign-changing edges; ``data`` is the
 /// handles document of spec/hermite.md as a dict or JSON text); ``model`` is the base model when
 /// the document has no complex of its own.
+/// ``progress(phase, done, total)`` is called per sweep over the free faces; Ctrl-C or an
+/// exception from it stops the fit.
 #[pyfunction]
-#[pyo3(signature = (data, model = None))]
+#[pyo3(signature = (data, model = None, *, progress = None))]
 pub fn fit_hermite<'py>(
     py: Python<'py>,
     data: &Bound<'py, PyAny>,
     model: Option<&Bound<'py, Model>>,
+    progress: Option<&Bound<'py, PyAny>>,
 ) -> PyResult<(Model, Bound<'py, PyAny>)> {
     let text: String = match data.extract::<String>() {
         Ok(t) => t,
         Err(_) => crate::py_to_value(data, "data")?.to_string(),
     };
     let base = model.map(|m| (*m.get().inner).clone());
-    let result = run(py, 0, Stop::Detach, None, move |_| {
+    let result = run(py, 0, progress.map(|p| (p, 0)), move |control| {
         let data = HermiteData::from_json(&text).map_err(|e| e.to_string())?;
         if data.model.is_some() && base.is_none() {
             return Err(
@@ -358,7 +285,9 @@ pub fn fit_hermite<'py>(
             );
         }
         let model = data.base_model(base).map_err(|e| e.to_string())?;
-        let fitted = hermite(&model, &data.handles, &data.options()).map_err(|e| e.to_string())?;
+        let fitted =
+            fit_hermite_with_progress(&model, &data.handles, &data.options(), &control.hook())
+                .map_err(|e| e.to_string())?;
         let r = &fitted.report;
         let handles: Vec<_> = r
             .handles

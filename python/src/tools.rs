@@ -5,9 +5,8 @@
 //! handed to numpy without a copy, so their fields, order and bits are those of
 //! `ism sample -o x.npy`.
 
-use ism_export::extract::{extract, ExtractOptions};
-use ism_export::format::{write_mesh, ExportFormat};
-use ism_format::io;
+use ism_export::export::{ExportOptions, Exported};
+use ism_export::format::ExportFormat;
 use ism_geom::ModelEval;
 use ism_sample::{FormatWriter, Header, OutputFormat, Region, SampleBlock, Sampler, Sink};
 use numpy::{PyArray1, PyArrayMethods, PyReadonlyArray2, PyUntypedArrayMethods};
@@ -16,8 +15,8 @@ use pyo3::prelude::*;
 use pyo3::types::PyDict;
 
 use crate::errors::{export_error, raise, sample_error};
-use crate::model::Model;
-use crate::worker::{run, Control, Stop};
+use crate::model::{Model, Shared};
+use crate::worker::{run, Control};
 
 /// A sink that writes NPY into memory, reports rows and stops when the caller cancels.
 struct NpySink<'a> {
@@ -78,35 +77,40 @@ impl Model {
         // its own.
         let cached = me.sampler.lock().map(|mut s| s.take()).unwrap_or(None);
         let model = me.inner.clone();
-        let (sampler, result) = run(
-            py,
-            threads,
-            Stop::Polls,
-            progress.map(|p| (p, total)),
-            move |control| {
-                let sampler = match cached {
-                    Some(s) => s,
-                    None => match Sampler::new(&model) {
-                        Ok(s) => s,
-                        Err(e) => return (None, Err(e)),
-                    },
-                };
-                let sampler = sampler.seed(seed);
-                let mut sink = NpySink {
-                    writer: FormatWriter::new(Vec::new(), OutputFormat::Npy),
-                    control,
-                    dim: model.dim(),
-                    rows: 0,
-                };
-                let r = match job {
-                    Job::Surface(c) => sampler.surface(c, &mut sink),
-                    Job::Volume(c, region) => sampler.volume(c, region, &mut sink),
-                    Job::NearSurface(c, sigma) => sampler.near_surface(c, sigma, &mut sink),
-                    Job::Query(points) => sampler.query(&points, &mut sink),
-                };
-                (Some(sampler), r.map(|()| sink.writer.into_inner()))
-            },
-        )?;
+        let (sampler, result) = run(py, threads, progress.map(|p| (p, total)), move |control| {
+            // A checked read's index is reused: the evaluator only inverts the edge matrices
+            // and builds its spatial index (no copy, no second structural check).
+            let sampler = match cached {
+                Some(s) => s,
+                None => {
+                    let eval = match &model {
+                        Shared::Indexed(indexed) => ModelEval::from_indexed(indexed),
+                        Shared::Plain(plain) => ModelEval::new(plain),
+                    };
+                    match eval {
+                        Ok(e) => Sampler::from_eval(e),
+                        Err(e) => {
+                            let e = ism_sample::SampleError::Geometry(e.to_string());
+                            return (None, Err(e));
+                        }
+                    }
+                }
+            };
+            let sampler = sampler.seed(seed);
+            let mut sink = NpySink {
+                writer: FormatWriter::new(Vec::new(), OutputFormat::Npy),
+                control,
+                dim: model.dim(),
+                rows: 0,
+            };
+            let r = match job {
+                Job::Surface(c) => sampler.surface(c, &mut sink),
+                Job::Volume(c, region) => sampler.volume(c, region, &mut sink),
+                Job::NearSurface(c, sigma) => sampler.near_surface(c, sigma, &mut sink),
+                Job::Query(points) => sampler.query(&points, &mut sink),
+            };
+            (Some(sampler), r.map(|()| sink.writer.into_inner()))
+        })?;
         if let Some(s) = sampler {
             if let Ok(mut slot) = me.sampler.lock() {
                 *slot = Some(s);
@@ -132,19 +136,21 @@ fn json_dict<'py>(py: Python<'py>, value: &serde_json::Value) -> PyResult<Bound<
 
 /// Validates a file's bytes as `ism validate --json` does (the report's `file` member included).
 #[pyfunction]
-#[pyo3(signature = (path, *, max_issues = ism_validate::DEFAULT_MAX_ISSUES, threads = 0, max_pieces = ism_validate::DEFAULT_MAX_PIECES, quality = false, theorems = true))]
-pub fn validate_path(
-    py: Python<'_>,
+#[pyo3(signature = (path, *, max_issues = ism_validate::DEFAULT_MAX_ISSUES, threads = 0, max_pieces = ism_validate::DEFAULT_MAX_PIECES, quality = false, theorems = true, progress = None))]
+#[allow(clippy::too_many_arguments)]
+pub fn validate_path<'py>(
+    py: Python<'py>,
     path: std::path::PathBuf,
     max_issues: usize,
     threads: usize,
     max_pieces: usize,
     quality: bool,
     theorems: bool,
-) -> PyResult<Bound<'_, PyAny>> {
+    progress: Option<&Bound<'py, PyAny>>,
+) -> PyResult<Bound<'py, PyAny>> {
     let options = validate_options(max_issues, threads, max_pieces, quality, theorems)?;
-    let report = run(py, 0, Stop::Detach, None, move |_| {
-        ism_validate::validate_path(&path, &options)
+    let report = run(py, 0, progress.map(|p| (p, 0)), move |control| {
+        ism_validate::validate_path_with_progress(&path, &options, &control.hook())
     })?
     .map_err(|e| crate::errors::validate_error(py, &e))?;
     wrap(py, "ValidationReport", report_json(&report)?)
@@ -152,19 +158,21 @@ pub fn validate_path(
 
 /// Validates bytes (any encoding), as [`validate_path`].
 #[pyfunction]
-#[pyo3(signature = (data, *, max_issues = ism_validate::DEFAULT_MAX_ISSUES, threads = 0, max_pieces = ism_validate::DEFAULT_MAX_PIECES, quality = false, theorems = true))]
-pub fn validate_bytes(
-    py: Python<'_>,
+#[pyo3(signature = (data, *, max_issues = ism_validate::DEFAULT_MAX_ISSUES, threads = 0, max_pieces = ism_validate::DEFAULT_MAX_PIECES, quality = false, theorems = true, progress = None))]
+#[allow(clippy::too_many_arguments)]
+pub fn validate_bytes<'py>(
+    py: Python<'py>,
     data: Vec<u8>,
     max_issues: usize,
     threads: usize,
     max_pieces: usize,
     quality: bool,
     theorems: bool,
-) -> PyResult<Bound<'_, PyAny>> {
+    progress: Option<&Bound<'py, PyAny>>,
+) -> PyResult<Bound<'py, PyAny>> {
     let options = validate_options(max_issues, threads, max_pieces, quality, theorems)?;
-    let report = run(py, 0, Stop::Detach, None, move |_| {
-        ism_validate::validate_bytes(&data, &options)
+    let report = run(py, 0, progress.map(|p| (p, 0)), move |control| {
+        ism_validate::validate_bytes_with_progress(&data, &options, &control.hook())
     })?
     .map_err(|e| crate::errors::validate_error(py, &e))?;
     wrap(py, "ValidationReport", report_json(&report)?)
@@ -254,48 +262,37 @@ fn extract_json(r: &ism_export::extract::ExtractReport) -> serde_json::Value {
     })
 }
 
-/// Extracts the curved (or, with `linear`, the linear) shape as `ism export` does.
-fn extract_mesh(
-    model: &ism_format::Model,
+/// The options of `ism export`, checked (as the CLI's argument parser and the library check them).
+fn export_options(
     tolerance: f64,
     max_depth: u32,
     linear: bool,
-) -> Result<(ism_export::Mesh, Option<ism_export::extract::ExtractReport>), ism_export::Error> {
-    if linear {
-        return Ok((ism_export::marching::marching(model)?, None));
-    }
-    let eval = ModelEval::new(model)
-        .map_err(|e| ism_export::Error::Unsupported(format!("cannot evaluate the model: {e}")))?;
-    let (mesh, report) = extract(
-        &eval,
-        &ExtractOptions {
-            tolerance,
-            max_depth,
-        },
-    )?;
-    Ok((mesh, Some(report)))
-}
-
-fn check_extract_args(tolerance: f64, max_depth: u32) -> PyResult<()> {
-    if !(tolerance.is_finite() && tolerance > 0.0) {
-        return Err(PyValueError::new_err(format!(
-            "tolerance: expected a positive number, got {tolerance}"
-        )));
-    }
-    if max_depth > ism_export::extract::MAX_DEPTH_LIMIT {
-        return Err(PyValueError::new_err(format!(
-            "max_depth: at most {}",
-            ism_export::extract::MAX_DEPTH_LIMIT
-        )));
-    }
-    Ok(())
+    volume: bool,
+    format: Option<ExportFormat>,
+) -> PyResult<ExportOptions> {
+    let options = ExportOptions {
+        tolerance,
+        max_depth,
+        linear,
+        volume,
+        field_tolerance: None,
+    };
+    ism_export::export::check(&options, format).map_err(|e| match e {
+        ism_export::Error::Unsupported(m) => PyValueError::new_err(m),
+        e => PyValueError::new_err(e.to_string()),
+    })?;
+    Ok(options)
 }
 
 #[pymethods]
 impl Model {
     /// Validates the model (structure, invariance, certified positivity of every stage) as
     /// ``ism validate`` does and returns an :class:`ism.ValidationReport`.
-    #[pyo3(signature = (*, max_issues = ism_validate::DEFAULT_MAX_ISSUES, threads = 0, max_pieces = ism_validate::DEFAULT_MAX_PIECES, quality = false, theorems = true))]
+    ///
+    /// ``progress(phase, done, total)`` is called as the positivity layer goes (done/total in
+    /// simplices); Ctrl-C or an exception from it stops the run.
+    #[pyo3(signature = (*, max_issues = ism_validate::DEFAULT_MAX_ISSUES, threads = 0, max_pieces = ism_validate::DEFAULT_MAX_PIECES, quality = false, theorems = true, progress = None))]
+    #[allow(clippy::too_many_arguments)]
     fn validate<'py>(
         &self,
         py: Python<'py>,
@@ -304,12 +301,14 @@ impl Model {
         max_pieces: usize,
         quality: bool,
         theorems: bool,
+        progress: Option<&Bound<'py, PyAny>>,
     ) -> PyResult<Bound<'py, PyAny>> {
         let options = validate_options(max_issues, threads, max_pieces, quality, theorems)?;
         let model = self.inner.clone();
-        let report = run(py, 0, Stop::Detach, None, move |_| {
-            ism_validate::validate(&model, &options)
-        })?;
+        let report = run(py, 0, progress.map(|p| (p, 0)), move |control| {
+            ism_validate::validate_with_progress(&model, &options, &control.hook())
+        })?
+        .map_err(|e| crate::errors::validate_error(py, &ism_validate::Error::from(e)))?;
         wrap(py, "ValidationReport", report_json(&report)?)
     }
 
@@ -318,7 +317,10 @@ impl Model {
     /// vertex_simplex, gradient_norm; and a ``report`` dict), as ``ism export`` extracts it:
     /// patches refined until the chordal error is below ``tolerance`` or ``max_depth`` halvings.
     /// ``linear`` gives the linear isocomplex (marching simplices, stages ignored).
-    #[pyo3(signature = (tolerance = 1e-3, *, max_depth = 8, linear = false, threads = 0))]
+    ///
+    /// ``progress(phase, done, total)`` is called as the extraction goes (counted phases: facets,
+    /// then patches); Ctrl-C or an exception from it stops the extraction.
+    #[pyo3(signature = (tolerance = 1e-3, *, max_depth = 8, linear = false, threads = 0, progress = None))]
     fn extract_surface<'py>(
         &self,
         py: Python<'py>,
@@ -326,16 +328,22 @@ impl Model {
         max_depth: u32,
         linear: bool,
         threads: usize,
+        progress: Option<&Bound<'py, PyAny>>,
     ) -> PyResult<Bound<'py, PyAny>> {
-        check_extract_args(tolerance, max_depth)?;
+        let options = export_options(tolerance, max_depth, linear, false, None)?;
         let model = self.inner.clone();
-        let (mesh, report) = run(py, threads, Stop::Detach, None, move |_| {
-            extract_mesh(&model, tolerance, max_depth, linear)
+        let built = run(py, threads, progress.map(|p| (p, 0)), move |control| {
+            ism_export::export::build(&model, &options, &control.hook())
         })?
         .map_err(|e| export_error(py, &e))?;
+        let Exported::Surface { mesh, extract } = built else {
+            return Err(pyo3::exceptions::PyRuntimeError::new_err(
+                "a surface export built a volume",
+            ));
+        };
         let d = mesh_dict(py, &mesh)?;
         let mut summary = topology_json(&mesh);
-        if let (Some(r), Some(obj)) = (report, summary.as_object_mut()) {
+        if let (Some(r), Some(obj)) = (extract, summary.as_object_mut()) {
             if let Some(extra) = extract_json(&r).as_object() {
                 obj.extend(extra.clone());
             }
@@ -348,8 +356,9 @@ impl Model {
 
     /// Writes the shape to ``path`` as ``ism export`` does: the format follows the extension
     /// (.obj, .gltf, .glb, .vtk, .vtu); ``linear`` writes the linear isocomplex, ``volume`` the
-    /// complex with F as a Bézier field (VTK only). Returns the summary of ``ism export --json``.
-    #[pyo3(signature = (path, *, tolerance = 1e-3, max_depth = 8, linear = false, volume = false, threads = 0))]
+    /// complex with F as a Bézier field (VTK only). Returns the summary of ``ism export --json``
+    /// (without its timings). ``progress(phase, done, total)`` as :meth:`extract_surface`.
+    #[pyo3(signature = (path, *, tolerance = 1e-3, max_depth = 8, linear = false, volume = false, threads = 0, progress = None))]
     #[allow(clippy::too_many_arguments)]
     fn export<'py>(
         &self,
@@ -360,90 +369,22 @@ impl Model {
         linear: bool,
         volume: bool,
         threads: usize,
+        progress: Option<&Bound<'py, PyAny>>,
     ) -> PyResult<Bound<'py, PyAny>> {
-        check_extract_args(tolerance, max_depth)?;
         let format = ExportFormat::from_path(&path).ok_or_else(|| {
             PyValueError::new_err(format!(
                 "cannot tell the output format of {}: use .obj, .gltf, .glb, .vtk or .vtu",
                 path.display()
             ))
         })?;
-        if volume && linear {
-            return Err(PyValueError::new_err(
-                "linear and volume exclude each other",
-            ));
-        }
-        if volume && !format.supports_volume() {
-            return Err(PyValueError::new_err(format!(
-                "volume needs a VTK output (.vtk or .vtu), not .{}",
-                format.extension()
-            )));
-        }
+        let options = export_options(tolerance, max_depth, linear, volume, Some(format))?;
         let model = self.inner.clone();
         let out = path.clone();
-        let result = run(
-            py,
-            threads,
-            Stop::Detach,
-            None,
-            move |_| -> Result<serde_json::Value, String> {
-                let name = model.metadata.name.clone();
-                if volume {
-                    // The CLI's default field tolerance (issue 19): the surface tolerance times
-                    // the median |∇F| of the linear interpolant on the crossed simplices.
-                    let options = ism_export::volume::VolumeOptions {
-                        field_tolerance: ism_export::volume::default_field_tolerance(
-                            &model, tolerance,
-                        ),
-                    };
-                    let (grid, report) = ism_export::volume::volume_grid(&model, &options)
-                        .map_err(|e| format!("cannot build the volume field: {e}"))?;
-                    io::write_atomic(&out, |w| {
-                        let r = match format {
-                            ExportFormat::Vtu => grid.write_vtu(w),
-                            _ => grid.write_legacy(name.as_deref().unwrap_or("ISM volume"), w),
-                        };
-                        r.map_err(std::io::Error::other)
-                    })
-                    .map_err(|e| format!("cannot write {}: {e}", out.display()))?;
-                    return Ok(serde_json::json!({
-                        "output": out.display().to_string(),
-                        "format": format.extension(),
-                        "cells": grid.num_cells(),
-                        "control_points": grid.points.len(),
-                        "field": report.note,
-                        "degree": report.degree,
-                        "refinement_levels": report.level,
-                        "field_error_bound": report.bound,
-                        "field_error_bound_everywhere": report.global_bound,
-                        "field_error_certified": report.certified,
-                        "field_tolerance": report.tolerance,
-                        "field_tolerance_met": report.met,
-                    }));
-                }
-                let (mesh, report) = extract_mesh(&model, tolerance, max_depth, linear)
-                    .map_err(|e| e.to_string())?;
-                io::write_atomic(&out, |w| {
-                    write_mesh(&mesh, format, name.as_deref(), w).map_err(std::io::Error::other)
-                })
-                .map_err(|e| format!("cannot write {}: {e}", out.display()))?;
-                let mut summary = topology_json(&mesh);
-                if let Some(obj) = summary.as_object_mut() {
-                    obj.insert("output".into(), out.display().to_string().into());
-                    obj.insert("format".into(), format.extension().into());
-                    if let Some(r) = report {
-                        if let Some(extra) = extract_json(&r).as_object() {
-                            obj.extend(extra.clone());
-                        }
-                    }
-                }
-                Ok(summary)
-            },
-        )?;
-        match result {
-            Ok(summary) => json_dict(py, &summary),
-            Err(message) => Err(raise(py, "ExportError", &message, &[])),
-        }
+        let (built, format) = run(py, threads, progress.map(|p| (p, 0)), move |control| {
+            ism_export::export::export_path(&model, &out, &options, &control.hook())
+        })?
+        .map_err(|e| export_error(py, &e))?;
+        json_dict(py, &built.summary(&path, format))
     }
 
     /// ``n`` points on the shape, uniform by curved area (length in 2D): a numpy structured array
@@ -547,7 +488,10 @@ impl Model {
 
     /// Smooths the shape (Mello & Velho 2009, §8) as ``ism smooth`` does; with ``rational`` the C¹
     /// rational-weight fit. Returns ``(model, report dict)``.
-    #[pyo3(signature = (*, iterations = None, alpha = None, rational = false, degree = None, threads = 0))]
+    /// ``progress(phase, done, total)`` is called per sweep/step; Ctrl-C or an exception from it
+    /// stops the smoothing.
+    #[pyo3(signature = (*, iterations = None, alpha = None, rational = false, degree = None, threads = 0, progress = None))]
+    #[allow(clippy::too_many_arguments)]
     fn smooth<'py>(
         &self,
         py: Python<'py>,
@@ -556,22 +500,13 @@ impl Model {
         rational: bool,
         degree: Option<u32>,
         threads: usize,
+        progress: Option<&Bound<'py, PyAny>>,
     ) -> PyResult<(Model, Bound<'py, PyAny>)> {
-        if degree.is_some() && !rational {
-            return Err(PyValueError::new_err(
-                "degree applies to rational smoothing only",
-            ));
-        }
-        if let Some(a) = alpha {
-            if !(a.is_finite() && a >= 0.0) {
-                return Err(PyValueError::new_err(format!(
-                    "alpha: expected a number >= 0, got {a}"
-                )));
-            }
-        }
+        let mode = ism_fit::smooth::Mode::new(iterations, alpha, rational, degree)
+            .map_err(|e| PyValueError::new_err(e.to_string()))?;
         let model = self.inner.clone();
-        let result = run(py, threads, Stop::Detach, None, move |_| {
-            crate::fit::smooth(&model, iterations, alpha, rational, degree)
+        let result = run(py, threads, progress.map(|p| (p, 0)), move |control| {
+            crate::fit::smooth(&model, &mode, &control.hook())
         })?;
         let (out, report) = result.map_err(|m| raise(py, "FitError", &m, &[]))?;
         Ok((Model::new(out, None), json_dict(py, &report)?))

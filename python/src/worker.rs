@@ -1,14 +1,13 @@
 //! Long calls off the interpreter's thread: the GIL is released, Ctrl-C is honoured, an optional
 //! progress callback runs on the caller's thread.
 //!
-//! The libraries have no cancellation hook. So each long call runs on a worker thread while the
-//! calling thread waits with the GIL released, waking every [`POLL`] to run Python's signal
-//! handlers (`PyErr_CheckSignals`) and the progress callback. On `KeyboardInterrupt` (or an
-//! exception from the callback) the cancel flag is set and:
-//! - jobs that stream through a sink (sampling, queries) see the flag at their next block of rows
-//!   and stop; the caller waits for that, so no work continues;
-//! - other jobs (validation, extraction, fitting) cannot be stopped: the exception is raised at
-//!   once and the worker finishes in the background, its result dropped.
+//! Each long call runs on a worker thread while the calling thread waits with the GIL released,
+//! waking every [`POLL`] to run Python's signal handlers (`PyErr_CheckSignals`) and the progress
+//! callback. The job gets the libraries' progress hook ([`Control::hook`], an
+//! [`ism_format::Progress`] sharing this call's cancel flag). On `KeyboardInterrupt` (or an
+//! exception from the callback) the flag is set, the library call returns `Cancelled` at its
+//! next unit of work (a simplex, a patch, a face, a block of rows, a fit step), and the caller
+//! waits for the worker to end before raising: no work continues in the background.
 
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::mpsc;
@@ -25,11 +24,13 @@ enum Msg<T> {
     Done(std::thread::Result<T>),
 }
 
-/// A progress report: rows done (sampling, queries; the callback gets `(done, total)`) or a fit's
-/// phase (the callback gets `(phase, simplices, worst)`).
+/// A progress report: rows done (sampling, queries; the callback gets `(done, total)`), a fit's
+/// step (the callback gets `(phase, simplices, worst)`) or another library step (the callback
+/// gets `(phase, done, total)`; total 0 when not counted).
 enum Report {
     Rows(u64),
-    Phase(&'static str, usize, f64),
+    Fit(String, u64, f64),
+    Step(String, u64, u64),
 }
 
 /// What a job sees: the cancel flag and a way to report progress.
@@ -50,29 +51,41 @@ impl Control {
         let _ = self.progress.send(Msg::Progress(Report::Rows(done)));
     }
 
-    /// Reports a fit's phase; the caller's callback gets `(phase, simplices, worst)`.
-    pub(crate) fn report_phase(&self, phase: &'static str, simplices: usize, worst: f64) {
-        let _ = self
-            .progress
-            .send(Msg::Progress(Report::Phase(phase, simplices, worst)));
+    /// The libraries' hook for this call: cancelled with it; each step reaches the caller's
+    /// callback as `(phase, done, total)`.
+    pub(crate) fn hook(&self) -> ism_format::Progress {
+        let tx = self.progress.clone();
+        ism_format::Progress::new(move |s| {
+            let _ = tx.send(Msg::Progress(Report::Step(
+                s.phase.to_string(),
+                s.done,
+                s.total,
+            )));
+        })
+        .with_cancel(self.cancel.clone())
+    }
+
+    /// As [`Control::hook`] for `ism_fit::fit`, whose steps reach the callback as
+    /// `(phase, simplices, worst)`.
+    pub(crate) fn fit_hook(&self) -> ism_format::Progress {
+        let tx = self.progress.clone();
+        ism_format::Progress::new(move |s| {
+            let _ = tx.send(Msg::Progress(Report::Fit(
+                s.phase.to_string(),
+                s.done,
+                s.worst,
+            )));
+        })
+        .with_cancel(self.cancel.clone())
     }
 }
 
-/// Whether a job stops when cancelled (see the module documentation).
-#[derive(Clone, Copy, PartialEq, Eq)]
-pub(crate) enum Stop {
-    /// The job polls [`Control::cancelled`]: wait for it to return.
-    Polls,
-    /// The job cannot be stopped: return at once, let it finish in the background.
-    Detach,
-}
-
 /// Runs `job` on a worker thread (with `threads` rayon workers when nonzero) and waits for it as
-/// described in the module documentation. A panic in the job becomes `ism.InternalError`.
+/// described in the module documentation. A panic in the job becomes `ism.InternalError`; after a
+/// cancel the job's result is dropped and the pending exception raised.
 pub(crate) fn run<T: Send + 'static>(
     py: Python<'_>,
     threads: usize,
-    stop: Stop,
     progress: Option<(&Bound<'_, PyAny>, u64)>,
     job: impl FnOnce(&Control) -> T + Send + 'static,
 ) -> PyResult<T> {
@@ -97,7 +110,7 @@ pub(crate) fn run<T: Send + 'static>(
     } else {
         None
     };
-    std::thread::Builder::new()
+    let handle = std::thread::Builder::new()
         .name("ism-worker".into())
         .spawn(move || {
             let result = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| match &pool {
@@ -109,6 +122,7 @@ pub(crate) fn run<T: Send + 'static>(
         .map_err(|e| {
             pyo3::exceptions::PyRuntimeError::new_err(format!("cannot start a thread: {e}"))
         })?;
+    let mut handle = Some(handle);
 
     let mut pending: Option<PyErr> = None;
     // A `Receiver` is `Send` but not `Sync`: it moves into the GIL-free closure and back.
@@ -122,14 +136,22 @@ pub(crate) fn run<T: Send + 'static>(
             (r, msg)
         });
         rx = Some(back);
+        if matches!(msg, Ok(Msg::Done(_))) {
+            // The worker sent its last message: wait for it to end, so that no thread of this
+            // call outlives it.
+            if let Some(h) = handle.take() {
+                let _ = py.allow_threads(|| h.join());
+            }
+        }
         // Progress first: every report that arrived, newest last.
         while let Ok(Msg::Progress(report)) = prx.try_recv() {
             if let (Some((callback, total)), None) = (&progress, &pending) {
                 let called = match report {
                     Report::Rows(done) => callback.call1((done, *total)),
-                    Report::Phase(phase, simplices, worst) => {
+                    Report::Fit(phase, simplices, worst) => {
                         callback.call1((phase, simplices, worst))
                     }
+                    Report::Step(phase, done, total) => callback.call1((phase, done, total)),
                 };
                 if let Err(e) = called {
                     cancel.store(true, Ordering::Relaxed);
@@ -151,11 +173,6 @@ pub(crate) fn run<T: Send + 'static>(
                     if let Err(e) = py.check_signals() {
                         cancel.store(true, Ordering::Relaxed);
                         pending = Some(e);
-                    }
-                }
-                if stop == Stop::Detach {
-                    if let Some(e) = pending.take() {
-                        return Err(e);
                     }
                 }
             }

@@ -5,11 +5,9 @@ use std::process::ExitCode;
 use std::time::Instant;
 
 use anyhow::Context;
-use ism_export::extract::{extract_with_progress, ExtractOptions};
-use ism_export::format::{write_mesh, ExportFormat};
-use ism_export::marching::marching;
+use ism_export::export::{self, ExportOptions, Exported};
+use ism_export::format::ExportFormat;
 use ism_format::io;
-use ism_geom::ModelEval;
 
 const AFTER_HELP: &str = "\
 The output format follows the extension: .obj, .gltf, .glb, .vtk (legacy ASCII), .vtu (XML).
@@ -90,152 +88,83 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let model = doc.model;
     let name = model.metadata.name.clone();
     let start = Instant::now();
-
-    if args.volume {
-        let field_tolerance = args
-            .field_tolerance
-            .unwrap_or_else(|| ism_export::volume::default_field_tolerance(&model, args.tolerance));
-        progress.phase(format!(
-            "building the Bézier volume field of F: raising degree and refinement until |F_vtk − F| ≤ {field_tolerance:.3e}"
-        ));
-        let options = ism_export::volume::VolumeOptions { field_tolerance };
-        let (grid, report) = ism_export::volume::volume_grid(&model, &options)
-            .context("cannot build the volume field")?;
-        progress.phase(format!("writing {}", args.output.display()));
-        ism_format::io::write_atomic(&args.output, |w| {
-            let r = match format {
-                ExportFormat::Vtu => grid.write_vtu(w),
-                _ => grid.write_legacy(name.as_deref().unwrap_or("ISM volume"), w),
-            };
-            r.map_err(std::io::Error::other)
-        })
-        .map_err(|e| crate::args::cannot_write(&args.output, &e))?;
-        progress.finish();
-        eprintln!(
-            "{} -> {}: {} cells, {} control points; {}; field tolerance {:.3e} {}",
-            args.input.display(),
-            args.output.display(),
-            grid.num_cells(),
-            grid.points.len(),
-            report.note,
-            report.tolerance,
-            if report.met {
-                "met"
-            } else {
-                "NOT met (best bound found is written)"
-            },
-        );
-        if args.json {
-            let summary = serde_json::json!({
-                "output": args.output.display().to_string(),
-                "format": format.extension(),
-                "cells": report.cells,
-                "control_points": report.control_points,
-                "degree": report.degree,
-                "refinement_levels": report.level,
-                "field_error_bound": report.bound,
-                "field_error_bound_everywhere": report.global_bound,
-                "field_error_certified": report.certified,
-                "field_tolerance": report.tolerance,
-                "field_tolerance_met": report.met,
-                "seconds": start.elapsed().as_secs_f64(),
-            });
-            println!("{}", serde_json::to_string_pretty(&summary)?);
+    let options = ExportOptions {
+        tolerance: args.tolerance,
+        max_depth: args.max_depth,
+        linear: args.linear,
+        volume: args.volume,
+        field_tolerance: args.field_tolerance,
+    };
+    // The library reports its phases; counted ones get a labelled bar.
+    let unit = |phase: &str| match phase {
+        ism_export::extract::phase::FACETS => "facets",
+        ism_export::extract::phase::PATCHES => "patches",
+        _ => "simplices",
+    };
+    let built = match export::build(&model, &options, &progress.hook(unit)) {
+        Ok(b) => b,
+        Err(e @ ism_export::Error::Inversion { .. }) => {
+            progress.finish();
+            eprintln!(
+                "error: numerical failure: {e}; run `ism validate` on the model to tell a \
+                 numerical problem from an invalid model"
+            );
+            return Ok(ExitCode::from(2));
         }
-        return Ok(ExitCode::SUCCESS);
-    }
-
-    let (mesh, report) = if args.linear {
-        progress.phase("extracting the linear isocomplex (marching simplices)");
-        (
-            marching(&model).context("cannot extract the linear isocomplex")?,
-            None,
-        )
-    } else {
-        progress.phase("preparing the model's stages for evaluation and inversion");
-        let eval = ModelEval::new(&model).context("cannot evaluate the model")?;
-        progress.phase(format!(
-            "extracting the curved shape: refining patches to --tolerance {}, inverting the stages",
-            args.tolerance
-        ));
-        let options = ExtractOptions {
-            tolerance: args.tolerance,
-            max_depth: args.max_depth,
-        };
-        // Each counted phase of the extraction gets its own labelled bar (facets, then patches).
-        let current: std::sync::Mutex<Option<(String, crate::progress::Counter)>> =
-            std::sync::Mutex::new(None);
-        let report = |name: &str, done: u64, total: u64| {
-            let mut cur = current.lock().unwrap_or_else(|e| e.into_inner());
-            if cur.as_ref().is_none_or(|(n, _)| n != name) {
-                let unit = if name == ism_export::extract::phase::FACETS {
-                    "facets"
-                } else {
-                    "patches"
-                };
-                *cur = Some((name.to_string(), progress.counted(name, total, unit)));
-            }
-            if let Some((_, counter)) = cur.as_ref() {
-                counter.set(done);
-            }
-        };
-        match extract_with_progress(&eval, &options, &report) {
-            Ok((mesh, report)) => (mesh, Some(report)),
-            Err(e @ ism_export::Error::Inversion { .. }) => {
-                progress.finish();
-                eprintln!(
-                    "error: numerical failure: {e}; run `ism validate` on the model to tell a \
-                     numerical problem from an invalid model"
-                );
-                return Ok(ExitCode::from(2));
-            }
-            Err(e) => return Err(e).context("cannot extract the shape"),
-        }
+        Err(e) if args.volume => return Err(e).context("cannot build the volume field"),
+        Err(e) if args.linear => return Err(e).context("cannot extract the linear isocomplex"),
+        Err(e) => return Err(e).context("cannot extract the shape"),
     };
     let extract_seconds = start.elapsed().as_secs_f64();
     progress.phase(format!("writing {}", args.output.display()));
     ism_format::io::write_atomic(&args.output, |w| {
-        write_mesh(&mesh, format, name.as_deref(), w).map_err(std::io::Error::other)
+        built
+            .write(format, name.as_deref(), w)
+            .map_err(std::io::Error::other)
     })
     .map_err(|e| crate::args::cannot_write(&args.output, &e))?;
     progress.phase("checking the mesh's topology");
-    let t = mesh.topology();
+    let mut summary = built.summary(&args.output, format);
     progress.finish();
-    let what = if mesh.dimension == 3 {
-        "triangles"
-    } else {
-        "segments"
-    };
-    eprintln!(
-        "{} -> {}: {} vertices, {} {what}, {} components, Euler characteristic {}, {} ({:.3} s extraction)",
-        args.input.display(),
-        args.output.display(),
-        mesh.num_vertices(),
-        mesh.num_cells(),
-        t.components,
-        t.euler_characteristic,
-        if t.boundary_edges == 0 { "closed" } else { "with boundary" },
-        extract_seconds
-    );
+    match &built {
+        Exported::Volume { grid, report } => {
+            eprintln!(
+                "{} -> {}: {} cells, {} control points; {}; field tolerance {:.3e} {}",
+                args.input.display(),
+                args.output.display(),
+                grid.num_cells(),
+                grid.points.len(),
+                report.note,
+                report.tolerance,
+                if report.met {
+                    "met"
+                } else {
+                    "NOT met (best bound found is written)"
+                },
+            );
+            summary["seconds"] = start.elapsed().as_secs_f64().into();
+        }
+        Exported::Surface { mesh, .. } => {
+            let what = if mesh.dimension == 3 {
+                "triangles"
+            } else {
+                "segments"
+            };
+            eprintln!(
+                "{} -> {}: {} vertices, {} {what}, {} components, Euler characteristic {}, {} ({:.3} s extraction)",
+                args.input.display(),
+                args.output.display(),
+                mesh.num_vertices(),
+                mesh.num_cells(),
+                summary["components"],
+                summary["euler_characteristic"],
+                if summary["boundary_edges"] == 0 { "closed" } else { "with boundary" },
+                extract_seconds
+            );
+            summary["extract_seconds"] = extract_seconds.into();
+        }
+    }
     if args.json {
-        let summary = serde_json::json!({
-            "output": args.output.display().to_string(),
-            "format": format.extension(),
-            "vertices": mesh.num_vertices(),
-            "cells": mesh.num_cells(),
-            "components": t.components,
-            "euler_characteristic": t.euler_characteristic,
-            "boundary_edges": t.boundary_edges,
-            "non_manifold_edges": t.non_manifold_edges,
-            "orientation_conflicts": t.orientation_conflicts,
-            "degenerate_cells": t.degenerate_cells,
-            "enclosed_measure": mesh.enclosed_measure(),
-            "crossed_simplices": report.map(|r| r.crossed_simplices),
-            "inversions": report.map(|r| r.inversions),
-            "max_inverse_residual": report.map(|r| r.max_residual),
-            "depth_limited_edges": report.map(|r| r.depth_limited_edges),
-            "extract_seconds": extract_seconds,
-        });
         println!("{}", serde_json::to_string_pretty(&summary)?);
     }
     Ok(ExitCode::SUCCESS)

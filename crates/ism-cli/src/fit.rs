@@ -151,28 +151,31 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     }
     let progress = crate::progress::Progress::new(args.quiet);
     let mut mesh: Option<MeshInfo> = None;
-    let mut mesh_sharpest: Option<f64> = None;
-    let mut mesh_edge: Option<f64> = None;
+    let mut mesh_distance: Option<&MeshDistance> = None;
     type Setup<'a> = (
-        Box<dyn ImplicitFunction>,
+        &'a dyn ImplicitFunction,
         Vec<f64>,
         String,
         Option<&'a Preset>,
     );
+    // Owners of the function, set by the one branch that makes it.
+    let mesh_setup_result;
+    let owned_expression: Expression;
     let (expression, domain, name, preset): Setup = match (&args.preset, &args.expr) {
         (None, None) if args.mesh.is_some() => {
             progress.phase("reading the mesh and building its signed distance");
-            let (g, domain, name, info, warnings) = mesh_setup(&args)?;
+            mesh_setup_result = mesh_setup(&args)?;
+            let (g, domain, name, info, warnings) = &mesh_setup_result;
             progress.suspend(|| warnings.iter().for_each(|w| eprintln!("warning: {w}")));
-            mesh = Some(info);
-            mesh_sharpest = Some(g.sharpest_edge());
-            mesh_edge = Some(g.mesh().median_edge_length());
-            (Box::new(g), domain, name, None)
+            mesh = Some(*info);
+            mesh_distance = Some(g);
+            (g, domain.clone(), name.clone(), None)
         }
         (Some(name), _) => {
             let p = Preset::find(name).context("--preset")?;
+            owned_expression = p.expression()?;
             (
-                Box::new(p.expression()?),
+                &owned_expression,
                 p.domain.to_vec(),
                 p.name.to_string(),
                 Some(p),
@@ -189,12 +192,8 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
                     domain.len()
                 );
             }
-            (
-                Box::new(Expression::parse(text, domain.len() / 2).context("--expr")?),
-                domain,
-                "fit".to_string(),
-                None,
-            )
+            owned_expression = Expression::parse(text, domain.len() / 2).context("--expr")?;
+            (&owned_expression, domain, "fit".to_string(), None)
         }
         (None, None) => bail!("give --expr with --domain, or --preset"),
     };
@@ -207,28 +206,25 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     options.max_simplices = args.max_simplices;
     options.optimize = !args.no_optimize;
     options.rational = args.rational;
-    options.topology =
-        !args.no_topology && mesh_sharpest.is_none_or(|a| a <= ism_fit::mesh::PV_SHARPEST_EDGE);
-    if let Some(edge) = mesh_edge {
-        // Creases fail the Plantinga–Vegter test at every size; below half a typical mesh edge
-        // (or the tolerance) the test can only find them, not features the mesh has, and the
-        // topology is checked against the mesh's afterwards.
-        options.pv_min_edge = (0.5 * edge).max(options.tolerance);
+    options.topology = !args.no_topology;
+    if let Some(g) = mesh_distance {
+        g.adapt_options(&mut options, !args.no_topology);
     }
 
     let tolerance = options.tolerance;
     let fitted_tolerance = tolerance;
-    let fitted = ism_fit::fit(&*expression, &options, &mut |p| {
+    let hook = progress.message_hook(move |p| {
         let worst = if p.worst.is_nan() {
             String::from("-")
         } else {
             format!("{:.3e}", p.worst)
         };
-        progress.phase(format!(
+        format!(
             "fitting, {} phase: {} simplices, worst |g|/|∇g| {} (target {:.1e})",
-            p.phase, p.simplices, worst, tolerance
-        ));
-    })?;
+            p.phase, p.done, worst, tolerance
+        )
+    });
+    let fitted = ism_fit::fit(expression, &options, &hook)?;
     progress.phase("checking the model's structure");
     let model = fitted.to_model(&name);
 
@@ -266,86 +262,38 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         expected.map(|(_, c, e)| c == r.topology.components && e == r.topology.euler);
     let topology_ok = topology_matches.unwrap_or(true);
     let m = &r.measure;
-    let cover = match &m.cover {
-        ism_fit::measure::TargetCover::Boxes { count, largest } => serde_json::json!({
-            "method": "interval boxes", "count": count, "largestHalfDiagonal": largest}),
-        ism_fit::measure::TargetCover::MeshPoints { count, radius } => serde_json::json!({
-            "method": "mesh points", "count": count, "coveringRadius": radius}),
-        ism_fit::measure::TargetCover::None => serde_json::json!({"method": "none"}),
-    };
-    let uncertain: Vec<serde_json::Value> = r
-        .uncertain
-        .iter()
-        .map(|u| {
-            serde_json::json!({
-                "centre": u.centre,
-                "radius": u.radius,
-                "cells": u.cells,
-                "gradientMayVanish": u.gradient_may_vanish,
-                "shapeToTarget": u.shape_to_target,
-                "targetToShape": u.target_to_shape,
-            })
-        })
-        .collect();
     // True distances to the mesh relative to its diagonal (|g|/|∇g| = |g| for a distance).
     let relative = mesh
         .as_ref()
         .map(|(_, diagonal, _)| (r.max_distance / diagonal, r.mean_distance / diagonal));
     if args.json {
-        let value = serde_json::json!({
-            "simplices": r.simplices,
-            "vertices": r.vertices,
-            "crossingSimplices": r.crossing_simplices,
-            "parameters": r.parameters,
-            "storedNumbers": r.stored_numbers,
-            "maxDistance": r.max_distance,
-            "meanDistance": r.mean_distance,
-            "samples": r.samples,
-            "shapeToTarget": m.shape_to_target,
-            "shapeToTargetAt": m.shape_to_target_at,
-            "sampleSpacing": m.shape_spacing,
-            "targetToShape": m.target_to_shape,
-            "targetToShapeBound": m.target_to_shape_bound,
-            "targetToShapeAt": m.target_to_shape_at,
-            "targetCover": cover,
-            "uncertain": uncertain,
-            "unresolvedCells": r.unresolved_cells,
-            "pvUnfinished": r.pv_unfinished,
-            "topologyCertified": r.topology_certified,
-            "topologyChecked": topology_matches.is_some(),
-            "bisections": r.bisections,
-            "pvFailures": r.pv_failures,
-            "components": r.topology.components,
-            "euler": r.topology.euler,
-            "toleranceMet": r.tolerance_met,
-            "topologyMatchesPreset": topology_matches,
-            "mesh": mesh.as_ref().map(|(c, diagonal, flipped)| serde_json::json!({
-                "vertices": c.vertices,
-                "triangles": c.triangles,
-                "closedManifold": c.is_closed_manifold(),
-                "boundaryEdges": c.boundary_edges,
-                "nonmanifoldEdges": c.nonmanifold_edges,
-                "components": c.components,
-                "euler": c.euler,
-                "flipped": flipped,
-                "diagonal": diagonal,
-                "maxDistanceRelative": relative.map(|x| x.0),
-                "meanDistanceRelative": relative.map(|x| x.1),
-            })),
-            "structuralErrors": structural.len(),
-            "roundTrip": match &round_trip {
-                Ok(t) => serde_json::json!({
-                    "ok": true,
-                    "encodedBytes": t.encoded_bytes,
-                    "exportedVertices": t.mesh_vertices,
-                    "exportedCells": t.mesh_cells,
-                    "exportedBoundaryEdges": t.boundary_edges,
-                    "samplesDrawn": t.samples,
-                }),
-                Err(e) => serde_json::json!({"ok": false, "error": e.to_string()}),
-            },
-            "seconds": r.seconds,
-        });
+        let mut value = r.to_json();
+        let mut add = |k: &str, v: serde_json::Value| value.insert(k.to_string(), v);
+        add("topologyChecked", topology_matches.is_some().into());
+        add("topologyMatchesPreset", topology_matches.into());
+        add(
+            "mesh",
+            mesh.as_ref()
+                .map(|(c, diagonal, flipped)| {
+                    serde_json::json!({
+                        "vertices": c.vertices,
+                        "triangles": c.triangles,
+                        "closedManifold": c.is_closed_manifold(),
+                        "boundaryEdges": c.boundary_edges,
+                        "nonmanifoldEdges": c.nonmanifold_edges,
+                        "components": c.components,
+                        "euler": c.euler,
+                        "flipped": flipped,
+                        "diagonal": diagonal,
+                        "maxDistanceRelative": relative.map(|x| x.0),
+                        "meanDistanceRelative": relative.map(|x| x.1),
+                    })
+                })
+                .into(),
+        );
+        add("structuralErrors", structural.len().into());
+        add("roundTrip", ism_fit::roundtrip::to_json(&round_trip));
+        let value = serde_json::Value::Object(value);
         println!("{value}");
     } else {
         println!("wrote {}", output.display());
@@ -509,19 +457,8 @@ fn mesh_setup(args: &Args) -> anyhow::Result<MeshSetup> {
         e => e,
     })?;
     let check = g.check();
-    // An error, not a warning: across a hole the winding number passes ½ away from the
-    // triangles, where the signed distance jumps from +d to −d; the fitter would refine that
-    // jump to the simplex budget without ever meeting the tolerance.
-    if !check.is_closed_manifold() {
-        bail!(
-            "{} is not a closed manifold ({} boundary, {} non-manifold, {} misoriented edges): \
-             the signed distance would jump where the winding number crosses 1/2 off the surface; \
-             close and orient the mesh first",
-            path.display(),
-            check.boundary_edges,
-            check.nonmanifold_edges,
-            check.misoriented_edges
-        );
+    if let Some(why) = g.refusal() {
+        bail!("{} {why}", path.display());
     }
     let sharpest = g.sharpest_edge();
     if sharpest > ism_fit::mesh::PV_SHARPEST_EDGE && !args.no_topology {

@@ -28,10 +28,7 @@ impl Progress {
     /// Starts the phase `name` (e.g. "reading model.ismb").
     pub(crate) fn phase(&self, name: impl Into<String>) {
         if let Some(bar) = &self.bar {
-            bar.set_style(spinner_style());
-            bar.set_message(name.into());
-            // Past the rate limit: a phase shorter than the refresh interval is still named.
-            bar.force_draw();
+            show_phase(bar, name);
         }
     }
 
@@ -39,20 +36,47 @@ impl Progress {
     /// [`Counter::set`] may be called from worker threads.
     pub(crate) fn counted(&self, name: &str, total: u64, unit: &str) -> Counter {
         if let Some(bar) = &self.bar {
-            // Position first, then the new style, then the length: a redraw between the calls
-            // never shows the previous phase's count against the new total.
-            bar.set_position(0);
-            let template =
-                format!("{{spinner}} {name} {{bar:30}} {{pos}}/{{len}} {unit} [{{elapsed}}]");
-            if let Ok(style) = ProgressStyle::with_template(&template) {
-                bar.set_style(style);
-            }
-            bar.set_length(total);
-            bar.force_draw();
+            show_counted(bar, name, total, unit);
         }
         Counter {
             bar: self.bar.clone(),
         }
+    }
+
+    /// The libraries' progress hook showing on this display: an uncounted step (`total` 0) names
+    /// its phase, a counted one gets a bar labelled with the phase and `unit(phase)` (restarted
+    /// at each step with `done` 0, the start of a phase).
+    pub(crate) fn hook(&self, unit: fn(&str) -> &'static str) -> ism_format::Progress {
+        let Some(bar) = self.bar.clone() else {
+            return ism_format::Progress::none();
+        };
+        // The phase shown (name and total): a new one restyles the display.
+        let current: std::sync::Mutex<(String, u64)> = std::sync::Mutex::new((String::new(), 0));
+        ism_format::Progress::new(move |step| {
+            let mut cur = current.lock().unwrap_or_else(|e| e.into_inner());
+            if cur.0 != step.phase || cur.1 != step.total || step.done == 0 {
+                *cur = (step.phase.to_string(), step.total);
+                if step.total == 0 {
+                    show_phase(&bar, step.phase);
+                } else {
+                    show_counted(&bar, step.phase, step.total, unit(step.phase));
+                }
+            }
+            if step.total > 0 {
+                bar.set_position(step.done);
+            }
+        })
+    }
+
+    /// The libraries' progress hook showing each step as the phase `message(step)`.
+    pub(crate) fn message_hook(
+        &self,
+        message: impl Fn(&ism_format::progress::Step<'_>) -> String + Send + Sync + 'static,
+    ) -> ism_format::Progress {
+        let Some(bar) = self.bar.clone() else {
+            return ism_format::Progress::none();
+        };
+        ism_format::Progress::new(move |step| show_phase(&bar, message(step)))
     }
 
     /// Runs `f` (which prints) with the display hidden, then shows it again.
@@ -90,6 +114,25 @@ impl Counter {
             bar.set_position(done);
         }
     }
+}
+
+fn show_phase(bar: &ProgressBar, name: impl Into<String>) {
+    bar.set_style(spinner_style());
+    bar.set_message(name.into());
+    // Past the rate limit: a phase shorter than the refresh interval is still named.
+    bar.force_draw();
+}
+
+fn show_counted(bar: &ProgressBar, name: &str, total: u64, unit: &str) {
+    // Position first, then the new style, then the length: a redraw between the calls never
+    // shows the previous phase's count against the new total.
+    bar.set_position(0);
+    let template = format!("{{spinner}} {name} {{bar:30}} {{pos}}/{{len}} {unit} [{{elapsed}}]");
+    if let Ok(style) = ProgressStyle::with_template(&template) {
+        bar.set_style(style);
+    }
+    bar.set_length(total);
+    bar.force_draw();
 }
 
 fn spinner_style() -> ProgressStyle {

@@ -4,8 +4,8 @@
 use std::path::PathBuf;
 use std::process::ExitCode;
 
-use ism_fit::c1::{smooth_rational, C1Error, C1Options, C1Report};
-use ism_fit::smooth::{smooth, SmoothOptions};
+use ism_fit::c1::{smooth_rational_with_progress, C1Error, C1Report};
+use ism_fit::smooth::{smooth_with_progress, Mode};
 use ism_format::io;
 
 const AFTER_HELP: &str = "\
@@ -79,17 +79,6 @@ pub struct Args {
     quiet: bool,
 }
 
-fn stats(s: Option<ism_fit::smooth::JumpStats>) -> serde_json::Value {
-    match s {
-        Some(s) => serde_json::json!({"facets": s.facets, "max": s.max, "mean": s.mean}),
-        None => serde_json::Value::Null,
-    }
-}
-
-fn residual_stats(s: ism_fit::c1::ResidualStats) -> serde_json::Value {
-    serde_json::json!({"facets": s.facets, "max": s.max, "mean": s.mean})
-}
-
 fn show_jumps(s: Option<ism_fit::smooth::JumpStats>) -> String {
     match s {
         Some(s) => format!(
@@ -102,26 +91,7 @@ fn show_jumps(s: Option<ism_fit::smooth::JumpStats>) -> String {
 
 fn print_rational(r: &C1Report, output: &std::path::Path, verdict: &str, json: bool) {
     if json {
-        let value = serde_json::json!({
-            "mode": "rational",
-            "degree": r.degree,
-            "alpha": r.alpha,
-            "residualBefore": residual_stats(r.residual_before),
-            "residualAfter": residual_stats(r.residual_after),
-            "before": stats(r.jumps_before),
-            "after": stats(r.jumps_after),
-            "objectiveBefore": r.objective_before,
-            "objectiveAfter": r.objective_after,
-            "steps": r.steps,
-            "weights": r.weights,
-            "groups": r.groups,
-            "conditions": r.conditions,
-            "weightRange": r.weight_range,
-            "records": r.records,
-            "verdict": verdict,
-            "seconds": r.seconds,
-            "fitSeconds": r.fit_seconds,
-        });
+        let value = r.to_json(verdict);
         println!("{value}");
         return;
     }
@@ -190,18 +160,24 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     progress.phase(format!("reading {}", args.model.display()));
     let doc =
         io::read_path(&args.model).map_err(|e| crate::args::cannot_read_model(&args.model, e))?;
-    if args.rational {
-        let defaults = C1Options::default();
-        let options = C1Options {
-            degree: args.degree,
-            alpha: args.alpha.unwrap_or(defaults.alpha),
-            iterations: args.iterations.unwrap_or(defaults.iterations),
-        };
-        progress.phase(
-            "fitting the rational weights to the C¹ condition (Levenberg–Marquardt), measuring the \
-             normal jumps",
-        );
-        let smoothed = smooth_rational(&doc.model, &options).map_err(|e| match e {
+    let options = match Mode::new(args.iterations, args.alpha, args.rational, args.degree)? {
+        Mode::Rational(options) => options,
+        Mode::Jumps(options) => {
+            progress.phase(format!(
+                "smoothing: {} sweeps over the free control points, measuring the normal jumps",
+                options.iterations
+            ));
+            let smoothed = smooth_with_progress(&doc.model, &options, &progress.hook(|_| "faces"))?;
+            return finish_jumps(&args, smoothed, &progress);
+        }
+    };
+    progress.phase(
+        "fitting the rational weights to the C¹ condition (Levenberg–Marquardt), measuring the \
+         normal jumps",
+    );
+    let hook = progress.hook(|_| "steps");
+    let smoothed =
+        smooth_rational_with_progress(&doc.model, &options, &hook).map_err(|e| match e {
             C1Error::StageCount(k) => anyhow::anyhow!(
                 "--rational: {} has {k} stages, but the C¹ condition (Mello & Velho 2009, \
                  Thm. 8.1) is for a model with no stage or a single implicit rational stage with \
@@ -211,36 +187,21 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             ),
             e => anyhow::Error::new(e).context("--rational"),
         })?;
-        let verdict = write_and_validate(&smoothed.model, &args.output, &progress)?;
-        print_rational(&smoothed.report, &args.output, verdict.as_str(), args.json);
-        return Ok(exit(verdict));
-    }
-    let defaults = SmoothOptions::default();
-    let options = SmoothOptions {
-        iterations: args.iterations.unwrap_or(defaults.iterations),
-        alpha: args.alpha.unwrap_or(defaults.alpha),
-    };
-    progress.phase(format!(
-        "smoothing: {} sweeps over the free control points, measuring the normal jumps",
-        options.iterations
-    ));
-    let smoothed = smooth(&doc.model, &options)?;
     let verdict = write_and_validate(&smoothed.model, &args.output, &progress)?;
+    print_rational(&smoothed.report, &args.output, verdict.as_str(), args.json);
+    Ok(exit(verdict))
+}
+
+/// Writes, validates and reports a plain (normal-jump) smoothing.
+fn finish_jumps(
+    args: &Args,
+    smoothed: ism_fit::smooth::Smoothed,
+    progress: &crate::progress::Progress,
+) -> anyhow::Result<ExitCode> {
+    let verdict = write_and_validate(&smoothed.model, &args.output, progress)?;
     let r = &smoothed.report;
     if args.json {
-        let value = serde_json::json!({
-            "before": stats(r.before),
-            "after": stats(r.after),
-            "objectiveBefore": r.objective_before,
-            "objectiveAfter": r.objective_after,
-            "sweeps": r.sweeps,
-            "facets": r.facets,
-            "samples": r.samples,
-            "freeFaces": r.free_faces,
-            "blockAdded": r.block_added,
-            "verdict": verdict.as_str(),
-            "seconds": r.seconds,
-        });
+        let value = r.to_json(verdict.as_str());
         println!("{value}");
     } else {
         let show = show_jumps;

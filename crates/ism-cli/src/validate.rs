@@ -164,6 +164,8 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         theorems: !args.no_theorems,
     };
     let progress = crate::progress::Progress::new(args.quiet);
+    // The positivity layer reports per stage, counted in simplices.
+    let hook = progress.hook(|_| "simplices");
     let mut worst = 0u8;
     let mut reports = Vec::new();
     for path in &args.files {
@@ -171,7 +173,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             "validating {}: structure, invariance, positivity certificates",
             path.display()
         ));
-        match ism_validate::validate_path(path, &options) {
+        match ism_validate::validate_path_with_progress(path, &options, &hook) {
             Ok(report) => {
                 if report.verdict != Verdict::Valid {
                     worst = worst.max(1);

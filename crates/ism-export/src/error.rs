@@ -40,6 +40,9 @@ pub enum Error {
     /// The glTF document could not be serialized.
     #[error("glTF serialization: {0}")]
     Gltf(String),
+    /// The caller cancelled the call through its [`ism_format::Progress`].
+    #[error("cancelled")]
+    Cancelled(#[from] ism_format::Cancelled),
     /// An imported mesh file is malformed.
     #[error("{format} import{}: {message}", location.as_ref().map(|l| format!(" at {l}")).unwrap_or_default())]
     Import {

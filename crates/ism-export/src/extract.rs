@@ -22,6 +22,7 @@
 
 use std::collections::HashMap;
 
+use ism_format::progress::{Cancelled, Progress};
 use ism_geom::{Bary, ModelEval, Patch, MAX_VARS};
 use rayon::prelude::*;
 
@@ -294,12 +295,8 @@ fn facet_of(ids: &[u32], e1: [usize; 2], e2: [usize; 2]) -> [u32; 3] {
 /// is safeguarded and judged relative to the stage's scale, so on a valid model this should not
 /// happen; an invalid model may also cause it — validation, not extraction, decides).
 pub fn extract(eval: &ModelEval, options: &ExtractOptions) -> Result<(Mesh, ExtractReport)> {
-    extract_with_progress(eval, options, &|_: &str, _: u64, _: u64| {})
+    extract_with_progress(eval, options, &Progress::none())
 }
-
-/// Reports progress of [`extract_with_progress`]: `(phase, done, total)`; called from worker
-/// threads, in no particular order within a phase, with `done` counting the items begun.
-pub type ProgressFn<'a> = &'a (dyn Fn(&str, u64, u64) + Sync);
 
 /// Phase names of [`extract_with_progress`].
 pub mod phase {
@@ -309,14 +306,15 @@ pub mod phase {
     pub const PATCHES: &str = "refining and mapping the patches";
 }
 
-/// [`extract`] with a progress callback (see [`ProgressFn`]).
+/// [`extract`] with a progress and cancel hook: each phase ([`phase`]) reports the items begun;
+/// a cancelled hook stops the extraction within one item per worker thread.
 ///
 /// # Errors
-/// As [`extract`].
+/// As [`extract`]; [`Error::Cancelled`] when `progress` was cancelled.
 pub fn extract_with_progress(
     eval: &ModelEval,
     options: &ExtractOptions,
-    progress: ProgressFn<'_>,
+    progress: &Progress,
 ) -> Result<(Mesh, ExtractReport)> {
     let n = eval.dim();
     if options.tolerance.is_nan() || options.tolerance <= 0.0 || !options.tolerance.is_finite() {
@@ -386,47 +384,20 @@ fn merge(pieces: Vec<LocalPiece>, dimension: usize, primitive: Primitive) -> Mes
     mesh
 }
 
-/// Counts finished items of one phase and reports every `PROGRESS_STRIDE`-th (and the last).
-struct PhaseCounter<'a> {
-    name: &'static str,
-    total: u64,
-    done: std::sync::atomic::AtomicU64,
-    progress: ProgressFn<'a>,
-}
-
-/// Items between progress reports: often enough for a display, rare enough to cost nothing.
-const PROGRESS_STRIDE: u64 = 64;
-
-impl<'a> PhaseCounter<'a> {
-    fn new(name: &'static str, total: usize, progress: ProgressFn<'a>) -> PhaseCounter<'a> {
-        progress(name, 0, total as u64);
-        PhaseCounter {
-            name,
-            total: total as u64,
-            done: std::sync::atomic::AtomicU64::new(0),
-            progress,
-        }
-    }
-
-    fn tick(&self) {
-        let d = self.done.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
-        if d % PROGRESS_STRIDE == 0 || d == self.total {
-            (self.progress)(self.name, d, self.total);
-        }
-    }
-}
-
 fn extract_curve(
     eval: &ModelEval,
     options: &ExtractOptions,
     patches: &[(usize, Patch)],
-    progress: ProgressFn<'_>,
+    progress: &Progress,
 ) -> Result<(Mesh, ExtractReport)> {
-    let counter = PhaseCounter::new(phase::PATCHES, patches.len(), progress);
+    let counter = progress.phase(phase::PATCHES, patches.len() as u64);
     let results: Vec<Result<(LocalPiece, Counters)>> = patches
         .par_iter()
         .map(|(s, patch)| {
-            counter.tick();
+            if counter.is_cancelled() {
+                return Err(Error::Cancelled(Cancelled));
+            }
+            counter.add(1);
             let s = *s;
             let ids = eval.model().simplex(s);
             let mut c = Counters::default();
@@ -487,6 +458,7 @@ fn extract_curve(
             Ok((piece, c))
         })
         .collect();
+    progress.check()?;
     let mut pieces = Vec::with_capacity(results.len());
     let mut counters = Counters::default();
     for r in results {
@@ -690,7 +662,7 @@ fn extract_surface(
     eval: &ModelEval,
     options: &ExtractOptions,
     patches: &[(usize, Patch)],
-    progress: ProgressFn<'_>,
+    progress: &Progress,
 ) -> Result<(Mesh, ExtractReport)> {
     let model = eval.model();
     // 1. Facet table: (facet key, simplex, patch edge index), sorted so the owner comes first.
@@ -726,11 +698,14 @@ fn extract_surface(
         .collect();
 
     // 2. The owner of each facet decides its patch edge's refinement.
-    let counter = PhaseCounter::new(phase::FACETS, groups.len(), progress);
+    let counter = progress.phase(phase::FACETS, groups.len() as u64);
     let facet_results: Vec<Result<(FacetEdge, Counters)>> = groups
         .par_iter()
         .map(|&(first, _)| {
-            counter.tick();
+            if counter.is_cancelled() {
+                return Err(Error::Cancelled(Cancelled));
+            }
+            counter.add(1);
             let (key, s, j) = entries[first];
             let s = s as usize;
             let patch = &patches[patch_of[&(s as u32)]].1;
@@ -820,6 +795,7 @@ fn extract_surface(
             Ok((FacetEdge { key, params }, c))
         })
         .collect();
+    progress.check()?;
     let mut facets = Vec::with_capacity(facet_results.len());
     let mut counters = Counters::default();
     for r in facet_results {
@@ -836,11 +812,14 @@ fn extract_surface(
     }
 
     // 3. Each simplex triangulates its patch against the shared facet decisions.
-    let counter = PhaseCounter::new(phase::PATCHES, patches.len(), progress);
+    let counter = progress.phase(phase::PATCHES, patches.len() as u64);
     let results: Vec<Result<(LocalPiece, Counters)>> = patches
         .par_iter()
         .map(|(s, patch)| {
-            counter.tick();
+            if counter.is_cancelled() {
+                return Err(Error::Cancelled(Cancelled));
+            }
+            counter.add(1);
             let s = *s;
             let ids = model.simplex(s);
             let k = patch.corners.len();
@@ -904,6 +883,7 @@ fn extract_surface(
             Ok((b.piece, b.counters))
         })
         .collect();
+    progress.check()?;
     let mut pieces = Vec::with_capacity(results.len());
     for r in results {
         let (piece, c) = r?;

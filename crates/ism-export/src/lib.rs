@@ -46,6 +46,7 @@
 #![deny(missing_docs)]
 
 pub mod error;
+pub mod export;
 pub mod extract;
 pub mod format;
 pub mod gltf;

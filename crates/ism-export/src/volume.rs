@@ -46,6 +46,7 @@
 
 use std::collections::HashMap;
 
+use ism_format::progress::Progress;
 use ism_format::{multi_index, Direction, Model, StageKind};
 use ism_geom::{Bernstein, LocalMap, LocalStage, ModelEval, MAX_VARS};
 use rayon::prelude::*;
@@ -655,6 +656,23 @@ pub fn volume_grid(
     model: &Model,
     options: &VolumeOptions,
 ) -> Result<(UnstructuredGrid, VolumeReport)> {
+    volume_grid_with_progress(model, options, &Progress::none())
+}
+
+/// The phase [`volume_grid_with_progress`] reports, once per (degree, refinement) candidate it
+/// tries, counted in simplices.
+pub const PHASE: &str = "fitting the Bézier field of F per simplex";
+
+/// [`volume_grid`] with a progress and cancel hook (phase [`PHASE`]); a cancelled hook stops the
+/// fit within one simplex per worker thread.
+///
+/// # Errors
+/// As [`volume_grid`]; [`Error::Cancelled`] when `progress` was cancelled.
+pub fn volume_grid_with_progress(
+    model: &Model,
+    options: &VolumeOptions,
+    progress: &Progress,
+) -> Result<(UnstructuredGrid, VolumeReport)> {
     let n = model.dim();
     if n != 2 && n != 3 {
         return Err(Error::Unsupported(format!(
@@ -697,13 +715,19 @@ pub fn volume_grid(
             dense: multi_index::all(m, p + 4),
         };
         let subs = sub_simplices(n, k);
+        let counter = progress.phase(PHASE, ns as u64);
         let cells: Vec<SubCell> = (0..ns)
             .into_par_iter()
             .flat_map_iter(|s| {
                 let field = &fields[s];
                 let eval = &eval;
                 let tables = &tables;
-                subs.iter().map(move |c| {
+                // Once cancelled, the remaining simplices yield nothing (checked below).
+                let live = !counter.is_cancelled();
+                if live {
+                    counter.add(1);
+                }
+                subs.iter().take_while(move |_| live).map(move |c| {
                     let (coeffs, bound, side) =
                         fit_sub(eval, field, s, m, k, c, tables, tol, model.level);
                     SubCell {
@@ -716,6 +740,7 @@ pub fn volume_grid(
                 })
             })
             .collect();
+        progress.check()?;
         let bound = cells
             .iter()
             .filter(|c| !c.away(c.coeffs.iter().copied(), model.level))

@@ -38,7 +38,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             options.tolerance = tol;
             options.topology = pv;
             options.rational = rational;
-            let fitted = fit(&g, &options, &mut |_| {})?;
+            let fitted = fit(&g, &options, &ism_format::Progress::none())?;
             let r = &fitted.report;
             let topo = (r.topology.components, r.topology.euler);
             println!(
@@ -62,7 +62,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         let mut options = FitOptions::new(preset.domain);
         options.resolution = res;
         options.tolerance = tol;
-        let target = fit(&g, &options, &mut |_| {})?.report.max_distance;
+        let target = fit(&g, &options, &ism_format::Progress::none())?
+            .report
+            .max_distance;
         let limit = if preset.dim == 2 { 2048 } else { 64 };
         let mut r = res;
         loop {

@@ -17,9 +17,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         options.max_simplices = m.parse()?;
     }
     let g = preset.expression()?;
-    let fitted = fit(&g, &options, &mut |p| {
-        eprintln!("{} {} {:.3e}", p.phase, p.simplices, p.worst)
-    })?;
+    let progress = ism_fit::Progress::new(|p| eprintln!("{} {} {:.3e}", p.phase, p.done, p.worst));
+    let fitted = fit(&g, &options, &progress)?;
     println!("{:#?}", fitted.report);
     if let Some(svg) = args.get(4) {
         let model = fitted.to_model(preset.name);

@@ -34,7 +34,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             options.resolution = res;
             options.tolerance = f64::MAX;
             options.rational = rational;
-            let r = fit(&g, &options, &mut |_| {})?.report;
+            let r = fit(&g, &options, &ism_format::Progress::none())?.report;
             println!(
                 "| {name} | Kuhn {res} + PV | {} | {} | {} | {} | {:.2e} | {:.2e} | {:.1} s |",
                 if rational {

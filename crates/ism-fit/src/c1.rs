@@ -47,6 +47,7 @@
 //! # Ok::<(), ism_fit::c1::C1Error>(())
 //! ```
 
+use ism_format::progress::{Cancelled, Progress};
 use std::collections::HashMap;
 use std::time::Instant;
 
@@ -91,6 +92,9 @@ const STALL_FRACTION: f64 = 1e-6;
 /// Errors of [`smooth_rational`], saying where and what was expected.
 #[derive(Debug, thiserror::Error)]
 pub enum C1Error {
+    /// The caller cancelled the call through its [`Progress`].
+    #[error("cancelled")]
+    Cancelled(#[from] Cancelled),
     /// The model has structural errors (the reader's checks).
     #[error("model: {0}")]
     Structure(String),
@@ -151,6 +155,33 @@ impl Default for C1Options {
             alpha: 1e-4,
             iterations: 100,
         }
+    }
+}
+
+impl C1Report {
+    /// The report of `ism smooth --rational --json`, with the output's validation `verdict`.
+    pub fn to_json(&self, verdict: &str) -> serde_json::Value {
+        let res = |s: ResidualStats| serde_json::json!({"facets": s.facets, "max": s.max, "mean": s.mean});
+        serde_json::json!({
+            "mode": "rational",
+            "degree": self.degree,
+            "alpha": self.alpha,
+            "residualBefore": res(self.residual_before),
+            "residualAfter": res(self.residual_after),
+            "before": crate::smooth::jump_json(self.jumps_before),
+            "after": crate::smooth::jump_json(self.jumps_after),
+            "objectiveBefore": self.objective_before,
+            "objectiveAfter": self.objective_after,
+            "steps": self.steps,
+            "weights": self.weights,
+            "groups": self.groups,
+            "conditions": self.conditions,
+            "weightRange": self.weight_range,
+            "records": self.records,
+            "verdict": verdict,
+            "seconds": self.seconds,
+            "fitSeconds": self.fit_seconds,
+        })
     }
 }
 
@@ -719,6 +750,23 @@ pub fn residuals(model: &Model) -> Result<Vec<FacetResidual>, C1Error> {
 /// fixed control points, has structural errors or an unsupported dimension, or the options are
 /// inconsistent.
 pub fn smooth_rational(model: &Model, options: &C1Options) -> Result<C1Smoothed, C1Error> {
+    smooth_rational_with_progress(model, options, &Progress::none())
+}
+
+/// The phase [`smooth_rational_with_progress`] reports, counted in Levenberg–Marquardt steps
+/// (of at most [`C1Options::iterations`]).
+pub const PHASE: &str = "rational smoothing: fitting the weights";
+
+/// [`smooth_rational`] with a progress and cancel hook ([`PHASE`]); a cancelled hook stops the
+/// fit at its next step.
+///
+/// # Errors
+/// As [`smooth_rational`]; [`C1Error::Cancelled`].
+pub fn smooth_rational_with_progress(
+    model: &Model,
+    options: &C1Options,
+    progress: &Progress,
+) -> Result<C1Smoothed, C1Error> {
     let start = Instant::now();
     let (d, input) = check_input(model, options)?;
     let problem = Problem::new(model, d);
@@ -743,7 +791,9 @@ pub fn smooth_rational(model: &Model, options: &C1Options) -> Result<C1Smoothed,
     let mut cost = objective_before;
     let mut steps = Vec::new();
     let mut lambda = 1e-3;
-    for _ in 0..options.iterations {
+    for iteration in 0..options.iterations {
+        progress.report_count(PHASE, iteration as u64, options.iterations as u64);
+        progress.check()?;
         if problem.keys.is_empty() {
             break;
         }

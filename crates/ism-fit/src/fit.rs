@@ -16,6 +16,7 @@ use std::collections::{HashMap, HashSet};
 use std::time::Instant;
 
 use ism_format::model::Model;
+use ism_format::progress::{Progress, Step};
 use rayon::prelude::*;
 
 use crate::complex::{Complex, EdgeKey};
@@ -70,15 +71,22 @@ impl FitOptions {
     }
 }
 
-/// A progress event (for a progress bar).
-#[derive(Clone, Debug)]
-pub struct Progress {
-    /// What is being done.
-    pub phase: &'static str,
-    /// Live simplices now.
-    pub simplices: usize,
-    /// Largest cell error now (`NaN` before the first evaluation).
-    pub worst: f64,
+/// Reports a fit's step to `progress` (`done` = live simplices, `total` = the simplex budget,
+/// `worst` = the largest cell error so far or NaN) and stops the fit when it was cancelled.
+fn step(
+    progress: &Progress,
+    phase: &'static str,
+    simplices: usize,
+    options: &FitOptions,
+    worst: f64,
+) -> Result<(), FitError> {
+    progress.report(&Step {
+        phase,
+        done: simplices as u64,
+        total: options.max_simplices as u64,
+        worst,
+    });
+    Ok(progress.check()?)
 }
 
 /// Summary of a fit.
@@ -933,14 +941,17 @@ fn check_options(g: &dyn ImplicitFunction, o: &FitOptions) -> Result<(), FitErro
     Ok(())
 }
 
-/// Fits an ISM to the zero set of `g` (see the module doc). `progress` is called now and then.
+/// Fits an ISM to the zero set of `g` (see the module doc). `progress` gets a [`Step`] at each
+/// step of each phase (`topology`, `optimize`, `refine`, `report`; `done` = live simplices,
+/// `total` = [`FitOptions::max_simplices`], `worst` = largest cell error or NaN); a cancelled
+/// `progress` stops the fit at its next step.
 ///
 /// # Errors
-/// [`FitError::Options`] for a bad domain, resolution or tolerance.
+/// [`FitError::Options`] for a bad domain, resolution or tolerance; [`FitError::Cancelled`].
 pub fn fit(
     g: &dyn ImplicitFunction,
     options: &FitOptions,
-    progress: &mut dyn FnMut(&Progress),
+    progress: &Progress,
 ) -> Result<Fitted, FitError> {
     check_options(g, options)?;
     let start = Instant::now();
@@ -994,11 +1005,13 @@ pub fn fit(
                     .filter(|&c| f.longest_edge_length(c) > pv_min_edge && !f.pv_passes(c))
                     .collect()
             };
-            progress(&Progress {
-                phase: "topology",
-                simplices: fitter.complex.num_cells(),
-                worst: f64::NAN,
-            });
+            step(
+                progress,
+                "topology",
+                fitter.complex.num_cells(),
+                options,
+                f64::NAN,
+            )?;
             if failing.is_empty()
                 || fitter.complex.num_cells() + 2 * failing.len() > options.max_simplices
             {
@@ -1016,13 +1029,16 @@ pub fn fit(
 
     // Initial fit of every crossing cell.
     let crossing = fitter.crossing_cells();
-    progress(&Progress {
-        phase: "optimize",
-        simplices: fitter.complex.num_cells(),
-        worst: f64::NAN,
-    });
+    step(
+        progress,
+        "optimize",
+        fitter.complex.num_cells(),
+        options,
+        f64::NAN,
+    )?;
     fitter.fit_region(&crossing, options.optimize);
     fitter.check()?;
+    progress.check()?;
 
     // Accuracy phase.
     let min_cell = (MIN_CELL_FRACTION * options.tolerance).max(MIN_CELL_OF_DOMAIN * size);
@@ -1036,11 +1052,13 @@ pub fn fit(
                 .collect()
         };
         let worst = errors.iter().map(|e| e.1).fold(0.0, f64::max);
-        progress(&Progress {
-            phase: "refine",
-            simplices: fitter.complex.num_cells(),
+        step(
+            progress,
+            "refine",
+            fitter.complex.num_cells(),
+            options,
             worst,
-        });
+        )?;
         let mut bad: Vec<(u32, f64)> = errors
             .into_iter()
             .filter(|e| e.1 > TOLERANCE_MARGIN * options.tolerance)
@@ -1086,6 +1104,7 @@ pub fn fit(
             .collect();
         fitter.fit_region(&region, options.optimize);
         fitter.check()?;
+        progress.check()?;
     }
 
     // Points of faces that no crossing cell has do not touch the shape: drop them.
@@ -1161,11 +1180,13 @@ pub fn fit(
             seconds: 0.0,
         },
     };
-    progress(&Progress {
-        phase: "report",
-        simplices: fitted.complex.num_cells(),
-        worst: f64::NAN,
-    });
+    step(
+        progress,
+        "report",
+        fitted.complex.num_cells(),
+        options,
+        f64::NAN,
+    )?;
     let model = fitted.to_model("fit");
     let regions: Vec<(Vec<f64>, f64)> = clusters
         .iter()
@@ -1195,6 +1216,66 @@ pub fn fit(
     r.measure = m;
     r.seconds = start.elapsed().as_secs_f64();
     Ok(fitted)
+}
+
+impl FitReport {
+    /// The members of `ism fit --json` that this report holds (the front ends add what depends
+    /// on their input: the topology reference, the mesh, the structural check, the round trip).
+    pub fn to_json(&self) -> serde_json::Map<String, serde_json::Value> {
+        let m = &self.measure;
+        let cover = match &m.cover {
+            crate::measure::TargetCover::Boxes { count, largest } => serde_json::json!({
+                "method": "interval boxes", "count": count, "largestHalfDiagonal": largest}),
+            crate::measure::TargetCover::MeshPoints { count, radius } => serde_json::json!({
+                "method": "mesh points", "count": count, "coveringRadius": radius}),
+            crate::measure::TargetCover::None => serde_json::json!({"method": "none"}),
+        };
+        let uncertain: Vec<serde_json::Value> = self
+            .uncertain
+            .iter()
+            .map(|u| {
+                serde_json::json!({
+                    "centre": u.centre,
+                    "radius": u.radius,
+                    "cells": u.cells,
+                    "gradientMayVanish": u.gradient_may_vanish,
+                    "shapeToTarget": u.shape_to_target,
+                    "targetToShape": u.target_to_shape,
+                })
+            })
+            .collect();
+        let value = serde_json::json!({
+            "simplices": self.simplices,
+            "vertices": self.vertices,
+            "crossingSimplices": self.crossing_simplices,
+            "parameters": self.parameters,
+            "storedNumbers": self.stored_numbers,
+            "maxDistance": self.max_distance,
+            "meanDistance": self.mean_distance,
+            "samples": self.samples,
+            "shapeToTarget": m.shape_to_target,
+            "shapeToTargetAt": m.shape_to_target_at,
+            "sampleSpacing": m.shape_spacing,
+            "targetToShape": m.target_to_shape,
+            "targetToShapeBound": m.target_to_shape_bound,
+            "targetToShapeAt": m.target_to_shape_at,
+            "targetCover": cover,
+            "uncertain": uncertain,
+            "unresolvedCells": self.unresolved_cells,
+            "pvUnfinished": self.pv_unfinished,
+            "topologyCertified": self.topology_certified,
+            "bisections": self.bisections,
+            "pvFailures": self.pv_failures,
+            "components": self.topology.components,
+            "euler": self.topology.euler,
+            "toleranceMet": self.tolerance_met,
+            "seconds": self.seconds,
+        });
+        match value {
+            serde_json::Value::Object(map) => map,
+            _ => unreachable!("json! of an object literal is an object"),
+        }
+    }
 }
 
 /// [`FitError::NoZeroSet`] when every vertex value has one sign.
@@ -1388,7 +1469,7 @@ mod tests {
         let mut options = FitOptions::new(preset.domain);
         options.resolution = 6;
         options.tolerance = 1e-4;
-        let fitted = fit(&g, &options, &mut |_| {}).unwrap();
+        let fitted = fit(&g, &options, &ism_format::Progress::none()).unwrap();
         let r = &fitted.report;
         assert!(r.tolerance_met, "{r:?}");
         assert_eq!(
@@ -1423,7 +1504,7 @@ mod tests {
         options.resolution = 3;
         options.tolerance = 1e-2;
         options.rational = true;
-        let fitted = fit(&g, &options, &mut |_| {}).unwrap();
+        let fitted = fit(&g, &options, &ism_format::Progress::none()).unwrap();
         assert!(fitted.map.num_faces() > 0);
         assert!(fitted.weights.num_faces() > 0);
         let model = fitted.to_model("sphere");
@@ -1490,9 +1571,9 @@ mod tests {
             let mut options = FitOptions::new(preset.domain);
             options.resolution = resolution;
             options.tolerance = 10.0;
-            let plain = fit(&g, &options, &mut |_| {}).unwrap();
+            let plain = fit(&g, &options, &ism_format::Progress::none()).unwrap();
             options.rational = true;
-            let weighted = fit(&g, &options, &mut |_| {}).unwrap();
+            let weighted = fit(&g, &options, &ism_format::Progress::none()).unwrap();
             assert_eq!(plain.report.simplices, weighted.report.simplices);
             assert!(weighted.weights.num_faces() > 0);
             // The fit → target direction: the weights act on the fit's own error, and with a
@@ -1539,7 +1620,7 @@ mod tests {
         let g = crate::Expression::parse("(x^2+y^2-1)^3-x^2*y^3", 2).unwrap();
         let mut options = FitOptions::new(&[-1.5, 1.5, -1.5, 1.5]);
         options.tolerance = 0.03;
-        let fitted = fit(&g, &options, &mut |_| {}).unwrap();
+        let fitted = fit(&g, &options, &ism_format::Progress::none()).unwrap();
         let r = &fitted.report;
         assert!(r.tolerance_met, "{r:?}");
         assert!(!r.topology_certified);
@@ -1568,7 +1649,7 @@ mod tests {
         let domain = [-1.0, 1.0, -1.0, 1.0];
         let mut options = FitOptions::new(&domain);
         options.tolerance = 1e-3;
-        let fitted = fit(&circle, &options, &mut |_| {}).unwrap();
+        let fitted = fit(&circle, &options, &ism_format::Progress::none()).unwrap();
         let own = fitted.report.max_distance;
         assert!(own <= 1e-3);
         let both =
@@ -1595,7 +1676,7 @@ mod tests {
         let domain = [-1.0, 1.0, -1.0, 1.0];
         let mut options = FitOptions::new(&domain);
         options.tolerance = 2e-3;
-        let fitted = fit(&g, &options, &mut |_| {}).unwrap();
+        let fitted = fit(&g, &options, &ism_format::Progress::none()).unwrap();
         let r = &fitted.report;
         assert!(r.tolerance_met, "{r:?}");
         let to_ellipse = |p: [f64; 2]| -> f64 {
@@ -1686,13 +1767,13 @@ mod tests {
         let mut o = FitOptions::new(&[0.0, 1.0, 0.0, 1.0]);
         o.domain = vec![0.0, 1.0];
         assert!(matches!(
-            fit(&g, &o, &mut |_| {}),
+            fit(&g, &o, &ism_format::Progress::none()),
             Err(FitError::Options(_))
         ));
         let mut o = FitOptions::new(&[0.0, 1.0, 1.0, 0.0]);
-        assert!(fit(&g, &o, &mut |_| {}).is_err());
+        assert!(fit(&g, &o, &ism_format::Progress::none()).is_err());
         o.domain = vec![0.0, 1.0, 0.0, 1.0];
         o.tolerance = -1.0;
-        assert!(fit(&g, &o, &mut |_| {}).is_err());
+        assert!(fit(&g, &o, &ism_format::Progress::none()).is_err());
     }
 }

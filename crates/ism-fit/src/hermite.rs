@@ -39,6 +39,7 @@
 //! # Ok::<(), ism_fit::hermite::EditError>(())
 //! ```
 
+use ism_format::progress::{Cancelled, Progress};
 use std::collections::{HashMap, HashSet};
 use std::time::Instant;
 
@@ -72,6 +73,9 @@ pub enum EditError {
     /// The math kernel refused the model.
     #[error("model does not evaluate: {0}")]
     Geom(#[from] ism_geom::GeomError),
+    /// The caller cancelled the call through its [`Progress`].
+    #[error("cancelled")]
+    Cancelled(#[from] Cancelled),
 }
 
 /// One Hermite handle: where the shape crosses a sign-changing edge and its normal there.
@@ -984,6 +988,23 @@ pub fn fit_hermite(
     handles: &[Handle],
     options: &HermiteOptions,
 ) -> Result<HermiteFit, EditError> {
+    fit_hermite_with_progress(base, handles, options, &Progress::none())
+}
+
+/// The phase [`fit_hermite_with_progress`] reports once per sweep, counted in free faces.
+pub const HERMITE_PHASE: &str = "fitting the faces around the handles";
+
+/// [`fit_hermite`] with a progress and cancel hook ([`HERMITE_PHASE`]); a cancelled hook stops
+/// the fit at its next face.
+///
+/// # Errors
+/// As [`fit_hermite`]; [`EditError::Cancelled`].
+pub fn fit_hermite_with_progress(
+    base: &Model,
+    handles: &[Handle],
+    options: &HermiteOptions,
+    progress: &Progress,
+) -> Result<HermiteFit, EditError> {
     let start = Instant::now();
     if !(options.alpha >= 0.0 && options.alpha.is_finite()) {
         return Err(EditError::Model(format!(
@@ -1094,10 +1115,13 @@ pub fn fit_hermite(
     let (free, blocks) = layer.free_blocks(&by_cell);
     let mut map = std::mem::take(&mut layer.map);
     for _ in 0..options.iterations {
+        let counter = progress.phase(HERMITE_PHASE, free.len() as u64);
         for (f, which) in free.iter().zip(&blocks) {
+            progress.check()?;
             lm_face(&mut map, f, 3, &|m: &StratifiedMap| {
                 residuals(&layer, m, which)
             });
+            counter.add(1);
         }
     }
     layer.map = map;

@@ -22,7 +22,7 @@
 //! let mut options = FitOptions::new(circle.domain);
 //! options.resolution = 4;
 //! options.tolerance = 1e-3;
-//! let fitted = fit(&g, &options, &mut |_| {})?;
+//! let fitted = fit(&g, &options, &ism_format::Progress::none())?;
 //! assert!(fitted.report.tolerance_met);
 //! assert_eq!((fitted.report.topology.components, fitted.report.topology.euler), (1, 0));
 //! let model = fitted.to_model("circle");
@@ -50,7 +50,8 @@ pub mod strata;
 pub mod svg;
 
 pub use expr::{Expression, ImplicitFunction};
-pub use fit::{fit, FitOptions, FitReport, Fitted, Progress};
+pub use fit::{fit, FitOptions, FitReport, Fitted};
+pub use ism_format::progress::{Cancelled, Progress, Step};
 pub use presets::{Preset, PRESETS};
 
 /// `(x, y[, z])` for messages.
@@ -62,6 +63,9 @@ fn show_point(p: &[f64]) -> String {
 /// Errors of this crate.
 #[derive(Debug, thiserror::Error)]
 pub enum FitError {
+    /// The caller cancelled the fit through its [`Progress`].
+    #[error("cancelled")]
+    Cancelled(#[from] Cancelled),
     /// An expression did not parse, or uses a variable the dimension does not have.
     #[error("expression `{text}`: {message}")]
     Expression {

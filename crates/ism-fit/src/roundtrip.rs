@@ -26,6 +26,21 @@ pub struct RoundTrip {
     pub samples: usize,
 }
 
+/// The `roundTrip` member of `ism fit --json`.
+pub fn to_json(r: &Result<RoundTrip, RoundTripError>) -> serde_json::Value {
+    match r {
+        Ok(t) => serde_json::json!({
+            "ok": true,
+            "encodedBytes": t.encoded_bytes,
+            "exportedVertices": t.mesh_vertices,
+            "exportedCells": t.mesh_cells,
+            "exportedBoundaryEdges": t.boundary_edges,
+            "samplesDrawn": t.samples,
+        }),
+        Err(e) => serde_json::json!({"ok": false, "error": e.to_string()}),
+    }
+}
+
 /// Why a fit failed its round trip.
 #[derive(Debug, thiserror::Error)]
 pub enum RoundTripError {

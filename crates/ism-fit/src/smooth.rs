@@ -25,7 +25,7 @@
 //! let circle = Preset::find("circle")?;
 //! let mut options = FitOptions::new(circle.domain);
 //! options.resolution = 4;
-//! let model = fit(&circle.expression()?, &options, &mut |_| {})?.to_model("circle");
+//! let model = fit(&circle.expression()?, &options, &ism_format::Progress::none())?.to_model("circle");
 //! let smoothed = smooth(&model, &SmoothOptions::default()).unwrap();
 //! let (before, after) = (smoothed.report.before.unwrap(), smoothed.report.after.unwrap());
 //! assert!(after.max < before.max);
@@ -36,6 +36,7 @@ use std::collections::HashMap;
 use std::time::Instant;
 
 use ism_format::model::Model;
+use ism_format::progress::Progress;
 use ism_geom::{Bary, MAX_VARS};
 
 use crate::hermite::{check_structure, lm_face, EditError, Jet, Layered, Sample};
@@ -60,6 +61,83 @@ impl Default for SmoothOptions {
             iterations: 4,
             alpha: 1e-3,
         }
+    }
+}
+
+/// The two modes of `ism smooth` (and of the Python package's `Model.smooth`), with their
+/// options: one place for the defaults of the options not given.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Mode {
+    /// Normal jumps reduced by moving the solitary points ([`smooth`]).
+    Jumps(SmoothOptions),
+    /// The rational weights fitted to the C¹ condition ([`crate::c1::smooth_rational`]).
+    Rational(crate::c1::C1Options),
+}
+
+impl Mode {
+    /// The mode from the front ends' optional arguments; the defaults fill the rest.
+    ///
+    /// # Errors
+    /// [`EditError::Model`] for a `degree` without `rational`, or an `alpha` that is not a finite
+    /// number ≥ 0.
+    pub fn new(
+        iterations: Option<usize>,
+        alpha: Option<f64>,
+        rational: bool,
+        degree: Option<u32>,
+    ) -> Result<Mode, EditError> {
+        if let Some(a) = alpha {
+            if !(a.is_finite() && a >= 0.0) {
+                return Err(EditError::Model(format!(
+                    "alpha {a} must be a finite number ≥ 0"
+                )));
+            }
+        }
+        if rational {
+            let d = crate::c1::C1Options::default();
+            return Ok(Mode::Rational(crate::c1::C1Options {
+                degree,
+                alpha: alpha.unwrap_or(d.alpha),
+                iterations: iterations.unwrap_or(d.iterations),
+            }));
+        }
+        if degree.is_some() {
+            return Err(EditError::Model(
+                "a degree applies to rational smoothing only".into(),
+            ));
+        }
+        let d = SmoothOptions::default();
+        Ok(Mode::Jumps(SmoothOptions {
+            iterations: iterations.unwrap_or(d.iterations),
+            alpha: alpha.unwrap_or(d.alpha),
+        }))
+    }
+}
+
+/// ISM-401 statistics as JSON (`null` when not measured): `{facets, max, mean}`.
+pub fn jump_json(s: Option<JumpStats>) -> serde_json::Value {
+    match s {
+        Some(s) => serde_json::json!({"facets": s.facets, "max": s.max, "mean": s.mean}),
+        None => serde_json::Value::Null,
+    }
+}
+
+impl SmoothReport {
+    /// The report of `ism smooth --json`, with the output's validation `verdict`.
+    pub fn to_json(&self, verdict: &str) -> serde_json::Value {
+        serde_json::json!({
+            "before": jump_json(self.before),
+            "after": jump_json(self.after),
+            "objectiveBefore": self.objective_before,
+            "objectiveAfter": self.objective_after,
+            "sweeps": self.sweeps,
+            "facets": self.facets,
+            "samples": self.samples,
+            "freeFaces": self.free_faces,
+            "blockAdded": self.block_added,
+            "verdict": verdict,
+            "seconds": self.seconds,
+        })
     }
 }
 
@@ -214,6 +292,22 @@ fn facet_pairs(layer: &Layered) -> Result<(usize, Vec<Pair>), EditError> {
 /// `alpha`, or kept stages that do not invert at a point of the shape; [`EditError::Geom`] when a
 /// stage does not evaluate.
 pub fn smooth(model: &Model, options: &SmoothOptions) -> Result<Smoothed, EditError> {
+    smooth_with_progress(model, options, &Progress::none())
+}
+
+/// The phase [`smooth_with_progress`] reports once per sweep, counted in free faces.
+pub const PHASE: &str = "smoothing: fitting the faces around the crossed facets";
+
+/// [`smooth`] with a progress and cancel hook ([`PHASE`]); a cancelled hook stops the sweeps at
+/// their next face.
+///
+/// # Errors
+/// As [`smooth`]; [`EditError::Cancelled`].
+pub fn smooth_with_progress(
+    model: &Model,
+    options: &SmoothOptions,
+    progress: &Progress,
+) -> Result<Smoothed, EditError> {
     let start = Instant::now();
     if !(options.alpha >= 0.0 && options.alpha.is_finite()) {
         return Err(EditError::Model(format!(
@@ -278,7 +372,10 @@ pub fn smooth(model: &Model, options: &SmoothOptions) -> Result<Smoothed, EditEr
     };
     let mut sweeps = Vec::with_capacity(options.iterations);
     for _ in 0..options.iterations {
+        let counter = progress.phase(PHASE, free.len() as u64);
         for ((f, which), x0) in free.iter().zip(&blocks).zip(&start_logits) {
+            progress.check()?;
+            counter.add(1);
             lm_face(&mut map, f, 3, &|m: &StratifiedMap| {
                 let mut r = residuals(&layer, m, which);
                 r.extend(
@@ -350,9 +447,13 @@ mod tests {
         let mut o = FitOptions::new(circle.domain);
         o.resolution = 6;
         o.tolerance = 1e-3;
-        let model = fit(&circle.expression().unwrap(), &o, &mut |_| {})
-            .unwrap()
-            .to_model("circle");
+        let model = fit(
+            &circle.expression().unwrap(),
+            &o,
+            &ism_format::Progress::none(),
+        )
+        .unwrap()
+        .to_model("circle");
         let r = check(&model, &SmoothOptions::default());
         assert!(!r.block_added);
         let (b, a) = (r.before.unwrap(), r.after.unwrap());
@@ -405,9 +506,13 @@ mod tests {
         let circle = Preset::find("circle").unwrap();
         let mut o = FitOptions::new(circle.domain);
         o.resolution = 4;
-        let model = fit(&circle.expression().unwrap(), &o, &mut |_| {})
-            .unwrap()
-            .to_model("circle");
+        let model = fit(
+            &circle.expression().unwrap(),
+            &o,
+            &ism_format::Progress::none(),
+        )
+        .unwrap()
+        .to_model("circle");
         let s = smooth(
             &model,
             &SmoothOptions {

@@ -39,6 +39,7 @@ pub mod indexed;
 pub mod io;
 pub mod model;
 pub mod multi_index;
+pub mod progress;
 pub mod rules;
 pub mod structure;
 
@@ -50,6 +51,7 @@ pub use model::{
     Direction, FaceRecord, JsonValue, Metadata, Model, Stage, StageKind, Version, VertexMap,
     FORMAT_VERSION,
 };
+pub use progress::{Cancelled, Progress};
 pub use rules::{Diagnostic, Location, Rule, Severity};
 
 /// The JSON Schema of the JSON encoding, generated from the types (checked in as

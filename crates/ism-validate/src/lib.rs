@@ -57,6 +57,7 @@ pub mod topology;
 use std::path::Path;
 use std::time::Instant;
 
+use ism_format::progress::{Cancelled, Progress};
 use ism_format::{io, IndexedModel, Model, Rule, Severity};
 
 pub use certify::{Budget, Certificate, Decision, DenseNet, DetKernel, DEFAULT_MAX_PIECES};
@@ -110,6 +111,9 @@ pub enum Error {
     /// The file is not a readable ISM (I/O, container or encoding; spec ISM-0xx).
     #[error("unreadable: {0}")]
     Read(#[from] ism_format::Error),
+    /// The caller cancelled the run through its [`Progress`].
+    #[error("cancelled")]
+    Cancelled(#[from] Cancelled),
     /// The worker pool could not be started.
     #[error("cannot start {threads} worker threads: {message}")]
     Threads {
@@ -123,24 +127,69 @@ pub enum Error {
 /// Validates a model in memory (indexing a copy of it; [`validate_indexed`] shares an indexed
 /// model instead).
 pub fn validate(model: &Model, options: &Options) -> Report {
-    in_pool(options, || validate_owned(model.clone(), options))
+    uncancelled(validate_with_progress(model, options, &Progress::none()))
 }
 
 /// Validates a structurally checked, indexed model (no copy).
 pub fn validate_indexed(model: &IndexedModel, options: &Options) -> Report {
-    in_pool(options, || run(model, Some(model), options))
+    uncancelled(validate_indexed_with_progress(
+        model,
+        options,
+        &Progress::none(),
+    ))
+}
+
+/// The phase [`validate_with_progress`] reports per stage, counted in simplices.
+pub const POSITIVITY_PHASE: &str = "certifying the positivity of det DX";
+
+/// [`validate`] with a progress and cancel hook: the positivity layer reports
+/// [`POSITIVITY_PHASE`] per stage, and a cancelled hook stops the run within one simplex per
+/// worker thread (and between layers).
+///
+/// # Errors
+/// [`Cancelled`] when `progress` was cancelled.
+pub fn validate_with_progress(
+    model: &Model,
+    options: &Options,
+    progress: &Progress,
+) -> Result<Report, Cancelled> {
+    in_pool(options, || validate_owned(model.clone(), options, progress))
+}
+
+/// [`validate_indexed`] with a progress and cancel hook (see [`validate_with_progress`]).
+///
+/// # Errors
+/// [`Cancelled`] when `progress` was cancelled.
+pub fn validate_indexed_with_progress(
+    model: &IndexedModel,
+    options: &Options,
+    progress: &Progress,
+) -> Result<Report, Cancelled> {
+    in_pool(options, || run(model, Some(model), options, progress))
+}
+
+/// The report of a run that had no cancel flag.
+fn uncancelled(r: Result<Report, Cancelled>) -> Report {
+    match r {
+        Ok(report) => report,
+        Err(Cancelled) => unreachable!("Progress::none() is never cancelled"),
+    }
 }
 
 /// Indexes `model` (the structural check runs once) and validates it; a model that cannot be
 /// indexed gets the structural layer's report.
-fn validate_owned(model: Model, options: &Options) -> Report {
+fn validate_owned(
+    model: Model,
+    options: &Options,
+    progress: &Progress,
+) -> Result<Report, Cancelled> {
     match IndexedModel::new_or_model(model) {
-        Ok(indexed) => run(&indexed, Some(&indexed), options),
-        Err((model, _)) => run(&model, None, options),
+        Ok(indexed) => run(&indexed, Some(&indexed), options, progress),
+        Err((model, _)) => run(&model, None, options, progress),
     }
 }
 
-fn in_pool(options: &Options, job: impl FnOnce() -> Report + Send) -> Report {
+fn in_pool<T: Send>(options: &Options, job: impl FnOnce() -> T + Send) -> T {
     if options.threads == 0 {
         return job();
     }
@@ -161,12 +210,24 @@ fn in_pool(options: &Options, job: impl FnOnce() -> Report + Send) -> Report {
 /// [`Error::Io`] when the file cannot be read, [`Error::Read`] when its bytes are not a readable
 /// ISM container or encoding.
 pub fn validate_path(path: impl AsRef<Path>, options: &Options) -> Result<Report, Error> {
+    validate_path_with_progress(path, options, &Progress::none())
+}
+
+/// [`validate_path`] with a progress and cancel hook (see [`validate_with_progress`]).
+///
+/// # Errors
+/// As [`validate_path`]; [`Error::Cancelled`] when `progress` was cancelled.
+pub fn validate_path_with_progress(
+    path: impl AsRef<Path>,
+    options: &Options,
+    progress: &Progress,
+) -> Result<Report, Error> {
     let path = path.as_ref();
     let bytes = std::fs::read(path).map_err(|source| Error::Io {
         path: path.to_path_buf(),
         source,
     })?;
-    let mut report = validate_bytes(&bytes, options)?;
+    let mut report = validate_bytes_with_progress(&bytes, options, progress)?;
     if let Some(file) = &mut report.file {
         file.path = path.display().to_string();
     }
@@ -178,13 +239,25 @@ pub fn validate_path(path: impl AsRef<Path>, options: &Options) -> Result<Report
 /// # Errors
 /// [`Error::Read`] when the bytes are not a readable ISM.
 pub fn validate_bytes(bytes: &[u8], options: &Options) -> Result<Report, Error> {
+    validate_bytes_with_progress(bytes, options, &Progress::none())
+}
+
+/// [`validate_bytes`] with a progress and cancel hook (see [`validate_with_progress`]).
+///
+/// # Errors
+/// As [`validate_bytes`]; [`Error::Cancelled`] when `progress` was cancelled.
+pub fn validate_bytes_with_progress(
+    bytes: &[u8],
+    options: &Options,
+    progress: &Progress,
+) -> Result<Report, Error> {
     let read = io::ReadOptions {
         check_structure: false,
         ..io::ReadOptions::default()
     };
     let doc = io::from_slice_with(bytes, &read)?;
     let (encoding, byte_len) = (doc.encoding, doc.byte_len);
-    let mut report = in_pool(options, || validate_owned(doc.model, options));
+    let mut report = in_pool(options, || validate_owned(doc.model, options, progress))?;
     report.file = Some(report::FileInfo {
         path: String::new(),
         encoding: encoding.name().to_string(),
@@ -195,7 +268,12 @@ pub fn validate_bytes(bytes: &[u8], options: &Options) -> Result<Report, Error> 
 
 /// The four layers; `indexed` is the model's index when it passed the structural check (then the
 /// check is not repeated), `None` when it did not.
-fn run(model: &Model, indexed: Option<&IndexedModel>, options: &Options) -> Report {
+fn run(
+    model: &Model,
+    indexed: Option<&IndexedModel>,
+    options: &Options,
+    progress: &Progress,
+) -> Result<Report, Cancelled> {
     let mut out = report::Collector::new(options.max_issues);
     let mut timing = report::Timing::default();
     let mut stages = Vec::new();
@@ -227,6 +305,7 @@ fn run(model: &Model, indexed: Option<&IndexedModel>, options: &Options) -> Repo
         }
     }
     timing.structure = t.elapsed().as_secs_f64();
+    progress.check()?;
 
     // Layer 2, per stage.
     let t = Instant::now();
@@ -241,6 +320,7 @@ fn run(model: &Model, indexed: Option<&IndexedModel>, options: &Options) -> Repo
         }
     }
     timing.invariance = t.elapsed().as_secs_f64();
+    progress.check()?;
 
     // Layer 3.
     let t = Instant::now();
@@ -273,7 +353,7 @@ fn run(model: &Model, indexed: Option<&IndexedModel>, options: &Options) -> Repo
         let Some(ix) = indexed else {
             unreachable!("stage_ok implies structure_ok, which implies an index")
         };
-        let outcome = positivity::check_stage(ix, k, popts);
+        let outcome = positivity::check_stage_with_progress(ix, k, popts, progress)?;
         stages.push(outcome.report);
         positivity_messages.extend(outcome.messages);
     }
@@ -281,6 +361,7 @@ fn run(model: &Model, indexed: Option<&IndexedModel>, options: &Options) -> Repo
         out.push(m);
     }
     timing.positivity = t.elapsed().as_secs_f64();
+    progress.check()?;
 
     // Layer 4.
     if let (true, Some(ix)) = (options.quality && structure_ok, indexed) {
@@ -305,7 +386,7 @@ fn run(model: &Model, indexed: Option<&IndexedModel>, options: &Options) -> Repo
     } else {
         Verdict::Invalid
     };
-    Report {
+    Ok(Report {
         report_version: REPORT_VERSION.to_string(),
         validator: format!("ism-validate {}", env!("CARGO_PKG_VERSION")),
         file: None,
@@ -321,5 +402,5 @@ fn run(model: &Model, indexed: Option<&IndexedModel>, options: &Options) -> Repo
         piece_budget: options.max_pieces,
         timing,
         quality: quality_stats,
-    }
+    })
 }

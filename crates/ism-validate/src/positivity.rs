@@ -3,6 +3,7 @@
 
 use std::collections::BTreeMap;
 
+use ism_format::progress::{Cancelled, Progress};
 use ism_format::{multi_index, IndexedModel, Location, Model, Rule, StageKind};
 use rayon::prelude::*;
 
@@ -158,6 +159,23 @@ impl Tally {
 
 /// Checks stage `k` of a model that passed layers 1 and 2 for this stage.
 pub fn check_stage(indexed: &IndexedModel, k: usize, options: PositivityOptions) -> StageOutcome {
+    match check_stage_with_progress(indexed, k, options, &Progress::none()) {
+        Ok(outcome) => outcome,
+        Err(Cancelled) => unreachable!("Progress::none() is never cancelled"),
+    }
+}
+
+/// [`check_stage`] reporting [`crate::POSITIVITY_PHASE`] in simplices; stops (within one simplex
+/// per worker thread) when `progress` is cancelled.
+///
+/// # Errors
+/// [`Cancelled`] when `progress` was cancelled.
+pub fn check_stage_with_progress(
+    indexed: &IndexedModel,
+    k: usize,
+    options: PositivityOptions,
+    progress: &Progress,
+) -> Result<StageOutcome, Cancelled> {
     let model: &Model = indexed;
     let stage = &model.stages[k];
     let n = model.dim();
@@ -225,13 +243,19 @@ pub fn check_stage(indexed: &IndexedModel, k: usize, options: PositivityOptions)
         };
         outcome_of(kernel.certify(&net, options.budget))
     };
+    let counter = progress.phase(crate::POSITIVITY_PHASE, model.num_simplices() as u64);
     let tally = (0..model.num_simplices())
         .into_par_iter()
         .fold(Tally::default, |mut t, s| {
-            t.add(s, decide(s));
+            // Once cancelled, the remaining simplices are skipped (the tally is then dropped).
+            if !counter.is_cancelled() {
+                t.add(s, decide(s));
+                counter.add(1);
+            }
             t
         })
         .reduce(Tally::default, Tally::merge);
+    progress.check()?;
     let mut bad = tally.bad;
     bad.sort_by_key(|(s, _)| *s);
     let m = n + 1;
@@ -297,7 +321,7 @@ pub fn check_stage(indexed: &IndexedModel, k: usize, options: PositivityOptions)
         min_lower_bound: tally.min_lower,
         det_range: None,
     };
-    StageOutcome { report, messages }
+    Ok(StageOutcome { report, messages })
 }
 
 /// `implicit` or `parametric`.

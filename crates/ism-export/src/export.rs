@@ -1,0 +1,288 @@
+//! `ism export` as library calls, shared by the CLI and the Python package: the options, what they
+//! build (the curved surface, the linear isocomplex, or the complex with F as a Bézier field), the
+//! writing, and the summary `ism export --json` prints.
+//!
+//! ```
+//! use ism_export::export::{build, ExportOptions};
+//! use ism_export::format::ExportFormat;
+//! use ism_format::builder::{ModelBuilder, StageBuilder};
+//! use ism_format::Progress;
+//!
+//! let model = ModelBuilder::new(2)
+//!     .vertex(&[0.0, 0.0], -1.0)
+//!     .vertex(&[1.0, 0.0], 1.0)
+//!     .vertex(&[0.0, 1.0], 1.0)
+//!     .simplex(&[0, 1, 2])
+//!     .stage(StageBuilder::bezier(2).face(&[0, 1], &[0.6, 0.1], &[]).build())
+//!     .build()?;
+//! let options = ExportOptions::default();
+//! let built = build(&model, &options, &Progress::none())?;
+//! let mut obj = Vec::new();
+//! built.write(ExportFormat::Obj, None, &mut obj)?;
+//! let summary = built.summary(std::path::Path::new("x.obj"), ExportFormat::Obj);
+//! assert_eq!(summary["format"], "obj");
+//! let segments = summary["cells"].as_u64().unwrap();
+//! // The curved segment was refined (its one linear segment halved at least once), and the OBJ
+//! // has one `l` line per segment.
+//! assert!(segments > 1);
+//! let text = String::from_utf8(obj)?;
+//! assert_eq!(text.lines().filter(|l| l.starts_with("l ")).count() as u64, segments);
+//! # Ok::<(), Box<dyn std::error::Error>>(())
+//! ```
+
+use std::io::Write;
+use std::path::Path;
+
+use ism_format::progress::Progress;
+use ism_format::Model;
+use ism_geom::ModelEval;
+
+use crate::extract::{extract_with_progress, ExtractOptions, ExtractReport, MAX_DEPTH_LIMIT};
+use crate::format::{write_mesh, ExportFormat};
+use crate::marching::marching;
+use crate::mesh::Mesh;
+use crate::volume::{
+    default_field_tolerance, volume_grid_with_progress, VolumeOptions, VolumeReport,
+};
+use crate::vtk::UnstructuredGrid;
+use crate::{Error, Result};
+
+/// The options of `ism export`.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ExportOptions {
+    /// Chordal tolerance of the curved surface, in model units ([`ExtractOptions::tolerance`]).
+    pub tolerance: f64,
+    /// Most halvings of a patch edge ([`ExtractOptions::max_depth`]).
+    pub max_depth: u32,
+    /// The linear isocomplex (marching simplices, stages ignored) instead of the curved shape.
+    pub linear: bool,
+    /// The complex itself with F as a Bézier field (VTK formats only).
+    pub volume: bool,
+    /// The volume field's tolerance; `None`: [`default_field_tolerance`] of `tolerance`.
+    pub field_tolerance: Option<f64>,
+}
+
+impl Default for ExportOptions {
+    fn default() -> Self {
+        let e = ExtractOptions::default();
+        ExportOptions {
+            tolerance: e.tolerance,
+            max_depth: e.max_depth,
+            linear: false,
+            volume: false,
+            field_tolerance: None,
+        }
+    }
+}
+
+/// Phase names [`build`] reports besides those of [`crate::extract::phase`] and
+/// [`crate::volume::PHASE`] (uncounted: `total` is 0).
+pub mod phase {
+    /// Marching simplices (`linear`).
+    pub const LINEAR: &str = "extracting the linear isocomplex (marching simplices)";
+    /// Building the evaluator (stage tables, inverses).
+    pub const PREPARING: &str = "preparing the model's stages for evaluation and inversion";
+    /// Choosing the volume field's default tolerance.
+    pub const FIELD_TOLERANCE: &str = "choosing the field tolerance of the volume";
+}
+
+/// What [`build`] made.
+#[derive(Clone, Debug)]
+pub enum Exported {
+    /// The curved surface (or, with `linear`, the linear isocomplex: no extraction report).
+    Surface {
+        /// The mesh (triangles, or segments in 2D).
+        mesh: Mesh,
+        /// What the curved extraction did; `None` for the linear isocomplex.
+        extract: Option<ExtractReport>,
+    },
+    /// The complex with F as a Bézier field.
+    Volume {
+        /// The cells.
+        grid: UnstructuredGrid,
+        /// Degree, refinement and the field error bound.
+        report: VolumeReport,
+    },
+}
+
+/// Checks `options` against each other and against `format` (when given).
+///
+/// # Errors
+/// [`Error::Unsupported`] naming the option: `linear` with `volume`, `volume` with a format that
+/// cannot carry cells, a tolerance that is not a positive number, `max_depth` over
+/// [`MAX_DEPTH_LIMIT`].
+pub fn check(options: &ExportOptions, format: Option<ExportFormat>) -> Result<()> {
+    let bad = |m: String| Err(Error::Unsupported(m));
+    if !(options.tolerance.is_finite() && options.tolerance > 0.0) {
+        return bad(format!(
+            "tolerance: expected a positive number, got {}",
+            options.tolerance
+        ));
+    }
+    if options.max_depth > MAX_DEPTH_LIMIT {
+        return bad(format!("max depth: at most {MAX_DEPTH_LIMIT}"));
+    }
+    if let Some(t) = options.field_tolerance {
+        if !(t.is_finite() && t > 0.0) {
+            return bad(format!(
+                "field tolerance: expected a positive number, got {t}"
+            ));
+        }
+        if !options.volume {
+            return bad("a field tolerance applies to a volume export only".into());
+        }
+    }
+    if options.volume && options.linear {
+        return bad("linear and volume exclude each other".into());
+    }
+    if let Some(f) = format {
+        if options.volume && !f.supports_volume() {
+            return bad(format!(
+                "volume needs a VTK output (.vtk or .vtu), not .{}",
+                f.extension()
+            ));
+        }
+    }
+    Ok(())
+}
+
+/// Builds what `options` ask for (see [`Exported`]), reporting to `progress` and stopping when it
+/// is cancelled.
+///
+/// # Errors
+/// As [`check`]; [`Error::Unsupported`] for a model that cannot be evaluated or extracted;
+/// [`Error::Inversion`] (a numerical failure of the extraction); [`Error::Cancelled`].
+pub fn build(model: &Model, options: &ExportOptions, progress: &Progress) -> Result<Exported> {
+    check(options, None)?;
+    progress.check()?;
+    if options.volume {
+        let field_tolerance = match options.field_tolerance {
+            Some(t) => t,
+            None => {
+                progress.report_count(phase::FIELD_TOLERANCE, 0, 0);
+                default_field_tolerance(model, options.tolerance)
+            }
+        };
+        let (grid, report) =
+            volume_grid_with_progress(model, &VolumeOptions { field_tolerance }, progress)?;
+        return Ok(Exported::Volume { grid, report });
+    }
+    if options.linear {
+        progress.report_count(phase::LINEAR, 0, 0);
+        return Ok(Exported::Surface {
+            mesh: marching(model)?,
+            extract: None,
+        });
+    }
+    progress.report_count(phase::PREPARING, 0, 0);
+    let eval = ModelEval::new(model)
+        .map_err(|e| Error::Unsupported(format!("cannot evaluate the model: {e}")))?;
+    progress.check()?;
+    let (mesh, report) = extract_with_progress(
+        &eval,
+        &ExtractOptions {
+            tolerance: options.tolerance,
+            max_depth: options.max_depth,
+        },
+        progress,
+    )?;
+    Ok(Exported::Surface {
+        mesh,
+        extract: Some(report),
+    })
+}
+
+impl Exported {
+    /// Writes it in `format` to `out`; `name` labels the object where the format has a place for
+    /// it (a volume's legacy VTK header: "ISM volume" without one).
+    ///
+    /// # Errors
+    /// Whatever the writer reports; [`Error::Unsupported`] for a volume in a non-VTK format.
+    pub fn write<W: Write>(&self, format: ExportFormat, name: Option<&str>, out: W) -> Result<()> {
+        match self {
+            Exported::Surface { mesh, .. } => write_mesh(mesh, format, name, out),
+            Exported::Volume { grid, .. } => match format {
+                ExportFormat::Vtu => grid.write_vtu(out),
+                ExportFormat::VtkLegacy => grid.write_legacy(name.unwrap_or("ISM volume"), out),
+                f => Err(Error::Unsupported(format!(
+                    "volume needs a VTK output (.vtk or .vtu), not .{}",
+                    f.extension()
+                ))),
+            },
+        }
+    }
+
+    /// The members of `ism export --json` (without its timings) for output `path` in `format`.
+    pub fn summary(&self, path: &Path, format: ExportFormat) -> serde_json::Value {
+        let mut out = serde_json::json!({
+            "output": path.display().to_string(),
+            "format": format.extension(),
+        });
+        let more = match self {
+            Exported::Volume { report, .. } => serde_json::json!({
+                "cells": report.cells,
+                "control_points": report.control_points,
+                "degree": report.degree,
+                "refinement_levels": report.level,
+                "field_error_bound": report.bound,
+                "field_error_bound_everywhere": report.global_bound,
+                "field_error_certified": report.certified,
+                "field_tolerance": report.tolerance,
+                "field_tolerance_met": report.met,
+            }),
+            Exported::Surface { mesh, extract } => {
+                let t = mesh.topology();
+                serde_json::json!({
+                    "vertices": mesh.num_vertices(),
+                    "cells": mesh.num_cells(),
+                    "components": t.components,
+                    "euler_characteristic": t.euler_characteristic,
+                    "boundary_edges": t.boundary_edges,
+                    "non_manifold_edges": t.non_manifold_edges,
+                    "orientation_conflicts": t.orientation_conflicts,
+                    "degenerate_cells": t.degenerate_cells,
+                    "enclosed_measure": mesh.enclosed_measure(),
+                    "crossed_simplices": extract.map(|r| r.crossed_simplices),
+                    "inversions": extract.map(|r| r.inversions),
+                    "max_inverse_residual": extract.map(|r| r.max_residual),
+                    "depth_limited_edges": extract.map(|r| r.depth_limited_edges),
+                })
+            }
+        };
+        if let (Some(o), serde_json::Value::Object(m)) = (out.as_object_mut(), more) {
+            o.extend(m);
+        }
+        out
+    }
+}
+
+/// `ism export` of a model to `path`: the format from the extension, [`build`], then an atomic
+/// write (nothing half-written is left on failure).
+///
+/// # Errors
+/// [`Error::Unsupported`] for an unknown extension; as [`build`]; [`Error::Io`] (with the path)
+/// when writing fails.
+pub fn export_path(
+    model: &Model,
+    path: &Path,
+    options: &ExportOptions,
+    progress: &Progress,
+) -> Result<(Exported, ExportFormat)> {
+    let format = ExportFormat::from_path(path).ok_or_else(|| {
+        Error::Unsupported(format!(
+            "cannot tell the output format of {}: use .obj, .gltf, .glb, .vtk or .vtu",
+            path.display()
+        ))
+    })?;
+    check(options, Some(format))?;
+    let built = build(model, options, progress)?;
+    let name = model.metadata.name.as_deref();
+    ism_format::io::write_atomic(path, |w| {
+        built.write(format, name, w).map_err(std::io::Error::other)
+    })
+    .map_err(|source| Error::Io {
+        path: Some(path.to_path_buf()),
+        source,
+    })?;
+    Ok((built, format))
+}
