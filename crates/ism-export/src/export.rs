@@ -82,6 +82,9 @@ pub mod phase {
     pub const LINEAR: &str = "extracting the linear isocomplex (marching simplices)";
     /// Building the evaluator (stage tables, inverses).
     pub const PREPARING: &str = "preparing the model's stages for evaluation and inversion";
+    /// Extracting the curved shape (then counted: [`crate::extract::phase`]).
+    pub const EXTRACTING: &str =
+        "extracting the curved shape: refining the patches to the tolerance, inverting the stages";
     /// Choosing the volume field's default tolerance.
     pub const FIELD_TOLERANCE: &str = "choosing the field tolerance of the volume";
 }
@@ -178,6 +181,7 @@ pub fn build(model: &Model, options: &ExportOptions, progress: &Progress) -> Res
     let eval = ModelEval::new(model)
         .map_err(|e| Error::Unsupported(format!("cannot evaluate the model: {e}")))?;
     progress.check()?;
+    progress.report_count(phase::EXTRACTING, 0, 0);
     let (mesh, report) = extract_with_progress(
         &eval,
         &ExtractOptions {
