@@ -1,4 +1,5 @@
 """Every Python example of the docs runs: the ```python blocks of README.md and python/README.md
+(Blender's `bpy` blocks excepted)
 (each file's blocks in order, in one namespace, from a scratch directory that sees the
 repository's spec/), and the scripts in python/examples (test_examples.py runs those against the
 CLI)."""
@@ -15,7 +16,10 @@ DOCS = [ROOT / "README.md", ROOT / "python" / "README.md"]
 
 
 def blocks(path: Path) -> list[str]:
-    return re.findall(r"^```python\n(.*?)^```", path.read_text(), flags=re.S | re.M)
+    """The file's python blocks, except those for Blender's own Python (`bpy`, run inside Blender;
+    the add-on's tests cover them)."""
+    found = re.findall(r"^```python\n(.*?)^```", path.read_text(), flags=re.S | re.M)
+    return [b for b in found if "import bpy" not in b]
 
 
 @pytest.mark.parametrize("doc", DOCS, ids=[str(d.relative_to(ROOT)) for d in DOCS])
