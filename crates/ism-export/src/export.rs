@@ -8,12 +8,15 @@
 //! use ism_format::builder::{ModelBuilder, StageBuilder};
 //! use ism_format::Progress;
 //!
+//! // A square of two triangles, one corner inside, with a quadratic stage bending the curve.
 //! let model = ModelBuilder::new(2)
 //!     .vertex(&[0.0, 0.0], -1.0)
 //!     .vertex(&[1.0, 0.0], 1.0)
+//!     .vertex(&[1.0, 1.0], 1.0)
 //!     .vertex(&[0.0, 1.0], 1.0)
 //!     .simplex(&[0, 1, 2])
-//!     .stage(StageBuilder::bezier(2).face(&[0, 1], &[0.6, 0.1], &[]).build())
+//!     .simplex(&[0, 2, 3])
+//!     .stage(StageBuilder::bezier(2).face(&[0, 2], &[0.7, 0.3], &[]).build())
 //!     .build()?;
 //! let options = ExportOptions::default();
 //! let built = build(&model, &options, &Progress::none())?;
@@ -22,9 +25,9 @@
 //! let summary = built.summary(std::path::Path::new("x.obj"), ExportFormat::Obj);
 //! assert_eq!(summary["format"], "obj");
 //! let segments = summary["cells"].as_u64().unwrap();
-//! // The curved segment was refined (its one linear segment halved at least once), and the OBJ
-//! // has one `l` line per segment.
-//! assert!(segments > 1);
+//! // The curve was refined (more segments than its two linear ones), and the OBJ has one `l`
+//! // line per segment.
+//! assert!(segments > 2);
 //! let text = String::from_utf8(obj)?;
 //! assert_eq!(text.lines().filter(|l| l.starts_with("l ")).count() as u64, segments);
 //! # Ok::<(), Box<dyn std::error::Error>>(())
