@@ -393,7 +393,7 @@ def approximate_bezier_grid(model: Any, tolerance: float) -> vtkUnstructuredGrid
     _double_field(grid, "FieldTolerance", summary["field_tolerance"])
     _int_field(grid, "Degree", summary["degree"])
     _int_field(grid, "RefinementLevels", summary["refinement_levels"])
-    _string_field(grid, "FieldNote", str(summary["field"]))
+    _string_field(grid, "FieldNote", str(summary["field_note"]))
     return grid
 
 

@@ -85,6 +85,11 @@ fn volume_export_states_its_field_error() {
         let bound = r["field_error_bound"].as_f64().unwrap();
         assert!(bound <= 1e-4, "{model}: {r}");
         assert_eq!(r["field_tolerance_met"], true, "{model}: {r}");
+        // The method line (certified or estimated, and why) is part of the summary too.
+        assert!(
+            r["field_note"].as_str().is_some_and(|s| !s.is_empty()),
+            "{model}: {r}"
+        );
         let stderr = String::from_utf8_lossy(&o.stderr);
         assert!(stderr.contains("max |F_vtk − F| ≤"), "{stderr}");
         let text = std::fs::read_to_string(&out).unwrap();

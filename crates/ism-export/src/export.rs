@@ -236,6 +236,7 @@ impl Exported {
                 "field_error_certified": report.certified,
                 "field_tolerance": report.tolerance,
                 "field_tolerance_met": report.met,
+                "field_note": report.note,
             }),
             Exported::Surface { mesh, extract } => {
                 let t = mesh.topology();
