@@ -238,30 +238,6 @@ fn mesh_dict<'py>(py: Python<'py>, mesh: &ism_export::Mesh) -> PyResult<Bound<'p
     Ok(d)
 }
 
-fn topology_json(mesh: &ism_export::Mesh) -> serde_json::Value {
-    let t = mesh.topology();
-    serde_json::json!({
-        "vertices": mesh.num_vertices(),
-        "cells": mesh.num_cells(),
-        "components": t.components,
-        "euler_characteristic": t.euler_characteristic,
-        "boundary_edges": t.boundary_edges,
-        "non_manifold_edges": t.non_manifold_edges,
-        "orientation_conflicts": t.orientation_conflicts,
-        "degenerate_cells": t.degenerate_cells,
-        "enclosed_measure": mesh.enclosed_measure(),
-    })
-}
-
-fn extract_json(r: &ism_export::extract::ExtractReport) -> serde_json::Value {
-    serde_json::json!({
-        "crossed_simplices": r.crossed_simplices,
-        "inversions": r.inversions,
-        "max_inverse_residual": r.max_residual,
-        "depth_limited_edges": r.depth_limited_edges,
-    })
-}
-
 /// The options of `ism export`, checked (as the CLI's argument parser and the library check them).
 fn export_options(
     tolerance: f64,
@@ -342,12 +318,7 @@ impl Model {
             ));
         };
         let d = mesh_dict(py, &mesh)?;
-        let mut summary = topology_json(&mesh);
-        if let (Some(r), Some(obj)) = (extract, summary.as_object_mut()) {
-            if let Some(extra) = extract_json(&r).as_object() {
-                obj.extend(extra.clone());
-            }
-        }
+        let summary = ism_export::export::surface_summary(&mesh, extract.as_ref());
         d.set_item("report", json_dict(py, &summary)?)?;
         py.import("ism._results")?
             .getattr("Surface")?

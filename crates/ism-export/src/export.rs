@@ -238,24 +238,7 @@ impl Exported {
                 "field_tolerance_met": report.met,
                 "field_note": report.note,
             }),
-            Exported::Surface { mesh, extract } => {
-                let t = mesh.topology();
-                serde_json::json!({
-                    "vertices": mesh.num_vertices(),
-                    "cells": mesh.num_cells(),
-                    "components": t.components,
-                    "euler_characteristic": t.euler_characteristic,
-                    "boundary_edges": t.boundary_edges,
-                    "non_manifold_edges": t.non_manifold_edges,
-                    "orientation_conflicts": t.orientation_conflicts,
-                    "degenerate_cells": t.degenerate_cells,
-                    "enclosed_measure": mesh.enclosed_measure(),
-                    "crossed_simplices": extract.map(|r| r.crossed_simplices),
-                    "inversions": extract.map(|r| r.inversions),
-                    "max_inverse_residual": extract.map(|r| r.max_residual),
-                    "depth_limited_edges": extract.map(|r| r.depth_limited_edges),
-                })
-            }
+            Exported::Surface { mesh, extract } => surface_summary(mesh, extract.as_ref()),
         };
         if let (Some(o), serde_json::Value::Object(m)) = (out.as_object_mut(), more) {
             o.extend(m);
@@ -293,4 +276,26 @@ pub fn export_path(
         source,
     })?;
     Ok((built, format))
+}
+
+/// The members of a surface export's summary (`ism export --json`, and the report of the Python
+/// package's `extract_surface`): the mesh's counts and topology, and what the curved extraction did
+/// (`null` for the linear isocomplex, which needs none).
+pub fn surface_summary(mesh: &Mesh, extract: Option<&ExtractReport>) -> serde_json::Value {
+    let t = mesh.topology();
+    serde_json::json!({
+        "vertices": mesh.num_vertices(),
+        "cells": mesh.num_cells(),
+        "components": t.components,
+        "euler_characteristic": t.euler_characteristic,
+        "boundary_edges": t.boundary_edges,
+        "non_manifold_edges": t.non_manifold_edges,
+        "orientation_conflicts": t.orientation_conflicts,
+        "degenerate_cells": t.degenerate_cells,
+        "enclosed_measure": mesh.enclosed_measure(),
+        "crossed_simplices": extract.map(|r| r.crossed_simplices),
+        "inversions": extract.map(|r| r.inversions),
+        "max_inverse_residual": extract.map(|r| r.max_residual),
+        "depth_limited_edges": extract.map(|r| r.depth_limited_edges),
+    })
 }
