@@ -96,10 +96,12 @@ pub(crate) fn run<T: Send + 'static>(
         progress: ptx,
     };
     let cancel = control.cancel.clone();
+    name_global_pool();
     let pool = if threads > 0 {
         Some(
             rayon::ThreadPoolBuilder::new()
                 .num_threads(threads)
+                .thread_name(|i| format!("ism-pool-{i}"))
                 .build()
                 .map_err(|e| {
                     pyo3::exceptions::PyRuntimeError::new_err(format!(
@@ -183,4 +185,17 @@ pub(crate) fn run<T: Send + 'static>(
             }
         }
     }
+}
+
+/// Names rayon's global pool's threads. The pool is created lazily by the first thread that uses
+/// it, and a Linux thread inherits its creator's name: created from an `ism-worker` thread, its
+/// long-lived threads would carry that name and look like workers left behind by a call.
+fn name_global_pool() {
+    static ONCE: std::sync::Once = std::sync::Once::new();
+    ONCE.call_once(|| {
+        // An error means the pool already exists (another library built it): nothing to name.
+        let _ = rayon::ThreadPoolBuilder::new()
+            .thread_name(|i| format!("ism-rayon-{i}"))
+            .build_global();
+    });
 }
