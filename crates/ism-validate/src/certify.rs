@@ -20,7 +20,7 @@
 use ism_format::multi_index;
 
 /// Unit roundoff of f64 (round to nearest).
-const UNIT_ROUNDOFF: f64 = f64::EPSILON / 2.0;
+pub(crate) const UNIT_ROUNDOFF: f64 = f64::EPSILON / 2.0;
 
 /// Absolute slack added to every error bound for gradual underflow: each rounding may also lose up
 /// to the smallest subnormal, and no computation here has more than 10⁴ roundings on a path.
@@ -30,6 +30,12 @@ const UNDERFLOW_SLACK: f64 = 1e4 * f64::MIN_POSITIVE;
 /// one bit to a corner coordinate), so a candidate witness is the exact corner, and the exact path
 /// takes over long before rounding in the coefficients could matter.
 pub const MAX_FLOAT_DEPTH: u32 = 50;
+
+/// Deepest bisection of the double-double tier: its pieces near a minimum 10⁻¹² of the scale are
+/// about 10⁻⁶ of the simplex (60 bisections in 3D). Beyond depth 50 a corner may be rounded; a
+/// certificate of positivity does not depend on the corners, and a witness is proven exactly at
+/// the point printed, so a rounded corner costs at most a missed witness, never a false one.
+pub const MAX_TWOFOLD_DEPTH: u32 = 120;
 
 /// How much work one element may take (spec/validation.md §4.4). Pieces, not depth: a piece count
 /// bounds time and memory whatever the shape of the subdivision tree.
@@ -159,7 +165,8 @@ impl Decision {
 pub enum Certificate {
     /// Positive on the closed simplex.
     Positive {
-        /// Whether the exact path decided it (otherwise the floating-point certificate did).
+        /// Whether the exact path decided it (otherwise a floating-point certificate did, from
+        /// double or double-double coefficients).
         exact: bool,
         /// Greatest subdivision depth used.
         depth: u32,
@@ -204,7 +211,7 @@ pub(crate) struct Convolution {
     pub(crate) len_b: usize,
     pub(crate) out_len: usize,
     /// Most terms summed into one output coefficient.
-    max_terms: usize,
+    pub(crate) max_terms: usize,
 }
 
 impl Convolution {
@@ -236,7 +243,7 @@ impl Convolution {
 }
 
 /// Permanent of the upper-left `s × s` block (`s ≤ 4`), by expansion along the first row.
-fn permanent(a: &[[f64; 4]; 4], s: usize) -> f64 {
+pub(crate) fn permanent(a: &[[f64; 4]; 4], s: usize) -> f64 {
     fn rec(a: &[[f64; 4]; 4], s: usize, row: usize, used: u32) -> f64 {
         if row == s {
             return 1.0;
@@ -272,13 +279,13 @@ pub struct DetKernel {
     /// degree `d`, `k = 0..m`.
     pub(crate) shift: Vec<[u16; 4]>,
     /// Multinomials of degree `d − 1` and `d`.
-    mult_entry: Vec<f64>,
-    mult_first: Vec<f64>,
+    pub(crate) mult_entry: Vec<f64>,
+    pub(crate) mult_first: Vec<f64>,
     /// Laplace levels: `conv[j]` multiplies column `j` by a minor of columns `j + 1..`.
     pub(crate) conv: Vec<Convolution>,
     /// Degree of the determinant polynomial.
     pub(crate) det_degree: u32,
-    mult_det: Vec<f64>,
+    pub(crate) mult_det: Vec<f64>,
     /// `γ_k` for the longest rounding path, with a safety factor.
     gamma: f64,
     /// Rank of `D·e_i` in the determinant's canonical order.
@@ -535,37 +542,62 @@ impl DetKernel {
     pub fn certify(&self, net: &DenseNet, budget: Budget) -> Certificate {
         let mut bounds = (f64::NEG_INFINITY, f64::INFINITY, 0u32, 0usize);
         if let Some(scaled) = normalized(net) {
-            let coefficients = self.det_coefficients(&scaled);
-            match self.decide_piece(
-                coefficients,
-                unit_corners(self.n + 1),
-                0,
-                budget.pieces,
-                MAX_FLOAT_DEPTH,
-            ) {
-                Decision::Positive {
-                    depth,
-                    pieces,
-                    lower_bound,
-                } => {
-                    return Certificate::Positive {
-                        exact: false,
+            // Floating point first; where its error bound is too wide (minima near the fold
+            // threshold), the same polynomial in double-double, whose bound is ~10⁻¹⁷ as wide.
+            let tiers = [
+                (Some(self.det_coefficients(&scaled)), MAX_FLOAT_DEPTH),
+                (None, MAX_TWOFOLD_DEPTH),
+            ];
+            for (tier, (coefficients, max_depth)) in tiers.into_iter().enumerate() {
+                let coefficients = match coefficients {
+                    Some(c) => c,
+                    None => match self.det_coefficients_twofold(&scaled) {
+                        Some(c) => c,
+                        None => break,
+                    },
+                };
+                match self.decide_piece(
+                    coefficients,
+                    unit_corners(self.n + 1),
+                    0,
+                    budget.pieces,
+                    max_depth,
+                ) {
+                    Decision::Positive {
                         depth,
                         pieces,
-                        lower_bound: Some(lower_bound),
+                        lower_bound,
+                    } => {
+                        return Certificate::Positive {
+                            exact: false,
+                            depth,
+                            pieces: pieces + bounds.3,
+                            lower_bound: Some(lower_bound),
+                        }
+                    }
+                    Decision::NonPositive { point, .. } => {
+                        if let Some(w) = crate::exact::witness_at(net, &point) {
+                            return Certificate::NonPositive(w);
+                        }
+                    }
+                    Decision::Undetermined {
+                        depth,
+                        pieces,
+                        lower_bound,
+                        upper_bound,
+                    } => {
+                        bounds = if tier == 0 {
+                            (lower_bound, upper_bound, depth, pieces)
+                        } else {
+                            (
+                                lower_bound,
+                                upper_bound.min(bounds.1),
+                                depth.max(bounds.2),
+                                pieces + bounds.3,
+                            )
+                        }
                     }
                 }
-                Decision::NonPositive { point, .. } => {
-                    if let Some(w) = crate::exact::witness_at(net, &point) {
-                        return Certificate::NonPositive(w);
-                    }
-                }
-                Decision::Undetermined {
-                    depth,
-                    pieces,
-                    lower_bound,
-                    upper_bound,
-                } => bounds = (lower_bound, upper_bound, depth, pieces),
             }
         }
         match crate::exact::decide(self, net, budget.exact_pieces) {
@@ -629,17 +661,30 @@ impl DetKernel {
                 undecided = Some(f64::NEG_INFINITY);
                 break;
             }
+            let mut hopeless = None;
             for i in 0..m {
                 let value = values[self.vertex_rank[i]];
+                let error = errors[self.vertex_rank[i]];
                 upper = upper.min(value);
-                if value <= 0.0 {
-                    // A candidate only: the caller proves it exactly or goes on exactly.
+                if value + error <= 0.0 {
+                    // Negative beyond its error bound: a candidate the caller proves exactly.
                     return Decision::NonPositive {
                         point: piece.corners[i][..m].to_vec(),
                         value,
-                        error: errors[self.vertex_rank[i]],
+                        error,
                     };
                 }
+                if value - error <= 0.0 {
+                    hopeless = Some(value - error);
+                }
+            }
+            // A vertex whose sign the bound cannot settle settles nothing below: bisection copies a
+            // piece's vertex coefficients and their bounds unchanged into the child that keeps the
+            // vertex, so no descendant containing it can be certified: the whole simplex cannot
+            // be. Give up at once (always sound) and let a tighter computation decide.
+            if let Some(low) = hopeless {
+                undecided = Some(undecided.map_or(low, |l: f64| l.min(low)));
+                break;
             }
             let low = values
                 .iter()
@@ -663,16 +708,27 @@ impl DetKernel {
             self.bisect(&piece.coef, a, b, &mut left, &mut right);
             pool.push(piece.coef);
             let (ca, cb) = split_corners(&piece.corners, a, b, m);
-            stack.push(Piece {
-                coef: right,
-                corners: cb,
-                depth: piece.depth + 1,
-            });
-            stack.push(Piece {
+            // Depth first into the child with the lower least coefficient: where the polynomial is
+            // lowest is where a witness is, and where bisection gives up soonest.
+            let least = |c: &[f64]| c[..len].iter().copied().fold(f64::INFINITY, f64::min);
+            let right_first = least(&right) < least(&left);
+            let l = Piece {
                 coef: left,
                 corners: ca,
                 depth: piece.depth + 1,
-            });
+            };
+            let r = Piece {
+                coef: right,
+                corners: cb,
+                depth: piece.depth + 1,
+            };
+            if right_first {
+                stack.push(l);
+                stack.push(r);
+            } else {
+                stack.push(r);
+                stack.push(l);
+            }
         }
         match undecided {
             None => Decision::Positive {

@@ -53,6 +53,7 @@ pub mod quality;
 pub mod report;
 pub mod theorem;
 pub mod topology;
+pub mod twofold;
 
 use std::path::Path;
 use std::time::Instant;

@@ -533,7 +533,7 @@ fn an_exact_zero_is_rejected_with_the_zero_as_witness() {
 #[test]
 fn a_corner_degenerate_to_round_off_is_decided_exactly() {
     // The edge points next to vertex 0 sit 1e-13 from it: det DX there is about 1e-26 of the
-    // identity's, below every floating-point error bound, yet positive — the exact path decides.
+    // identity's, below the floating-point error bound, yet positive — a tighter tier decides.
     for n in [2usize, 3] {
         let d = 3;
         let mut net = DenseNet::identity(n, d);
@@ -549,8 +549,9 @@ fn a_corner_degenerate_to_round_off_is_decided_exactly() {
             net.points[r] = p;
         }
         let cert = DetKernel::new(n, d, false).certify(&net, Budget::default());
+        // Decided by the double-double tier (bound ~1e-28 of the scale) or the exact path.
         assert!(
-            matches!(cert, Certificate::Positive { exact: true, .. }),
+            matches!(cert, Certificate::Positive { .. }),
             "{n}D: {cert:?}"
         );
         let corner = exact_at(&net, &[1.0, 0.0, 0.0, 0.0][..m]).unwrap();
