@@ -1,21 +1,32 @@
 #!/usr/bin/env bash
-# Issue 2 benchmark: read/write throughput and peak memory of each encoding on a ≥ 1,000,000-tet
+# Issues 2 and 13 benchmark: read/write CPU time and peak memory of each encoding on a ≥ 1,000,000-tet
 # model with a stratified stage on every face, and meshio (binary .vtu) on the same tets and values
-# in the same run. Needs the venv of tools/setup.sh (meshio). Usage: tools/bench_format.sh [DIR] [TETS]
+# in the same run. Needs meshio (the venv of tools/setup.sh, or PYTHON=...).
+# Usage: tools/bench_format.sh [DIR] [TETS]   (CARGO_TARGET_DIR and PYTHON are honoured;
+#        SKIP_MAKE=1 reuses DIR's files when they exist)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 dir=${1:-/tmp/ism-bench-format}
 tets=${2:-1000000}
+py=${PYTHON:-.venv/bin/python}
 cargo build --release -q -p ism-conformance --example bench_format
-bin=target/release/examples/bench_format
-$bin make "$dir" "$tets"
+bin=${CARGO_TARGET_DIR:-target}/release/examples/bench_format
+if [[ -z "${SKIP_MAKE:-}" || ! -f "$dir/large.ismb" ]]; then
+  $bin make "$dir" "$tets"
+  $py tools/bench_meshio.py "$dir"
+fi
 peak() { /usr/bin/time -f '{"peak_kib":%M}' "$@" 2>&1 >/dev/stderr | tail -n 1; }
+ls -l "$dir"
 for f in large.ismb large.ism.msgpack large.ism.json; do
   for mode in "" "--no-check" "--indexed"; do
     $bin read "$dir/$f" $mode --repeat 3
     echo "{\"file\":\"$f\",\"mode\":\"${mode:-checked}\",\"single_read\":$(peak $bin read "$dir/$f" $mode --repeat 1)}"
   done
+  $py tools/bench_meshio.py read "$dir/large.vtu" --repeat 3
 done
-.venv/bin/python tools/bench_meshio.py "$dir"
-.venv/bin/python tools/bench_meshio.py read "$dir/large.vtu" --repeat 3
-echo "{\"file\":\"large.vtu\",\"single_read\":$(peak .venv/bin/python tools/bench_meshio.py read "$dir/large.vtu")}"
+out=$(mktemp -d)
+for f in large.ismb large.ism.msgpack; do
+  $bin write "$dir/$f" "$out/$f" --repeat 3
+done
+rm -rf "$out"
+echo "{\"file\":\"large.vtu\",\"single_read\":$(peak $py tools/bench_meshio.py read "$dir/large.vtu")}"

@@ -272,9 +272,9 @@ impl Stage {
             t.point_offsets.push(0);
             t.weight_offsets.push(0);
             for r in f {
-                t.face_vertices.extend_from_slice(&r.face);
-                t.points.extend_from_slice(&r.points);
-                t.weights.extend_from_slice(&r.weights);
+                t.face_vertices.extend_from_slice(r.face);
+                t.points.extend_from_slice(r.points);
+                t.weights.extend_from_slice(r.weights);
                 t.face_offsets.push(offset(t.face_vertices.len()));
                 t.point_offsets.push(offset(t.points.len()));
                 t.weight_offsets.push(offset(t.weights.len()));
@@ -337,7 +337,7 @@ impl Stage {
                         "faces[{i}]: expected (face_ids, points) or (face_ids, points, weights)"
                     )));
                 }
-                stage.faces.push(FaceRecord {
+                stage.faces.push_record(&FaceRecord {
                     face: u32_vec(&parts[0], &format!("faces[{i}] ids"))?,
                     points: f64_flat(&parts[1], &format!("faces[{i}] points"))?,
                     weights: match parts.get(2) {
@@ -419,7 +419,7 @@ impl Stage {
                 ));
             }
             for ((face, points), weights) in faces.into_iter().zip(pts).zip(ws) {
-                stage.faces.push(FaceRecord {
+                stage.faces.push_record(&FaceRecord {
                     face,
                     points,
                     weights,
@@ -575,16 +575,16 @@ impl Stage {
         let list = PyList::empty(py);
         for r in &self.inner.faces {
             let k1 = r.face.len().max(1);
-            let pts = PyArray1::from_slice(py, &r.points);
+            let pts = PyArray1::from_slice(py, r.points);
             let pts = if r.points.len() % k1 == 0 {
                 pts.reshape([r.points.len() / k1, k1])?.into_any()
             } else {
                 pts.into_any()
             };
             list.append((
-                PyArray1::from_slice(py, &r.face),
+                PyArray1::from_slice(py, r.face),
                 pts,
-                PyArray1::from_slice(py, &r.weights),
+                PyArray1::from_slice(py, r.weights),
             ))?;
         }
         Ok(list)

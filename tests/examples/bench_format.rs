@@ -5,6 +5,10 @@
 //!                                 the raw tetrahedra/points/values as .npy for the peer.
 //! `bench_format read FILE [--no-check | --indexed] [--repeat K]`  read a file (timed; best of K;
 //!                                 `--indexed` also builds the IndexedModel).
+//! `bench_format write FILE OUT [--repeat K]`  read FILE unchecked, then write it to OUT in the
+//!                                 encoding OUT's name suggests (timed, best of K; peak RSS of the
+//!                                 write phase alone, from the kernel's high-water mark reset
+//!                                 before it).
 
 use std::io::Write;
 use std::path::Path;
@@ -110,7 +114,8 @@ fn read(file: &Path, mode: &str, repeat: usize) -> Result<(), Box<dyn std::error
         drop(out.take());
         let (t, c) = (Instant::now(), cpu_seconds());
         let f = std::fs::File::open(file)?;
-        let d = io::read_with(std::io::BufReader::new(f), &options)?;
+        // No BufReader: the reader streams binary payloads through its own window.
+        let d = io::read_with(f, &options)?;
         let summary = if mode == "indexed" {
             let indexed = ism_format::IndexedModel::new(d.model)?;
             (
@@ -129,6 +134,40 @@ fn read(file: &Path, mode: &str, repeat: usize) -> Result<(), Box<dyn std::error
     let (encoding, bytes, simplices, _) = out.expect("repeat ≥ 1");
     println!("{{\"op\":\"read\",\"encoding\":\"{}\",\"mode\":\"{mode}\",\"bytes\":{bytes},\"seconds\":{best:.4},\"cpu_seconds\":{best_cpu:.2},\"simplices\":{simplices}}}",
         encoding.name());
+    Ok(())
+}
+
+/// A line of /proc/self/status in KiB (`VmHWM`, `VmRSS`), 0 where unavailable.
+fn status_kib(key: &str) -> u64 {
+    std::fs::read_to_string("/proc/self/status")
+        .unwrap_or_default()
+        .lines()
+        .find_map(|l| l.strip_prefix(key)?.strip_prefix(':'))
+        .and_then(|v| v.split_whitespace().next()?.parse().ok())
+        .unwrap_or(0)
+}
+
+fn write(file: &Path, out: &Path, repeat: usize) -> Result<(), Box<dyn std::error::Error>> {
+    let options = ReadOptions {
+        check_structure: false,
+        ..ReadOptions::default()
+    };
+    let model = io::read_with(std::fs::File::open(file)?, &options)?.model;
+    let encoding =
+        Encoding::from_path(out).ok_or("OUT needs an .ismb, .ism.msgpack or .ism.json name")?;
+    let resident = status_kib("VmRSS");
+    // Linux: writing 5 to clear_refs resets the peak RSS, so VmHWM below is the write's own peak.
+    let reset = std::fs::write("/proc/self/clear_refs", "5").is_ok();
+    let (mut best, mut best_cpu) = (f64::INFINITY, f64::INFINITY);
+    for _ in 0..repeat {
+        let (t, c) = (Instant::now(), cpu_seconds());
+        io::write_path(&model, out, Some(encoding), WriteOptions::default())?;
+        best = best.min(t.elapsed().as_secs_f64());
+        best_cpu = best_cpu.min(cpu_seconds() - c);
+    }
+    let bytes = std::fs::metadata(out)?.len();
+    println!("{{\"op\":\"write\",\"encoding\":\"{}\",\"bytes\":{bytes},\"seconds\":{best:.4},\"cpu_seconds\":{best_cpu:.2},\"model_rss_kib\":{resident},\"write_peak_rss_kib\":{},\"peak_reset\":{reset}}}",
+        encoding.name(), status_kib("VmHWM"));
     Ok(())
 }
 
@@ -159,8 +198,18 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                 .unwrap_or(3);
             read(Path::new(&args[1]), mode, repeat)
         }
+        Some("write") if args.len() >= 3 => {
+            let repeat = args
+                .iter()
+                .position(|a| a == "--repeat")
+                .and_then(|i| args.get(i + 1))
+                .map(|s| s.parse())
+                .transpose()?
+                .unwrap_or(3);
+            write(Path::new(&args[1]), Path::new(&args[2]), repeat)
+        }
         _ => Err(
-            "usage: bench_format make DIR [TETS] | read FILE [--no-check | --indexed] [--repeat K]"
+            "usage: bench_format make DIR [TETS] | read FILE [--no-check | --indexed] [--repeat K] | write FILE OUT [--repeat K]"
                 .into(),
         ),
     }

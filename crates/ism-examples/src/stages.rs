@@ -2,7 +2,7 @@
 //! simplicial diffeomorphism for every parameter they accept.
 
 use ism_format::multi_index::{owned, owned_count};
-use ism_format::{FaceRecord, Model, Stage, StageKind, VertexMap};
+use ism_format::{FaceRecord, FaceTable, Model, Stage, StageKind, VertexMap};
 use rayon::prelude::*;
 
 use crate::faces::{faces_of_dimension, FaceRng};
@@ -36,17 +36,17 @@ pub fn solitary_point(seed: u64, face: &[u32], amplitude: f64) -> Vec<f64> {
 /// (`spec/mathematics.md` §3.2), a diffeomorphism for every position in 2D and 3D.
 pub fn stratum_stage(model: &Model, j: usize, seed: u64, amplitude: f64) -> Stage {
     let faces = faces_of_dimension(model, j);
-    let records: Vec<FaceRecord> = faces
+    // Points in parallel into one flat array, then the table in one pass (no record vectors).
+    let points: Vec<f64> = faces
         .par_chunks_exact(j + 1)
-        .map(|face| FaceRecord {
-            face: face.to_vec(),
-            points: solitary_point(seed, face, amplitude),
-            weights: Vec::new(),
-        })
+        .flat_map_iter(|face| solitary_point(seed, face, amplitude))
         .collect();
     let mut stage = Stage::identity(StageKind::Bezier, j as u32 + 1);
     stage.name = Some(format!("stratum G{j}"));
-    stage.faces = records;
+    stage.faces = FaceTable::with_capacity(faces.len() / (j + 1));
+    for (face, point) in faces.chunks_exact(j + 1).zip(points.chunks_exact(j + 1)) {
+        stage.faces.push(face, point, &[]);
+    }
     stage
 }
 

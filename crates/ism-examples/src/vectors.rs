@@ -328,7 +328,7 @@ pub fn reader_vectors() -> Vec<ReaderVector> {
         Rule::StageDegree,
     );
     let mut s = Stage::identity(StageKind::Bezier, 2);
-    s.faces.push(ism_format::FaceRecord {
+    s.faces.push_record(&ism_format::FaceRecord {
         face: vec![4, 0],
         points: vec![0.4, 0.6],
         weights: vec![],
@@ -392,7 +392,7 @@ pub fn reader_vectors() -> Vec<ReaderVector> {
     let mut s = StageBuilder::monotonic(2)
         .vertex_map(0, &[0.0, 0.5, 1.0])
         .build();
-    s.faces.push(ism_format::FaceRecord {
+    s.faces.push_record(&ism_format::FaceRecord {
         face: vec![0, 1],
         points: vec![0.4, 0.6],
         weights: vec![],

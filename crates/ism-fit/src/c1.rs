@@ -372,7 +372,7 @@ fn check_input(model: &Model, options: &C1Options) -> Result<(u32, InputWeights)
                         .any(|(a, b)| (a - b).abs() > FIXED_POINT_TOLERANCE)
                     {
                         return Err(C1Error::MovedPoint {
-                            face: record.face.clone(),
+                            face: record.face.to_vec(),
                             index,
                             found: point.to_vec(),
                             expected,
@@ -388,7 +388,7 @@ fn check_input(model: &Model, options: &C1Options) -> Result<(u32, InputWeights)
                         ),
                     });
                 }
-                weights.insert(record.face.clone(), record.weights.clone());
+                weights.insert(record.face.to_vec(), record.weights.to_vec());
             }
             d
         }
@@ -716,7 +716,7 @@ fn build(model: &Model, d: u32, input: &InputWeights, fitted: &HashMap<WeightKey
     let mut out = model.clone();
     let mut stage = Stage::identity(StageKind::Rational, d);
     stage.name = Some("rational C1".to_string());
-    stage.faces = records;
+    stage.faces = records.into();
     out.stages = vec![stage];
     out.metadata.generator = Some(format!(
         "ism-fit {} (smooth --rational)",
@@ -844,8 +844,8 @@ pub fn smooth_rational_with_progress(
     let out = build(model, d, &input, &fitted);
     let weight_range = out.stages[0]
         .faces
+        .all_weights()
         .iter()
-        .flat_map(|f| &f.weights)
         .fold([1.0f64, 1.0f64], |[lo, hi], &w| [lo.min(w), hi.max(w)]);
     let report = C1Report {
         degree: d,
@@ -1075,7 +1075,7 @@ mod tests {
         let mut model = linear.clone();
         let mut stage = Stage::identity(StageKind::Rational, 2);
         for (face, q) in [(vec![0, 1], q01), (vec![0, 2], q02)] {
-            stage.faces.push(FaceRecord {
+            stage.faces.push_record(&FaceRecord {
                 face,
                 points: vec![0.5, 0.5],
                 weights: vec![q],
@@ -1149,7 +1149,7 @@ mod tests {
         let linear = two_triangles();
         let good = smooth_rational(&linear, &o).unwrap().model;
         let mut moved = good.clone();
-        moved.stages[0].faces[0].points[0] += 1e-6;
+        moved.stages[0].faces.record_mut(0).points[0] += 1e-6;
         let e = smooth_rational(&moved, &o).err().unwrap();
         assert!(matches!(e, C1Error::MovedPoint { index: 0, .. }), "{e}");
         let mut parametric = good.clone();
@@ -1182,11 +1182,11 @@ mod tests {
             Err(C1Error::Structure(_))
         ));
         let mut negative = good.clone();
-        negative.stages[0].faces[0].weights[0] = -1.0;
+        negative.stages[0].faces.record_mut(0).weights[0] = -1.0;
         let e = smooth_rational(&negative, &o).err().unwrap();
         assert!(e.to_string().contains("positive weight"), "{e}");
         let mut weights_off = good;
-        weights_off.stages[0].faces[0].weights.push(1.0);
+        weights_off.stages[0].faces.edit(|r| r[0].weights.push(1.0));
         assert!(matches!(
             smooth_rational(&weights_off, &o),
             Err(C1Error::Structure(_))
@@ -1233,7 +1233,7 @@ mod tests {
                             logs[k % logs.len()].exp()
                         })
                         .collect();
-                    stage.faces.push(FaceRecord { face, points, weights });
+                    stage.faces.push_record(&FaceRecord { face, points, weights });
                 }
                 model.stages = vec![stage];
                 assert_matches_validator(&model);

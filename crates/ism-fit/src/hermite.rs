@@ -422,8 +422,8 @@ impl Layered {
         if taken {
             'outer: for stage in &model.stages[..n] {
                 for r in &stage.faces {
-                    match logits_of(&r.points) {
-                        Some(l) => map.set_logits(&r.face, &l),
+                    match logits_of(r.points) {
+                        Some(l) => map.set_logits(r.face, &l),
                         None => {
                             taken = false;
                             break 'outer;

@@ -186,7 +186,7 @@ impl RationalWeights {
         let mut stage = Stage::identity(StageKind::Rational, 2);
         stage.direction = Direction::Parametric;
         stage.name = Some(format!("rational weights (degree 2, {}D)", self.dim));
-        stage.faces = faces;
+        stage.faces = faces.into();
         Some(stage)
     }
 }
@@ -268,9 +268,9 @@ mod tests {
         let stage = r.to_stage(|_| true).unwrap();
         assert_eq!(stage.kind, StageKind::Rational);
         assert_eq!(stage.faces.len(), 2);
-        assert_eq!(stage.faces[0].face, vec![1, 3]);
-        assert_eq!(stage.faces[0].points, vec![0.5, 0.5]);
-        assert_eq!(stage.faces[1].points, vec![1.0]);
+        assert_eq!(stage.faces.record(0).face, [1, 3]);
+        assert_eq!(stage.faces.record(0).points, [0.5, 0.5]);
+        assert_eq!(stage.faces.record(1).points, [1.0]);
         assert!(r.to_stage(|f| f.len() > 2).is_none());
     }
 }

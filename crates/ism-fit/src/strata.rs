@@ -221,7 +221,7 @@ impl StratifiedMap {
                 let mut stage = Stage::identity(StageKind::Bezier, j as u32 + 1);
                 stage.direction = Direction::Parametric;
                 stage.name = Some(format!("stratum G{j}"));
-                stage.faces = faces;
+                stage.faces = faces.into();
                 stage
             })
             .collect()

@@ -3,12 +3,12 @@
 //! length is checked against the bytes left before anything is allocated for it.
 
 use std::collections::BTreeMap;
+use std::io::Read;
 
 use crate::decode::{pointer_of, Decoder, JsonTokens, Seg};
 use crate::error::{Error, Result};
-use crate::model::{
-    Direction, FaceRecord, JsonValue, Metadata, Model, Stage, StageKind, VertexMap,
-};
+use crate::faces::FaceTable;
+use crate::model::{Direction, JsonValue, Metadata, Model, Stage, StageKind, VertexMap};
 use crate::rules::{Location, Rule};
 
 /// Smallest encoded size of one element, per sequence type (spec §7.4): what a declared length is
@@ -24,19 +24,172 @@ mod min_size {
     pub const EXTENSION: usize = 8 + 8;
 }
 
-pub(crate) struct BinaryDecoder<'a> {
-    b: &'a [u8],
+/// Window of a streamed payload: large enough that refills are rare, small enough to stay in cache.
+const WINDOW: usize = 1 << 18;
+
+/// In a streamed payload, sequences reserve at most this many elements before their data has
+/// arrived (a declared length is only a claim until the bytes are read).
+const STREAM_RESERVE: usize = 1 << 16;
+
+/// A payload streamed from a reader through a fixed window, its CRC-32 computed on the way; never
+/// reads past the declared payload length.
+pub(crate) struct Stream<'r> {
+    reader: &'r mut dyn Read,
+    buf: Vec<u8>,
+    /// Unread bytes are `buf[lo..hi]`.
+    lo: usize,
+    hi: usize,
+    /// Payload bytes read from the reader so far.
+    pulled: u64,
+    /// The declared payload length.
+    len: u64,
+    crc: crc32fast::Hasher,
+    /// The reader ended before `len` bytes.
+    short: bool,
+    /// The first read error.
+    error: Option<std::io::Error>,
+}
+
+/// What a streamed payload turned out to be once read to its end.
+pub(crate) struct StreamEnd {
+    /// Payload bytes present (less than declared when the file is truncated).
+    pub available: u64,
+    /// Bytes after the declared payload (counted up to `trailing_cap`).
+    pub trailing: u64,
+    /// CRC-32 of the payload bytes present.
+    pub crc: u32,
+    /// A read error, which decides over everything else.
+    pub error: Option<std::io::Error>,
+}
+
+impl<'r> Stream<'r> {
+    pub(crate) fn new(reader: &'r mut dyn Read, len: u64) -> Stream<'r> {
+        Stream {
+            reader,
+            buf: vec![0; WINDOW],
+            lo: 0,
+            hi: 0,
+            pulled: 0,
+            len,
+            crc: crc32fast::Hasher::new(),
+            short: false,
+            error: None,
+        }
+    }
+
+    /// Makes `n` unread bytes available in the window; false when the reader ends (or fails)
+    /// first. The window grows past [`WINDOW`] only as bytes actually arrive.
+    fn fill(&mut self, n: usize) -> bool {
+        if self.hi - self.lo >= n {
+            return true;
+        }
+        if self.short || self.error.is_some() {
+            return false;
+        }
+        self.buf.copy_within(self.lo..self.hi, 0);
+        self.hi -= self.lo;
+        self.lo = 0;
+        while self.hi < n {
+            if self.hi == self.buf.len() {
+                let grown = (self.buf.len() * 2).min(n.max(WINDOW));
+                self.buf.resize(grown.max(self.hi + 1), 0);
+            }
+            let want = (self.buf.len() - self.hi) as u64;
+            let want = want.min(self.len - self.pulled) as usize;
+            if want == 0 {
+                self.short = true;
+                return false;
+            }
+            match self.reader.read(&mut self.buf[self.hi..self.hi + want]) {
+                Ok(0) => {
+                    self.short = true;
+                    return false;
+                }
+                Ok(k) => {
+                    self.crc.update(&self.buf[self.hi..self.hi + k]);
+                    self.hi += k;
+                    self.pulled += k as u64;
+                }
+                Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
+                Err(e) => {
+                    self.error = Some(e);
+                    return false;
+                }
+            }
+        }
+        true
+    }
+
+    /// Reads the rest of the payload (checksumming it) and counts what follows, up to
+    /// `trailing_cap` bytes.
+    pub(crate) fn finish(mut self, trailing_cap: u64) -> StreamEnd {
+        let mut scratch = vec![0u8; WINDOW];
+        while self.error.is_none() && !self.short && self.pulled < self.len {
+            let want = (self.len - self.pulled).min(WINDOW as u64) as usize;
+            match self.reader.read(&mut scratch[..want]) {
+                Ok(0) => self.short = true,
+                Ok(k) => {
+                    self.crc.update(&scratch[..k]);
+                    self.pulled += k as u64;
+                }
+                Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
+                Err(e) => self.error = Some(e),
+            }
+        }
+        let mut trailing = 0;
+        if self.error.is_none() && !self.short {
+            match std::io::copy(
+                &mut (&mut self.reader).take(trailing_cap),
+                &mut std::io::sink(),
+            ) {
+                Ok(k) => trailing = k,
+                Err(e) => self.error = Some(e),
+            }
+        }
+        StreamEnd {
+            available: self.pulled,
+            trailing,
+            crc: self.crc.finalize(),
+            error: self.error,
+        }
+    }
+}
+
+/// The decoder's bytes: the whole payload in memory, or a stream.
+enum Source<'a, 'r> {
+    Slice(&'a [u8]),
+    Stream(&'a mut Stream<'r>),
+}
+
+pub(crate) struct BinaryDecoder<'a, 'r> {
+    src: Source<'a, 'r>,
+    /// Payload bytes consumed.
     at: usize,
+    /// Declared payload length.
+    end: usize,
     base: u64,
     path: Vec<Seg>,
 }
 
-impl<'a> BinaryDecoder<'a> {
+impl<'a, 'r> BinaryDecoder<'a, 'r> {
     /// A decoder of `payload`, whose first byte is at file offset `base`.
-    pub(crate) fn new(payload: &'a [u8], base: u64) -> BinaryDecoder<'a> {
+    pub(crate) fn new(payload: &'a [u8], base: u64) -> BinaryDecoder<'a, 'r> {
         BinaryDecoder {
-            b: payload,
+            src: Source::Slice(payload),
             at: 0,
+            end: payload.len(),
+            base,
+            path: Vec::new(),
+        }
+    }
+
+    /// A decoder of a streamed payload whose first byte is at file offset `base`.
+    pub(crate) fn stream(stream: &'a mut Stream<'r>, base: u64) -> BinaryDecoder<'a, 'r> {
+        let end = usize::try_from(stream.len).unwrap_or(usize::MAX);
+        BinaryDecoder {
+            src: Source::Stream(stream),
+            at: 0,
+            end,
             base,
             path: Vec::new(),
         }
@@ -55,15 +208,24 @@ impl<'a> BinaryDecoder<'a> {
     }
 
     fn remaining(&self) -> usize {
-        self.b.len() - self.at
+        self.end - self.at
     }
 
-    fn take(&mut self, n: usize, what: &str) -> Result<&'a [u8]> {
+    /// How many of `n` declared elements to reserve room for: all of them when the payload is in
+    /// memory (its length was checked against the file), a bounded number when streaming.
+    fn reserve_hint(&self, n: usize) -> usize {
+        match self.src {
+            Source::Slice(_) => n,
+            Source::Stream(_) => n.min(STREAM_RESERVE),
+        }
+    }
+
+    fn take(&mut self, n: usize, what: &str) -> Result<&[u8]> {
         self.take_with(n, || what.to_string())
     }
 
     /// [`Self::take`] with the description built only on failure (no allocation per record).
-    fn take_with(&mut self, n: usize, what: impl FnOnce() -> String) -> Result<&'a [u8]> {
+    fn take_with(&mut self, n: usize, what: impl FnOnce() -> String) -> Result<&[u8]> {
         if self.remaining() < n {
             return Err(self.fail(
                 self.at,
@@ -74,9 +236,46 @@ impl<'a> BinaryDecoder<'a> {
                 ),
             ));
         }
-        let out = &self.b[self.at..self.at + n];
+        let at = self.at;
         self.at += n;
-        Ok(out)
+        match &mut self.src {
+            Source::Slice(b) => Ok(&b[at..at + n]),
+            Source::Stream(s) => {
+                if !s.fill(n) {
+                    // The file ended early or could not be read: the caller reports that
+                    // (truncation, I/O error), not this placeholder.
+                    return Err(Error::format(
+                        Rule::Truncated,
+                        Location::offset(self.base + at as u64),
+                        "the payload ended early",
+                    ));
+                }
+                let out = &s.buf[s.lo..s.lo + n];
+                s.lo += n;
+                Ok(out)
+            }
+        }
+    }
+
+    /// Appends `n` little-endian numbers of `size` bytes to `out`, converted by `read`, a window
+    /// at a time.
+    fn numbers_into<T>(
+        &mut self,
+        n: usize,
+        size: usize,
+        what: &str,
+        out: &mut Vec<T>,
+        read: impl Fn(&[u8]) -> T,
+    ) -> Result<()> {
+        let per = (WINDOW / size).max(1);
+        let mut left = n;
+        while left > 0 {
+            let k = left.min(per);
+            let bytes = self.take(k * size, what)?;
+            out.extend(bytes.chunks_exact(size).map(&read));
+            left -= k;
+        }
+        Ok(())
     }
 
     fn u8(&mut self, what: &str) -> Result<u8> {
@@ -115,10 +314,10 @@ impl<'a> BinaryDecoder<'a> {
         let n = self.length(1, what)?;
         let at = self.at;
         let bytes = self.take(n, what)?;
-        match std::str::from_utf8(bytes) {
-            Ok(s) => Ok(s.to_string()),
-            Err(e) => Err(self.fail(at + e.valid_up_to(), format!("invalid UTF-8 in {what}"))),
-        }
+        let text = std::str::from_utf8(bytes)
+            .map(str::to_string)
+            .map_err(|e| e.valid_up_to());
+        text.map_err(|valid| self.fail(at + valid, format!("invalid UTF-8 in {what}")))
     }
 
     fn optional_string(&mut self, what: &str) -> Result<Option<String>> {
@@ -145,21 +344,57 @@ impl<'a> BinaryDecoder<'a> {
     }
 
     fn f64s(&mut self, what: &str) -> Result<Vec<f64>> {
-        let n = self.length(min_size::F64, what)?;
-        let bytes = self.take(n * 8, what)?;
-        Ok(bytes
-            .chunks_exact(8)
-            .map(|c| f64::from_le_bytes(c.try_into().expect("8 bytes")))
-            .collect())
+        let mut out = Vec::new();
+        self.f64s_into(&mut out, what)?;
+        Ok(out)
     }
 
     fn u32s(&mut self, what: &str) -> Result<Vec<u32>> {
+        let mut out = Vec::new();
+        self.u32s_into(&mut out, what)?;
+        Ok(out)
+    }
+
+    /// Appends a length-prefixed array of `f64` to `out` (no allocation but `out`'s growth).
+    fn f64s_into(&mut self, out: &mut Vec<f64>, what: &str) -> Result<()> {
+        let n = self.length(min_size::F64, what)?;
+        self.numbers_into(n, 8, what, out, |c| {
+            f64::from_le_bytes(c.try_into().expect("8 bytes"))
+        })
+    }
+
+    /// Appends a length-prefixed array of `u32` to `out`.
+    fn u32s_into(&mut self, out: &mut Vec<u32>, what: &str) -> Result<()> {
         let n = self.length(min_size::U32, what)?;
-        let bytes = self.take(n * 4, what)?;
-        Ok(bytes
-            .chunks_exact(4)
-            .map(|c| u32::from_le_bytes(c.try_into().expect("4 bytes")))
-            .collect())
+        self.numbers_into(n, 4, what, out, |c| {
+            u32::from_le_bytes(c.try_into().expect("4 bytes"))
+        })
+    }
+
+    /// A stage's `faces`: straight into the flat table, one pass, nothing allocated per record.
+    fn face_table(&mut self) -> Result<FaceTable> {
+        let n = self.length(min_size::FACE_RECORD, "faces")?;
+        let mut table = FaceTable::with_capacity(self.reserve_hint(n));
+        for i in 0..n {
+            self.path.push(Seg::Index(i));
+            let (ids, points, weights) = table.parts_mut();
+            self.member("face", |d| d.u32s_into(ids, "face"))?;
+            self.member("points", |d| d.f64s_into(points, "points"))?;
+            self.member("weights", |d| d.f64s_into(weights, "weights"))?;
+            if let Err(full) = table.close_record() {
+                return Err(Error::format(
+                    Rule::LimitExceeded,
+                    Location {
+                        pointer: Some(pointer_of(&self.path)),
+                        offset: Some(self.base + self.at as u64),
+                        ..Location::default()
+                    },
+                    full.to_string(),
+                ));
+            }
+            self.path.pop();
+        }
+        Ok(table)
     }
 
     fn seq<T>(
@@ -169,7 +404,7 @@ impl<'a> BinaryDecoder<'a> {
         mut read: impl FnMut(&mut Self) -> Result<T>,
     ) -> Result<Vec<T>> {
         let n = self.length(min, what)?;
-        let mut out = Vec::with_capacity(n);
+        let mut out = Vec::with_capacity(self.reserve_hint(n));
         for i in 0..n {
             self.path.push(Seg::Index(i));
             out.push(read(self)?);
@@ -226,15 +461,7 @@ impl<'a> BinaryDecoder<'a> {
             }
         };
         let name = self.member("name", |d| d.optional_string("name"))?;
-        let faces = self.member("faces", |d| {
-            d.seq(min_size::FACE_RECORD, "faces", |d| {
-                Ok(FaceRecord {
-                    face: d.member("face", |d| d.u32s("face"))?,
-                    points: d.member("points", |d| d.f64s("points"))?,
-                    weights: d.member("weights", |d| d.f64s("weights"))?,
-                })
-            })
-        })?;
+        let faces = self.member("faces", |d| d.face_table())?;
         let vertex_maps = self.member("vertexMaps", |d| {
             d.seq(min_size::VERTEX_MAP, "vertexMaps", |d| {
                 Ok(VertexMap {
@@ -318,11 +545,16 @@ impl<'a> BinaryDecoder<'a> {
         let extensions = self.member("extensions", |d| d.extensions())?;
         // Model (1).
         let extras = self.member("extras", |d| d.json(1))?;
-        if self.at < self.b.len() && !allow_trailing {
+        if self.at < self.end && !allow_trailing {
             return Err(self.fail(
                 self.at,
-                format!("{} bytes follow the model", self.b.len() - self.at),
+                format!("{} bytes follow the model", self.end - self.at),
             ));
+        }
+        if allow_trailing && self.at < self.end {
+            // A newer minor version's added fields: consumed unread (a stream is drained by its
+            // owner, which also checksums them).
+            self.at = self.end;
         }
         Ok(Model {
             version,

@@ -1,7 +1,7 @@
 //! Builders for models and stages, for programs that make ISMs.
 
 use crate::error::{Error, Result};
-use crate::model::{Direction, FaceRecord, Model, Stage, StageKind, VertexMap};
+use crate::model::{Direction, Model, Stage, StageKind, VertexMap};
 use crate::rules::Severity;
 
 /// Builds a [`Model`] vertex by vertex; [`ModelBuilder::build`] runs the structural checks.
@@ -143,11 +143,7 @@ impl StageBuilder {
                 .flat_map(|p| order.iter().map(move |&i| p[i]))
                 .collect()
         };
-        self.stage.faces.push(FaceRecord {
-            face: sorted_face,
-            points,
-            weights: weights.to_vec(),
-        });
+        self.stage.faces.push(&sorted_face, &points, weights);
         self
     }
 

@@ -114,18 +114,26 @@ pub(crate) fn to_json_vec<T: serde::Serialize + ?Sized>(
     pretty: bool,
 ) -> serde_json::Result<Vec<u8>> {
     let mut out = Vec::new();
+    to_json_writer(value, pretty, &mut out)?;
+    Ok(out)
+}
+
+/// [`to_json_vec`] into a writer.
+///
+/// # Errors
+/// As [`to_json_vec`], plus the writer's.
+pub(crate) fn to_json_writer<T: serde::Serialize + ?Sized, W: io::Write>(
+    value: &T,
+    pretty: bool,
+    out: W,
+) -> serde_json::Result<()> {
     if pretty {
         let formatter = Canonical(serde_json::ser::PrettyFormatter::with_indent(b"  "));
-        value.serialize(&mut serde_json::Serializer::with_formatter(
-            &mut out, formatter,
-        ))?;
+        value.serialize(&mut serde_json::Serializer::with_formatter(out, formatter))
     } else {
         let formatter = Canonical(serde_json::ser::CompactFormatter);
-        value.serialize(&mut serde_json::Serializer::with_formatter(
-            &mut out, formatter,
-        ))?;
+        value.serialize(&mut serde_json::Serializer::with_formatter(out, formatter))
     }
-    Ok(out)
 }
 
 /// The canonical compact JSON text of a value: how the binary encoding stores `json` members.

@@ -13,9 +13,8 @@
 use std::collections::{BTreeMap, HashSet};
 
 use crate::error::{Error, Result};
-use crate::model::{
-    Direction, FaceRecord, JsonValue, Metadata, Model, Stage, StageKind, VertexMap,
-};
+use crate::faces::FaceTable;
+use crate::model::{Direction, JsonValue, Metadata, Model, Stage, StageKind, VertexMap};
 use crate::rules::{Location, Rule};
 use crate::structure::escape_pointer;
 
@@ -853,20 +852,30 @@ impl<T: Tokens> Decoder<T> {
 
     fn f64s(&mut self) -> Result<Vec<f64>> {
         let mut out = Vec::new();
-        self.array("an array of numbers", |d| {
-            out.push(d.f64()?);
-            Ok(())
-        })?;
+        self.f64s_into(&mut out)?;
         Ok(out)
     }
 
     fn u32s(&mut self) -> Result<Vec<u32>> {
         let mut out = Vec::new();
+        self.u32s_into(&mut out)?;
+        Ok(out)
+    }
+
+    /// Appends an array of numbers to `out`.
+    fn f64s_into(&mut self, out: &mut Vec<f64>) -> Result<()> {
+        self.array("an array of numbers", |d| {
+            out.push(d.f64()?);
+            Ok(())
+        })
+    }
+
+    /// Appends an array of integers to `out`.
+    fn u32s_into(&mut self, out: &mut Vec<u32>) -> Result<()> {
         self.array("an array of integers", |d| {
             out.push(d.uint(u32::MAX)?);
             Ok(())
-        })?;
-        Ok(out)
+        })
     }
 
     fn strings(&mut self) -> Result<Vec<String>> {
@@ -962,24 +971,36 @@ impl<T: Tokens> Decoder<T> {
         }
     }
 
-    fn face_record(&mut self) -> Result<FaceRecord> {
-        let (mut face, mut points, mut weights) = (None, Vec::new(), Vec::new());
+    /// One face record, appended straight to `table`'s flat arrays (members in any order; the
+    /// object's own checks refuse a repeated member).
+    fn face_record(&mut self, table: &mut FaceTable) -> Result<()> {
+        let mut face = false;
+        let (ids, points, weights) = table.parts_mut();
         let offset = self.object("an object (a face record)", |d, key, _| {
             match key {
-                "face" => face = Some(d.u32s()?),
-                "points" => points = d.f64s()?,
-                "weights" => weights = d.f64s()?,
+                "face" => {
+                    d.u32s_into(ids)?;
+                    face = true;
+                }
+                "points" => d.f64s_into(points)?,
+                "weights" => d.f64s_into(weights)?,
                 _ => {
                     d.json()?;
                 }
             }
             Ok(())
         })?;
-        self.missing(offset, &[("face", face.is_some())])?;
-        Ok(FaceRecord {
-            face: face.unwrap_or_default(),
-            points,
-            weights,
+        self.missing(offset, &[("face", face)])?;
+        table.close_record().map_err(|full| {
+            Error::format(
+                Rule::LimitExceeded,
+                Location {
+                    pointer: Some(pointer_of(&self.path)),
+                    offset: Some(offset),
+                    ..Location::default()
+                },
+                full.to_string(),
+            )
         })
     }
 
@@ -1048,11 +1069,11 @@ impl<T: Tokens> Decoder<T> {
                     };
                 }
                 "name" => stage.name = Some(d.string()?),
-                "faces" => d.array("an array of face records", |d| {
-                    let r = d.face_record()?;
-                    stage.faces.push(r);
-                    Ok(())
-                })?,
+                "faces" => {
+                    let mut table = FaceTable::new();
+                    d.array("an array of face records", |d| d.face_record(&mut table))?;
+                    stage.faces = table;
+                }
                 "vertexMaps" => d.array("an array of vertex maps", |d| {
                     let m = d.vertex_map()?;
                     stage.vertex_maps.push(m);

@@ -566,9 +566,9 @@ impl StageTable {
                     let owned = owned_count(k + 1, d);
                     table.record[k][i] = r as u32;
                     let stride = owned * (k + 1);
-                    table.points[k][i * stride..(i + 1) * stride].copy_from_slice(&rec.points);
+                    table.points[k][i * stride..(i + 1) * stride].copy_from_slice(rec.points);
                     if rational && !rec.weights.is_empty() {
-                        table.weights[k][i * owned..(i + 1) * owned].copy_from_slice(&rec.weights);
+                        table.weights[k][i * owned..(i + 1) * owned].copy_from_slice(rec.weights);
                     }
                 }
             }
@@ -976,7 +976,7 @@ mod tests {
                 .collect();
             let weights: Vec<f64> = (0..owned).map(|i| 1.5 + i as f64).collect();
             expected.insert(face.clone(), (points.clone(), weights.clone()));
-            stage.faces.push(FaceRecord {
+            stage.faces.push_record(&FaceRecord {
                 face,
                 points,
                 weights,
@@ -1008,7 +1008,7 @@ mod tests {
                         assert_eq!(table.face_points(id), p.as_slice());
                         assert_eq!(table.face_weights(id), w.as_slice());
                         let r = table.record_of(id).expect("recorded");
-                        assert_eq!(model.stages[0].faces[r].face, face);
+                        assert_eq!(model.stages[0].faces.record(r).face, face);
                     }
                     None => {
                         assert_eq!(table.face_points(id), identity.as_slice());

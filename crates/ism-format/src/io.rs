@@ -177,9 +177,18 @@ pub fn read<R: Read>(reader: R) -> Result<Document> {
 /// # Errors
 /// As [`from_slice`], plus [`Error::Io`] naming the path.
 pub fn read_path(path: impl AsRef<Path>) -> Result<Document> {
+    read_path_with(path, &ReadOptions::default())
+}
+
+/// Reads a model from a file with explicit options; see [`read_with`].
+///
+/// # Errors
+/// As [`from_slice`], plus [`Error::Io`] naming the path.
+pub fn read_path_with(path: impl AsRef<Path>, options: &ReadOptions) -> Result<Document> {
     let path = path.as_ref();
     let file = std::fs::File::open(path).map_err(|e| Error::io(Some(path.to_path_buf()), e))?;
-    read_with(std::io::BufReader::new(file), &ReadOptions::default()).map_err(|e| match e {
+    // No BufReader: `read_with` streams binary payloads through its own window.
+    read_with(file, options).map_err(|e| match e {
         Error::Io { path: None, error } => Error::io(Some(path.to_path_buf()), error),
         other => other,
     })
@@ -188,21 +197,91 @@ pub fn read_path(path: impl AsRef<Path>) -> Result<Document> {
 /// Reads a model from a reader. Allocates no more than the bytes that actually arrive (bounded by
 /// `options.limits`) plus the decoded model.
 ///
+/// A binary file is decoded as it streams in (its checksum computed on the way), so its bytes are
+/// never held in memory all at once; the other encodings are read whole first. Either way the
+/// errors are those of [`from_slice_with`] on the same bytes, in the same order.
+///
 /// # Errors
 /// As [`from_slice`], plus [`Error::Io`].
 pub fn read_with<R: Read>(reader: R, options: &ReadOptions) -> Result<Document> {
-    let mut bytes = Vec::new();
     // `take` bounds the read even for an endless stream; one extra byte detects "too long".
+    let cap = options
+        .limits
+        .max_payload_bytes
+        .saturating_add(HEADER_LEN as u64 + 1);
+    let mut reader = reader.take(cap);
+    let mut head = Vec::with_capacity(HEADER_LEN);
+    (&mut reader)
+        .take(HEADER_LEN as u64)
+        .read_to_end(&mut head)
+        .map_err(|e| Error::io(None, e))?;
+    if let Some((info, encoding)) = streamable(&head, options) {
+        let doc = read_binary_stream(&mut reader, info, cap)?;
+        debug_assert_eq!(doc.encoding, encoding);
+        return finish_read(doc, options);
+    }
+    let mut bytes = head;
     reader
-        .take(
-            options
-                .limits
-                .max_payload_bytes
-                .saturating_add(HEADER_LEN as u64 + 1),
-        )
         .read_to_end(&mut bytes)
         .map_err(|e| Error::io(None, e))?;
     from_slice_with(&bytes, options)
+}
+
+/// The container header of a binary file that can be streamed: one whose header is whole and valid
+/// and whose payload is within the limit (every other case takes the in-memory path, which reports
+/// the error).
+fn streamable(head: &[u8], options: &ReadOptions) -> Option<(ContainerInfo, Encoding)> {
+    if head.len() < HEADER_LEN || !head.starts_with(&MAGIC) {
+        return None;
+    }
+    let (encoding, info) = parse_header(head).ok()?;
+    (encoding == Encoding::Binary && info.payload_len <= options.limits.max_payload_bytes)
+        .then_some((info, encoding))
+}
+
+/// Decodes a binary payload as it streams from `reader` (positioned after the header), then reports
+/// exactly what [`decode`] would for the same bytes: a short file, trailing bytes or a checksum
+/// mismatch before any decoding error.
+fn read_binary_stream(reader: &mut dyn Read, info: ContainerInfo, cap: u64) -> Result<Document> {
+    let mut stream = crate::binary::Stream::new(reader, info.payload_len);
+    let reader_minor_is_older = info.minor > FORMAT_VERSION.minor;
+    let decoded = crate::binary::BinaryDecoder::stream(&mut stream, HEADER_LEN as u64)
+        .model(reader_minor_is_older);
+    // The bytes `read_with` would have held: at most `cap`, the header included.
+    let trailing_cap = cap.saturating_sub(HEADER_LEN as u64 + info.payload_len);
+    let end = stream.finish(trailing_cap);
+    if let Some(e) = end.error {
+        return Err(Error::io(None, e));
+    }
+    let file_len = HEADER_LEN as u64 + end.available + end.trailing;
+    if end.available < info.payload_len {
+        return Err(Error::format(
+            Rule::Truncated,
+            Location::offset(file_len),
+            format!(
+                "payload declares {} bytes; file holds only {} after the header",
+                info.payload_len, end.available
+            ),
+        ));
+    }
+    if end.trailing > 0 {
+        return Err(Error::format(
+            Rule::TrailingData,
+            Location::offset(HEADER_LEN as u64 + info.payload_len),
+            format!("{} bytes follow the declared payload", end.trailing),
+        ));
+    }
+    if end.crc != info.crc32 {
+        return Err(Error::format(
+            Rule::ChecksumMismatch,
+            Location::offset(24),
+            format!(
+                "payload CRC-32 is {:08x}; header stores {:08x} (corrupt payload)",
+                end.crc, info.crc32
+            ),
+        ));
+    }
+    container_document(decoded?, Encoding::Binary, info, file_len)
 }
 
 /// Reads a model from bytes with explicit options; see [`from_slice`].
@@ -210,7 +289,11 @@ pub fn read_with<R: Read>(reader: R, options: &ReadOptions) -> Result<Document> 
 /// # Errors
 /// As [`from_slice`].
 pub fn from_slice_with(bytes: &[u8], options: &ReadOptions) -> Result<Document> {
-    let doc = decode(bytes, options)?;
+    finish_read(decode(bytes, options)?, options)
+}
+
+/// The checks after decoding: required extensions, then (unless skipped) the structural rules.
+fn finish_read(doc: Document, options: &ReadOptions) -> Result<Document> {
     check_extensions(&doc.model, options)?;
     if options.check_structure {
         let errors: Vec<_> =
@@ -262,21 +345,17 @@ pub fn from_slice_indexed(bytes: &[u8], options: &ReadOptions) -> Result<Indexed
 /// # Errors
 /// As [`from_slice`], plus [`Error::Io`] naming the path.
 pub fn read_path_indexed(path: impl AsRef<Path>) -> Result<IndexedDocument> {
-    let path = path.as_ref();
-    let options = ReadOptions::default();
-    let named = |e: std::io::Error| Error::io(Some(path.to_path_buf()), e);
-    let file = std::fs::File::open(path).map_err(named)?;
-    let mut bytes = Vec::new();
-    // Bounded like `read_with`: one byte past the limit detects "too long".
-    file.take(
-        options
-            .limits
-            .max_payload_bytes
-            .saturating_add(HEADER_LEN as u64 + 1),
-    )
-    .read_to_end(&mut bytes)
-    .map_err(named)?;
-    from_slice_indexed(&bytes, &options)
+    let unchecked = ReadOptions {
+        check_structure: false,
+        ..ReadOptions::default()
+    };
+    let doc = read_path_with(path, &unchecked)?;
+    Ok(IndexedDocument {
+        model: crate::IndexedModel::new(doc.model)?,
+        encoding: doc.encoding,
+        container: doc.container,
+        byte_len: doc.byte_len,
+    })
 }
 
 fn check_extensions(model: &Model, options: &ReadOptions) -> Result<()> {
@@ -409,23 +488,7 @@ fn decode(bytes: &[u8], options: &ReadOptions) -> Result<Document> {
             Encoding::MessagePack => decode_msgpack(payload, HEADER_LEN as u64)?,
             Encoding::Binary => decode_binary(payload, HEADER_LEN as u64, reader_minor_is_older)?,
         };
-        let version = check_version(&model)?;
-        if version.major != info.major || version.minor != info.minor {
-            return Err(Error::format(
-                Rule::VersionMismatch,
-                Location::pointer("/version"),
-                format!(
-                    "payload says version {version}; container header says {}.{}",
-                    info.major, info.minor
-                ),
-            ));
-        }
-        return Ok(Document {
-            model,
-            encoding,
-            container: Some(info),
-            byte_len: bytes.len() as u64,
-        });
+        return container_document(model, encoding, info, bytes.len() as u64);
     }
     // Detection (spec §7.5): JSON whitespace only (RFC 8259: space, tab, LF, CR), no byte-order mark.
     match bytes
@@ -448,6 +511,32 @@ fn decode(bytes: &[u8], options: &ReadOptions) -> Result<Document> {
             "neither the ISM container magic \\x89ISM\\r\\n\\x1a\\n nor a JSON object",
         )),
     }
+}
+
+/// A decoded container payload: its version must be one this reader reads and the header's.
+fn container_document(
+    model: Model,
+    encoding: Encoding,
+    info: ContainerInfo,
+    byte_len: u64,
+) -> Result<Document> {
+    let version = check_version(&model)?;
+    if version.major != info.major || version.minor != info.minor {
+        return Err(Error::format(
+            Rule::VersionMismatch,
+            Location::pointer("/version"),
+            format!(
+                "payload says version {version}; container header says {}.{}",
+                info.major, info.minor
+            ),
+        ));
+    }
+    Ok(Document {
+        model,
+        encoding,
+        container: Some(info),
+        byte_len,
+    })
 }
 
 fn check_version(model: &Model) -> Result<Version> {
@@ -543,7 +632,9 @@ pub struct WriteOptions {
 /// The first such problem, with its JSON pointer.
 pub fn encode_payload(model: &Model, encoding: Encoding, pretty: bool) -> Result<Vec<u8>> {
     check_writable(model)?;
-    encode_raw(&own_version(model), encoding, pretty)
+    let mut out = Vec::new();
+    encode_into(&own_version(model), encoding, pretty, &mut out)?;
+    Ok(out)
 }
 
 /// The model as this writer writes it: with its own version.
@@ -559,11 +650,44 @@ fn own_version(model: &Model) -> std::borrow::Cow<'_, Model> {
     }
 }
 
-fn encode_raw(model: &Model, encoding: Encoding, pretty: bool) -> Result<Vec<u8>> {
+/// A writer that remembers the first I/O error it passed on, so that an encoder's error can be
+/// told apart from the writer's (the encoders wrap both in their own types).
+struct Tracked<W> {
+    inner: W,
+    error: Option<std::io::Error>,
+}
+
+impl<W: Write> Write for Tracked<W> {
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        self.inner.write(buf).inspect_err(|e| self.remember(e))
+    }
+    fn write_all(&mut self, buf: &[u8]) -> std::io::Result<()> {
+        self.inner.write_all(buf).inspect_err(|e| self.remember(e))
+    }
+    fn flush(&mut self) -> std::io::Result<()> {
+        self.inner.flush().inspect_err(|e| self.remember(e))
+    }
+}
+
+impl<W> Tracked<W> {
+    fn remember(&mut self, e: &std::io::Error) {
+        if self.error.is_none() {
+            self.error = Some(std::io::Error::new(e.kind(), e.to_string()));
+        }
+    }
+}
+
+/// Encodes the payload into `out` as the model stands (no checks but JSON's refusal of non-finite
+/// numbers), streaming: nothing but the encoder's own small buffers is allocated.
+fn encode_into<W: Write>(model: &Model, encoding: Encoding, pretty: bool, out: W) -> Result<()> {
     let fail = |what: &str, e: String| {
         Error::format(Rule::Malformed, Location::default(), format!("{what}: {e}"))
     };
-    match encoding {
+    let mut w = Tracked {
+        inner: out,
+        error: None,
+    };
+    let result = match encoding {
         Encoding::Json => {
             // serde_json would write NaN and infinity as `null`.
             if let Some((_, location)) = first_non_finite(model) {
@@ -573,13 +697,19 @@ fn encode_raw(model: &Model, encoding: Encoding, pretty: bool) -> Result<Vec<u8>
                     "JSON cannot represent NaN or infinity; use the binary or MessagePack encoding",
                 ));
             }
-            crate::canonical::to_json_vec(model, pretty).map_err(|e| fail("JSON", e.to_string()))
+            crate::canonical::to_json_writer(model, pretty, &mut w)
+                .map_err(|e| fail("JSON", e.to_string()))
         }
-        Encoding::MessagePack => {
-            rmp_serde::to_vec_named(model).map_err(|e| fail("MessagePack", e.to_string()))
-        }
-        Encoding::Binary => bincode::encode_to_vec(model, binary_config())
+        Encoding::MessagePack => rmp_serde::encode::write_named(&mut w, model)
+            .map_err(|e| fail("MessagePack", e.to_string())),
+        Encoding::Binary => bincode::encode_into_std_write(model, &mut w, binary_config())
+            .map(drop)
             .map_err(|e| fail("binary", e.to_string())),
+    };
+    match (result, w.error) {
+        (Ok(()), _) => Ok(()),
+        (Err(_), Some(io)) => Err(Error::io(None, io)),
+        (Err(e), None) => Err(e),
     }
 }
 
@@ -683,15 +813,15 @@ fn first_non_finite(model: &Model) -> Option<(Rule, Location)> {
                     Rule::NonFinite,
                     Location {
                         stage: Some(k),
-                        face: Some(rec.face.clone()),
+                        face: Some(rec.face.to_vec()),
                         ..Location::pointer(format!("/stages/{k}/faces/{r}/{what}/{i}"))
                     },
                 ))
             };
-            if let Some(i) = find(&rec.points) {
+            if let Some(i) = find(rec.points) {
                 return at("points", i);
             }
-            if let Some(i) = find(&rec.weights) {
+            if let Some(i) = find(rec.weights) {
                 return at("weights", i);
             }
         }
@@ -713,16 +843,31 @@ fn first_non_finite(model: &Model) -> Option<(Rule, Location)> {
 
 /// The container header for a payload.
 pub fn header(encoding: Encoding, version: Version, payload: &[u8]) -> [u8; HEADER_LEN] {
+    header_of(
+        encoding,
+        version,
+        payload.len() as u64,
+        crc32fast::hash(payload),
+    )
+}
+
+/// The container header for a payload of `len` bytes with CRC-32 `crc`.
+fn header_of(encoding: Encoding, version: Version, len: u64, crc: u32) -> [u8; HEADER_LEN] {
     let mut h = [0u8; HEADER_LEN];
     h[..8].copy_from_slice(&MAGIC);
     h[8..10].copy_from_slice(&version.major.to_le_bytes());
     h[10..12].copy_from_slice(&version.minor.to_le_bytes());
     h[12] = encoding.tag();
-    h[16..24].copy_from_slice(&(payload.len() as u64).to_le_bytes());
-    h[24..28].copy_from_slice(&crc32fast::hash(payload).to_le_bytes());
+    h[16..24].copy_from_slice(&len.to_le_bytes());
+    h[24..28].copy_from_slice(&crc.to_le_bytes());
     let hc = crc32fast::hash(&h[..28]);
     h[28..32].copy_from_slice(&hc.to_le_bytes());
     h
+}
+
+/// Whether a file of this encoding has the container (spec §7.1).
+fn in_container(encoding: Encoding, options: WriteOptions) -> bool {
+    encoding != Encoding::Json || options.json_in_container
 }
 
 /// Encodes a whole file in memory, in the canonical form of spec §7.7: a file this crate reads.
@@ -730,8 +875,8 @@ pub fn header(encoding: Encoding, version: Version, payload: &[u8]) -> [u8; HEAD
 /// # Errors
 /// As [`encode_payload`].
 pub fn to_vec(model: &Model, encoding: Encoding, options: WriteOptions) -> Result<Vec<u8>> {
-    let payload = encode_payload(model, encoding, options.pretty)?;
-    Ok(wrap(payload, encoding, options, FORMAT_VERSION))
+    check_writable(model)?;
+    encode_file(&own_version(model), encoding, options, FORMAT_VERSION)
 }
 
 /// Encodes a model as it is, without the checks of [`to_vec`] and with its own `version` (also in
@@ -745,19 +890,28 @@ pub fn to_vec_unchecked(
     encoding: Encoding,
     options: WriteOptions,
 ) -> Result<Vec<u8>> {
-    let payload = encode_raw(model, encoding, options.pretty)?;
     let version = model.parsed_version().unwrap_or(FORMAT_VERSION);
-    Ok(wrap(payload, encoding, options, version))
+    encode_file(model, encoding, options, version)
 }
 
-fn wrap(payload: Vec<u8>, encoding: Encoding, options: WriteOptions, version: Version) -> Vec<u8> {
-    if encoding == Encoding::Json && !options.json_in_container {
-        return payload;
+/// The file in one buffer: the payload is encoded after room for the header, which is filled in
+/// last (one copy of the payload in memory, not two).
+fn encode_file(
+    model: &Model,
+    encoding: Encoding,
+    options: WriteOptions,
+    version: Version,
+) -> Result<Vec<u8>> {
+    if !in_container(encoding, options) {
+        let mut out = Vec::new();
+        encode_into(model, encoding, options.pretty, &mut out)?;
+        return Ok(out);
     }
-    let mut out = Vec::with_capacity(HEADER_LEN + payload.len());
-    out.extend_from_slice(&header(encoding, version, &payload));
-    out.extend_from_slice(&payload);
-    out
+    let mut out = vec![0u8; HEADER_LEN];
+    encode_into(model, encoding, options.pretty, &mut out)?;
+    let h = header(encoding, version, &out[HEADER_LEN..]);
+    out[..HEADER_LEN].copy_from_slice(&h);
+    Ok(out)
 }
 
 /// Writes a whole file to a writer.
@@ -775,8 +929,35 @@ pub fn write<W: Write>(
     writer.flush().map_err(|e| Error::io(None, e))
 }
 
+/// A writer that counts the bytes it passes on and their CRC-32 (the container's payload checksum,
+/// computed while the payload streams to the file).
+struct CrcWriter<W> {
+    inner: W,
+    hasher: crc32fast::Hasher,
+    len: u64,
+}
+
+impl<W: Write> Write for CrcWriter<W> {
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        let n = self.inner.write(buf)?;
+        self.hasher.update(&buf[..n]);
+        self.len += n as u64;
+        Ok(n)
+    }
+    fn flush(&mut self) -> std::io::Result<()> {
+        self.inner.flush()
+    }
+}
+
+/// Buffer between the encoders' many small writes and the checksum and file: large enough that
+/// the CRC runs over long stretches.
+const STREAM_BUFFER: usize = 1 << 20;
+
 /// Writes a file atomically: into a temporary file beside `path`, then renamed over it, so a
 /// failure never leaves a partial file. The encoding defaults to the one the extension suggests.
+///
+/// The payload streams to the file (its checksum computed on the way, the header written last), so
+/// no copy of the encoded payload is held in memory.
 ///
 /// # Errors
 /// As [`to_vec`], plus [`Error::Io`] naming the path.
@@ -786,12 +967,52 @@ pub fn write_path(
     encoding: Option<Encoding>,
     options: WriteOptions,
 ) -> Result<()> {
+    use std::io::{Seek, SeekFrom};
     let path = path.as_ref();
     let encoding = encoding
         .or_else(|| Encoding::from_path(path))
         .unwrap_or(Encoding::Binary);
-    let bytes = to_vec(model, encoding, options)?;
-    write_atomic(path, |w| w.write_all(&bytes)).map_err(|e| Error::io(Some(path.to_path_buf()), e))
+    check_writable(model)?;
+    let model = own_version(model);
+    // The encoders' own errors, kept while the closure reports an I/O error to abandon the file.
+    let mut failed: Option<Error> = None;
+    let written = write_atomic(path, |w| {
+        w.flush()?;
+        let mut file: &std::fs::File = w.get_ref();
+        let container = in_container(encoding, options);
+        if container {
+            file.write_all(&[0; HEADER_LEN])?;
+        }
+        let mut out = std::io::BufWriter::with_capacity(
+            STREAM_BUFFER,
+            CrcWriter {
+                inner: file,
+                hasher: crc32fast::Hasher::new(),
+                len: 0,
+            },
+        );
+        if let Err(e) = encode_into(&model, encoding, options.pretty, &mut out) {
+            let io = match &e {
+                Error::Io { error, .. } => std::io::Error::new(error.kind(), error.to_string()),
+                _ => std::io::Error::other("encoding failed"),
+            };
+            failed = Some(e);
+            return Err(io);
+        }
+        let crc = out.into_inner().map_err(|e| e.into_error())?;
+        if container {
+            let h = header_of(encoding, FORMAT_VERSION, crc.len, crc.hasher.finalize());
+            file.seek(SeekFrom::Start(0))?;
+            file.write_all(&h)?;
+        }
+        Ok(())
+    });
+    match (written, failed) {
+        (Ok(()), _) => Ok(()),
+        (Err(_), Some(Error::Io { error, .. })) => Err(Error::io(Some(path.to_path_buf()), error)),
+        (Err(_), Some(e)) => Err(e),
+        (Err(e), None) => Err(Error::io(Some(path.to_path_buf()), e)),
+    }
 }
 
 /// Runs `fill` on a temporary file beside `path` and renames it over `path` only if `fill` and the

@@ -35,6 +35,7 @@ pub mod builder;
 pub mod canonical;
 mod decode;
 pub mod error;
+pub mod faces;
 pub mod indexed;
 pub mod io;
 pub mod model;
@@ -45,6 +46,7 @@ pub mod structure;
 
 pub use decode::MAX_DEPTH;
 pub use error::{Error, Result};
+pub use faces::{FaceMut, FaceRef, FaceTable};
 pub use indexed::{FaceId, IndexedModel, SimplexId, StageTable, Topology, VertexId};
 pub use io::{Document, Encoding};
 pub use model::{

@@ -10,6 +10,8 @@ use bincode::Encode;
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 
+pub use crate::faces::FaceTable;
+
 /// The format version this crate writes, and the newest it reads.
 pub const FORMAT_VERSION: Version = Version { major: 1, minor: 0 };
 
@@ -198,8 +200,10 @@ pub struct Stage {
     #[schemars(with = "String")]
     pub name: Option<String>,
     /// Moved control points (and weights) of Bézier and rational stages, one record per face.
-    #[serde(default, skip_serializing_if = "Vec::is_empty")]
-    pub faces: Vec<FaceRecord>,
+    // Stored flat (`FaceTable`), encoded as the list of records; the schema is the list's.
+    #[serde(default, skip_serializing_if = "FaceTable::is_empty")]
+    #[schemars(with = "Vec<FaceRecord>")]
+    pub faces: FaceTable,
     /// Per-vertex 1-D functions of a monotonic stage.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub vertex_maps: Vec<VertexMap>,
@@ -209,6 +213,7 @@ pub struct Stage {
 }
 
 /// The control points (and weights) that a face owns (spec §5.2).
+// Owned: what builders assemble and `FaceTable` stores flat.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, JsonSchema, Encode)]
 #[serde(rename_all = "camelCase")]
 pub struct FaceRecord {
@@ -304,7 +309,7 @@ impl Stage {
             degree,
             direction: Direction::Implicit,
             name: None,
-            faces: Vec::new(),
+            faces: FaceTable::new(),
             vertex_maps: Vec::new(),
             extras: JsonValue::default(),
         }
@@ -312,10 +317,8 @@ impl Stage {
 
     /// Number of stored real parameters (coordinates, weights, coefficients).
     pub fn parameter_count(&self) -> usize {
-        self.faces
-            .iter()
-            .map(|f| f.points.len() + f.weights.len())
-            .sum::<usize>()
+        self.faces.all_points().len()
+            + self.faces.all_weights().len()
             + self
                 .vertex_maps
                 .iter()

@@ -404,10 +404,9 @@ fn check_stages(model: &Model, topology: &Topology, c: &mut Collector) -> Vec<Ve
     let mut record_faces = Vec::with_capacity(model.stages.len());
     for (k, stage) in model.stages.iter().enumerate() {
         // Face lookups are the costly part: in parallel, once, kept for the stage tables.
-        let found: Vec<Option<FaceId>> = stage
-            .faces
-            .par_iter()
-            .map(|rec| topology.find(model, &rec.face))
+        let found: Vec<Option<FaceId>> = (0..stage.faces.len())
+            .into_par_iter()
+            .map(|r| topology.find(model, stage.faces.record(r).face))
             .collect();
         record_faces.push(found);
         let found = &record_faces[k];
@@ -499,7 +498,7 @@ fn check_stages(model: &Model, topology: &Topology, c: &mut Collector) -> Vec<Ve
                 drop(first_record);
                 for (r, rec) in stage.faces.iter().enumerate() {
                     let loc = |suffix: &str| Location {
-                        face: Some(rec.face.clone()),
+                        face: Some(rec.face.to_vec()),
                         ..at(format!("/faces/{r}{suffix}"))
                     };
                     let kdim = rec.face.len();

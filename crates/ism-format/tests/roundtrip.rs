@@ -93,7 +93,7 @@ fn stage() -> impl Strategy<Value = Stage> {
                     Direction::Implicit
                 },
                 name,
-                faces,
+                faces: faces.into(),
                 vertex_maps,
                 extras,
             },
@@ -159,13 +159,13 @@ fn any_model() -> impl Strategy<Value = Model> {
                 1 if !m.values.is_empty() => m.values[0] = bad,
                 2 => m.level = bad,
                 3 => {
-                    if let Some(r) = m
+                    // The first coordinate of the first record that has points.
+                    if let Some(x) = m
                         .stages
                         .iter_mut()
-                        .flat_map(|s| s.faces.iter_mut())
-                        .find(|r| !r.points.is_empty())
+                        .find_map(|s| s.faces.all_points_mut().first_mut())
                     {
-                        r.points[0] = bad;
+                        *x = bad;
                     }
                 }
                 _ => {}

@@ -149,7 +149,7 @@ impl StageLookup {
             .faces
             .iter()
             .enumerate()
-            .map(|(i, r)| (r.face.clone(), i))
+            .map(|(i, r)| (r.face.to_vec(), i))
             .collect();
         let vertices = stage
             .vertex_maps
@@ -425,13 +425,13 @@ impl LocalStage {
                 pos.sort_unstable_by_key(|&i| simplex[i]);
                 let face: Vec<u32> = pos.iter().map(|&i| simplex[i]).collect();
                 if let Some(&ri) = lookup.faces.get(&face) {
-                    let rec = &stage.faces[ri];
+                    let rec = stage.faces.record(ri);
                     let k1 = pos.len();
                     let owned = multi_index::owned_count(k1, d);
                     let err = |what, found, expected| GeomError::FaceRecord {
                         stage: lookup.stage_index,
                         record: ri,
-                        face: rec.face.clone(),
+                        face: rec.face.to_vec(),
                         what,
                         found,
                         expected,

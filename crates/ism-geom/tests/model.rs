@@ -284,7 +284,7 @@ fn malformed_records_are_reported_with_their_location() {
     let mut rng = Rng(3);
     let mut model = common::kuhn(2, 1, &mut rng);
     let mut st = common::adjusted_quadratic(&model, &mut rng);
-    st.faces[1].points.push(0.5);
+    st.faces.edit(|r| r[1].points.push(0.5));
     model.stages.push(st);
     let err = ModelEval::new(&model).unwrap_err();
     // The structural rule (ISM-124), the record's JSON pointer and the stage.

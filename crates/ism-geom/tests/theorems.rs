@@ -109,7 +109,7 @@ proptest! {
 fn edge_stage(x: [f64; 3]) -> Stage {
     let mut st = Stage::identity(StageKind::Bezier, 4);
     let points = x.iter().flat_map(|&t| [1.0 - t, t]).collect();
-    st.faces.push(FaceRecord {
+    st.faces.push_record(&FaceRecord {
         face: vec![0, 1],
         points,
         weights: vec![],

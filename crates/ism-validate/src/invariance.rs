@@ -57,7 +57,7 @@ pub fn check_stage(model: &Model, k: usize) -> Vec<Message> {
                 let k1 = rec.face.len();
                 let loc = |suffix: String| Location {
                     stage: Some(k),
-                    face: Some(rec.face.clone()),
+                    face: Some(rec.face.to_vec()),
                     ..at(format!("/faces/{r}{suffix}"))
                 };
                 for (p, point) in rec.points.chunks(k1).enumerate() {

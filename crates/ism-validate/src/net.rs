@@ -105,7 +105,7 @@ impl<'a> StageIndex<'a> {
                 let k1 = rec.face.len();
                 multi_index::owned(k1, d)
                     .iter()
-                    .zip(&rec.points)
+                    .zip(rec.points)
                     .all(|(&j, &x)| x == f64::from(j) / f64::from(d))
             })
             .collect();
@@ -147,7 +147,7 @@ impl<'a> StageIndex<'a> {
     /// Whether record `r` is a vertex record storing the vertex itself (`[1.0]`), which moves
     /// nothing.
     pub fn is_trivial(&self, r: usize) -> bool {
-        let rec = &self.stage.faces[r];
+        let rec = self.stage.faces.record(r);
         rec.face.len() == 1 && rec.points.iter().all(|&x| x == 1.0)
     }
 
@@ -199,7 +199,7 @@ impl<'a> StageIndex<'a> {
                     }
                 }
                 Some(r) => {
-                    let rec = &self.stage.faces[r];
+                    let rec = self.stage.faces.record(r);
                     // Local positions of the face, ordered by global id: t_0 < … < t_k.
                     let mut pos = [0usize; 4];
                     let mut k1 = 0;

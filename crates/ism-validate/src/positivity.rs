@@ -74,7 +74,7 @@ fn classify_stage(model: &Model, index: &StageIndex<'_>, theorems: bool) -> Stag
             // point). G_2 in 3D is Prop. 5.9; G_n is solitary in every simplex (decided per simplex).
             let j = d as usize - 1;
             let stratum = (0..stage.faces.len())
-                .all(|r| index.is_trivial(r) || stage.faces[r].face.len() == j + 1);
+                .all(|r| index.is_trivial(r) || stage.faces.record(r).face.len() == j + 1);
             if stratum && j == 2 && n == 3 {
                 StageClass::Theorem(theorem::PROP_5_9)
             } else if stratum && j == n {

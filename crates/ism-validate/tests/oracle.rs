@@ -72,7 +72,7 @@ fn random_model(n: usize, d: u32, kind: StageKind, rng: &mut ChaCha8Rng) -> Mode
                 );
             }
         }
-        stage.faces.push(FaceRecord {
+        stage.faces.push_record(&FaceRecord {
             face,
             points,
             weights,

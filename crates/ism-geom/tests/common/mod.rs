@@ -168,7 +168,7 @@ pub fn adjusted_quadratic(model: &Model, rng: &mut Rng) -> Stage {
     let mut st = stage(StageKind::Bezier, 2);
     for f in faces(model, 2) {
         let a = rng.uniform(0.02, 0.98);
-        st.faces.push(FaceRecord {
+        st.faces.push_record(&FaceRecord {
             face: f,
             points: vec![a, 1.0 - a],
             weights: vec![],
@@ -183,7 +183,7 @@ pub fn stratum(model: &Model, rng: &mut Rng, j: usize) -> Stage {
     let mut st = stage(StageKind::Bezier, j as u32 + 1);
     for f in faces(model, j + 1) {
         let p = rng.open_simplex(j + 1, 0.01);
-        st.faces.push(FaceRecord {
+        st.faces.push_record(&FaceRecord {
             face: f,
             points: p,
             weights: vec![],
@@ -197,7 +197,7 @@ pub fn solitary(model: &Model, rng: &mut Rng, j: usize) -> Stage {
     let all = faces(model, j + 1);
     let f = all[rng.below(all.len())].clone();
     let mut st = stage(StageKind::Bezier, j as u32 + 1);
-    st.faces.push(FaceRecord {
+    st.faces.push_record(&FaceRecord {
         face: f,
         points: rng.open_simplex(j + 1, 0.005),
         weights: vec![],
@@ -227,7 +227,7 @@ pub fn rational_fixed(model: &Model, rng: &mut Rng, d: u32) -> Stage {
             let weights = (0..owned.len() / k1)
                 .map(|_| (rng.uniform(-3.0, 3.0)).exp())
                 .collect();
-            st.faces.push(FaceRecord {
+            st.faces.push_record(&FaceRecord {
                 face: f,
                 points,
                 weights,
@@ -259,7 +259,7 @@ pub fn near_identity_bezier(model: &Model, rng: &mut Rng, d: u32, eps: f64) -> S
                     points.push(f64::from(*e) / f64::from(d) + v / scale * eps / f64::from(d));
                 }
             }
-            st.faces.push(FaceRecord {
+            st.faces.push_record(&FaceRecord {
                 face: f,
                 points,
                 weights: vec![],

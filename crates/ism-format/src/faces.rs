@@ -1,0 +1,544 @@
+//! A stage's face records as one flat table (compressed sparse rows): every record's face vertex
+//! ids, control points and weights concatenated into three arrays, with one row of end offsets per
+//! record.
+//!
+//! The file's grammar is a list of records, each with three variable-length arrays (spec §5.2), and
+//! a [`Model`](crate::Model) must hold any list a file spells — also a wrong one, for the structural
+//! check to report — so the rows keep their lengths rather than a fixed stride per face dimension
+//! (the checked [`StageTable`](crate::StageTable) has the fixed strides). Four allocations per
+//! stage instead of three per record: decoding a million-tetrahedron model no longer makes 13 M heap
+//! vectors, and the binary encoding reads and writes each array as one run of bytes.
+//!
+//! Reading yields borrowed views ([`FaceRef`]: `face`, `points`, `weights` slices); builders push the
+//! parts, or collect owned [`FaceRecord`]s. Serialization is the list of records, byte for byte.
+
+use bincode::Encode;
+use serde::{Deserialize, Serialize};
+
+use crate::model::FaceRecord;
+
+/// One record of a [`FaceTable`], borrowed.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct FaceRef<'a> {
+    /// The face: its global vertex ids (strictly increasing in a valid file).
+    pub face: &'a [u32],
+    /// Control points, flat: `k + 1` barycentric coordinates per owned multi-index.
+    pub points: &'a [f64],
+    /// Rational stages: one weight per owned multi-index; empty otherwise.
+    #[serde(skip_serializing_if = "<[f64]>::is_empty")]
+    pub weights: &'a [f64],
+}
+
+impl FaceRef<'_> {
+    /// An owned copy.
+    pub fn to_record(&self) -> FaceRecord {
+        FaceRecord {
+            face: self.face.to_vec(),
+            points: self.points.to_vec(),
+            weights: self.weights.to_vec(),
+        }
+    }
+}
+
+/// One record of a [`FaceTable`], with its numbers writable in place (lengths are fixed; use
+/// [`FaceTable::edit`] to change them).
+#[derive(Debug, PartialEq)]
+pub struct FaceMut<'a> {
+    /// The face's vertex ids.
+    pub face: &'a mut [u32],
+    /// Control points.
+    pub points: &'a mut [f64],
+    /// Weights (empty unless rational).
+    pub weights: &'a mut [f64],
+}
+
+/// The table would hold more than `u32::MAX` ids, coordinates or weights (a stage larger than the
+/// largest payload a default reader accepts: 2³² coordinates are 32 GiB).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct TableFull;
+
+impl std::fmt::Display for TableFull {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(
+            "a stage's face table holds at most 4294967295 ids, coordinates and weights each",
+        )
+    }
+}
+
+impl std::error::Error for TableFull {}
+
+/// A stage's face records, flat (see the module docs).
+///
+/// The layout is the one numpy and the Python binding use: per part, the concatenated values and
+/// `len() + 1` offsets starting at 0 (record `r`'s ids are `ids[offsets[r]..offsets[r + 1]]`).
+/// Offsets are `u32` (12 bytes per record rather than 24): a stage holds at most `u32::MAX` face
+/// ids, coordinates and weights each; the decoders report a larger one as a limit (ISM-007) and
+/// [`FaceTable::push`] panics.
+#[derive(Clone, PartialEq)]
+pub struct FaceTable {
+    ids: Vec<u32>,
+    points: Vec<f64>,
+    weights: Vec<f64>,
+    face_offsets: Vec<u32>,
+    point_offsets: Vec<u32>,
+    weight_offsets: Vec<u32>,
+}
+
+impl Default for FaceTable {
+    fn default() -> FaceTable {
+        FaceTable {
+            ids: Vec::new(),
+            points: Vec::new(),
+            weights: Vec::new(),
+            face_offsets: vec![0],
+            point_offsets: vec![0],
+            weight_offsets: vec![0],
+        }
+    }
+}
+
+impl FaceTable {
+    /// An empty table.
+    pub fn new() -> FaceTable {
+        FaceTable::default()
+    }
+
+    /// An empty table with room for `records` records.
+    pub fn with_capacity(records: usize) -> FaceTable {
+        let offsets = || {
+            let mut v = Vec::with_capacity(records + 1);
+            v.push(0);
+            v
+        };
+        FaceTable {
+            face_offsets: offsets(),
+            point_offsets: offsets(),
+            weight_offsets: offsets(),
+            ..FaceTable::default()
+        }
+    }
+
+    /// Number of records.
+    pub fn len(&self) -> usize {
+        self.face_offsets.len() - 1
+    }
+
+    /// Whether there is no record.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// Record `r`'s ranges in the three arrays, or `None` past the end.
+    fn ranges(&self, r: usize) -> Option<[std::ops::Range<usize>; 3]> {
+        if r >= self.len() {
+            return None;
+        }
+        let range = |o: &[u32]| o[r] as usize..o[r + 1] as usize;
+        Some([
+            range(&self.face_offsets),
+            range(&self.point_offsets),
+            range(&self.weight_offsets),
+        ])
+    }
+
+    /// Record `r`, or `None` past the end.
+    pub fn get(&self, r: usize) -> Option<FaceRef<'_>> {
+        let [f, p, w] = self.ranges(r)?;
+        Some(FaceRef {
+            face: &self.ids[f],
+            points: &self.points[p],
+            weights: &self.weights[w],
+        })
+    }
+
+    /// Record `r`.
+    ///
+    /// # Panics
+    /// If `r ≥ len()`, like slice indexing.
+    pub fn record(&self, r: usize) -> FaceRef<'_> {
+        self.get(r)
+            .unwrap_or_else(|| panic!("face record {r} out of range: the table has {}", self.len()))
+    }
+
+    /// Record `r` with its numbers writable, or `None` past the end.
+    pub fn get_mut(&mut self, r: usize) -> Option<FaceMut<'_>> {
+        let [f, p, w] = self.ranges(r)?;
+        Some(FaceMut {
+            face: &mut self.ids[f],
+            points: &mut self.points[p],
+            weights: &mut self.weights[w],
+        })
+    }
+
+    /// Record `r` with its numbers writable.
+    ///
+    /// # Panics
+    /// If `r ≥ len()`.
+    pub fn record_mut(&mut self, r: usize) -> FaceMut<'_> {
+        let len = self.len();
+        self.get_mut(r)
+            .unwrap_or_else(|| panic!("face record {r} out of range: the table has {len}"))
+    }
+
+    /// The records in order.
+    pub fn iter(&self) -> Iter<'_> {
+        Iter {
+            table: self,
+            front: 0,
+            back: self.len(),
+        }
+    }
+
+    /// Appends a record.
+    ///
+    /// # Panics
+    /// If the table would hold more than `u32::MAX` ids, coordinates or weights.
+    pub fn push(&mut self, face: &[u32], points: &[f64], weights: &[f64]) {
+        self.ids.extend_from_slice(face);
+        self.points.extend_from_slice(points);
+        self.weights.extend_from_slice(weights);
+        self.close_record().expect("face table overflow");
+    }
+
+    /// Appends an owned record.
+    ///
+    /// # Panics
+    /// As [`FaceTable::push`].
+    pub fn push_record(&mut self, record: &FaceRecord) {
+        self.push(&record.face, &record.points, &record.weights);
+    }
+
+    /// Ends a record whose parts were appended to [`FaceTable::parts_mut`]'s arrays.
+    pub(crate) fn close_record(&mut self) -> Result<(), TableFull> {
+        let end = |n: usize| u32::try_from(n).map_err(|_| TableFull);
+        let row = [
+            end(self.ids.len())?,
+            end(self.points.len())?,
+            end(self.weights.len())?,
+        ];
+        self.face_offsets.push(row[0]);
+        self.point_offsets.push(row[1]);
+        self.weight_offsets.push(row[2]);
+        Ok(())
+    }
+
+    /// The arrays a decoder appends a record's parts to before [`FaceTable::close_record`].
+    pub(crate) fn parts_mut(&mut self) -> (&mut Vec<u32>, &mut Vec<f64>, &mut Vec<f64>) {
+        (&mut self.ids, &mut self.points, &mut self.weights)
+    }
+
+    /// `len() + 1` offsets into [`FaceTable::all_face_ids`], from 0.
+    pub fn face_offsets(&self) -> &[u32] {
+        &self.face_offsets
+    }
+
+    /// `len() + 1` offsets into [`FaceTable::all_points`], from 0.
+    pub fn point_offsets(&self) -> &[u32] {
+        &self.point_offsets
+    }
+
+    /// `len() + 1` offsets into [`FaceTable::all_weights`], from 0.
+    pub fn weight_offsets(&self) -> &[u32] {
+        &self.weight_offsets
+    }
+
+    /// Every record's face ids, concatenated.
+    pub fn all_face_ids(&self) -> &[u32] {
+        &self.ids
+    }
+
+    /// Every record's control point coordinates, concatenated.
+    pub fn all_points(&self) -> &[f64] {
+        &self.points
+    }
+
+    /// Every record's weights, concatenated.
+    pub fn all_weights(&self) -> &[f64] {
+        &self.weights
+    }
+
+    /// Every record's control point coordinates, concatenated and writable.
+    pub fn all_points_mut(&mut self) -> &mut [f64] {
+        &mut self.points
+    }
+
+    /// Every record's weights, concatenated and writable.
+    pub fn all_weights_mut(&mut self) -> &mut [f64] {
+        &mut self.weights
+    }
+
+    /// Owned copies of the records.
+    pub fn to_records(&self) -> Vec<FaceRecord> {
+        self.iter().map(|r| r.to_record()).collect()
+    }
+
+    /// Rewrites the table through an owned list of records: for the rare edit that changes lengths
+    /// or order (tests that build wrong files, builders that sort).
+    ///
+    /// # Panics
+    /// As [`FaceTable::push`].
+    pub fn edit<T>(&mut self, f: impl FnOnce(&mut Vec<FaceRecord>) -> T) -> T {
+        let mut records = self.to_records();
+        let out = f(&mut records);
+        *self = FaceTable::from(records);
+        out
+    }
+
+    /// Removes every record.
+    pub fn clear(&mut self) {
+        *self = FaceTable::default();
+    }
+}
+
+/// Iterator over a [`FaceTable`]'s records.
+#[derive(Clone, Debug)]
+pub struct Iter<'a> {
+    table: &'a FaceTable,
+    front: usize,
+    back: usize,
+}
+
+impl<'a> Iterator for Iter<'a> {
+    type Item = FaceRef<'a>;
+
+    fn next(&mut self) -> Option<FaceRef<'a>> {
+        if self.front >= self.back {
+            return None;
+        }
+        let r = self.front;
+        self.front += 1;
+        self.table.get(r)
+    }
+
+    fn size_hint(&self) -> (usize, Option<usize>) {
+        let n = self.back - self.front;
+        (n, Some(n))
+    }
+
+    fn nth(&mut self, n: usize) -> Option<FaceRef<'a>> {
+        self.front = self.front.saturating_add(n).min(self.back);
+        self.next()
+    }
+}
+
+impl DoubleEndedIterator for Iter<'_> {
+    fn next_back(&mut self) -> Option<Self::Item> {
+        if self.front >= self.back {
+            return None;
+        }
+        self.back -= 1;
+        self.table.get(self.back)
+    }
+}
+
+impl ExactSizeIterator for Iter<'_> {}
+
+impl std::iter::FusedIterator for Iter<'_> {}
+
+impl<'a> IntoIterator for &'a FaceTable {
+    type Item = FaceRef<'a>;
+    type IntoIter = Iter<'a>;
+    fn into_iter(self) -> Iter<'a> {
+        self.iter()
+    }
+}
+
+impl std::fmt::Debug for FaceTable {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_list().entries(self.iter()).finish()
+    }
+}
+
+impl From<Vec<FaceRecord>> for FaceTable {
+    fn from(records: Vec<FaceRecord>) -> FaceTable {
+        records.into_iter().collect()
+    }
+}
+
+impl FromIterator<FaceRecord> for FaceTable {
+    fn from_iter<I: IntoIterator<Item = FaceRecord>>(iter: I) -> FaceTable {
+        let mut table = FaceTable::new();
+        table.extend(iter);
+        table
+    }
+}
+
+impl<'a> FromIterator<FaceRef<'a>> for FaceTable {
+    fn from_iter<I: IntoIterator<Item = FaceRef<'a>>>(iter: I) -> FaceTable {
+        let mut table = FaceTable::new();
+        for r in iter {
+            table.push(r.face, r.points, r.weights);
+        }
+        table
+    }
+}
+
+impl Extend<FaceRecord> for FaceTable {
+    fn extend<I: IntoIterator<Item = FaceRecord>>(&mut self, iter: I) {
+        let iter = iter.into_iter();
+        let more = iter.size_hint().0;
+        self.face_offsets.reserve(more);
+        self.point_offsets.reserve(more);
+        self.weight_offsets.reserve(more);
+        for r in iter {
+            self.push_record(&r);
+        }
+    }
+}
+
+impl Serialize for FaceTable {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        s.collect_seq(self.iter())
+    }
+}
+
+impl<'de> Deserialize<'de> for FaceTable {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<FaceTable, D::Error> {
+        Vec::<FaceRecord>::deserialize(d).map(FaceTable::from)
+    }
+}
+
+/// The binary encoding of `Vec<FaceRecord>` (spec §7.4: a `u64` count, then per record three
+/// `u64`-length-prefixed arrays of little-endian numbers), written a slice at a time.
+impl Encode for FaceTable {
+    fn encode<E: bincode::enc::Encoder>(
+        &self,
+        encoder: &mut E,
+    ) -> Result<(), bincode::error::EncodeError> {
+        use bincode::enc::write::Writer;
+        (self.len() as u64).encode(encoder)?;
+        let w = encoder.writer();
+        for r in self.iter() {
+            w.write(&(r.face.len() as u64).to_le_bytes())?;
+            write_le(w, r.face)?;
+            w.write(&(r.points.len() as u64).to_le_bytes())?;
+            write_le(w, r.points)?;
+            w.write(&(r.weights.len() as u64).to_le_bytes())?;
+            write_le(w, r.weights)?;
+        }
+        Ok(())
+    }
+}
+
+/// Numbers that the binary encoding writes little-endian.
+pub(crate) trait LeBytes: bytemuck::Pod {
+    /// The little-endian bytes of one number.
+    fn le(self) -> [u8; 8];
+    /// Their length.
+    const SIZE: usize;
+}
+
+impl LeBytes for u32 {
+    fn le(self) -> [u8; 8] {
+        let mut out = [0; 8];
+        out[..4].copy_from_slice(&self.to_le_bytes());
+        out
+    }
+    const SIZE: usize = 4;
+}
+
+impl LeBytes for f64 {
+    fn le(self) -> [u8; 8] {
+        self.to_le_bytes()
+    }
+    const SIZE: usize = 8;
+}
+
+/// Writes `xs` as little-endian numbers: one copy of the slice's bytes on little-endian machines.
+pub(crate) fn write_le<T: LeBytes, W: bincode::enc::write::Writer>(
+    w: &mut W,
+    xs: &[T],
+) -> Result<(), bincode::error::EncodeError> {
+    if cfg!(target_endian = "little") {
+        w.write(bytemuck::cast_slice(xs))
+    } else {
+        for &x in xs {
+            w.write(&x.le()[..T::SIZE])?;
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn records() -> Vec<FaceRecord> {
+        vec![
+            FaceRecord {
+                face: vec![0, 2],
+                points: vec![0.25, 0.75],
+                weights: vec![],
+            },
+            FaceRecord {
+                face: vec![],
+                points: vec![],
+                weights: vec![2.0],
+            },
+            FaceRecord {
+                face: vec![1, 2, 3],
+                points: vec![0.1, 0.2, 0.7, 0.3, 0.3, 0.4],
+                weights: vec![1.5, 0.5],
+            },
+        ]
+    }
+
+    #[test]
+    fn views_give_back_every_record() {
+        let recs = records();
+        let table = FaceTable::from(recs.clone());
+        assert_eq!(table.len(), 3);
+        assert_eq!(table.to_records(), recs);
+        for (r, rec) in recs.iter().enumerate() {
+            let view = table.record(r);
+            assert_eq!(view.face, rec.face.as_slice());
+            assert_eq!(view.points, rec.points.as_slice());
+            assert_eq!(view.weights, rec.weights.as_slice());
+        }
+        assert!(table.get(3).is_none());
+        let back: Vec<_> = table.iter().rev().map(|r| r.to_record()).collect();
+        assert_eq!(back, recs.iter().rev().cloned().collect::<Vec<_>>());
+        assert_eq!(table.iter().nth(2).map(|r| r.face), Some(&[1u32, 2, 3][..]));
+        assert_eq!(table.iter().len(), 3);
+    }
+
+    #[test]
+    fn serializes_as_the_list_of_records() {
+        let recs = records();
+        let table = FaceTable::from(recs.clone());
+        // Ground truth: serde's derive of the owned records.
+        assert_eq!(
+            serde_json::to_string(&table).unwrap(),
+            serde_json::to_string(&recs).unwrap()
+        );
+        assert_eq!(
+            rmp_serde::to_vec_named(&table).unwrap(),
+            rmp_serde::to_vec_named(&recs).unwrap()
+        );
+        let config = crate::io::binary_config();
+        assert_eq!(
+            bincode::encode_to_vec(&table, config).unwrap(),
+            bincode::encode_to_vec(&recs, config).unwrap()
+        );
+        let back: FaceTable = serde_json::from_str(&serde_json::to_string(&recs).unwrap()).unwrap();
+        assert_eq!(back, table);
+    }
+
+    #[test]
+    fn edits_in_place_and_by_record() {
+        let mut table = FaceTable::from(records());
+        table.record_mut(2).points[0] = 9.0;
+        table.record_mut(0).face[1] = 5;
+        assert_eq!(table.record(2).points[0], 9.0);
+        assert_eq!(table.record(0).face, &[0, 5]);
+        table.edit(|r| r[1].face.push(7));
+        assert_eq!(table.record(1).face, &[7]);
+        assert_eq!(table.record(2).weights, &[1.5, 0.5]);
+        assert_eq!(table.all_weights(), &[2.0, 1.5, 0.5]);
+        assert_eq!(table.weight_offsets(), &[0, 0, 1, 3]);
+        assert_eq!(table.face_offsets(), &[0, 2, 3, 6]);
+        assert_eq!(table.point_offsets(), &[0, 2, 2, 8]);
+        table.clear();
+        assert!(table.is_empty());
+    }
+}
