@@ -556,12 +556,14 @@ impl DetKernel {
                         None => break,
                     },
                 };
-                match self.decide_piece(
+                // Impatient before the double-double tier, patient in it.
+                match self.decide(
                     coefficients,
                     unit_corners(self.n + 1),
                     0,
                     budget.pieces,
                     max_depth,
+                    tier == 0,
                 ) {
                     Decision::Positive {
                         depth,
@@ -630,6 +632,22 @@ impl DetKernel {
         budget: usize,
         max_depth: u32,
     ) -> Decision {
+        self.decide(coefficients, corners, depth, budget, max_depth, false)
+    }
+
+    /// [`DetKernel::decide_piece`]; `impatient` also gives up at the first coefficient whose sign
+    /// its bound cannot settle (`|value| ≤ error`). Such a coefficient can still be settled by
+    /// bisection, but in practice it means the minimum is within the bound of 0 — a near-threshold
+    /// net that a tighter tier decides far sooner than bisection down to the error floor.
+    fn decide(
+        &self,
+        coefficients: BoundedCoefficients,
+        corners: [[f64; 4]; 4],
+        depth: u32,
+        budget: usize,
+        max_depth: u32,
+        impatient: bool,
+    ) -> Decision {
         let m = self.n + 1;
         let len = coefficients.values.len();
         struct Piece {
@@ -691,6 +709,10 @@ impl DetKernel {
                 .zip(errors)
                 .map(|(v, e)| v - e)
                 .fold(f64::INFINITY, f64::min);
+            if impatient && low <= 0.0 && values.iter().zip(errors).any(|(v, e)| v.abs() <= *e) {
+                undecided = Some(undecided.map_or(low, |l: f64| l.min(low)));
+                break;
+            }
             if low > 0.0 {
                 lower = lower.min(low);
                 pool.push(piece.coef);
