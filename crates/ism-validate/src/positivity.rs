@@ -196,6 +196,18 @@ pub fn check_stage_with_progress(
                 lower_bound: None,
             };
         }
+        if stage.kind == StageKind::Monotonic {
+            // Only the §4 theorem certifies monotonic maps (there is no numeric kernel for them,
+            // and they have no face records to look up): without it, undetermined. (Found by the
+            // `validate_generated` fuzz target: `--no-theorems` on a monotonic stage indexed the
+            // empty face-record table and panicked.)
+            return Outcome::Undetermined(Bounds {
+                depth: 0,
+                pieces: 0,
+                lower: None,
+                upper: None,
+            });
+        }
         let records = index.records(s);
         let moving: Vec<(usize, usize)> = records
             .iter()
