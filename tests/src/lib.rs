@@ -3,6 +3,8 @@
 
 use std::path::PathBuf;
 
+pub mod fuzz;
+
 /// The repository's README, whose Rust example is compiled as a doctest here (`no_run`: its paths
 /// are relative to the repository root, and doctests run in `tests/`).
 #[doc = include_str!("../../README.md")]

@@ -909,6 +909,20 @@ pub fn to_model(raw: &RawMesh, options: &ImportOptions) -> Result<(Model, Import
         }
         model.simplices.extend_from_slice(&ids);
     }
+    // A tool never writes a file it refuses to read: the reader's own structural checks (spec §3.1:
+    // degeneracy relative to the longest edge, duplicate cells, facets shared by three cells, …)
+    // decide, not a second copy of them here. Simplex `s` is kept cell `s`. (Found by the
+    // `import_mesh` fuzz target: a cell of relative volume 1e-29 became an ISM-107 file.)
+    if let Some(d) = ism_format::structure::check(&model, 1)
+        .into_iter()
+        .find(|d| d.severity == ism_format::Severity::Error)
+    {
+        return Err(Error::import(
+            FMT,
+            d.location.simplex.map(|s| format!("cell {s}")),
+            format!("the cells do not make a valid model: {d}"),
+        ));
+    }
     Ok((model, report))
 }
 
@@ -1018,6 +1032,37 @@ $NodeData\n1\n\"f\"\n1\n0\n3\n0\n1\n4\n1 -1\n2 1\n3 1\n4 1\n$EndNodeData\n";
         let (model, report) = to_model(&raw, &ImportOptions::default()).unwrap();
         assert_eq!((model.num_vertices(), report.dropped_nodes), (4, 6));
         assert_eq!(model.values, vec![-1.0, 1.0, 1.0, 1.0]);
+    }
+
+    /// Cells the reader would refuse are refused at import, with the reader's rule (fuzz finding:
+    /// `fuzz/artifacts/import_mesh/crash-092f37…`, a tetrahedron of relative volume 1e-29).
+    #[test]
+    fn cells_the_reader_refuses_are_not_imported() {
+        let import = |cells: &str, points: &str| {
+            let text = format!(
+                "# vtk DataFile Version 4.2\nx\nASCII\nDATASET UNSTRUCTURED_GRID\nPOINTS 5 double\n\
+                 {points}\nCELLS 2 10\n{cells}\nCELL_TYPES 2\n10 10\n\
+                 POINT_DATA 5\nSCALARS f double 1\nLOOKUP_TABLE default\n-1 1 1 1 2\n"
+            );
+            let raw = read_mesh(text.as_bytes(), ImportFormat::VtkLegacy).unwrap();
+            to_model(&raw, &ImportOptions::default())
+                .unwrap_err()
+                .to_string()
+        };
+        let cube = "0 0 0  1 0 0  0 1 0  0 0 1  1 1 1";
+        let twice = import("4 0 1 2 3\n4 0 1 3 2", cube);
+        assert!(
+            twice.contains("at cell 1") && twice.contains("ISM-108"),
+            "{twice}"
+        );
+        let flat = import(
+            "4 0 1 2 3\n4 1 3 2 4",
+            "0 0 0  1 0 0  0 1 0  1e-30 1e-30 1e-29  1 1 1",
+        );
+        assert!(
+            flat.contains("at cell 0") && flat.contains("ISM-107"),
+            "{flat}"
+        );
     }
 
     #[test]

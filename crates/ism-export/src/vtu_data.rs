@@ -135,17 +135,26 @@ impl Layout {
         };
         // Every compressor has a bounded ratio (zlib 1032:1, LZ4 255:1; LZMA more on constant
         // data): a header that claims more than that of its blocks is refused before inflating.
-        let compressed = self.total_len(bytes, at)?.saturating_sub(hlen);
+        // The compressed bytes actually present, not the header's claim: the bound on the output
+        // is then a multiple of the input.
+        let compressed = self
+            .total_len(bytes, at)?
+            .min(bytes.len())
+            .saturating_sub(hlen);
         let ratio = if self.compressor == Compressor::Lzma {
             1 << 16
         } else {
             2048
         };
-        let claimed = blocks
-            .saturating_sub(1)
-            .saturating_mul(block_size)
-            .saturating_add(last_size);
-        if blocks > 0 && claimed > compressed.saturating_mul(ratio).saturating_add(1 << 16) {
+        // No blocks, no bytes: the size words after the count then mean nothing. (Found by the
+        // `import_mesh` fuzz target: zero blocks with a last-block size of 4 GB reserved 4 GB.)
+        let claimed = match blocks {
+            0 => 0,
+            _ => (blocks - 1)
+                .saturating_mul(block_size)
+                .saturating_add(last_size),
+        };
+        if claimed > compressed.saturating_mul(ratio).saturating_add(1 << 16) {
             return Err(Error::import(
                 FMT,
                 at.to_string(),
@@ -429,5 +438,29 @@ mod tests {
             assert!(layout.inline(text, "a").is_err(), "{text:?}");
         }
         assert!(Compressor::from_attribute(Some("vtkZstdDataCompressor")).is_err());
+    }
+
+    /// A compressed header's claims are bounded by the bytes present, before anything is reserved
+    /// (fuzz finding `fuzz/artifacts/import_mesh/oom-1d3f22…`: zero blocks, last block 4 GB).
+    #[test]
+    fn header_claims_do_not_reserve_memory() {
+        for compressor in [Compressor::Zlib, Compressor::Lzma, Compressor::Lz4] {
+            let layout = Layout {
+                header64: false,
+                compressor,
+            };
+            // Zero blocks: nothing, whatever the size words say.
+            let zero = [0u32, 1 << 20, u32::MAX].map(u32::to_le_bytes).concat();
+            assert_eq!(
+                layout.appended_raw(&zero, 0, "a").unwrap(),
+                Vec::<u8>::new()
+            );
+            // One block claimed to hold 4 GB, declared 1 GB compressed, 8 bytes present.
+            let one = [1u32, u32::MAX, u32::MAX, 1 << 30, 0, 0]
+                .map(u32::to_le_bytes)
+                .concat();
+            let err = layout.appended_raw(&one, 0, "a").unwrap_err().to_string();
+            assert!(err.contains("header claims"), "{err}");
+        }
     }
 }

@@ -1,0 +1,166 @@
+//! The properties the fuzz targets of `fuzz/` check beyond the model readers, in one place: the
+//! targets call these on the fuzzer's bytes, and `tests/fuzz_corpora.rs` replays every kept input
+//! (`fuzz/corpus/<target>/`) and every fixed crash (`fuzz/artifacts/<target>/`) through the same
+//! functions, so a corpus is a regression test.
+//!
+//! Each function panics exactly when the property fails; bad input must give a typed error.
+
+use std::path::Path;
+
+use ism_export::import::{read_mesh, to_model, ImportFormat, ImportOptions};
+use ism_format::io::{self, WriteOptions};
+use ism_format::{Encoding, Model};
+
+pub mod generated;
+
+/// A model as a writer writes it back: its own format version (spec §8.1).
+fn as_written(model: &Model) -> Model {
+    Model {
+        version: ism_format::FORMAT_VERSION.to_string(),
+        ..model.clone()
+    }
+}
+
+/// What `ism` writes, `ism` reads: `model` encodes in every encoding, and each file reads back
+/// (with the reader's structural checks) to the same model. `what` names the producer.
+fn written_model_reads_back(model: &Model, what: &str) {
+    for encoding in Encoding::ALL {
+        let bytes = io::to_vec(model, encoding, WriteOptions::default())
+            .unwrap_or_else(|e| panic!("{what} made a model the {encoding:?} writer refuses: {e}"));
+        let doc = io::from_slice(&bytes)
+            .unwrap_or_else(|e| panic!("{what} made a model the reader refuses: {e}"));
+        assert_eq!(
+            doc.model,
+            as_written(model),
+            "{what}: {encoding:?} changed it"
+        );
+    }
+}
+
+/// Target `import_mesh`: the bytes as `.vtu`, legacy `.vtk` and `.msh` (`ism import`'s parsers).
+/// Each parse gives a mesh or a typed error; a mesh converts to a model or a typed error (with the
+/// first field and with a named one at another level); a converted model is one `ism` reads back.
+pub fn import_mesh(data: &[u8]) {
+    for format in [
+        ImportFormat::Vtu,
+        ImportFormat::VtkLegacy,
+        ImportFormat::Msh,
+    ] {
+        let Ok(raw) = read_mesh(data, format) else {
+            continue;
+        };
+        let mut options = vec![ImportOptions::default()];
+        if let Some((name, values)) = raw.fields.last() {
+            // A level inside the field's range: the other common use.
+            let level = values
+                .iter()
+                .copied()
+                .find(|v| v.is_finite())
+                .unwrap_or(0.5)
+                + 0.5;
+            options.push(ImportOptions {
+                field: Some(name.clone()),
+                level,
+            });
+        }
+        for o in &options {
+            if let Ok((model, _)) = to_model(&raw, o) {
+                written_model_reads_back(&model, &format!("import of {format:?}"));
+            }
+        }
+    }
+}
+
+/// Target `fit_mesh`: the bytes as OBJ and as glTF/GLB (`ism fit --mesh`'s readers). Never a
+/// panic; a mesh read has triangles whose ids are in range and finite positions.
+pub fn fit_mesh(data: &[u8]) {
+    use ism_fit::mesh::TriangleMesh;
+    // A path whose directory holds no buffer: relative glTF buffer URIs fail as missing files.
+    let path = Path::new("/nonexistent-ism-fuzz/mesh.gltf");
+    for mesh in [
+        TriangleMesh::from_obj(data, path),
+        TriangleMesh::from_gltf(data, path),
+    ]
+    .into_iter()
+    .flatten()
+    {
+        assert!(!mesh.triangles.is_empty());
+        for t in &mesh.triangles {
+            assert!(t.iter().all(|&v| (v as usize) < mesh.positions.len()));
+        }
+        assert!(mesh.positions.iter().flatten().all(|x| x.is_finite()));
+    }
+}
+
+/// Most simplices and handles of a Hermite input that the `read_hermite` target also fits (the fit
+/// is polynomial in the model's size; the fuzzer's inputs are meant to stay fast).
+const HERMITE_FIT_MAX_SIMPLICES: usize = 48;
+const HERMITE_FIT_MAX_HANDLES: usize = 12;
+
+/// Target `read_hermite`: the bytes as an `ism fit --hermite` handles file with its complex inline.
+/// Parsing and building the base model give a value or a typed error; a small base model is fitted
+/// (with at most two sweeps), which gives a typed error or a model `ism` reads back.
+pub fn read_hermite(data: &[u8]) {
+    use ism_fit::hermite::{fit_hermite, HermiteData};
+    let Ok(text) = std::str::from_utf8(data) else {
+        return;
+    };
+    let Ok(parsed) = HermiteData::from_json(text) else {
+        return;
+    };
+    if parsed.model.is_some() {
+        // A model path names a file; the model readers have their own targets.
+        return;
+    }
+    let Ok(model) = parsed.base_model(None) else {
+        return;
+    };
+    written_model_reads_back(&model, "the Hermite base model");
+    if model.num_simplices() > HERMITE_FIT_MAX_SIMPLICES
+        || parsed.handles.len() > HERMITE_FIT_MAX_HANDLES
+    {
+        return;
+    }
+    let mut options = parsed.options();
+    options.iterations = options.iterations.min(2);
+    if let Ok(fit) = fit_hermite(&model, &parsed.handles, &options) {
+        written_model_reads_back(&fit.model, "the Hermite fit");
+    }
+}
+
+/// Target `validate_generated`: the validator on a structurally valid model built from the bytes
+/// ([`generated::Generated`]), with and without its theorems. It never panics, and whenever it
+/// says VALID, no stage has `det DY ≤ 0` at any sampled dyadic point of any simplex, decided exactly
+/// by [`generated`]'s own evaluation.
+pub fn validate_generated(data: &[u8]) {
+    use ism_validate::{validate, Options, Verdict};
+    let Some(g) = generated::Generated::from_bytes(data) else {
+        return;
+    };
+    let structural = ism_format::structure::check(&g.model, 1);
+    if structural
+        .iter()
+        .any(|d| d.severity == ism_format::Severity::Error)
+    {
+        // A perturbation made a simplex degenerate: not a model the validator certifies.
+        return;
+    }
+    for theorems in [true, false] {
+        let options = Options {
+            threads: 1,
+            // A smaller budget than the CLI's keeps each input fast; VALID must be right at any.
+            max_pieces: 4096,
+            theorems,
+            ..Options::default()
+        };
+        let report = validate(&g.model, &options);
+        if report.verdict == Verdict::Valid {
+            let bad = g.nonpositive_jacobians(3);
+            assert!(
+                bad.is_empty(),
+                "validator (theorems {theorems}) says VALID, but det DY <= 0 at (stage, simplex, point) {bad:?} of {:?}",
+                g.model
+            );
+        }
+    }
+}

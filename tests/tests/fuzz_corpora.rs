@@ -1,0 +1,60 @@
+//! The seeds, corpora and fixed crashes of the fuzz targets beyond the model readers
+//! (`fuzz/seeds/<target>`, `fuzz/corpus/<target>`, `fuzz/artifacts/<target>`) replayed through the
+//! targets' own properties (`ism_conformance::fuzz`):
+//! one test per target, so every input a fuzzer kept stays a regression test. (The model readers'
+//! corpora run in `crates/ism-format/tests/fuzz_regressions.rs`.)
+
+use std::path::{Path, PathBuf};
+
+use ism_conformance::{fuzz, repo_root};
+use libtest_mimic::{Arguments, Failed, Trial};
+
+/// Each target and its property.
+const TARGETS: &[(&str, fn(&[u8]))] = &[
+    ("import_mesh", fuzz::import_mesh),
+    ("fit_mesh", fuzz::fit_mesh),
+    ("read_hermite", fuzz::read_hermite),
+    ("validate_generated", fuzz::validate_generated),
+];
+
+fn files(dir: &Path) -> Vec<PathBuf> {
+    let mut out: Vec<PathBuf> = std::fs::read_dir(dir)
+        .into_iter()
+        .flatten()
+        .flatten()
+        .map(|e| e.path())
+        .filter(|p| p.is_file())
+        .collect();
+    out.sort();
+    out
+}
+
+fn replay(target: &str, check: fn(&[u8])) -> Result<(), Failed> {
+    let root = repo_root().join("fuzz");
+    let inputs: Vec<PathBuf> = ["seeds", "corpus", "artifacts"]
+        .iter()
+        .flat_map(|kind| files(&root.join(kind).join(target)))
+        .collect();
+    if inputs.is_empty() {
+        return Err(format!("fuzz/seeds/{target} and fuzz/corpus/{target} are missing").into());
+    }
+    for file in &inputs {
+        let bytes = std::fs::read(file).map_err(|e| format!("{}: {e}", file.display()))?;
+        std::panic::catch_unwind(|| check(&bytes)).map_err(|_| {
+            format!(
+                "{} fails the property (see the panic above)",
+                file.display()
+            )
+        })?;
+    }
+    Ok(())
+}
+
+fn main() {
+    let args = Arguments::from_args();
+    let trials = TARGETS
+        .iter()
+        .map(|&(target, check)| Trial::test(target, move || replay(target, check)))
+        .collect();
+    libtest_mimic::run(&args, trials).exit();
+}
