@@ -9,8 +9,11 @@ use std::path::{Path, PathBuf};
 use ism_conformance::{fuzz, repo_root};
 use libtest_mimic::{Arguments, Failed, Trial};
 
+/// A target's property: panics when it fails.
+type Property = fn(&[u8]);
+
 /// Each target and its property.
-const TARGETS: &[(&str, fn(&[u8]))] = &[
+const TARGETS: &[(&str, Property)] = &[
     ("import_mesh", fuzz::import_mesh),
     ("fit_mesh", fuzz::fit_mesh),
     ("read_hermite", fuzz::read_hermite),
@@ -29,7 +32,7 @@ fn files(dir: &Path) -> Vec<PathBuf> {
     out
 }
 
-fn replay(target: &str, check: fn(&[u8])) -> Result<(), Failed> {
+fn replay(target: &str, check: Property) -> Result<(), Failed> {
     let root = repo_root().join("fuzz");
     let inputs: Vec<PathBuf> = ["seeds", "corpus", "artifacts"]
         .iter()

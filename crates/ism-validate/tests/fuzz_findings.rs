@@ -23,6 +23,12 @@ fn monotonic_stage_without_theorems_is_undetermined_not_a_panic() {
         },
     );
     assert_eq!(report.verdict, Verdict::Undetermined);
-    assert!(report.stages.iter().all(|s| s.undetermined == model.num_simplices()));
-    assert_eq!(validate(&model, &Options::default()).verdict, Verdict::Valid);
+    assert!(report
+        .stages
+        .iter()
+        .all(|s| s.undetermined == model.num_simplices()));
+    assert_eq!(
+        validate(&model, &Options::default()).verdict,
+        Verdict::Valid
+    );
 }
