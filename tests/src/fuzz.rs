@@ -149,7 +149,7 @@ pub fn validate_generated(data: &[u8]) {
         let options = Options {
             threads: 1,
             // A smaller budget than the CLI's keeps each input fast; VALID must be right at any.
-            max_pieces: 4096,
+            max_pieces: 1024,
             theorems,
             ..Options::default()
         };

@@ -238,12 +238,20 @@ impl Generated {
             }
             stages.push((stage, u.arbitrary::<bool>()?));
         }
-        // Sample points: every point with coordinates in {0, 1/4, …, 1}, and a few from the bytes.
-        let mut points: Vec<Vec<Q>> = multi_indices(n + 1, 4)
+        // Sample points: the vertices, edge midpoints (and in 3D triangle points) with coordinates
+        // in {0, 1/2, 1}, the centre-like points with coordinates in {0, 1/4, …, 1} that have no
+        // zero coordinate, and a few from the bytes.
+        let mut points: Vec<Vec<Q>> = multi_indices(n + 1, 2)
             .into_iter()
+            .chain(
+                multi_indices(n + 1, 4)
+                    .into_iter()
+                    .filter(|i| i.iter().all(|&a| a > 0)),
+            )
             .map(|i| {
+                let d: u32 = i.iter().sum();
                 i.iter()
-                    .map(|&a| Q::new(BigInt::from(a), BigInt::from(4)))
+                    .map(|&a| Q::new(BigInt::from(a), BigInt::from(d)))
                     .collect()
             })
             .collect();
