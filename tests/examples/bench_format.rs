@@ -1,8 +1,9 @@
 //! Read/write throughput of the three encodings on a large stratified model (issue 2 benchmark).
 //! Driven by `tools/bench_format.sh`, which also runs the meshio peer and records peak memory.
 //!
-//! `bench_format make DIR [TETS]`  build the model, write it in every encoding (timed), and dump
-//!                                 the raw tetrahedra/points/values as .npy for the peer.
+//! `bench_format make DIR [TETS] [--binary-only]`  build the model, write it in every encoding (or
+//!                                 only the binary one; timed), and dump the raw
+//!                                 tetrahedra/points/values as .npy for the peer.
 //! `bench_format read FILE [--no-check | --indexed] [--repeat K]`  read a file (timed; best of K;
 //!                                 `--indexed` also builds the IndexedModel).
 //! `bench_format write FILE OUT [--repeat K]`  read FILE unchecked, then write it to OUT in the
@@ -35,7 +36,7 @@ fn npy(path: &Path, descr: &str, shape: &[usize], data: &[u8]) -> std::io::Resul
     f.flush()
 }
 
-fn make(dir: &Path, tets: usize) -> Result<(), Box<dyn std::error::Error>> {
+fn make(dir: &Path, tets: usize, binary_only: bool) -> Result<(), Box<dyn std::error::Error>> {
     std::fs::create_dir_all(dir)?;
     let t = Instant::now();
     let model = ism_examples::large_stratified_model(tets);
@@ -46,7 +47,12 @@ fn make(dir: &Path, tets: usize) -> Result<(), Box<dyn std::error::Error>> {
         model.stages.iter().map(|s| s.faces.len()).sum::<usize>(),
         t.elapsed().as_secs_f64()
     );
-    for enc in Encoding::ALL {
+    let encodings: &[Encoding] = if binary_only {
+        &[Encoding::Binary]
+    } else {
+        &Encoding::ALL
+    };
+    for &enc in encodings {
         let path = dir.join(format!("large.{}", enc.extension()));
         let mut best = f64::INFINITY;
         let mut bytes = 0;
@@ -180,6 +186,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                 .map(|s| s.parse())
                 .transpose()?
                 .unwrap_or(1_000_000),
+            args.iter().any(|a| a == "--binary-only"),
         ),
         Some("read") => {
             let mode = if args.iter().any(|a| a == "--no-check") {
@@ -209,7 +216,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             write(Path::new(&args[1]), Path::new(&args[2]), repeat)
         }
         _ => Err(
-            "usage: bench_format make DIR [TETS] | read FILE [--no-check | --indexed] [--repeat K] | write FILE OUT [--repeat K]"
+            "usage: bench_format make DIR [TETS] [--binary-only] | read FILE [--no-check | --indexed] [--repeat K] | write FILE OUT [--repeat K]"
                 .into(),
         ),
     }
