@@ -15,7 +15,7 @@
 //!   others' interval determinants). A cell is dropped when `F − c` cannot vanish on it.
 //! - **All parametric** (`Y = X⁻¹ = Y_0 ∘ … ∘ Y_{m−1}` is stored): the shape is `Y(θ)` with `θ` the
 //!   flat patch `f·u = c`, so cells are simplices of `θ` itself (the regions the sampler draws
-//!   from, [`parametric_region_bounds`]), or of `u` crossing it ([`chain_bound`]). The last stored
+//!   from, [`parametric_leaves`]), or of `u` crossing it ([`chain_bound`]). The last stored
 //!   stage is restricted to the cell exactly, the others as above, and
 //!   `J = |E⁻ᵀ cof(DY) Δf| / |∇F_lin|` with `cof(DY) = cof(DY_0) ⋯ cof(DY_{m−1})` (the cofactor
 //!   matrix `det(A) A⁻ᵀ` is multiplicative), so no determinant bound is needed at all.
@@ -746,21 +746,38 @@ pub fn chain_bound(
     Some(Ok(result))
 }
 
-/// Certified bounds of the area element `J` on regions of the linear patch, for a chain whose
-/// stages are all stored in the parametric direction (what `ism fit` writes): the shape there is
-/// `Y(θ)`, so each region (a simplex of `θ` given by its vertices `u`, `m` entries each; a
-/// triangle in 3D, a segment in 2D) is itself the cell the first stored map is restricted to,
-/// exactly, and then bisected within the face until its bound is within [`TIGHTNESS`] of `J`'s
-/// size there or `max_splits` is spent. `None` unless every stage is parametric.
-pub fn parametric_region_bounds(
+/// One leaf of the refinement of an all-parametric patch ([`parametric_leaves`]): a sub-simplex
+/// of the linear patch, in `u`, with a certified bound of `J` on it.
+#[derive(Clone, Debug)]
+pub struct Leaf {
+    /// Index of the root region the leaf lies in.
+    pub root: usize,
+    /// Corners (barycentric `u`, first `m` entries): three for a triangle, two for a segment.
+    pub corners: Vec<[f64; 4]>,
+    /// The leaf's share of its root's area: `2^−depth`, since every bisection halves a cell.
+    pub fraction: f64,
+    /// Certified bound of `J` on the leaf.
+    pub bound: f64,
+}
+
+/// Certified bounds of the area element `J` on the linear patch, for a chain whose stages are all
+/// stored in the parametric direction (what `ism fit` writes): the shape there is `Y(θ)`, so each
+/// root region (a simplex of `θ` given by its vertices `u`, `m` entries each; a triangle in 3D, a
+/// segment in 2D) is itself the cell the first stored map is restricted to, exactly. The cells are
+/// bisected where the bound wastes the most sampling mass — largest `weight · share · (bound −
+/// J's size there)`, `weight` the root's area — among those whose bound exceeds [`TIGHTNESS`] of
+/// `J`'s size, until none does or `max_splits` is spent. The leaves are returned as they are, so a
+/// sampler draws from them directly: the refinement lands where the bound is loose, and a smooth
+/// patch stays one region. `None` unless every stage is parametric.
+pub fn parametric_leaves(
     map: &LocalMap,
     inv_edges: &Mat,
     values: &[f64],
     level: f64,
-    regions: &[Vec<Vec<f64>>],
+    roots: &[(Vec<[f64; 4]>, f64)],
     samples: &[([f64; 4], f64)],
     max_splits: usize,
-) -> Option<Result<Vec<f64>, String>> {
+) -> Option<Result<Vec<Leaf>, String>> {
     let stages = map.stages();
     if stages.is_empty()
         || !stages
@@ -795,17 +812,43 @@ pub fn parametric_region_bounds(
             .fold(0.0f64, f64::max);
         inside.max(chain.centroid_j(cell))
     };
-    let mut out = Vec::with_capacity(regions.len());
-    for region in regions {
-        let mut vertices: Vec<[f64; 4]> = Vec::with_capacity(region.len());
-        for v in region {
-            let mut a = [0.0; 4];
-            a[..m].copy_from_slice(&v[..m]);
-            vertices.push(a);
+    /// A cell of the refinement: `(split priority, bound, root, share, cell)`; the priority is
+    /// 0 once the cell is tight (or cannot be split).
+    struct Open {
+        priority: f64,
+        bound: f64,
+        root: usize,
+        share: f64,
+        cell: Cell,
+    }
+    let open = |bound: f64, ubox: &UBox, cell: Cell, root: usize, share: f64| -> Open {
+        let size = local(ubox, &cell);
+        let tight = bound * TIGHTNESS <= size || cell.depth >= MAX_DEPTH;
+        let priority = if tight {
+            0.0
+        } else {
+            // A NaN (0/0 on an empty root) would never be split: count it as the whole mass.
+            let excess = roots[root].1 * share * (bound - size);
+            if excess.is_nan() {
+                f64::INFINITY
+            } else {
+                excess.max(f64::MIN_POSITIVE)
+            }
+        };
+        Open {
+            priority,
+            bound,
+            root,
+            share,
+            cell,
         }
+    };
+    let mut cells: Vec<Open> = Vec::with_capacity(roots.len() + 2 * max_splits);
+    for (r, (corners, _)) in roots.iter().enumerate() {
+        let refs: Vec<Vec<f64>> = corners.iter().map(|c| c[..m].to_vec()).collect();
         let root = Cell {
-            restricted: first.restrict_to_face(region),
-            vertices,
+            restricted: first.restrict_to_face(&refs),
+            vertices: corners.clone(),
             depth: 0,
         };
         let Some((b, ubox)) = chain.bound(&root) else {
@@ -813,28 +856,45 @@ pub fn parametric_region_bounds(
                 "a region of the linear patch missed its own plane".into()
             ));
         };
-        let mut cells = vec![(b / local(&ubox, &root), b, root)];
-        let mut splits = 0;
-        while let Some(worst) = (0..cells.len()).max_by(|&i, &j| cells[i].0.total_cmp(&cells[j].0))
-        {
-            if cells[worst].0 * TIGHTNESS <= 1.0
-                || splits >= max_splits
-                || cells[worst].2.depth >= MAX_DEPTH
-            {
-                break;
-            }
-            let (_, _, cell) = cells.swap_remove(worst);
-            let (a, b) = chain.split(&cell);
-            for child in [a, b] {
-                if let Some((bound, ubox)) = chain.bound(&child) {
-                    cells.push((bound / local(&ubox, &child), bound, child));
-                }
-            }
-            splits += 1;
-        }
-        out.push(cells.iter().map(|c| c.1).fold(0.0, f64::max));
+        cells.push(open(b, &ubox, root, r, 1.0));
     }
-    Some(Ok(out))
+    for _ in 0..max_splits {
+        let Some(worst) = (0..cells.len())
+            .filter(|&i| cells[i].priority > 0.0)
+            .max_by(|&i, &j| cells[i].priority.total_cmp(&cells[j].priority))
+        else {
+            break;
+        };
+        let parent = cells.swap_remove(worst);
+        let (a, b) = chain.split(&parent.cell);
+        for child in [a, b] {
+            let share = 0.5 * parent.share;
+            match chain.bound(&child) {
+                Some((bound, ubox)) => cells.push(open(bound, &ubox, child, parent.root, share)),
+                // A half of a cell of the patch is on the patch; missing it is rounding at the
+                // slack's edge. The parent's bound is certified on it too, and its area must stay
+                // in the table: keep it, unsplit.
+                None => cells.push(Open {
+                    priority: 0.0,
+                    bound: parent.bound,
+                    root: parent.root,
+                    share,
+                    cell: child,
+                }),
+            }
+        }
+    }
+    // The split order is fixed (one thread per patch), so the leaves' order is too.
+    let leaves: Vec<Leaf> = cells
+        .into_iter()
+        .map(|c| Leaf {
+            root: c.root,
+            corners: c.cell.vertices,
+            fraction: c.share,
+            bound: c.bound,
+        })
+        .collect();
+    Some(Ok(leaves))
 }
 
 #[cfg(test)]
@@ -935,13 +995,16 @@ mod tests {
         check(&parametric_square(), 64);
     }
 
-    /// Per-region bounds of all-parametric maps dominate exact `J` at points of each region.
+    /// The leaves of all-parametric maps tile each root region (shares sum to 1) and their
+    /// bounds dominate exact `J` (from the stage Jacobians at the point, not from the
+    /// enclosures) on a lattice of each leaf, at small and large budgets.
     #[test]
-    fn parametric_region_bounds_dominate_the_area_element() {
+    fn parametric_leaves_tile_the_patch_and_dominate_the_area_element() {
         let mut stratified = example("stratified-3d");
         for stage in &mut stratified.stages {
             stage.direction = Direction::Parametric;
         }
+        let mut split_somewhere = false;
         for model in [parametric_square(), stratified] {
             let eval = ModelEval::new(&model).unwrap();
             let n = model.dim();
@@ -960,45 +1023,60 @@ mod tests {
                     })
                     .sum::<f64>()
                     .sqrt();
-                // The patch (first triangle or the segment) as one region, and its first half.
-                let c: Vec<Vec<f64>> = patch.corners.iter().map(|c| c.u[..=n].to_vec()).collect();
-                let whole: Vec<Vec<f64>> = c[..n].to_vec();
-                let mut half = whole.clone();
-                half[1] = whole[0]
-                    .iter()
-                    .zip(&whole[1])
-                    .map(|(a, b)| 0.5 * (a + b))
-                    .collect();
-                let regions = vec![whole, half];
-                let bounds =
-                    parametric_region_bounds(map, &inv, &values, model.level, &regions, &[], 6)
-                        .unwrap()
-                        .unwrap();
-                for (region, bound) in regions.iter().zip(&bounds) {
-                    for k in 0..=40 {
-                        for j in 0..=(if n == 2 { 0 } else { 40 - k }) {
-                            let (a, b) = (f64::from(k) / 40.0, f64::from(j) / 40.0);
-                            let mut u = [0.0; MAX_VARS];
-                            for t in 0..=n {
-                                u[t] = if n == 2 {
-                                    (1.0 - a) * region[0][t] + a * region[1][t]
-                                } else {
-                                    (1.0 - a - b) * region[0][t]
-                                        + a * region[1][t]
-                                        + b * region[2][t]
-                                };
+                // The patch's first triangle (or the segment) and, for quads, the second.
+                let c: Vec<[f64; 4]> = patch.corners.iter().map(|c| c.u).collect();
+                let mut roots = vec![(c[..n].to_vec(), 1.0)];
+                if c.len() == 4 {
+                    roots.push((vec![c[0], c[2], c[3]], 1.0));
+                }
+                for budget in [0, 5, 40] {
+                    let leaves =
+                        parametric_leaves(map, &inv, &values, model.level, &roots, &[], budget)
+                            .unwrap()
+                            .unwrap();
+                    assert!(leaves.len() <= roots.len() + budget);
+                    split_somewhere |= leaves.len() > roots.len();
+                    for r in 0..roots.len() {
+                        let total: f64 = leaves
+                            .iter()
+                            .filter(|l| l.root == r)
+                            .map(|l| l.fraction)
+                            .sum();
+                        assert_eq!(total, 1.0, "simplex {s}: leaves of root {r} cover {total}");
+                    }
+                    for leaf in &leaves {
+                        let v = &leaf.corners;
+                        for k in 0..=12 {
+                            for j in 0..=(if n == 2 { 0 } else { 12 - k }) {
+                                let (a, b) = (f64::from(k) / 12.0, f64::from(j) / 12.0);
+                                let mut u = [0.0; MAX_VARS];
+                                for t in 0..=n {
+                                    u[t] = if n == 2 {
+                                        (1.0 - a) * v[0][t] + a * v[1][t]
+                                    } else {
+                                        (1.0 - a - b) * v[0][t] + a * v[1][t] + b * v[2][t]
+                                    };
+                                }
+                                let solved = map.param_solve(&u).unwrap();
+                                let g = eval.gradient_from_jacobian(s, &solved.jacobian);
+                                let det = linalg::det(n, &solved.jacobian);
+                                let exact =
+                                    g[..n].iter().map(|x| x * x).sum::<f64>().sqrt() / (lin * det);
+                                assert!(
+                                    exact <= leaf.bound,
+                                    "simplex {s}: J = {exact} > {}",
+                                    leaf.bound
+                                );
                             }
-                            let solved = map.param_solve(&u).unwrap();
-                            let g = eval.gradient_from_jacobian(s, &solved.jacobian);
-                            let det = linalg::det(n, &solved.jacobian);
-                            let exact =
-                                g[..n].iter().map(|x| x * x).sum::<f64>().sqrt() / (lin * det);
-                            assert!(exact <= *bound, "simplex {s}: J = {exact} > {bound}");
                         }
                     }
                 }
             }
         }
+        assert!(
+            split_somewhere,
+            "no patch was refined: the test checks nothing"
+        );
     }
 
     #[test]

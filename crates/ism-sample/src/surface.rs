@@ -20,7 +20,7 @@ use rand::Rng;
 use rayon::prelude::*;
 
 use crate::bound::surface_area_element_bound;
-use crate::chain::{chain_bound, parametric_region_bounds, TIGHTNESS};
+use crate::chain::{chain_bound, parametric_leaves, TIGHTNESS};
 use crate::error::{Result, SampleError};
 
 /// Required closeness of a surface sample to `O`, relative to the model size: `|F − c| / |∇F|`
@@ -55,28 +55,37 @@ pub enum Weighting {
 pub struct PatchEntry {
     /// Top simplex id.
     pub simplex: u32,
-    /// Barycentric corners of up to two triangles (3D) or one segment (2D, first two used).
-    corners: [[Bary; 3]; 2],
     /// Number of triangles (0 for a segment, 1 or 2).
     triangles: u8,
-    /// Fraction of the patch area in the first triangle.
-    first_fraction: f64,
     /// Point-space area (length in 2D) of the linear patch.
     pub linear_area: f64,
     /// Certified bound of the area element on this simplex (the largest region bound).
     pub bound: f64,
-    /// Certified bound of the area element per region of the patch: the `GUESS_LEVEL²`
-    /// sub-triangles of each triangle (lower ones row by row, then upper ones), or the `GUESS_LEVEL`
-    /// sub-segments of a segment.
-    pub region_bounds: Vec<f64>,
+    /// The regions a sample is drawn from, each with its certified bound of the area element:
+    /// for implicit chains the `GUESS_LEVEL²` sub-triangles of each triangle (the
+    /// `GUESS_LEVEL` sub-segments of a segment); for all-parametric ones the leaves of the
+    /// adaptive refinement ([`crate::chain::parametric_leaves`]).
+    regions: Vec<RegionEntry>,
     /// `|∇F_lin|` on this simplex.
     linear_gradient: f64,
-    /// Preimages `X⁻¹(u)` of a level-[`GUESS_LEVEL`] lattice on each triangle (or the segment),
-    /// [`lattice_index`] order: linear interpolation in them starts Newton close to the solution.
-    /// Empty when the simplex has no stage.
-    guesses: Vec<Bary>,
+    /// Whether the regions carry Newton starts (no: no stage, or all-parametric maps).
+    guessed: bool,
     /// Mean exact `J` at the lattice points: an estimate of the curved area per linear area.
     sample_mean: f64,
+}
+
+/// A region of a patch: a triangle (a segment in 2D: the first two corners) of the linear patch.
+#[derive(Clone, Debug)]
+struct RegionEntry {
+    /// Corners, barycentric `u`.
+    u: [Bary; 3],
+    /// Preimages `X⁻¹(u)` at the corners (precomputed on the lattice): linear interpolation in
+    /// them starts Newton close to the solution. Unused unless the patch is `guessed`.
+    g: [Bary; 3],
+    /// Share of the patch's area.
+    fraction: f64,
+    /// Certified bound of the area element on the region.
+    bound: f64,
 }
 
 /// Subdivision level of the per-patch lattice of precomputed preimages. Linear interpolation on a
@@ -101,7 +110,7 @@ pub struct SurfaceTable {
     /// The patches, in simplex order.
     pub patches: Vec<PatchEntry>,
     /// `(patch, region)` of each selection entry.
-    entries: Vec<(u32, u16)>,
+    entries: Vec<(u32, u32)>,
     cumulative: Vec<f64>,
     /// `Σ A_σ B_σ`: an upper bound of the curved area of `O`.
     pub bounded_area: f64,
@@ -152,9 +161,9 @@ fn cross_norm(a: &[f64; 3], b: &[f64; 3]) -> f64 {
 const FIRST_SPLITS: usize = 48;
 /// Refinement budget of the second pass.
 const SECOND_SPLITS: usize = 2048;
-/// Refinement budget per region of a parametric map in the first and second pass: its 16–32
-/// regions are refined separately, and start small, so few splits each are needed.
-const REGION_SPLITS: [usize; 2] = [3, 24];
+/// Refinement budget per patch of an all-parametric map in the first and second pass: bisections
+/// of the patch where its bound wastes the most mass (the leaves are the regions drawn from).
+const LEAF_SPLITS: [usize; 2] = [12, 256];
 /// A patch gets the second pass when its excess is above this share of the whole bounded area.
 const REFINE_SHARE: f64 = 0.005;
 /// At most this many patches get the second pass (bounds the table's cost).
@@ -201,7 +210,14 @@ fn build_patch(
     };
     let values: Vec<f64> = ids.iter().map(|&v| model.values[v as usize]).collect();
     let map = eval.local_map(s);
-    let lattice = lattice_guesses(map, &tris, count);
+    let parametric = map
+        .stages()
+        .iter()
+        .all(|st| st.direction() == ism_format::Direction::Parametric);
+    // All-parametric maps are evaluated directly ([`ism_geom::LocalMap::param_solve`]): their
+    // lattice needs no preimages (an all-parametric `inverse` also pays a Newton solve per stage
+    // for its residual).
+    let lattice = lattice_guesses(map, &tris, count, !parametric);
     let uncertified = |(stage, reason)| SampleError::Uncertified {
         simplex: s,
         stage,
@@ -228,65 +244,83 @@ fn build_patch(
         })
         .collect();
     let sample_mean = samples.iter().map(|s| s.1).sum::<f64>() / samples.len().max(1) as f64;
-    let region_bounds = match parametric_region_bounds(
+    // Shares of the patch's area per root: the triangles, or the segment.
+    let root_shares: Vec<f64> = match count {
+        0 | 1 => vec![1.0],
+        _ => vec![first_fraction, 1.0 - first_fraction],
+    };
+    let roots: Vec<(Vec<Bary>, f64)> = root_shares
+        .iter()
+        .enumerate()
+        .map(|(t, &share)| (tris[t][..if count == 0 { 2 } else { 3 }].to_vec(), share))
+        .collect();
+    let leaves = parametric_leaves(
         map,
         &inv,
         &values,
         model.level,
-        &region_corners(&tris, count),
+        &roots,
         &samples,
         if max_splits == FIRST_SPLITS {
-            REGION_SPLITS[0]
+            LEAF_SPLITS[0]
         } else {
-            REGION_SPLITS[1]
+            LEAF_SPLITS[1]
         },
-    ) {
-        // All-parametric maps: each region of the patch bounded directly (exact restriction).
-        Some(bounds) => {
-            bounds.map_err(|reason| uncertified((map.stages().len().saturating_sub(1), reason)))?
+    );
+    let regions: Vec<RegionEntry> = match leaves {
+        // All-parametric maps: the leaves of the adaptive refinement, bounded directly (exact
+        // restriction), are the regions.
+        Some(leaves) => leaves
+            .map_err(|reason| uncertified((map.stages().len().saturating_sub(1), reason)))?
+            .into_iter()
+            .map(|leaf| {
+                let mut u = [[0.0; MAX_VARS]; 3];
+                for (k, c) in leaf.corners.iter().enumerate() {
+                    u[k] = *c;
+                }
+                RegionEntry {
+                    u,
+                    g: u,
+                    fraction: root_shares[leaf.root] * leaf.fraction,
+                    bound: leaf.bound,
+                }
+            })
+            .collect(),
+        None => {
+            let bounds = implicit_region_bounds(
+                ImplicitInputs {
+                    map,
+                    edges: &e,
+                    inv: &inv,
+                    values: &values,
+                    level: model.level,
+                    samples: &samples,
+                    max_splits,
+                },
+                &tris,
+                count,
+            )
+            .map_err(uncertified)?;
+            lattice_regions(&tris, count, first_fraction, &lattice, &bounds)
         }
-        None => implicit_region_bounds(
-            ImplicitInputs {
-                map,
-                edges: &e,
-                inv: &inv,
-                values: &values,
-                level: model.level,
-                samples: &samples,
-                max_splits,
-            },
-            &tris,
-            count,
-        )
-        .map_err(uncertified)?,
     };
-    let bound = region_bounds.iter().copied().fold(0.0, f64::max);
+    let bound = regions.iter().map(|r| r.bound).fold(0.0, f64::max);
     if !bound.is_finite() {
         return Err(uncertified((
             map.stages().len().saturating_sub(1),
             "area element not bounded on the shape".into(),
         )));
     }
-    let parametric = map
-        .stages()
-        .iter()
-        .all(|st| st.direction() == ism_format::Direction::Parametric);
-    // Newton starts: not needed without stages or with all-parametric maps (direct evaluation).
-    let guesses = if parametric {
-        Vec::new()
-    } else {
-        lattice.into_iter().map(|(_, w)| w).collect()
-    };
     Ok(PatchEntry {
         simplex: s as u32,
-        corners: tris,
         triangles: count,
-        first_fraction,
         linear_area: area,
         bound,
-        region_bounds,
+        regions,
         linear_gradient: norm(&g),
-        guesses,
+        // Newton starts: not needed without stages or with all-parametric maps (direct
+        // evaluation).
+        guessed: !parametric && !map.stages().is_empty(),
         sample_mean,
     })
 }
@@ -403,16 +437,15 @@ impl SurfaceTable {
         let mut acc = 0.0;
         let mut linear = 0.0;
         for (pi, p) in patches.iter().enumerate() {
-            let per_region = region_fractions(p);
-            for (r, (&b, frac)) in p.region_bounds.iter().zip(per_region).enumerate() {
-                let area = p.linear_area * frac;
+            for (r, region) in p.regions.iter().enumerate() {
+                let area = p.linear_area * region.fraction;
                 let weight = match weighting {
-                    Weighting::CurvedArea => area * b,
+                    Weighting::CurvedArea => area * region.bound,
                     Weighting::LinearArea => area,
                 };
                 if weight > 0.0 {
                     acc += weight;
-                    entries.push((pi as u32, r as u16));
+                    entries.push((pi as u32, r as u32));
                     cumulative.push(acc);
                 }
             }
@@ -446,7 +479,7 @@ impl SurfaceTable {
             .partition_point(|&c| c <= x)
             .min(self.entries.len() - 1);
         let (p, r) = self.entries[i];
-        (&self.patches[p as usize], usize::from(r))
+        (&self.patches[p as usize], r as usize)
     }
 
     /// Draws one accepted surface sample.
@@ -461,6 +494,35 @@ impl SurfaceTable {
             let s = patch.simplex as usize;
             let (u, guess) = patch.propose(region, rng);
             let map = eval.local_map(s);
+            if !patch.guessed && !map.stages().is_empty() {
+                // All-parametric: no Newton and no inverse (see `param_adjugate`).
+                let (w, adj, det_dy) = param_adjugate(map, &u);
+                let scaled = eval.gradient_from_jacobian(s, &adj);
+                let accept = match self.weighting {
+                    Weighting::LinearArea => true,
+                    Weighting::CurvedArea => {
+                        let bound = patch.regions[region].bound;
+                        let j =
+                            self.area_element_parametric(s, &w, &scaled, det_dy, patch, bound)?;
+                        rng.random::<f64>() * bound < j
+                    }
+                };
+                if accept {
+                    let mut grad = [0.0; 3];
+                    for x in 0..n {
+                        grad[x] = scaled[x] / det_dy;
+                    }
+                    let solved = Solved {
+                        w,
+                        x: u,
+                        jacobian: adj,
+                        residual: 0.0,
+                        iterations: 0,
+                    };
+                    return self.finish_solved(eval, s, &solved, &grad);
+                }
+                continue;
+            }
             let solved = if map.stages().is_empty() {
                 Solved {
                     w: u,
@@ -470,8 +532,7 @@ impl SurfaceTable {
                     iterations: 0,
                 }
             } else {
-                // All-parametric maps (what `ism fit` writes) need no Newton at all.
-                match map.param_solve(&u).or_else(|| map.inverse_near(&u, &guess)) {
+                match map.inverse_near(&u, &guess) {
                     Some(solved) => solved,
                     None => solve_from_scratch(map, s, &u)?,
                 }
@@ -482,7 +543,7 @@ impl SurfaceTable {
                 Weighting::LinearArea => true,
                 Weighting::CurvedArea if map.stages().is_empty() => true,
                 Weighting::CurvedArea => {
-                    let bound = patch.region_bounds[region];
+                    let bound = patch.regions[region].bound;
                     let j = self.area_element(s, &solved, &grad, patch, bound)?;
                     rng.random::<f64>() * bound < j
                 }
@@ -512,6 +573,34 @@ impl SurfaceTable {
             });
         }
         let j = norm(&grad[..n]) / (patch.linear_gradient * det);
+        if j > bound {
+            return Err(SampleError::Numerical {
+                simplex: s,
+                reason: format!("area element {j} exceeds its certified bound {bound}"),
+            });
+        }
+        Ok(j)
+    }
+
+    /// `J = |E⁻ᵀ adj(DY)ᵀ Δf| / |∇F_lin|` for an all-parametric map, from `scaled` =
+    /// `det(DY) ∇F` ([`param_adjugate`]).
+    fn area_element_parametric(
+        &self,
+        s: usize,
+        w: &Bary,
+        scaled: &[f64; 3],
+        det_dy: f64,
+        patch: &PatchEntry,
+        bound: f64,
+    ) -> Result<f64> {
+        let n = patch_dim(patch);
+        if det_dy.is_nan() || det_dy <= 0.0 {
+            return Err(SampleError::Numerical {
+                simplex: s,
+                reason: format!("det DY = {det_dy} ≤ 0 at w = {:?}", &w[..=n]),
+            });
+        }
+        let j = norm(&scaled[..n]) / patch.linear_gradient;
         if j > bound {
             return Err(SampleError::Numerical {
                 simplex: s,
@@ -604,6 +693,44 @@ pub struct SurfacePoint {
     pub simplex: usize,
 }
 
+/// `w = Y(u)`, the adjugate `adj(DY) = det(DY) · DX` (reduced Jacobians) and `det DY` of an
+/// all-parametric map (`Y = X⁻¹` stored, `Y = Y_0 ∘ … ∘ Y_last`). With `DX = DY⁻¹`,
+/// `∇F = E⁻ᵀ DXᵀ Δf = E⁻ᵀ adj(DY)ᵀ Δf / det DY` and `det DX = 1 / det DY`, so the area element
+/// `J = |∇F| / (|∇F_lin| det DX) = |E⁻ᵀ adj(DY)ᵀ Δf| / |∇F_lin|` and the normal's direction
+/// need no inverse: a rejected candidate costs the stage Jacobians and nothing else.
+fn param_adjugate(map: &ism_geom::LocalMap, u: &Bary) -> (Bary, Mat, f64) {
+    let n = map.vars() - 1;
+    let mut w = ism_geom::stage::project(n + 1, u);
+    let mut dy = ism_geom::stage::identity_mat(n);
+    // The last stored stage acts on u first (as in `LocalMap::param_solve`).
+    for st in map.stages().iter().rev() {
+        let (next, j) = st.jacobian_stored(&w);
+        dy = linalg::mul(n, &j, &dy);
+        w = next;
+    }
+    let mut adj = [[0.0; MAX_VARS]; MAX_VARS];
+    match n {
+        1 => adj[0][0] = 1.0,
+        2 => {
+            adj[0][0] = dy[1][1];
+            adj[0][1] = -dy[0][1];
+            adj[1][0] = -dy[1][0];
+            adj[1][1] = dy[0][0];
+        }
+        _ => {
+            // adj(A)[i][j] = cofactor of A[j][i]; cyclic indices give the signs for 3×3.
+            for (i, row) in adj.iter_mut().enumerate().take(3) {
+                for (j, entry) in row.iter_mut().enumerate().take(3) {
+                    let (r0, r1) = ((j + 1) % 3, (j + 2) % 3);
+                    let (c0, c1) = ((i + 1) % 3, (i + 2) % 3);
+                    *entry = dy[r0][c0] * dy[r1][c1] - dy[r0][c1] * dy[r1][c0];
+                }
+            }
+        }
+    }
+    (w, adj, linalg::det(n, &dy))
+}
+
 /// `X⁻¹(u)` with the robust per-stage solver (when Newton from the lattice guess fails), and the
 /// Jacobian there.
 fn solve_from_scratch(map: &ism_geom::LocalMap, s: usize, u: &Bary) -> Result<Solved> {
@@ -642,12 +769,15 @@ fn patch_dim(patch: &PatchEntry) -> usize {
     }
 }
 
-/// Preimages of the lattice points of each patch triangle (segment in 2D).
+/// The lattice points of each patch triangle (segment in 2D) with their preimages `X⁻¹(u)`, or
+/// with `u` itself when `preimages` is false.
 fn lattice_guesses(
     map: &ism_geom::LocalMap,
     tris: &[[Bary; 3]; 2],
     count: u8,
+    preimages: bool,
 ) -> Vec<(Bary, Bary)> {
+    let solve = |u: &Bary| if preimages { map.inverse(u).w } else { *u };
     let l = GUESS_LEVEL as f64;
     let mut out = Vec::with_capacity(LATTICE_POINTS * usize::from(count.max(1)));
     if count == 0 {
@@ -658,7 +788,7 @@ fn lattice_guesses(
             for k in 0..MAX_VARS {
                 u[k] = (1.0 - t) * a[k] + t * b[k];
             }
-            out.push((u, map.inverse(&u).w));
+            out.push((u, solve(&u)));
         }
         return out;
     }
@@ -672,7 +802,7 @@ fn lattice_guesses(
                     u[k] = la * tri[0][k] + lb * tri[1][k] + lc * tri[2][k];
                 }
                 // Only a starting guess: an unconverged preimage costs iterations, not accuracy.
-                out.push((u, map.inverse(&u).w));
+                out.push((u, solve(&u)));
             }
         }
     }
@@ -759,39 +889,51 @@ fn regions(tris: &[[Bary; 3]; 2], count: u8) -> Vec<(Bary, Bary)> {
         .collect()
 }
 
-/// Corners (in `u`) of the regions of a patch, in [`regions`] order.
-fn region_corners(tris: &[[Bary; 3]; 2], count: u8) -> Vec<Vec<Vec<f64>>> {
-    let m = MAX_VARS;
+/// The fixed regions of an implicit chain's patch, in [`regions`] order, with the lattice
+/// preimages at their corners and their bounds.
+fn lattice_regions(
+    tris: &[[Bary; 3]; 2],
+    count: u8,
+    first_fraction: f64,
+    lattice: &[(Bary, Bary)],
+    bounds: &[f64],
+) -> Vec<RegionEntry> {
     if count == 0 {
-        let [a, b, _] = tris[0];
-        let l = GUESS_LEVEL as f64;
-        let at = |t: f64| -> Vec<f64> { (0..m).map(|x| (1.0 - t) * a[x] + t * b[x]).collect() };
+        let share = 1.0 / GUESS_LEVEL as f64;
         return (0..GUESS_LEVEL)
-            .map(|k| vec![at(k as f64 / l), at((k + 1) as f64 / l)])
+            .map(|k| {
+                let (a, b) = (lattice[k], lattice[k + 1]);
+                RegionEntry {
+                    u: [a.0, b.0, b.0],
+                    g: [a.1, b.1, b.1],
+                    fraction: share,
+                    bound: bounds[k],
+                }
+            })
             .collect();
     }
-    tris.iter()
-        .take(usize::from(count))
-        .flat_map(|tri| {
-            sub_triangles()
-                .iter()
-                .map(|v| v.iter().map(|&c| lattice_u(tri, c).to_vec()).collect())
-        })
-        .collect()
-}
-
-/// The fraction of the patch's area in each region (same order as [`regions`]).
-fn region_fractions(p: &PatchEntry) -> Vec<f64> {
-    if p.triangles == 0 {
-        return vec![1.0 / GUESS_LEVEL as f64; GUESS_LEVEL];
-    }
     let per = (GUESS_LEVEL * GUESS_LEVEL) as f64;
-    let mut out = vec![p.first_fraction / per; GUESS_LEVEL * GUESS_LEVEL];
-    if p.triangles == 2 {
-        out.extend(std::iter::repeat_n(
-            (1.0 - p.first_fraction) / per,
-            GUESS_LEVEL * GUESS_LEVEL,
-        ));
+    let mut out = Vec::with_capacity(bounds.len());
+    for (t, tri) in tris.iter().take(usize::from(count)).enumerate() {
+        let share = if t == 0 {
+            first_fraction
+        } else {
+            1.0 - first_fraction
+        };
+        for v in sub_triangles() {
+            let mut u = [[0.0; MAX_VARS]; 3];
+            let mut g = [[0.0; MAX_VARS]; 3];
+            for (k, &c) in v.iter().enumerate() {
+                u[k] = lattice_u(tri, c);
+                g[k] = lattice[t * LATTICE_POINTS + lattice_index(c.0, c.1)].1;
+            }
+            out.push(RegionEntry {
+                u,
+                g,
+                fraction: share / per,
+                bound: bounds[out.len()],
+            });
+        }
     }
     out
 }
@@ -799,10 +941,9 @@ fn region_fractions(p: &PatchEntry) -> Vec<f64> {
 impl PatchEntry {
     /// `Σ_r A_r B_r`: this patch's share of the table's bounded area.
     fn bounded_area(&self) -> f64 {
-        self.region_bounds
+        self.regions
             .iter()
-            .zip(region_fractions(self))
-            .map(|(b, f)| self.linear_area * f * b)
+            .map(|r| self.linear_area * r.fraction * r.bound)
             .sum()
     }
 
@@ -811,52 +952,93 @@ impl PatchEntry {
         (self.bounded_area() - self.linear_area * self.sample_mean).max(0.0)
     }
 
+    /// Number of regions a sample is drawn from.
+    pub fn regions(&self) -> usize {
+        self.regions.len()
+    }
+
     /// `u` uniform (by point-space area; `W` is affine so barycentric area is proportional) on
-    /// region `region` of the patch, and the preimage guess interpolated linearly in the lattice
+    /// region `region` of the patch, and the preimage guess interpolated linearly in the
     /// preimages at the region's corners.
     fn propose(&self, region: usize, rng: &mut impl Rng) -> (Bary, Bary) {
-        let mut u = [0.0; MAX_VARS];
-        let mut g = [0.0; MAX_VARS];
-        if self.triangles == 0 {
-            let [a, b, _] = self.corners[0];
-            let t = (region as f64 + rng.random::<f64>()) / GUESS_LEVEL as f64;
-            let f = t * GUESS_LEVEL as f64 - region as f64;
-            for i in 0..MAX_VARS {
-                u[i] = (1.0 - t) * a[i] + t * b[i];
+        let r = &self.regions[region];
+        let weights = if self.triangles == 0 {
+            let t: f64 = rng.random();
+            [1.0 - t, t, 0.0]
+        } else {
+            let r1: f64 = rng.random();
+            let r2: f64 = rng.random();
+            let s = r1.sqrt();
+            [1.0 - s, s * (1.0 - r2), s * r2]
+        };
+        let corners = if self.triangles == 0 { 2 } else { 3 };
+        let combine = |points: &[Bary; 3]| {
+            let mut out = [0.0; MAX_VARS];
+            for (wt, p) in weights.iter().zip(points).take(corners) {
+                for (o, x) in out.iter_mut().zip(p) {
+                    *o += wt * x;
+                }
             }
-            if self.guesses.is_empty() {
-                return (u, u);
-            }
-            let (g0, g1) = (&self.guesses[region], &self.guesses[region + 1]);
-            for k in 0..MAX_VARS {
-                g[k] = (1.0 - f) * g0[k] + f * g1[k];
-            }
-            return (u, g);
+            out
+        };
+        let u = combine(&r.u);
+        if !self.guessed {
+            return (u, u);
         }
-        let per = GUESS_LEVEL * GUESS_LEVEL;
-        let (which, sub) = (region / per, region % per);
-        let tri = &self.corners[which];
-        let verts = sub_triangles()[sub];
-        let r1: f64 = rng.random();
-        let r2: f64 = rng.random();
-        let s = r1.sqrt();
-        let weights = [1.0 - s, s * (1.0 - r2), s * r2];
-        let base = which * LATTICE_POINTS;
-        for (v, &wt) in verts.iter().zip(&weights) {
-            let uv = lattice_u(tri, *v);
-            for k in 0..MAX_VARS {
-                u[k] += wt * uv[k];
+        let g = combine(&r.g);
+        (u, g)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use ism_format::Direction;
+
+    /// The adjugate route (no inverse) gives the same `w`, `∇F` and area element as the inverse
+    /// route of `LocalMap::param_solve` (LU inverse of `DY`), on every crossed simplex of 2D and
+    /// 3D models with all stages turned parametric, at points of each patch.
+    #[test]
+    fn adjugate_route_equals_the_inverse_route() {
+        let mut checked = 0;
+        for name in ["stratified-3d", "quadratic-edges", "rational-degree5"] {
+            let path = format!(
+                "{}/../../spec/examples/{name}.ism.json",
+                env!("CARGO_MANIFEST_DIR")
+            );
+            let mut model = ism_format::io::read_path(path).unwrap().model;
+            for stage in &mut model.stages {
+                stage.direction = Direction::Parametric;
             }
-            if !self.guesses.is_empty() {
-                let gv = &self.guesses[base + lattice_index(v.0, v.1)];
-                for k in 0..MAX_VARS {
-                    g[k] += wt * gv[k];
+            let eval = ModelEval::new(&model).unwrap();
+            let n = model.dim();
+            for s in 0..model.num_simplices() {
+                let Some(patch) = eval.patch(s) else { continue };
+                let map = eval.local_map(s);
+                let c: Vec<Bary> = patch.corners.iter().map(|c| c.u).collect();
+                for t in [0.0, 0.3, 0.5, 0.9] {
+                    let mut u = [0.0; MAX_VARS];
+                    for k in 0..=n {
+                        u[k] = (1.0 - t) * c[0][k] + t * c[1][k];
+                    }
+                    let Some(solved) = map.param_solve(&u) else {
+                        continue;
+                    };
+                    let (w, adj, det_dy) = param_adjugate(map, &u);
+                    assert_eq!(w, solved.w);
+                    let grad = eval.gradient_from_jacobian(s, &solved.jacobian);
+                    let scaled = eval.gradient_from_jacobian(s, &adj);
+                    let gn = norm(&grad[..n]);
+                    for x in 0..n {
+                        assert!((scaled[x] / det_dy - grad[x]).abs() <= 1e-10 * gn.max(1.0));
+                    }
+                    let j_inverse = gn / linalg::det(n, &solved.jacobian);
+                    let j_adjugate = norm(&scaled[..n]);
+                    assert!((j_inverse - j_adjugate).abs() <= 1e-10 * j_inverse);
+                    checked += 1;
                 }
             }
         }
-        if self.guesses.is_empty() {
-            return (u, u);
-        }
-        (u, g)
+        assert!(checked > 20, "only {checked} points checked");
     }
 }
