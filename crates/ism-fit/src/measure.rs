@@ -239,6 +239,23 @@ pub struct Region {
     pub target_to_shape: f64,
 }
 
+/// A place where the fit is farther from the target than the tolerance: where a refinement
+/// should look.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Miss {
+    /// A sample of `S` (`S → Z`) or a point of `Z` (`Z → S`).
+    pub at: [f64; 3],
+    /// The simplex (index in the model) of the sample's patch; `None` for a point of `Z`.
+    pub simplex: Option<usize>,
+    /// Its distance bound (`S → Z`) or estimate (`Z → S`).
+    pub distance: f64,
+}
+
+/// At most this many points of `Z` are projected onto `S` beyond those the maximum needs, to
+/// find every point of the cover whose distance exceeds the tolerance ([`Measure::misses`]):
+/// enough for a refinement step, bounded when a fit is far off everywhere.
+pub const MISS_PROJECTIONS: usize = 50_000;
+
 /// The two-sided distance of a fit (see the module doc).
 #[derive(Clone, Debug, PartialEq)]
 pub struct Measure {
@@ -268,6 +285,10 @@ pub struct Measure {
     pub cells: usize,
     /// The error near each region the caller named.
     pub regions: Vec<Region>,
+    /// Samples of `S` and points of `Z` farther than the tolerance from the other set, both
+    /// directions (the `Z → S` ones after projection, at most [`MISS_PROJECTIONS`] beyond those
+    /// the maximum needs; so possibly not all of them when very many miss).
+    pub misses: Vec<Miss>,
 }
 
 impl Measure {
@@ -535,6 +556,8 @@ pub fn measure<G: ImplicitFunction + ?Sized>(
         points: Vec<([f64; 3], f64)>,
         /// Points of `Z` found from the samples (expressions).
         zeros: Vec<[f64; 3]>,
+        /// Samples farther than the tolerance from `Z`.
+        misses: Vec<Miss>,
     }
     let explicit = g.is_explicit();
     let want_points = !regions.is_empty();
@@ -552,6 +575,7 @@ pub fn measure<G: ImplicitFunction + ?Sized>(
                 spacing: 0.0,
                 points: Vec::new(),
                 zeros: Vec::new(),
+                misses: Vec::new(),
             };
             for (i, p) in pts.iter().enumerate() {
                 let d = if explicit {
@@ -570,6 +594,14 @@ pub fn measure<G: ImplicitFunction + ?Sized>(
                     r.at = *p;
                 }
                 r.sum += d;
+                // One miss per patch, its worst sample: a refinement acts on the simplex.
+                if !(d <= tolerance) && r.misses.first().is_none_or(|m| d > m.distance) {
+                    r.misses = vec![Miss {
+                        at: *p,
+                        simplex: Some(*s),
+                        distance: if d.is_nan() { f64::INFINITY } else { d },
+                    }];
+                }
                 let nearest = pts
                     .iter()
                     .enumerate()
@@ -674,7 +706,7 @@ pub fn measure<G: ImplicitFunction + ?Sized>(
         (Vec::new(), TargetCover::None)
     };
     let mut points = points;
-    tighten(&mut points, &project);
+    tighten(&mut points, &project, tolerance);
     let measured = !matches!(cover, TargetCover::None);
     let worst_estimate = points
         .iter()
@@ -686,6 +718,18 @@ pub fn measure<G: ImplicitFunction + ?Sized>(
         f64::INFINITY
     };
     let target_at = worst_estimate.map_or(Vec::new(), |w| w.1[..n].to_vec());
+    let misses: Vec<Miss> = per_patch
+        .iter()
+        .flat_map(|r| r.misses.iter().copied())
+        .chain(points.iter().filter_map(|t| {
+            let e = t.estimate?;
+            (e > tolerance).then_some(Miss {
+                at: t.at,
+                simplex: None,
+                distance: e,
+            })
+        }))
+        .collect();
     let target_to_shape_bound = if measured {
         points.iter().map(|t| t.bound).fold(0.0, f64::max)
     } else {
@@ -733,6 +777,7 @@ pub fn measure<G: ImplicitFunction + ?Sized>(
         cover,
         cells: shape.patches.len(),
         regions,
+        misses,
     })
 }
 
@@ -802,9 +847,14 @@ fn cloud(shape: &Shape, spacing: f64) -> Vec<CloudPoint> {
 
 /// Replaces the largest estimates by projections until the largest is a projected one: every
 /// estimate left is an upper bound no larger than it, so the maximum is what projecting all of
-/// them would give, at a fraction of the cost. Certified bounds that used an estimate are
-/// lowered with it.
-fn tighten(points: &mut [TargetPoint], project: &(dyn Fn(&[f64; 3]) -> f64 + Sync)) {
+/// them would give, at a fraction of the cost. Then on down to `threshold` (at most
+/// [`MISS_PROJECTIONS`] more), so that every estimate left above it is a projected one (a miss).
+/// Certified bounds that used an estimate are lowered with it.
+fn tighten(
+    points: &mut [TargetPoint],
+    project: &(dyn Fn(&[f64; 3]) -> f64 + Sync),
+    threshold: f64,
+) {
     let mut order: Vec<usize> = (0..points.len())
         .filter(|&i| points[i].estimate.is_some())
         .collect();
@@ -814,16 +864,24 @@ fn tighten(points: &mut [TargetPoint], project: &(dyn Fn(&[f64; 3]) -> f64 + Syn
     });
     let mut done = 0;
     let mut best = 0.0f64;
+    let mut extra = 0;
     const BATCH: usize = 1024;
-    while done < order.len() && points[order[done]].estimate.unwrap_or(0.0) > best {
+    while done < order.len() {
+        let next = points[order[done]].estimate.unwrap_or(0.0);
+        if next <= best {
+            if next <= threshold || extra >= MISS_PROJECTIONS {
+                break;
+            }
+            extra += BATCH;
+        }
         let batch = &order[done..(done + BATCH).min(order.len())];
         let projected: Vec<f64> = batch.par_iter().map(|&i| project(&points[i].at)).collect();
         for (&i, d) in batch.iter().zip(projected) {
             let old = points[i].estimate.unwrap_or(f64::INFINITY);
             if d < old {
                 points[i].estimate = Some(d);
-                if let Some(extra) = points[i].box_term {
-                    points[i].bound = points[i].bound.min(d + extra);
+                if let Some(term) = points[i].box_term {
+                    points[i].bound = points[i].bound.min(d + term);
                 }
             }
             best = best.max(points[i].estimate.unwrap_or(0.0));

@@ -1,0 +1,687 @@
+#!/usr/bin/env python3
+"""ISM fits against marching cubes at equal two-sided *true* error: the table of BENCHMARKS.md
+(section fit, "Smaller than a mesh?").
+
+Usage: ISM_BIN=target/release/ism python tools/bench_fit_mc.py [--out DIR] [--only NAME,...]
+       [--rel 1e-3] [--timeout SECONDS]
+
+For every shape: `ism fit` at `rel` x the domain's longest side (the CLI default is 1e-3), CPU
+time of the child process; then the fit's two-sided true error measured here, independently of
+the fitter and its report:
+
+- S -> Z (fit to target): `ism sample --surface` points of the written model (the sampler, not
+  the fitter), and for each its distance to the true surface Z: closed form for the sphere and
+  torus, the exact closest point on an ellipsoid (Eberly's root of the secular equation, by
+  bisection) for the ellipsoid, and elsewhere the root of g found by bisection along the
+  gradient line through the point (an upper bound of the distance; second-order exact where Z
+  is smooth); for the mesh target the exact point-triangle distance to the mesh.
+- Z -> S (target to fit): dense exact points of Z (roots of g by bisection on grid lines in all
+  three axis directions, or points on the target mesh's triangles), each with its distance to
+  the sampled fit: the distance to the tangent plane of the nearest sample (the sampler gives
+  the normal); with N samples of spacing h this is off by about curvature x h^2 / 2.
+
+Then scikit-image `marching_cubes` on a grid of the same function (the signed distance for the
+mesh target), the grid refined until the mesh's two-sided true error, measured the same way
+(mesh vertices, edge midpoints and centroids to Z; Z points to the exact closest point on the
+triangles) is at most the ISM's; the mesh is written as binary glTF (.glb, trimesh). 2D shapes
+use `find_contours` and a .glb of line segments.
+
+Prints one Markdown row per shape: tolerance, simplices, stored numbers, .ismb bytes, ISM
+two-sided true error (both directions), the report's own claim, topology, CPU seconds; and the
+marching-cubes grid, vertices+faces numbers, .glb bytes, its error, topology, CPU seconds.
+Needs numpy, scipy, scikit-image, trimesh (tools/requirements.txt); the mesh target needs the
+bunny that ships in the pymeshlab wheel (skipped when pymeshlab is not installed).
+"""
+import argparse
+import json
+import math
+import os
+import resource
+import struct
+import subprocess
+import sys
+import tempfile
+import time
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+ISM = os.environ.get("ISM_BIN", "target/release/ism")
+
+# Bisection steps for roots of g: 2^-50 of the bracket, far below any error measured here.
+BISECT = 50
+# Surface samples of the fit drawn for the true error (uniform by curved area).
+FIT_SAMPLES = 1_000_000
+# Target points whose distance to the fit is re-measured by a certified bracket on the model's F.
+WORST = 2000
+# Grid-line spacing of the dense points on Z, as a fraction of the domain's longest side.
+Z_SPACING = 1.0 / 400
+
+
+# ---------------------------------------------------------------------------------------------
+# Shapes: g for numpy, its gradient, the expression for `ism fit`, and the domain.
+
+
+def sphere():
+    r = 0.6
+    return dict(
+        name="sphere (preset)", fit=["--preset", "sphere"],
+        domain=(-1, 1, -1, 1, -1, 1),
+        g=lambda x, y, z: x * x + y * y + z * z - r * r,
+        grad=lambda x, y, z: (2 * x, 2 * y, 2 * z),
+        dist=lambda p: np.abs(np.linalg.norm(p, axis=1) - r),
+        genus=0)
+
+
+def torus():
+    big, small = 0.6, 0.25
+    return dict(
+        name="torus (preset)", fit=["--preset", "torus"],
+        domain=(-1, 1, -1, 1, -0.5, 0.5),
+        g=lambda x, y, z: (x * x + y * y + z * z + big**2 - small**2) ** 2
+        - 4 * big**2 * (x * x + y * y),
+        grad=None,
+        dist=lambda p: np.abs(np.hypot(np.hypot(p[:, 0], p[:, 1]) - big, p[:, 2]) - small),
+        genus=1)
+
+
+def ellipsoid():
+    a = np.array([0.9, 0.3, 0.06])
+
+    def dist(p):
+        # Eberly: the closest point of the ellipsoid to q (first octant by symmetry) is
+        # q_i a_i^2 / (t + a_i^2) with t the root of sum (a_i q_i / (t + a_i^2))^2 = 1.
+        q = np.abs(p)
+        f = lambda t: (((a * q) / (t[:, None] + a * a)) ** 2).sum(axis=1) - 1
+        lo = -np.full(len(q), a[2] ** 2) + a[2] * q[:, 2]
+        hi = np.linalg.norm(a * q, axis=1)
+        lo = np.minimum(lo, hi)
+        for _ in range(200):
+            mid = 0.5 * (lo + hi)
+            pos = f(mid) > 0
+            lo = np.where(pos, mid, lo)
+            hi = np.where(pos, hi, mid)
+        t = 0.5 * (lo + hi)
+        c = q * a * a / (t[:, None] + a * a)
+        return np.linalg.norm(c - q, axis=1)
+
+    return dict(
+        name="thin ellipsoid 0.9 x 0.3 x 0.06",
+        # The initial grid must see the thin shape: 16 cells along x put vertices inside it.
+        fit=["--expr", "x^2/0.81 + y^2/0.09 + z^2/0.0036 - 1", "--resolution", "16"],
+        domain=(-1, 1, -0.4, 0.4, -0.1, 0.1),
+        g=lambda x, y, z: x * x / 0.81 + y * y / 0.09 + z * z / 0.0036 - 1,
+        grad=None, dist=dist, genus=0)
+
+
+def genus2():
+    return dict(
+        name="genus-2 (preset)", fit=["--preset", "genus2"],
+        domain=(-1.2, 1.2, -0.7, 0.7, -0.3, 0.3),
+        g=lambda x, y, z: (x * x * (1 - x * x) - y * y) ** 2 + z * z - 0.01,
+        grad=None, dist=None, genus=2)
+
+
+def tangle():
+    return dict(
+        name="tangle cube (genus 5)",
+        fit=["--expr", "x^4 - 5*x^2 + y^4 - 5*y^2 + z^4 - 5*z^2 + 11.8"],
+        domain=(-3, 3, -3, 3, -3, 3),
+        g=lambda x, y, z: x**4 - 5 * x * x + y**4 - 5 * y * y + z**4 - 5 * z * z + 11.8,
+        grad=None, dist=None, genus=5)
+
+
+def heart():
+    return dict(
+        name="heart curve (cusps)", fit=["--expr", "(x^2+y^2-1)^3-x^2*y^3"],
+        domain=(-1.5, 1.5, -1.5, 1.5),
+        g=lambda x, y: (x * x + y * y - 1) ** 3 - x * x * y**3,
+        grad=None, dist=None, genus=None)
+
+
+SHAPES = {"sphere": sphere, "torus": torus, "ellipsoid": ellipsoid, "genus2": genus2,
+          "tangle": tangle, "heart": heart}
+
+
+# ---------------------------------------------------------------------------------------------
+# Independent distances to Z = {g = 0}.
+
+
+def num_grad(g, p, h=1e-7):
+    out = []
+    for k in range(p.shape[1]):
+        e = np.zeros(p.shape[1])
+        e[k] = h
+        out.append((g(*(p + e).T) - g(*(p - e).T)) / (2 * h))
+    return np.stack(out, axis=1)
+
+
+def root_distance(g, p, reach):
+    """Distance from p to a root of g along the gradient line (both ways) and, where that fails,
+    the coordinate axes: each an upper bound of dist(p, Z)."""
+    v = g(*p.T)
+    best = np.full(len(p), np.inf)
+    gr = num_grad(g, p)
+    norm = np.linalg.norm(gr, axis=1)
+    dirs = [-(np.sign(v) / np.where(norm > 0, norm, 1))[:, None] * gr]
+    for k in range(p.shape[1]):
+        for s in (-1.0, 1.0):
+            d = np.zeros_like(p)
+            d[:, k] = s
+            dirs.append(d)
+    for i, d in enumerate(dirs):
+        todo = np.isfinite(best) if i > 0 else np.zeros(len(p), bool)
+        # Axes only where the gradient line found nothing close (4x its first-order estimate).
+        est = np.abs(v) / np.where(norm > 0, norm, np.inf)
+        need = ~todo | (best > 4 * est) if i > 0 else np.ones(len(p), bool)
+        idx = np.nonzero(need)[0]
+        if len(idx) == 0:
+            continue
+        q, dq, sv = p[idx], d[idx], np.sign(v[idx])
+        t = np.maximum(0.5 * est[idx], reach * 1e-9)
+        t = np.where(np.isfinite(t), t, reach * 1e-6)
+        lo = np.zeros(len(idx))
+        found = np.zeros(len(idx), bool)
+        hi = np.full(len(idx), np.inf)
+        while True:
+            act = ~found & (t <= reach)
+            if not act.any():
+                break
+            x = g(*(q[act] + t[act, None] * dq[act]).T)
+            changed = np.sign(x) != sv[act]
+            ai = np.nonzero(act)[0]
+            hi[ai[changed]] = t[ai[changed]]
+            found[ai[changed]] = True
+            lo[ai[~changed]] = t[ai[~changed]]
+            t[ai[~changed]] *= 1.5
+        f = np.nonzero(found)[0]
+        a, b = lo[f], hi[f]
+        for _ in range(BISECT):
+            m = 0.5 * (a + b)
+            x = g(*(q[f] + m[:, None] * dq[f]).T)
+            same = np.sign(x) == sv[f]
+            a = np.where(same, m, a)
+            b = np.where(same, b, m)
+        best[idx[f]] = np.minimum(best[idx[f]], b)
+    best[v == 0] = 0.0
+    return best
+
+
+def surface_points(g, domain, spacing):
+    """Roots of g on the grid lines (all axis directions) of spacing `spacing`: points of Z."""
+    n = len(domain) // 2
+    axes = [np.arange(domain[2 * k], domain[2 * k + 1] + 0.5 * spacing, spacing) for k in range(n)]
+    out = []
+    for k in range(n):
+        # Lines along axis k: every combination of the other coordinates.
+        others = [axes[j] for j in range(n) if j != k]
+        mesh = np.meshgrid(*others, indexing="ij")
+        base = np.stack([m.ravel() for m in mesh], axis=1)
+        # Values along the line in chunks of lines (memory).
+        for c0 in range(0, len(base), 20000):
+            b = base[c0:c0 + 20000]
+            pts = np.empty((len(b), len(axes[k]), n))
+            pts[:, :, k] = axes[k][None, :]
+            jj = 0
+            for j in range(n):
+                if j != k:
+                    pts[:, :, j] = b[:, jj][:, None]
+                    jj += 1
+            v = g(*np.moveaxis(pts, 2, 0))
+            s = np.sign(v)
+            li, ti = np.nonzero(s[:, :-1] * s[:, 1:] < 0)
+            if len(li) == 0:
+                continue
+            lo = axes[k][ti].copy()
+            hi = axes[k][ti + 1].copy()
+            slo = s[li, ti]
+            for _ in range(BISECT):
+                m = 0.5 * (lo + hi)
+                q = pts[li, ti].copy()
+                q[:, k] = m
+                same = np.sign(g(*q.T)) == slo
+                lo = np.where(same, m, lo)
+                hi = np.where(same, hi, m)
+            q = pts[li, ti].copy()
+            q[:, k] = 0.5 * (lo + hi)
+            out.append(q)
+    return np.concatenate(out) if out else np.zeros((0, n))
+
+
+def to_plane_distance(points, samples, normals):
+    """Distance from each point to the fit: to the tangent plane of its nearest sample."""
+    tree = cKDTree(samples)
+    _, i = tree.query(points, k=1, workers=-1)
+    return np.abs(((points - samples[i]) * normals[i]).sum(axis=1))
+
+
+def ism_query(path, pts):
+    """F and grad F of the model at pts (`ism query`); NaN outside |K|."""
+    with tempfile.TemporaryDirectory() as d:
+        src, dst = os.path.join(d, "p.npy"), os.path.join(d, "q.npy")
+        np.save(src, np.ascontiguousarray(pts, dtype=np.float64))
+        q = subprocess.run([ISM, "query", path, src, "-q", "-o", dst], capture_output=True,
+                           text=True)
+        if q.returncode != 0:
+            raise RuntimeError(f"ism query: {q.stderr}")
+        a = np.load(dst)
+    n = pts.shape[1]
+    grad = np.stack([a["g" + c] for c in "xyz"[:n]], axis=1)
+    return a["f"], a["sign"], grad
+
+
+def ism_bracket(path, pts, start, reach):
+    """Distance from each point to a sign change of the model's F - c along -sign * grad F,
+    then along the axes where that fails: a certified upper bound of the distance to the fit's
+    shape S (by the intermediate value theorem on the model's own F, evaluated by `ism query`)."""
+    f, sign, grad = ism_query(path, pts)
+    n = pts.shape[1]
+    norm = np.linalg.norm(grad, axis=1)
+    d0 = -(sign / np.where(norm > 0, norm, 1))[:, None] * grad
+    dirs = [d0] + [s * np.eye(n)[k][None, :].repeat(len(pts), 0) for k in range(n)
+                   for s in (-1.0, 1.0)]
+    best = np.full(len(pts), np.inf)
+    for d in dirs:
+        lo = np.zeros(len(pts))
+        t = np.maximum(start, 1e-12)
+        hi = np.full(len(pts), np.inf)
+        act = np.ones(len(pts), bool)
+        while act.any():
+            _, sg, _ = ism_query(path, pts[act] + t[act, None] * d[act])
+            ai = np.nonzero(act)[0]
+            hit = (sg != sign[ai]) & (sg != 0)
+            hi[ai[hit]] = t[ai[hit]]
+            lo[ai[~hit]] = t[ai[~hit]]
+            t[ai[~hit]] *= 1.5
+            act[ai[hit]] = False
+            act &= (t <= min(reach, 1.0)) & (t < best)
+        ok = np.isfinite(hi)
+        a, b = lo[ok], hi[ok]
+        idx = np.nonzero(ok)[0]
+        for _ in range(30):
+            m = 0.5 * (a + b)
+            _, sg, _ = ism_query(path, pts[idx] + m[:, None] * d[idx])
+            same = sg == sign[idx]
+            a = np.where(same, m, a)
+            b = np.where(same, b, m)
+        best[idx] = np.minimum(best[idx], b)
+        if np.all(best <= 2 * start):
+            break
+    best[sign == 0] = np.nan
+    return best
+
+
+def point_triangle(p, a, b, c):
+    """Exact distances from points p to triangles (a, b, c), row by row (Ericson, RTCD 5.1.5)."""
+    ab, ac, ap = b - a, c - a, p - a
+    d1, d2 = (ab * ap).sum(1), (ac * ap).sum(1)
+    bp = p - b
+    d3, d4 = (ab * bp).sum(1), (ac * bp).sum(1)
+    cp = p - c
+    d5, d6 = (ab * cp).sum(1), (ac * cp).sum(1)
+    va = d3 * d6 - d5 * d4
+    vb = d5 * d2 - d1 * d6
+    vc = d1 * d4 - d3 * d2
+    denom = va + vb + vc
+    with np.errstate(invalid="ignore", divide="ignore"):
+        v = vb / denom
+        w = vc / denom
+    q = a + v[:, None] * ab + w[:, None] * ac
+    # Regions outside the face: the closest point is on an edge or a vertex.
+    def seg(x, y):
+        d = y - x
+        t = np.clip(((p - x) * d).sum(1) / np.maximum((d * d).sum(1), 1e-300), 0, 1)
+        return x + t[:, None] * d
+    inside = (va >= 0) & (vb >= 0) & (vc >= 0) & (denom > 0)
+    cands = [seg(a, b), seg(b, c), seg(c, a)]
+    dist = np.min([np.linalg.norm(p - x, axis=1) for x in cands], axis=0)
+    return np.where(inside, np.linalg.norm(p - q, axis=1), dist)
+
+
+def to_mesh_distance(points, verts, faces, k=16):
+    """Distance from points to a triangle mesh: exact point-triangle distance to the k triangles
+    with the nearest centroids, and to the triangles around the nearest vertex."""
+    tri = verts[faces]
+    cen = tri.mean(axis=1)
+    _, ci = cKDTree(cen).query(points, k=min(k, len(faces)), workers=-1)
+    best = np.full(len(points), np.inf)
+    for j in range(ci.shape[1]):
+        t = tri[ci[:, j]]
+        best = np.minimum(best, point_triangle(points, t[:, 0], t[:, 1], t[:, 2]))
+    # Triangles around the nearest vertex (a long thin triangle's centroid can be far).
+    _, vi = cKDTree(verts).query(points, k=1, workers=-1)
+    vt = [[] for _ in range(len(verts))]
+    for f, tr in enumerate(faces):
+        for v in tr:
+            vt[v].append(f)
+    width = max(len(x) for x in vt)
+    table = np.array([x + [x[0]] * (width - len(x)) for x in vt])
+    for j in range(width):
+        t = tri[table[vi, j]]
+        best = np.minimum(best, point_triangle(points, t[:, 0], t[:, 1], t[:, 2]))
+    return best
+
+
+def mesh_samples(verts, faces):
+    """Vertices, edge midpoints and centroids of a triangle mesh (where a flat triangle is
+    farthest from a curved surface, and its corners)."""
+    tri = verts[faces]
+    mids = np.concatenate([(tri[:, 0] + tri[:, 1]) / 2, (tri[:, 1] + tri[:, 2]) / 2,
+                           (tri[:, 2] + tri[:, 0]) / 2])
+    return np.concatenate([verts, mids, tri.mean(axis=1)])
+
+
+# ---------------------------------------------------------------------------------------------
+# Runs.
+
+
+def cpu_children():
+    r = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return r.ru_utime + r.ru_stime
+
+
+def run(cmd, timeout=None):
+    t0, c0 = time.time(), cpu_children()
+    p = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
+    return p, cpu_children() - c0, time.time() - t0
+
+
+def fit_ism(shape, tol, out, timeout):
+    path = os.path.join(out, shape["key"] + ".ismb")
+    cmd = [ISM, "fit", *shape["fit"], "--tolerance", repr(tol), "-q", "--json", "-o", path]
+    if "--preset" not in shape["fit"] and "--mesh" not in shape["fit"]:
+        cmd += ["--domain=" + ",".join(repr(float(x)) for x in shape["domain"])]
+    p, cpu, wall = run(cmd, timeout)
+    if p.returncode != 0:
+        raise RuntimeError(f"{' '.join(cmd)}: exit {p.returncode}: {p.stderr[-2000:]}")
+    report = json.loads(p.stdout)
+    samples = os.path.join(out, shape["key"] + ".npy")
+    q = subprocess.run([ISM, "sample", path, "--surface", str(FIT_SAMPLES), "-q", "-o", samples],
+                       capture_output=True, text=True)
+    if q.returncode != 0:
+        raise RuntimeError(f"ism sample: {q.stderr}")
+    a = np.load(samples)
+    n = len(shape["domain"]) // 2
+    cols = "xyz"[:n]
+    pts = np.stack([a[c] for c in cols], axis=1)
+    nrm = np.stack([a["n" + c] for c in cols], axis=1)
+    return path, report, cpu, wall, pts, nrm
+
+
+def dist_to_z(shape, p):
+    if shape.get("mesh") is not None:
+        v, f = shape["mesh"]
+        return to_mesh_distance(p, v, f)
+    if shape["dist"] is not None:
+        return shape["dist"](p)
+    d = np.asarray(shape["domain"])
+    reach = float(np.linalg.norm(d[1::2] - d[0::2]))
+    out = np.empty(len(p))
+    for c0 in range(0, len(p), 200000):
+        out[c0:c0 + 200000] = root_distance(shape["g"], p[c0:c0 + 200000], reach)
+    return out
+
+
+def grid_values(shape, res):
+    d = shape["domain"]
+    n = len(d) // 2
+    longest = max(d[2 * k + 1] - d[2 * k] for k in range(n))
+    h = longest / res
+    axes = [np.linspace(d[2 * k], d[2 * k + 1], int(round((d[2 * k + 1] - d[2 * k]) / h)) + 1)
+            for k in range(n)]
+    if shape.get("sdf") is not None:
+        return shape["sdf"](axes), axes
+    if n == 2:
+        x, y = np.meshgrid(*axes, indexing="ij")
+        return shape["g"](x, y), axes
+    vol = np.empty([len(a) for a in axes], dtype=np.float64)
+    y, z = np.meshgrid(axes[1], axes[2], indexing="ij")
+    for i, x in enumerate(axes[0]):
+        vol[i] = shape["g"](x, y, z)
+    return vol, axes
+
+
+def marching(shape, res, out):
+    """(verts, faces, cpu seconds, glb bytes, glb path) of marching cubes / squares at `res`
+    grid cells along the longest side."""
+    import skimage.measure
+    c0 = time.process_time()
+    vol, axes = grid_values(shape, res)
+    spacing = [a[1] - a[0] for a in axes]
+    origin = np.array([a[0] for a in axes])
+    path = os.path.join(out, f"{shape['key']}_mc{res}.glb")
+    if vol.ndim == 3:
+        verts, faces, _, _ = skimage.measure.marching_cubes(vol, level=0.0, spacing=spacing)
+        verts = verts + origin
+        cpu = time.process_time() - c0
+        import trimesh
+        trimesh.Trimesh(verts.astype(np.float32), faces, process=False).export(path)
+    else:
+        contours = skimage.measure.find_contours(vol, 0.0)
+        vs, segs, base = [], [], 0
+        for c in contours:
+            pts = origin + c * np.asarray(spacing)
+            closed = np.allclose(pts[0], pts[-1])
+            if closed:
+                pts = pts[:-1]
+            m = len(pts)
+            idx = np.arange(m)
+            e = np.stack([idx, (idx + 1) % m], axis=1) if closed else \
+                np.stack([idx[:-1], idx[1:]], axis=1)
+            vs.append(pts)
+            segs.append(e + base)
+            base += m
+        verts, faces = np.concatenate(vs), np.concatenate(segs)
+        cpu = time.process_time() - c0
+        write_lines_glb(path, verts, faces)
+    return verts, faces, cpu, os.path.getsize(path), path
+
+
+def write_lines_glb(path, verts, segs):
+    """A binary glTF of line segments (mode 1): trimesh writes 2D paths only as SVG/DXF, so this
+    is written here (glTF 2.0 §4.4: a JSON chunk and a BIN chunk, 4-byte aligned)."""
+    pos = np.zeros((len(verts), 3), np.float32)
+    pos[:, :verts.shape[1]] = verts
+    idx = segs.astype(np.uint32).ravel()
+    pb, ib = pos.tobytes(), idx.tobytes()
+    binary = pb + ib
+    binary += b"\0" * (-len(binary) % 4)
+    doc = {
+        "asset": {"version": "2.0"},
+        "buffers": [{"byteLength": len(binary)}],
+        "bufferViews": [{"buffer": 0, "byteOffset": 0, "byteLength": len(pb), "target": 34962},
+                        {"buffer": 0, "byteOffset": len(pb), "byteLength": len(ib),
+                         "target": 34963}],
+        "accessors": [{"bufferView": 0, "componentType": 5126, "count": len(pos), "type": "VEC3",
+                       "min": pos.min(0).tolist(), "max": pos.max(0).tolist()},
+                      {"bufferView": 1, "componentType": 5125, "count": len(idx),
+                       "type": "SCALAR"}],
+        "meshes": [{"primitives": [{"attributes": {"POSITION": 0}, "indices": 1, "mode": 1}]}],
+        "nodes": [{"mesh": 0}], "scenes": [{"nodes": [0]}], "scene": 0,
+    }
+    js = json.dumps(doc, separators=(",", ":")).encode()
+    js += b" " * (-len(js) % 4)
+    with open(path, "wb") as f:
+        f.write(struct.pack("<III", 0x46546C67, 2, 12 + 8 + len(js) + 8 + len(binary)))
+        f.write(struct.pack("<II", len(js), 0x4E4F534A) + js)
+        f.write(struct.pack("<II", len(binary), 0x004E4942) + binary)
+
+
+def segment_samples(verts, segs, k=8):
+    a, b = verts[segs[:, 0]], verts[segs[:, 1]]
+    t = np.linspace(0, 1, k + 1)
+    return (a[:, None, :] + t[None, :, None] * (b - a)[:, None, :]).reshape(-1, verts.shape[1])
+
+
+def to_segments_distance(points, verts, segs):
+    a, b = verts[segs[:, 0]], verts[segs[:, 1]]
+    _, ci = cKDTree((a + b) / 2).query(points, k=min(8, len(segs)), workers=-1)
+    best = np.full(len(points), np.inf)
+    for j in range(ci.shape[1]):
+        x, y = a[ci[:, j]], b[ci[:, j]]
+        d = y - x
+        t = np.clip(((points - x) * d).sum(1) / np.maximum((d * d).sum(1), 1e-300), 0, 1)
+        best = np.minimum(best, np.linalg.norm(points - x - t[:, None] * d, axis=1))
+    return best
+
+
+def mc_error(shape, verts, faces, zpts):
+    if faces.shape[1] == 2:
+        s = segment_samples(verts, faces)
+        back = to_segments_distance(zpts, verts, faces)
+    else:
+        s = mesh_samples(verts, faces)
+        back = to_mesh_distance(zpts, verts, faces)
+    fwd = dist_to_z(shape, s)
+    return float(fwd.max()), float(back.max())
+
+
+def euler(verts, faces):
+    if faces.shape[1] == 2:
+        return None
+    edges = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), 1)
+    e = len(np.unique(edges, axis=0))
+    return len(verts) - e + len(faces)
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--out", default=None)
+    ap.add_argument("--only", default=",".join(list(SHAPES) + ["bunny"]))
+    ap.add_argument("--rel", type=float, default=1e-3)
+    ap.add_argument("--timeout", type=float, default=900)
+    ap.add_argument("--max-res", type=int, default=640, help="largest 3D grid (cells per side)")
+    args = ap.parse_args()
+    out = args.out or tempfile.mkdtemp(prefix="ism_mc_")
+    os.makedirs(out, exist_ok=True)
+    print(f"ism: {ISM}; output in {out}", file=sys.stderr)
+    rows = []
+    for key in args.only.split(","):
+        shape = bunny(out) if key == "bunny" else SHAPES[key]()
+        if shape is None:
+            print("bunny: pymeshlab not installed, skipped", file=sys.stderr)
+            continue
+        shape["key"] = key
+        d = shape["domain"]
+        n = len(d) // 2
+        longest = max(d[2 * k + 1] - d[2 * k] for k in range(n))
+        tol = args.rel * longest
+        try:
+            path, report, cpu, wall, pts, nrm = fit_ism(shape, tol, out, args.timeout)
+        except (RuntimeError, subprocess.TimeoutExpired) as e:
+            print(f"{key}: fit failed: {e}", file=sys.stderr)
+            rows.append(f"| {shape['name']} | {tol:.1e} | fit failed: {str(e)[:120]} |")
+            continue
+        if shape.get("zpts") is not None:
+            zpts = shape["zpts"]
+        else:
+            zpts = surface_points(shape["g"], d, Z_SPACING * longest)
+        fwd = dist_to_z(shape, pts)
+        back = to_plane_distance(zpts, pts, nrm)
+        # The worst target points again with a certified bracket on the model's own F (the
+        # tangent-plane figure is an estimate where the nearest sample is far).
+        worst = np.argsort(back)[-WORST:]
+        longest_side = max(d[2 * k + 1] - d[2 * k] for k in range(n))
+        bracket = ism_bracket(path, zpts[worst], 0.5 * back[worst], longest_side)
+        rest = np.delete(back, worst)
+        back_max = max(float(np.nanmax(bracket)), float(rest.max()) if len(rest) else 0.0)
+        print(f"  Z->S: tangent planes {back.max():.3e}, bracket on the worst {len(worst)} "
+              f"{np.nanmax(bracket):.3e}", file=sys.stderr)
+        back = np.append(rest, bracket)
+        back = back[np.isfinite(back)]
+        ism_err = max(fwd.max(), back_max)
+        ism_bytes = os.path.getsize(path)
+        print(f"{key}: ISM tol {tol:.2e}: {report['simplices']} simplices, "
+              f"{report['storedNumbers']} numbers, {ism_bytes} B, true S->Z {fwd.max():.3e} "
+              f"Z->S {back.max():.3e} (report {report['shapeToTarget']:.3e} / "
+              f"{report['targetToShape']:.3e}, met {report['toleranceMet']}), {cpu:.1f} CPU-s",
+              file=sys.stderr)
+        # Marching cubes: from a coarse grid up, by the error's h^2 law, until at most the ISM's.
+        res, best = 16, None
+        tried = {}
+        max_res = args.max_res if n == 3 else 16 * args.max_res
+        while res <= max_res and res not in tried:
+            verts, faces, mcpu, glb, gpath = marching(shape, res, out)
+            e = mc_error(shape, verts, faces, zpts)
+            tried[res] = e
+            print(f"  mc {res}: {len(verts)} verts {len(faces)} faces {glb} B err {e[0]:.3e} / "
+                  f"{e[1]:.3e} ({mcpu:.1f} CPU-s)", file=sys.stderr)
+            err = max(e)
+            if err <= ism_err:
+                best = (res, verts, faces, mcpu, glb, e)
+                # One step down to find the coarsest grid that still meets it.
+                lower = int(res / 1.08)
+                if lower in tried or lower < 8:
+                    break
+                res = lower
+                continue
+            if best is not None:
+                break
+            res = max(res + 1, int(math.ceil(res * min(2.0, math.sqrt(err / ism_err) * 1.03))))
+        topo = f"genus {shape['genus']}" if shape.get("genus") is not None else "—"
+        ism_topo = f"{report.get('components')} comp., χ {report.get('euler')}"
+        if best is None:
+            mc = f"not reached by {max_res} cells | — | — | — | — | — |"
+        else:
+            r, v, f, mcpu, glb, e = best
+            chi = euler(v, f)
+            nums = v.size + f.size
+            mc = (f"{r} | {nums:,} | {glb:,} | {max(e):.2e} ({e[0]:.1e}/{e[1]:.1e}) | "
+                  f"{'χ ' + str(chi) if chi is not None else str(len(f)) + ' segments'}, "
+                  f"{mcpu:.1f} CPU-s | {glb / ism_bytes:.2f} |")
+        rows.append(
+            f"| {shape['name']} ({topo}) | {tol:.1e} | {report['simplices']:,} | "
+            f"{report['storedNumbers']:,} | {ism_bytes:,} | {ism_err:.2e} ({fwd.max():.1e}/"
+            f"{back.max():.1e}) | {report['maxDistance']:.2e}, met {report['toleranceMet']} | "
+            f"{ism_topo}, {cpu:.1f} CPU-s | {mc}")
+    print("| shape | tolerance | ISM simplices | stored numbers | .ismb bytes | true two-sided "
+          "error (S→Z/Z→S) | report's claim | ISM topology, CPU | MC grid | MC numbers | .glb bytes "
+          "| MC true error | MC topology, CPU | .glb / .ismb |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    for r in rows:
+        print(r)
+
+
+def bunny(out):
+    """The Stanford bunny from the pymeshlab wheel: fitted with `ism fit --mesh`; Z is the mesh,
+    its grid function for marching cubes the signed distance (sign by winding number)."""
+    try:
+        import pymeshlab
+    except ImportError:
+        return None
+    import trimesh
+    src = os.path.join(os.path.dirname(pymeshlab.__file__), "tests", "sample_meshes", "bunny.obj")
+    m = trimesh.load(src, process=True, force="mesh")
+    v, f = np.asarray(m.vertices, float), np.asarray(m.faces)
+    obj = os.path.join(out, "bunny.obj")
+    m.export(obj)
+    lo, hi = v.min(0), v.max(0)
+    diag = float(np.linalg.norm(hi - lo))
+    pad = 0.05 * diag
+    domain = tuple(float(x) for pair in zip(lo - pad, hi + pad) for x in pair)
+    # Dense points on the triangles: a barycentric lattice fine enough for spacing Z_SPACING.
+    tri = v[f]
+    longest = max(domain[1] - domain[0], domain[3] - domain[2], domain[5] - domain[4])
+    edge = np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2).max(axis=1)
+    zs = []
+    for lev in np.unique(np.ceil(edge / (Z_SPACING * longest)).astype(int).clip(1, 64)):
+        sel = np.ceil(edge / (Z_SPACING * longest)).astype(int).clip(1, 64) == lev
+        bary = np.array([(i, j, lev - i - j) for i in range(lev + 1) for j in range(lev + 1 - i)],
+                        float) / lev
+        zs.append(np.einsum("kb,tbd->tkd", bary, tri[sel]).reshape(-1, 3))
+    zpts = np.concatenate(zs)
+
+    def sdf(axes):
+        x, y, z = np.meshgrid(*axes, indexing="ij")
+        q = np.stack([x.ravel(), y.ravel(), z.ravel()], axis=1)
+        d = to_mesh_distance(q, v, f)
+        inside = m.contains(q)
+        return np.where(inside, -d, d).reshape(x.shape)
+
+    return dict(name="Stanford bunny (pymeshlab wheel, closed)", fit=["--mesh", obj],
+                domain=domain, g=None, grad=None, dist=None, genus=0, mesh=(v, f), zpts=zpts,
+                sdf=sdf)
+
+
+if __name__ == "__main__":
+    main()
