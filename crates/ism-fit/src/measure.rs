@@ -595,11 +595,12 @@ pub fn measure<G: ImplicitFunction + ?Sized>(
                 }
                 r.sum += d;
                 // One miss per patch, its worst sample: a refinement acts on the simplex.
-                if !(d <= tolerance) && r.misses.first().is_none_or(|m| d > m.distance) {
+                let worse = if d.is_nan() { f64::INFINITY } else { d };
+                if worse > tolerance && r.misses.first().is_none_or(|m| worse > m.distance) {
                     r.misses = vec![Miss {
                         at: *p,
                         simplex: Some(*s),
-                        distance: if d.is_nan() { f64::INFINITY } else { d },
+                        distance: worse,
                     }];
                 }
                 let nearest = pts
