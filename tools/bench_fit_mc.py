@@ -298,7 +298,7 @@ def ism_bracket(path, pts, start, reach):
         ok = np.isfinite(hi)
         a, b = lo[ok], hi[ok]
         idx = np.nonzero(ok)[0]
-        for _ in range(30):
+        for _ in range(24):
             m = 0.5 * (a + b)
             _, sg, _ = ism_query(path, pts[idx] + m[:, None] * d[idx])
             same = sg == sign[idx]
