@@ -108,9 +108,13 @@ def ellipsoid():
     return dict(
         name="thin ellipsoid 0.9 x 0.3 x 0.06",
         # The initial grid must see the thin shape: 16 cells along x put vertices inside it.
-        fit=["--expr", "x^2/0.81 + y^2/0.09 + z^2/0.0036 - 1", "--resolution", "16"],
+        # Products, not quotients: with `/` the expression has no interval extension here, and
+        # the fit's target -> fit direction goes unmeasured (issue 17 note).
+        fit=["--expr", "1.2345679012345678*x^2 + 11.111111111111111*y^2 + 277.77777777777777*z^2"
+             " - 1", "--resolution", "16"],
         domain=(-1, 1, -0.4, 0.4, -0.1, 0.1),
-        g=lambda x, y, z: x * x / 0.81 + y * y / 0.09 + z * z / 0.0036 - 1,
+        g=lambda x, y, z: 1.2345679012345678 * x * x + 11.111111111111111 * y * y
+        + 277.77777777777777 * z * z - 1,
         grad=None, dist=dist, genus=0)
 
 
