@@ -571,6 +571,28 @@ fn add_gltf_mesh(
                 format!("mesh {}, primitive {pi}: no POSITION data", mesh.index()),
             ));
         };
+        // glTF 2.0 §3.7.2.1: an indices accessor MUST hold unsigned byte, short or int scalars. The
+        // `gltf` crate's index reader assumes it (`unreachable!` otherwise), so check first.
+        if let Some(acc) = primitive.indices() {
+            use gltf::accessor::{DataType, Dimensions};
+            if !matches!(
+                acc.data_type(),
+                DataType::U8 | DataType::U16 | DataType::U32
+            ) || acc.dimensions() != Dimensions::Scalar
+            {
+                return Err(mesh_error(
+                    path,
+                    format!(
+                        "mesh {}, primitive {pi}: indices accessor {} holds {:?} {:?}; expected \
+                         unsigned byte, short or int scalars",
+                        mesh.index(),
+                        acc.index(),
+                        acc.data_type(),
+                        acc.dimensions()
+                    ),
+                ));
+            }
+        }
         let base = out.0.len();
         out.0.extend(positions.map(|p| transform(world, p)));
         let count = out.0.len() - base;
@@ -1591,6 +1613,69 @@ mod tests {
         out.extend(b"BIN\0");
         out.extend(&bin);
         out
+    }
+
+    /// A tetrahedron as a GLB whose indices accessor has the given component type and type.
+    fn indexed_glb(component: u32, kind: &str) -> Vec<u8> {
+        let pos: [[f32; 3]; 4] = [
+            [0.0, 0.0, 0.0],
+            [1.0, 0.0, 0.0],
+            [0.0, 1.0, 0.0],
+            [0.0, 0.0, 1.0],
+        ];
+        let idx: [u32; 12] = [0, 2, 1, 0, 1, 3, 0, 3, 2, 1, 2, 3];
+        let mut bin: Vec<u8> = pos.iter().flatten().flat_map(|x| x.to_le_bytes()).collect();
+        let ioff = bin.len();
+        // Four bytes per index whatever the declared type: enough bytes for every case.
+        bin.extend(idx.iter().flat_map(|i| i.to_le_bytes()));
+        let json = format!(
+            r#"{{"asset":{{"version":"2.0"}},"scene":0,"scenes":[{{"nodes":[0]}}],"nodes":[{{"mesh":0}}],
+            "meshes":[{{"primitives":[{{"attributes":{{"POSITION":0}},"indices":1}}]}}],
+            "buffers":[{{"byteLength":{}}}],
+            "bufferViews":[{{"buffer":0,"byteOffset":0,"byteLength":48}},{{"buffer":0,"byteOffset":{ioff},"byteLength":48}}],
+            "accessors":[{{"bufferView":0,"componentType":5126,"count":4,"type":"VEC3","min":[0,0,0],"max":[1,1,1]}},
+            {{"bufferView":1,"componentType":{component},"count":12,"type":"{kind}"}}]}}"#,
+            bin.len()
+        );
+        let mut json = json.into_bytes();
+        while json.len() % 4 != 0 {
+            json.push(b' ');
+        }
+        let total = 12 + 8 + json.len() + 8 + bin.len();
+        let mut out = Vec::new();
+        out.extend(b"glTF");
+        out.extend(2u32.to_le_bytes());
+        out.extend((total as u32).to_le_bytes());
+        out.extend((json.len() as u32).to_le_bytes());
+        out.extend(b"JSON");
+        out.extend(&json);
+        out.extend((bin.len() as u32).to_le_bytes());
+        out.extend(b"BIN\0");
+        out.extend(&bin);
+        out
+    }
+
+    /// glTF 2.0 allows only unsigned byte/short/int scalar indices; anything else is an error
+    /// naming the accessor, not a panic (the `gltf` crate's reader has `unreachable!` there; found
+    /// by the `fit_mesh` fuzz target).
+    #[test]
+    fn gltf_indices_of_a_type_the_spec_forbids_are_an_error() {
+        let ok = TriangleMesh::from_gltf(&indexed_glb(5125, "SCALAR"), Path::new("t.glb")).unwrap();
+        assert_eq!(ok.triangles.len(), 4);
+        for (component, kind) in [
+            (5120, "SCALAR"),
+            (5122, "SCALAR"),
+            (5126, "SCALAR"),
+            (5125, "VEC2"),
+        ] {
+            let err = TriangleMesh::from_gltf(&indexed_glb(component, kind), Path::new("t.glb"))
+                .map(|m| m.triangles.len());
+            let message = format!("{}", err.expect_err("forbidden index type accepted"));
+            assert!(
+                message.contains("indices accessor 1"),
+                "{component} {kind}: {message}"
+            );
+        }
     }
 
     #[test]
