@@ -217,6 +217,22 @@ impl TriangleMesh {
         }
         let document = gltf::Document::from_json(raw.document.into_json())
             .map_err(|e| mesh_error(path, format!("glTF: {e}")))?;
+        // gltf 1.4.1's `import_buffers` unwraps the percent-decoding of a relative buffer URI
+        // (src/import.rs:50) and panics when the result is not UTF-8: refuse such a URI first, with
+        // the same decoder (found by the `fit_mesh` fuzz target).
+        for buffer in document.buffers() {
+            if let gltf::buffer::Source::Uri(uri) = buffer.source() {
+                if !uri.contains(':') && urlencoding::decode(uri).is_err() {
+                    return Err(mesh_error(
+                        path,
+                        format!(
+                            "glTF buffer {}: URI is not UTF-8 after percent-decoding",
+                            buffer.index()
+                        ),
+                    ));
+                }
+            }
+        }
         let buffers = gltf::import_buffers(&document, path.parent(), raw.blob)
             .map_err(|e| mesh_error(path, format!("glTF buffers: {e}")))?;
         let mut out = (Vec::new(), Vec::new());
@@ -1676,6 +1692,32 @@ mod tests {
                 "{component} {kind}: {message}"
             );
         }
+    }
+
+    /// A relative buffer URI whose percent-decoding is not UTF-8 is an error, not a panic in the
+    /// `gltf` crate's importer (found by the `fit_mesh` fuzz target); a valid one still reaches
+    /// the file system.
+    #[test]
+    fn gltf_buffer_uris_that_do_not_decode_are_an_error() {
+        let gltf = |uri: &str| {
+            format!(
+                r#"{{"asset":{{"version":"2.0"}},"buffers":[{{"byteLength":4,"uri":"{uri}"}}]}}"#
+            )
+        };
+        let err = TriangleMesh::from_gltf(
+            gltf("a%ACb.bin").as_bytes(),
+            Path::new("/nonexistent/t.gltf"),
+        )
+        .map(|m| m.triangles.len())
+        .expect_err("undecodable URI accepted");
+        assert!(format!("{err}").contains("not UTF-8"), "{err}");
+        let err = TriangleMesh::from_gltf(
+            gltf("missing%20file.bin").as_bytes(),
+            Path::new("/nonexistent/t.gltf"),
+        )
+        .map(|m| m.triangles.len())
+        .expect_err("a missing buffer file accepted");
+        assert!(format!("{err}").contains("buffers"), "{err}");
     }
 
     #[test]
