@@ -1610,6 +1610,11 @@ mod tests {
             views.join(","),
             accessors.join(",")
         );
+        glb_container(json, bin)
+    }
+
+    /// A GLB file (glTF 2.0 binary container): the JSON chunk and the BIN chunk, each padded to 4.
+    fn glb_container(json: String, mut bin: Vec<u8>) -> Vec<u8> {
         let mut json = json.into_bytes();
         while json.len() % 4 != 0 {
             json.push(b' ');
@@ -1653,22 +1658,7 @@ mod tests {
             {{"bufferView":1,"componentType":{component},"count":12,"type":"{kind}"}}]}}"#,
             bin.len()
         );
-        let mut json = json.into_bytes();
-        while json.len() % 4 != 0 {
-            json.push(b' ');
-        }
-        let total = 12 + 8 + json.len() + 8 + bin.len();
-        let mut out = Vec::new();
-        out.extend(b"glTF");
-        out.extend(2u32.to_le_bytes());
-        out.extend((total as u32).to_le_bytes());
-        out.extend((json.len() as u32).to_le_bytes());
-        out.extend(b"JSON");
-        out.extend(&json);
-        out.extend((bin.len() as u32).to_le_bytes());
-        out.extend(b"BIN\0");
-        out.extend(&bin);
-        out
+        glb_container(json, bin)
     }
 
     /// glTF 2.0 allows only unsigned byte/short/int scalar indices; anything else is an error
