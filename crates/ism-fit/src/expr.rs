@@ -10,7 +10,7 @@
 //! (`1e-3`).
 
 use exmex::prelude::*;
-use exmex::{BinOp, FlatEx, MakeOperators, NumberMatcher, Operator};
+use exmex::{BinOp, FlatEx, MakeOperators, Operator};
 
 use crate::interval::Interval;
 use crate::FitError;
@@ -460,7 +460,22 @@ impl MakeOperators<Interval> for IntervalOps {
     }
 }
 
-type IntervalEx = FlatEx<Interval, IntervalOps, NumberMatcher>;
+/// Decimal literals with an optional exponent, for the interval re-parse.
+mod literal {
+    use exmex::MatchLiteral;
+    // `exmex`'s default `NumberMatcher` takes digits and dots only, but its `unparse` writes the
+    // constants it folds into derivatives in exponent form (`d/dz z^2/0.0036` is
+    // `… /1.296e-5`): read with the default matcher the text no longer parses, and the whole
+    // expression silently lost its interval extension — no Plantinga–Vegter test and no
+    // target → fit measurement (issue 17: `x^2/0.81 + y^2/0.09 + z^2/0.0036 - 1` reported ∞).
+    // An exponent only when digits follow, as in the grammar: `2e` stays `2` and the name `e`.
+    exmex::literal_matcher_from_pattern!(
+        DecimalMatcher,
+        r"^([0-9]+\.?[0-9]*|\.[0-9]+)([eE][+-]?[0-9]+)?"
+    );
+}
+
+type IntervalEx = FlatEx<Interval, IntervalOps, literal::DecimalMatcher>;
 
 /// One compiled expression and, for each of its variables (in `exmex`'s order), the coordinate it
 /// reads.
@@ -677,6 +692,41 @@ impl ImplicitFunction for Expression {
 mod tests {
     use super::*;
     use proptest::prelude::*;
+
+    #[test]
+    fn quotients_by_small_constants_keep_the_interval_extension() {
+        // d/dz of z^2/0.0036 folds to a constant exmex writes as `1.296e-5`; the interval
+        // re-parse must read it (issue 17: this ellipsoid had no enclosure, target → fit = ∞).
+        let e = Expression::parse("x^2/0.81 + y^2/0.09 + z^2/0.0036 - 1", 3).unwrap();
+        assert!(e.has_interval_extension());
+        // The enclosure of a box holds g and ∇g of the closed form at points of the box.
+        let (lo, hi) = ([0.5, -0.1, 0.01], [0.6, 0.05, 0.03]);
+        let en = e.enclose(&lo, &hi).expect("an enclosure");
+        let slack = |v: f64| 1e-12 * (1.0 + v.abs());
+        for i in 0..=4 {
+            for j in 0..=4 {
+                for k in 0..=4 {
+                    let t = [i as f64 / 4.0, j as f64 / 4.0, k as f64 / 4.0];
+                    let p: Vec<f64> = (0..3).map(|a| lo[a] + t[a] * (hi[a] - lo[a])).collect();
+                    let g = p[0] * p[0] / 0.81 + p[1] * p[1] / 0.09 + p[2] * p[2] / 0.0036 - 1.0;
+                    let grad = [2.0 * p[0] / 0.81, 2.0 * p[1] / 0.09, 2.0 * p[2] / 0.0036];
+                    assert!(en.value.lo - slack(g) <= g && g <= en.value.hi + slack(g));
+                    for (d, iv) in grad.iter().zip(&en.gradient) {
+                        assert!(
+                            iv.lo - slack(*d) <= *d && *d <= iv.hi + slack(*d),
+                            "{d} {iv:?}"
+                        );
+                    }
+                }
+            }
+        }
+        // The constant `e` after a number is still the constant, and `1e-3` a number.
+        let e = Expression::parse("x - 2*e + y*1e-3", 2).unwrap();
+        assert!(e.has_interval_extension());
+        let v = e.enclose(&[1.0, 1.0], &[1.0, 1.0]).unwrap().value;
+        let exact = 1.0 - 2.0 * std::f64::consts::E + 1e-3;
+        assert!(v.lo <= exact && exact <= v.hi, "{v:?}");
+    }
 
     #[test]
     fn parses_evaluates_and_differentiates() {
