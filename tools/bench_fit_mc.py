@@ -108,10 +108,7 @@ def ellipsoid():
     return dict(
         name="thin ellipsoid 0.9 x 0.3 x 0.06",
         # The initial grid must see the thin shape: 16 cells along x put vertices inside it.
-        # Products, not quotients: with `/` the expression has no interval extension here, and
-        # the fit's target -> fit direction goes unmeasured (issue 17 note).
-        fit=["--expr", "1.2345679012345678*x^2 + 11.111111111111111*y^2 + 277.77777777777777*z^2"
-             " - 1", "--resolution", "16"],
+        fit=["--expr", "x^2/0.81 + y^2/0.09 + z^2/0.0036 - 1", "--resolution", "16"],
         domain=(-1, 1, -0.4, 0.4, -0.1, 0.1),
         g=lambda x, y, z: 1.2345679012345678 * x * x + 11.111111111111111 * y * y
         + 277.77777777777777 * z * z - 1,
@@ -412,6 +409,29 @@ def fit_ism(shape, tol, out, timeout):
     return path, report, cpu, wall, pts, nrm
 
 
+def byte_parts(path):
+    """Where the .ismb's bytes go (spec ism-format.md §7.4: u32 ids, f64 numbers, a u64 length
+    before every array): from the model re-encoded as JSON by `ism convert`."""
+    j = path + ".json"
+    subprocess.run([ISM, "convert", path, j, "--to", "json", "-q"], check=True)
+    with open(j) as f:
+        m = json.load(f)
+    os.remove(j)
+    n = m["dimension"]
+    parts = {"vertices+values": 8 * (len(m["vertices"]) + len(m["values"])),
+             "simplex ids": 4 * len(m["simplices"])}
+    for st in m["stages"]:
+        for r in st.get("faces", []):
+            key = f"{len(r['face']) - 1}-face records"
+            parts[key] = parts.get(key, 0) + 24 + 4 * len(r["face"]) + 8 * (
+                len(r["points"]) + len(r.get("weights", [])))
+    vals, level = m["values"], m.get("level", 0.0)
+    simp = [m["simplices"][i:i + n + 1] for i in range(0, len(m["simplices"]), n + 1)]
+    crossed = sum(1 for s in simp if len({vals[v] < level for v in s}) == 2)
+    total = os.path.getsize(path)
+    return total, crossed, len(simp), parts
+
+
 def dist_to_z(shape, p):
     if shape.get("mesh") is not None:
         v, f = shape["mesh"]
@@ -595,6 +615,9 @@ def main():
         back = back[np.isfinite(back)]
         ism_err = max(fwd.max(), back_max)
         ism_bytes = os.path.getsize(path)
+        total, crossed, simplices, parts = byte_parts(path)
+        print(f"  .ismb {total} B: {simplices} simplices ({crossed} crossed); " + ", ".join(
+            f"{k} {v} B ({100 * v / total:.0f} %)" for k, v in parts.items()), file=sys.stderr)
         print(f"{key}: ISM tol {tol:.2e}: {report['simplices']} simplices, "
               f"{report['storedNumbers']} numbers, {ism_bytes} B, true S->Z {fwd.max():.3e} "
               f"Z->S {back.max():.3e} (report {report['shapeToTarget']:.3e} / "

@@ -1509,8 +1509,16 @@ pub fn dense_error(
 }
 
 impl Fitted {
-    /// The ISM: the complex, `f`, level 0, and one parametric Bézier stage per stratum.
+    /// The ISM: the complex, `f`, level 0, and one parametric Bézier stage per stratum — as
+    /// written, restricted to the simplices with an inside vertex and the records of crossed
+    /// simplices ([`crate::shell`]; the same shape and solid).
     pub fn to_model(&self, name: &str) -> Model {
+        crate::shell::shell(&self.full_model(name))
+    }
+
+    /// The model on the whole complex the fitter refined: simplex `i` is the `i`-th of
+    /// `complex.live_cells()` (the same shape as [`Fitted::to_model`]).
+    pub fn full_model(&self, name: &str) -> Model {
         model_of(&self.complex, &self.values, &self.map, &self.weights, name)
     }
 }
@@ -1659,7 +1667,8 @@ mod tests {
         let fitted = fit(&g, &options, &ism_format::Progress::none()).unwrap();
         assert!(fitted.map.num_faces() > 0);
         assert!(fitted.weights.num_faces() > 0);
-        let model = fitted.to_model("sphere");
+        // The whole complex: simplex `s` of this model is live cell `s`.
+        let model = fitted.full_model("sphere");
         assert_eq!(
             model.stages.last().map(|s| s.kind),
             Some(ism_format::model::StageKind::Rational)

@@ -12,6 +12,8 @@
 //! - [`measure`]: the two-sided distance between a fitted shape and its target (certified
 //!   bounds, not first-order estimates); [`roundtrip`]: the encoding/export/sampling check a fit
 //!   passes before it is written.
+//! - [`shell`]: the written complex — the simplices that hold the solid, the records that move
+//!   the shape.
 //! - [`isocontour`]: the linear isocomplex, its topology and samples; [`svg`]: 2D pictures.
 //!
 //! ```
@@ -45,6 +47,7 @@ pub mod mesh;
 pub mod presets;
 pub mod rational;
 pub mod roundtrip;
+pub mod shell;
 pub mod smooth;
 pub mod strata;
 pub mod svg;
