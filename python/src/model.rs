@@ -904,12 +904,13 @@ impl Model {
         let py = slf.py();
         let me = slf.get();
         let index = me.indexed(py)?;
-        let table = index.stages().get(i).ok_or_else(|| {
-            PyValueError::new_err(format!(
+        if i >= index.stages.len() {
+            return Err(PyValueError::new_err(format!(
                 "stage {i}: the model has {} stage(s)",
-                index.stages().len()
-            ))
-        })?;
+                index.stages.len()
+            )));
+        }
+        let table = index.stage(i);
         let owner = slf.as_any();
         let n = me.inner.dim();
         let rows2 = |data: &[f64], rows: usize| -> PyResult<Bound<'py, PyAny>> {

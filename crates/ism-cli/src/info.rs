@@ -3,7 +3,7 @@
 use std::path::PathBuf;
 use std::process::ExitCode;
 
-use ism_format::io::{self, IndexedDocument};
+use ism_format::io::{self, Document};
 use serde::Serialize;
 
 const AFTER_HELP: &str = "\
@@ -65,22 +65,29 @@ struct Summary {
     extensions_used: Vec<String>,
 }
 
-/// Faces of each dimension, from the topology the reader's structural check built (vertices:
-/// every vertex of the file).
-fn face_counts(model: &ism_format::IndexedModel) -> Vec<usize> {
-    let topology = model.topology();
-    (0..=model.dim())
-        .map(|k| {
-            if k == 0 {
-                model.num_vertices()
-            } else {
-                topology.num_faces(k)
-            }
-        })
-        .collect()
+/// Reads the file and runs the structural check, which counts the faces of each dimension on the
+/// way (nothing is indexed beyond what the check needs: `info` is as cheap as a checked read).
+fn read_counting_faces(path: &std::path::Path) -> ism_format::Result<(Document, Vec<usize>)> {
+    let unchecked = io::ReadOptions {
+        check_structure: false,
+        ..io::ReadOptions::default()
+    };
+    let doc = io::read_path_with(path, &unchecked)?;
+    let (diagnostics, counts) = ism_format::structure::check_counting_faces(
+        &doc.model,
+        ism_format::structure::DEFAULT_MAX_DIAGNOSTICS,
+    );
+    let errors: Vec<_> = diagnostics
+        .into_iter()
+        .filter(|d| d.severity == ism_format::Severity::Error)
+        .collect();
+    match counts {
+        Some(counts) if errors.is_empty() => Ok((doc, counts)),
+        _ => Err(ism_format::Error::Structure(errors)),
+    }
 }
 
-fn summarize(path: &std::path::Path, doc: &IndexedDocument) -> Summary {
+fn summarize(path: &std::path::Path, doc: &Document, faces: &[usize]) -> Summary {
     let model: &ism_format::Model = &doc.model;
     let n = model.dim();
     let mut bbox = vec![[f64::INFINITY, f64::NEG_INFINITY]; n];
@@ -135,7 +142,10 @@ fn summarize(path: &std::path::Path, doc: &IndexedDocument) -> Summary {
         dimension: model.dimension,
         vertices: model.num_vertices(),
         simplices: model.num_simplices(),
-        faces_by_dimension: face_counts(&doc.model),
+        // Vertices: every vertex of the file (an unused one is only a warning).
+        faces_by_dimension: std::iter::once(model.num_vertices())
+            .chain(faces.iter().skip(1).copied())
+            .collect(),
         level: model.level,
         inside_vertices: model.values.iter().filter(|&&v| v < model.level).count(),
         bounding_box: bbox,
@@ -147,7 +157,7 @@ fn summarize(path: &std::path::Path, doc: &IndexedDocument) -> Summary {
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let progress = crate::progress::Progress::new(args.quiet);
     progress.phase(format!("reading {}", args.file.display()));
-    let doc = match io::read_path_indexed(&args.file) {
+    let (doc, faces) = match read_counting_faces(&args.file) {
         Ok(doc) => doc,
         Err(ism_format::Error::Structure(errors)) => {
             progress.finish();
@@ -171,7 +181,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         Err(e) => return Err(crate::args::cannot_read_model(&args.file, e)),
     };
     progress.phase("summarizing");
-    let s = summarize(&args.file, &doc);
+    let s = summarize(&args.file, &doc, &faces);
     progress.finish();
     if args.json {
         println!("{}", serde_json::to_string_pretty(&s)?);

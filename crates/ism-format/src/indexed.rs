@@ -13,21 +13,24 @@
 //!   its local positions ([`local_faces`]), the face's index in O(1).
 //! - **Neighbours.** [`Topology::neighbour`] gives the simplex across the facet opposite a local
 //!   vertex, or `None` on the boundary.
-//! - **Stage tables.** [`StageTable`] stores, per face dimension `k`, the owned control points of
-//!   every face of that dimension densely (`(k + 1) · C(d − 1, k)` numbers per face, the identity's
-//!   where the file has no record) and the weights (`C(d − 1, k)` per face, rational stages), plus
-//!   which record, if any, each face came from. A monotonic stage stores `d + 1` coefficients per
-//!   vertex. The layout is the one a numpy view wants: one contiguous array per table, fixed stride.
+//! - **Stage tables.** [`StageTable`] gives, per face dimension `k`, the record (if any) of every
+//!   face of that dimension, and through it the face's owned control points (`(k + 1) · C(d − 1, k)`
+//!   numbers, the identity's where the file has no record) and weights (`C(d − 1, k)`, rational
+//!   stages) in O(1). The numbers are not copied: they stay in the stage's flat
+//!   [`crate::FaceTable`] (one contiguous array each, the layout a numpy view wants). A monotonic
+//!   stage gives `d + 1` coefficients per vertex. A stage's table is built on its first use.
 //!
-//! Built in parallel (rayon), one vertex star at a time: every face is found from its smallest
-//! vertex, so the only sorting is of a star's few dozen entries (linear in the complex overall).
+//! Built in parallel (rayon), one pass over each vertex's star for all face dimensions: every face
+//! is found from its smallest vertex, so the only sorting is of a star's few dozen entries (linear
+//! in the complex overall), and no face or simplex allocates.
 
+use std::sync::atomic::{AtomicU32, Ordering};
 use std::sync::{Arc, OnceLock};
 
 use rayon::prelude::*;
 
 use crate::error::{Error, Result};
-use crate::model::{Model, StageKind};
+use crate::model::{Model, Stage, StageKind};
 use crate::multi_index::owned_count;
 use crate::rules::Severity;
 
@@ -89,10 +92,14 @@ pub fn local_faces(m: usize, size: usize) -> &'static [[u8; 4]] {
     &tables[m][size]
 }
 
-/// Vertices whose stars are sorted together (in parallel) before their faces are numbered: large
-/// enough to keep every core busy, small enough that the block's entries (~100 per vertex) stay a
-/// few megabytes.
-const STAR_BLOCK: usize = 8192;
+/// Vertices per task of the topology build: a task numbers the faces whose smallest vertex lies in
+/// its range. Small enough to balance the cores, large enough to amortise a task (a few hundred
+/// stars of tens of simplices each).
+const STAR_CHUNK: usize = 512;
+
+/// Tasks run together before their faces are appended to the tables: the temporary memory is a
+/// batch's faces (~32 k vertices' worth), not the whole complex's.
+const CHUNK_BATCH: usize = 64;
 
 /// A defect of the facet pairing found while indexing (reported by the structural check).
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -118,56 +125,267 @@ pub struct Topology {
     /// increasing lexicographic order. Empty for `k = 0` and `k = n` (implicit).
     faces: Vec<Vec<u32>>,
     /// Per dimension `k` (`1 ≤ k < n`): `C(n + 1, k + 1)` face indices per simplex, in the order of
-    /// [`local_faces`]. Empty for `k = 0` and `k = n` (implicit).
+    /// [`local_faces`]. Empty for `k = 0` and `k = n` (implicit), and when only checking.
     simplex_faces: Vec<Vec<u32>>,
     /// `n + 1` per simplex: the simplex across the facet opposite each local vertex, or [`NONE`].
+    /// Empty when only checking.
     neighbours: Vec<u32>,
-    /// Per dimension `k` (`1 ≤ k < n`): `nv + 1` offsets; the faces whose smallest vertex is `v`
-    /// are `first_face[k][v] .. first_face[k][v + 1]`.
+    /// Per dimension `k` (`1 ≤ k ≤ n`): `nv + 1` offsets; the faces whose smallest vertex is `v`
+    /// are `first_face[k][v] .. first_face[k][v + 1]` (for `k = n`, positions in `top_order`).
     first_face: Vec<Vec<u32>>,
+    /// The simplices in increasing order of their sorted vertex ids (then orientation, then id):
+    /// with `first_face[n]`, a top face is found by a binary search among a vertex's few.
+    top_order: Vec<u32>,
     /// Vertex → incident simplices, compressed rows (`incidence_start` has `nv + 1` entries).
     incidence_start: Vec<usize>,
     incidence: Vec<u32>,
 }
 
-/// Sorted vertex ids of the face of simplex `ids` at local positions `pos[..size]`, padded with
-/// `u32::MAX`, and the parity of the permutation that sorted them.
-fn sorted_key(ids: &[u32], pos: &[u8], size: usize) -> ([u32; 4], bool) {
-    let mut k = [u32::MAX; 4];
-    for (slot, &p) in k.iter_mut().zip(&pos[..size]) {
-        *slot = ids[p as usize];
-    }
-    let mut odd = false;
-    // Insertion sort counting swaps gives the permutation parity.
-    for a in 1..size {
-        let mut b = a;
-        while b > 0 && k[b - 1] > k[b] {
-            k.swap(b - 1, b);
-            odd = !odd;
-            b -= 1;
+/// Bit of the local position pair `(p, q)` in a simplex with at most 4 vertices.
+const PAIR: [[u8; 4]; 4] = [[0, 0, 1, 2], [0, 0, 3, 4], [1, 3, 0, 5], [2, 4, 5, 0]];
+
+/// Tables over bit masks of local positions of a simplex with `m ≤ 4` vertices.
+struct Masks {
+    /// Index of the subset among [`local_faces`]`(m, popcount)`.
+    local: [u8; 16],
+    /// The [`PAIR`] bits of the position pairs inside the subset.
+    pairs: [u8; 16],
+}
+
+impl Masks {
+    fn new(m: usize) -> Masks {
+        let mut masks = Masks {
+            local: [0; 16],
+            pairs: [0; 16],
+        };
+        for size in 1..=m {
+            for (j, pos) in local_faces(m, size).iter().enumerate() {
+                let mask = pos[..size].iter().fold(0usize, |a, &p| a | 1 << p);
+                masks.local[mask] = j as u8;
+            }
         }
+        for (mask, pairs) in masks.pairs.iter_mut().enumerate().take(1 << m) {
+            for (p, row) in PAIR.iter().enumerate().take(m) {
+                for (q, &bit) in row.iter().enumerate().take(m).skip(p + 1) {
+                    if mask >> p & 1 == 1 && mask >> q & 1 == 1 {
+                        *pairs |= 1 << bit;
+                    }
+                }
+            }
+        }
+        masks
     }
-    (k, odd)
+}
+
+/// A face met in the star of its smallest vertex `v`: the ids after `v` packed big-endian into
+/// `key` (so `u128` order is lexicographic), then (side, simplex) in `tail` — the order in which
+/// defects are reported — and the face's local index and (facets) the opposite local position.
+#[derive(Clone, Copy)]
+struct Entry {
+    key: u128,
+    tail: u64,
+    local: u8,
+    opposite: u8,
+}
+
+impl Entry {
+    fn simplex(&self) -> u32 {
+        self.tail as u32
+    }
+    fn side(&self) -> bool {
+        self.tail >> 32 != 0
+    }
+    /// The face's vertex ids after the smallest (`k` of them).
+    fn rest(&self, k: usize) -> impl Iterator<Item = u32> + '_ {
+        (0..k).map(move |i| (self.key >> (64 - 32 * i)) as u32)
+    }
+}
+
+/// What one task found for its vertex range, appended in vertex order to the tables.
+struct ChunkOut {
+    /// Per dimension `k` (`1 ≤ k < n`): vertex ids of the faces, `k + 1` each.
+    faces: Vec<Vec<u32>>,
+    /// Per dimension `k` (`1 ≤ k ≤ n`): how many faces have each vertex of the range as smallest.
+    counts: Vec<Vec<u32>>,
+    /// Top simplices with their smallest vertex in the range, in `top_order`.
+    top: Vec<u32>,
+    duplicates: Vec<(u32, u32)>,
+    defects: Vec<FacetDefect>,
+}
+
+/// Shared state of a topology build.
+struct Build<'a> {
+    model: &'a Model,
+    n: usize,
+    incidence_start: &'a [usize],
+    incidence: &'a [u32],
+    masks: Masks,
+    /// Per dimension `k`: the task-local face ids of each simplex's faces (rebased afterwards);
+    /// empty when only checking. Every slot is written by the one task owning the face's smallest
+    /// vertex, so relaxed atomic stores (plain moves) suffice.
+    simplex_faces: Vec<Vec<AtomicU32>>,
+    neighbours: Vec<AtomicU32>,
+}
+
+impl Build<'_> {
+    /// Numbers the faces whose smallest vertex is in `range`: one pass over each vertex's star
+    /// finds them in every dimension; a face is only ever sorted among its vertex's few.
+    fn chunk(&self, range: std::ops::Range<usize>) -> ChunkOut {
+        let (n, model) = (self.n, self.model);
+        let m = n + 1;
+        let full = !self.neighbours.is_empty();
+        let mut out = ChunkOut {
+            faces: vec![Vec::new(); n],
+            counts: vec![Vec::with_capacity(range.len()); n + 1],
+            top: Vec::new(),
+            duplicates: Vec::new(),
+            defects: Vec::new(),
+        };
+        let mut buf: Vec<Vec<Entry>> = vec![Vec::new(); n + 1];
+        let all = (1u8 << m) - 1;
+        for v in range {
+            let v32 = v as u32;
+            for b in &mut buf {
+                b.clear();
+            }
+            for &s in &self.incidence[self.incidence_start[v]..self.incidence_start[v + 1]] {
+                let ids = model.simplex(s as usize);
+                let (mut pv, mut higher, mut inv) = (0u8, 0u8, 0u8);
+                for p in 0..m {
+                    if ids[p] == v32 {
+                        pv = p as u8;
+                    } else if ids[p] > v32 {
+                        higher |= 1 << p;
+                    }
+                    for q in p + 1..m {
+                        if ids[p] > ids[q] {
+                            inv |= 1 << PAIR[p][q];
+                        }
+                    }
+                }
+                // Every face with smallest vertex v: v and a nonempty subset of the higher ones.
+                let mut t = higher;
+                while t != 0 {
+                    let face = t | 1 << pv;
+                    let k = t.count_ones() as usize;
+                    let mut rest = [0u32; 3];
+                    let mut bits = t;
+                    for slot in rest.iter_mut().take(k) {
+                        *slot = ids[bits.trailing_zeros() as usize];
+                        bits &= bits - 1;
+                    }
+                    rest[..k].sort_unstable();
+                    let key =
+                        u128::from(rest[0]) << 64 | u128::from(rest[1]) << 32 | u128::from(rest[2]);
+                    // Orientation parity of the face's ids in local order; a facet carries the
+                    // sign (-1)^i of the local vertex i it omits.
+                    let odd = (self.masks.pairs[face as usize] & inv).count_ones() % 2 == 1;
+                    let opposite = (!face & all).trailing_zeros() as u8;
+                    let side = if k == n {
+                        odd ^ (m % 2 == 1)
+                    } else {
+                        k == n - 1 && odd ^ (opposite % 2 == 1)
+                    };
+                    buf[k].push(Entry {
+                        key,
+                        tail: u64::from(side) << 32 | u64::from(s),
+                        local: self.masks.local[face as usize],
+                        opposite,
+                    });
+                    t = (t - 1) & higher;
+                }
+            }
+            for (k, entries) in buf.iter_mut().enumerate().skip(1) {
+                entries.sort_unstable_by_key(|e| (e.key, e.tail));
+                if k == n {
+                    for w in entries.windows(2) {
+                        if w[0].key == w[1].key {
+                            out.duplicates.push((w[1].simplex(), w[0].simplex()));
+                        }
+                    }
+                    out.top.extend(entries.iter().map(Entry::simplex));
+                    out.counts[k].push(entries.len() as u32);
+                    continue;
+                }
+                let per = local_faces(m, k + 1).len();
+                let mut count = 0u32;
+                let mut i = 0;
+                while i < entries.len() {
+                    let mut j = i + 1;
+                    while j < entries.len() && entries[j].key == entries[i].key {
+                        j += 1;
+                    }
+                    let group = &entries[i..j];
+                    let id = (out.faces[k].len() / (k + 1)) as u32;
+                    out.faces[k].push(v32);
+                    out.faces[k].extend(group[0].rest(k));
+                    if full {
+                        let table = &self.simplex_faces[k];
+                        for e in group {
+                            table[e.simplex() as usize * per + e.local as usize]
+                                .store(id, Ordering::Relaxed);
+                        }
+                    }
+                    if k == n - 1 {
+                        let face = || std::iter::once(v32).chain(group[0].rest(k)).collect();
+                        if group.len() > 2 {
+                            out.defects.push(FacetDefect::Overshared {
+                                face: face(),
+                                simplices: group.iter().map(Entry::simplex).collect(),
+                            });
+                        } else if let [a, b] = group {
+                            if a.side() == b.side() {
+                                if a.simplex() != b.simplex() {
+                                    out.defects.push(FacetDefect::Overlap {
+                                        face: face(),
+                                        first: a.simplex(),
+                                        second: b.simplex(),
+                                    });
+                                }
+                            } else if full {
+                                self.neighbours[a.simplex() as usize * m + a.opposite as usize]
+                                    .store(b.simplex(), Ordering::Relaxed);
+                                self.neighbours[b.simplex() as usize * m + b.opposite as usize]
+                                    .store(a.simplex(), Ordering::Relaxed);
+                            }
+                        }
+                    }
+                    count += 1;
+                    i = j;
+                }
+                out.counts[k].push(count);
+            }
+        }
+        out
+    }
+}
+
+/// A vector of `len` copies of `x`, or empty when `len` is 0.
+fn atomics(len: usize, x: u32) -> Vec<AtomicU32> {
+    (0..len).map(|_| AtomicU32::new(x)).collect()
 }
 
 impl Topology {
     /// Indexes the complex of `model`, skipping the simplices flagged in `skip` (those that repeat a
     /// vertex id). The arrays must be well-formed (lengths, index ranges): the structural check
     /// calls this only then. Returns the topology, the duplicate simplices (each with the first
-    /// simplex of the same vertex set, in sorted-key order) and the facet defects.
+    /// simplex of the same vertex set, in sorted-key order) and the facet defects. `full = false`
+    /// (a check that keeps nothing) leaves out the simplex → face tables and the neighbours.
     pub(crate) fn build(
         model: &Model,
         skip: &[bool],
+        full: bool,
     ) -> (Topology, Vec<(u32, u32)>, Vec<FacetDefect>) {
-        Topology::build_in_blocks(model, skip, STAR_BLOCK)
+        Topology::build_in_blocks(model, skip, STAR_CHUNK, full)
     }
 
-    /// [`Topology::build`] with `block` vertices' stars sorted at a time (any `block ≥ 1` gives
-    /// the same result; tests use small blocks).
+    /// [`Topology::build`] with `block` vertices per task (any `block ≥ 1` gives the same result;
+    /// tests use small blocks).
     fn build_in_blocks(
         model: &Model,
         skip: &[bool],
         block: usize,
+        full: bool,
     ) -> (Topology, Vec<(u32, u32)>, Vec<FacetDefect>) {
         let n = model.dim();
         let m = n + 1;
@@ -196,131 +414,106 @@ impl Topology {
             }
         }
         drop(fill);
-        let star = |v: usize| &incidence[incidence_start[v]..incidence_start[v + 1]];
 
-        // Faces of each dimension `k` whose smallest vertex is `v`: (key, side, simplex, local
-        // face index) sorted by key, side, simplex — the order in which defects are reported.
-        type Entry = ([u32; 4], bool, u32, u8);
-        let entries_of = |v: usize, size: usize| -> Vec<Entry> {
-            let locals = local_faces(m, size);
-            let mut out = Vec::new();
-            for &s in star(v) {
-                let ids = model.simplex(s as usize);
-                for (j, pos) in locals.iter().enumerate() {
-                    if !pos[..size].iter().any(|&p| ids[p as usize] == v as u32) {
-                        continue;
-                    }
-                    let (key, odd) = sorted_key(ids, pos, size);
-                    if key[0] != v as u32 {
-                        continue;
-                    }
-                    // The facet opposite local vertex i carries sign (-1)^i: positions are sorted,
-                    // so the missing one is the first i with pos[i] != i.
-                    let missing = (0..m).find(|&i| i >= size || pos[i] as usize != i);
-                    let side = odd ^ missing.is_some_and(|i| i % 2 == 1);
-                    out.push((key, side, s, j as u8));
-                }
-            }
-            out.sort_unstable();
-            out
+        let per = |k: usize| local_faces(m, k + 1).len();
+        let build = Build {
+            model,
+            n,
+            incidence_start: &incidence_start,
+            incidence: &incidence,
+            masks: Masks::new(m),
+            simplex_faces: (0..n)
+                .map(|k| {
+                    let len = if full && k >= 1 { ns * per(k) } else { 0 };
+                    atomics(len, NONE)
+                })
+                .collect(),
+            neighbours: atomics(if full { ns * m } else { 0 }, NONE),
         };
-
-        // Top faces: duplicates share their smallest vertex.
-        let duplicates: Vec<(u32, u32)> = (0..nv)
-            .into_par_iter()
-            .flat_map_iter(|v| {
-                let e = entries_of(v, m);
-                let mut found = Vec::new();
-                for w in e.windows(2) {
-                    if w[0].0 == w[1].0 {
-                        found.push((w[1].2, w[0].2));
-                    }
+        let chunk = block.max(1);
+        let starts: Vec<usize> = (0..nv).step_by(chunk).collect();
+        // The face tables are reserved at their bound (untouched pages cost no memory) so they
+        // never move while growing; shrunk at the end.
+        let mut faces: Vec<Vec<u32>> = (0..n)
+            .map(|k| {
+                let mut t = Vec::new();
+                if k >= 1 {
+                    let _ = t.try_reserve_exact(ns.saturating_mul(per(k) * (k + 1)));
                 }
-                found
+                t
             })
             .collect();
-
-        let mut faces = vec![Vec::new(); m];
-        let mut simplex_faces = vec![Vec::new(); m];
-        let mut first_face = vec![Vec::new(); m];
-        let mut neighbours = vec![NONE; ns * m];
+        let mut first_face: Vec<Vec<u32>> = (0..=n)
+            .map(|k| Vec::with_capacity(if k >= 1 { nv + 1 } else { 0 }))
+            .collect();
+        let mut top_order = Vec::with_capacity(ns);
+        let mut bases: Vec<Vec<u32>> = vec![Vec::with_capacity(starts.len()); n];
+        let mut next = vec![0u32; n + 1];
+        let mut duplicates = Vec::new();
         let mut defects = Vec::new();
-        for k in 1..n {
-            let size = k + 1;
-            let locals = local_faces(m, size);
-            let per = locals.len();
-            let mut table = Vec::new();
-            let mut of_simplex = vec![NONE; ns * per];
-            let mut first = Vec::with_capacity(nv + 1);
-            let mut id = 0u32;
-            // Stars in parallel, a block of vertices at a time: the sorted entries of a block are
-            // numbered in order and dropped, so the temporary memory stays a block's, not the
-            // whole complex's.
-            let groups = (0..nv).step_by(block.max(1)).flat_map(|start| {
-                (start..nv.min(start.saturating_add(block.max(1))))
-                    .into_par_iter()
-                    .map(|v| entries_of(v, size))
-                    .collect::<Vec<Vec<Entry>>>()
-            });
-            for entries in groups {
-                first.push(id);
-                let mut i = 0;
-                while i < entries.len() {
-                    let mut j = i + 1;
-                    while j < entries.len() && entries[j].0 == entries[i].0 {
-                        j += 1;
+        for batch in starts.chunks(CHUNK_BATCH) {
+            let outs: Vec<ChunkOut> = batch
+                .par_iter()
+                .map(|&start| build.chunk(start..nv.min(start.saturating_add(chunk))))
+                .collect();
+            for out in outs {
+                for k in 1..=n {
+                    if k < n {
+                        bases[k].push(next[k]);
+                        faces[k].extend_from_slice(&out.faces[k]);
                     }
-                    let group = &entries[i..j];
-                    table.extend_from_slice(&group[0].0[..size]);
-                    for &(_, _, s, local) in group {
-                        of_simplex[s as usize * per + local as usize] = id;
+                    for &c in &out.counts[k] {
+                        first_face[k].push(next[k]);
+                        next[k] += c;
                     }
-                    if k == n - 1 {
-                        let face = group[0].0[..size].to_vec();
-                        if group.len() > 2 {
-                            defects.push(FacetDefect::Overshared {
-                                face,
-                                simplices: group.iter().map(|g| g.2).collect(),
-                            });
-                        } else if group.len() == 2 {
-                            let (a, b) = (group[0].2, group[1].2);
-                            if group[0].1 == group[1].1 {
-                                if a != b {
-                                    defects.push(FacetDefect::Overlap {
-                                        face,
-                                        first: a,
-                                        second: b,
-                                    });
-                                }
-                            } else {
-                                // A facet-sized subset omits exactly one local position.
-                                let opposite = |g: &Entry| {
-                                    let pos = &locals[g.3 as usize];
-                                    (0..m).find(|&i| !pos[..size].contains(&(i as u8)))
-                                };
-                                if let (Some(oa), Some(ob)) =
-                                    (opposite(&group[0]), opposite(&group[1]))
-                                {
-                                    neighbours[a as usize * m + oa] = b;
-                                    neighbours[b as usize * m + ob] = a;
+                }
+                top_order.extend_from_slice(&out.top);
+                duplicates.extend(out.duplicates);
+                defects.extend(out.defects);
+            }
+        }
+        for k in 1..=n {
+            first_face[k].push(next[k]);
+        }
+        for table in &mut faces {
+            table.shrink_to_fit();
+        }
+        let Build {
+            simplex_faces,
+            neighbours,
+            ..
+        } = build;
+        // Task-local face ids → global: add the base of the task owning the face's smallest vertex.
+        let simplex_faces: Vec<Vec<u32>> = simplex_faces
+            .into_iter()
+            .enumerate()
+            .map(|(k, table)| {
+                let mut table: Vec<u32> = table.into_iter().map(AtomicU32::into_inner).collect();
+                if !table.is_empty() {
+                    let locals = local_faces(m, k + 1);
+                    let base = &bases[k];
+                    table
+                        .par_chunks_mut(per(k))
+                        .enumerate()
+                        .for_each(|(s, row)| {
+                            let ids = model.simplex(s);
+                            for (slot, pos) in row.iter_mut().zip(locals) {
+                                if *slot != NONE {
+                                    let low = pos[..=k].iter().map(|&p| ids[p as usize]).min();
+                                    *slot += base[low.unwrap_or(0) as usize / chunk];
                                 }
                             }
-                        }
-                    }
-                    id += 1;
-                    i = j;
+                        });
                 }
-            }
-            first.push(id);
-            faces[k] = table;
-            simplex_faces[k] = of_simplex;
-            first_face[k] = first;
-        }
-        if n == 1 {
+                table
+            })
+            .collect();
+        let mut neighbours: Vec<u32> = neighbours.into_iter().map(AtomicU32::into_inner).collect();
+        if n == 1 && full {
             // Facets are vertices: pair the (at most two) segments at each vertex.
             for v in 0..nv {
-                if let [a, b] = star(v) {
-                    let (a, b) = (*a as usize, *b as usize);
+                if let [a, b] = incidence[incidence_start[v]..incidence_start[v + 1]] {
+                    let (a, b) = (a as usize, b as usize);
                     let ia = model.simplex(a).iter().position(|&x| x as usize == v);
                     let ib = model.simplex(b).iter().position(|&x| x as usize == v);
                     if let (Some(ia), Some(ib)) = (ia, ib) {
@@ -337,6 +530,7 @@ impl Topology {
             faces,
             simplex_faces,
             first_face,
+            top_order,
             neighbours,
             incidence_start,
             incidence,
@@ -449,15 +643,22 @@ impl Topology {
             return None;
         }
         if k == self.n {
-            return self
-                .vertex_simplices(v)
-                .iter()
-                .find(|&&s| {
-                    let mut key = [0u32; 4];
-                    key[..size].copy_from_slice(model.simplex(s as usize));
-                    key[..size].sort_unstable();
-                    key[..size] == *face
-                })
+            // Simplices whose smallest vertex is `v`, in order of their sorted ids: the first
+            // match (of duplicates, the one the check reports as first).
+            let sorted = |s: u32| {
+                let mut key = [0u32; 4];
+                key[..size].copy_from_slice(model.simplex(s as usize));
+                key[..size].sort_unstable();
+                key
+            };
+            let mut want = [0u32; 4];
+            want[..size].copy_from_slice(face);
+            let range =
+                &self.top_order[self.first_face[k][v] as usize..self.first_face[k][v + 1] as usize];
+            let at = range.partition_point(|&s| sorted(s) < want);
+            return range
+                .get(at)
+                .filter(|&&s| sorted(s) == want)
                 .map(|&s| FaceId {
                     dim: k as u8,
                     index: s,
@@ -486,159 +687,197 @@ impl Topology {
     }
 }
 
-/// One stage's control data in flat tables addressed by face index (see the module docs).
+/// Dense points and weights per face dimension (see [`StageTable::points`]).
+type Dense = (Vec<Vec<f64>>, Vec<Vec<f64>>);
+
+/// One stage's face → record index, built on first use of the stage (readers that only count or
+/// copy never pay for it). Control points are not copied: they stay in the stage's
+/// [`crate::FaceTable`], which a [`StageTable`] reads through.
 #[derive(Clone, Debug, PartialEq)]
-pub struct StageTable {
-    kind: StageKind,
-    degree: u32,
+struct StageRows {
     /// Per dimension `k`: the record (index into the stage's `faces`) of each face, or [`NONE`].
     record: Vec<Vec<u32>>,
-    /// Per dimension `k`: `(k + 1) · C(d − 1, k)` owned control point coordinates per face.
-    points: Vec<Vec<f64>>,
-    /// Per dimension `k` (rational stages): `C(d − 1, k)` weights per face.
-    weights: Vec<Vec<f64>>,
+    /// Per dimension `k`: the identity's owned control points of a face (`J / d` for its owned
+    /// multi-indices `J`).
+    identity: Vec<Vec<f64>>,
+    /// Unit weights, as many as the largest face owns (rational stages).
+    ones: Vec<f64>,
     /// Monotonic: the vertex map record of each vertex, or [`NONE`].
     vertex_record: Vec<u32>,
     /// Monotonic: `d + 1` coefficients per vertex.
     coefficients: Vec<f64>,
+    /// Dense copies of the points and weights per face dimension, only for callers that want
+    /// one array per dimension ([`StageTable::points`]; the Python binding's numpy views).
+    dense: OnceLock<Dense>,
 }
 
-impl StageTable {
-    /// `faces`: the face of each record, as the structural check found it.
-    fn build(
-        model: &Model,
-        topology: &Topology,
-        stage_index: usize,
-        faces: &[Option<FaceId>],
-    ) -> StageTable {
-        let stage = &model.stages[stage_index];
+impl StageRows {
+    /// `faces`: the face index of each record, as the structural check found it (its dimension is
+    /// the record's vertex count − 1).
+    fn build(stage: &Stage, topology: &Topology, faces: &[u32]) -> StageRows {
         let d = stage.degree;
         let n = topology.dim();
-        let mut table = StageTable {
-            kind: stage.kind,
-            degree: d,
+        let mut rows = StageRows {
             record: Vec::new(),
-            points: Vec::new(),
-            weights: Vec::new(),
+            identity: Vec::new(),
+            ones: Vec::new(),
             vertex_record: Vec::new(),
             coefficients: Vec::new(),
+            dense: OnceLock::new(),
         };
         match stage.kind {
             StageKind::Monotonic => {
                 let nv = topology.num_vertices();
                 let per = d as usize + 1;
-                table.vertex_record = vec![NONE; nv];
-                table.coefficients = (0..nv * per)
+                rows.vertex_record = vec![NONE; nv];
+                rows.coefficients = (0..nv * per)
                     .map(|i| (i % per) as f64 / f64::from(d))
                     .collect();
                 for (r, map) in stage.vertex_maps.iter().enumerate() {
                     let v = map.vertex as usize;
-                    table.vertex_record[v] = r as u32;
-                    table.coefficients[v * per..(v + 1) * per].copy_from_slice(&map.coefficients);
+                    rows.vertex_record[v] = r as u32;
+                    rows.coefficients[v * per..(v + 1) * per].copy_from_slice(&map.coefficients);
                 }
             }
             StageKind::Bezier | StageKind::Rational => {
-                let rational = stage.kind == StageKind::Rational;
                 for k in 0..=n {
-                    let size = k + 1;
-                    let owned = owned_count(size, d);
-                    let rows = topology.face_slots(k);
-                    table.record.push(vec![NONE; rows]);
-                    // The identity: owned multi-index J of the face has control point J / d.
-                    let identity: Vec<f64> = crate::multi_index::owned(size, d)
-                        .iter()
-                        .map(|&e| f64::from(e) / f64::from(d))
-                        .collect();
-                    let mut points = Vec::with_capacity(rows * identity.len());
-                    for _ in 0..rows {
-                        points.extend_from_slice(&identity);
-                    }
-                    table.points.push(points);
-                    table.weights.push(if rational {
-                        vec![1.0; rows * owned]
-                    } else {
-                        Vec::new()
-                    });
+                    rows.record.push(vec![NONE; topology.face_slots(k)]);
+                    rows.identity.push(
+                        crate::multi_index::owned(k + 1, d)
+                            .iter()
+                            .map(|&e| f64::from(e) / f64::from(d))
+                            .collect(),
+                    );
                 }
-                for (r, (rec, id)) in stage.faces.iter().zip(faces).enumerate() {
-                    let Some(id) = *id else { continue };
-                    let (k, i) = (id.dim as usize, id.index as usize);
-                    let owned = owned_count(k + 1, d);
-                    table.record[k][i] = r as u32;
-                    let stride = owned * (k + 1);
-                    table.points[k][i * stride..(i + 1) * stride].copy_from_slice(rec.points);
-                    if rational && !rec.weights.is_empty() {
-                        table.weights[k][i * owned..(i + 1) * owned].copy_from_slice(rec.weights);
+                if stage.kind == StageKind::Rational {
+                    rows.ones =
+                        vec![1.0; (0..=n).map(|k| owned_count(k + 1, d)).max().unwrap_or(0)];
+                }
+                for (r, &id) in faces.iter().enumerate() {
+                    if id != NONE {
+                        let k = stage.faces.record(r).face.len() - 1;
+                        rows.record[k][id as usize] = r as u32;
                     }
                 }
             }
         }
-        table
+        rows
     }
+}
 
+/// One stage's control data addressed by face (see the module docs): the record of each face and,
+/// through it, the control points and weights in the stage's [`crate::FaceTable`] — the identity's
+/// where the file has no record.
+#[derive(Clone, Copy, Debug)]
+pub struct StageTable<'a> {
+    stage: &'a Stage,
+    rows: &'a StageRows,
+}
+
+impl<'a> StageTable<'a> {
     /// The map kind.
     pub fn kind(&self) -> StageKind {
-        self.kind
+        self.stage.kind
     }
 
     /// The degree `d`.
     pub fn degree(&self) -> u32 {
-        self.degree
-    }
-
-    /// Owned control point coordinates of every dimension-`k` face, `(k + 1) · C(d − 1, k)` per
-    /// face (barycentric w.r.t. the face's sorted vertices), the identity's where no record exists.
-    /// Empty for monotonic stages.
-    pub fn points(&self, k: usize) -> &[f64] {
-        self.points.get(k).map_or(&[], Vec::as_slice)
-    }
-
-    /// Weights of every dimension-`k` face, `C(d − 1, k)` per face, 1 where no record exists.
-    /// Empty unless the stage is rational.
-    pub fn weights(&self, k: usize) -> &[f64] {
-        self.weights.get(k).map_or(&[], Vec::as_slice)
+        self.stage.degree
     }
 
     /// The record of each dimension-`k` face ([`NONE`] where the file has none).
-    pub fn records(&self, k: usize) -> &[u32] {
-        self.record.get(k).map_or(&[], Vec::as_slice)
+    pub fn records(&self, k: usize) -> &'a [u32] {
+        self.rows.record.get(k).map_or(&[], Vec::as_slice)
     }
 
     /// The record of face `face`, if the file has one.
     pub fn record_of(&self, face: FaceId) -> Option<usize> {
         let r = *self
+            .rows
             .record
             .get(face.dim as usize)?
             .get(face.index as usize)?;
         (r != NONE).then_some(r as usize)
     }
 
-    /// Owned control point coordinates of one face.
-    pub fn face_points(&self, face: FaceId) -> &[f64] {
-        let k = face.dim as usize;
-        let stride = owned_count(k + 1, self.degree) * (k + 1);
-        &self.points[k][face.index as usize * stride..(face.index as usize + 1) * stride]
+    /// Owned control point coordinates of one face, `(k + 1) · C(d − 1, k)` numbers (barycentric
+    /// w.r.t. the face's sorted vertices): the record's, or the identity's.
+    ///
+    /// # Panics
+    /// If `face` is out of range or the stage is monotonic.
+    pub fn face_points(&self, face: FaceId) -> &'a [f64] {
+        match self.record_of(face) {
+            Some(r) => self.stage.faces.record(r).points,
+            None => &self.rows.identity[face.dim as usize],
+        }
     }
 
-    /// Weights of one face (rational stages; empty otherwise).
-    pub fn face_weights(&self, face: FaceId) -> &[f64] {
-        if self.weights.is_empty() || self.weights[face.dim as usize].is_empty() {
+    /// Weights of one face, `C(d − 1, k)` (rational stages; 1 where the file has no record; empty
+    /// for other kinds).
+    pub fn face_weights(&self, face: FaceId) -> &'a [f64] {
+        if self.stage.kind != StageKind::Rational {
             return &[];
         }
-        let owned = owned_count(face.dim as usize + 1, self.degree);
-        let i = face.index as usize;
-        &self.weights[face.dim as usize][i * owned..(i + 1) * owned]
+        match self.record_of(face) {
+            Some(r) if !self.stage.faces.record(r).weights.is_empty() => {
+                self.stage.faces.record(r).weights
+            }
+            _ => &self.rows.ones[..owned_count(face.dim as usize + 1, self.stage.degree)],
+        }
+    }
+
+    /// Owned control point coordinates of every dimension-`k` face, `(k + 1) · C(d − 1, k)` per
+    /// face, the identity's where no record exists: a dense copy made on the first call (for one
+    /// array per dimension, e.g. a numpy view); [`StageTable::face_points`] reads without copying.
+    /// Empty for monotonic stages.
+    pub fn points(&self, k: usize) -> &'a [f64] {
+        self.dense().0.get(k).map_or(&[], Vec::as_slice)
+    }
+
+    /// Weights of every dimension-`k` face, `C(d − 1, k)` per face, 1 where no record exists (a
+    /// dense copy, as [`StageTable::points`]). Empty unless the stage is rational.
+    pub fn weights(&self, k: usize) -> &'a [f64] {
+        self.dense().1.get(k).map_or(&[], Vec::as_slice)
+    }
+
+    fn dense(&self) -> &'a Dense {
+        let (stage, rows) = (self.stage, self.rows);
+        rows.dense.get_or_init(|| {
+            let mut points = Vec::new();
+            let mut weights = Vec::new();
+            if stage.kind == StageKind::Monotonic {
+                return (points, weights);
+            }
+            let rational = stage.kind == StageKind::Rational;
+            for (k, records) in rows.record.iter().enumerate() {
+                let mut p = Vec::with_capacity(records.len() * rows.identity[k].len());
+                let mut w = Vec::new();
+                for index in 0..records.len() {
+                    let face = FaceId {
+                        dim: k as u8,
+                        index: index as u32,
+                    };
+                    p.extend_from_slice(self.face_points(face));
+                    if rational {
+                        w.extend_from_slice(self.face_weights(face));
+                    }
+                }
+                points.push(p);
+                weights.push(w);
+            }
+            (points, weights)
+        })
     }
 
     /// Monotonic: the `d + 1` coefficients of every vertex (the identity's `j / d` where the file
     /// has no map). Empty for other kinds.
-    pub fn coefficients(&self) -> &[f64] {
-        &self.coefficients
+    pub fn coefficients(&self) -> &'a [f64] {
+        &self.rows.coefficients
     }
 
     /// Monotonic: the vertex map record of each vertex ([`NONE`] where the file has none).
-    pub fn vertex_records(&self) -> &[u32] {
-        &self.vertex_record
+    pub fn vertex_records(&self) -> &'a [u32] {
+        &self.rows.vertex_record
     }
 }
 
@@ -653,7 +892,10 @@ pub struct IndexedModel {
 struct Inner {
     model: Model,
     topology: Topology,
-    stages: Vec<StageTable>,
+    /// Per stage, the face index of each record (from the structural check).
+    record_faces: Vec<Vec<u32>>,
+    /// Per stage, built on first use.
+    stages: Vec<OnceLock<StageRows>>,
     diagnostics: Vec<crate::rules::Diagnostic>,
 }
 
@@ -733,7 +975,7 @@ impl IndexedModel {
         max: usize,
         fatal: impl Fn(crate::rules::Rule) -> bool,
     ) -> std::result::Result<IndexedModel, (Model, Error)> {
-        let (diagnostics, topology) = crate::structure::check_indexed(&model, max);
+        let (diagnostics, topology) = crate::structure::check_indexed(&model, max, true);
         let (errors, diagnostics): (Vec<_>, Vec<_>) = diagnostics
             .into_iter()
             .partition(|d| d.severity == Severity::Error && fatal(d.rule));
@@ -743,14 +985,12 @@ impl IndexedModel {
             }
             _ => return Err((model, Error::Structure(errors))),
         };
-        let stages = (0..model.stages.len())
-            .into_par_iter()
-            .map(|i| StageTable::build(&model, &topology, i, &record_faces[i]))
-            .collect();
+        let stages = (0..model.stages.len()).map(|_| OnceLock::new()).collect();
         Ok(IndexedModel {
             inner: Arc::new(Inner {
                 model,
                 topology,
+                record_faces,
                 stages,
                 diagnostics,
             }),
@@ -771,13 +1011,17 @@ impl IndexedModel {
     ///
     /// # Panics
     /// If `i` is out of range.
-    pub fn stage(&self, i: usize) -> &StageTable {
-        &self.inner.stages[i]
+    pub fn stage(&self, i: usize) -> StageTable<'_> {
+        let inner = &*self.inner;
+        let stage = &inner.model.stages[i];
+        let rows = inner.stages[i]
+            .get_or_init(|| StageRows::build(stage, &inner.topology, &inner.record_faces[i]));
+        StageTable { stage, rows }
     }
 
     /// The flat tables of every stage, in application order.
-    pub fn stages(&self) -> &[StageTable] {
-        &self.inner.stages
+    pub fn stages(&self) -> impl ExactSizeIterator<Item = StageTable<'_>> + '_ {
+        (0..self.inner.stages.len()).map(|i| self.stage(i))
     }
 
     /// The structural diagnostics that did not prevent indexing: warnings (e.g. unused vertices)
@@ -1003,6 +1247,16 @@ mod tests {
                     dim: k as u8,
                     index: i as u32,
                 };
+                // The dense copy (numpy views) row by row equals the per-face reads.
+                let stride = identity.len();
+                assert_eq!(
+                    &table.points(k)[i * stride..(i + 1) * stride],
+                    table.face_points(id)
+                );
+                assert_eq!(
+                    &table.weights(k)[i * owned..(i + 1) * owned],
+                    table.face_weights(id)
+                );
                 match expected.get(face) {
                     Some((p, w)) => {
                         assert_eq!(table.face_points(id), p.as_slice());
@@ -1030,10 +1284,17 @@ mod tests {
         for (n, g) in [(2, 4), (3, 3)] {
             let model = kuhn(n, g);
             let skip = vec![false; model.num_simplices()];
-            let whole = Topology::build_in_blocks(&model, &skip, usize::MAX);
+            let whole = Topology::build_in_blocks(&model, &skip, usize::MAX, true);
             for block in [1, 3, 7] {
-                assert_eq!(Topology::build_in_blocks(&model, &skip, block), whole);
+                assert_eq!(Topology::build_in_blocks(&model, &skip, block, true), whole);
             }
+            // A check that keeps nothing builds the same faces, without the per-simplex tables.
+            let (lean, duplicates, defects) = Topology::build_in_blocks(&model, &skip, 5, false);
+            assert_eq!((duplicates, defects), (whole.1.clone(), whole.2.clone()));
+            assert_eq!(lean.faces, whole.0.faces);
+            assert_eq!(lean.first_face, whole.0.first_face);
+            assert_eq!(lean.top_order, whole.0.top_order);
+            assert!(lean.neighbours.is_empty());
         }
     }
 

@@ -6,7 +6,7 @@ use std::collections::HashSet;
 
 use rayon::prelude::*;
 
-use crate::indexed::{FaceId, FacetDefect, Topology};
+use crate::indexed::{FacetDefect, Topology, NONE};
 use crate::model::{Model, StageKind};
 use crate::multi_index::owned_count;
 use crate::rules::{Diagnostic, Location, Rule, Severity};
@@ -94,18 +94,31 @@ impl Collector {
 
 /// Checks every structural requirement; returns errors and warnings, at most `max` of each.
 pub fn check(model: &Model, max: usize) -> Vec<Diagnostic> {
-    check_indexed(model, max).0
+    check_indexed(model, max, false).0
 }
 
-/// Per stage, the face each record names (`None` where it names none); empty when the stage
-/// checks did not run.
-pub(crate) type RecordFaces = Vec<Vec<Option<FaceId>>>;
+/// [`check`], also counting the faces of each dimension `k = 0 … n` of the complex (vertices that
+/// belong to a simplex, edges, …, top simplices) from the topology the check builds anyway; `None`
+/// when the arrays could not be indexed. Costs what [`check`] costs (`ism info`).
+pub fn check_counting_faces(model: &Model, max: usize) -> (Vec<Diagnostic>, Option<Vec<usize>>) {
+    let (diagnostics, topology) = check_indexed(model, max, false);
+    let counts = topology.map(|(t, _)| (0..=model.dim()).map(|k| t.num_faces(k)).collect());
+    (diagnostics, counts)
+}
+
+/// Per stage, the index (among the faces of its dimension, `face.len() − 1`) of the face each
+/// record names, [`crate::indexed::NONE`] where it names none; empty when the stage checks did not
+/// run.
+pub(crate) type RecordFaces = Vec<Vec<u32>>;
 
 /// [`check`], also returning the topology it built (whenever the arrays could be indexed: every
-/// length and index in range, not stopped by `max`). [`crate::IndexedModel::new`] keeps it.
+/// length and index in range, not stopped by `max`). [`crate::IndexedModel::new`] keeps it;
+/// `full = false` (a check that keeps nothing) builds only what the rules need (no simplex → face
+/// tables, no neighbours).
 pub(crate) fn check_indexed(
     model: &Model,
     max: usize,
+    full: bool,
 ) -> (Vec<Diagnostic>, Option<(Topology, RecordFaces)>) {
     let mut c = Collector::new(max);
     check_arrays(model, &mut c);
@@ -118,7 +131,7 @@ pub(crate) fn check_indexed(
         // Later checks index vertices through simplices; stop before they would misread.
         return (c.out, None);
     }
-    let topology = check_simplices(model, &mut c);
+    let topology = check_simplices(model, &mut c, full);
     check_values(model, &mut c);
     check_extensions(model, &mut c);
     let record_faces = match (c.full(), topology.as_ref()) {
@@ -196,16 +209,17 @@ fn simplex_location(s: usize, m: usize) -> Location {
     }
 }
 
-fn check_simplices(model: &Model, c: &mut Collector) -> Option<Topology> {
+fn check_simplices(model: &Model, c: &mut Collector, full: bool) -> Option<Topology> {
     let n = model.dim();
     let m = n + 1;
-    // Per-simplex checks in parallel; only the (rare) failures are formatted, in simplex order.
+    // Per-simplex checks in parallel, one byte each; only the (rare) failures are formatted, in
+    // simplex order, recomputing their determinant.
     #[derive(Clone, Copy, PartialEq)]
     enum Status {
         Ok,
         Repeated,
-        Degenerate(f64, f64),
-        Inverted(f64),
+        Degenerate,
+        Inverted,
     }
     let status: Vec<Status> = (0..model.num_simplices())
         .into_par_iter()
@@ -217,9 +231,9 @@ fn check_simplices(model: &Model, c: &mut Collector) -> Option<Topology> {
             let (det, longest) = orientation(model, s);
             let tol = DEGENERACY_TOLERANCE * longest.powi(n as i32);
             if det.abs() <= tol || !det.is_finite() {
-                Status::Degenerate(det, longest)
+                Status::Degenerate
             } else if det < 0.0 {
-                Status::Inverted(det)
+                Status::Inverted
             } else {
                 Status::Ok
             }
@@ -234,16 +248,22 @@ fn check_simplices(model: &Model, c: &mut Collector) -> Option<Topology> {
                 simplex_location(s, m),
                 format!("vertices {:?} repeat an index", model.simplex(s)),
             ),
-            Status::Degenerate(det, longest) => c.push(
-                Rule::Degenerate,
-                simplex_location(s, m),
-                format!("det = {det:e}, longest edge {longest:e}: relative volume at most {DEGENERACY_TOLERANCE:e}"),
-            ),
-            Status::Inverted(det) => c.push(
-                Rule::Inverted,
-                simplex_location(s, m),
-                format!("det = {det:e} < 0; expected positive orientation (swap two vertices)"),
-            ),
+            Status::Degenerate => {
+                let (det, longest) = orientation(model, s);
+                c.push(
+                    Rule::Degenerate,
+                    simplex_location(s, m),
+                    format!("det = {det:e}, longest edge {longest:e}: relative volume at most {DEGENERACY_TOLERANCE:e}"),
+                )
+            }
+            Status::Inverted => {
+                let (det, _) = orientation(model, s);
+                c.push(
+                    Rule::Inverted,
+                    simplex_location(s, m),
+                    format!("det = {det:e} < 0; expected positive orientation (swap two vertices)"),
+                )
+            }
         }
     }
     if c.full() {
@@ -251,7 +271,7 @@ fn check_simplices(model: &Model, c: &mut Collector) -> Option<Topology> {
     }
     // Duplicate simplices and facet sharing come out of indexing the complex: sorting face keys,
     // not hashing, keeps memory flat on millions of simplices.
-    let (topology, duplicates, defects) = Topology::build(model, &repeated);
+    let (topology, duplicates, defects) = Topology::build(model, &repeated, full);
     for (s, first) in duplicates {
         c.push(
             Rule::DuplicateSimplex,
@@ -396,17 +416,21 @@ pub fn escape_pointer(token: &str) -> String {
     token.replace('~', "~0").replace('/', "~1")
 }
 
-/// Checks the stages; returns, per stage, the face each record names (`None` where it names no
-/// face of the complex, and for monotonic stages no entries).
-fn check_stages(model: &Model, topology: &Topology, c: &mut Collector) -> Vec<Vec<Option<FaceId>>> {
+/// Checks the stages; returns, per stage, the face index each record names ([`NONE`] where it
+/// names no face of the complex).
+fn check_stages(model: &Model, topology: &Topology, c: &mut Collector) -> RecordFaces {
     let n = model.dim();
     let nv = model.num_vertices();
     let mut record_faces = Vec::with_capacity(model.stages.len());
     for (k, stage) in model.stages.iter().enumerate() {
         // Face lookups are the costly part: in parallel, once, kept for the stage tables.
-        let found: Vec<Option<FaceId>> = (0..stage.faces.len())
+        let found: Vec<u32> = (0..stage.faces.len())
             .into_par_iter()
-            .map(|r| topology.find(model, stage.faces.record(r).face))
+            .map(|r| {
+                topology
+                    .find(model, stage.faces.record(r).face)
+                    .map_or(NONE, |f| f.index)
+            })
             .collect();
         record_faces.push(found);
         let found = &record_faces[k];
@@ -480,23 +504,49 @@ fn check_stages(model: &Model, topology: &Topology, c: &mut Collector) -> Vec<Ve
                         format!("a {} stage has faces, not vertexMaps", stage.kind.as_str()),
                     );
                 }
-                // Duplicates by face id: the first record of each face, in one pass.
+                // Duplicates by face id: the first record of each face, in one pass (plain
+                // stores, cheaper than sharing the table between threads).
                 let mut first_record: Vec<Vec<u32>> = (0..=n)
-                    .map(|k| vec![u32::MAX; topology.face_slots(k)])
+                    .map(|k| vec![NONE; topology.face_slots(k)])
                     .collect();
-                let mut first_of = vec![usize::MAX; stage.faces.len()];
-                for (r, id) in found.iter().enumerate() {
-                    if let Some(id) = id {
-                        let slot = &mut first_record[id.dim as usize][id.index as usize];
-                        if *slot == u32::MAX {
+                let mut repeats: Vec<(usize, usize)> = Vec::new();
+                for (r, &id) in found.iter().enumerate() {
+                    if id != NONE {
+                        let dim = stage.faces.record(r).face.len() - 1;
+                        let slot = &mut first_record[dim][id as usize];
+                        if *slot == NONE {
                             *slot = r as u32;
                         } else {
-                            first_of[r] = *slot as usize;
+                            repeats.push((r, *slot as usize));
                         }
                     }
                 }
                 drop(first_record);
-                for (r, rec) in stage.faces.iter().enumerate() {
+                // The per-record rules in parallel; only the records breaking one are visited
+                // below, in order, to format exactly what a visit of every record would.
+                let rational = stage.kind == StageKind::Rational;
+                let suspects: Vec<usize> = (0..stage.faces.len())
+                    .into_par_iter()
+                    .filter(|&r| {
+                        let rec = stage.faces.record(r);
+                        let owned = owned_count(rec.face.len(), d);
+                        found[r] == NONE
+                            || owned == 0
+                            || rec.points.len() != owned * rec.face.len()
+                            || rec.weights.len() != if rational { owned } else { 0 }
+                            || !rec.points.iter().all(|x| x.is_finite())
+                            || !rec.weights.iter().all(|x| x.is_finite())
+                    })
+                    .collect();
+                let mut visit: Vec<(usize, usize)> = suspects
+                    .into_iter()
+                    .map(|r| (r, usize::MAX))
+                    .chain(repeats)
+                    .collect();
+                visit.sort_unstable_by_key(|&(r, first)| (r, first == usize::MAX));
+                visit.dedup_by_key(|&mut (r, _)| r);
+                for (r, first) in visit {
+                    let rec = stage.faces.record(r);
                     let loc = |suffix: &str| Location {
                         face: Some(rec.face.to_vec()),
                         ..at(format!("/faces/{r}{suffix}"))
@@ -518,7 +568,7 @@ fn check_stages(model: &Model, topology: &Topology, c: &mut Collector) -> Vec<Ve
                         );
                         continue;
                     }
-                    if found[r].is_none() {
+                    if found[r] == NONE {
                         c.push(
                             Rule::NotAFace,
                             loc("/face"),
@@ -526,8 +576,7 @@ fn check_stages(model: &Model, topology: &Topology, c: &mut Collector) -> Vec<Ve
                         );
                         continue;
                     }
-                    if first_of[r] != usize::MAX {
-                        let first = first_of[r];
+                    if first != usize::MAX {
                         c.push(
                             Rule::DuplicateFace,
                             loc("/face"),

@@ -5,6 +5,7 @@
 //! monotonic coefficients strictly increasing from 0.
 
 use ism_format::{Location, Model, Rule, StageKind};
+use rayon::prelude::*;
 
 use crate::report::Message;
 
@@ -53,46 +54,54 @@ pub fn check_stage(model: &Model, k: usize) -> Vec<Message> {
             }
         }
         StageKind::Bezier | StageKind::Rational => {
-            for (r, rec) in stage.faces.iter().enumerate() {
-                let k1 = rec.face.len();
-                let loc = |suffix: String| Location {
-                    stage: Some(k),
-                    face: Some(rec.face.to_vec()),
-                    ..at(format!("/faces/{r}{suffix}"))
-                };
-                for (p, point) in rec.points.chunks(k1).enumerate() {
-                    let mut bad = false;
-                    for (j, &x) in point.iter().enumerate() {
-                        if x <= 0.0 {
-                            bad = true;
+            // Per record on every core; only the (rare) findings are formatted, in record order.
+            let found: Vec<Message> = (0..stage.faces.len())
+                .into_par_iter()
+                .flat_map_iter(|r| {
+                    let rec = stage.faces.record(r);
+                    let mut out = Vec::new();
+                    let k1 = rec.face.len();
+                    let loc = |suffix: String| Location {
+                        stage: Some(k),
+                        face: Some(rec.face.to_vec()),
+                        ..at(format!("/faces/{r}{suffix}"))
+                    };
+                    for (p, point) in rec.points.chunks(k1).enumerate() {
+                        let mut bad = false;
+                        for (j, &x) in point.iter().enumerate() {
+                            if x <= 0.0 {
+                                bad = true;
+                                out.push(Message::new(
+                                    Rule::CoordinatePositive,
+                                    loc(format!("/points/{}", p * k1 + j)),
+                                    format!("coordinate {j} of point {p} is {x}; it must be > 0 (the point lies in the open face)"),
+                                ));
+                            }
+                        }
+                        let sum: f64 = point.iter().sum();
+                        if !bad && (sum - 1.0).abs() > SUM_TOLERANCE {
                             out.push(Message::new(
-                                Rule::CoordinatePositive,
-                                loc(format!("/points/{}", p * k1 + j)),
-                                format!("coordinate {j} of point {p} is {x}; it must be > 0 (the point lies in the open face)"),
+                                Rule::CoordinateSum,
+                                loc(format!("/points/{}", p * k1)),
+                                format!("point {p}'s coordinates sum to {sum}; expected 1 within {SUM_TOLERANCE:e}"),
                             ));
                         }
                     }
-                    let sum: f64 = point.iter().sum();
-                    if !bad && (sum - 1.0).abs() > SUM_TOLERANCE {
-                        out.push(Message::new(
-                            Rule::CoordinateSum,
-                            loc(format!("/points/{}", p * k1)),
-                            format!("point {p}'s coordinates sum to {sum}; expected 1 within {SUM_TOLERANCE:e}"),
-                        ));
-                    }
-                }
-                if stage.kind == StageKind::Rational {
-                    for (j, &q) in rec.weights.iter().enumerate() {
-                        if q <= 0.0 {
-                            out.push(Message::new(
-                                Rule::WeightPositive,
-                                loc(format!("/weights/{j}")),
-                                format!("weight {j} is {q}; weights must be > 0"),
-                            ));
+                    if stage.kind == StageKind::Rational {
+                        for (j, &q) in rec.weights.iter().enumerate() {
+                            if q <= 0.0 {
+                                out.push(Message::new(
+                                    Rule::WeightPositive,
+                                    loc(format!("/weights/{j}")),
+                                    format!("weight {j} is {q}; weights must be > 0"),
+                                ));
+                            }
                         }
                     }
-                }
-            }
+                    out
+                })
+                .collect();
+            out.extend(found);
         }
     }
     out

@@ -301,7 +301,11 @@ fn run(
         out.push(d.into());
     }
     if indexable {
-        for m in topology::non_manifold(model) {
+        let found = match indexed {
+            Some(ix) => topology::non_manifold_indexed(ix),
+            None => topology::non_manifold(model),
+        };
+        for m in found {
             out.push(m);
         }
     }

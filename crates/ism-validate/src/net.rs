@@ -4,6 +4,8 @@
 use ism_format::indexed::local_faces;
 use ism_format::{multi_index, IndexedModel, Model, Stage, StageKind};
 
+use rayon::prelude::*;
+
 use crate::certify::DenseNet;
 
 /// Whether a stored point (positive coordinates on its face, summing to 1 within the ISM-202
@@ -59,7 +61,10 @@ pub struct StageIndex<'a> {
     model: &'a Model,
     stage: &'a Stage,
     topology: &'a ism_format::Topology,
-    table: &'a ism_format::StageTable,
+    /// The indexed model and the stage's index in it: the stage's face → record table is built on
+    /// first use, so stages decided by a theorem never build it.
+    indexed: &'a IndexedModel,
+    stage_index: usize,
     /// All local multi-indices of degree `d` in `n + 1` variables, flat.
     all: Vec<u32>,
     /// Per record: every stored point equals the correctly rounded fixed point `J/d`.
@@ -98,21 +103,28 @@ impl<'a> StageIndex<'a> {
         let model: &'a Model = indexed;
         let stage = &model.stages[k];
         let d = stage.degree;
-        let fixed = stage
-            .faces
-            .iter()
-            .map(|rec| {
-                let k1 = rec.face.len();
+        // Per record, on every core; the fixed points `J / d` per face size are computed once.
+        let fixed_points: Vec<Vec<f64>> = (0..=model.dim() + 1)
+            .map(|k1| {
                 multi_index::owned(k1, d)
                     .iter()
-                    .zip(rec.points)
-                    .all(|(&j, &x)| x == f64::from(j) / f64::from(d))
+                    .map(|&j| f64::from(j) / f64::from(d))
+                    .collect()
             })
             .collect();
-        let adjusted = stage
-            .faces
-            .iter()
-            .map(|rec| {
+        let fixed = (0..stage.faces.len())
+            .into_par_iter()
+            .map(|r| {
+                let rec = stage.faces.record(r);
+                fixed_points
+                    .get(rec.face.len())
+                    .is_some_and(|f| f.iter().zip(rec.points).all(|(&j, &x)| x == j))
+            })
+            .collect();
+        let adjusted = (0..stage.faces.len())
+            .into_par_iter()
+            .map(|r| {
+                let rec = stage.faces.record(r);
                 let k1 = rec.face.len();
                 k1 == 0 || rec.points.chunks(k1).all(reduced_adjusted)
             })
@@ -121,7 +133,8 @@ impl<'a> StageIndex<'a> {
             model,
             stage,
             topology: indexed.topology(),
-            table: indexed.stage(k),
+            indexed,
+            stage_index: k,
             adjusted,
             all: multi_index::all(model.dim() + 1, d),
             fixed,
@@ -155,9 +168,10 @@ impl<'a> StageIndex<'a> {
     pub fn records(&self, s: usize) -> SimplexRecords {
         let m = self.model.dim() + 1;
         let mut out = SimplexRecords::default();
+        let table = self.indexed.stage(self.stage_index);
         for size in 1..=m {
             let k = size - 1;
-            let records = self.table.records(k);
+            let records = table.records(k);
             for (j, pos) in local_faces(m, size).iter().enumerate() {
                 let r = records[self.topology.simplex_face(self.model, s, k, j) as usize];
                 if r != ism_format::indexed::NONE {

@@ -6,17 +6,20 @@
 //! star is connected through facets containing the vertex (or edge) and, for 3D vertices, the
 //! Euler characteristic of the link: 1 (disk) when it has boundary, 2 (sphere) when closed.
 
-use ism_format::{Location, Model, Rule};
+use ism_format::{IndexedModel, Location, Model, Rule};
 use rayon::prelude::*;
 
 use crate::report::Message;
 
 /// Union–find over small local index sets.
+#[derive(Default)]
 struct Dsu(Vec<u32>);
 
 impl Dsu {
-    fn new(n: usize) -> Dsu {
-        Dsu((0..n as u32).collect())
+    /// Resets to `n` singletons, reusing the allocation.
+    fn reset(&mut self, n: usize) {
+        self.0.clear();
+        self.0.extend(0..n as u32);
     }
     fn find(&mut self, mut x: u32) -> u32 {
         while self.0[x as usize] != x {
@@ -97,12 +100,25 @@ fn others(ids: &[u32], key: &[u32; 4], k: usize) -> ([u32; 4], usize) {
 /// Two simplices of the star are joined when they share a facet held by exactly these two (a facet
 /// held by more is an ISM-109 error and joins nothing). Such a facet contains the face, so every
 /// simplex holding it is in the star: sorting the star's facets through the face finds them all.
-fn star_defect(model: &Model, key: &[u32; 4], k: usize, members: &[u32]) -> Option<String> {
+fn star_defect(
+    model: &Model,
+    key: &[u32; 4],
+    k: usize,
+    members: &[u32],
+    scratch: &mut Scratch,
+) -> Option<String> {
     let n = model.dim();
     let r = members.len();
     // (facet key, local index) for each facet of each member that contains the face: the face's
     // ids plus all but one of the member's other ids.
-    let mut facets: Vec<([u32; 4], u32)> = Vec::with_capacity(r * (n + 1 - k));
+    let Scratch {
+        facets,
+        dsu,
+        roots,
+        verts,
+        tris,
+    } = scratch;
+    facets.clear();
     for (local, &s) in members.iter().enumerate() {
         let (rest, len) = others(model.simplex(s as usize), key, k);
         for skip in 0..len {
@@ -120,13 +136,20 @@ fn star_defect(model: &Model, key: &[u32; 4], k: usize, members: &[u32]) -> Opti
         }
     }
     facets.sort_unstable();
-    let mut dsu = Dsu::new(r);
-    for (_, range) in groups(&facets) {
-        if range.len() == 2 {
-            dsu.union(facets[range.start].1, facets[range.start + 1].1);
+    dsu.reset(r);
+    let mut i = 0;
+    while i < facets.len() {
+        let mut j = i + 1;
+        while j < facets.len() && facets[j].0 == facets[i].0 {
+            j += 1;
         }
+        if j - i == 2 {
+            dsu.union(facets[i].1, facets[i + 1].1);
+        }
+        i = j;
     }
-    let mut roots: Vec<u32> = (0..r as u32).map(|i| dsu.find(i)).collect();
+    roots.clear();
+    roots.extend((0..r as u32).map(|i| dsu.find(i)));
     roots.sort_unstable();
     roots.dedup();
     if roots.len() > 1 {
@@ -139,8 +162,8 @@ fn star_defect(model: &Model, key: &[u32; 4], k: usize, members: &[u32]) -> Opti
     if k == 1 && n == 3 {
         // Euler characteristic of the link: vertices − edges + triangles of the link, i.e. the
         // star's edges, triangles and tetrahedra through the vertex.
-        let mut verts: Vec<u32> = Vec::with_capacity(3 * r);
-        let mut tris: Vec<[u32; 2]> = Vec::with_capacity(3 * r);
+        verts.clear();
+        tris.clear();
         for &s in members {
             let (o, len) = others(model.simplex(s as usize), key, 1);
             verts.extend_from_slice(&o[..len]);
@@ -177,39 +200,117 @@ fn star_defect(model: &Model, key: &[u32; 4], k: usize, members: &[u32]) -> Opti
     None
 }
 
+/// Buffers of [`star_defect`], reused from star to star (no allocation per star).
+#[derive(Default)]
+struct Scratch {
+    facets: Vec<([u32; 4], u32)>,
+    dsu: Dsu,
+    roots: Vec<u32>,
+    verts: Vec<u32>,
+    tris: Vec<[u32; 2]>,
+}
+
+/// The ISM-150 message of a star `members` of the face `key` (`k` vertices), if it is not a
+/// manifold star.
+fn star_message(
+    model: &Model,
+    key: &[u32; 4],
+    k: usize,
+    members: &[u32],
+    scratch: &mut Scratch,
+) -> Option<Message> {
+    let n = model.dim();
+    let m = n + 1;
+    let why = star_defect(model, key, k, members, scratch)?;
+    let first = members[0] as usize;
+    let loc = if k == 1 {
+        Location {
+            vertex: Some(key[0] as usize),
+            ..Location::pointer(format!("/vertices/{}", key[0] as usize * n))
+        }
+    } else {
+        Location {
+            simplex: Some(first),
+            face: Some(key[..k].to_vec()),
+            ..Location::pointer(format!("/simplices/{}", first * m))
+        }
+    };
+    let what = if k == 1 { "vertex" } else { "edge" };
+    Some(Message::new(
+        Rule::NonManifold,
+        loc,
+        format!("non-manifold {what}: {why}"),
+    ))
+}
+
+/// [`non_manifold`] on an indexed model: the stars come from its topology (vertex incidence, the
+/// simplex → edge table), so nothing is sorted globally. Same messages, same order.
+pub fn non_manifold_indexed(indexed: &IndexedModel) -> Vec<Message> {
+    let model: &Model = indexed;
+    let topology = indexed.topology();
+    let n = model.dim();
+    let mut out = Vec::new();
+    if n == 3 {
+        // Edge → simplices, compressed rows, simplices ascending (a counting sort of the table).
+        let table = topology.simplex_face_table(1);
+        let per = ism_format::indexed::local_faces(n + 1, 2).len();
+        let edges = topology.num_faces(1);
+        let mut start = vec![0u32; edges + 1];
+        for &e in table {
+            start[e as usize + 1] += 1;
+        }
+        for e in 0..edges {
+            start[e + 1] += start[e];
+        }
+        let mut fill = start.clone();
+        let mut members = vec![0u32; start[edges] as usize];
+        for (i, &e) in table.iter().enumerate() {
+            members[fill[e as usize] as usize] = (i / per) as u32;
+            fill[e as usize] += 1;
+        }
+        drop(fill);
+        let ids = topology.face_vertices(1);
+        let found: Vec<Message> = (0..edges)
+            .into_par_iter()
+            .map_init(Scratch::default, |scratch, e| {
+                let key = [ids[2 * e], ids[2 * e + 1], u32::MAX, u32::MAX];
+                let star = &members[start[e] as usize..start[e + 1] as usize];
+                star_message(model, &key, 2, star, scratch)
+            })
+            .flatten()
+            .collect();
+        out.extend(found);
+    }
+    let found: Vec<Message> = (0..model.num_vertices())
+        .into_par_iter()
+        .map_init(Scratch::default, |scratch, v| {
+            let star = topology.vertex_simplices(v);
+            if star.is_empty() {
+                return None;
+            }
+            let key = [v as u32, u32::MAX, u32::MAX, u32::MAX];
+            star_message(model, &key, 1, star, scratch)
+        })
+        .flatten()
+        .collect();
+    out.extend(found);
+    out
+}
+
 /// ISM-150 warnings. The model must have passed the structural checks that index vertices.
 pub fn non_manifold(model: &Model) -> Vec<Message> {
     let n = model.dim();
-    let m = n + 1;
     let mut out = Vec::new();
     let check = |k: usize, out: &mut Vec<Message>| {
         let list = faces_of_size(model, k);
         let star = groups(&list);
         let found: Vec<Message> = star
             .par_iter()
-            .filter_map(|(key, range)| {
+            .map_init(Scratch::default, |scratch, (key, range)| {
                 let members: Vec<u32> = list[range.clone()].iter().map(|x| x.1).collect();
-                let why = star_defect(model, key, k, &members)?;
-                let first = members[0] as usize;
-                let loc = if k == 1 {
-                    Location {
-                        vertex: Some(key[0] as usize),
-                        ..Location::pointer(format!("/vertices/{}", key[0] as usize * n))
-                    }
-                } else {
-                    Location {
-                        simplex: Some(first),
-                        face: Some(key[..k].to_vec()),
-                        ..Location::pointer(format!("/simplices/{}", first * m))
-                    }
-                };
-                let what = if k == 1 { "vertex" } else { "edge" };
-                Some(Message::new(
-                    Rule::NonManifold,
-                    loc,
-                    format!("non-manifold {what}: {why}"),
-                ))
+                star_message(model, key, k, &members, scratch)
             })
+            .flatten()
             .collect();
         out.extend(found);
     };
@@ -241,6 +342,7 @@ mod tests {
         let w = non_manifold(&model);
         assert_eq!(w.len(), 1, "{w:?}");
         assert_eq!(w[0].location.vertex, Some(0));
+        same_from_the_index(&model);
     }
 
     #[test]
@@ -254,7 +356,9 @@ mod tests {
         for i in 0..6u32 {
             b = b.simplex(&[0, 1 + i, 1 + (i + 1) % 6]);
         }
-        assert!(non_manifold(&b.build().unwrap()).is_empty());
+        let model = b.build().unwrap();
+        assert!(non_manifold(&model).is_empty());
+        same_from_the_index(&model);
     }
 
     #[test]
@@ -277,5 +381,84 @@ mod tests {
         assert_eq!(edges[0].location.face, Some(vec![0, 1]));
         let verts: Vec<_> = w.iter().filter_map(|m| m.location.vertex).collect();
         assert_eq!(verts, vec![0, 1]);
+        same_from_the_index(&model);
+    }
+
+    /// The stars read from the index give exactly the messages of the sort-based enumeration
+    /// (an independent way to find every vertex and edge star).
+    fn same_from_the_index(model: &Model) {
+        let indexed = IndexedModel::new(model.clone()).expect("structurally valid");
+        let text = |w: Vec<Message>| format!("{w:?}");
+        assert_eq!(
+            text(non_manifold_indexed(&indexed)),
+            text(non_manifold(model))
+        );
+    }
+
+    #[test]
+    fn index_and_sort_agree_on_a_pinched_grid() {
+        // Two 2×2×2 cube grids of six tetrahedra per cube, the second shifted so that they share
+        // one corner vertex and one edge: manifold everywhere except there.
+        let mut b = ModelBuilder::new(3);
+        let mut id = std::collections::HashMap::new();
+        let mut vertex = |b: ModelBuilder, p: [i64; 3]| -> (ModelBuilder, u32) {
+            let next = id.len() as u32;
+            match id.get(&p) {
+                Some(&i) => (b, i),
+                None => {
+                    id.insert(p, next);
+                    let q = p.map(|x| x as f64);
+                    (
+                        b.vertex(
+                            &q,
+                            if (p[0] + p[1] + p[2]) % 2 == 0 {
+                                -1.0
+                            } else {
+                                1.0
+                            },
+                        ),
+                        next,
+                    )
+                }
+            }
+        };
+        let kuhn = [
+            [0, 1, 2],
+            [0, 2, 1],
+            [1, 0, 2],
+            [1, 2, 0],
+            [2, 0, 1],
+            [2, 1, 0],
+        ];
+        for origin in [[0i64, 0, 0], [2, 2, 0]] {
+            for cell in 0..8i64 {
+                let base = [
+                    origin[0] + cell % 2,
+                    origin[1] + cell / 2 % 2,
+                    origin[2] + cell / 4,
+                ];
+                for p in kuhn {
+                    let mut c = base;
+                    let mut ids = Vec::new();
+                    let (nb, v) = vertex(b, c);
+                    b = nb;
+                    ids.push(v);
+                    for axis in p {
+                        c[axis] += 1;
+                        let (nb, v) = vertex(b, c);
+                        b = nb;
+                        ids.push(v);
+                    }
+                    let odd = (p[0] > p[1]) as u32 + (p[0] > p[2]) as u32 + (p[1] > p[2]) as u32;
+                    if odd % 2 == 1 {
+                        ids.swap(1, 2);
+                    }
+                    b = b.simplex(&ids);
+                }
+            }
+        }
+        let model = b.build().unwrap();
+        assert!(!non_manifold(&model).is_empty());
+        same_from_the_index(&model);
     }
 }
