@@ -343,6 +343,8 @@ def main():
     ap.add_argument("--near-steps", type=int, default=40, help="bisection steps toward the threshold")
     ap.add_argument("--near-count", type=int, default=None, help="elements of the near sets (default --count)")
     ap.add_argument("--no-rational", action="store_true")
+    ap.add_argument("--no-general", action="store_true", help="skip the general sets (with --near)")
+    ap.add_argument("--keep", default=None, help="directory to keep every set's nets in ({general,near}ND.bin)")
     ap.add_argument("--whole-process", action="store_true", help="also end-to-end on a 3,042-element file")
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--binary", default=os.path.join(ROOT, "target/release/examples/certify_nets"))
@@ -358,7 +360,9 @@ def main():
     # Amplitudes giving roughly half folded elements at each degree (control points move less at
     # higher degree because they are closer together).
     default_amp = {2: 0.45, 3: 0.22, 4: 0.14}
-    sets = ["general"] + (["near"] if args.near else [])
+    sets = ([] if args.no_general else ["general"]) + (["near"] if args.near else [])
+    if args.keep:
+        os.makedirs(args.keep, exist_ok=True)
     for n in [int(x) for x in args.dims.split(",")]:
         for d in [int(x) for x in args.degrees.split(",")]:
             amp = args.amplitude or default_amp.get(d, 0.1)
@@ -367,7 +371,7 @@ def main():
                     nets = general_nets(rng, args.count, n, d, amp)
                 else:
                     nets = near_nets(rng, args.near_count or args.count, n, d, amp, args.binary, args.near_steps, tmp)
-                path = os.path.join(tmp, f"bezier{n}{d}.bin")
+                path = os.path.join(args.keep or tmp, f"{which}{n}{d}.bin")
                 write_nets(path, n, d, nets)
                 count = nets.shape[0]
                 for threads in (1, 2):

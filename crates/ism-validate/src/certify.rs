@@ -295,6 +295,8 @@ pub struct DetKernel {
     lines: Vec<EdgeLines>,
     /// Integer tables of the exact path, built on first use.
     exact: std::sync::OnceLock<crate::exact::ExactTables>,
+    /// Tables of the decision around the estimated minimum, built on first use.
+    star: std::sync::OnceLock<StarTables>,
 }
 
 impl DetKernel {
@@ -390,7 +392,14 @@ impl DetKernel {
             vertex_rank,
             lines,
             exact: std::sync::OnceLock::new(),
+            star: std::sync::OnceLock::new(),
         }
+    }
+
+    /// The tables of the decision around the minimum (built once per kernel).
+    fn star_tables(&self) -> &StarTables {
+        self.star
+            .get_or_init(|| StarTables::new(self.n + 1, self.det_degree))
     }
 
     /// The integer tables of the exact path (built once per kernel).
@@ -541,6 +550,8 @@ impl DetKernel {
     /// decide, the exact path of [`crate::exact`]. Every witness is proven exactly.
     pub fn certify(&self, net: &DenseNet, budget: Budget) -> Certificate {
         let mut bounds = (f64::NEG_INFINITY, f64::INFINITY, 0u32, 0usize);
+        // Where the polynomial is least (estimated once, by the first tier that needs it).
+        let mut estimate = None;
         if let Some(scaled) = normalized(net) {
             // Floating point first; where its error bound is too wide (minima near the fold
             // threshold), the same polynomial in double-double, whose bound is ~10⁻¹⁷ as wide.
@@ -557,19 +568,22 @@ impl DetKernel {
                     },
                 };
                 // Impatient before the double-double tier, patient in it.
-                match self.decide(
-                    coefficients,
-                    unit_corners(self.n + 1),
-                    0,
+                let mut coef = coefficients.values;
+                coef.extend_from_slice(&coefficients.errors);
+                match self.decide_tier(
+                    net,
+                    &coef,
                     budget.pieces,
                     max_depth,
                     tier == 0,
+                    &mut estimate,
                 ) {
-                    Decision::Positive {
+                    TierOutcome::Witness(w) => return Certificate::NonPositive(w),
+                    TierOutcome::Decided(Decision::Positive {
                         depth,
                         pieces,
                         lower_bound,
-                    } => {
+                    }) => {
                         return Certificate::Positive {
                             exact: false,
                             depth,
@@ -577,17 +591,14 @@ impl DetKernel {
                             lower_bound: Some(lower_bound),
                         }
                     }
-                    Decision::NonPositive { point, .. } => {
-                        if let Some(w) = crate::exact::witness_at(net, &point) {
-                            return Certificate::NonPositive(w);
-                        }
-                    }
-                    Decision::Undetermined {
+                    // An unproven candidate: the next tier decides.
+                    TierOutcome::Decided(Decision::NonPositive { .. }) => {}
+                    TierOutcome::Decided(Decision::Undetermined {
                         depth,
                         pieces,
                         lower_bound,
                         upper_bound,
-                    } => {
+                    }) => {
                         bounds = if tier == 0 {
                             (lower_bound, upper_bound, depth, pieces)
                         } else {
@@ -632,32 +643,35 @@ impl DetKernel {
         budget: usize,
         max_depth: u32,
     ) -> Decision {
-        self.decide(coefficients, corners, depth, budget, max_depth, false)
+        let mut coef = coefficients.values;
+        coef.extend_from_slice(&coefficients.errors);
+        self.decide_inner(&coef, corners, depth, budget, max_depth, false)
+            .0
     }
 
-    /// [`DetKernel::decide_piece`]; `impatient` also gives up at the first coefficient whose sign
-    /// its bound cannot settle (`|value| ≤ error`). Such a coefficient can still be settled by
-    /// bisection, but in practice it means the minimum is within the bound of 0 — a near-threshold
-    /// net that a tighter tier decides far sooner than bisection down to the error floor.
-    fn decide(
+    /// [`DetKernel::decide_piece`] on `coefficients` (values, then error bounds), also saying why
+    /// it stopped short; `impatient` also gives up at the first coefficient whose sign its bound
+    /// cannot settle (`|value| ≤ error`). Such a coefficient can still be settled by bisection, but
+    /// in practice it means the minimum is within the bound of 0 — a near-threshold net that a
+    /// tighter tier decides far sooner than bisection down to the error floor.
+    fn decide_inner(
         &self,
-        coefficients: BoundedCoefficients,
+        coefficients: &[f64],
         corners: [[f64; 4]; 4],
         depth: u32,
         budget: usize,
         max_depth: u32,
         impatient: bool,
-    ) -> Decision {
+    ) -> (Decision, Stop) {
         let m = self.n + 1;
-        let len = coefficients.values.len();
+        let len = coefficients.len() / 2;
         struct Piece {
             /// Values, then error bounds.
             coef: Vec<f64>,
             corners: [[f64; 4]; 4],
             depth: u32,
         }
-        let mut coef = coefficients.values;
-        coef.extend_from_slice(&coefficients.errors);
+        let coef = coefficients.to_vec();
         let mut stack = vec![Piece {
             coef,
             corners,
@@ -669,6 +683,7 @@ impl DetKernel {
         let mut deepest = depth;
         let mut lower = f64::INFINITY;
         let mut undecided: Option<f64> = None;
+        let mut stop = Stop::Decided;
         let mut upper = f64::INFINITY;
         while let Some(piece) = stack.pop() {
             pieces += 1;
@@ -677,6 +692,7 @@ impl DetKernel {
             // NaN and infinities (overflow) decide nothing: the piece goes to the exact path.
             if !piece.coef.iter().all(|x| x.is_finite()) {
                 undecided = Some(f64::NEG_INFINITY);
+                stop = Stop::Precision;
                 break;
             }
             let mut hopeless = None;
@@ -686,11 +702,14 @@ impl DetKernel {
                 upper = upper.min(value);
                 if value + error <= 0.0 {
                     // Negative beyond its error bound: a candidate the caller proves exactly.
-                    return Decision::NonPositive {
-                        point: piece.corners[i][..m].to_vec(),
-                        value,
-                        error,
-                    };
+                    return (
+                        Decision::NonPositive {
+                            point: piece.corners[i][..m].to_vec(),
+                            value,
+                            error,
+                        },
+                        Stop::Decided,
+                    );
                 }
                 if value - error <= 0.0 {
                     hopeless = Some(value - error);
@@ -702,6 +721,7 @@ impl DetKernel {
             // be. Give up at once (always sound) and let a tighter computation decide.
             if let Some(low) = hopeless {
                 undecided = Some(undecided.map_or(low, |l: f64| l.min(low)));
+                stop = Stop::Precision;
                 break;
             }
             let low = values
@@ -711,6 +731,7 @@ impl DetKernel {
                 .fold(f64::INFINITY, f64::min);
             if impatient && low <= 0.0 && values.iter().zip(errors).any(|(v, e)| v.abs() <= *e) {
                 undecided = Some(undecided.map_or(low, |l: f64| l.min(low)));
+                stop = Stop::Precision;
                 break;
             }
             if low > 0.0 {
@@ -721,6 +742,7 @@ impl DetKernel {
             if piece.depth >= max_depth || pieces + stack.len() >= budget {
                 let l = undecided.get_or_insert(low);
                 *l = l.min(low);
+                stop = Stop::Budget;
                 pool.push(piece.coef);
                 continue;
             }
@@ -753,17 +775,23 @@ impl DetKernel {
             }
         }
         match undecided {
-            None => Decision::Positive {
-                depth: deepest,
-                pieces,
-                lower_bound: lower,
-            },
-            Some(l) => Decision::Undetermined {
-                depth: deepest,
-                pieces,
-                lower_bound: l,
-                upper_bound: upper,
-            },
+            None => (
+                Decision::Positive {
+                    depth: deepest,
+                    pieces,
+                    lower_bound: lower,
+                },
+                Stop::Decided,
+            ),
+            Some(l) => (
+                Decision::Undetermined {
+                    depth: deepest,
+                    pieces,
+                    lower_bound: l,
+                    upper_bound: upper,
+                },
+                stop,
+            ),
         }
     }
 
@@ -813,6 +841,537 @@ impl DetKernel {
                 rv[line[len - 1 - step] as usize] = tv[len - 1 - step];
                 re[line[len - 1 - step] as usize] = te[len - 1 - step];
             }
+        }
+    }
+}
+
+/// Pieces the plain subdivision of the whole simplex may use before the element is decided around
+/// its estimated minimum instead: most elements decide within a handful; an element whose minimum
+/// is near 0 would take ~50 bisections of midpoint subdivision to reach it.
+const QUICK_PIECES: usize = 4;
+
+/// Coordinates of the estimated minimiser are multiples of 2⁻⁵⁰: every sum of them in `[0, 1]` is
+/// exact in f64, so the largest coordinate is `1 − Σ others` exactly — the de Casteljau weights
+/// of the star subdivision sum exactly to 1, and the printed point is the one subdivided at.
+const MINIMISER_GRID: f64 = 1_125_899_906_842_624.0; // 2^50
+
+/// Newton steps toward the minimum (quadratic convergence: a handful suffice from the least
+/// coefficient's domain point; the result is only a subdivision point, never trusted).
+const NEWTON_STEPS: usize = 10;
+
+/// Tables of the evaluation at a point and of the star subdivision at a point, for one
+/// determinant degree `D` in `m` barycentric coordinates.
+#[derive(Clone, Debug)]
+struct StarTables {
+    /// `steps[r]`: for each multi-index `J` of degree `r < D`, the ranks of `J + eᵢ` in degree
+    /// `r + 1` (one de Casteljau step maps degree `r + 1` to degree `r`).
+    steps: Vec<Vec<[u16; 4]>>,
+    /// Offset of the coefficients of degree `D − r` in the flattened de Casteljau pyramid.
+    offsets: Vec<usize>,
+    /// `star[i][K]`: position in the pyramid of coefficient `K` of the piece whose vertex `i` is
+    /// the subdivision point (the blossom `b(v₀^{K₀} … x^{Kᵢ} … vₙ^{Kₙ})` is the entry `K − Kᵢeᵢ`
+    /// after `Kᵢ` de Casteljau steps at `x`).
+    star: Vec<Vec<u32>>,
+    /// Rank of `eᵢ + eⱼ` in degree 2.
+    quad: [[usize; 4]; 4],
+}
+
+impl StarTables {
+    fn new(m: usize, det_degree: u32) -> StarTables {
+        let steps = (0..det_degree)
+            .map(|r| {
+                multi_index::all(m, r)
+                    .chunks(m)
+                    .map(|j| {
+                        let mut out = [0u16; 4];
+                        let mut k = j.to_vec();
+                        for (i, o) in out.iter_mut().enumerate().take(m) {
+                            k[i] += 1;
+                            *o = multi_index::rank(&k) as u16;
+                            k[i] -= 1;
+                        }
+                        out
+                    })
+                    .collect()
+            })
+            .collect();
+        let mut offsets = Vec::with_capacity(det_degree as usize + 2);
+        let mut acc = 0;
+        for r in 0..=det_degree {
+            offsets.push(acc);
+            acc += multi_index::count(m, det_degree - r);
+        }
+        offsets.push(acc);
+        let all = multi_index::all(m, det_degree);
+        let star = (0..m)
+            .map(|i| {
+                all.chunks(m)
+                    .map(|k| {
+                        let mut j = k.to_vec();
+                        j[i] = 0;
+                        (offsets[k[i] as usize] + multi_index::rank(&j)) as u32
+                    })
+                    .collect()
+            })
+            .collect();
+        let mut quad = [[0usize; 4]; 4];
+        if det_degree >= 2 {
+            for (i, row) in quad.iter_mut().enumerate().take(m) {
+                for (j, q) in row.iter_mut().enumerate().take(m) {
+                    let mut e = vec![0u32; m];
+                    e[i] += 1;
+                    e[j] += 1;
+                    *q = multi_index::rank(&e);
+                }
+            }
+        }
+        StarTables {
+            steps,
+            offsets,
+            star,
+            quad,
+        }
+    }
+}
+
+/// Why [`DetKernel::decide_inner`] stopped short of a decision.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Stop {
+    /// Decided (positive, or a candidate witness).
+    Decided,
+    /// The piece budget or the depth limit: a better subdivision may still decide.
+    Budget,
+    /// A sign within its error bound (or a number not finite): only a tighter tier decides.
+    Precision,
+}
+
+/// One tier's outcome: [`Decision`] with the candidate witness already proven (or not).
+enum TierOutcome {
+    Decided(Decision),
+    Witness(crate::exact::ExactWitness),
+}
+
+/// Solves `(H + μI) δ = −g` (size ≤ 3, `H` symmetric) by Cholesky, raising `μ` until the matrix
+/// is positive definite: a damped Newton step that is always a descent direction. (Index loops:
+/// the triangular solves read clearer with the indices of the formulas.)
+#[allow(clippy::needless_range_loop)]
+fn damped_newton_step(h: &[[f64; 3]; 3], g: &[f64; 3], k: usize) -> Option<[f64; 3]> {
+    let scale = (0..k).map(|i| h[i][i].abs()).fold(0.0f64, f64::max);
+    if !(scale.is_finite() && scale > 0.0) {
+        return None;
+    }
+    let mut mu = 0.0;
+    for _ in 0..40 {
+        let mut l = [[0.0f64; 3]; 3];
+        let mut ok = true;
+        'rows: for i in 0..k {
+            for j in 0..=i {
+                let mut s = h[i][j] + if i == j { mu } else { 0.0 };
+                for p in 0..j {
+                    s -= l[i][p] * l[j][p];
+                }
+                if i == j {
+                    if s.is_nan() || s <= 1e-14 * scale {
+                        ok = false;
+                        break 'rows;
+                    }
+                    l[i][i] = s.sqrt();
+                } else {
+                    l[i][j] = s / l[j][j];
+                }
+            }
+        }
+        if ok {
+            let mut y = [0.0f64; 3];
+            for i in 0..k {
+                let mut s = -g[i];
+                for p in 0..i {
+                    s -= l[i][p] * y[p];
+                }
+                y[i] = s / l[i][i];
+            }
+            let mut x = [0.0f64; 3];
+            for i in (0..k).rev() {
+                let mut s = y[i];
+                for p in (i + 1)..k {
+                    s -= l[p][i] * x[p];
+                }
+                x[i] = s / l[i][i];
+            }
+            return x.iter().all(|v| v.is_finite()).then_some(x);
+        }
+        mu = if mu == 0.0 { 1e-8 * scale } else { mu * 10.0 };
+    }
+    None
+}
+
+impl DetKernel {
+    /// The symmetric matrix `Q` with `p(y) ≈ yᵀQy` near `x`: the degree-2 coefficients after
+    /// `D − 2` de Casteljau steps at `x`, so that `p(x) = xᵀQx`, `∇p` along `eₖ − eⱼ` is
+    /// `D (Qx)ₖ − D (Qx)ⱼ` and the Hessian `D(D − 1)` times the second differences of `Q`.
+    /// Plain floating point: only used to place a subdivision point.
+    fn local_quadratic(&self, t: &StarTables, values: &[f64], x: &[f64; 4]) -> [[f64; 4]; 4] {
+        let m = self.n + 1;
+        let mut cur = values.to_vec();
+        let mut next = Vec::with_capacity(cur.len());
+        for r in (2..self.det_degree as usize).rev() {
+            next.clear();
+            next.extend(t.steps[r].iter().map(|sh| {
+                let mut v = 0.0;
+                for i in 0..m {
+                    v += x[i] * cur[sh[i] as usize];
+                }
+                v
+            }));
+            std::mem::swap(&mut cur, &mut next);
+        }
+        let mut q = [[0.0; 4]; 4];
+        for i in 0..m {
+            for j in 0..m {
+                q[i][j] = cur[t.quad[i][j]];
+            }
+        }
+        q
+    }
+
+    /// An estimate of the point where the polynomial with Bernstein coefficients `values` is least
+    /// on the simplex: damped Newton from the least coefficient's domain point, steps truncated at
+    /// the boundary (a coordinate that reaches 0 stays there). Coordinates are rounded to multiples
+    /// of [`MINIMISER_GRID`] with the largest one `1 − Σ others`, exactly: a point of the closed
+    /// simplex whose coordinates sum exactly to 1. `None` when Newton fails (degree below 2, or
+    /// numbers not finite).
+    #[allow(clippy::needless_range_loop)]
+    fn minimiser(&self, t: &StarTables, values: &[f64]) -> Option<[f64; 4]> {
+        let m = self.n + 1;
+        let dd = self.det_degree;
+        if dd < 2 {
+            return None;
+        }
+        let dg = f64::from(dd);
+        let all = multi_index::all(m, dd);
+        let least = values
+            .iter()
+            .enumerate()
+            .min_by(|a, b| a.1.total_cmp(b.1))?
+            .0;
+        // Slightly inside: a start on a face would keep the coordinates that are 0 there at 0.
+        let mut x = [0.0f64; 4];
+        for i in 0..m {
+            x[i] = 0.8 * f64::from(all[least * m + i]) / dg + 0.2 / m as f64;
+        }
+        let mut free = [false; 4];
+        free[..m].iter_mut().for_each(|f| *f = true);
+        for _ in 0..NEWTON_STEPS {
+            let q = self.local_quadratic(t, values, &x);
+            let mut qx = [0.0f64; 4];
+            for i in 0..m {
+                qx[i] = (0..m).map(|j| q[i][j] * x[j]).sum();
+            }
+            let base = (0..m)
+                .filter(|&i| free[i])
+                .max_by(|&a, &b| x[a].total_cmp(&x[b]))?;
+            let dirs: Vec<usize> = (0..m).filter(|&i| free[i] && i != base).collect();
+            let k = dirs.len();
+            if k == 0 {
+                break;
+            }
+            let mut g = [0.0f64; 3];
+            let mut h = [[0.0f64; 3]; 3];
+            for (a, &i) in dirs.iter().enumerate() {
+                g[a] = dg * (qx[i] - qx[base]);
+                for (b, &j) in dirs.iter().enumerate() {
+                    h[a][b] = dg * (dg - 1.0) * (q[i][j] - q[i][base] - q[base][j] + q[base][base]);
+                }
+            }
+            let delta = damped_newton_step(&h, &g, k)?;
+            let mut step = [0.0f64; 4];
+            for (a, &i) in dirs.iter().enumerate() {
+                step[i] = delta[a];
+                step[base] -= delta[a];
+            }
+            // Truncate at the boundary; the blocking coordinate becomes 0 and stays there.
+            let mut tmax = 1.0f64;
+            let mut blocking = None;
+            for i in 0..m {
+                if free[i] && step[i] < 0.0 && x[i] + step[i] < 0.0 {
+                    let t = x[i] / -step[i];
+                    if t < tmax {
+                        tmax = t;
+                        blocking = Some(i);
+                    }
+                }
+            }
+            for i in 0..m {
+                x[i] += tmax * step[i];
+            }
+            if let Some(i) = blocking {
+                x[i] = 0.0;
+                free[i] = false;
+            }
+            for xi in x.iter_mut().take(m) {
+                *xi = xi.max(0.0);
+            }
+            let size = step[..m].iter().map(|s| s.abs()).fold(0.0, f64::max) * tmax;
+            if !size.is_finite() {
+                return None;
+            }
+            if size < 1e-15 && blocking.is_none() {
+                break;
+            }
+        }
+        let big = (0..m).max_by(|&a, &b| x[a].total_cmp(&x[b]))?;
+        let mut rest = 0.0;
+        for i in 0..m {
+            if i != big {
+                x[i] = ((x[i] * MINIMISER_GRID).round() / MINIMISER_GRID).clamp(0.0, 1.0);
+                rest += x[i];
+            }
+        }
+        x[big] = 1.0 - rest;
+        (x[big] >= 0.0 && x.iter().all(|v| v.is_finite())).then_some(x)
+    }
+
+    /// The de Casteljau pyramid at `x` (coordinates ≥ 0 summing exactly to 1) of bounded
+    /// coefficients, flattened by degree (`D`, then `D − 1`, … 0), values then errors.
+    ///
+    /// Each entry is `Σᵢ xᵢ yᵢ` of `m` entries `yᵢ` of the level above: with the exact inputs
+    /// within `eᵢ` of the computed ones, the exact entry is within `Σ xᵢ eᵢ` of the computed inputs'
+    /// combination (a convex combination), and the computed sum within `γₘ Σ xᵢ|yᵢ|` of that
+    /// (Higham, Accuracy and Stability, §3.1, `m` products and `m − 1` additions). The bound is
+    /// itself summed in floating point over non-negative terms (at most `m + 2` roundings, covered
+    /// by `γₘ` taken twice and the factor `1 + 4(m + 2)u`); underflow adds [`UNDERFLOW_SLACK`].
+    fn pyramid(&self, t: &StarTables, coefficients: &[f64], x: &[f64; 4], out: &mut Vec<f64>) {
+        let m = self.n + 1;
+        let dd = self.det_degree as usize;
+        let total = t.offsets[dd + 1];
+        let len = t.offsets[1];
+        out.clear();
+        out.resize(2 * total, 0.0);
+        let (pv, pe) = out.split_at_mut(total);
+        pv[..len].copy_from_slice(&coefficients[..len]);
+        pe[..len].copy_from_slice(&coefficients[len..]);
+        let mf = m as f64;
+        let gamma = 2.0 * mf * UNIT_ROUNDOFF / (1.0 - mf * UNIT_ROUNDOFF);
+        let grow = 1.0 + 4.0 * (mf + 2.0) * UNIT_ROUNDOFF;
+        for r in 1..=dd {
+            let src = t.offsets[r - 1];
+            let dst = t.offsets[r];
+            for (j, sh) in t.steps[dd - r].iter().enumerate() {
+                let (mut v, mut e, mut a) = (0.0, 0.0, 0.0);
+                for i in 0..m {
+                    let y = pv[src + sh[i] as usize];
+                    v += x[i] * y;
+                    a += x[i] * y.abs();
+                    e += x[i] * pe[src + sh[i] as usize];
+                }
+                pv[dst + j] = v;
+                pe[dst + j] = (e + gamma * a) * grow + UNDERFLOW_SLACK;
+            }
+        }
+    }
+
+    /// Decides the sign around the estimated minimum: if the polynomial is negative there, the
+    /// point is the candidate witness; otherwise the simplex is cut into the star of pieces that
+    /// share that point as a vertex (a piece per facet not containing it), each decided by
+    /// subdivision. A piece with its vertex at the minimum has its lowest coefficients at that
+    /// vertex and its neighbours (the gradient vanishes there), so near-threshold minima are
+    /// certified at a depth that does not grow as the minimum approaches 0 — where midpoint
+    /// subdivision must bisect until the pieces are ~√min wide. `None` when this settles nothing
+    /// (the caller subdivides the whole simplex).
+    fn around_minimum(
+        &self,
+        coefficients: &[f64],
+        budget: usize,
+        max_depth: u32,
+        impatient: bool,
+        estimate: &mut Option<Option<[f64; 4]>>,
+    ) -> Option<(Decision, usize)> {
+        let m = self.n + 1;
+        let t = self.star_tables();
+        let len = t.offsets[1];
+        // The tiers' coefficients differ by their rounding only: one estimate serves both.
+        let x = (*estimate.get_or_insert_with(|| self.minimiser(t, &coefficients[..len])))?;
+        let mut pyramid = Vec::new();
+        self.pyramid(t, coefficients, &x, &mut pyramid);
+        let total = t.offsets[self.det_degree as usize + 1];
+        let (value, error) = (pyramid[total - 1], pyramid[2 * total - 1]);
+        if !(value.is_finite() && error.is_finite()) {
+            return None;
+        }
+        if value + error <= 0.0 {
+            return Some((
+                Decision::NonPositive {
+                    point: x[..m].to_vec(),
+                    value,
+                    error,
+                },
+                1,
+            ));
+        }
+        if value - error <= 0.0 {
+            // The point is a vertex of every star piece: none could be certified.
+            return None;
+        }
+        let mut pieces = 0usize;
+        let mut deepest = 0u32;
+        let mut lower = f64::INFINITY;
+        let mut coef = Vec::with_capacity(2 * len);
+        for i in 0..m {
+            if x[i] == 0.0 {
+                // The facet opposite vertex i contains x: its piece is flat, and the others cover
+                // the simplex.
+                continue;
+            }
+            coef.clear();
+            coef.extend(t.star[i].iter().map(|&p| pyramid[p as usize]));
+            coef.extend(t.star[i].iter().map(|&p| pyramid[total + p as usize]));
+            let mut corners = unit_corners(m);
+            corners[i] = x;
+            let (decision, _) = self.decide_inner(
+                &coef,
+                corners,
+                0,
+                budget.saturating_sub(pieces),
+                max_depth,
+                impatient,
+            );
+            match decision {
+                Decision::Positive {
+                    depth,
+                    pieces: p,
+                    lower_bound,
+                } => {
+                    pieces += p;
+                    deepest = deepest.max(depth);
+                    lower = lower.min(lower_bound);
+                }
+                candidate @ Decision::NonPositive { .. } => return Some((candidate, pieces)),
+                Decision::Undetermined { .. } => return None,
+            }
+        }
+        Some((
+            Decision::Positive {
+                depth: deepest,
+                pieces,
+                lower_bound: lower,
+            },
+            pieces,
+        ))
+    }
+
+    /// One tier of the certificate on coefficients `coefficients` (values then errors): plain
+    /// subdivision with [`QUICK_PIECES`]; if the budget, not the precision, stopped it, the
+    /// decision around the estimated minimum; if that settles nothing, plain subdivision with the
+    /// whole budget. Candidate witnesses are proven exactly on `net` here.
+    fn decide_tier(
+        &self,
+        net: &DenseNet,
+        coefficients: &[f64],
+        budget: usize,
+        max_depth: u32,
+        impatient: bool,
+        estimate: &mut Option<Option<[f64; 4]>>,
+    ) -> TierOutcome {
+        let m = self.n + 1;
+        let unit = unit_corners(m);
+        let mut used = 0usize;
+        // The impatient (first) tier sees every element: most decide within a few pieces. The
+        // patient tier sees only those the first could not settle, whose minimum is near 0.
+        let quick = if impatient { QUICK_PIECES } else { 0 };
+        if budget > quick {
+            let (first, stop) = if quick > 0 {
+                self.decide_inner(coefficients, unit, 0, quick, max_depth, impatient)
+            } else {
+                (
+                    Decision::Undetermined {
+                        depth: 0,
+                        pieces: 0,
+                        lower_bound: f64::NEG_INFINITY,
+                        upper_bound: f64::INFINITY,
+                    },
+                    Stop::Budget,
+                )
+            };
+            match (first, stop) {
+                (Decision::Undetermined { pieces, .. }, Stop::Budget) => used = pieces,
+                (decision, _) => return self.prove(net, decision),
+            }
+            if let Some((decision, pieces)) =
+                self.around_minimum(coefficients, budget - used, max_depth, impatient, estimate)
+            {
+                used += pieces;
+                match decision {
+                    Decision::Positive {
+                        depth, lower_bound, ..
+                    } => {
+                        return TierOutcome::Decided(Decision::Positive {
+                            depth,
+                            pieces: used,
+                            lower_bound,
+                        })
+                    }
+                    Decision::NonPositive { point, .. } => {
+                        if let Some(w) = crate::exact::witness_at(net, &point) {
+                            return TierOutcome::Witness(w);
+                        }
+                    }
+                    Decision::Undetermined { .. } => {}
+                }
+            }
+            if impatient {
+                // Not settled around the minimum in floating point: the minimum is within the
+                // bound of 0, which the patient tier's tighter coefficients decide sooner than
+                // this tier's subdivision of the whole simplex.
+                return TierOutcome::Decided(Decision::Undetermined {
+                    depth: 0,
+                    pieces: used,
+                    lower_bound: f64::NEG_INFINITY,
+                    upper_bound: f64::INFINITY,
+                });
+            }
+        }
+        let (decision, _) = self.decide_inner(
+            coefficients,
+            unit,
+            0,
+            budget.saturating_sub(used).max(1),
+            max_depth,
+            impatient,
+        );
+        match self.prove(net, decision) {
+            TierOutcome::Decided(Decision::Positive {
+                depth,
+                pieces,
+                lower_bound,
+            }) => TierOutcome::Decided(Decision::Positive {
+                depth,
+                pieces: pieces + used,
+                lower_bound,
+            }),
+            TierOutcome::Decided(Decision::Undetermined {
+                depth,
+                pieces,
+                lower_bound,
+                upper_bound,
+            }) => TierOutcome::Decided(Decision::Undetermined {
+                depth,
+                pieces: pieces + used,
+                lower_bound,
+                upper_bound,
+            }),
+            other => other,
+        }
+    }
+
+    /// A candidate witness proven exactly on `net`, or the decision as it is (an unproven
+    /// candidate decides nothing: the caller goes on to the next tier).
+    fn prove(&self, net: &DenseNet, decision: Decision) -> TierOutcome {
+        match decision {
+            Decision::NonPositive { ref point, .. } => match crate::exact::witness_at(net, point) {
+                Some(w) => TierOutcome::Witness(w),
+                None => TierOutcome::Decided(decision),
+            },
+            other => TierOutcome::Decided(other),
         }
     }
 }
@@ -989,6 +1548,160 @@ mod tests {
                 ..
             } => assert!(depth > 0 && lower_bound > 0.0),
             other => panic!("{other:?}"),
+        }
+    }
+
+    /// `Σ c_K B_K(w)` in exact rationals.
+    fn exact_bernstein(
+        m: usize,
+        degree: u32,
+        coefficients: &[f64],
+        w: &[num_rational::BigRational],
+    ) -> num_rational::BigRational {
+        use num_rational::BigRational;
+        use num_traits::Zero;
+        let fact = |k: u32| (1..=k).fold(1u128, |a, x| a * u128::from(x));
+        multi_index::all(m, degree)
+            .chunks(m)
+            .zip(coefficients)
+            .map(|(k, &c)| {
+                let mult = fact(degree) / k.iter().map(|&e| fact(e)).product::<u128>();
+                let mut term = crate::exact::rational(c).unwrap()
+                    * BigRational::from_integer(num_bigint::BigInt::from(mult));
+                for (wc, &e) in w.iter().zip(k) {
+                    for _ in 0..e {
+                        term *= wc;
+                    }
+                }
+                term
+            })
+            .fold(BigRational::zero(), |a, t| a + t)
+    }
+
+    /// The star pieces' coefficients (de Casteljau pyramid at a point of 2⁻⁵⁰-multiples) against
+    /// exact arithmetic: the polynomial of each piece at a point `t` of the piece is the original
+    /// polynomial at the point `Σ tⱼ cornerⱼ` of the simplex, evaluated exactly from the
+    /// original coefficients (taken as exact, error 0) — within `Σ err_K B_K(t)`.
+    #[test]
+    fn star_pieces_are_within_their_bound_of_the_exact_subdivision() {
+        use num_rational::BigRational;
+        use num_traits::Signed;
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(21);
+        for n in 1..=3usize {
+            let m = n + 1;
+            for dd in 2..=9u32 {
+                let len = multi_index::count(m, dd);
+                // A kernel only for its tables: the degree of the determinant is what matters.
+                let kernel = DetKernel {
+                    det_degree: dd,
+                    ..DetKernel::new(n, 2, false)
+                };
+                let t = StarTables::new(m, dd);
+                for _ in 0..3 {
+                    let mut coef: Vec<f64> = (0..len)
+                        .map(|_| rng.random_range(-1.0..1.0) * 2f64.powi(rng.random_range(-3..3)))
+                        .collect();
+                    coef.resize(2 * len, 0.0);
+                    // Minimiser of a random polynomial: some point of the closed simplex with exact
+                    // coordinates summing to 1, possibly on a face.
+                    let x = kernel.minimiser(&t, &coef[..len]).expect("finite");
+                    assert_eq!(x[..m].iter().sum::<f64>(), 1.0);
+                    assert!(x[..m].iter().all(|&v| v >= 0.0));
+                    let mut pyramid = Vec::new();
+                    kernel.pyramid(&t, &coef, &x, &mut pyramid);
+                    let total = t.offsets[dd as usize + 1];
+                    let q = |v: f64| crate::exact::rational(v).unwrap();
+                    for i in (0..m).filter(|&i| x[i] > 0.0) {
+                        let values: Vec<f64> =
+                            t.star[i].iter().map(|&p| pyramid[p as usize]).collect();
+                        let errors: Vec<f64> = t.star[i]
+                            .iter()
+                            .map(|&p| pyramid[total + p as usize])
+                            .collect();
+                        let mut corners = unit_corners(m);
+                        corners[i] = x;
+                        for trial in 0..(m + 3) {
+                            // The piece's vertices, then random dyadic points of the piece.
+                            let tt: Vec<BigRational> = if trial < m {
+                                (0..m).map(|j| q(f64::from(u8::from(j == trial)))).collect()
+                            } else {
+                                let raw: Vec<u32> =
+                                    (0..m).map(|_| rng.random_range(1..1000)).collect();
+                                let sum: u32 = raw.iter().sum();
+                                raw.iter()
+                                    .map(|&r| BigRational::new(r.into(), sum.into()))
+                                    .collect()
+                            };
+                            let w: Vec<BigRational> = (0..m)
+                                .map(|c| {
+                                    (0..m).fold(BigRational::from_integer(0.into()), |a, j| {
+                                        a + &tt[j] * q(corners[j][c])
+                                    })
+                                })
+                                .collect();
+                            let piece = exact_bernstein(m, dd, &values, &tt);
+                            let bound = exact_bernstein(m, dd, &errors, &tt);
+                            let truth = exact_bernstein(m, dd, &coef[..len], &w);
+                            assert!(
+                                (piece - truth).abs() <= bound,
+                                "n={n} D={dd} piece {i} at {x:?}"
+                            );
+                        }
+                    }
+                }
+            }
+        }
+    }
+
+    /// A 1-D cubic whose derivative has its minimum `≈ gap` (relative) inside the segment, off
+    /// every dyadic point: certified around the minimum in a handful of pieces whatever the gap
+    /// (midpoint subdivision needs about log₂(1/gap)/2 levels); just past the threshold, rejected
+    /// with a witness near the minimum. Truth: the exact minimum of the quadratic `x'`.
+    #[test]
+    fn a_minimum_near_zero_is_decided_around_it_in_few_pieces() {
+        use num_traits::Signed;
+        // x(t) with control points 0, a, c, 1: x' = 3(a, c − a, 1 − c) in Bernstein form, which
+        // touches 0 where (c − a)² = a(1 − c), at a₀ below.
+        let c = 0.2;
+        let a0 = (1.2 + (1.2f64 * 1.2 - 0.16).sqrt()) / 2.0;
+        let kernel = DetKernel::new(1, 3, false);
+        for gap in [1e-4, 1e-8, 1e-12] {
+            for sign in [-1.0, 1.0] {
+                let a = a0 * (1.0 + sign * gap);
+                let net = DenseNet {
+                    n: 1,
+                    degree: 3,
+                    points: vec![
+                        [1.0, 0.0, 0.0, 0.0],
+                        [1.0 - a, a, 0.0, 0.0],
+                        [1.0 - c, c, 0.0, 0.0],
+                        [0.0, 1.0, 0.0, 0.0],
+                    ],
+                    weights: Vec::new(),
+                };
+                // Exact minimum of the quadratic with Bernstein coefficients p (convex here).
+                let q = |v: f64| crate::exact::rational(v).unwrap();
+                let three = q(3.0);
+                let p = [
+                    &three * q(a),
+                    &three * (q(c) - q(a)),
+                    &three * (q(1.0) - q(c)),
+                ];
+                let min = (&p[0] * &p[2] - &p[1] * &p[1]) / (&p[0] - &p[1] * q(2.0) + &p[2]);
+                assert_eq!(min.is_positive(), sign < 0.0, "gap {gap}: the family");
+                match kernel.certify(&net, Budget::default()) {
+                    Certificate::Positive { pieces, .. } => {
+                        assert!(min.is_positive());
+                        assert!(pieces <= 12, "gap {gap}: {pieces} pieces");
+                    }
+                    Certificate::NonPositive(w) => {
+                        assert!(!min.is_positive());
+                        assert!(w.det <= 0.0);
+                    }
+                    other => panic!("gap {gap}: {other:?}"),
+                }
+            }
         }
     }
 }
