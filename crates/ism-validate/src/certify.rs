@@ -671,14 +671,17 @@ impl DetKernel {
             corners: [[f64; 4]; 4],
             depth: u32,
         }
-        let coef = coefficients.to_vec();
+        // Buffers of finished pieces, reused by their children and by the next elements on this
+        // thread: no allocation per bisection, and none per element once warm.
+        let mut pool = POOL.with(|p| std::mem::take(&mut *p.borrow_mut()));
+        let mut coef = pool.pop().unwrap_or_default();
+        coef.clear();
+        coef.extend_from_slice(coefficients);
         let mut stack = vec![Piece {
             coef,
             corners,
             depth,
         }];
-        // Buffers of finished pieces, reused by their children: no allocation per bisection.
-        let mut pool: Vec<Vec<f64>> = Vec::new();
         let mut pieces = 0usize;
         let mut deepest = depth;
         let mut lower = f64::INFINITY;
@@ -702,6 +705,9 @@ impl DetKernel {
                 upper = upper.min(value);
                 if value + error <= 0.0 {
                     // Negative beyond its error bound: a candidate the caller proves exactly.
+                    pool.push(piece.coef);
+                    pool.extend(stack.into_iter().map(|p| p.coef));
+                    give_back(pool);
                     return (
                         Decision::NonPositive {
                             point: piece.corners[i][..m].to_vec(),
@@ -774,6 +780,8 @@ impl DetKernel {
                 stack.push(l);
             }
         }
+        pool.extend(stack.into_iter().map(|p| p.coef));
+        give_back(pool);
         match undecided {
             None => (
                 Decision::Positive {
@@ -874,6 +882,9 @@ struct StarTables {
     star: Vec<Vec<u32>>,
     /// Rank of `eᵢ + eⱼ` in degree 2.
     quad: [[usize; 4]; 4],
+    /// Newton's start for each least coefficient `K`: its domain point `K/D`, moved a fifth of
+    /// the way to the centroid (a start on a face would keep the coordinates that are 0 there at 0).
+    start: Vec<[f64; 4]>,
 }
 
 impl StarTables {
@@ -925,13 +936,38 @@ impl StarTables {
                 }
             }
         }
+        let start = all
+            .chunks(m)
+            .map(|k| {
+                let mut x = [0.0; 4];
+                for (xi, &e) in x.iter_mut().zip(k) {
+                    *xi = 0.8 * f64::from(e) / f64::from(det_degree) + 0.2 / m as f64;
+                }
+                x
+            })
+            .collect();
         StarTables {
             steps,
             offsets,
             star,
             quad,
+            start,
         }
     }
+}
+
+thread_local! {
+    /// Coefficient buffers of [`DetKernel::decide_inner`], kept between elements on each thread.
+    static POOL: std::cell::RefCell<Vec<Vec<f64>>> = const { std::cell::RefCell::new(Vec::new()) };
+}
+
+/// Most buffers kept per thread (memory stays bounded after a deep element).
+const POOL_KEEP: usize = 64;
+
+/// Returns buffers to this thread's pool.
+fn give_back(mut pool: Vec<Vec<f64>>) {
+    pool.truncate(POOL_KEEP);
+    POOL.with(|p| *p.borrow_mut() = pool);
 }
 
 /// Why [`DetKernel::decide_inner`] stopped short of a decision.
@@ -1010,10 +1046,17 @@ impl DetKernel {
     /// `D − 2` de Casteljau steps at `x`, so that `p(x) = xᵀQx`, `∇p` along `eₖ − eⱼ` is
     /// `D (Qx)ₖ − D (Qx)ⱼ` and the Hessian `D(D − 1)` times the second differences of `Q`.
     /// Plain floating point: only used to place a subdivision point.
-    fn local_quadratic(&self, t: &StarTables, values: &[f64], x: &[f64; 4]) -> [[f64; 4]; 4] {
+    fn local_quadratic(
+        &self,
+        t: &StarTables,
+        values: &[f64],
+        x: &[f64; 4],
+        buffers: &mut (Vec<f64>, Vec<f64>),
+    ) -> [[f64; 4]; 4] {
         let m = self.n + 1;
-        let mut cur = values.to_vec();
-        let mut next = Vec::with_capacity(cur.len());
+        let (cur, next) = buffers;
+        cur.clear();
+        cur.extend_from_slice(values);
         for r in (2..self.det_degree as usize).rev() {
             next.clear();
             next.extend(t.steps[r].iter().map(|sh| {
@@ -1023,7 +1066,7 @@ impl DetKernel {
                 }
                 v
             }));
-            std::mem::swap(&mut cur, &mut next);
+            std::mem::swap(cur, next);
         }
         let mut q = [[0.0; 4]; 4];
         for i in 0..m {
@@ -1048,21 +1091,17 @@ impl DetKernel {
             return None;
         }
         let dg = f64::from(dd);
-        let all = multi_index::all(m, dd);
         let least = values
             .iter()
             .enumerate()
             .min_by(|a, b| a.1.total_cmp(b.1))?
             .0;
-        // Slightly inside: a start on a face would keep the coordinates that are 0 there at 0.
-        let mut x = [0.0f64; 4];
-        for i in 0..m {
-            x[i] = 0.8 * f64::from(all[least * m + i]) / dg + 0.2 / m as f64;
-        }
+        let mut x = t.start[least];
+        let mut buffers = (Vec::with_capacity(values.len()), Vec::new());
         let mut free = [false; 4];
         free[..m].iter_mut().for_each(|f| *f = true);
         for _ in 0..NEWTON_STEPS {
-            let q = self.local_quadratic(t, values, &x);
+            let q = self.local_quadratic(t, values, &x, &mut buffers);
             let mut qx = [0.0f64; 4];
             for i in 0..m {
                 qx[i] = (0..m).map(|j| q[i][j] * x[j]).sum();
@@ -1070,8 +1109,13 @@ impl DetKernel {
             let base = (0..m)
                 .filter(|&i| free[i])
                 .max_by(|&a, &b| x[a].total_cmp(&x[b]))?;
-            let dirs: Vec<usize> = (0..m).filter(|&i| free[i] && i != base).collect();
-            let k = dirs.len();
+            let mut dirs = [0usize; 3];
+            let mut k = 0;
+            for i in (0..m).filter(|&i| free[i] && i != base) {
+                dirs[k] = i;
+                k += 1;
+            }
+            let dirs = &dirs[..k];
             if k == 0 {
                 break;
             }
