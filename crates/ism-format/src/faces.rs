@@ -119,6 +119,7 @@ impl FaceTable {
     }
 
     /// Number of records.
+    #[inline]
     pub fn len(&self) -> usize {
         self.face_offsets.len() - 1
     }
@@ -129,6 +130,7 @@ impl FaceTable {
     }
 
     /// Record `r`'s ranges in the three arrays, or `None` past the end.
+    #[inline]
     fn ranges(&self, r: usize) -> Option<[std::ops::Range<usize>; 3]> {
         if r >= self.len() {
             return None;
@@ -142,6 +144,7 @@ impl FaceTable {
     }
 
     /// Record `r`, or `None` past the end.
+    #[inline]
     pub fn get(&self, r: usize) -> Option<FaceRef<'_>> {
         let [f, p, w] = self.ranges(r)?;
         Some(FaceRef {
@@ -155,6 +158,7 @@ impl FaceTable {
     ///
     /// # Panics
     /// If `r ≥ len()`, like slice indexing.
+    #[inline]
     pub fn record(&self, r: usize) -> FaceRef<'_> {
         self.get(r)
             .unwrap_or_else(|| panic!("face record {r} out of range: the table has {}", self.len()))

@@ -587,6 +587,7 @@ impl Topology {
     ///
     /// # Panics
     /// If `s`, `k` or `j` is out of range.
+    #[inline]
     pub fn simplex_face(&self, model: &Model, s: usize, k: usize, j: usize) -> u32 {
         let m = self.n + 1;
         if k == 0 {
@@ -607,6 +608,7 @@ impl Topology {
     }
 
     /// The simplex across the facet of `s` opposite its local vertex `i`, or `None` on the boundary.
+    #[inline]
     pub fn neighbour(&self, s: usize, i: usize) -> Option<SimplexId> {
         let t = self.neighbours[s * (self.n + 1) + i];
         (t != NONE).then_some(SimplexId(t))
@@ -618,6 +620,7 @@ impl Topology {
     }
 
     /// The simplices incident to vertex `v`.
+    #[inline]
     pub fn vertex_simplices(&self, v: usize) -> &[u32] {
         &self.incidence[self.incidence_start[v]..self.incidence_start[v + 1]]
     }
@@ -786,6 +789,7 @@ impl<'a> StageTable<'a> {
     }
 
     /// The record of each dimension-`k` face ([`NONE`] where the file has none).
+    #[inline]
     pub fn records(&self, k: usize) -> &'a [u32] {
         self.rows.record.get(k).map_or(&[], Vec::as_slice)
     }

@@ -264,27 +264,32 @@ impl Model {
     }
 
     /// `n`, as a `usize`.
+    #[inline]
     pub fn dim(&self) -> usize {
         usize::from(self.dimension)
     }
 
     /// Number of vertices (`vertices.len() / n`).
+    #[inline]
     pub fn num_vertices(&self) -> usize {
         self.vertices.len() / self.dim().max(1)
     }
 
     /// Number of top simplices.
+    #[inline]
     pub fn num_simplices(&self) -> usize {
         self.simplices.len() / (self.dim() + 1)
     }
 
     /// Coordinates of vertex `v`.
+    #[inline]
     pub fn vertex(&self, v: usize) -> &[f64] {
         let n = self.dim();
         &self.vertices[v * n..(v + 1) * n]
     }
 
     /// Vertex ids of top simplex `s`, in stored (positive) order.
+    #[inline]
     pub fn simplex(&self, s: usize) -> &[u32] {
         let m = self.dim() + 1;
         &self.simplices[s * m..(s + 1) * m]

@@ -224,11 +224,24 @@ pub fn validate_path_with_progress(
     progress: &Progress,
 ) -> Result<Report, Error> {
     let path = path.as_ref();
-    let bytes = std::fs::read(path).map_err(|source| Error::Io {
+    let file = std::fs::File::open(path).map_err(|source| Error::Io {
         path: path.to_path_buf(),
         source,
     })?;
-    let mut report = validate_bytes_with_progress(&bytes, options, progress)?;
+    // Streamed: a binary file is decoded as it arrives, never held whole beside its model.
+    let read = io::ReadOptions {
+        check_structure: false,
+        ..io::ReadOptions::default()
+    };
+    let doc = io::read_with(file, &read).map_err(|e| match e {
+        // An operating-system error stays one, naming the path (as when the file was read whole).
+        ism_format::Error::Io { error, .. } => Error::Io {
+            path: path.to_path_buf(),
+            source: error,
+        },
+        other => Error::Read(other),
+    })?;
+    let mut report = validate_document(doc, options, progress)?;
     if let Some(file) = &mut report.file {
         file.path = path.display().to_string();
     }
@@ -257,6 +270,15 @@ pub fn validate_bytes_with_progress(
         ..io::ReadOptions::default()
     };
     let doc = io::from_slice_with(bytes, &read)?;
+    validate_document(doc, options, progress)
+}
+
+/// Validates a decoded (not yet structurally checked) document.
+fn validate_document(
+    doc: io::Document,
+    options: &Options,
+    progress: &Progress,
+) -> Result<Report, Error> {
     let (encoding, byte_len) = (doc.encoding, doc.byte_len);
     let mut report = in_pool(options, || validate_owned(doc.model, options, progress))?;
     report.file = Some(report::FileInfo {

@@ -211,17 +211,17 @@ struct Scratch {
 }
 
 /// The ISM-150 message of a star `members` of the face `key` (`k` vertices), if it is not a
-/// manifold star.
+/// manifold star; `why` decides.
 fn star_message(
     model: &Model,
     key: &[u32; 4],
     k: usize,
     members: &[u32],
-    scratch: &mut Scratch,
+    why: Option<String>,
 ) -> Option<Message> {
     let n = model.dim();
     let m = n + 1;
-    let why = star_defect(model, key, k, members, scratch)?;
+    let why = why?;
     let first = members[0] as usize;
     let loc = if k == 1 {
         Location {
@@ -243,8 +243,78 @@ fn star_message(
     ))
 }
 
+/// [`star_defect`] on an indexed model (no structural error, so a facet has a neighbour across it
+/// exactly when two simplices hold it on opposite sides): the star's simplices are joined through
+/// the topology's facet neighbours, with no sorting of facets. `members` ascending.
+fn star_defect_indexed(
+    model: &Model,
+    topology: &ism_format::Topology,
+    key: &[u32; 4],
+    k: usize,
+    members: &[u32],
+    scratch: &mut Scratch,
+) -> Option<String> {
+    let n = model.dim();
+    let r = members.len();
+    let Scratch {
+        dsu, roots, verts, ..
+    } = scratch;
+    dsu.reset(r);
+    // Facets of the star through the face held by one simplex only (boundary of the link).
+    let mut held_once = 0usize;
+    for (local, &s) in members.iter().enumerate() {
+        let ids = model.simplex(s as usize);
+        for (i, id) in ids.iter().enumerate() {
+            // The facet opposite local vertex i contains the face unless i is one of its vertices.
+            if key[..k].contains(id) {
+                continue;
+            }
+            match topology.neighbour(s as usize, i) {
+                Some(t) => {
+                    if let Ok(j) = members.binary_search(&t.0) {
+                        dsu.union(local as u32, j as u32);
+                    }
+                }
+                None => held_once += 1,
+            }
+        }
+    }
+    roots.clear();
+    roots.extend((0..r as u32).map(|i| dsu.find(i)));
+    roots.sort_unstable();
+    roots.dedup();
+    if roots.len() > 1 {
+        return Some(format!(
+            "its star falls into {} parts joined only at this {}",
+            roots.len(),
+            if k == 1 { "vertex" } else { "edge" }
+        ));
+    }
+    if k == 1 && n == 3 {
+        // Euler characteristic of the link: its vertices (the star's edges through the vertex),
+        // edges (triangles: 3 per tetrahedron, interior ones counted twice) and triangles.
+        verts.clear();
+        for &s in members {
+            let (o, len) = others(model.simplex(s as usize), key, 1);
+            verts.extend_from_slice(&o[..len]);
+        }
+        verts.sort_unstable();
+        verts.dedup();
+        let triangles = (3 * r + held_once) / 2;
+        let chi = verts.len() as i64 - triangles as i64 + r as i64;
+        let expect = if held_once > 0 { 1 } else { 2 };
+        if chi != expect {
+            return Some(format!(
+                "its link has Euler characteristic {chi}; a manifold vertex has a disk (1) or sphere (2) link"
+            ));
+        }
+    }
+    None
+}
+
 /// [`non_manifold`] on an indexed model: the stars come from its topology (vertex incidence, the
-/// simplex → edge table), so nothing is sorted globally. Same messages, same order.
+/// simplex → edge table) and are joined through its facet neighbours, so nothing is sorted
+/// globally and no facet is sorted per star. Same messages, same order.
 pub fn non_manifold_indexed(indexed: &IndexedModel) -> Vec<Message> {
     let model: &Model = indexed;
     let topology = indexed.topology();
@@ -275,7 +345,8 @@ pub fn non_manifold_indexed(indexed: &IndexedModel) -> Vec<Message> {
             .map_init(Scratch::default, |scratch, e| {
                 let key = [ids[2 * e], ids[2 * e + 1], u32::MAX, u32::MAX];
                 let star = &members[start[e] as usize..start[e + 1] as usize];
-                star_message(model, &key, 2, star, scratch)
+                let why = star_defect_indexed(model, topology, &key, 2, star, scratch);
+                star_message(model, &key, 2, star, why)
             })
             .flatten()
             .collect();
@@ -289,7 +360,8 @@ pub fn non_manifold_indexed(indexed: &IndexedModel) -> Vec<Message> {
                 return None;
             }
             let key = [v as u32, u32::MAX, u32::MAX, u32::MAX];
-            star_message(model, &key, 1, star, scratch)
+            let why = star_defect_indexed(model, topology, &key, 1, star, scratch);
+            star_message(model, &key, 1, star, why)
         })
         .flatten()
         .collect();
@@ -308,7 +380,8 @@ pub fn non_manifold(model: &Model) -> Vec<Message> {
             .par_iter()
             .map_init(Scratch::default, |scratch, (key, range)| {
                 let members: Vec<u32> = list[range.clone()].iter().map(|x| x.1).collect();
-                star_message(model, key, k, &members, scratch)
+                let why = star_defect(model, key, k, &members, scratch);
+                star_message(model, key, k, &members, why)
             })
             .flatten()
             .collect();
