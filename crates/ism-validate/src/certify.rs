@@ -492,8 +492,20 @@ impl DetKernel {
                     .map(|(sh, mlt)| {
                         let xk = component(sh[k] as usize, r);
                         let x0 = component(sh[0] as usize, r);
-                        mx[j] = mx[j].max(d * (xk.abs() + x0.abs()));
-                        (xk - x0) * (d * mlt)
+                        let diff = xk - x0;
+                        // The exact entry's Bernstein coefficient is d·(x_k − x₀). Polynomial
+                        // nets: x_k, x₀ are the stored doubles, so fl(x_k − x₀) is within u of
+                        // the exact difference (relative; exact when it underflows) and
+                        // d·|fl(x_k − x₀)|·(1 + 4u) bounds it. Rational nets: the components
+                        // q·b were rounded, so the difference is only within u(|x_k| + |x₀|) of
+                        // the exact one, and that sum stays in the bound.
+                        let magnitude = if self.rational {
+                            d * (xk.abs() + x0.abs())
+                        } else {
+                            d * diff.abs() * (1.0 + 4.0 * UNIT_ROUNDOFF)
+                        };
+                        mx[j] = mx[j].max(magnitude);
+                        diff * (d * mlt)
                     })
                     .collect();
                 col.push(v);
@@ -810,9 +822,9 @@ impl DetKernel {
         let (a, b, swap) = if a < b { (a, b, false) } else { (b, a, true) };
         let (left, right) = if swap { (right, left) } else { (left, right) };
         let len_all = piece.len() / 2;
-        left.clear();
+        // Every position is written below (the lines along an edge partition the coefficients):
+        // no need to clear a recycled buffer of the right length.
         left.resize(piece.len(), 0.0);
-        right.clear();
         right.resize(piece.len(), 0.0);
         let (values, errors) = piece.split_at(len_all);
         let (lv, le) = left.split_at_mut(len_all);
@@ -857,6 +869,13 @@ impl DetKernel {
 /// its estimated minimum instead: most elements decide within a handful; an element whose minimum
 /// is near 0 would take ~50 bisections of midpoint subdivision to reach it.
 const QUICK_PIECES: usize = 4;
+
+/// Pieces of plain subdivision each star piece gets before it is decided around its own estimated
+/// minimum instead.
+const STAR_QUICK_PIECES: usize = 16;
+
+/// Levels of star decisions (the last subdivides with the whole remaining budget).
+const STAR_LEVELS: u32 = 3;
 
 /// Coordinates of the estimated minimiser are multiples of 2⁻⁵⁰: every sum of them in `[0, 1]` is
 /// exact in f64, so the largest coordinate is `1 − Σ others` exactly — the de Casteljau weights
@@ -1078,30 +1097,45 @@ impl DetKernel {
     }
 
     /// An estimate of the point where the polynomial with Bernstein coefficients `values` is least
-    /// on the simplex: damped Newton from the least coefficient's domain point, steps truncated at
-    /// the boundary (a coordinate that reaches 0 stays there). Coordinates are rounded to multiples
-    /// of [`MINIMISER_GRID`] with the largest one `1 − Σ others`, exactly: a point of the closed
-    /// simplex whose coordinates sum exactly to 1. `None` when Newton fails (degree below 2, or
-    /// numbers not finite).
-    #[allow(clippy::needless_range_loop)]
+    /// on the simplex: damped Newton ([`DetKernel::newton`]) from the least coefficient's domain
+    /// point. It may stop at a local minimum away from the least one: the star decision then
+    /// finds the least one in one of its pieces and decides that piece around its own estimate.
+    /// Coordinates are rounded to multiples of [`MINIMISER_GRID`] with the largest one
+    /// `1 − Σ others`, exactly: a point of the closed simplex whose coordinates sum exactly to 1.
+    /// `None` when Newton fails (degree below 2, or numbers not finite).
     fn minimiser(&self, t: &StarTables, values: &[f64]) -> Option<[f64; 4]> {
         let m = self.n + 1;
-        let dd = self.det_degree;
-        if dd < 2 {
+        if self.det_degree < 2 {
             return None;
         }
-        let dg = f64::from(dd);
         let least = values
             .iter()
             .enumerate()
             .min_by(|a, b| a.1.total_cmp(b.1))?
             .0;
-        let mut x = t.start[least];
         let mut buffers = (Vec::with_capacity(values.len()), Vec::new());
+        let x = self.newton(t, values, t.start[least], &mut buffers)?;
+        on_grid(x, m)
+    }
+
+    /// Damped Newton from `x` toward a local minimum of the polynomial on the simplex, steps
+    /// truncated at the boundary: a coordinate that reaches 0 is held there while the gradient
+    /// pushes outward and released when it points back inside (an active set). Plain floating
+    /// point: the result is only a subdivision point.
+    #[allow(clippy::needless_range_loop)]
+    fn newton(
+        &self,
+        t: &StarTables,
+        values: &[f64],
+        mut x: [f64; 4],
+        buffers: &mut (Vec<f64>, Vec<f64>),
+    ) -> Option<[f64; 4]> {
+        let m = self.n + 1;
+        let dg = f64::from(self.det_degree);
         let mut free = [false; 4];
         free[..m].iter_mut().for_each(|f| *f = true);
         for _ in 0..NEWTON_STEPS {
-            let q = self.local_quadratic(t, values, &x, &mut buffers);
+            let q = self.local_quadratic(t, values, &x, buffers);
             let mut qx = [0.0f64; 4];
             for i in 0..m {
                 qx[i] = (0..m).map(|j| q[i][j] * x[j]).sum();
@@ -1109,6 +1143,12 @@ impl DetKernel {
             let base = (0..m)
                 .filter(|&i| free[i])
                 .max_by(|&a, &b| x[a].total_cmp(&x[b]))?;
+            // Release a held coordinate whose direction into the simplex descends.
+            for i in 0..m {
+                if !free[i] && qx[i] < qx[base] {
+                    free[i] = true;
+                }
+            }
             let mut dirs = [0usize; 3];
             let mut k = 0;
             for i in (0..m).filter(|&i| free[i] && i != base) {
@@ -1133,7 +1173,7 @@ impl DetKernel {
                 step[i] = delta[a];
                 step[base] -= delta[a];
             }
-            // Truncate at the boundary; the blocking coordinate becomes 0 and stays there.
+            // Truncate at the boundary; the blocking coordinate becomes 0 and is held there.
             let mut tmax = 1.0f64;
             let mut blocking = None;
             for i in 0..m {
@@ -1163,16 +1203,7 @@ impl DetKernel {
                 break;
             }
         }
-        let big = (0..m).max_by(|&a, &b| x[a].total_cmp(&x[b]))?;
-        let mut rest = 0.0;
-        for i in 0..m {
-            if i != big {
-                x[i] = ((x[i] * MINIMISER_GRID).round() / MINIMISER_GRID).clamp(0.0, 1.0);
-                rest += x[i];
-            }
-        }
-        x[big] = 1.0 - rest;
-        (x[big] >= 0.0 && x.iter().all(|v| v.is_finite())).then_some(x)
+        Some(x)
     }
 
     /// The de Casteljau pyramid at `x` (coordinates ≥ 0 summing exactly to 1) of bounded
@@ -1189,7 +1220,7 @@ impl DetKernel {
         let dd = self.det_degree as usize;
         let total = t.offsets[dd + 1];
         let len = t.offsets[1];
-        out.clear();
+        // Every entry is written below.
         out.resize(2 * total, 0.0);
         let (pv, pe) = out.split_at_mut(total);
         pv[..len].copy_from_slice(&coefficients[..len]);
@@ -1230,11 +1261,48 @@ impl DetKernel {
         impatient: bool,
         estimate: &mut Option<Option<[f64; 4]>>,
     ) -> Option<(Decision, usize)> {
-        let m = self.n + 1;
         let t = self.star_tables();
         let len = t.offsets[1];
         // The tiers' coefficients differ by their rounding only: one estimate serves both.
         let x = (*estimate.get_or_insert_with(|| self.minimiser(t, &coefficients[..len])))?;
+        let corners = unit_corners(self.n + 1);
+        let mut pieces = 0usize;
+        let decision = self.star_decide(
+            coefficients,
+            &corners,
+            x,
+            budget,
+            max_depth,
+            impatient,
+            0,
+            &mut pieces,
+        )?;
+        Some((decision, pieces))
+    }
+
+    /// The star decision on one piece with corners `corners` (barycentric in the element) and
+    /// coefficients `coefficients` (values then errors, in the piece's own barycentric
+    /// coordinates), cut at `x` (the piece's coordinates, ≥ 0, summing exactly to 1). Each star
+    /// piece gets [`STAR_QUICK_PIECES`] of plain subdivision; one that the budget, not the
+    /// precision, stopped is decided by the same method around its own estimated minimum (up to
+    /// [`STAR_LEVELS`] levels, the last with the whole remaining budget): the estimate may have
+    /// found a local minimum far from the near-zero one (Newton on a polynomial of degree up to
+    /// 9 here), which then lies in one of the pieces. `pieces` counts the pieces examined.
+    #[allow(clippy::too_many_arguments)]
+    fn star_decide(
+        &self,
+        coefficients: &[f64],
+        corners: &[[f64; 4]; 4],
+        x: [f64; 4],
+        budget: usize,
+        max_depth: u32,
+        impatient: bool,
+        level: u32,
+        pieces: &mut usize,
+    ) -> Option<Decision> {
+        let m = self.n + 1;
+        let t = self.star_tables();
+        let len = t.offsets[1];
         let mut pyramid = Vec::new();
         self.pyramid(t, coefficients, &x, &mut pyramid);
         let total = t.offsets[self.det_degree as usize + 1];
@@ -1242,21 +1310,25 @@ impl DetKernel {
         if !(value.is_finite() && error.is_finite()) {
             return None;
         }
+        *pieces += 1;
+        // The point in the element's coordinates (only a candidate witness and a corner of the
+        // star pieces, which locate candidates: the pieces' coefficients are those at `x`).
+        let point = if level == 0 {
+            x
+        } else {
+            element_point(corners, &x, m)?
+        };
         if value + error <= 0.0 {
-            return Some((
-                Decision::NonPositive {
-                    point: x[..m].to_vec(),
-                    value,
-                    error,
-                },
-                1,
-            ));
+            return Some(Decision::NonPositive {
+                point: point[..m].to_vec(),
+                value,
+                error,
+            });
         }
         if value - error <= 0.0 {
             // The point is a vertex of every star piece: none could be certified.
             return None;
         }
-        let mut pieces = 0usize;
         let mut deepest = 0u32;
         let mut lower = f64::INFINITY;
         let mut coef = Vec::with_capacity(2 * len);
@@ -1269,38 +1341,76 @@ impl DetKernel {
             coef.clear();
             coef.extend(t.star[i].iter().map(|&p| pyramid[p as usize]));
             coef.extend(t.star[i].iter().map(|&p| pyramid[total + p as usize]));
-            let mut corners = unit_corners(m);
-            corners[i] = x;
-            let (decision, _) = self.decide_inner(
-                &coef,
-                corners,
-                0,
-                budget.saturating_sub(pieces),
-                max_depth,
-                impatient,
-            );
+            let mut piece_corners = *corners;
+            piece_corners[i] = point;
+            let left = budget.saturating_sub(*pieces);
+            let quick = if level + 1 < STAR_LEVELS {
+                left.min(STAR_QUICK_PIECES)
+            } else {
+                left
+            };
+            let (decision, stop) =
+                self.decide_inner(&coef, piece_corners, 0, quick, max_depth, impatient);
+            let decision = match (decision, stop) {
+                (Decision::Undetermined { pieces: p, .. }, Stop::Budget)
+                    if level + 1 < STAR_LEVELS && quick < left =>
+                {
+                    *pieces += p;
+                    let y = self.minimiser(t, &coef[..len])?;
+                    let d = self.star_decide(
+                        &coef,
+                        &piece_corners,
+                        y,
+                        budget,
+                        max_depth,
+                        impatient,
+                        level + 1,
+                        pieces,
+                    )?;
+                    match d {
+                        Decision::Positive {
+                            depth, lower_bound, ..
+                        } => Decision::Positive {
+                            depth,
+                            pieces: 0,
+                            lower_bound,
+                        },
+                        other => other,
+                    }
+                }
+                (
+                    Decision::Positive {
+                        depth,
+                        pieces: p,
+                        lower_bound,
+                    },
+                    _,
+                ) => {
+                    *pieces += p;
+                    Decision::Positive {
+                        depth,
+                        pieces: 0,
+                        lower_bound,
+                    }
+                }
+                (other, _) => other,
+            };
             match decision {
                 Decision::Positive {
-                    depth,
-                    pieces: p,
-                    lower_bound,
+                    depth, lower_bound, ..
                 } => {
-                    pieces += p;
                     deepest = deepest.max(depth);
                     lower = lower.min(lower_bound);
                 }
-                candidate @ Decision::NonPositive { .. } => return Some((candidate, pieces)),
+                candidate @ Decision::NonPositive { .. } => return Some(candidate),
                 Decision::Undetermined { .. } => return None,
             }
         }
-        Some((
-            Decision::Positive {
-                depth: deepest,
-                pieces,
-                lower_bound: lower,
-            },
-            pieces,
-        ))
+        Some(Decision::Positive {
+            depth: deepest,
+            pieces: *pieces,
+            lower_bound: lower,
+        })
     }
 
     /// One tier of the certificate on coefficients `coefficients` (values then errors): plain
@@ -1446,6 +1556,35 @@ pub(crate) fn unit_corners(m: usize) -> [[f64; 4]; 4] {
         c[i] = 1.0;
     }
     corners
+}
+
+/// The point with barycentric coordinates `x` in the piece with corners `corners`, in the
+/// element's coordinates, rounded to multiples of 2⁻⁵⁰ with the largest coordinate `1 − Σ others`
+/// (a point of the closed simplex whose coordinates sum exactly to 1). `None` if not finite.
+pub(crate) fn element_point(corners: &[[f64; 4]; 4], x: &[f64; 4], m: usize) -> Option<[f64; 4]> {
+    let mut p = [0.0f64; 4];
+    for (j, c) in corners.iter().enumerate().take(m) {
+        for (pc, &cc) in p.iter_mut().zip(c).take(m) {
+            *pc += x[j] * cc;
+        }
+    }
+    on_grid(p, m)
+}
+
+/// `x` rounded to multiples of [`MINIMISER_GRID`] with the largest coordinate `1 − Σ others`
+/// (exact: every such sum in `[0, 1]` is a double), or `None` if that leaves the simplex or a
+/// number is not finite.
+fn on_grid(mut x: [f64; 4], m: usize) -> Option<[f64; 4]> {
+    let big = (0..m).max_by(|&a, &b| x[a].total_cmp(&x[b]))?;
+    let mut rest = 0.0;
+    for (i, xi) in x.iter_mut().enumerate().take(m) {
+        if i != big {
+            *xi = ((*xi * MINIMISER_GRID).round() / MINIMISER_GRID).clamp(0.0, 1.0);
+            rest += *xi;
+        }
+    }
+    x[big] = 1.0 - rest;
+    (x[big] >= 0.0 && x.iter().all(|v| v.is_finite())).then_some(x)
 }
 
 /// The net with its weights scaled by one power of two so that the largest lies in `[1, 2)`: the
@@ -1620,6 +1759,64 @@ mod tests {
                 term
             })
             .fold(BigRational::zero(), |a, t| a + t)
+    }
+
+    /// The floating-point coefficients of polynomial nets against exact arithmetic: at every
+    /// vertex and at random dyadic points, `|Σ c_K B_K(w) − exact(w)| ≤ Σ err_K B_K(w)`, the exact
+    /// value from [`crate::exact::jacobian_at`] (a pointwise evaluation of the stored map, not these
+    /// coefficients). The nets include coordinates far from 0 with small differences (the bound
+    /// follows the differences, not the coordinates) and tiny ones near underflow.
+    #[test]
+    fn float_coefficients_are_within_their_bound_of_the_exact_polynomial() {
+        use num_traits::Signed;
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(41);
+        let q = |v: f64| crate::exact::rational(v).unwrap();
+        for n in 1..=3usize {
+            let m = n + 1;
+            for d in 1..=5u32 {
+                let kernel = DetKernel::new(n, d, false);
+                for trial in 0..12 {
+                    let mut net = DenseNet::identity(n, d);
+                    let amplitude = [0.01, 0.2, 0.6][trial % 3];
+                    // Offset and scale: far from 0 (cancellation in every difference), or tiny.
+                    let (offset, scale) = match trial / 3 {
+                        0 => (0.0, 1.0),
+                        1 => (1e6, 1.0),
+                        2 => (-3.5e3, 1e-3),
+                        _ => (0.0, 1e-300),
+                    };
+                    for p in net.points.iter_mut() {
+                        for c in p.iter_mut().take(m) {
+                            *c = (*c + rng.random_range(-amplitude..amplitude)) * scale + offset;
+                        }
+                    }
+                    let c = kernel.det_coefficients(&net);
+                    let dd = kernel.det_degree();
+                    let mut points: Vec<Vec<f64>> = (0..m)
+                        .map(|i| (0..m).map(|j| f64::from(u8::from(i == j))).collect())
+                        .collect();
+                    for _ in 0..4 {
+                        let raw: Vec<u32> = (0..m).map(|_| rng.random_range(0..1024)).collect();
+                        let total = raw.iter().sum::<u32>().max(1);
+                        let mut w: Vec<u32> = raw.iter().map(|&x| x * 1024 / total).collect();
+                        let rest: u32 = w[1..].iter().sum();
+                        w[0] = 1024 - rest.min(1024);
+                        points.push(w.iter().map(|&x| f64::from(x) / 1024.0).collect());
+                    }
+                    for w in &points {
+                        let (det, _) = crate::exact::jacobian_at(&net, w).expect("inside");
+                        let exact_w: Vec<_> = w.iter().map(|&x| q(x)).collect();
+                        let value = exact_bernstein(m, dd, &c.values, &exact_w);
+                        let bound = exact_bernstein(m, dd, &c.errors, &exact_w);
+                        assert!(
+                            (value - det).abs() <= bound,
+                            "n={n} d={d} trial {trial} at {w:?}"
+                        );
+                    }
+                }
+            }
+        }
     }
 
     /// The star pieces' coefficients (de Casteljau pyramid at a point of 2⁻⁵⁰-multiples) against

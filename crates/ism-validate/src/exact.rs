@@ -105,6 +105,17 @@ fn multinomial(index: &[u32]) -> BigInt {
     index.iter().fold(fact(d), |a, &e| a / fact(e))
 }
 
+/// [`multinomial`] in machine integers for degrees up to 30 (`30! < 2¹²⁸`), the big-integer one
+/// beyond: the pointwise evaluation of a witness calls it for every term.
+fn multinomial_small(index: &[u32]) -> BigInt {
+    let d: u32 = index.iter().sum();
+    if d > 30 {
+        return multinomial(index);
+    }
+    let fact = |k: u32| (1..=u128::from(k)).product::<u128>();
+    BigInt::from(index.iter().fold(fact(d), |a, &e| a / fact(e)))
+}
+
 fn multinomials(m: usize, d: u32) -> Vec<BigInt> {
     multi_index::all(m, d).chunks(m).map(multinomial).collect()
 }
@@ -492,7 +503,7 @@ fn jacobian_dyadic(net: &DenseNet, point: &[f64]) -> Option<(Dyadic, Dyadic)> {
             index
                 .iter()
                 .enumerate()
-                .fold(Dyadic::from_int(multinomial(index)), |a, (i, &e)| {
+                .fold(Dyadic::from_int(multinomial_small(index)), |a, (i, &e)| {
                     a.mul(&powers[i][e as usize])
                 }),
         )
