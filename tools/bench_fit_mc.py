@@ -3,7 +3,7 @@
 (section fit, "Smaller than a mesh?").
 
 Usage: ISM_BIN=target/release/ism python tools/bench_fit_mc.py [--out DIR] [--only NAME,...]
-       [--rel 1e-3] [--timeout SECONDS]
+       [--rel 1e-3] [--timeout SECONDS] [--fit-arg=--no-topology ...]
 
 For every shape: `ism fit` at `rel` x the domain's longest side (the CLI default is 1e-3), CPU
 time of the child process; then the fit's two-sided true error measured here, independently of
@@ -387,9 +387,9 @@ def run(cmd, timeout=None):
     return p, cpu_children() - c0, time.time() - t0
 
 
-def fit_ism(shape, tol, out, timeout):
+def fit_ism(shape, tol, out, timeout, extra=()):
     path = os.path.join(out, shape["key"] + ".ismb")
-    cmd = [ISM, "fit", *shape["fit"], "--tolerance", repr(tol), "-q", "--json", "-o", path]
+    cmd = [ISM, "fit", *shape["fit"], *extra, "--tolerance", repr(tol), "-q", "--json", "-o", path]
     if "--preset" not in shape["fit"] and "--mesh" not in shape["fit"]:
         cmd += ["--domain=" + ",".join(repr(float(x)) for x in shape["domain"])]
     p, cpu, wall = run(cmd, timeout)
@@ -575,6 +575,8 @@ def main():
     ap.add_argument("--rel", type=float, default=1e-3)
     ap.add_argument("--timeout", type=float, default=900)
     ap.add_argument("--max-res", type=int, default=640, help="largest 3D grid (cells per side)")
+    ap.add_argument("--fit-arg", action="append", default=[],
+                    help="extra `ism fit` argument (repeatable), e.g. --fit-arg=--no-topology")
     args = ap.parse_args()
     out = args.out or tempfile.mkdtemp(prefix="ism_mc_")
     os.makedirs(out, exist_ok=True)
@@ -591,7 +593,8 @@ def main():
         longest = max(d[2 * k + 1] - d[2 * k] for k in range(n))
         tol = args.rel * longest
         try:
-            path, report, cpu, wall, pts, nrm = fit_ism(shape, tol, out, args.timeout)
+            path, report, cpu, wall, pts, nrm = fit_ism(shape, tol, out, args.timeout,
+                                                        args.fit_arg)
         except (RuntimeError, subprocess.TimeoutExpired) as e:
             print(f"{key}: fit failed: {e}", file=sys.stderr)
             rows.append(f"| {shape['name']} | {tol:.1e} | fit failed: {str(e)[:120]} |")

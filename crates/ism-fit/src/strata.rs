@@ -154,6 +154,11 @@ impl StratifiedMap {
         softmax(&self.logits(face))
     }
 
+    /// The faces with a stored point and their logits, in no particular order.
+    pub fn entries(&self) -> impl Iterator<Item = (&Vec<u32>, &Vec<f64>)> {
+        self.logits.iter()
+    }
+
     /// Number of faces with a stored point.
     pub fn num_faces(&self) -> usize {
         self.logits.len()
