@@ -300,7 +300,14 @@ pub fn check_stage_with_progress(
                     Message { witness: Some(w), ..Message::new(Rule::JacobianPositive, loc, text) }
                 }
                 Outcome::Undetermined(b) => {
-                    let text = if b.pieces == 0 {
+                    let text = if stage.kind == StageKind::Monotonic {
+                        // Not a question of degree or budget: a monotonic stage has no numeric
+                        // certificate at all, only the theorem (which --no-theorems turns off).
+                        format!(
+                            "monotonic stage: only the theorem \"{}\" certifies it, and theorems are off (--no-theorems); positivity not decided",
+                            theorem::MONOTONIC
+                        )
+                    } else if b.pieces == 0 {
                         format!("degree {} is beyond this validator's numeric certificate; positivity not decided", stage.degree)
                     } else {
                         format!(
