@@ -371,11 +371,95 @@ impl<'a, 'r> BinaryDecoder<'a, 'r> {
         })
     }
 
+    /// The payload bytes already at hand (in memory, or in the stream's window), unconsumed.
+    #[inline]
+    fn at_hand(&self) -> &[u8] {
+        match &self.src {
+            Source::Slice(b) => &b[self.at..],
+            Source::Stream(s) => &s.buf[s.lo..s.hi],
+        }
+    }
+
+    /// Consumes `n` bytes of [`Self::at_hand`].
+    #[inline]
+    fn advance(&mut self, n: usize) {
+        self.at += n;
+        if let Source::Stream(s) = &mut self.src {
+            s.lo += n;
+        }
+    }
+
+    /// One face record read straight from the bytes at hand, when all of it is there: the three
+    /// length-prefixed arrays appended to the table's parts. `false` (nothing consumed, nothing
+    /// appended) when the record is not wholly at hand; then the checked path reads it, with its
+    /// errors. Whole records at hand lie inside the declared payload, so every length check of the
+    /// checked path would pass: the two paths accept the same bytes and decode them alike.
+    #[inline]
+    fn face_record_at_hand(&mut self, table: &mut FaceTable) -> bool {
+        let bytes = self.at_hand();
+        let length = |at: usize| -> Option<usize> {
+            let b = bytes.get(at..at + 8)?;
+            usize::try_from(u64::from_le_bytes(b.try_into().ok()?)).ok()
+        };
+        let Some(nf) = length(0) else { return false };
+        let f_end = match nf.checked_mul(4).and_then(|x| x.checked_add(8)) {
+            Some(e) => e,
+            None => return false,
+        };
+        let Some(np) = length(f_end) else {
+            return false;
+        };
+        let p_end = match np.checked_mul(8).and_then(|x| x.checked_add(f_end + 8)) {
+            Some(e) => e,
+            None => return false,
+        };
+        let Some(nw) = length(p_end) else {
+            return false;
+        };
+        let w_end = match nw.checked_mul(8).and_then(|x| x.checked_add(p_end + 8)) {
+            Some(e) if e <= bytes.len() => e,
+            _ => return false,
+        };
+        let (ids, points, weights) = table.parts_mut();
+        ids.extend(
+            bytes[8..f_end]
+                .chunks_exact(4)
+                .map(|c| u32::from_le_bytes(c.try_into().expect("4 bytes"))),
+        );
+        points.extend(
+            bytes[f_end + 8..p_end]
+                .chunks_exact(8)
+                .map(|c| f64::from_le_bytes(c.try_into().expect("8 bytes"))),
+        );
+        weights.extend(
+            bytes[p_end + 8..w_end]
+                .chunks_exact(8)
+                .map(|c| f64::from_le_bytes(c.try_into().expect("8 bytes"))),
+        );
+        self.advance(w_end);
+        true
+    }
+
     /// A stage's `faces`: straight into the flat table, one pass, nothing allocated per record.
     fn face_table(&mut self) -> Result<FaceTable> {
         let n = self.length(min_size::FACE_RECORD, "faces")?;
         let mut table = FaceTable::with_capacity(self.reserve_hint(n));
         for i in 0..n {
+            if self.face_record_at_hand(&mut table) {
+                if table.close_record().is_ok() {
+                    continue;
+                }
+                // Past the table's capacity: the error the checked path gives at this record.
+                return Err(Error::format(
+                    Rule::LimitExceeded,
+                    Location {
+                        pointer: Some(format!("{}/{i}", pointer_of(&self.path))),
+                        offset: Some(self.base + self.at as u64),
+                        ..Location::default()
+                    },
+                    crate::faces::TableFull.to_string(),
+                ));
+            }
             self.path.push(Seg::Index(i));
             let (ids, points, weights) = table.parts_mut();
             self.member("face", |d| d.u32s_into(ids, "face"))?;

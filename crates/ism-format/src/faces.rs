@@ -164,6 +164,15 @@ impl FaceTable {
             .unwrap_or_else(|| panic!("face record {r} out of range: the table has {}", self.len()))
     }
 
+    /// Record `r`'s face ids alone (what face lookups need: no point or weight ranges).
+    ///
+    /// # Panics
+    /// If `r ≥ len()`.
+    #[inline]
+    pub fn face(&self, r: usize) -> &[u32] {
+        &self.ids[self.face_offsets[r] as usize..self.face_offsets[r + 1] as usize]
+    }
+
     /// Record `r` with its numbers writable, or `None` past the end.
     pub fn get_mut(&mut self, r: usize) -> Option<FaceMut<'_>> {
         let [f, p, w] = self.ranges(r)?;
@@ -496,6 +505,7 @@ mod tests {
         for (r, rec) in recs.iter().enumerate() {
             let view = table.record(r);
             assert_eq!(view.face, rec.face.as_slice());
+            assert_eq!(table.face(r), rec.face.as_slice());
             assert_eq!(view.points, rec.points.as_slice());
             assert_eq!(view.weights, rec.weights.as_slice());
         }

@@ -422,13 +422,16 @@ fn check_stages(model: &Model, topology: &Topology, c: &mut Collector) -> Record
     let n = model.dim();
     let nv = model.num_vertices();
     let mut record_faces = Vec::with_capacity(model.stages.len());
+    // The first record of each face, per dimension: allocated once for all stages (and reset
+    // record by record after each), not paged in afresh per stage.
+    let mut first_record: Vec<Vec<u32>> = Vec::new();
     for (k, stage) in model.stages.iter().enumerate() {
         // Face lookups are the costly part: in parallel, once, kept for the stage tables.
         let found: Vec<u32> = (0..stage.faces.len())
             .into_par_iter()
             .map(|r| {
                 topology
-                    .find(model, stage.faces.record(r).face)
+                    .find(model, stage.faces.face(r))
                     .map_or(NONE, |f| f.index)
             })
             .collect();
@@ -506,13 +509,15 @@ fn check_stages(model: &Model, topology: &Topology, c: &mut Collector) -> Record
                 }
                 // Duplicates by face id: the first record of each face, in one pass (plain
                 // stores, cheaper than sharing the table between threads).
-                let mut first_record: Vec<Vec<u32>> = (0..=n)
-                    .map(|k| vec![NONE; topology.face_slots(k)])
-                    .collect();
+                if first_record.is_empty() && !found.is_empty() {
+                    first_record = (0..=n)
+                        .map(|k| vec![NONE; topology.face_slots(k)])
+                        .collect();
+                }
                 let mut repeats: Vec<(usize, usize)> = Vec::new();
                 for (r, &id) in found.iter().enumerate() {
                     if id != NONE {
-                        let dim = stage.faces.record(r).face.len() - 1;
+                        let dim = stage.faces.face(r).len() - 1;
                         let slot = &mut first_record[dim][id as usize];
                         if *slot == NONE {
                             *slot = r as u32;
@@ -521,7 +526,11 @@ fn check_stages(model: &Model, topology: &Topology, c: &mut Collector) -> Record
                         }
                     }
                 }
-                drop(first_record);
+                for (r, &id) in found.iter().enumerate() {
+                    if id != NONE {
+                        first_record[stage.faces.face(r).len() - 1][id as usize] = NONE;
+                    }
+                }
                 // The per-record rules in parallel; only the records breaking one are visited
                 // below, in order, to format exactly what a visit of every record would.
                 let rational = stage.kind == StageKind::Rational;
