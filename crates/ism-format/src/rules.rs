@@ -86,7 +86,7 @@ rules! {
     MonotonicIncreasing = "ISM-204", Error, "A vertex map starts at 0 and is strictly increasing";
     // Positivity (spec §6.3).
     JacobianPositive = "ISM-301", Error, "det DX > 0 on every closed top simplex, for every stage";
-    Undetermined = "ISM-302", Error, "The positivity of det DX is decided within the subdivision depth";
+    Undetermined = "ISM-302", Error, "The positivity of det DX is decided within the piece budget";
     // Quality (spec §6.4), reported with --quality.
     NormalJump = "ISM-401", Warning, "The normal of the shape jumps across an interior facet";
     RationalC1 = "ISM-402", Warning, "A rational stage's weights meet the C¹ condition at an interior facet";
