@@ -1,0 +1,264 @@
+"""Peer benchmark of `ism export` (the curved surface as triangles): scikit-image `marching_cubes`
+on a grid of the analytic implicit function of the same shape, at equal true error, in one run.
+
+For each model and chordal tolerance T:
+  1. `ism export MODEL out.glb --tolerance T -j 1 -q --json` (best of 3, CPU time of the child from
+     `resource.getrusage`; the whole command: read, extract, write, topology summary).
+  2. The export's **true two-sided** error, measured here and not by the exporter: mesh → surface
+     at every vertex, edge midpoint, centroid and the three points halfway between the centroid and
+     the corners (distance to the model's own surface, below), and surface → mesh from `--samples`
+     points of `ism sample --surface` (exactly on the surface) to the mesh (exact point–triangle
+     distance, `bench_export_error.surface_to_mesh`); the larger of the two.
+  3. scikit-image `marching_cubes` at level c over the model's box, the grid refined by the error's
+     h² law until its true error, measured the same way, is at most the export's (the smallest
+     such grid is kept; its error is two-sided the same way, with points exactly on the shape it
+     approximates: the model's samples, or uniform-by-area points of the analytic shape). SHAPE
+     `model`: the grid holds the model's own F (from
+     `ism query`), so both meshes approximate the same surface and are measured against it —
+     the issue's "marching cubes on a grid of the same implicit function". SHAPE sphere:R or
+     torus:R:r: the grid holds that analytic g and the error is the exact distance to it (for
+     fitted models, whose surface is within the fit tolerance of the analytic shape).
+     CPU time: marching cubes itself (`time.process_time`, best of 3); the grid's evaluation is
+     printed apart (numpy for analytic g; `ism query`'s CPU for F, which locates every grid point
+     in the complex and is not a grid evaluator).
+Prints triangles and CPU time of both and the ratios.
+
+Distances to the model's surface: from each probe point three Newton steps along ∇F
+(`p ← p − (F − c) ∇F / |∇F|²`, F and ∇F from `ism query`, a direct evaluation of F with no
+inversion or refinement); the displacement to the point reached (|F − c| < 1e-15 there) is an
+upper bound of the distance, within ~2 % of the first-order |F − c| / |∇F| at these distances.
+
+Usage: ISM_BIN=target/release/ism .venv/bin/python tools/bench_export_mc.py
+         [--case NAME:MODEL[:SHAPE] ...] [--tolerance T ...]
+  Needs numpy, scikit-image, trimesh (tools/requirements.txt).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import trimesh
+from skimage.measure import marching_cubes
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_export_error import surface_to_mesh  # noqa: E402  (exact point-to-mesh distance)
+
+ROOT = Path(__file__).resolve().parents[1]
+EXAMPLES = ROOT / "spec" / "examples"
+
+# Fitted presets (`ism fit --preset sphere --resolution 6 --tolerance 4e-3 -o fsphere.ismb`,
+# `ism fit --preset torus --tolerance 2e-3 -o ftorus.ismb`): their surfaces are within the fit
+# tolerance of the analytic shapes and smooth like them. The spec examples are not: their surfaces
+# meet the analytic sphere/torus only along the crossed edges (the sphere example's vertices are up
+# to 3.6e-2 off |p| = 0.7), so they are flatter between and need fewer triangles than the analytic
+# shape; and marching cubes on their own F converges only like O(h) (F is steep and only C⁰ across
+# simplices: grid 32 → 145 took the error from 2.0e-2 to 3.9e-3), so SHAPE `model` on them asks
+# for grids of 10⁸ points.
+DEFAULT_CASES = [
+    "fitted-sphere:fsphere.ismb:sphere:0.6",
+    "fitted-torus:ftorus.ismb:torus:0.6:0.25",
+]
+
+
+def child_cpu() -> float:
+    r = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return r.ru_utime + r.ru_stime
+
+
+def probe_points(v: np.ndarray, f: np.ndarray) -> np.ndarray:
+    """Vertices, edge midpoints, centroids and centroid–corner midpoints of a triangle mesh."""
+    a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
+    g = (a + b + c) / 3.0
+    return np.concatenate([v, (a + b) / 2, (b + c) / 2, (c + a) / 2, g, (g + a) / 2, (g + b) / 2, (g + c) / 2])
+
+
+class Shape:
+    def __init__(self, spec: list[str]):
+        self.kind = spec[0]
+        self.p = [float(x) for x in spec[1:]]
+
+    def g(self, x, y, z):
+        if self.kind == "sphere":
+            return x * x + y * y + z * z - self.p[0] ** 2
+        ring = np.sqrt(x * x + y * y) - self.p[0]
+        return ring * ring + z * z - self.p[1] ** 2
+
+    def samples(self, n: int) -> np.ndarray:
+        """n points uniform by area on the analytic surface (exactly on it, to rounding)."""
+        rng = np.random.default_rng(1)
+        if self.kind == "sphere":
+            x = rng.normal(size=(n, 3))
+            return self.p[0] * x / np.linalg.norm(x, axis=1)[:, None]
+        big, small = self.p
+        out = []
+        while sum(len(o) for o in out) < n:
+            th, ph = rng.uniform(0, 2 * np.pi, size=(2, 2 * n))
+            keep = rng.uniform(size=2 * n) < (big + small * np.cos(ph)) / (big + small)
+            th, ph = th[keep], ph[keep]
+            ring = big + small * np.cos(ph)
+            out.append(np.stack([ring * np.cos(th), ring * np.sin(th), small * np.sin(ph)], axis=1))
+        return np.concatenate(out)[:n]
+
+    def distance(self, q: np.ndarray) -> np.ndarray:
+        if self.kind == "sphere":
+            return np.abs(np.linalg.norm(q, axis=1) - self.p[0])
+        ring = np.sqrt(q[:, 0] ** 2 + q[:, 1] ** 2) - self.p[0]
+        return np.abs(np.sqrt(ring * ring + q[:, 2] ** 2) - self.p[1])
+
+
+def ism_export(ism: str, model: str, tol: float, out: Path) -> tuple[float, dict]:
+    best = float("inf")
+    summary = {}
+    for _ in range(3):
+        before = child_cpu()
+        r = subprocess.run(
+            [ism, "export", model, str(out), "--tolerance", str(tol), "-j", "1", "-q", "--json"],
+            check=True,
+            capture_output=True,
+            text=True,
+            env=dict(os.environ, RAYON_NUM_THREADS="1"),
+        )
+        best = min(best, child_cpu() - before)
+        summary = json.loads(r.stdout)
+    return best, summary
+
+
+def query(ism: str, model: str, pts: np.ndarray, tmp: Path) -> tuple[np.ndarray, np.ndarray, float]:
+    """F, ∇F at `pts` from `ism query`, and the child's CPU seconds."""
+    src, dst = tmp / "probe.npy", tmp / "probe-out.npy"
+    np.save(src, pts)
+    before = child_cpu()
+    subprocess.run([ism, "query", model, str(src), "-o", str(dst), "-q", "-j", "1"], check=True)
+    cpu = child_cpu() - before
+    out = np.load(dst)
+    return out["f"], np.stack([out["gx"], out["gy"], out["gz"]], axis=1), cpu
+
+
+def model_distance(ism: str, model: str, level: float, pts: np.ndarray, tmp: Path) -> float:
+    """Largest distance from `pts` to the model's surface (module doc: Newton along ∇F)."""
+    q = pts.copy()
+    for _ in range(3):
+        f, g, _ = query(ism, model, q, tmp)
+        if not (np.all(np.isfinite(f)) and np.all(np.isfinite(g))):
+            raise SystemExit(f"{model}: a probe point left the complex")
+        q -= ((f - level) / np.einsum("ij,ij->i", g, g))[:, None] * g
+    return float(np.linalg.norm(q - pts, axis=1).max())
+
+
+class Grid:
+    """The sampled function on a grid with `cells` cells along the box's longest side."""
+
+    def __init__(self, box: list[list[float]], cells: int):
+        self.lo = np.array([b[0] for b in box], dtype=np.float64)
+        hi = np.array([b[1] for b in box], dtype=np.float64)
+        self.h = float((hi - self.lo).max() / cells)
+        counts = [int(round((hi[k] - self.lo[k]) / self.h)) + 1 for k in range(3)]
+        self.axes = [self.lo[k] + self.h * np.arange(counts[k]) for k in range(3)]
+
+
+def mc(grid: Grid, vol: np.ndarray, level: float):
+    """Marching cubes (best CPU of 3): vertices in model coordinates, faces, CPU seconds."""
+    best = float("inf")
+    for _ in range(3):
+        t = time.process_time()
+        v, f, _, _ = marching_cubes(vol, level, spacing=(grid.h,) * 3)
+        best = min(best, time.process_time() - t)
+    return v + grid.lo, f, best
+
+
+def sample(shape, ism, model, grid: Grid, tmp: Path) -> tuple[np.ndarray, float]:
+    """The grid's values and the CPU seconds of computing them."""
+    if shape is None:
+        x, y, z = np.meshgrid(*grid.axes, indexing="ij")
+        pts = np.stack([x.ravel(), y.ravel(), z.ravel()], axis=1)
+        del x, y, z
+        f, _, cpu = query(ism, model, pts, tmp)
+        if not np.all(np.isfinite(f)):
+            raise SystemExit(f"{model}: a grid point is outside the complex")
+        return f.reshape([len(a) for a in grid.axes]), cpu
+    t = time.process_time()
+    x, y, z = np.meshgrid(*grid.axes, indexing="ij")
+    vol = shape.g(x, y, z)
+    return vol, time.process_time() - t
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--case", action="append", help="NAME:MODEL:SHAPE (see the docstring)")
+    ap.add_argument("--tolerance", action="append", type=float)
+    ap.add_argument("--samples", type=int, default=50_000, help="surface points for the O → mesh half")
+    args = ap.parse_args()
+    ism = os.environ.get("ISM_BIN", str(ROOT / "target" / "release" / "ism"))
+    cases = args.case or DEFAULT_CASES
+    tolerances = args.tolerance or [1e-3, 1e-4]
+    print(f"ism: {ism}; load average {os.getloadavg()}")
+    print(
+        "| model | tolerance | ISM triangles | ISM true error | ISM CPU s (whole export) | MC grid | MC triangles | MC true error "
+        "| MC CPU s (marching cubes) | grid values CPU s | triangles ISM/MC | CPU ISM/MC |"
+    )
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        for case in cases:
+            name, model, *shape_spec = case.split(":")
+            shape = None if shape_spec in ([], ["model"]) else Shape(shape_spec)
+            info = json.loads(subprocess.run([ism, "info", model, "--json"], check=True, capture_output=True, text=True).stdout)
+            level = float(info["level"])
+            box = info["bounding_box"]
+            # Exact points of the model's surface for the O → mesh half of the error.
+            subprocess.run([ism, "sample", model, "--surface", str(args.samples), "--seed", "1", "-o", str(tmp / "s.npy"), "-q"], check=True)
+            sa = np.load(tmp / "s.npy")
+            on_model = np.stack([sa["x"], sa["y"], sa["z"]], axis=1)
+            on_shape = shape.samples(args.samples) if shape else on_model
+            for tol in tolerances:
+                out = tmp / "out.glb"
+                cpu, summary = ism_export(ism, model, tol, out)
+                mesh = trimesh.load(str(out), force="mesh", process=False)
+                pts = probe_points(np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces))
+                vm, fm = np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces)
+                err = max(model_distance(ism, model, level, pts, tmp), float(surface_to_mesh(on_model, vm, fm, 16).max()))
+                cells = 32
+                tried = {}
+                for _ in range(12):
+                    grid = Grid(box, cells)
+                    vol, grid_cpu = sample(shape, ism, model, grid, tmp)
+                    v, f, mc_cpu = mc(grid, vol, 0.0 if shape else level)
+                    del vol
+                    probes = probe_points(v, f)
+                    mc_err = float(shape.distance(probes).max()) if shape else model_distance(ism, model, level, probes, tmp)
+                    mc_err = max(mc_err, float(surface_to_mesh(on_shape, v, f, 16).max()))
+                    tried[cells] = (len(f), mc_cpu, mc_err, grid_cpu)
+                    print(f"  grid {cells}: {len(f):,} triangles, error {mc_err:.3e} (target {err:.3e}), grid values {grid_cpu:.2f} CPU-s", file=sys.stderr, flush=True)
+                    if mc_err <= err and (cells - 1) in tried and tried[cells - 1][2] > err:
+                        break
+                    # Error ∝ h²: aim at the target, then walk by one cell to the smallest grid meeting it.
+                    nxt = max(4, int(np.ceil(cells * np.sqrt(mc_err / err))))
+                    if nxt == cells or nxt in tried:
+                        nxt = cells + 1 if mc_err > err else cells - 1
+                    if nxt in tried:
+                        break
+                    cells = nxt
+                ok = [c for c, t in tried.items() if t[2] <= err]
+                if not ok:
+                    print(f"| {name} | {tol:g} | no grid tried met {err:.3e}: {tried} |")
+                    continue
+                cells = min(ok)
+                n_mc, mc_cpu, mc_err, grid_cpu = tried[cells]
+                print(
+                    f"| {name} | {tol:g} | {summary['cells']:,} | {err:.3e} | {cpu:.3f} | {cells} | {n_mc:,} | {mc_err:.3e} "
+                    f"| {mc_cpu:.3f} | {grid_cpu:.2f} | {summary['cells'] / n_mc:.2f} | {cpu / mc_cpu:.2f} |",
+                    flush=True,
+                )
+
+
+if __name__ == "__main__":
+    main()
