@@ -533,37 +533,34 @@ fn extract_curve(
                 piece: &mut LocalPiece,
                 c: &mut Counters,
             ) -> Result<()> {
+                if options.max_depth == 0 {
+                    return Ok(());
+                }
                 let um = lerp(&a.0, &b.0, 0.5);
-                if depth < options.max_depth {
-                    let split = test_edge(
-                        eval,
-                        s,
-                        (&a.0, &a.1),
-                        (&b.0, &b.1),
-                        &um,
-                        EDGE_FRACTION * options.tolerance,
-                        c,
-                    )?;
-                    if let Some(pm) = split {
+                let split = test_edge(
+                    eval,
+                    s,
+                    (&a.0, &a.1),
+                    (&b.0, &b.1),
+                    &um,
+                    EDGE_FRACTION * options.tolerance,
+                    c,
+                )?;
+                match split {
+                    Some(pm) if depth < options.max_depth => {
                         go(eval, s, a, (um, pm), depth + 1, options, piece, c)?;
                         let k = piece.keys.len() as u32;
                         piece.keys.push(VertexKey::Interior(s as u32, k));
                         piece.points.push(pm);
-                        return go(eval, s, (um, pm), b, depth + 1, options, piece, c);
+                        go(eval, s, (um, pm), b, depth + 1, options, piece, c)
                     }
-                } else if options.max_depth > 0 {
-                    let split = test_edge(
-                        eval,
-                        s,
-                        (&a.0, &a.1),
-                        (&b.0, &b.1),
-                        &um,
-                        EDGE_FRACTION * options.tolerance,
-                        c,
-                    )?;
-                    c.depth_limited += u64::from(split.is_some());
+                    // At the depth limit the edge is still tested, to count what the limit left.
+                    Some(_) => {
+                        c.depth_limited += 1;
+                        Ok(())
+                    }
+                    None => Ok(()),
                 }
-                Ok(())
             }
             go(
                 eval,
