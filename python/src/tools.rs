@@ -350,11 +350,16 @@ impl Model {
         })?;
         let options = export_options(tolerance, max_depth, linear, volume, Some(format))?;
         let model = self.inner.clone();
-        let out = path.clone();
-        let (built, format) = run(py, threads, progress.map(|p| (p, 0)), move |control| {
-            ism_export::export::export_path(&model, &out, &options, &control.hook())
+        let name = self.inner.metadata.name.clone();
+        // Built on the worker, written here once `run` has returned: a progress callback that
+        // raises (or Ctrl-C) while the worker finishes still means no file, which writing on
+        // the worker could not promise (the worker may finish before the callback has run).
+        let built = run(py, threads, progress.map(|p| (p, 0)), move |control| {
+            ism_export::export::build(&model, &options, &control.hook())
         })?
         .map_err(|e| export_error(py, &e))?;
+        py.allow_threads(|| ism_export::export::write_path(&built, format, name.as_deref(), &path))
+            .map_err(|e| export_error(py, &e))?;
         json_dict(py, &built.summary(&path, format))
     }
 

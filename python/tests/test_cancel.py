@@ -108,6 +108,9 @@ def test_ctrl_c_stops_a_validation_and_its_worker():
     # thread is left.
     child = f"""
 import os, signal, sys, threading
+# A process started in the background by a non-interactive shell inherits SIGINT ignored, and
+# Python then installs no KeyboardInterrupt handler: install it, as an interactive session has it.
+signal.signal(signal.SIGINT, signal.default_int_handler)
 sys.path.insert(0, {str(pathlib.Path(__file__).parent)!r})
 import ism
 from test_cancel import worker_threads

@@ -243,6 +243,8 @@ def test_ctrl_c_interrupts_a_long_call():
 
     child = f"""
 import os, signal, threading, time
+# As in test_cancel: a background launch inherits SIGINT ignored; install Python's handler.
+signal.signal(signal.SIGINT, signal.default_int_handler)
 import ism
 m = ism.read({str(EXAMPLES / "sphere.ismb")!r})
 m.sample_surface(10, 1)  # the surface table is built before the clock starts

@@ -267,15 +267,30 @@ pub fn export_path(
     })?;
     check(options, Some(format))?;
     let built = build(model, options, progress)?;
-    let name = model.metadata.name.as_deref();
+    write_path(&built, format, model.metadata.name.as_deref(), path)?;
+    Ok((built, format))
+}
+
+/// Writes `built` to `path` as `format` (the glTF scene named `name`), atomically: a temporary
+/// file renamed into place, so a failed write leaves no file. The second half of
+/// [`export_path`], for callers that decide between building and writing whether to write at all
+/// (the Python package writes only once no progress callback can cancel the call any more).
+///
+/// # Errors
+/// [`Error::Io`] naming `path` when writing fails.
+pub fn write_path(
+    built: &Exported,
+    format: ExportFormat,
+    name: Option<&str>,
+    path: &Path,
+) -> Result<()> {
     ism_format::io::write_atomic(path, |w| {
         built.write(format, name, w).map_err(std::io::Error::other)
     })
     .map_err(|source| Error::Io {
         path: Some(path.to_path_buf()),
         source,
-    })?;
-    Ok((built, format))
+    })
 }
 
 /// The members of a surface export's summary (`ism export --json`, and the report of the Python
