@@ -37,6 +37,23 @@ impl Dsu {
     }
 }
 
+/// The message for a star of `r` simplices around a `k`-vertex face whose facet-adjacency
+/// components (`dsu`, over the star's local indices) are more than one: the star is then joined
+/// only at the face. `roots` is scratch space, reused across stars.
+fn split_star(dsu: &mut Dsu, roots: &mut Vec<u32>, r: usize, k: usize) -> Option<String> {
+    roots.clear();
+    roots.extend((0..r as u32).map(|i| dsu.find(i)));
+    roots.sort_unstable();
+    roots.dedup();
+    (roots.len() > 1).then(|| {
+        format!(
+            "its star falls into {} parts joined only at this {}",
+            roots.len(),
+            if k == 1 { "vertex" } else { "edge" }
+        )
+    })
+}
+
 /// Sorted `(key, simplex)` pairs of the `k`-vertex faces of every simplex (built and sorted on every
 /// core: on a million tetrahedra these lists hold millions of entries).
 fn faces_of_size(model: &Model, k: usize) -> Vec<([u32; 4], u32)> {
@@ -148,16 +165,8 @@ fn star_defect(
         }
         i = j;
     }
-    roots.clear();
-    roots.extend((0..r as u32).map(|i| dsu.find(i)));
-    roots.sort_unstable();
-    roots.dedup();
-    if roots.len() > 1 {
-        return Some(format!(
-            "its star falls into {} parts joined only at this {}",
-            roots.len(),
-            if k == 1 { "vertex" } else { "edge" }
-        ));
+    if let Some(message) = split_star(dsu, roots, r, k) {
+        return Some(message);
     }
     if k == 1 && n == 3 {
         // Euler characteristic of the link: vertices − edges + triangles of the link, i.e. the
@@ -279,16 +288,8 @@ fn star_defect_indexed(
             }
         }
     }
-    roots.clear();
-    roots.extend((0..r as u32).map(|i| dsu.find(i)));
-    roots.sort_unstable();
-    roots.dedup();
-    if roots.len() > 1 {
-        return Some(format!(
-            "its star falls into {} parts joined only at this {}",
-            roots.len(),
-            if k == 1 { "vertex" } else { "edge" }
-        ));
+    if let Some(message) = split_star(dsu, roots, r, k) {
+        return Some(message);
     }
     if k == 1 && n == 3 {
         // Euler characteristic of the link: its vertices (the star's edges through the vertex),
