@@ -1639,6 +1639,7 @@ pub(crate) fn longest_edge(corners: &[[f64; 4]; 4], m: usize) -> (usize, usize) 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::test_support::{exact_bernstein, vertices_and_dyadic_points};
 
     /// The degree-4 1-D net of Mello & Velho 2009 Fig. 2 with the interior points at positions `t` (second
     /// coordinate) in canonical order `31, 22, 13`.
@@ -1734,33 +1735,6 @@ mod tests {
         }
     }
 
-    /// `Σ c_K B_K(w)` in exact rationals.
-    fn exact_bernstein(
-        m: usize,
-        degree: u32,
-        coefficients: &[f64],
-        w: &[num_rational::BigRational],
-    ) -> num_rational::BigRational {
-        use num_rational::BigRational;
-        use num_traits::Zero;
-        let fact = |k: u32| (1..=k).fold(1u128, |a, x| a * u128::from(x));
-        multi_index::all(m, degree)
-            .chunks(m)
-            .zip(coefficients)
-            .map(|(k, &c)| {
-                let mult = fact(degree) / k.iter().map(|&e| fact(e)).product::<u128>();
-                let mut term = crate::exact::rational(c).unwrap()
-                    * BigRational::from_integer(num_bigint::BigInt::from(mult));
-                for (wc, &e) in w.iter().zip(k) {
-                    for _ in 0..e {
-                        term *= wc;
-                    }
-                }
-                term
-            })
-            .fold(BigRational::zero(), |a, t| a + t)
-    }
-
     /// The floating-point coefficients of polynomial nets against exact arithmetic: at every
     /// vertex and at random dyadic points, `|Σ c_K B_K(w) − exact(w)| ≤ Σ err_K B_K(w)`, the exact
     /// value from [`crate::exact::jacobian_at`] (a pointwise evaluation of the stored map, not these
@@ -1793,18 +1767,7 @@ mod tests {
                     }
                     let c = kernel.det_coefficients(&net);
                     let dd = kernel.det_degree();
-                    let mut points: Vec<Vec<f64>> = (0..m)
-                        .map(|i| (0..m).map(|j| f64::from(u8::from(i == j))).collect())
-                        .collect();
-                    for _ in 0..4 {
-                        let raw: Vec<u32> = (0..m).map(|_| rng.random_range(0..1024)).collect();
-                        let total = raw.iter().sum::<u32>().max(1);
-                        let mut w: Vec<u32> = raw.iter().map(|&x| x * 1024 / total).collect();
-                        let rest: u32 = w[1..].iter().sum();
-                        w[0] = 1024 - rest.min(1024);
-                        points.push(w.iter().map(|&x| f64::from(x) / 1024.0).collect());
-                    }
-                    for w in &points {
+                    for w in &vertices_and_dyadic_points(&mut rng, m, 4) {
                         let (det, _) = crate::exact::jacobian_at(&net, w).expect("inside");
                         let exact_w: Vec<_> = w.iter().map(|&x| q(x)).collect();
                         let value = exact_bernstein(m, dd, &c.values, &exact_w);

@@ -55,6 +55,9 @@ pub mod theorem;
 pub mod topology;
 pub mod twofold;
 
+#[cfg(test)]
+mod test_support;
+
 use std::path::Path;
 use std::time::Instant;
 

@@ -272,38 +272,13 @@ impl DetKernel {
 mod tests {
     use super::*;
     use crate::certify::DetKernel;
-    use ism_format::multi_index;
-    use num_bigint::BigInt;
+    use crate::test_support::{exact_bernstein, vertices_and_dyadic_points};
     use num_rational::BigRational;
-    use num_traits::{One, Signed, Zero};
+    use num_traits::Signed;
     use rand::{Rng, SeedableRng};
 
     fn exact(x: f64) -> BigRational {
         crate::exact::rational(x).expect("finite")
-    }
-
-    /// `Σ c_K B_K(w)` in exact rationals, for barycentric `w`.
-    fn bernstein_sum(
-        m: usize,
-        degree: u32,
-        coefficients: &[f64],
-        w: &[BigRational],
-    ) -> BigRational {
-        let fact = |k: u32| (1..=k).fold(BigInt::one(), |a, x| a * x);
-        multi_index::all(m, degree)
-            .chunks(m)
-            .zip(coefficients)
-            .map(|(k, &c)| {
-                let mut term = BigRational::from_integer(fact(degree)) * exact(c);
-                for (wc, &e) in w.iter().zip(k) {
-                    term /= BigRational::from_integer(fact(e));
-                    for _ in 0..e {
-                        term *= wc;
-                    }
-                }
-                term
-            })
-            .fold(BigRational::zero(), |a, t| a + t)
     }
 
     /// Nets near the identity moved by up to `amplitude` (vertices too, so corners are not trivial),
@@ -356,27 +331,11 @@ mod tests {
                                 "n={n} d={d}: {e} for {v} vs {worst_loose}"
                             );
                         }
-                        let mut points: Vec<Vec<f64>> = (0..m)
-                            .map(|i| (0..m).map(|c| f64::from(u8::from(c == i))).collect())
-                            .collect();
-                        for _ in 0..4 {
-                            // Dyadic barycentric points: multiples of 2^-10 summing to 1.
-                            let mut w: Vec<u32> =
-                                (0..m).map(|_| rng.random_range(0..1024)).collect();
-                            let total: u32 = w.iter().sum::<u32>().max(1);
-                            let mut acc = 0;
-                            for x in w.iter_mut().skip(1) {
-                                *x = *x * 1024 / total;
-                                acc += *x;
-                            }
-                            w[0] = 1024 - acc.min(1024);
-                            points.push(w.iter().map(|&x| f64::from(x) / 1024.0).collect());
-                        }
-                        for w in &points {
+                        for w in &vertices_and_dyadic_points(&mut rng, m, 4) {
                             let (det, _) = crate::exact::jacobian_at(&net, w).expect("inside");
                             let exact_w: Vec<BigRational> = w.iter().map(|&x| exact(x)).collect();
-                            let value = bernstein_sum(m, dd, &tight.values, &exact_w);
-                            let bound = bernstein_sum(m, dd, &tight.errors, &exact_w);
+                            let value = exact_bernstein(m, dd, &tight.values, &exact_w);
+                            let bound = exact_bernstein(m, dd, &tight.errors, &exact_w);
                             assert!(
                                 (value.clone() - det.clone()).abs() <= bound,
                                 "n={n} d={d} rational={rational} at {w:?}: {} vs {}",
