@@ -20,6 +20,14 @@
 //! stages with uneven parameter speed, like the examples' monotonic stages, refine 4–8× more
 //! than the geometry needs).
 //!
+//! **Interiors.** Edges alone do not bound a triangle: a stage can bend the shape inside a
+//! tetrahedron and not on its facets (a degree-4 point inside it), and a fitted model's surface is
+//! not locally quadratic at the patch scale (on the fitted torus preset triangles whose edges were
+//! within 0.69 × the tolerance had centroids 1.09 × it away). So every triangle none of whose edges
+//! splits also maps its parameter centroid and, when that point is farther than the same ¾ of the
+//! tolerance from the triangle's plane, is split into three at it. The new edges are private to the
+//! simplex and the old ones keep their decisions, so welding is unaffected.
+//!
 //! **Topology.** Each patch is triangulated as a disc (or a segment in 2D) whose boundary is shared
 //! with its neighbours, and `X` is a face-preserving homeomorphism, so the result has the
 //! components and Euler characteristic of the linear isocomplex, and is closed where it is closed.
@@ -313,6 +321,51 @@ fn start_between(
             w
         }
         _ => lerp(&a.w, &b.w, t),
+    }
+}
+
+/// Start for inverting at `u` inside the triangle of solved points `pts` (at `us`): the mean of
+/// the corners' first-order Taylor predictions, or of their preimages when a `DX⁻¹` is missing.
+fn start_inside(n: usize, u: &Bary, us: &[Bary; 3], pts: &[SurfacePoint; 3]) -> Bary {
+    let mut w = [0.0; MAX_VARS];
+    for (ui, pi) in us.iter().zip(pts) {
+        let mut du = [0.0; MAX_VARS];
+        for k in 0..MAX_VARS {
+            du[k] = u[k] - ui[k];
+        }
+        let step = preimage_step(n, pi, &du).unwrap_or([0.0; MAX_VARS]);
+        for k in 0..MAX_VARS {
+            w[k] += (pi.w[k] + step[k]) / 3.0;
+        }
+    }
+    w
+}
+
+/// Distance from `p` to the plane through `a`, `b`, `c` (to the line through the farthest pair
+/// when the three are collinear): how far the flat triangle misses a point of the surface above
+/// it, without the in-plane offset (which only reflects how the parameter runs, as for edges).
+fn plane_error(a: [f64; 3], b: [f64; 3], c: [f64; 3], p: [f64; 3]) -> f64 {
+    let d1 = [b[0] - a[0], b[1] - a[1], b[2] - a[2]];
+    let d2 = [c[0] - a[0], c[1] - a[1], c[2] - a[2]];
+    let nrm = [
+        d1[1] * d2[2] - d1[2] * d2[1],
+        d1[2] * d2[0] - d1[0] * d2[2],
+        d1[0] * d2[1] - d1[1] * d2[0],
+    ];
+    let len = norm(nrm);
+    if len > 0.0 && len.is_finite() {
+        let v = [p[0] - a[0], p[1] - a[1], p[2] - a[2]];
+        (v[0] * nrm[0] + v[1] * nrm[1] + v[2] * nrm[2]).abs() / len
+    } else {
+        let d3 = [c[0] - b[0], c[1] - b[1], c[2] - b[2]];
+        let (l1, l2, l3) = (norm(d1), norm(d2), norm(d3));
+        if l1 >= l2 && l1 >= l3 {
+            chord_error(a, b, p)
+        } else if l2 >= l3 {
+            chord_error(a, c, p)
+        } else {
+            chord_error(b, c, p)
+        }
     }
 }
 
@@ -722,6 +775,35 @@ impl SurfaceBuilder<'_> {
         }
     }
 
+    /// The interior test of a triangle none of whose edges is split: the mapped point at the
+    /// parameter centroid, measured perpendicular to the triangle's plane against
+    /// [`EDGE_FRACTION`] of the tolerance (module doc). Returns the new centroid vertex when the
+    /// triangle must be split there (and refinement is still allowed: up to `2 · max_depth`
+    /// levels).
+    fn interior_split(&mut self, v: [u32; 3], depth: u32) -> Result<Option<u32>> {
+        if self.options.max_depth == 0 {
+            return Ok(None);
+        }
+        let n = self.eval.dim();
+        let us = v.map(|i| self.us[i as usize]);
+        let pts = v.map(|i| self.piece.points[i as usize]);
+        let mut uc = [0.0; MAX_VARS];
+        for k in 0..MAX_VARS {
+            uc[k] = (us[0][k] + us[1][k] + us[2][k]) / 3.0;
+        }
+        let guess = start_inside(n, &uc, &us, &pts);
+        let q = surface_point(self.eval, self.s, &uc, Some(&guess), &mut self.counters)?;
+        let off = plane_error(pts[0].p, pts[1].p, pts[2].p, q.p);
+        if off <= EDGE_FRACTION * self.options.tolerance {
+            return Ok(None);
+        }
+        if depth >= 2 * self.options.max_depth {
+            self.counters.depth_limited += 1;
+            return Ok(None);
+        }
+        Ok(Some(self.interior_vertex(uc, q)))
+    }
+
     /// Refines triangle `v` (edges `e[k]` from `v[k]` to `v[k+1]`), emitting the leaves.
     fn refine(&mut self, v: [u32; 3], e: [EdgeRef; 3], depth: u32) -> Result<()> {
         if depth >= SAFETY_DEPTH {
@@ -735,10 +817,19 @@ impl SurfaceBuilder<'_> {
         let new = EdgeRef::Interior { level: depth + 1 };
         let count = mids.iter().filter(|m| m.is_some()).count();
         match count {
-            0 => {
-                self.piece.cells.extend_from_slice(&v);
-                Ok(())
-            }
+            0 => match self.interior_split(v, depth)? {
+                // A bump inside the triangle that none of its edges shows: split at the centroid.
+                // The old edges keep their (no-split) decisions, so no neighbour is affected.
+                Some(m) => {
+                    self.refine([v[0], v[1], m], [e[0], new, new], depth + 1)?;
+                    self.refine([v[1], v[2], m], [e[1], new, new], depth + 1)?;
+                    self.refine([v[2], v[0], m], [e[2], new, new], depth + 1)
+                }
+                None => {
+                    self.piece.cells.extend_from_slice(&v);
+                    Ok(())
+                }
+            },
             3 => {
                 let [m0, m1, m2] = [mids[0].unwrap(), mids[1].unwrap(), mids[2].unwrap()];
                 let (e0a, e0b) = Self::halves(e[0], depth);
