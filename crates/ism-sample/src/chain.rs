@@ -93,7 +93,9 @@ struct Restricted {
 }
 
 impl Restricted {
-    fn new(polys: &Polys, values: Option<(&[f64], f64)>) -> Restricted {
+    /// `with_det`: keep the determinant polynomial (`det DX ≥ …` of an implicit chain's first
+    /// stage); a parametric chain's bound needs none, and a later stage's restriction drops it.
+    fn new(polys: &Polys, values: Option<(&[f64], f64)>, with_det: bool) -> Restricted {
         let m = polys.p.len();
         let (num, q2) = match &polys.q {
             None => (polys.dp.clone(), None),
@@ -117,8 +119,8 @@ impl Restricted {
                 (num, Some(q2))
             }
         };
-        let det = Some(det_poly(&num));
-        let q2n = q2.as_ref().map(|q2| {
+        let det = with_det.then(|| det_poly(&num));
+        let q2n = q2.as_ref().filter(|_| with_det).map(|q2| {
             let mut acc = q2.clone();
             for _ in 2..m {
                 acc = acc.mul(q2);
@@ -679,11 +681,11 @@ pub fn chain_bound(
     // F − c is tested on the last implicit stage (the one whose output is u).
     let last_cross =
         |k: usize| (layout == Layout::Implicit && k == polys.len()).then_some((values, level));
-    let restricted = Restricted::new(&first, last_cross(0));
+    let restricted = Restricted::new(&first, last_cross(0), layout == Layout::Implicit);
     let rest: Vec<Restricted> = polys
         .iter()
         .enumerate()
-        .map(|(k, p)| Restricted::new(p, last_cross(k + 1)))
+        .map(|(k, p)| Restricted::new(p, last_cross(k + 1), false))
         .collect();
     let chain = Chain {
         map,
@@ -792,8 +794,11 @@ pub fn parametric_leaves(
         Ok(prepared) => prepared,
         Err(e) => return Some(Err(e)),
     };
-    let first = Restricted::new(&polys.remove(0), None);
-    let rest: Vec<Restricted> = polys.iter().map(|p| Restricted::new(p, None)).collect();
+    let first = Restricted::new(&polys.remove(0), None, false);
+    let rest: Vec<Restricted> = polys
+        .iter()
+        .map(|p| Restricted::new(p, None, false))
+        .collect();
     let chain = Chain {
         map,
         layout: Layout::Parametric,

@@ -103,15 +103,17 @@ fn lattice_index(i: usize, j: usize) -> usize {
 /// Number of lattice points per triangle.
 const LATTICE_POINTS: usize = (GUESS_LEVEL + 1) * (GUESS_LEVEL + 2) / 2;
 
-/// Everything the surface sampler precomputes: one entry per crossed simplex and the cumulative
-/// selection weights.
+/// Everything the surface sampler precomputes: one entry per crossed simplex and the selection
+/// table (Walker's alias method over the regions' weights `A_r B_r`).
 #[derive(Clone, Debug)]
 pub struct SurfaceTable {
     /// The patches, in simplex order.
     pub patches: Vec<PatchEntry>,
     /// `(patch, region)` of each selection entry.
     entries: Vec<(u32, u32)>,
-    cumulative: Vec<f64>,
+    /// Per selection entry `i`: `(threshold, alias)`: a uniform slot `i` keeps `i` with probability
+    /// `threshold`, else takes `alias` ([`alias_table`]).
+    alias: Vec<(f64, u32)>,
     /// `Σ A_σ B_σ`: an upper bound of the curved area of `O`.
     pub bounded_area: f64,
     /// `Σ A_σ`: the area of the linear isocomplex.
@@ -435,9 +437,10 @@ impl SurfaceTable {
         if patches.is_empty() {
             return Err(SampleError::EmptySurface { level: model.level });
         }
-        // Sequential prefix sums: the same table, bit for bit, whatever the thread count.
+        // Sequential sums and a sequential alias construction: the same table, bit for bit,
+        // whatever the thread count.
         let mut entries = Vec::new();
-        let mut cumulative = Vec::new();
+        let mut weights = Vec::new();
         let mut acc = 0.0;
         let mut linear = 0.0;
         for (pi, p) in patches.iter().enumerate() {
@@ -450,7 +453,7 @@ impl SurfaceTable {
                 if weight > 0.0 {
                     acc += weight;
                     entries.push((pi as u32, r as u32));
-                    cumulative.push(acc);
+                    weights.push(weight);
                 }
             }
             linear += p.linear_area;
@@ -458,7 +461,7 @@ impl SurfaceTable {
         Ok(SurfaceTable {
             patches,
             entries,
-            cumulative,
+            alias: alias_table(&weights, acc),
             bounded_area: acc,
             linear_area: linear,
             scale: model_scale(model),
@@ -476,12 +479,19 @@ impl SurfaceTable {
         self.patches.is_empty()
     }
 
+    /// A selection entry with probability `A_r B_r / Σ A B`: one uniform picks a slot (its integer
+    /// part) and decides between the slot and its alias (its fraction), O(1) with two memory
+    /// reads where a binary search over the cumulative weights took `log₂` of the table's size.
     fn pick(&self, rng: &mut impl Rng) -> (&PatchEntry, usize) {
-        let x = rng.random::<f64>() * self.bounded_area;
-        let i = self
-            .cumulative
-            .partition_point(|&c| c <= x)
-            .min(self.entries.len() - 1);
+        let len = self.alias.len();
+        let x = rng.random::<f64>() * len as f64;
+        let slot = (x as usize).min(len - 1);
+        let (threshold, other) = self.alias[slot];
+        let i = if x - (slot as f64) < threshold {
+            slot
+        } else {
+            other as usize
+        };
         let (p, r) = self.entries[i];
         (&self.patches[p as usize], r as usize)
     }
@@ -682,6 +692,35 @@ impl SurfaceTable {
             reason: format!("sample at w = {:?} misses |F − c| ≤ {SURFACE_TOLERANCE}·|∇F|·L after {POLISH_STEPS} Newton steps", &w[..=n]),
         })
     }
+}
+
+/// Walker's alias table (Vose's construction) of `weights` (positive, summing to `total`): entry
+/// `i` gets `(threshold_i, alias_i)` such that picking a slot uniformly, keeping it with
+/// probability `threshold_i` and taking `alias_i` otherwise selects `i` with probability
+/// `weights[i] / total`. Slots are processed in a fixed order, so the table does not depend on
+/// the thread count.
+fn alias_table(weights: &[f64], total: f64) -> Vec<(f64, u32)> {
+    let len = weights.len();
+    let mut scaled: Vec<f64> = weights.iter().map(|w| w * len as f64 / total).collect();
+    let mut table = vec![(1.0, 0u32); len];
+    for (i, t) in table.iter_mut().enumerate() {
+        t.1 = i as u32;
+    }
+    let (mut small, mut large): (Vec<usize>, Vec<usize>) = (0..len).partition(|&i| scaled[i] < 1.0);
+    while let (Some(&s), Some(&l)) = (small.last(), large.last()) {
+        small.pop();
+        table[s] = (scaled[s], l as u32);
+        scaled[l] = (scaled[l] + scaled[s]) - 1.0;
+        if scaled[l] < 1.0 {
+            large.pop();
+            small.push(l);
+        }
+    }
+    // What is left is 1 up to rounding: those slots keep themselves.
+    for i in small.into_iter().chain(large) {
+        table[i] = (1.0, i as u32);
+    }
+    table
 }
 
 /// A point of `O` with its unit normal and source simplex.
@@ -998,6 +1037,40 @@ impl PatchEntry {
 mod tests {
     use super::*;
     use ism_format::Direction;
+
+    /// The alias table selects entry `i` with probability `w_i / Σ w`: the probability each table
+    /// implies (`(threshold_i + Σ_{j: alias_j = i} (1 − threshold_j)) / len`, summed exactly over
+    /// the slots) matches the weights, for equal, skewed, tiny and single weights.
+    #[test]
+    fn alias_table_gives_each_entry_its_weight() {
+        let cases: Vec<Vec<f64>> = vec![
+            vec![1.0],
+            vec![1.0; 7],
+            vec![0.1, 5.0, 0.2, 3.0, 1e-9, 7.5],
+            (1..200)
+                .map(|i| f64::from(i).powi(3) % 17.0 + 1e-3)
+                .collect(),
+            vec![1e-300, 1.0, 1e300],
+        ];
+        for weights in cases {
+            let total: f64 = weights.iter().sum();
+            let table = alias_table(&weights, total);
+            let len = weights.len() as f64;
+            let mut implied = vec![0.0; weights.len()];
+            for (slot, &(threshold, other)) in table.iter().enumerate() {
+                assert!((0.0..=1.0).contains(&threshold), "threshold {threshold}");
+                implied[slot] += threshold / len;
+                implied[other as usize] += (1.0 - threshold) / len;
+            }
+            for (i, (&w, &p)) in weights.iter().zip(&implied).enumerate() {
+                assert!(
+                    (p - w / total).abs() <= 1e-12,
+                    "entry {i}: probability {p}, weight share {}",
+                    w / total
+                );
+            }
+        }
+    }
 
     /// The adjugate route (no inverse) gives the same `w`, `∇F` and area element as the inverse
     /// route of `LocalMap::param_solve` (LU inverse of `DY`), on every crossed simplex of 2D and
