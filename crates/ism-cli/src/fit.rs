@@ -306,8 +306,12 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             r.parameters, r.stored_numbers
         );
         println!(
-            "  fit → target     ≤ {:.3e} at {} samples of the fit (certified there; ≤ {:.1e} apart)",
-            m.shape_to_target, r.samples, m.shape_spacing
+            "  fit → target     ≤ {:.3e} at {} samples of the fit (certified there); everywhere \
+             ≤ {:.3e} (every point within {:.1e} of a sample)",
+            m.shape_to_target,
+            r.samples,
+            m.shape_to_target_bound(),
+            m.shape_cover
         );
         let how = match &m.cover {
             ism_fit::measure::TargetCover::Boxes { count, largest } => {
@@ -323,10 +327,16 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             m.target_to_shape, m.target_to_shape_bound
         );
         println!(
-            "  two-sided        ≤ {:.3e} (tolerance {:.1e}: {})",
+            "  two-sided        ≈ {:.3e}, an estimate: the larger direction at its points, low by \
+             at most their spacing (tolerance {:.1e}: {}); certified everywhere ≤ {:.3e}",
             r.max_distance,
             tolerance,
-            if r.tolerance_met { "met" } else { "NOT met" }
+            if r.tolerance_met {
+                "met by the estimate"
+            } else {
+                "NOT met"
+            },
+            m.max_bound()
         );
         println!(
             "  topology         {} component(s), Euler characteristic {}",

@@ -108,8 +108,9 @@ pub struct FitReport {
     pub parameters: usize,
     /// All numbers the model stores: coordinates, vertex ids, values, face ids and parameters.
     pub stored_numbers: usize,
-    /// The two-sided distance between the fitted shape and the target, `max` of
-    /// [`FitReport::measure`]'s two directions (a bound; see [`crate::measure`]).
+    /// The two-sided distance between the fitted shape and the target as estimated, `max` of
+    /// [`FitReport::measure`]'s two directions at their own points ([`Measure::max`]: a bound
+    /// at those points, an estimate of the whole; [`Measure::max_bound`] bounds the whole).
     pub max_distance: f64,
     /// Mean of the `S → Z` bounds over the dense samples of the fitted shape.
     pub mean_distance: f64,
@@ -1374,6 +1375,7 @@ pub fn fit(
                 shape_to_target_at: Vec::new(),
                 samples: 0,
                 shape_spacing: 0.0,
+                shape_cover: 0.0,
                 target_to_shape: 0.0,
                 target_to_shape_bound: 0.0,
                 target_to_shape_at: Vec::new(),
@@ -1455,6 +1457,9 @@ impl FitReport {
             "shapeToTarget": m.shape_to_target,
             "shapeToTargetAt": m.shape_to_target_at,
             "sampleSpacing": m.shape_spacing,
+            "sampleCover": m.shape_cover,
+            "shapeToTargetBound": m.shape_to_target_bound(),
+            "maxDistanceBound": m.max_bound(),
             "targetToShape": m.target_to_shape,
             "targetToShapeBound": m.target_to_shape_bound,
             "targetToShapeAt": m.target_to_shape_at,
@@ -1970,6 +1975,64 @@ mod tests {
         assert!(target_to_fit <= options.tolerance, "{target_to_fit}");
         // The measure agrees with the truth (an upper bound at its points, up to its cover).
         assert!(r.measure.target_to_shape_bound >= target_to_fit);
+    }
+
+    #[test]
+    fn the_reported_bounds_hold_against_exact_closest_points_on_a_circle() {
+        // A fit of the ellipse x²/0.36 + y²/0.16 = 1 measured against another curve, the circle
+        // |p − c| = 0.45 with c = (0.05, 0.02), written as ((x−cx)² + (y−cy)² − r²)³ so that ∇g
+        // vanishes on it (a first-order |g|/|∇g| is 6× too small there). Ground truth from the
+        // circle's exact closest points: dist(p, Z) = ||p − c| − r| at dense points of the fit
+        // drawn by the kernel, and dense exact points of the circle to the fit's dense chords
+        // (256 per patch). Every reported bound must hold; every estimate must be within its
+        // stated error.
+        let ellipse = crate::Expression::parse("x^2/0.36 + y^2/0.16 - 1", 2).unwrap();
+        let domain = [-1.0, 1.0, -1.0, 1.0];
+        let mut options = FitOptions::new(&domain);
+        options.tolerance = 1e-2;
+        let model = fit(&ellipse, &options, &ism_format::Progress::none())
+            .unwrap()
+            .to_model("e");
+        let (c, rad) = ([0.05f64, 0.02f64], 0.45f64);
+        let circle = crate::Expression::parse("((x-0.05)^2 + (y-0.02)^2 - 0.2025)^3", 2).unwrap();
+        let tolerance = 1e-2;
+        let m = measure(&circle, &model, &domain, tolerance, &[]).unwrap();
+        let chords = shape_polyline(&model, 256);
+        let to_circle = |p: [f64; 2]| ((p[0] - c[0]).hypot(p[1] - c[1]) - rad).abs();
+        let fit_to_target = chords.iter().map(|ch| to_circle(ch.0)).fold(0.0, f64::max);
+        let target_to_fit = (0..4000)
+            .map(|i| {
+                let t = i as f64 * std::f64::consts::TAU / 4000.0;
+                to_chords(&chords, [c[0] + rad * t.cos(), c[1] + rad * t.sin()])
+            })
+            .fold(0.0, f64::max);
+        // The truth is far above the fit's own error (≤ 1e-2): the circle is another curve.
+        assert!(
+            fit_to_target > 0.1 && target_to_fit > 0.1,
+            "{fit_to_target} {target_to_fit}"
+        );
+        let radius = match m.cover {
+            crate::measure::TargetCover::Boxes { largest, .. } => largest,
+            _ => panic!("{:?}", m.cover),
+        };
+        // Bounds over the whole of S and Z.
+        assert!(
+            m.shape_to_target_bound() >= fit_to_target,
+            "{m:?} {fit_to_target}"
+        );
+        assert!(
+            m.target_to_shape_bound >= target_to_fit,
+            "{m:?} {target_to_fit}"
+        );
+        assert!(m.max_bound() >= fit_to_target.max(target_to_fit));
+        // Estimates: never above the truth by more than rounding (each is a distance to a point
+        // actually found), never below it by more than the stated spacing or cover radius.
+        assert!(m.shape_to_target <= fit_to_target * 1.001 + 1e-9, "{m:?}");
+        assert!(m.shape_to_target >= fit_to_target - m.shape_cover, "{m:?}");
+        assert!(m.target_to_shape <= target_to_fit * 1.001 + 1e-9, "{m:?}");
+        assert!(m.target_to_shape >= target_to_fit - radius, "{m:?}");
+        // And the bounds are not vacuous.
+        assert!(m.max_bound() <= fit_to_target.max(target_to_fit) + radius + m.shape_cover);
     }
 
     #[test]

@@ -5,9 +5,12 @@
 //!   [`bracket_distance`] finds a segment from `s` on which `g` changes sign; by the intermediate
 //!   value theorem it holds a zero, so its length bounds `dist(s, Z)` from above whatever `∇g` does
 //!   (a first-order `|g|/|∇g|` is 3× too small where the gradient vanishes to higher order). For a
-//!   mesh `|g|` is the exact distance to its triangles. The bound holds *at the samples*; between
-//!   two neighbouring samples the shape can stray by up to about the sample spacing, which the
-//!   report gives ([`Measure::shape_spacing`]).
+//!   mesh `|g|` is the exact distance to its triangles. The bound holds *at the samples*; every
+//!   point of a patch lies within [`Measure::shape_cover`] of a sample (half the largest gap
+//!   between neighbouring samples in 2D, the longest edge of the sample lattice in 3D, measured
+//!   on the chords: exact up to the patch's curvature within one lattice cell, a second-order
+//!   term), and the distance to `Z` is 1-Lipschitz, so `shape_to_target + shape_cover` bounds
+//!   the whole direction ([`Measure::shape_to_target_bound`]).
 //! - **`Z → S`** (every point of the target near the fit): `Z` is covered by boxes that interval
 //!   arithmetic cannot clear of zeros (an expression), or by points of the mesh's triangles with a
 //!   known covering radius (a mesh). Each leaf box gets a point `z` of `Z` near its centre (a
@@ -267,9 +270,11 @@ pub struct Measure {
     pub shape_to_target_at: Vec<f64>,
     /// Number of samples of `S`.
     pub samples: usize,
-    /// Largest distance from a sample to its nearest neighbour on the same patch: between
-    /// samples, `S → Z` can exceed its bound by about this much at most.
+    /// Largest distance from a sample to its nearest neighbour on the same patch.
     pub shape_spacing: f64,
+    /// Every point of `S` lies within this of a sample (module doc; up to the patch's curvature
+    /// within one lattice cell): between samples `S → Z` can exceed its sampled bound by this.
+    pub shape_cover: f64,
     /// Largest distance to `S` (an upper bound: a point of `S` that far was found) over points
     /// of `Z` that cover it ([`Measure::cover`]; `∞` when not measured): an estimate of
     /// `max dist(z, Z)` that can be low by at most the cover's radius.
@@ -292,9 +297,25 @@ pub struct Measure {
 }
 
 impl Measure {
-    /// The two-sided distance: the larger direction.
+    /// The two-sided distance as estimated: the larger direction, each at its own points (the
+    /// samples of `S`, the points of `Z` in the cover). Each figure is an upper bound *at those
+    /// points*, so the estimate can be low by at most [`Measure::shape_cover`] (`S → Z`) and
+    /// the cover's radius (`Z → S`); [`Measure::max_bound`] adds them.
     pub fn max(&self) -> f64 {
         self.shape_to_target.max(self.target_to_shape)
+    }
+
+    /// `S → Z` over the whole shape, not only at the samples: the sampled bound plus the
+    /// samples' covering radius (module doc).
+    pub fn shape_to_target_bound(&self) -> f64 {
+        self.shape_to_target + self.shape_cover
+    }
+
+    /// The two-sided distance as a bound over all of `S` and `Z`: the larger of
+    /// [`Measure::shape_to_target_bound`] and [`Measure::target_to_shape_bound`] (`∞` when a
+    /// direction is not measured).
+    pub fn max_bound(&self) -> f64 {
+        self.shape_to_target_bound().max(self.target_to_shape_bound)
     }
 }
 
@@ -553,6 +574,7 @@ pub fn measure<G: ImplicitFunction + ?Sized>(
         sum: f64,
         count: usize,
         spacing: f64,
+        cover: f64,
         points: Vec<([f64; 3], f64)>,
         /// Points of `Z` found from the samples (expressions).
         zeros: Vec<[f64; 3]>,
@@ -573,6 +595,7 @@ pub fn measure<G: ImplicitFunction + ?Sized>(
                 sum: 0.0,
                 count: pts.len(),
                 spacing: 0.0,
+                cover: lattice_cover(&pts, corners.len(), report_level(n)),
                 points: Vec::new(),
                 zeros: Vec::new(),
                 misses: Vec::new(),
@@ -624,6 +647,7 @@ pub fn measure<G: ImplicitFunction + ?Sized>(
     let shape_to_target = worst.map_or(0.0, |r| r.max);
     let shape_to_target_at = worst.map_or(Vec::new(), |r| r.at[..n].to_vec());
     let shape_spacing = per_patch.iter().map(|r| r.spacing).fold(0.0, f64::max);
+    let shape_cover = per_patch.iter().map(|r| r.cover).fold(0.0, f64::max);
     let mean = per_patch.iter().map(|r| r.sum).sum::<f64>() / samples.max(1) as f64 + 0.0;
 
     // Z → S.
@@ -772,6 +796,7 @@ pub fn measure<G: ImplicitFunction + ?Sized>(
         shape_to_target_at,
         samples,
         shape_spacing,
+        shape_cover,
         target_to_shape,
         target_to_shape_bound,
         target_to_shape_at: target_at,
@@ -780,6 +805,57 @@ pub fn measure<G: ImplicitFunction + ?Sized>(
         regions,
         misses,
     })
+}
+
+/// How far a point of a patch can be from its nearest sample, for the samples `pts` that
+/// [`patch_samples`] draws at `level` on a patch with `corners` corners (same order): half the
+/// largest gap in 2D (a segment), and in 3D the longest edge of the sample lattice (every point
+/// of a lattice triangle is within its longest edge of each of its corners), both on chords.
+fn lattice_cover(pts: &[[f64; 3]], corners: usize, level: usize) -> f64 {
+    let l = level.max(1);
+    let d = |a: usize, b: usize| match (pts.get(a), pts.get(b)) {
+        (Some(p), Some(q)) => distance(&p[..], q),
+        _ => 0.0,
+    };
+    match corners {
+        0 | 1 => 0.0,
+        2 => (0..pts.len().saturating_sub(1))
+            .map(|i| 0.5 * d(i, i + 1))
+            .fold(0.0, f64::max),
+        _ => {
+            // Index of lattice point (i, j) of fan triangle k, as `patch_samples` orders them:
+            // fan triangle k > 1 skips j = 0, its edge to corner k, which is fan triangle
+            // k − 1's edge i = 0 (the same points, (m, 0) here = (0, m) there).
+            let mut index: Vec<Vec<Vec<usize>>> = Vec::new();
+            let mut next = 0;
+            for k in 1..corners - 1 {
+                let mut t = vec![vec![0usize; l + 1]; l + 1];
+                for (i, row) in t.iter_mut().enumerate() {
+                    for (j, x) in row.iter_mut().enumerate().take(l - i + 1) {
+                        if k > 1 && j == 0 {
+                            *x = index[k - 2][0][i];
+                        } else {
+                            *x = next;
+                            next += 1;
+                        }
+                    }
+                }
+                index.push(t);
+            }
+            let mut worst = 0.0f64;
+            for t in &index {
+                for i in 0..=l {
+                    for j in 0..=l - i {
+                        if i + j < l {
+                            let (a, b, c) = (t[i][j], t[i + 1][j], t[i][j + 1]);
+                            worst = worst.max(d(a, b)).max(d(a, c)).max(d(b, c));
+                        }
+                    }
+                }
+            }
+            worst
+        }
+    }
 }
 
 fn lo_of(domain: &[f64]) -> Vec<f64> {
