@@ -418,9 +418,85 @@ impl Build<'_> {
     }
 }
 
-/// A vector of `len` copies of `x`, or empty when `len` is 0.
+/// A vector of `len` copies of `x`, or empty when `len` is 0: written on every core, so the fresh
+/// pages are faulted in in parallel.
 fn atomics(len: usize, x: u32) -> Vec<AtomicU32> {
-    (0..len).map(|_| AtomicU32::new(x)).collect()
+    (0..len)
+        .into_par_iter()
+        .map(|_| AtomicU32::new(x))
+        .collect()
+}
+
+/// Appends `parts` to `table`, in order, on every core: the new elements are first written in
+/// parallel (faulting in the fresh pages), then each part is copied to its place in parallel.
+fn append_parallel<T: Copy + Default + Send + Sync>(table: &mut Vec<T>, parts: &[&[T]]) {
+    let old = table.len();
+    let add: usize = parts.iter().map(|p| p.len()).sum();
+    table.par_extend(rayon::iter::repeat_n(T::default(), add));
+    let mut rest = &mut table[old..];
+    let mut pairs = Vec::with_capacity(parts.len());
+    for &part in parts {
+        let (head, tail) = std::mem::take(&mut rest).split_at_mut(part.len());
+        pairs.push((head, part));
+        rest = tail;
+    }
+    pairs
+        .into_par_iter()
+        .for_each(|(dst, src)| dst.copy_from_slice(src));
+}
+
+/// Vertex → incident simplices (ascending), compressed rows, without the simplices flagged in
+/// `skip`: a counting sort over blocks of simplices on every core — each block counts its
+/// simplices per vertex, and fills its own slots of each row in order — so the rows are ascending
+/// whatever the number of blocks or threads.
+fn incidence(model: &Model, skip: &[bool]) -> (Vec<usize>, Vec<u32>) {
+    let nv = model.num_vertices();
+    let ns = model.num_simplices();
+    let ok = |s: usize| !skip.get(s).copied().unwrap_or(false);
+    // One block per thread (at most 8: each holds a counter per vertex).
+    let blocks = rayon::current_num_threads().clamp(1, 8);
+    let per = ns.div_ceil(blocks).max(1);
+    let range = |b: usize| b * per..ns.min((b + 1) * per);
+    let mut cursors: Vec<Vec<u32>> = (0..blocks)
+        .into_par_iter()
+        .map(|b| {
+            let mut count = vec![0u32; nv];
+            for s in range(b).filter(|&s| ok(s)) {
+                for &v in model.simplex(s) {
+                    count[v as usize] += 1;
+                }
+            }
+            count
+        })
+        .collect();
+    // Row starts, and each block's first slot within each row (the counts before it).
+    let mut start = Vec::with_capacity(nv + 1);
+    let mut total = 0usize;
+    start.push(0);
+    for v in 0..nv {
+        let mut within = 0u32;
+        for cursor in &mut cursors {
+            let c = cursor[v];
+            cursor[v] = within;
+            within += c;
+        }
+        total += within as usize;
+        start.push(total);
+    }
+    let slots = atomics(total, 0);
+    // Every slot is written by exactly one block: relaxed stores are plain moves.
+    cursors.par_iter_mut().enumerate().for_each(|(b, cursor)| {
+        for s in range(b).filter(|&s| ok(s)) {
+            for &v in model.simplex(s) {
+                let v = v as usize;
+                slots[start[v] + cursor[v] as usize].store(s as u32, Ordering::Relaxed);
+                cursor[v] += 1;
+            }
+        }
+    });
+    drop(cursors);
+    let incidence = slots.into_iter().map(AtomicU32::into_inner).collect();
+    (start, incidence)
 }
 
 impl Topology {
@@ -449,29 +525,11 @@ impl Topology {
         let m = n + 1;
         let nv = model.num_vertices();
         let ns = model.num_simplices();
-        let ok = |s: usize| !skip.get(s).copied().unwrap_or(false);
 
         // Vertex → incident simplices first: every face is then found from its smallest vertex,
         // so all the sorting below is of a vertex's star (tens of entries), in parallel, instead
         // of one global sort of millions of keys.
-        let mut incidence_start = vec![0usize; nv + 1];
-        for s in (0..ns).filter(|&s| ok(s)) {
-            for &v in model.simplex(s) {
-                incidence_start[v as usize + 1] += 1;
-            }
-        }
-        for v in 0..nv {
-            incidence_start[v + 1] += incidence_start[v];
-        }
-        let mut fill = incidence_start.clone();
-        let mut incidence = vec![0u32; incidence_start[nv]];
-        for s in (0..ns).filter(|&s| ok(s)) {
-            for &v in model.simplex(s) {
-                incidence[fill[v as usize]] = s as u32;
-                fill[v as usize] += 1;
-            }
-        }
-        drop(fill);
+        let (incidence_start, incidence) = incidence(model, skip);
 
         let per = |k: usize| local_faces(m, k + 1).len();
         let build = Build {
@@ -514,18 +572,23 @@ impl Topology {
                 .par_iter()
                 .map(|&start| build.chunk(start..nv.min(start.saturating_add(chunk))))
                 .collect();
+            // The batch's faces and top simplices land in the tables on every core.
+            for (k, table) in faces.iter_mut().enumerate().skip(1) {
+                let parts: Vec<&[u32]> = outs.iter().map(|o| o.faces[k].as_slice()).collect();
+                append_parallel(table, &parts);
+            }
+            let parts: Vec<&[u32]> = outs.iter().map(|o| o.top.as_slice()).collect();
+            append_parallel(&mut top_order, &parts);
             for out in outs {
                 for k in 1..=n {
                     if k < n {
                         bases[k].push(next[k]);
-                        faces[k].extend_from_slice(&out.faces[k]);
                     }
                     for &c in &out.counts[k] {
                         first_face[k].push(next[k]);
                         next[k] += c;
                     }
                 }
-                top_order.extend_from_slice(&out.top);
                 duplicates.extend(out.duplicates);
                 defects.extend(out.defects);
             }
@@ -1237,6 +1300,18 @@ mod tests {
 
     #[test]
     fn faces_neighbours_and_euler_characteristic_match_brute_force() {
+        // Whatever the thread count: the incidence rows are filled in one block of simplices per
+        // thread, the face tables appended part by part on every core.
+        for threads in [1, 2, 3, 5] {
+            rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .expect("a pool")
+                .install(match_brute_force);
+        }
+    }
+
+    fn match_brute_force() {
         for (n, g) in [(2, 4), (3, 3)] {
             let model = kuhn(n, g);
             let indexed = IndexedModel::new(model.clone()).expect("a Kuhn grid is valid");

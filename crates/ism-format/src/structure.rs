@@ -3,6 +3,7 @@
 //! Positivity of the maps is not structural; the validator certifies it (spec §6).
 
 use std::collections::HashSet;
+use std::sync::atomic::{AtomicU64, Ordering};
 
 use rayon::prelude::*;
 
@@ -422,9 +423,6 @@ fn check_stages(model: &Model, topology: &Topology, c: &mut Collector) -> Record
     let n = model.dim();
     let nv = model.num_vertices();
     let mut record_faces = Vec::with_capacity(model.stages.len());
-    // The first record of each face, per dimension: allocated once for all stages (and reset
-    // record by record after each), not paged in afresh per stage.
-    let mut first_record: Vec<Vec<u32>> = Vec::new();
     for (k, stage) in model.stages.iter().enumerate() {
         // Face lookups are the costly part: in parallel, once, kept for the stage tables.
         let found: Vec<u32> = (0..stage.faces.len())
@@ -507,28 +505,37 @@ fn check_stages(model: &Model, topology: &Topology, c: &mut Collector) -> Record
                         format!("a {} stage has faces, not vertexMaps", stage.kind.as_str()),
                     );
                 }
-                // Duplicates by face id: the first record of each face, in one pass (plain
-                // stores, cheaper than sharing the table between threads).
-                if first_record.is_empty() && !found.is_empty() {
-                    first_record = (0..=n)
-                        .map(|k| vec![NONE; topology.face_slots(k)])
-                        .collect();
-                }
+                // Duplicates by face id: one bit per face, set on every core; only when some
+                // face is named twice, the first record of each face, in one pass.
+                let slots: Vec<usize> = (0..=n).map(|k| topology.face_slots(k)).collect();
+                let key = |r: usize| {
+                    let id = found[r];
+                    (id != NONE).then(|| (stage.faces.face(r).len() - 1, id as usize))
+                };
+                let seen: Vec<Vec<AtomicU64>> = slots
+                    .iter()
+                    .map(|&len| (0..len.div_ceil(64)).map(|_| AtomicU64::new(0)).collect())
+                    .collect();
+                let clash = (0..found.len()).into_par_iter().any(|r| {
+                    key(r).is_some_and(|(dim, id)| {
+                        let bit = 1u64 << (id % 64);
+                        seen[dim][id / 64].fetch_or(bit, Ordering::Relaxed) & bit != 0
+                    })
+                });
+                drop(seen);
                 let mut repeats: Vec<(usize, usize)> = Vec::new();
-                for (r, &id) in found.iter().enumerate() {
-                    if id != NONE {
-                        let dim = stage.faces.face(r).len() - 1;
-                        let slot = &mut first_record[dim][id as usize];
-                        if *slot == NONE {
-                            *slot = r as u32;
-                        } else {
-                            repeats.push((r, *slot as usize));
+                if clash {
+                    let mut first: Vec<Vec<u32>> =
+                        slots.iter().map(|&len| vec![NONE; len]).collect();
+                    for r in 0..found.len() {
+                        if let Some((dim, id)) = key(r) {
+                            let slot = &mut first[dim][id];
+                            if *slot == NONE {
+                                *slot = r as u32;
+                            } else {
+                                repeats.push((r, *slot as usize));
+                            }
                         }
-                    }
-                }
-                for (r, &id) in found.iter().enumerate() {
-                    if id != NONE {
-                        first_record[stage.faces.face(r).len() - 1][id as usize] = NONE;
                     }
                 }
                 // The per-record rules in parallel; only the records breaking one are visited

@@ -62,7 +62,9 @@ fn classify_stage(model: &Model, index: &StageIndex<'_>, theorems: bool) -> Stag
     }
     // The theorems assume adjusted nets; a record that is adjusted only within rounding (an edge
     // point at its vertex in reduced coordinates) sends its simplices to the numeric certificate.
-    if stage.kind != StageKind::Monotonic && !(0..stage.faces.len()).all(|r| index.is_adjusted(r)) {
+    // Per record, on every core.
+    let records = || (0..stage.faces.len()).into_par_iter();
+    if stage.kind != StageKind::Monotonic && !records().all(|r| index.is_adjusted(r)) {
         return StageClass::PerSimplex;
     }
     match stage.kind {
@@ -73,8 +75,8 @@ fn classify_stage(model: &Model, index: &StageIndex<'_>, theorems: bool) -> Stag
             // A stratum G_j: degree j + 1 and every moving record on a j-face (its single centre
             // point). G_2 in 3D is Prop. 5.9; G_n is solitary in every simplex (decided per simplex).
             let j = d as usize - 1;
-            let stratum = (0..stage.faces.len())
-                .all(|r| index.is_trivial(r) || stage.faces.record(r).face.len() == j + 1);
+            let stratum =
+                records().all(|r| index.is_trivial(r) || stage.faces.face(r).len() == j + 1);
             if stratum && j == 2 && n == 3 {
                 StageClass::Theorem(theorem::PROP_5_9)
             } else if stratum && j == n {
@@ -88,7 +90,7 @@ fn classify_stage(model: &Model, index: &StageIndex<'_>, theorems: bool) -> Stag
             }
         }
         StageKind::Rational => {
-            if (0..stage.faces.len()).all(|r| index.is_fixed(r)) {
+            if records().all(|r| index.is_fixed(r)) {
                 StageClass::Theorem(theorem::THM_6_4)
             } else {
                 StageClass::PerSimplex

@@ -313,60 +313,73 @@ fn star_defect_indexed(
     None
 }
 
-/// [`non_manifold`] on an indexed model: the stars come from its topology (vertex incidence, the
-/// simplex → edge table) and are joined through its facet neighbours, so nothing is sorted
-/// globally and no facet is sorted per star. Same messages, same order.
+/// [`non_manifold`] on an indexed model: the stars come from its topology (vertex incidence) and
+/// are joined through its facet neighbours, so nothing is sorted globally and no facet is sorted
+/// per star. One parallel pass over the vertices: the star of each edge is found in the star of
+/// its smaller vertex (the edges of `v` in increasing order of their other vertex, i.e. in edge
+/// order). Same messages, same order (edges first, then vertices).
 pub fn non_manifold_indexed(indexed: &IndexedModel) -> Vec<Message> {
     let model: &Model = indexed;
     let topology = indexed.topology();
     let n = model.dim();
-    let mut out = Vec::new();
-    if n == 3 {
-        // Edge → simplices, compressed rows, simplices ascending (a counting sort of the table).
-        let table = topology.simplex_face_table(1);
-        let per = ism_format::indexed::local_faces(n + 1, 2).len();
-        let edges = topology.num_faces(1);
-        let mut start = vec![0u32; edges + 1];
-        for &e in table {
-            start[e as usize + 1] += 1;
-        }
-        for e in 0..edges {
-            start[e + 1] += start[e];
-        }
-        let mut fill = start.clone();
-        let mut members = vec![0u32; start[edges] as usize];
-        for (i, &e) in table.iter().enumerate() {
-            members[fill[e as usize] as usize] = (i / per) as u32;
-            fill[e as usize] += 1;
-        }
-        drop(fill);
-        let ids = topology.face_vertices(1);
-        let found: Vec<Message> = (0..edges)
-            .into_par_iter()
-            .map_init(Scratch::default, |scratch, e| {
-                let key = [ids[2 * e], ids[2 * e + 1], u32::MAX, u32::MAX];
-                let star = &members[start[e] as usize..start[e + 1] as usize];
-                let why = star_defect_indexed(model, topology, &key, 2, star, scratch);
-                star_message(model, &key, 2, star, why)
-            })
-            .flatten()
-            .collect();
-        out.extend(found);
+    #[derive(Default)]
+    struct Buffers {
+        scratch: Scratch,
+        /// (other vertex, simplex) of the edges from a vertex to a larger one, packed.
+        pairs: Vec<u64>,
+        members: Vec<u32>,
     }
-    let found: Vec<Message> = (0..model.num_vertices())
+    let found: Vec<(Vec<Message>, Option<Message>)> = (0..model.num_vertices())
         .into_par_iter()
-        .map_init(Scratch::default, |scratch, v| {
+        .map_init(Buffers::default, |buf, v| {
             let star = topology.vertex_simplices(v);
             if star.is_empty() {
                 return None;
             }
-            let key = [v as u32, u32::MAX, u32::MAX, u32::MAX];
-            let why = star_defect_indexed(model, topology, &key, 1, star, scratch);
-            star_message(model, &key, 1, star, why)
+            let v32 = v as u32;
+            let mut edges = Vec::new();
+            if n == 3 {
+                let Buffers {
+                    scratch,
+                    pairs,
+                    members,
+                } = buf;
+                pairs.clear();
+                for &s in star {
+                    for &b in model.simplex(s as usize) {
+                        if b > v32 {
+                            pairs.push(u64::from(b) << 32 | u64::from(s));
+                        }
+                    }
+                }
+                // By other vertex, then simplex: each edge's star ascending.
+                pairs.sort_unstable();
+                let mut i = 0;
+                while i < pairs.len() {
+                    let b = (pairs[i] >> 32) as u32;
+                    members.clear();
+                    while i < pairs.len() && (pairs[i] >> 32) as u32 == b {
+                        members.push(pairs[i] as u32);
+                        i += 1;
+                    }
+                    let key = [v32, b, u32::MAX, u32::MAX];
+                    let why = star_defect_indexed(model, topology, &key, 2, members, scratch);
+                    edges.extend(star_message(model, &key, 2, members, why));
+                }
+            }
+            let key = [v32, u32::MAX, u32::MAX, u32::MAX];
+            let why = star_defect_indexed(model, topology, &key, 1, star, &mut buf.scratch);
+            let vertex = star_message(model, &key, 1, star, why);
+            (!edges.is_empty() || vertex.is_some()).then_some((edges, vertex))
         })
         .flatten()
         .collect();
-    out.extend(found);
+    let (mut out, mut vertices) = (Vec::new(), Vec::new());
+    for (edges, vertex) in found {
+        out.extend(edges);
+        vertices.extend(vertex);
+    }
+    out.extend(vertices);
     out
 }
 
@@ -460,13 +473,21 @@ mod tests {
 
     /// The stars read from the index give exactly the messages of the sort-based enumeration
     /// (an independent way to find every vertex and edge star).
+    /// With any thread count.
     fn same_from_the_index(model: &Model) {
-        let indexed = IndexedModel::new(model.clone()).expect("structurally valid");
         let text = |w: Vec<Message>| format!("{w:?}");
-        assert_eq!(
-            text(non_manifold_indexed(&indexed)),
-            text(non_manifold(model))
-        );
+        let expected = text(non_manifold(model));
+        for threads in [1, 2, 3] {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .expect("a pool");
+            let found = pool.install(|| {
+                let indexed = IndexedModel::new(model.clone()).expect("structurally valid");
+                text(non_manifold_indexed(&indexed))
+            });
+            assert_eq!(found, expected, "{threads} threads");
+        }
     }
 
     #[test]
