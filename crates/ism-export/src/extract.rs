@@ -38,6 +38,8 @@
 use foldhash::HashMap;
 
 use ism_format::progress::{Cancelled, Progress};
+use ism_format::Direction;
+use ism_geom::stage::project;
 use ism_geom::{linalg, Bary, Mat, ModelEval, Patch, MAX_VARS};
 use rayon::prelude::*;
 
@@ -75,7 +77,8 @@ pub struct ExtractReport {
     pub crossed_simplices: usize,
     /// Stage inversions performed (including refinement tests).
     pub inversions: u64,
-    /// Largest inversion residual `|X(w) − u|∞` seen.
+    /// Largest inversion residual `|X(w) − u|∞` of the points placed exactly (the vertices; test
+    /// points are only placed to a hundredth of the distance they are compared with).
     pub max_residual: f64,
     /// Patch edges (or interior edges) that reached `max_depth` while still over tolerance.
     pub depth_limited_edges: u64,
@@ -214,6 +217,168 @@ fn surface_point(
     ))
 }
 
+/// How accurately a test point (one that is only measured, never a vertex) is placed, as a
+/// fraction of the distance it is compared with (a hundredth: the split decision moves by at most
+/// 1 % of the tolerance, inside the ¾ margin).
+const PROBE_ACCURACY: f64 = 1e-2;
+
+/// Newton steps a test point may take before the full inversion takes over.
+const PROBE_MAX_STEPS: u32 = 6;
+
+/// A test point: the position of `X⁻¹(u)` mapped, to [`PROBE_ACCURACY`] · `tol`, with its
+/// preimage (a start for the exact inversion if it becomes a vertex). No normal, no `DX⁻¹`.
+///
+/// Parametric maps are evaluated directly (`w = Y(u)`, no Jacobian). Other maps first take chord
+/// steps `w ← w + A (u − X(w))` from `guess` with `A` the neighbours' `DX⁻¹` (`jinv`: one
+/// evaluation of `X` and a matrix–vector product each, no Jacobian, no solve; linear convergence
+/// at the rate `|I − A DX|`, small for nearby points), then, if those stall, Newton steps; each
+/// stops once a step moves the point by at most the accuracy (with the rate at most ½, what is
+/// left is no more than that step). [`surface_point`] when neither gets there or a step would
+/// leave the simplex.
+fn probe(
+    eval: &ModelEval,
+    s: usize,
+    u: &Bary,
+    guess: &Bary,
+    jinv: Option<&Mat>,
+    tol: f64,
+    counters: &mut Counters,
+) -> Result<(Bary, [f64; 3])> {
+    let map = eval.local_map(s);
+    let m = map.vars();
+    let n = m - 1;
+    let stages = map.stages();
+    if stages.is_empty() {
+        counters.inversions += 1;
+        return Ok((*u, eval.point(s, u)));
+    }
+    if stages
+        .iter()
+        .all(|st| st.direction() == Direction::Parametric)
+    {
+        counters.inversions += 1;
+        let mut w = project(m, u);
+        for st in stages.iter().rev() {
+            w = st.eval_stored(&w);
+        }
+        let p = eval.point(s, &w);
+        if p.iter().all(|x| x.is_finite()) {
+            return Ok((w, p));
+        }
+    } else {
+        // Unknowns off the support of u stay exactly zero (faces map to themselves).
+        let target = project(m, u);
+        let mut w = project(m, guess);
+        for i in 0..m {
+            if target[i] <= 0.0 {
+                w[i] = 0.0;
+            }
+        }
+        let accuracy = PROBE_ACCURACY * tol;
+        // One step `dw` (reduced) applied: false when it would leave the simplex or is not
+        // finite; else whether it moved the point by at most the accuracy (and by how much).
+        let apply = |w: &mut Bary, dw: &[f64; MAX_VARS]| -> Option<f64> {
+            let mut full = [0.0; MAX_VARS];
+            let mut sum = 0.0;
+            for k in 0..n {
+                full[k + 1] = dw[k];
+                sum += dw[k];
+            }
+            full[0] = -sum;
+            // A step out of the simplex heads for a root of the polynomial's continuation, not
+            // for X⁻¹(u): leave such points to the safeguarded inversion.
+            if (0..m).any(|i| target[i] > 0.0 && w[i] + full[i] <= 0.0) {
+                return None;
+            }
+            for i in 0..m {
+                w[i] = if target[i] <= 0.0 {
+                    0.0
+                } else {
+                    w[i] + full[i]
+                };
+            }
+            // The point is affine in w, so this is exactly how far the step moved it.
+            let step = norm(eval.point(s, &full));
+            step.is_finite().then_some(step)
+        };
+        let residual = |x: &Bary| {
+            let mut r = [0.0; MAX_VARS];
+            for k in 0..n {
+                r[k] = target[k + 1] - x[k + 1];
+            }
+            r
+        };
+        let mut ok = true;
+        if let Some(a) = jinv {
+            let mut last = f64::INFINITY;
+            for _ in 0..PROBE_MAX_STEPS {
+                let r = residual(&map.eval(&w));
+                let mut dw = [0.0; MAX_VARS];
+                for k in 0..n {
+                    dw[k] = (0..n).map(|l| a[k][l] * r[l]).sum();
+                }
+                let Some(step) = apply(&mut w, &dw) else {
+                    ok = false;
+                    break;
+                };
+                // Linear convergence at the rate ρ (measured from the last two steps) leaves at
+                // most ρ / (1 − ρ) times the last step; a first step within the accuracy leaves
+                // less than itself.
+                let rate = step / last;
+                if rate >= 0.8 {
+                    break; // too slow: Newton takes over from here
+                }
+                if step <= accuracy
+                    && (last.is_infinite() || rate / (1.0 - rate) * step <= accuracy)
+                {
+                    counters.inversions += 1;
+                    return Ok((w, eval.point(s, &w)));
+                }
+                last = step;
+            }
+        }
+        if ok {
+            for _ in 0..PROBE_MAX_STEPS {
+                let (x, j) = map.jacobian(&w);
+                let Some(j) = j else { break };
+                let Some(dw) = linalg::solve(n, &j, &residual(&x)) else {
+                    break;
+                };
+                let Some(step) = apply(&mut w, &dw) else {
+                    break;
+                };
+                if step <= accuracy {
+                    counters.inversions += 1;
+                    return Ok((w, eval.point(s, &w)));
+                }
+            }
+        }
+    }
+    let q = surface_point(eval, s, u, Some(guess), counters)?;
+    Ok((q.w, q.p))
+}
+
+/// The mean of the available `DX⁻¹` of nearby points: the chord steps' matrix in [`probe`].
+fn mean_inverse<'a>(n: usize, points: impl IntoIterator<Item = &'a SurfacePoint>) -> Option<Mat> {
+    let mut acc = [[0.0; MAX_VARS]; MAX_VARS];
+    let mut count = 0.0;
+    for p in points {
+        let inv = p.dx_inverse.as_ref()?;
+        for k in 0..n {
+            for l in 0..n {
+                acc[k][l] += inv[k][l];
+            }
+        }
+        count += 1.0;
+    }
+    for row in acc.iter_mut().take(n) {
+        for v in row.iter_mut().take(n) {
+            *v /= count;
+        }
+    }
+    (count > 0.0).then_some(acc)
+}
+
 /// The surface point at preimage `w`, position `p`, with the unit normal from the gradient `g`.
 fn finish_point(w: Bary, p: [f64; 3], g: [f64; 3], dx_inverse: Option<Mat>) -> SurfacePoint {
     let len = (g[0] * g[0] + g[1] * g[1] + g[2] * g[2]).sqrt();
@@ -291,41 +456,63 @@ fn preimage_step(n: usize, point: &SurfacePoint, du: &Bary) -> Option<Bary> {
     dw.iter().all(|x| x.is_finite()).then_some(dw)
 }
 
-/// Start for inverting at `u` between the solved points `a` (at `ua`) and `b` (at `ub`): the mean
-/// of the two first-order Taylor predictions `w + DX⁻¹ (u − u_end)`, which is within `O(h³)` of
-/// the solution where the interpolated preimages are only within `O(h²)`; the interpolation when
-/// a `DX⁻¹` is missing.
-fn start_between(
-    n: usize,
-    u: &Bary,
-    (ua, a): (&Bary, &SurfacePoint),
-    (ub, b): (&Bary, &SurfacePoint),
-    t: f64,
-) -> Bary {
-    let diff = |x: &Bary, y: &Bary| {
-        let mut d = [0.0; MAX_VARS];
+/// The preimage along the edge from `a` (at `ua`) to `b` (at `ub`) as a cubic Hermite curve in
+/// the edge parameter `t`: the ends' preimages and their derivatives `DX⁻¹ (ub − ua)`, within
+/// `O(h⁴)` of `X⁻¹` (the mean of the two first-order Taylor predictions is only `O(h²)` off in the
+/// middle); the interpolation when a `DX⁻¹` is missing. `None` for the derivatives there.
+#[derive(Clone, Copy)]
+struct EdgeCurve {
+    wa: Bary,
+    wb: Bary,
+    d: Option<(Bary, Bary)>,
+}
+
+impl EdgeCurve {
+    fn new(n: usize, (ua, a): (&Bary, &SurfacePoint), (ub, b): (&Bary, &SurfacePoint)) -> Self {
+        let mut du = [0.0; MAX_VARS];
         for k in 0..MAX_VARS {
-            d[k] = x[k] - y[k];
+            du[k] = ub[k] - ua[k];
         }
-        d
-    };
-    match (
-        preimage_step(n, a, &diff(u, ua)),
-        preimage_step(n, b, &diff(u, ub)),
-    ) {
-        (Some(da), Some(db)) => {
-            let mut w = [0.0; MAX_VARS];
-            for k in 0..MAX_VARS {
-                w[k] = (1.0 - t) * (a.w[k] + da[k]) + t * (b.w[k] + db[k]);
-            }
-            w
+        let d = preimage_step(n, a, &du).zip(preimage_step(n, b, &du));
+        EdgeCurve {
+            wa: a.w,
+            wb: b.w,
+            d,
         }
-        _ => lerp(&a.w, &b.w, t),
+    }
+
+    fn at(&self, t: f64) -> Bary {
+        let Some((da, db)) = self.d else {
+            return lerp(&self.wa, &self.wb, t);
+        };
+        let (t2, t3) = (t * t, t * t * t);
+        let h00 = 2.0 * t3 - 3.0 * t2 + 1.0;
+        let h10 = t3 - 2.0 * t2 + t;
+        let h01 = -2.0 * t3 + 3.0 * t2;
+        let h11 = t3 - t2;
+        let mut w = [0.0; MAX_VARS];
+        for k in 0..MAX_VARS {
+            w[k] = h00 * self.wa[k] + h10 * da[k] + h01 * self.wb[k] + h11 * db[k];
+        }
+        w
+    }
+
+    /// At `t`, with the solved middle `wm` too: the quartic through it (adds the multiple of
+    /// `t²(1 − t)²` that the middle asks for).
+    fn at_with_middle(&self, t: f64, wm: &Bary) -> Bary {
+        let (mut w, h) = (self.at(t), self.at(0.5));
+        let bump = 16.0 * t * t * (1.0 - t) * (1.0 - t);
+        for k in 0..MAX_VARS {
+            w[k] += bump * (wm[k] - h[k]);
+        }
+        w
     }
 }
 
-/// Start for inverting at `u` inside the triangle of solved points `pts` (at `us`): the mean of
-/// the corners' first-order Taylor predictions, or of their preimages when a `DX⁻¹` is missing.
+/// Start for inverting at `u` inside the triangle of solved points `pts` (at `us`), for `u` their
+/// centroid: the mean of the corners' preimages plus half the mean of their first-order Taylor
+/// steps, which is exact for a quadratic `X⁻¹` (with `dᵢ = u − uᵢ` summing to 0,
+/// `w(u) = mean(wᵢ) + ½ mean(∇wᵢ·dᵢ)` there); the mean of the preimages when a `DX⁻¹` is missing.
 fn start_inside(n: usize, u: &Bary, us: &[Bary; 3], pts: &[SurfacePoint; 3]) -> Bary {
     let mut w = [0.0; MAX_VARS];
     for (ui, pi) in us.iter().zip(pts) {
@@ -335,7 +522,7 @@ fn start_inside(n: usize, u: &Bary, us: &[Bary; 3], pts: &[SurfacePoint; 3]) -> 
         }
         let step = preimage_step(n, pi, &du).unwrap_or([0.0; MAX_VARS]);
         for k in 0..MAX_VARS {
-            w[k] += (pi.w[k] + step[k]) / 3.0;
+            w[k] += (pi.w[k] + 0.5 * step[k]) / 3.0;
         }
     }
     w
@@ -388,20 +575,26 @@ fn test_edge(
 ) -> Result<Option<SurfacePoint>> {
     let (pa, pb) = (a.p, b.p);
     let n = eval.dim();
-    let start = start_between(n, um, (ua, a), (ub, b), 0.5);
-    let pm = surface_point(eval, s, um, Some(&start), counters)?;
-    if chord_error(pa, pb, pm.p) > tol {
-        return Ok(Some(pm));
-    }
-    for t in [0.25, 0.75] {
-        let u = lerp(ua, ub, t);
-        let guess = start_between(n, &u, (ua, a), (ub, b), t);
-        let q = surface_point(eval, s, &u, Some(&guess), counters)?;
-        if chord_error(pa, pb, q.p) > tol {
-            return Ok(Some(pm));
+    let curve = EdgeCurve::new(n, (ua, a), (ub, b));
+    let start = curve.at(0.5);
+    let mean = mean_inverse(n, [a, b]);
+    let (wm, pm) = probe(eval, s, um, &start, mean.as_ref(), tol, counters)?;
+    let mut split = chord_error(pa, pb, pm) > tol;
+    if !split {
+        for t in [0.25, 0.75] {
+            let u = lerp(ua, ub, t);
+            let guess = curve.at_with_middle(t, &wm);
+            let (_, q) = probe(eval, s, &u, &guess, mean.as_ref(), tol, counters)?;
+            if chord_error(pa, pb, q) > tol {
+                split = true;
+                break;
+            }
         }
     }
-    Ok(None)
+    // Only a midpoint that becomes a vertex is placed exactly, from the test point's preimage.
+    split
+        .then(|| surface_point(eval, s, um, Some(&wm), counters))
+        .transpose()
 }
 
 /// The refinement of the patch edge on one facet, decided by the facet's owner.
@@ -792,15 +985,25 @@ impl SurfaceBuilder<'_> {
             uc[k] = (us[0][k] + us[1][k] + us[2][k]) / 3.0;
         }
         let guess = start_inside(n, &uc, &us, &pts);
-        let q = surface_point(self.eval, self.s, &uc, Some(&guess), &mut self.counters)?;
-        let off = plane_error(pts[0].p, pts[1].p, pts[2].p, q.p);
-        if off <= EDGE_FRACTION * self.options.tolerance {
+        let tol = EDGE_FRACTION * self.options.tolerance;
+        let mean = mean_inverse(n, &pts);
+        let (wc, pc) = probe(
+            self.eval,
+            self.s,
+            &uc,
+            &guess,
+            mean.as_ref(),
+            tol,
+            &mut self.counters,
+        )?;
+        if plane_error(pts[0].p, pts[1].p, pts[2].p, pc) <= tol {
             return Ok(None);
         }
         if depth >= 2 * self.options.max_depth {
             self.counters.depth_limited += 1;
             return Ok(None);
         }
+        let q = surface_point(self.eval, self.s, &uc, Some(&wc), &mut self.counters)?;
         Ok(Some(self.interior_vertex(uc, q)))
     }
 
