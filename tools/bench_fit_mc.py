@@ -616,7 +616,18 @@ def main():
         # of the fit are upper bounds of dist(z, S); the bracket can be far from tight where the
         # closest point is in none of its directions (near the heart's cusp (0, 1): 2.54e-3
         # against 1.69e-3 to a sample), so the smaller is taken.
-        nearest, _ = cKDTree(pts).query(zpts[worst], k=1, workers=-1)
+        nearest, near_i = cKDTree(pts).query(zpts[worst], k=1, workers=-1)
+        # Where F is undefined at the target point (it lies just outside the written shell |K|,
+        # e.g. the torus's lowest circle on a grid plane), bracket from a point 1e-7 towards the
+        # nearest sample instead, plus that step (dist is 1-Lipschitz). In 3D the nearest of 1M
+        # samples alone is loose (about their spacing, 2.4e-3 on the torus).
+        undef = np.nonzero(np.isnan(bracket))[0]
+        if len(undef):
+            w = zpts[worst][undef]
+            step = pts[near_i[undef]] - w
+            step *= 1e-7 / np.maximum(np.linalg.norm(step, axis=1), 1e-300)[:, None]
+            again = ism_bracket(path, w + step, 0.5 * back[worst][undef], longest_side)
+            bracket[undef] = again + 1e-7
         bracket = np.fmin(bracket, nearest)
         rest = np.delete(back, worst)
         back_max = max(float(np.nanmax(bracket)), float(rest.max()) if len(rest) else 0.0)
