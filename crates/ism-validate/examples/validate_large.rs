@@ -57,16 +57,6 @@ fn main() {
     );
 }
 
-/// CPU seconds of every thread of the process so far (`/proc/self/task/*/schedstat`).
-fn cpu() -> f64 {
-    let Ok(tasks) = std::fs::read_dir("/proc/self/task") else {
-        return f64::NAN;
-    };
-    tasks
-        .filter_map(|t| {
-            let text = std::fs::read_to_string(t.ok()?.path().join("schedstat")).ok()?;
-            text.split_whitespace().next()?.parse::<f64>().ok()
-        })
-        .sum::<f64>()
-        * 1e-9
-}
+#[path = "support/cpu.rs"]
+mod support;
+use support::cpu;
