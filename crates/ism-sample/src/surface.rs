@@ -755,6 +755,9 @@ pub struct SurfacePoint {
 /// stage moves few of its points on a given simplex (the fitted torus: 59 / 20 / 2.7 % of the
 /// degree-2 / 3 / 4 points), so this does a fraction of the kernel's dense evaluation; the values
 /// agree to rounding (tested against [`ism_geom::LocalStage::jacobian_stored`]).
+/// Powers `w_k^0 ..= w_k^d` a [`SparseStage`] tabulates: every degree the format allows.
+const POWERS: usize = ism_format::structure::MAX_DEGREE as usize + 1;
+
 #[derive(Clone, Debug)]
 struct SparseStage {
     /// `(exponents I, c_I)` per moved control point.
@@ -770,6 +773,11 @@ impl SparseStage {
         }
         let m = stage.vars();
         let d = stage.degree();
+        // Beyond the format's maximum (a model built without the structural check) the power
+        // table would not hold the exponents: the kernel's dense evaluation is used instead.
+        if d as usize >= POWERS {
+            return None;
+        }
         let identity = ism_geom::LocalStage::identity(stage.kind(), d, m).ok()?;
         let fact = |k: u32| (1..=k).map(f64::from).product::<f64>();
         let mut terms = Vec::new();
@@ -800,7 +808,7 @@ impl SparseStage {
     /// Value and reduced Jacobian (`R[i−1][l−1] = ∂_l S_i − ∂_0 S_i`, as the kernel's) at `w`
     /// (on the simplex).
     fn jacobian_stored(&self, m: usize, w: &Bary) -> (Bary, Mat) {
-        let mut pw = [[1.0f64; 8]; MAX_VARS];
+        let mut pw = [[1.0f64; POWERS]; MAX_VARS];
         for k in 0..m {
             for p in 1..=self.degree {
                 pw[k][p] = pw[k][p - 1] * w[k];
@@ -1212,6 +1220,75 @@ mod tests {
             }
         }
         assert!(checked > 100, "only {checked} points checked");
+    }
+
+    /// High degrees (the format allows up to `MAX_DEGREE` = 16): the sparse form of a
+    /// parametric Bézier stage of degree 8 to 16 on a triangle, with every interior point moved,
+    /// gives the kernel's dense value and reduced Jacobian to rounding (it indexed a fixed table
+    /// of powers up to 7 and panicked from degree 8 on).
+    #[test]
+    fn sparse_stage_equals_the_kernel_dense_stage_up_to_the_maximum_degree() {
+        let mut seed = 11u64;
+        let mut rnd = move || {
+            seed = seed
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (seed >> 11) as f64 / (1u64 << 53) as f64 * 2.0 - 1.0
+        };
+        for d in 8..=ism_format::structure::MAX_DEGREE {
+            let owned = ism_format::multi_index::owned(3, d);
+            // Identity positions K/d, moved along the first two coordinates by up to 1e-3 (the
+            // coordinates keep summing to 1; small enough to stay a diffeomorphism).
+            let points: Vec<f64> = owned
+                .chunks(3)
+                .flat_map(|k| {
+                    let t = 1e-3 * rnd();
+                    let f = f64::from(d);
+                    [
+                        f64::from(k[0]) / f + t,
+                        f64::from(k[1]) / f - t,
+                        f64::from(k[2]) / f,
+                    ]
+                })
+                .collect();
+            let model = ism_format::builder::ModelBuilder::new(2)
+                .vertex(&[0.0, 0.0], -1.0)
+                .vertex(&[1.0, 0.0], 1.0)
+                .vertex(&[0.0, 1.0], 1.0)
+                .simplex(&[0, 1, 2])
+                .stage(
+                    ism_format::builder::StageBuilder::bezier(d)
+                        .parametric()
+                        .face(&[0, 1, 2], &points, &[])
+                        .build(),
+                )
+                .build()
+                .expect("a valid degree-{d} model");
+            let eval = ModelEval::new(&model).unwrap();
+            let st = &eval.local_map(0).stages()[0];
+            let sparse = SparseStage::new(st).expect("a Bézier stage");
+            assert!(!sparse.terms.is_empty());
+            for w in [
+                [1.0 / 3.0, 1.0 / 3.0, 1.0 / 3.0, 0.0],
+                [0.1, 0.2, 0.7, 0.0],
+                [0.0, 0.5, 0.5, 0.0],
+                [1.0, 0.0, 0.0, 0.0],
+            ] {
+                let (v0, j0) = st.jacobian_stored(&w);
+                let (v1, j1) = sparse.jacobian_stored(3, &w);
+                for i in 0..3 {
+                    assert!((v0[i] - v1[i]).abs() <= 1e-13, "d={d}: {v0:?} vs {v1:?}");
+                }
+                for i in 0..2 {
+                    for l in 0..2 {
+                        assert!(
+                            (j0[i][l] - j1[i][l]).abs() <= 1e-12 * (1.0 + j0[i][l].abs()),
+                            "d={d}: {j0:?} vs {j1:?}"
+                        );
+                    }
+                }
+            }
+        }
     }
 
     /// The alias table selects entry `i` with probability `w_i / Σ w`: the probability each table
