@@ -61,6 +61,7 @@ pub fn import_mesh(data: &[u8]) {
             options.push(ImportOptions {
                 field: Some(name.clone()),
                 level,
+                ..ImportOptions::default()
             });
         }
         for o in &options {

@@ -45,6 +45,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let options = ImportOptions {
         field: args.field.clone(),
         level: args.level,
+        ..ImportOptions::default()
     };
     let progress = crate::progress::Progress::new(args.quiet);
     progress.phase(format!(

@@ -70,6 +70,10 @@ pub struct ImportOptions {
     pub field: Option<String>,
     /// The level `c` of the model.
     pub level: f64,
+    /// The reader's bounds (the same [`ism_format::io::Limits`] as for ISM files): the file's
+    /// size against `max_payload_bytes` before it is read, its points and cells against
+    /// `max_vertices` and `max_simplices` before anything is built from them.
+    pub limits: ism_format::io::Limits,
 }
 
 /// What [`to_model`] did.
@@ -101,10 +105,22 @@ pub fn import_path(path: &Path, options: &ImportOptions) -> Result<(Model, Impor
             ),
         )
     })?;
-    let bytes = std::fs::read(path).map_err(|source| Error::Io {
+    let io_error = |source| Error::Io {
         path: Some(path.to_path_buf()),
         source,
-    })?;
+    };
+    let size = std::fs::metadata(path).map_err(io_error)?.len();
+    let limit = options.limits.max_payload_bytes;
+    if size > limit {
+        return Err(Error::import(
+            format.name(),
+            None,
+            format!(
+                "{size} bytes; this reader accepts at most {limit} (Limits::max_payload_bytes)"
+            ),
+        ));
+    }
+    let bytes = std::fs::read(path).map_err(io_error)?;
     let raw = read_mesh(&bytes, format)?;
     to_model(&raw, options)
 }
@@ -807,6 +823,25 @@ fn skip_to(t: &mut Tokens, end: &str) -> Result<()> {
 /// the level (or not finite) on a used node, a 2D mesh is not planar, or a cell is degenerate.
 pub fn to_model(raw: &RawMesh, options: &ImportOptions) -> Result<(Model, ImportReport)> {
     const FMT: &str = "mesh";
+    let limits = &options.limits;
+    let cells = raw.tetrahedra.len().max(raw.triangles.len()) as u64;
+    for (count, limit, what, field) in [
+        (
+            raw.points.len() as u64,
+            limits.max_vertices,
+            "points",
+            "max_vertices",
+        ),
+        (cells, limits.max_simplices, "cells", "max_simplices"),
+    ] {
+        if count > limit {
+            return Err(Error::import(
+                FMT,
+                None,
+                format!("{count} {what}; this reader accepts at most {limit} (Limits::{field})"),
+            ));
+        }
+    }
     let (n, cells): (usize, Vec<Vec<u32>>) = if !raw.tetrahedra.is_empty() {
         (3, raw.tetrahedra.iter().map(|c| c.to_vec()).collect())
     } else if !raw.triangles.is_empty() {
@@ -963,6 +998,7 @@ POINT_DATA 6\nSCALARS f double 1\nLOOKUP_TABLE default\n-1 1 1 1 2 5\n";
             &ImportOptions {
                 field: None,
                 level: 1.0,
+                ..ImportOptions::default()
             },
         )
         .unwrap_err();
@@ -972,10 +1008,50 @@ POINT_DATA 6\nSCALARS f double 1\nLOOKUP_TABLE default\n-1 1 1 1 2 5\n";
             &ImportOptions {
                 field: Some("g".into()),
                 level: 0.0,
+                ..ImportOptions::default()
             },
         )
         .unwrap_err();
         assert!(err.to_string().contains("no point field \"g\""), "{err}");
+    }
+
+    /// The entity limits: points and cells above `Limits` are refused before anything is built
+    /// (counts from the parsed mesh: 6 points, 2 tetrahedra); at exactly those counts the
+    /// mesh converts; a file larger than `max_payload_bytes` is refused before it is read.
+    #[test]
+    fn import_limits_refuse_larger_meshes() {
+        let raw = read_mesh(LEGACY.as_bytes(), ImportFormat::VtkLegacy).unwrap();
+        let points = raw.points.len() as u64;
+        let cells = raw.tetrahedra.len().max(raw.triangles.len()) as u64;
+        let with = |max_vertices: u64, max_simplices: u64| ImportOptions {
+            limits: ism_format::io::Limits {
+                max_vertices,
+                max_simplices,
+                ..Default::default()
+            },
+            ..ImportOptions::default()
+        };
+        to_model(&raw, &with(points, cells)).expect("at the limits");
+        let err = to_model(&raw, &with(points - 1, cells)).unwrap_err();
+        assert!(err.to_string().contains("Limits::max_vertices"), "{err}");
+        let err = to_model(&raw, &with(points, cells - 1)).unwrap_err();
+        assert!(err.to_string().contains("Limits::max_simplices"), "{err}");
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("m.vtk");
+        std::fs::write(&path, LEGACY).unwrap();
+        let small = ImportOptions {
+            limits: ism_format::io::Limits {
+                max_payload_bytes: LEGACY.len() as u64 - 1,
+                ..Default::default()
+            },
+            ..ImportOptions::default()
+        };
+        let err = import_path(&path, &small).unwrap_err();
+        assert!(
+            err.to_string().contains("Limits::max_payload_bytes"),
+            "{err}"
+        );
+        import_path(&path, &ImportOptions::default()).expect("within the default limits");
     }
 
     #[test]

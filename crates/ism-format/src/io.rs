@@ -92,10 +92,27 @@ impl std::str::FromStr for Encoding {
 }
 
 /// Bounds a reader enforces against hostile input (spec §7.6).
+///
+/// The payload limit bounds memory: it is checked before anything is read past the header, and
+/// every decoder allocates only for elements the bytes at hand can hold. The entity limits bound
+/// the *work* after decoding (structural check, indexing, validation, export): they are checked
+/// right after decoding, before any of it, and a count above one is ISM-007 at the member's
+/// pointer. The defaults of the entity limits refuse nothing a readable file can hold (ids are
+/// `u32`; 8 GiB of payload holds fewer than 2³² vertices or simplices); a service that accepts
+/// files from anyone lowers them. Nesting depth is fixed by the format (§7.8, [`MAX_DEPTH`]).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct Limits {
     /// Largest payload accepted, in bytes.
     pub max_payload_bytes: u64,
+    /// Most vertices accepted.
+    pub max_vertices: u64,
+    /// Most top simplices accepted.
+    pub max_simplices: u64,
+    /// Most stages accepted.
+    pub max_stages: u64,
+    /// Most records accepted over all stages: face records of Bézier and rational stages plus
+    /// vertex maps of monotonic ones.
+    pub max_records: u64,
 }
 
 impl Default for Limits {
@@ -103,7 +120,72 @@ impl Default for Limits {
         // 8 GiB: several times the largest models in use, well below what one machine can map.
         Limits {
             max_payload_bytes: 8 << 30,
+            max_vertices: u64::from(u32::MAX),
+            max_simplices: u64::from(u32::MAX),
+            max_stages: u64::MAX,
+            max_records: u64::MAX,
         }
+    }
+}
+
+impl Limits {
+    /// ISM-007 for the first entity count of `model` above its limit, at the member's pointer
+    /// (`/vertices`, `/simplices`, `/stages`, or the stage whose records pass the limit).
+    ///
+    /// # Errors
+    /// [`Error::Format`] with [`Rule::LimitExceeded`].
+    pub fn check(&self, model: &Model) -> Result<()> {
+        let over = |pointer: String, count: u64, what: &str, limit: u64, field: &str| {
+            Error::format(
+                Rule::LimitExceeded,
+                Location::pointer(pointer),
+                format!("{count} {what}; this reader accepts at most {limit} (Limits::{field})"),
+            )
+        };
+        let vertices = model.num_vertices() as u64;
+        if vertices > self.max_vertices {
+            return Err(over(
+                "/vertices".into(),
+                vertices,
+                "vertices",
+                self.max_vertices,
+                "max_vertices",
+            ));
+        }
+        let simplices = model.num_simplices() as u64;
+        if simplices > self.max_simplices {
+            return Err(over(
+                "/simplices".into(),
+                simplices,
+                "simplices",
+                self.max_simplices,
+                "max_simplices",
+            ));
+        }
+        let stages = model.stages.len() as u64;
+        if stages > self.max_stages {
+            return Err(over(
+                "/stages".into(),
+                stages,
+                "stages",
+                self.max_stages,
+                "max_stages",
+            ));
+        }
+        let mut records = 0u64;
+        for (k, stage) in model.stages.iter().enumerate() {
+            records += (stage.faces.len() + stage.vertex_maps.len()) as u64;
+            if records > self.max_records {
+                return Err(over(
+                    format!("/stages/{k}"),
+                    records,
+                    "records up to this stage",
+                    self.max_records,
+                    "max_records",
+                ));
+            }
+        }
+        Ok(())
     }
 }
 
@@ -292,8 +374,10 @@ pub fn from_slice_with(bytes: &[u8], options: &ReadOptions) -> Result<Document> 
     finish_read(decode(bytes, options)?, options)
 }
 
-/// The checks after decoding: required extensions, then (unless skipped) the structural rules.
+/// The checks after decoding: the entity limits, required extensions, then (unless skipped) the
+/// structural rules.
 fn finish_read(doc: Document, options: &ReadOptions) -> Result<Document> {
+    options.limits.check(&doc.model)?;
     check_extensions(&doc.model, options)?;
     if options.check_structure {
         let errors: Vec<_> =

@@ -46,7 +46,7 @@ rules! {
     Truncated = "ISM-004", Error, "The file holds the whole header and the declared payload";
     UnknownEncoding = "ISM-005", Error, "The encoding tag is 1 (JSON), 2 (MessagePack) or 3 (binary)";
     Malformed = "ISM-006", Error, "The payload decodes as the declared encoding and matches the data model";
-    LimitExceeded = "ISM-007", Error, "The declared payload length fits the reader's limit";
+    LimitExceeded = "ISM-007", Error, "The declared payload length and the model's entity counts fit the reader's limits";
     ExtensionRequired = "ISM-008", Error, "Every extension in extensionsRequired is supported by the reader";
     VersionMismatch = "ISM-009", Error, "The container version equals the payload's version member";
     TrailingData = "ISM-010", Error, "No bytes follow the declared payload";

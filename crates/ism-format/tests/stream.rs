@@ -119,6 +119,7 @@ fn streamed_binary_reads_match_in_memory_reads() {
     let small = ReadOptions {
         limits: io::Limits {
             max_payload_bytes: 40,
+            ..io::Limits::default()
         },
         ..ReadOptions::default()
     };
@@ -128,6 +129,7 @@ fn streamed_binary_reads_match_in_memory_reads() {
     let tight = ReadOptions {
         limits: io::Limits {
             max_payload_bytes: (bytes.len() - HEADER_LEN + 10) as u64,
+            ..io::Limits::default()
         },
         ..ReadOptions::default()
     };
