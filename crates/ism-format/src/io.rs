@@ -135,54 +135,29 @@ impl Limits {
     /// # Errors
     /// [`Error::Format`] with [`Rule::LimitExceeded`].
     pub fn check(&self, model: &Model) -> Result<()> {
-        let over = |pointer: String, count: u64, what: &str, limit: u64, field: &str| {
-            Error::format(
+        // `what` names the member, the count and the limit's field (`max_{what}`).
+        let over = |pointer: String, what: &str, count: u64, limit: u64| {
+            Err(Error::format(
                 Rule::LimitExceeded,
                 Location::pointer(pointer),
-                format!("{count} {what}; this reader accepts at most {limit} (Limits::{field})"),
-            )
+                format!("{count} {what}; this reader accepts at most {limit} (Limits::max_{what})"),
+            ))
         };
-        let vertices = model.num_vertices() as u64;
-        if vertices > self.max_vertices {
-            return Err(over(
-                "/vertices".into(),
-                vertices,
-                "vertices",
-                self.max_vertices,
-                "max_vertices",
-            ));
+        for (what, count, limit) in [
+            ("vertices", model.num_vertices(), self.max_vertices),
+            ("simplices", model.num_simplices(), self.max_simplices),
+            ("stages", model.stages.len(), self.max_stages),
+        ] {
+            if count as u64 > limit {
+                return over(format!("/{what}"), what, count as u64, limit);
+            }
         }
-        let simplices = model.num_simplices() as u64;
-        if simplices > self.max_simplices {
-            return Err(over(
-                "/simplices".into(),
-                simplices,
-                "simplices",
-                self.max_simplices,
-                "max_simplices",
-            ));
-        }
-        let stages = model.stages.len() as u64;
-        if stages > self.max_stages {
-            return Err(over(
-                "/stages".into(),
-                stages,
-                "stages",
-                self.max_stages,
-                "max_stages",
-            ));
-        }
+        // Records over all stages: the stage where the running total passes the limit is named.
         let mut records = 0u64;
         for (k, stage) in model.stages.iter().enumerate() {
             records += (stage.faces.len() + stage.vertex_maps.len()) as u64;
             if records > self.max_records {
-                return Err(over(
-                    format!("/stages/{k}"),
-                    records,
-                    "records up to this stage",
-                    self.max_records,
-                    "max_records",
-                ));
+                return over(format!("/stages/{k}"), "records", records, self.max_records);
             }
         }
         Ok(())

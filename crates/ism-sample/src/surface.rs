@@ -1228,13 +1228,8 @@ mod tests {
     /// of powers up to 7 and panicked from degree 8 on).
     #[test]
     fn sparse_stage_equals_the_kernel_dense_stage_up_to_the_maximum_degree() {
-        let mut seed = 11u64;
-        let mut rnd = move || {
-            seed = seed
-                .wrapping_mul(6364136223846793005)
-                .wrapping_add(1442695040888963407);
-            (seed >> 11) as f64 / (1u64 << 53) as f64 * 2.0 - 1.0
-        };
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(11);
         for d in 8..=ism_format::structure::MAX_DEGREE {
             let owned = ism_format::multi_index::owned(3, d);
             // Identity positions K/d, moved along the first two coordinates by up to 1e-3 (the
@@ -1242,7 +1237,7 @@ mod tests {
             let points: Vec<f64> = owned
                 .chunks(3)
                 .flat_map(|k| {
-                    let t = 1e-3 * rnd();
+                    let t = rng.random_range(-1e-3..1e-3);
                     let f = f64::from(d);
                     [
                         f64::from(k[0]) / f + t,
