@@ -249,8 +249,9 @@ const BRACKET_ABOVE: f64 = 0.25;
 /// vertex is treated as outside; this is deterministic and documented in the CLI help.
 pub const ZERO_NUDGE: f64 = 1e-12;
 
-/// Barycentric slack of [`Fitter::contains`]: a point on a shared facet belongs to both cells
-/// (refining both is harmless), and rounding must not put it in neither.
+/// Barycentric slack of [`Fitter::contains`] and of the box test of the Plantinga–Vegter split
+/// (`simplex_test`): a point on a shared facet belongs to both cells (refining both is harmless),
+/// and rounding must not put it in neither, nor drop a box that meets the cell.
 const CONTAINS_SLACK: f64 = 1e-9;
 
 /// Rounds of the two-sided accuracy loop: measure both directions on the model, refine where it
@@ -1748,21 +1749,21 @@ fn gradients_agree(gradient: &[crate::interval::Interval]) -> bool {
 }
 
 /// A conservative test of whether a box `[l, h]` meets simplex `c`: `false` only when every
-/// corner of the box has the same barycentric coordinate below `−1e-9` (the box lies beyond
+/// corner of the box has the same barycentric coordinate below `−CONTAINS_SLACK` (the box lies beyond
 /// that facet's plane). `None` for a degenerate simplex.
 fn simplex_test(complex: &Complex, c: u32) -> Option<impl Fn(&[f64], &[f64]) -> bool> {
     let n = complex.dim();
     let ids = complex.cell(c);
     let v0: Vec<f64> = complex.point(ids[0]).to_vec();
     // Edge matrix E (columns v_i − v_0) and its inverse: λ_{1..n} = E⁻¹ (p − v_0).
-    let mut e = [[0.0f64; 3]; 3];
+    let mut e: ism_geom::Mat = Default::default();
     for i in 0..n {
         let p = complex.point(ids[i + 1]);
         for k in 0..n {
             e[k][i] = p[k] - v0[k];
         }
     }
-    let inv = invert(&e, n)?;
+    let inv = ism_geom::linalg::inverse(n, &e)?;
     Some(move |l: &[f64], h: &[f64]| {
         let corners = 1usize << n;
         // Per coordinate λ_0..λ_n: is it below the margin at every corner?
@@ -1777,46 +1778,16 @@ fn simplex_test(complex: &Complex, c: u32) -> Option<impl Fn(&[f64], &[f64]) -> 
             for i in 0..n {
                 let li: f64 = (0..n).map(|k| inv[i][k] * d[k]).sum();
                 sum += li;
-                if li >= -1e-9 {
+                if li >= -CONTAINS_SLACK {
                     beyond[i + 1] = false;
                 }
             }
-            if 1.0 - sum >= -1e-9 {
+            if 1.0 - sum >= -CONTAINS_SLACK {
                 beyond[0] = false;
             }
         }
         !beyond[..=n].iter().any(|&b| b)
     })
-}
-
-/// Inverse of the leading `n × n` block of `a` (`n` = 2 or 3); `None` when singular.
-fn invert(a: &[[f64; 3]; 3], n: usize) -> Option<[[f64; 3]; 3]> {
-    let mut r = [[0.0; 3]; 3];
-    if n == 2 {
-        let det = a[0][0] * a[1][1] - a[0][1] * a[1][0];
-        if det == 0.0 || !det.is_finite() {
-            return None;
-        }
-        r[0][0] = a[1][1] / det;
-        r[0][1] = -a[0][1] / det;
-        r[1][0] = -a[1][0] / det;
-        r[1][1] = a[0][0] / det;
-        return Some(r);
-    }
-    let det = a[0][0] * (a[1][1] * a[2][2] - a[1][2] * a[2][1])
-        - a[0][1] * (a[1][0] * a[2][2] - a[1][2] * a[2][0])
-        + a[0][2] * (a[1][0] * a[2][1] - a[1][1] * a[2][0]);
-    if det == 0.0 || !det.is_finite() {
-        return None;
-    }
-    for (i, row) in r.iter_mut().enumerate() {
-        for (j, x) in row.iter_mut().enumerate() {
-            let (i1, i2) = ((j + 1) % 3, (j + 2) % 3);
-            let (j1, j2) = ((i + 1) % 3, (i + 2) % 3);
-            *x = (a[i1][j1] * a[i2][j2] - a[i1][j2] * a[i2][j1]) / det;
-        }
-    }
-    Some(r)
 }
 
 #[cfg(test)]
