@@ -33,6 +33,7 @@ use ism_geom::{linalg, Bernstein, LocalMap, LocalStage, Mat, Restriction};
 use crate::bound::{
     det_poly, linear_gradient_norm, quotient_range, stage_components, BOUND_ROUNDING_MARGIN,
 };
+use crate::homothety::Homothety;
 
 /// Refinement stops once every leaf's bound is within this factor of the largest exact sample of
 /// `J` in its box: the sampler then accepts about this fraction of what exact suprema would give.
@@ -247,6 +248,55 @@ impl Restricted {
         }
     }
 
+    /// What [`Restricted::restrict_to`] followed by [`Restricted::may_cross`] and
+    /// [`Restricted::ranges`] gives, for a polynomial stage (`Q = 1`) without building the
+    /// restricted polynomials ([`crate::homothety`]): whether `F − c` may vanish there, the image
+    /// box (`[0, 1]` when `need_image` is false) and the interval Jacobian. `None` for a rational
+    /// stage or a degree without a plan.
+    fn homothety_ranges(
+        &self,
+        n: usize,
+        lo: &[f64],
+        need_image: bool,
+    ) -> Option<(bool, Vec<Interval>, IMat)> {
+        if self.q.is_some() {
+            return None;
+        }
+        let m = self.p.len();
+        let d = self.p[0].degree();
+        if self.p.iter().any(|p| p.degree() != d)
+            || self.cross.as_ref().is_some_and(|c| c.degree() != d)
+        {
+            return None;
+        }
+        let mut h = Homothety::new(m, d, lo)?;
+        if let Some(c) = &self.cross {
+            h.load(c.coeffs());
+            let (range, top) = h.range();
+            let slack = BOUND_ROUNDING_MARGIN * top;
+            if range.lo > slack || range.hi < -slack {
+                return Some((false, Vec::new(), [[Interval::point(0.0); 3]; 3]));
+            }
+        }
+        let mut image = vec![Interval::new(0.0, 1.0); m];
+        let mut jac = [[Interval::point(0.0); 3]; 3];
+        for (i, p) in self.p.iter().enumerate() {
+            if i == 0 && !need_image {
+                continue;
+            }
+            h.load(p.coeffs());
+            if need_image {
+                image[i] = clamp_unit(h.range().0);
+            }
+            if i >= 1 {
+                for (l, entry) in jac[i - 1].iter_mut().enumerate().take(n) {
+                    *entry = h.derivative_range(l + 1);
+                }
+            }
+        }
+        Some((true, image, jac))
+    }
+
     /// The polynomials restricted to the face spanned by `vertices` (a region of the linear
     /// patch): polynomials in `vertices.len()` variables. The determinant is dropped (a
     /// parametric chain needs none).
@@ -394,15 +444,28 @@ impl Chain<'_> {
         let (mut image, first) = cell.restricted.ranges(n);
         let mut jacs = vec![first];
         let mut dets = vec![cell.restricted.det_lo(n, &first)];
-        for stage in &self.rest {
-            // The image so far lies in {w ≥ lo}: restrict the next stage there exactly.
-            let lo: Vec<f64> = image.iter().map(|x| x.lo.max(0.0)).collect();
-            let here = stage.restrict_to(&lo);
-            if !here.may_cross() {
-                return None;
+        for (k, stage) in self.rest.iter().enumerate() {
+            // The image so far lies in {w ≥ lo}: restrict the next stage there exactly. A
+            // parametric chain's last image is not used (its cells live in u).
+            let mut lo = [0.0; 4];
+            for (l, x) in lo.iter_mut().zip(&image) {
+                *l = x.lo.max(0.0);
             }
-            let (next, jac) = here.ranges(n);
-            dets.push(here.det_lo(n, &jac));
+            let lo = &lo[..image.len()];
+            let need_image = !(self.layout == Layout::Parametric && k + 1 == self.rest.len());
+            let (next, jac, det) = match stage.homothety_ranges(n, lo, need_image) {
+                Some((may_cross, _, _)) if !may_cross => return None,
+                Some((_, next, jac)) => (next, jac, interval_det(n, &jac).lo),
+                None => {
+                    let here = stage.restrict_to(lo);
+                    if !here.may_cross() {
+                        return None;
+                    }
+                    let (next, jac) = here.ranges(n);
+                    (next, jac, here.det_lo(n, &jac))
+                }
+            };
+            dets.push(det);
             jacs.push(jac);
             image = next;
         }

@@ -47,6 +47,7 @@
 pub mod bound;
 pub mod chain;
 pub mod error;
+mod homothety;
 pub mod output;
 pub mod points;
 pub mod sampler;

@@ -1,0 +1,270 @@
+//! Coefficient ranges of a polynomial, and of its reduced partial derivatives, restricted to the
+//! simplex `{w ≥ lo, Σ w = 1}`: what [`crate::chain`] needs per cell for every stage after the
+//! first, without building the restricted polynomials.
+//!
+//! The simplex has vertices `v_j = lo + r e_j` (`r = 1 − Σ lo`), so by multilinearity of the
+//! (homogeneous) blossom `β` of a degree-`d` polynomial `P` the restricted Bernstein coefficient
+//! of index `J` is
+//!
+//! `c_J = β(v_{j_1}, …, v_{j_d}) = Σ_{K ≤ J} C(J; K) r^{|K|} β(lo^{d−|K|}, e^K)`,
+//!
+//! with `C(J; K) = Π_i C(J_i, K_i)` (the ways to pick `K_i` of the `J_i` copies of `e_i`). The
+//! blossoms `β(lo^{d−k}, e^K)` are the levels of one de Casteljau run at the (unnormalised) point
+//! `lo`. The directional derivative `D = ∂_l − ∂_0` (degree `d − 1`, Bernstein coefficients
+//! `d (b_{K+e_l} − b_{K+e_0})`, [`ism_geom::Bernstein::derivative`]) has the blossom
+//! `β_D(x_1, …, x_{d−1}) = d (β(x_1, …, x_{d−1}, e_l) − β(x_1, …, x_{d−1}, e_0))`, so the same
+//! levels give its restricted coefficients too. One de Casteljau run per component replaces the
+//! `m` vertex replacements of each of the `m + n²` polynomials that exact restriction costs, and
+//! nothing is allocated per polynomial. Only the coefficients' extremes are kept: they are the
+//! enclosures the chain bound uses (convex hull property), widened like
+//! [`crate::bound::quotient_range`] for rounding.
+
+use std::sync::OnceLock;
+
+use ism_format::multi_index;
+use ism_geom::interval::Interval;
+use ism_geom::MAX_VARS;
+
+use crate::bound::BOUND_ROUNDING_MARGIN;
+
+/// Highest degree with a cached plan; higher degrees use exact restriction.
+pub(crate) const MAX_DEGREE: usize = 8;
+
+/// Blossoms of every degree `0..=MAX_DEGREE` in `MAX_VARS` variables: `C(MAX_DEGREE + 4, 4)`.
+const LEVEL_CAP: usize = 495;
+
+/// Index tables of one shape `(m, d)`.
+struct Plan {
+    /// `offsets[k]`: start of degree-`k` blossoms in a level buffer (`k = 0..=d`, plus the end).
+    offsets: Vec<usize>,
+    /// `up[offsets[k] * m + r * m + i]` (`k < d`): position (in the level buffer) of `K_r + e_i`,
+    /// `K_r` the `r`-th index of degree `k`.
+    up: Vec<u32>,
+    /// Terms of the degree-`d` outputs: `terms[start[J]..start[J + 1]]` are `(k, position of K in
+    /// the level buffer, C(J; K))` over `K ≤ J`.
+    start: Vec<u32>,
+    terms: Vec<(u8, u32, f64)>,
+}
+
+impl Plan {
+    fn build(m: usize, d: u32) -> Plan {
+        let mut offsets = vec![0usize];
+        for k in 0..=d {
+            offsets.push(offsets[k as usize] + multi_index::count(m, k));
+        }
+        let all: Vec<Vec<u32>> = (0..=d).map(|k| multi_index::all(m, k)).collect();
+        let mut up = vec![0u32; offsets[d as usize] * m];
+        for k in 0..d as usize {
+            for (r, idx) in all[k].chunks_exact(m).enumerate() {
+                for i in 0..m {
+                    let mut next = idx.to_vec();
+                    next[i] += 1;
+                    up[(offsets[k] + r) * m + i] =
+                        (offsets[k + 1] + multi_index::rank(&next)) as u32;
+                }
+            }
+        }
+        let mut start = vec![0u32];
+        let mut terms = Vec::new();
+        for j in all[d as usize].chunks_exact(m) {
+            for k in 0..=d as usize {
+                for (r, idx) in all[k].chunks_exact(m).enumerate() {
+                    if idx.iter().zip(j).all(|(a, b)| a <= b) {
+                        let weight: u64 = idx
+                            .iter()
+                            .zip(j)
+                            .map(|(&a, &b)| multi_index::binomial(u64::from(b), u64::from(a)))
+                            .product();
+                        terms.push((k as u8, (offsets[k] + r) as u32, weight as f64));
+                    }
+                }
+            }
+            start.push(terms.len() as u32);
+        }
+        Plan {
+            offsets,
+            up,
+            start,
+            terms,
+        }
+    }
+}
+
+fn plan(m: usize, d: u32) -> &'static Plan {
+    static PLANS: [[OnceLock<Plan>; MAX_DEGREE + 1]; MAX_VARS + 1] =
+        [const { [const { OnceLock::new() }; MAX_DEGREE + 1] }; MAX_VARS + 1];
+    PLANS[m][d as usize].get_or_init(|| Plan::build(m, d))
+}
+
+/// `[min, max]` of `Σ_terms w r^k level[pos]` over the outputs of `plan`, and the largest
+/// magnitude.
+fn output_range(plan: &Plan, level: &[f64], rpow: &[f64]) -> (f64, f64, f64) {
+    let (mut lo, mut hi, mut top) = (f64::INFINITY, f64::NEG_INFINITY, 0.0f64);
+    for w in plan.start.windows(2) {
+        let mut c = 0.0;
+        for &(k, pos, weight) in &plan.terms[w[0] as usize..w[1] as usize] {
+            c += weight * rpow[k as usize] * level[pos as usize];
+        }
+        lo = lo.min(c);
+        hi = hi.max(c);
+        top = top.max(c.abs());
+    }
+    (lo, hi, top)
+}
+
+/// A range widened by [`BOUND_ROUNDING_MARGIN`] of its largest magnitude, like
+/// [`crate::bound::quotient_range`].
+fn widened((lo, hi, top): (f64, f64, f64)) -> Interval {
+    let slack = BOUND_ROUNDING_MARGIN * top + f64::MIN_POSITIVE;
+    Interval::new(lo - slack, hi + slack)
+}
+
+/// The restriction of polynomials of one degree to `{w ≥ lo}`: a de Casteljau run per polynomial
+/// into a reused buffer.
+pub(crate) struct Homothety {
+    m: usize,
+    d: u32,
+    plan: &'static Plan,
+    /// The derivative outputs' plan (degree `d − 1`); `None` for `d = 0`.
+    lower: Option<&'static Plan>,
+    /// `r^k`, `k = 0..=d`.
+    rpow: [f64; MAX_DEGREE + 1],
+    lo: [f64; MAX_VARS],
+    level: [f64; LEVEL_CAP],
+    dlevel: [f64; LEVEL_CAP],
+}
+
+impl Homothety {
+    /// `None` when the degree has no plan (use exact restriction).
+    pub(crate) fn new(m: usize, d: u32, lo: &[f64]) -> Option<Homothety> {
+        if d as usize > MAX_DEGREE || m == 0 || m > MAX_VARS {
+            return None;
+        }
+        let plan = plan(m, d);
+        debug_assert!(plan.offsets[d as usize + 1] <= LEVEL_CAP);
+        let lower = (d > 0).then(|| self::plan(m, d - 1));
+        let mut l = [0.0; MAX_VARS];
+        l[..m].copy_from_slice(&lo[..m]);
+        let r = (1.0 - l[..m].iter().sum::<f64>()).max(0.0);
+        let mut rpow = [1.0; MAX_DEGREE + 1];
+        for k in 1..=d as usize {
+            rpow[k] = rpow[k - 1] * r;
+        }
+        Some(Homothety {
+            m,
+            d,
+            plan,
+            lower,
+            rpow,
+            lo: l,
+            level: [0.0; LEVEL_CAP],
+            dlevel: [0.0; LEVEL_CAP],
+        })
+    }
+
+    /// Loads a polynomial's coefficients (canonical order, degree `d`) and runs de Casteljau at
+    /// `lo`: afterwards `level[offsets[k] + r]` is `β(lo^{d−k}, e^{K_r})`.
+    pub(crate) fn load(&mut self, coeffs: &[f64]) {
+        let (m, d) = (self.m, self.d as usize);
+        let off = &self.plan.offsets;
+        self.level[off[d]..off[d + 1]].copy_from_slice(coeffs);
+        for k in (0..d).rev() {
+            for pos in off[k]..off[k + 1] {
+                let ups = &self.plan.up[pos * m..pos * m + m];
+                let mut s = 0.0;
+                for (i, &u) in ups.iter().enumerate() {
+                    s += self.lo[i] * self.level[u as usize];
+                }
+                self.level[pos] = s;
+            }
+        }
+    }
+
+    /// Range of the loaded polynomial restricted to `{w ≥ lo}` (its restricted coefficients'
+    /// extremes, widened for rounding), and the largest coefficient magnitude.
+    pub(crate) fn range(&self) -> (Interval, f64) {
+        let raw = output_range(self.plan, &self.level, &self.rpow);
+        (widened(raw), raw.2)
+    }
+
+    /// Range of the loaded polynomial's reduced partial `∂/∂w_l = ∂_l − ∂_0` (`l = 1..m`)
+    /// restricted to `{w ≥ lo}`, widened for rounding.
+    pub(crate) fn derivative_range(&mut self, l: usize) -> Interval {
+        let (m, d) = (self.m, self.d as usize);
+        let Some(lower) = self.lower else {
+            return Interval::point(0.0);
+        };
+        let off = &self.plan.offsets;
+        let df = d as f64;
+        // β_D(lo^{d−1−k}, e^K) = d (β(lo^{d−1−k}, e^{K+e_l}) − β(…, e^{K+e_0})), K of degree k.
+        for pos in 0..off[d] {
+            let ups = &self.plan.up[pos * m..pos * m + m];
+            self.dlevel[pos] = df * (self.level[ups[l] as usize] - self.level[ups[0] as usize]);
+        }
+        widened(output_range(lower, &self.dlevel, &self.rpow))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use ism_geom::Bernstein;
+    use rand::{Rng, SeedableRng};
+    use rand_chacha::ChaCha8Rng;
+
+    /// The kernel's exact restriction (`Bernstein::restrict`, vertex by vertex) is the reference:
+    /// the ranges here must equal the extremes of its coefficients, and of its derivatives'.
+    #[test]
+    fn ranges_equal_the_kernel_restriction() {
+        let mut rng = ChaCha8Rng::seed_from_u64(19);
+        for m in 2..=4usize {
+            for d in 0..=5u32 {
+                for _ in 0..20 {
+                    let p = Bernstein::from_fn(m, d, |_| rng.random_range(-2.0..2.0));
+                    // A corner `lo` with Σ lo < 1, sometimes tiny cells.
+                    let shrink: f64 = if rng.random_bool(0.5) { 1e-3 } else { 0.6 };
+                    let mut lo: Vec<f64> = (0..m).map(|_| rng.random::<f64>()).collect();
+                    let s: f64 = lo.iter().sum();
+                    for x in lo.iter_mut() {
+                        *x *= (1.0 - shrink) / s;
+                    }
+                    let r = 1.0 - lo.iter().sum::<f64>();
+                    let vertices: Vec<Vec<f64>> = (0..m)
+                        .map(|j| {
+                            let mut v = lo.clone();
+                            v[j] += r;
+                            v
+                        })
+                        .collect();
+                    let exact = p.restrict(&vertices);
+                    let mut h = Homothety::new(m, d, &lo).unwrap();
+                    h.load(p.coeffs());
+                    let (range, _) = h.range();
+                    // The ranges enclose the exact coefficients' and are wider by the rounding
+                    // margin only.
+                    let close = |r: Interval, e: &Bernstein| {
+                        let top = e.coeffs().iter().fold(0.0f64, |a, x| a.max(x.abs()));
+                        let (lo, hi) = (e.min_coeff(), e.max_coeff());
+                        let margin = 2.0 * BOUND_ROUNDING_MARGIN * top + 1e-12;
+                        r.lo <= lo + 1e-12
+                            && r.hi >= hi - 1e-12
+                            && r.lo >= lo - margin
+                            && r.hi <= hi + margin
+                    };
+                    assert!(close(range, &exact), "m {m} d {d}");
+                    // The reduced partials, restricted by the kernel after differentiating.
+                    for l in 1..m {
+                        let dr = h.derivative_range(l);
+                        let reference = p.derivative(l).restrict(&vertices);
+                        assert!(
+                            close(dr, &reference),
+                            "m {m} d {d} l {l}: {dr:?} vs [{}, {}]",
+                            reference.min_coeff(),
+                            reference.max_coeff()
+                        );
+                    }
+                }
+            }
+        }
+    }
+}
