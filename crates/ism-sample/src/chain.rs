@@ -831,7 +831,9 @@ pub struct Leaf {
 /// segment in 2D) is itself the cell the first stored map is restricted to, exactly. The cells are
 /// bisected where the bound wastes the most sampling mass — largest `weight · share · (bound −
 /// J's size there)`, `weight` the root's area — among those whose bound exceeds [`TIGHTNESS`] of
-/// `J`'s size, until none does or `max_splits` is spent. The leaves are returned as they are, so a
+/// `J`'s size and whose wasted mass exceeds `min_excess` (in units of the patch's area times
+/// `J`), until none does or `max_splits` is spent (`(max_splits, min_excess)` is the last
+/// argument). The leaves are returned as they are, so a
 /// sampler draws from them directly: the refinement lands where the bound is loose, and a smooth
 /// patch stays one region. `None` unless every stage is parametric.
 pub fn parametric_leaves(
@@ -841,7 +843,7 @@ pub fn parametric_leaves(
     level: f64,
     roots: &[(Vec<[f64; 4]>, f64)],
     samples: &[([f64; 4], f64)],
-    max_splits: usize,
+    (max_splits, min_excess): (usize, f64),
 ) -> Option<Result<Vec<Leaf>, String>> {
     let stages = map.stages();
     if stages.is_empty()
@@ -891,12 +893,12 @@ pub fn parametric_leaves(
     }
     let open = |bound: f64, ubox: &UBox, cell: Cell, root: usize, share: f64| -> Open {
         let size = local(ubox, &cell);
-        let tight = bound * TIGHTNESS <= size || cell.depth >= MAX_DEPTH;
+        // A NaN (0/0 on an empty root) would never be split: count it as the whole mass.
+        let excess = roots[root].1 * share * (bound - size);
+        let tight = bound * TIGHTNESS <= size || cell.depth >= MAX_DEPTH || excess <= min_excess;
         let priority = if tight {
             0.0
         } else {
-            // A NaN (0/0 on an empty root) would never be split: count it as the whole mass.
-            let excess = roots[root].1 * share * (bound - size);
             if excess.is_nan() {
                 f64::INFINITY
             } else {
@@ -911,7 +913,7 @@ pub fn parametric_leaves(
             cell,
         }
     };
-    let mut cells: Vec<Open> = Vec::with_capacity(roots.len() + 2 * max_splits);
+    let mut cells: Vec<Open> = Vec::with_capacity(roots.len() + 2 * max_splits.min(64));
     for (r, (corners, _)) in roots.iter().enumerate() {
         let refs: Vec<Vec<f64>> = corners.iter().map(|c| c[..m].to_vec()).collect();
         let root = Cell {
@@ -1098,10 +1100,17 @@ mod tests {
                     roots.push((vec![c[0], c[2], c[3]], 1.0));
                 }
                 for budget in [0, 5, 40] {
-                    let leaves =
-                        parametric_leaves(map, &inv, &values, model.level, &roots, &[], budget)
-                            .unwrap()
-                            .unwrap();
+                    let leaves = parametric_leaves(
+                        map,
+                        &inv,
+                        &values,
+                        model.level,
+                        &roots,
+                        &[],
+                        (budget, 0.0),
+                    )
+                    .unwrap()
+                    .unwrap();
                     assert!(leaves.len() <= roots.len() + budget);
                     split_somewhere |= leaves.len() > roots.len();
                     for r in 0..roots.len() {

@@ -166,17 +166,35 @@ fn cross_norm(a: &[f64; 3], b: &[f64; 3]) -> f64 {
 const FIRST_SPLITS: usize = 48;
 /// Refinement budget of the second pass.
 const SECOND_SPLITS: usize = 2048;
-/// Refinement budget per patch of an all-parametric map in the first and second pass: bisections
-/// of the patch where its bound wastes the most mass (the leaves are the regions drawn from). The
-/// first-pass budget trades table time against candidates per sample; measured on a fitted sphere
-/// (802 crossed patches, BENCHMARKS.md "Issue 19, session 7"), 0 / 12 / 24 / 48 splits give
-/// `Σ A·B` of 34× / 2.6× / 1.7× / 1.2× the curved area for 0.29 / 0.62 / 0.93 / 1.48 CPU-s of table:
-/// 24 is cheaper than the fixed regions it replaced at every sample count from 1,000 to 1,000,000.
-const LEAF_SPLITS: [usize; 2] = [24, 256];
+/// Most bisections of one all-parametric patch (the leaves are the regions drawn from): a cap
+/// only; refinement stops at [`LEAF_EXCESS`] first.
+const LEAF_SPLITS: usize = 1024;
+/// An all-parametric patch's leaf is bisected while the sampling mass its bound wastes,
+/// `A_leaf (B_leaf − J's size there)`, exceeds this fraction of the mean crossed patch's linear
+/// area (worst leaf first): one threshold for the whole table, so refinement goes where the bounds
+/// are loose instead of a fixed budget per patch plus a second pass for the worst ones. Measured
+/// (session 11, `--surface 1 -j 1`, CPU, best of 3 alternating): 24 splits per patch plus the
+/// second pass gave fitted sphere 0.56 s and `Σ A·B` 4.24× the curved area, fitted torus 1.95 s
+/// and 5.31×; this threshold gives 0.38 s and 3.99×, 1.80 s and 4.27×.
+const LEAF_EXCESS: f64 = 1.0 / 3.0;
 /// A patch gets the second pass when its excess is above this share of the whole bounded area.
 const REFINE_SHARE: f64 = 0.005;
 /// At most this many patches get the second pass (bounds the table's cost).
 const REFINE_COUNT: usize = 24;
+
+/// Point-space area (length in 2D) of a linear patch, as [`build_patch`] computes it.
+fn patch_area(eval: &ModelEval, s: usize, patch: &ism_geom::Patch) -> f64 {
+    let pts: Vec<[f64; 3]> = patch.corners.iter().map(|c| eval.point(s, &c.u)).collect();
+    if eval.dim() == 2 {
+        return norm(&sub3(&pts[1], &pts[0]));
+    }
+    let a0 = 0.5 * cross_norm(&sub3(&pts[1], &pts[0]), &sub3(&pts[2], &pts[0]));
+    if pts.len() == 4 {
+        a0 + 0.5 * cross_norm(&sub3(&pts[2], &pts[0]), &sub3(&pts[3], &pts[0]))
+    } else {
+        a0
+    }
+}
 
 /// One patch of the table: linear patch, lattice of preimages, certified region bounds.
 fn build_patch(
@@ -184,6 +202,7 @@ fn build_patch(
     s: usize,
     patch: &ism_geom::Patch,
     max_splits: usize,
+    leaf_excess: f64,
 ) -> Result<PatchEntry> {
     let model = eval.model();
     let n = model.dim();
@@ -270,11 +289,8 @@ fn build_patch(
         model.level,
         &roots,
         &samples,
-        if max_splits == FIRST_SPLITS {
-            LEAF_SPLITS[0]
-        } else {
-            LEAF_SPLITS[1]
-        },
+        // Relative to this patch: leaf masses are shares of its area.
+        (LEAF_SPLITS, leaf_excess / area),
     );
     let regions: Vec<RegionEntry> = match leaves {
         // All-parametric maps: the leaves of the adaptive refinement, bounded directly (exact
@@ -416,17 +432,22 @@ impl SurfaceTable {
             .into_par_iter()
             .filter_map(|s| eval.patch(s).map(|p| (s, p)))
             .collect();
+        // A serial sum in a fixed order: the threshold, hence the table, is the same whatever
+        // the thread count.
+        let total_area: f64 = crossed.iter().map(|(s, p)| patch_area(eval, *s, p)).sum();
+        let leaf_excess = LEAF_EXCESS * total_area / crossed.len().max(1) as f64;
         let mut patches: Vec<PatchEntry> = crossed
             .par_iter()
-            .map(|(s, patch)| build_patch(eval, *s, patch, FIRST_SPLITS))
+            .map(|(s, patch)| build_patch(eval, *s, patch, FIRST_SPLITS, leaf_excess))
             .collect::<Result<Vec<_>>>()?;
-        // Second pass: the patches whose bounds waste the most (bounded minus sampled curved
-        // area) get a larger refinement budget. Chosen from the first pass's figures in a fixed
-        // order, so the table is the same whatever the thread count.
+        // Second pass (implicit and mixed chains; all-parametric patches are refined by the
+        // table-wide threshold already): the patches whose bounds waste the most (bounded minus
+        // sampled curved area) get a larger refinement budget. Chosen from the first pass's
+        // figures in a fixed order, so the table is the same whatever the thread count.
         let excess: Vec<f64> = patches.iter().map(PatchEntry::excess).collect();
         let total: f64 = patches.iter().map(PatchEntry::bounded_area).sum();
         let mut worst: Vec<usize> = (0..patches.len())
-            .filter(|&i| excess[i] > REFINE_SHARE * total)
+            .filter(|&i| patches[i].guessed && excess[i] > REFINE_SHARE * total)
             .collect();
         worst.sort_by(|&a, &b| excess[b].total_cmp(&excess[a]).then(a.cmp(&b)));
         worst.truncate(REFINE_COUNT);
@@ -434,7 +455,7 @@ impl SurfaceTable {
             .par_iter()
             .map(|&i| {
                 let (s, patch) = &crossed[i];
-                build_patch(eval, *s, patch, SECOND_SPLITS).map(|p| (i, p))
+                build_patch(eval, *s, patch, SECOND_SPLITS, leaf_excess).map(|p| (i, p))
             })
             .collect::<Result<Vec<_>>>()?;
         for (i, p) in refined {
