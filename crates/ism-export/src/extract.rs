@@ -697,44 +697,94 @@ pub fn extract_with_progress(
     }
 }
 
-/// A simplex's local piece: vertices with keys, and cells in local ids.
-struct LocalPiece {
-    simplex: usize,
-    keys: Vec<VertexKey>,
-    points: Vec<SurfacePoint>,
-    cells: Vec<u32>,
+/// What the mesh keeps of a vertex (a [`SurfacePoint`] without the preimage data, a quarter of
+/// its size).
+#[derive(Clone, Copy, Debug)]
+struct MeshVertex {
+    p: [f64; 3],
+    normal: [f64; 3],
+    gradient_norm: f64,
 }
 
-fn merge(pieces: Vec<LocalPiece>, dimension: usize, primitive: Primitive) -> Mesh {
+impl From<&SurfacePoint> for MeshVertex {
+    fn from(q: &SurfacePoint) -> Self {
+        MeshVertex {
+            p: q.p,
+            normal: q.normal,
+            gradient_norm: q.gradient_norm,
+        }
+    }
+}
+
+/// The local pieces of consecutive patches, flattened (one per worker's run of patches, so the
+/// output is a few growing vectors, not three small ones per simplex): per piece its simplex and
+/// counts of vertices (with keys) and cell indices (local to the piece).
+#[derive(Default)]
+struct Chunk {
+    pieces: Vec<(u32, u32, u32)>,
+    keys: Vec<VertexKey>,
+    vertices: Vec<MeshVertex>,
+    cells: Vec<u32>,
+    counters: Counters,
+}
+
+impl Chunk {
+    fn push_piece(
+        &mut self,
+        simplex: usize,
+        keys: &[VertexKey],
+        points: &[SurfacePoint],
+        cells: &[u32],
+    ) {
+        self.pieces
+            .push((simplex as u32, keys.len() as u32, cells.len() as u32));
+        self.keys.extend_from_slice(keys);
+        self.vertices.extend(points.iter().map(MeshVertex::from));
+        self.cells.extend_from_slice(cells);
+    }
+}
+
+/// Welds the pieces (in chunk order, then piece order: the patches' order whatever the split into
+/// chunks, so the mesh does not depend on the thread count).
+fn merge(chunks: &[Chunk], dimension: usize, primitive: Primitive) -> Mesh {
     let mut mesh = Mesh::new(dimension, primitive);
+    let (nv, nc): (usize, usize) = chunks.iter().fold((0, 0), |(v, c), ch| {
+        (v + ch.vertices.len(), c + ch.cells.len())
+    });
+    let arity = primitive.arity();
+    mesh.positions.reserve(nv);
+    mesh.normals.reserve(nv);
+    mesh.gradient_norm.reserve(nv);
+    mesh.vertex_simplex.reserve(nv);
+    mesh.cells.reserve(nc);
+    mesh.cell_simplex.reserve(nc / arity);
     let mut index: HashMap<VertexKey, u32> = HashMap::default();
-    for piece in pieces {
-        let map: Vec<u32> = piece
-            .keys
-            .iter()
-            .zip(&piece.points)
-            .map(|(key, pt)| {
+    let mut map: Vec<u32> = Vec::new();
+    for chunk in chunks {
+        let (mut v0, mut c0) = (0usize, 0usize);
+        for &(simplex, nv, nc) in &chunk.pieces {
+            let (v1, c1) = (v0 + nv as usize, c0 + nc as usize);
+            map.clear();
+            for (key, pt) in chunk.keys[v0..v1].iter().zip(&chunk.vertices[v0..v1]) {
                 let push = |mesh: &mut Mesh| {
                     mesh.positions.push(pt.p);
                     mesh.normals.push(pt.normal);
                     mesh.gradient_norm.push(pt.gradient_norm);
-                    mesh.vertex_simplex.push(piece.simplex as u32);
+                    mesh.vertex_simplex.push(simplex);
                     (mesh.positions.len() - 1) as u32
                 };
-                match key {
+                map.push(match key {
                     // Interior vertices belong to one simplex: no lookup needed.
                     VertexKey::Interior(..) => push(&mut mesh),
                     _ => *index.entry(*key).or_insert_with(|| push(&mut mesh)),
-                }
-            })
-            .collect();
-        let arity = primitive.arity();
-        mesh.cells
-            .extend(piece.cells.iter().map(|&l| map[l as usize]));
-        mesh.cell_simplex.extend(std::iter::repeat_n(
-            piece.simplex as u32,
-            piece.cells.len() / arity,
-        ));
+                });
+            }
+            mesh.cells
+                .extend(chunk.cells[c0..c1].iter().map(|&l| map[l as usize]));
+            mesh.cell_simplex
+                .extend(std::iter::repeat_n(simplex, nc as usize / arity));
+            (v0, c0) = (v1, c1);
+        }
     }
     mesh
 }
@@ -746,7 +796,7 @@ fn extract_curve(
     progress: &Progress,
 ) -> Result<(Mesh, ExtractReport)> {
     let counter = progress.phase(phase::PATCHES, patches.len() as u64);
-    let results: Vec<Result<(LocalPiece, Counters)>> = patches
+    let results: Vec<Result<Chunk>> = patches
         .par_iter()
         .map(|(s, patch)| {
             if counter.is_cancelled() {
@@ -761,11 +811,9 @@ fn extract_curve(
             let p1 = surface_point(eval, s, &c1.u, Some(&c1.u), &mut c)?;
             let e0 = corner_edge(ids, c0.edge);
             let e1 = corner_edge(ids, c1.edge);
-            let mut piece = LocalPiece {
-                simplex: s,
+            let mut piece = CurvePiece {
                 keys: vec![VertexKey::Edge(e0.0, e0.1)],
                 points: vec![p0],
-                cells: Vec::new(),
             };
             // Depth-first along the segment, emitting vertices in order.
             #[allow(clippy::too_many_arguments)]
@@ -776,7 +824,7 @@ fn extract_curve(
                 b: (Bary, SurfacePoint),
                 depth: u32,
                 options: &ExtractOptions,
-                piece: &mut LocalPiece,
+                piece: &mut CurvePiece,
                 c: &mut Counters,
             ) -> Result<()> {
                 if options.max_depth == 0 {
@@ -821,25 +869,43 @@ fn extract_curve(
             piece.keys.push(VertexKey::Edge(e1.0, e1.1));
             piece.points.push(p1);
             let nv = piece.keys.len() as u32;
-            piece.cells = (0..nv - 1).flat_map(|i| [i, i + 1]).collect();
-            Ok((piece, c))
+            let cells: Vec<u32> = (0..nv - 1).flat_map(|i| [i, i + 1]).collect();
+            let mut chunk = Chunk {
+                counters: c,
+                ..Chunk::default()
+            };
+            chunk.push_piece(s, &piece.keys, &piece.points, &cells);
+            Ok(chunk)
         })
         .collect();
     progress.check()?;
-    let mut pieces = Vec::with_capacity(results.len());
-    let mut counters = Counters::default();
-    for r in results {
-        let (piece, c) = r?;
-        counters = counters.merge(c);
-        pieces.push(piece);
-    }
+    let chunks = results.into_iter().collect::<Result<Vec<Chunk>>>()?;
+    Ok(finish(patches, &chunks, 2, Primitive::Segments))
+}
+
+/// The merged mesh and the report of the extraction that made `chunks`.
+fn finish(
+    patches: &[(usize, Patch)],
+    chunks: &[Chunk],
+    dimension: usize,
+    primitive: Primitive,
+) -> (Mesh, ExtractReport) {
+    let counters = chunks
+        .iter()
+        .fold(Counters::default(), |acc, c| acc.merge(c.counters));
     let report = ExtractReport {
         crossed_simplices: patches.len(),
         inversions: counters.inversions,
         max_residual: counters.max_residual,
         depth_limited_edges: counters.depth_limited,
     };
-    Ok((merge(pieces, 2, Primitive::Segments), report))
+    (merge(chunks, dimension, primitive), report)
+}
+
+/// A 2D patch's vertices in order along the segment.
+struct CurvePiece {
+    keys: Vec<VertexKey>,
+    points: Vec<SurfacePoint>,
 }
 
 /// A reference from a triangle edge to what decides its split.
@@ -860,14 +926,37 @@ struct SurfaceBuilder<'a> {
     options: &'a ExtractOptions,
     facets: &'a [FacetEdge],
     s: usize,
-    /// Per facet edge of this patch: the two corner u's (canonical order) for parameter → u.
-    facet_ends: HashMap<usize, (Bary, Bary)>,
-    piece: LocalPiece,
+    scratch: Scratch,
+    counters: Counters,
+}
+
+/// A patch's working state, cleared and reused from patch to patch by each worker (so its
+/// vectors and maps are allocated once per worker, not per simplex).
+#[derive(Default)]
+struct Scratch {
+    /// Per facet edge of this patch: the facet and the two corner u's (canonical order) for
+    /// parameter → u.
+    facet_ends: Vec<(usize, (Bary, Bary))>,
+    /// The patch's vertices (keys, points, parameters) and cells, in local ids.
+    keys: Vec<VertexKey>,
+    points: Vec<SurfacePoint>,
     us: Vec<Bary>,
+    cells: Vec<u32>,
     local: HashMap<VertexKey, u32>,
     /// Interior-edge decisions: sorted local vertex pair → midpoint vertex (or none).
     interior: HashMap<(u32, u32), Option<u32>>,
-    counters: Counters,
+}
+
+impl Scratch {
+    fn clear(&mut self) {
+        self.facet_ends.clear();
+        self.keys.clear();
+        self.points.clear();
+        self.us.clear();
+        self.cells.clear();
+        self.local.clear();
+        self.interior.clear();
+    }
 }
 
 /// Refinement depth past which a triangle is emitted regardless; unreachable with edge levels
@@ -876,19 +965,20 @@ const SAFETY_DEPTH: u32 = 4 * MAX_DEPTH_LIMIT + 16;
 
 impl SurfaceBuilder<'_> {
     fn vertex(&mut self, key: VertexKey, u: Bary, point: SurfacePoint) -> u32 {
-        if let Some(&i) = self.local.get(&key) {
+        let w = &mut self.scratch;
+        if let Some(&i) = w.local.get(&key) {
             return i;
         }
-        let i = self.piece.keys.len() as u32;
-        self.piece.keys.push(key);
-        self.piece.points.push(point);
-        self.us.push(u);
-        self.local.insert(key, i);
+        let i = w.keys.len() as u32;
+        w.keys.push(key);
+        w.points.push(point);
+        w.us.push(u);
+        w.local.insert(key, i);
         i
     }
 
     fn interior_vertex(&mut self, u: Bary, point: SurfacePoint) -> u32 {
-        let i = self.piece.keys.len() as u32;
+        let i = self.scratch.keys.len() as u32;
         let key = VertexKey::Interior(self.s as u32, i);
         self.vertex(key, u, point)
     }
@@ -902,20 +992,24 @@ impl SurfaceBuilder<'_> {
                 let Some(point) = fe.find(mid).copied() else {
                     return Ok(None);
                 };
-                let (ua, ub) = self.facet_ends[&facet];
+                let (ua, ub) = self
+                    .scratch
+                    .facet_ends
+                    .iter()
+                    .find(|(f, _)| *f == facet)
+                    .expect("every facet edge of the patch has its ends")
+                    .1;
                 let u = lerp(&ua, &ub, mid.value());
                 Ok(Some(self.vertex(VertexKey::Facet(fe.key, mid), u, point)))
             }
             EdgeRef::Interior { level } => {
                 let pair = (a.min(b), a.max(b));
-                if let Some(&d) = self.interior.get(&pair) {
+                let w = &self.scratch;
+                if let Some(&d) = w.interior.get(&pair) {
                     return Ok(d);
                 }
-                let (ua, ub) = (self.us[pair.0 as usize], self.us[pair.1 as usize]);
-                let (pa, pb) = (
-                    self.piece.points[pair.0 as usize],
-                    self.piece.points[pair.1 as usize],
-                );
+                let (ua, ub) = (w.us[pair.0 as usize], w.us[pair.1 as usize]);
+                let (pa, pb) = (w.points[pair.0 as usize], w.points[pair.1 as usize]);
                 let um = lerp(&ua, &ub, 0.5);
                 let split = test_edge(
                     self.eval,
@@ -935,7 +1029,7 @@ impl SurfaceBuilder<'_> {
                         None
                     }
                 };
-                self.interior.insert(pair, decision);
+                self.scratch.interior.insert(pair, decision);
                 Ok(decision)
             }
         }
@@ -978,8 +1072,8 @@ impl SurfaceBuilder<'_> {
             return Ok(None);
         }
         let n = self.eval.dim();
-        let us = v.map(|i| self.us[i as usize]);
-        let pts = v.map(|i| self.piece.points[i as usize]);
+        let us = v.map(|i| self.scratch.us[i as usize]);
+        let pts = v.map(|i| self.scratch.points[i as usize]);
         let mut uc = [0.0; MAX_VARS];
         for k in 0..MAX_VARS {
             uc[k] = (us[0][k] + us[1][k] + us[2][k]) / 3.0;
@@ -1010,7 +1104,7 @@ impl SurfaceBuilder<'_> {
     /// Refines triangle `v` (edges `e[k]` from `v[k]` to `v[k+1]`), emitting the leaves.
     fn refine(&mut self, v: [u32; 3], e: [EdgeRef; 3], depth: u32) -> Result<()> {
         if depth >= SAFETY_DEPTH {
-            self.piece.cells.extend_from_slice(&v);
+            self.scratch.cells.extend_from_slice(&v);
             return Ok(());
         }
         let mut mids = [None; 3];
@@ -1029,7 +1123,7 @@ impl SurfaceBuilder<'_> {
                     self.refine([v[2], v[0], m], [e[2], new, new], depth + 1)
                 }
                 None => {
-                    self.piece.cells.extend_from_slice(&v);
+                    self.scratch.cells.extend_from_slice(&v);
                     Ok(())
                 }
             },
@@ -1063,7 +1157,7 @@ impl SurfaceBuilder<'_> {
                 let ec = e[(k + 2) % 3];
                 self.refine([mk, b, mk1], [kb, k1a, new], depth + 1)?;
                 // The quad a, mk, mk1, c: cut along the shorter diagonal.
-                let p = |i: u32| self.piece.points[i as usize].p;
+                let p = |i: u32| self.scratch.points[i as usize].p;
                 let d2 =
                     |x: [f64; 3], y: [f64; 3]| (0..3).map(|j| (x[j] - y[j]).powi(2)).sum::<f64>();
                 if d2(p(a), p(mk1)) <= d2(p(mk), p(c)) {
@@ -1234,88 +1328,81 @@ fn extract_surface(
 
     // 3. Each simplex triangulates its patch against the shared facet decisions.
     let counter = progress.phase(phase::PATCHES, patches.len() as u64);
-    let results: Vec<Result<(LocalPiece, Counters)>> = patches
+    let results: Vec<Result<Chunk>> = patches
         .par_iter()
-        .map(|(s, patch)| {
-            if counter.is_cancelled() {
-                return Err(Error::Cancelled(Cancelled));
-            }
-            counter.add(1);
-            let s = *s;
-            let ids = model.simplex(s);
-            let k = patch.corners.len();
-            let mut b = SurfaceBuilder {
-                eval,
-                options,
-                facets: &facets,
-                s,
-                facet_ends: HashMap::default(),
-                piece: LocalPiece {
-                    simplex: s,
-                    keys: Vec::new(),
-                    points: Vec::new(),
-                    cells: Vec::new(),
-                },
-                us: Vec::new(),
-                local: HashMap::default(),
-                interior: HashMap::default(),
-                counters: Counters::default(),
-            };
-            let mut corner_ids = Vec::with_capacity(k);
-            for c in &patch.corners {
-                let (a, bb) = corner_edge(ids, c.edge);
-                let p = surface_point(eval, s, &c.u, Some(&c.u), &mut b.counters)?;
-                corner_ids.push(b.vertex(VertexKey::Edge(a, bb), c.u, p));
-            }
-            let mut edges = Vec::with_capacity(k);
-            for j in 0..k {
-                let (ca, cb) = (patch.corners[j], patch.corners[(j + 1) % k]);
-                let facet = facet_index[&(s as u32, j as u8)];
-                let forward = corner_edge(ids, ca.edge) < corner_edge(ids, cb.edge);
-                let ends = if forward { (ca.u, cb.u) } else { (cb.u, ca.u) };
-                b.facet_ends.insert(facet, ends);
-                let (start, end) = if forward {
-                    (Dyadic::ZERO, Dyadic::ONE)
-                } else {
-                    (Dyadic::ONE, Dyadic::ZERO)
-                };
-                edges.push(EdgeRef::Boundary { facet, start, end });
-            }
-            if k == 3 {
-                b.refine(
-                    [corner_ids[0], corner_ids[1], corner_ids[2]],
-                    [edges[0], edges[1], edges[2]],
-                    0,
-                )?;
-            } else {
-                let p = |i: u32| b.piece.points[i as usize].p;
-                let d2 =
-                    |x: [f64; 3], y: [f64; 3]| (0..3).map(|j| (x[j] - y[j]).powi(2)).sum::<f64>();
-                let c = &corner_ids;
-                let diag = EdgeRef::Interior { level: 0 };
-                if d2(p(c[0]), p(c[2])) <= d2(p(c[1]), p(c[3])) {
-                    b.refine([c[0], c[1], c[2]], [edges[0], edges[1], diag], 0)?;
-                    b.refine([c[0], c[2], c[3]], [diag, edges[2], edges[3]], 0)?;
-                } else {
-                    b.refine([c[0], c[1], c[3]], [edges[0], diag, edges[3]], 0)?;
-                    b.refine([c[1], c[2], c[3]], [edges[1], edges[2], diag], 0)?;
+        .try_fold(
+            || (Chunk::default(), Scratch::default()),
+            |(mut chunk, mut scratch), (s, patch)| {
+                if counter.is_cancelled() {
+                    return Err(Error::Cancelled(Cancelled));
                 }
-            }
-            Ok((b.piece, b.counters))
-        })
+                counter.add(1);
+                let s = *s;
+                let ids = model.simplex(s);
+                let k = patch.corners.len();
+                scratch.clear();
+                let mut b = SurfaceBuilder {
+                    eval,
+                    options,
+                    facets: &facets,
+                    s,
+                    scratch,
+                    counters: Counters::default(),
+                };
+                let mut corner_ids = Vec::with_capacity(k);
+                for c in &patch.corners {
+                    let (a, bb) = corner_edge(ids, c.edge);
+                    let p = surface_point(eval, s, &c.u, Some(&c.u), &mut b.counters)?;
+                    corner_ids.push(b.vertex(VertexKey::Edge(a, bb), c.u, p));
+                }
+                let mut edges = Vec::with_capacity(k);
+                for j in 0..k {
+                    let (ca, cb) = (patch.corners[j], patch.corners[(j + 1) % k]);
+                    let facet = facet_index[&(s as u32, j as u8)];
+                    let forward = corner_edge(ids, ca.edge) < corner_edge(ids, cb.edge);
+                    let ends = if forward { (ca.u, cb.u) } else { (cb.u, ca.u) };
+                    b.scratch.facet_ends.push((facet, ends));
+                    let (start, end) = if forward {
+                        (Dyadic::ZERO, Dyadic::ONE)
+                    } else {
+                        (Dyadic::ONE, Dyadic::ZERO)
+                    };
+                    edges.push(EdgeRef::Boundary { facet, start, end });
+                }
+                if k == 3 {
+                    b.refine(
+                        [corner_ids[0], corner_ids[1], corner_ids[2]],
+                        [edges[0], edges[1], edges[2]],
+                        0,
+                    )?;
+                } else {
+                    let p = |i: u32| b.scratch.points[i as usize].p;
+                    let d2 = |x: [f64; 3], y: [f64; 3]| {
+                        (0..3).map(|j| (x[j] - y[j]).powi(2)).sum::<f64>()
+                    };
+                    let c = &corner_ids;
+                    let diag = EdgeRef::Interior { level: 0 };
+                    if d2(p(c[0]), p(c[2])) <= d2(p(c[1]), p(c[3])) {
+                        b.refine([c[0], c[1], c[2]], [edges[0], edges[1], diag], 0)?;
+                        b.refine([c[0], c[2], c[3]], [diag, edges[2], edges[3]], 0)?;
+                    } else {
+                        b.refine([c[0], c[1], c[3]], [edges[0], diag, edges[3]], 0)?;
+                        b.refine([c[1], c[2], c[3]], [edges[1], edges[2], diag], 0)?;
+                    }
+                }
+                let w = &b.scratch;
+                chunk.push_piece(s, &w.keys, &w.points, &w.cells);
+                chunk.counters = chunk.counters.merge(b.counters);
+                Ok((chunk, b.scratch))
+            },
+        )
+        .map(|r| r.map(|(chunk, _)| chunk))
         .collect();
     progress.check()?;
-    let mut pieces = Vec::with_capacity(results.len());
-    for r in results {
-        let (piece, c) = r?;
-        counters = counters.merge(c);
-        pieces.push(piece);
+    let mut chunks = results.into_iter().collect::<Result<Vec<Chunk>>>()?;
+    // The facet phase's counters.
+    if let Some(first) = chunks.first_mut() {
+        first.counters = first.counters.merge(counters);
     }
-    let report = ExtractReport {
-        crossed_simplices: patches.len(),
-        inversions: counters.inversions,
-        max_residual: counters.max_residual,
-        depth_limited_edges: counters.depth_limited,
-    };
-    Ok((merge(pieces, 3, Primitive::Triangles), report))
+    Ok(finish(patches, &chunks, 3, Primitive::Triangles))
 }
