@@ -556,14 +556,30 @@ fn plane_error(a: [f64; 3], b: [f64; 3], c: [f64; 3], p: [f64; 3]) -> f64 {
     }
 }
 
+/// A test point already placed (preimage, position): a split edge's quarter point is its halves'
+/// midpoint.
+type Probed = (Bary, [f64; 3]);
+
+/// What [`test_edge`] decided.
+struct EdgeTest {
+    /// The midpoint, placed exactly, when the edge is split.
+    split: Option<SurfacePoint>,
+    /// With a split: the test points at ¼ and ¾, the midpoints of the two halves (so their own
+    /// tests need not place them again).
+    quarters: Option<[Probed; 2]>,
+}
+
 /// Tests an edge from `ua` (mapped `a`) to `ub` (mapped `b`), whose midpoint parameter is `um`:
-/// returns the mapped midpoint when one of the mapped points at ½, ¼, ¾ departs farther than `tol`
-/// from the line through the mapped ends (perpendicular to it: `chord_error`).
+/// splits it (returning the mapped midpoint, placed exactly) when one of the mapped points at ½,
+/// ¼, ¾ departs farther than `tol` from the line through the mapped ends (perpendicular to it:
+/// `chord_error`). `known_mid` is the midpoint's test point when the parent edge placed it (as its
+/// quarter point). A split edge places all three test points, so its halves inherit theirs.
 ///
 /// (A cubic Hermite prediction from the ends' positions and exact tangents was tried in place of
 /// the quarter points and measured to under-split: accepted on the prediction alone or checked at
 /// the midpoint only, `rational-degree5` kept curve segments 1.21 × and 1.17 × the tolerance from
 /// the curve — `tools/bench_export_error.py`; a bump like `t²(1 − t)²` is invisible to the ends.)
+#[allow(clippy::too_many_arguments)]
 fn test_edge(
     eval: &ModelEval,
     s: usize,
@@ -571,30 +587,36 @@ fn test_edge(
     (ub, b): (&Bary, &SurfacePoint),
     um: &Bary,
     tol: f64,
+    known_mid: Option<Probed>,
     counters: &mut Counters,
-) -> Result<Option<SurfacePoint>> {
+) -> Result<EdgeTest> {
     let (pa, pb) = (a.p, b.p);
     let n = eval.dim();
     let curve = EdgeCurve::new(n, (ua, a), (ub, b));
-    let start = curve.at(0.5);
     let mean = mean_inverse(n, [a, b]);
-    let (wm, pm) = probe(eval, s, um, &start, mean.as_ref(), tol, counters)?;
+    let (wm, pm) = match known_mid {
+        Some(known) => known,
+        None => probe(eval, s, um, &curve.at(0.5), mean.as_ref(), tol, counters)?,
+    };
     let mut split = chord_error(pa, pb, pm) > tol;
-    if !split {
-        for t in [0.25, 0.75] {
-            let u = lerp(ua, ub, t);
-            let guess = curve.at_with_middle(t, &wm);
-            let (_, q) = probe(eval, s, &u, &guess, mean.as_ref(), tol, counters)?;
-            if chord_error(pa, pb, q) > tol {
-                split = true;
-                break;
-            }
+    let mut quarters = [([0.0; MAX_VARS], [0.0; 3]); 2];
+    for (k, t) in [0.25, 0.75].into_iter().enumerate() {
+        let u = lerp(ua, ub, t);
+        let guess = curve.at_with_middle(t, &wm);
+        quarters[k] = probe(eval, s, &u, &guess, mean.as_ref(), tol, counters)?;
+        split = split || chord_error(pa, pb, quarters[k].1) > tol;
+        if !split && k == 1 {
+            return Ok(EdgeTest {
+                split: None,
+                quarters: None,
+            });
         }
     }
     // Only a midpoint that becomes a vertex is placed exactly, from the test point's preimage.
-    split
-        .then(|| surface_point(eval, s, um, Some(&wm), counters))
-        .transpose()
+    Ok(EdgeTest {
+        split: Some(surface_point(eval, s, um, Some(&wm), counters)?),
+        quarters: Some(quarters),
+    })
 }
 
 /// The refinement of the patch edge on one facet, decided by the facet's owner.
@@ -822,6 +844,7 @@ fn extract_curve(
                 s: usize,
                 a: (Bary, SurfacePoint),
                 b: (Bary, SurfacePoint),
+                known: Option<Probed>,
                 depth: u32,
                 options: &ExtractOptions,
                 piece: &mut CurvePiece,
@@ -838,22 +861,23 @@ fn extract_curve(
                     (&b.0, &b.1),
                     &um,
                     EDGE_FRACTION * options.tolerance,
+                    known,
                     c,
                 )?;
-                match split {
-                    Some(pm) if depth < options.max_depth => {
-                        go(eval, s, a, (um, pm), depth + 1, options, piece, c)?;
+                match (split.split, split.quarters) {
+                    (Some(pm), Some([q0, q1])) if depth < options.max_depth => {
+                        go(eval, s, a, (um, pm), Some(q0), depth + 1, options, piece, c)?;
                         let k = piece.keys.len() as u32;
                         piece.keys.push(VertexKey::Interior(s as u32, k));
                         piece.points.push(pm);
-                        go(eval, s, (um, pm), b, depth + 1, options, piece, c)
+                        go(eval, s, (um, pm), b, Some(q1), depth + 1, options, piece, c)
                     }
                     // At the depth limit the edge is still tested, to count what the limit left.
-                    Some(_) => {
+                    (Some(_), _) => {
                         c.depth_limited += 1;
                         Ok(())
                     }
-                    None => Ok(()),
+                    (None, _) => Ok(()),
                 }
             }
             go(
@@ -861,6 +885,7 @@ fn extract_curve(
                 s,
                 (c0.u, p0),
                 (c1.u, p1),
+                None,
                 0,
                 options,
                 &mut piece,
@@ -945,6 +970,9 @@ struct Scratch {
     local: HashMap<VertexKey, u32>,
     /// Interior-edge decisions: sorted local vertex pair → midpoint vertex (or none).
     interior: HashMap<(u32, u32), Option<u32>>,
+    /// Halves of split interior edges (sorted local vertex pair) → their midpoint's test point,
+    /// placed by the parent edge's test.
+    known: HashMap<(u32, u32), Probed>,
 }
 
 impl Scratch {
@@ -956,6 +984,7 @@ impl Scratch {
         self.cells.clear();
         self.local.clear();
         self.interior.clear();
+        self.known.clear();
     }
 }
 
@@ -1011,20 +1040,27 @@ impl SurfaceBuilder<'_> {
                 let (ua, ub) = (w.us[pair.0 as usize], w.us[pair.1 as usize]);
                 let (pa, pb) = (w.points[pair.0 as usize], w.points[pair.1 as usize]);
                 let um = lerp(&ua, &ub, 0.5);
-                let split = test_edge(
+                let known = self.scratch.known.remove(&pair);
+                let test = test_edge(
                     self.eval,
                     self.s,
                     (&ua, &pa),
                     (&ub, &pb),
                     &um,
                     EDGE_FRACTION * self.options.tolerance,
+                    known,
                     &mut self.counters,
                 )?;
-                let decision = match split {
-                    Some(pm) if level < self.options.max_depth => {
-                        Some(self.interior_vertex(um, pm))
+                let decision = match (test.split, test.quarters) {
+                    (Some(pm), Some([q0, q1])) if level < self.options.max_depth => {
+                        let m = self.interior_vertex(um, pm);
+                        self.scratch.known.insert((pair.0, m), q0);
+                        self.scratch
+                            .known
+                            .insert((pair.1.min(m), pair.1.max(m)), q1);
+                        Some(m)
                     }
-                    _ => {
+                    (split, _) => {
                         self.counters.depth_limited += u64::from(split.is_some());
                         None
                     }
@@ -1243,6 +1279,7 @@ fn extract_surface(
                 (ua, ub): (&Bary, &Bary),
                 (da, pa): (Dyadic, &SurfacePoint),
                 (db, pb): (Dyadic, &SurfacePoint),
+                known: Option<Probed>,
                 depth: u32,
                 options: &ExtractOptions,
                 params: &mut Vec<(Dyadic, SurfacePoint)>,
@@ -1262,9 +1299,10 @@ fn extract_surface(
                     (&lerp(ua, ub, tb), pb),
                     &lerp(ua, ub, dm.value()),
                     EDGE_FRACTION * options.tolerance,
+                    known,
                     c,
                 )?;
-                let Some(pm) = split else {
+                let (Some(pm), Some([q0, q1])) = (split.split, split.quarters) else {
                     return Ok(());
                 };
                 if depth >= options.max_depth {
@@ -1277,6 +1315,7 @@ fn extract_surface(
                     (ua, ub),
                     (da, pa),
                     (dm, &pm),
+                    Some(q0),
                     depth + 1,
                     options,
                     params,
@@ -1289,6 +1328,7 @@ fn extract_surface(
                     (ua, ub),
                     (dm, &pm),
                     (db, pb),
+                    Some(q1),
                     depth + 1,
                     options,
                     params,
@@ -1301,6 +1341,7 @@ fn extract_surface(
                 (&ca.u, &cb.u),
                 (Dyadic::ZERO, &pa),
                 (Dyadic::ONE, &pb),
+                None,
                 0,
                 options,
                 &mut params,
