@@ -30,6 +30,7 @@ use std::sync::{Arc, OnceLock};
 use rayon::prelude::*;
 
 use crate::error::{Error, Result};
+use crate::faces::FaceTable;
 use crate::model::{Model, Stage, StageKind};
 use crate::multi_index::owned_count;
 use crate::rules::Severity;
@@ -139,10 +140,24 @@ pub struct Topology {
     /// Vertex → incident simplices, compressed rows (`incidence_start` has `nv + 1` entries).
     incidence_start: Vec<usize>,
     incidence: Vec<u32>,
+    /// Per dimension `k` (`1 ≤ k ≤ n`): the number of faces (index 0 unused).
+    face_counts: Vec<usize>,
 }
 
 /// Number of set bits of each 4-bit mask.
 const BITS: [u8; 16] = [0, 1, 1, 2, 1, 2, 2, 3, 1, 2, 2, 3, 2, 3, 3, 4];
+
+/// Bit `x` is the parity of the number of set bits of `x < 64` (the baseline x86-64 target has no
+/// popcnt instruction).
+const PARITY: u64 = {
+    let mut table = 0u64;
+    let mut x = 0;
+    while x < 64 {
+        table |= ((x as u64).count_ones() as u64 & 1) << x;
+        x += 1;
+    }
+    table
+};
 
 /// Bit of the local position pair `(p, q)` in a simplex with at most 4 vertices.
 const PAIR: [[u8; 4]; 4] = [[0, 0, 1, 2], [0, 0, 3, 4], [1, 3, 0, 5], [2, 4, 5, 0]];
@@ -238,7 +253,28 @@ struct ChunkOut {
     top: Vec<u32>,
     duplicates: Vec<(u32, u32)>,
     defects: Vec<FacetDefect>,
+    /// Check-only scan: per scanned stage, the records of the range's vertices.
+    lookups: Vec<RecordLookup>,
 }
+
+/// What the check-only scan found of one stage's face records (see [`Topology::build`]).
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub(crate) struct RecordLookup {
+    /// The records naming no face of the complex, ascending.
+    pub missing: Vec<u32>,
+    /// `(record, first)`: a record naming the same face as the earlier record `first` (the first
+    /// one naming it), ascending by record.
+    pub repeats: Vec<(u32, u32)>,
+}
+
+/// A topology with the duplicate simplices, the facet defects and (check-only scan) the record
+/// lookups of each table scanned.
+type Scanned = (
+    Topology,
+    Vec<(u32, u32)>,
+    Vec<FacetDefect>,
+    Vec<RecordLookup>,
+);
 
 /// Shared state of a topology build.
 struct Build<'a> {
@@ -252,25 +288,72 @@ struct Build<'a> {
     /// vertex, so relaxed atomic stores (plain moves) suffice.
     simplex_faces: Vec<Vec<AtomicU32>>,
     neighbours: Vec<AtomicU32>,
+    /// Check-only scan (`Some`): no face tables are kept; the records of these face tables (their
+    /// first ids non-decreasing, all below the vertex count) are looked up in the star of their
+    /// first vertex instead, and in 3D the edges are only collected per vertex (a vertex's higher
+    /// neighbours), not sorted as entries.
+    scan: Option<&'a [&'a FaceTable]>,
 }
 
 impl Build<'_> {
     /// Numbers the faces whose smallest vertex is in `range`: one pass over each vertex's star
     /// finds them in every dimension; a face is only ever sorted among its vertex's few.
     fn chunk(&self, range: std::ops::Range<usize>) -> ChunkOut {
-        let (n, model) = (self.n, self.model);
-        let m = n + 1;
+        // The simplex size as a constant: the per-simplex loops unroll.
+        match self.n {
+            0 => self.chunk_of::<1>(range),
+            1 => self.chunk_of::<2>(range),
+            2 => self.chunk_of::<3>(range),
+            _ => self.chunk_of::<4>(range),
+        }
+    }
+
+    /// [`Build::chunk`] for simplices of `M = n + 1 ≤ 4` vertices.
+    fn chunk_of<const M: usize>(&self, range: std::ops::Range<usize>) -> ChunkOut {
+        debug_assert_eq!(self.n + 1, M);
+        let model = self.model;
+        let (n, m) = (M - 1, M);
         let full = !self.neighbours.is_empty();
+        let scan = self.scan.unwrap_or(&[]);
+        let scanning = self.scan.is_some();
+        // Scanning in 3D: edges are a vertex's higher neighbours, collected, not entries.
+        let near_edges = scanning && n == 3;
         let mut out = ChunkOut {
             faces: vec![Vec::new(); n],
             counts: vec![Vec::with_capacity(range.len()); n + 1],
             top: Vec::new(),
             duplicates: Vec::new(),
             defects: Vec::new(),
+            lookups: vec![RecordLookup::default(); scan.len()],
         };
         let mut buf: Vec<Vec<Entry>> = vec![Vec::new(); n + 1];
         // Faces of at most three vertices, packed one `u128` each (`Entry::pack`) for sorting.
         let mut packed: Vec<Vec<u128>> = vec![Vec::new(); n + 1];
+        // Scanning: per dimension, the keys of the vertex's faces, ascending (top faces: with
+        // repeats); in 3D the edges' keys are the higher neighbours in `near`.
+        let mut keys: Vec<Vec<u128>> = vec![Vec::new(); n + 1];
+        let mut near: Vec<u32> = Vec::new();
+        // Scanning: each stage's next record (records of a vertex are consecutive).
+        let mut cursor: Vec<usize> = scan
+            .iter()
+            .map(|t| {
+                // The first record whose first id is at least the range's first vertex.
+                let (mut lo, mut hi) = (0, t.len());
+                while lo < hi {
+                    let mid = lo + (hi - lo) / 2;
+                    if (t.face(mid)[0] as usize) < range.start {
+                        lo = mid + 1;
+                    } else {
+                        hi = mid;
+                    }
+                }
+                lo
+            })
+            .collect();
+        // Scanning: per dimension and face of the vertex, the first record naming it, as
+        // `(visit, record)`: an entry of an earlier (vertex, stage) visit counts as none.
+        let mut first: Vec<Vec<(u32, u32)>> = vec![Vec::new(); n + 1];
+        let mut visit = 0u32;
         let all = (1u8 << m) - 1;
         for v in range {
             let v32 = v as u32;
@@ -280,16 +363,27 @@ impl Build<'_> {
             for b in &mut packed {
                 b.clear();
             }
-            for &s in &self.incidence[self.incidence_start[v]..self.incidence_start[v + 1]] {
-                let ids = model.simplex(s as usize);
+            near.clear();
+            let star = &self.incidence[self.incidence_start[v]..self.incidence_start[v + 1]];
+            for &s in star {
+                let ids: &[u32; M] = model.simplex(s as usize).try_into().expect("n + 1 ids");
                 let (mut pv, mut higher, mut inv) = (0u8, 0u8, 0u8);
-                for p in 0..m {
-                    if ids[p] == v32 {
+                for (p, &id) in ids.iter().enumerate() {
+                    if id == v32 {
                         pv = p as u8;
-                    } else if ids[p] > v32 {
+                    } else if id > v32 {
                         higher |= 1 << p;
+                        if near_edges {
+                            near.push(id);
+                        }
                     }
-                    for q in p + 1..m {
+                }
+                if higher == 0 {
+                    // v is the simplex's largest vertex: no face has it as smallest.
+                    continue;
+                }
+                for p in 0..M {
+                    for q in p + 1..M {
                         if ids[p] > ids[q] {
                             inv |= 1 << PAIR[p][q];
                         }
@@ -302,6 +396,10 @@ impl Build<'_> {
                     // Masks have at most 4 bits: a table instead of a software popcount (the
                     // baseline x86-64 target has no popcnt instruction).
                     let k = BITS[t as usize] as usize;
+                    if near_edges && k == 1 {
+                        t = (t - 1) & higher;
+                        continue;
+                    }
                     let mut rest = [0u32; 3];
                     let mut bits = t;
                     for slot in rest.iter_mut().take(k) {
@@ -325,7 +423,7 @@ impl Build<'_> {
                         u128::from(rest[0]) << 64 | u128::from(rest[1]) << 32 | u128::from(rest[2]);
                     // Orientation parity of the face's ids in local order; a facet carries the
                     // sign (-1)^i of the local vertex i it omits.
-                    let odd = (self.masks.pairs[face as usize] & inv).count_ones() % 2 == 1;
+                    let odd = PARITY >> (self.masks.pairs[face as usize] & inv) & 1 == 1;
                     let opposite = (!face & all).trailing_zeros() as u8;
                     let side = if k == n {
                         odd ^ (m % 2 == 1)
@@ -347,6 +445,41 @@ impl Build<'_> {
                 }
             }
             for (k, entries) in buf.iter_mut().enumerate().skip(1) {
+                if near_edges && k == 1 {
+                    near.sort_unstable();
+                    near.dedup();
+                    keys[k].clear();
+                    keys[k].extend(near.iter().map(|&w| u128::from(w) << 64));
+                    out.counts[k].push(near.len() as u32);
+                    continue;
+                }
+                if scanning && k <= 2 && k < n {
+                    // Only the groups matter (their keys and, for facets, their defects): read
+                    // straight from the packed integers, unpacking only a defective group.
+                    let ps = &mut packed[k];
+                    ps.sort_unstable();
+                    keys[k].clear();
+                    let mut i = 0;
+                    while i < ps.len() {
+                        let key = ps[i] >> 64;
+                        let mut j = i + 1;
+                        while j < ps.len() && ps[j] >> 64 == key {
+                            j += 1;
+                        }
+                        keys[k].push(Entry::unpack(ps[i]).key);
+                        // Two members on opposite sides (bit 40: the side in `tail`), or one.
+                        let paired =
+                            j - i == 1 || (j - i == 2 && (ps[i] ^ ps[i + 1]) >> 40 & 1 == 1);
+                        if k == n - 1 && !paired {
+                            let group: Vec<Entry> =
+                                ps[i..j].iter().map(|&p| Entry::unpack(p)).collect();
+                            out.defects.extend(facet_defect(v32, k, &group));
+                        }
+                        i = j;
+                    }
+                    out.counts[k].push(keys[k].len() as u32);
+                    continue;
+                }
                 if k <= 2 {
                     // Sorted as plain integers (half the bytes moved, one comparison each).
                     let keys = &mut packed[k];
@@ -355,13 +488,20 @@ impl Build<'_> {
                 } else {
                     entries.sort_unstable_by_key(|e| (e.key, e.tail));
                 }
+                if scanning {
+                    keys[k].clear();
+                }
                 if k == n {
                     for w in entries.windows(2) {
                         if w[0].key == w[1].key {
                             out.duplicates.push((w[1].simplex(), w[0].simplex()));
                         }
                     }
-                    out.top.extend(entries.iter().map(Entry::simplex));
+                    if scanning {
+                        keys[k].extend(entries.iter().map(|e| e.key));
+                    } else {
+                        out.top.extend(entries.iter().map(Entry::simplex));
+                    }
                     out.counts[k].push(entries.len() as u32);
                     continue;
                 }
@@ -374,9 +514,15 @@ impl Build<'_> {
                         j += 1;
                     }
                     let group = &entries[i..j];
-                    let id = (out.faces[k].len() / (k + 1)) as u32;
-                    out.faces[k].push(v32);
-                    out.faces[k].extend(group[0].rest(k));
+                    let id = if scanning {
+                        keys[k].push(group[0].key);
+                        0
+                    } else {
+                        let id = (out.faces[k].len() / (k + 1)) as u32;
+                        out.faces[k].push(v32);
+                        out.faces[k].extend(group[0].rest(k));
+                        id
+                    };
                     if full {
                         let table = &self.simplex_faces[k];
                         for e in group {
@@ -385,22 +531,9 @@ impl Build<'_> {
                         }
                     }
                     if k == n - 1 {
-                        let face = || std::iter::once(v32).chain(group[0].rest(k)).collect();
-                        if group.len() > 2 {
-                            out.defects.push(FacetDefect::Overshared {
-                                face: face(),
-                                simplices: group.iter().map(Entry::simplex).collect(),
-                            });
-                        } else if let [a, b] = group {
-                            if a.side() == b.side() {
-                                if a.simplex() != b.simplex() {
-                                    out.defects.push(FacetDefect::Overlap {
-                                        face: face(),
-                                        first: a.simplex(),
-                                        second: b.simplex(),
-                                    });
-                                }
-                            } else if full {
+                        out.defects.extend(facet_defect(v32, k, group));
+                        if let [a, b] = group {
+                            if a.side() != b.side() && full {
                                 self.neighbours[a.simplex() as usize * m + a.opposite as usize]
                                     .store(b.simplex(), Ordering::Relaxed);
                                 self.neighbours[b.simplex() as usize * m + b.opposite as usize]
@@ -413,8 +546,87 @@ impl Build<'_> {
                 }
                 out.counts[k].push(count);
             }
+            // Scanning: the records whose first id is v, looked up among v's faces (records
+            // mostly come in the faces' order: each search starts where the last one ended).
+            for (i, table) in scan.iter().enumerate() {
+                let lookup = &mut out.lookups[i];
+                if cursor[i] >= table.len() || table.face(cursor[i])[0] != v32 {
+                    continue;
+                }
+                visit = visit.wrapping_add(1);
+                for (k, f) in first.iter_mut().enumerate() {
+                    f.resize(
+                        f.len().max(keys[k].len().max(1)),
+                        (visit.wrapping_sub(1), 0),
+                    );
+                }
+                let mut pos = [0usize; 4];
+                while cursor[i] < table.len() {
+                    let r = cursor[i];
+                    let face = table.face(r);
+                    if face[0] != v32 {
+                        break;
+                    }
+                    cursor[i] += 1;
+                    let size = face.len();
+                    let found = if size > m || face.windows(2).any(|w| w[0] >= w[1]) {
+                        None
+                    } else if size == 1 {
+                        (!star.is_empty()).then_some(0)
+                    } else {
+                        let mut rest = [0u32; 3];
+                        rest[..size - 1].copy_from_slice(&face[1..]);
+                        let key = u128::from(rest[0]) << 64
+                            | u128::from(rest[1]) << 32
+                            | u128::from(rest[2]);
+                        let group = &keys[size - 1];
+                        let mut at = pos[size - 1];
+                        if at > 0 && group[at - 1] >= key {
+                            at = group.partition_point(|&x| x < key);
+                        } else {
+                            while at < group.len() && group[at] < key {
+                                at += 1;
+                            }
+                        }
+                        pos[size - 1] = at;
+                        (group.get(at) == Some(&key)).then_some(at)
+                    };
+                    match found {
+                        Some(at) => {
+                            let slot = &mut first[size - 1][at];
+                            if slot.0 == visit {
+                                lookup.repeats.push((r as u32, slot.1));
+                            } else {
+                                *slot = (visit, r as u32);
+                            }
+                        }
+                        None => lookup.missing.push(r as u32),
+                    }
+                }
+            }
         }
         out
+    }
+}
+
+/// The defect of a facet (`k = n − 1`) with smallest vertex `v` met by the simplices of `group`
+/// (sorted entries of one key), if any: more than two simplices, or two distinct ones on the same
+/// side.
+fn facet_defect(v: u32, k: usize, group: &[Entry]) -> Option<FacetDefect> {
+    let face = || std::iter::once(v).chain(group[0].rest(k)).collect();
+    if group.len() > 2 {
+        Some(FacetDefect::Overshared {
+            face: face(),
+            simplices: group.iter().map(Entry::simplex).collect(),
+        })
+    } else if let [a, b] = group {
+        (a.side() == b.side() && a.simplex() != b.simplex()).then(|| FacetDefect::Overlap {
+            face: face(),
+            first: a.simplex(),
+            second: b.simplex(),
+        })
+    } else {
+        None
     }
 }
 
@@ -510,7 +722,32 @@ impl Topology {
         skip: &[bool],
         full: bool,
     ) -> (Topology, Vec<(u32, u32)>, Vec<FacetDefect>) {
-        Topology::build_in_blocks(model, skip, STAR_CHUNK, full)
+        let (topology, duplicates, defects, _) =
+            Topology::build_in_blocks(model, skip, STAR_CHUNK, full, None);
+        (topology, duplicates, defects)
+    }
+
+    /// The check-only scan: [`Topology::build`] without `full`, keeping no face tables (the
+    /// topology only counts faces: [`Topology::num_faces`]; [`Topology::find`] finds nothing of
+    /// dimensions `1 … n`), and looking up instead the records of `tables` in the star of their
+    /// first vertex. Every record of every table must name at least one id, the first ids
+    /// non-decreasing and below the vertex count ([`Topology::scannable`]). Also returns, per
+    /// table, the records naming no face and the repeated faces, as [`Topology::find`] and a pass
+    /// over the records in order would find them.
+    pub(crate) fn scan(model: &Model, skip: &[bool], tables: &[&FaceTable]) -> Scanned {
+        Topology::build_in_blocks(model, skip, STAR_CHUNK, false, Some(tables))
+    }
+
+    /// Whether [`Topology::scan`] can look up the records of `table`: every record names at least
+    /// one id, the first ids are non-decreasing and below `num_vertices`.
+    pub(crate) fn scannable(table: &FaceTable, num_vertices: usize) -> bool {
+        let (offsets, ids) = (table.face_offsets(), table.all_face_ids());
+        offsets.par_windows(2).enumerate().all(|(r, w)| {
+            let a = ids.get(w[0] as usize).copied().unwrap_or(u32::MAX);
+            w[1] > w[0]
+                && (a as usize) < num_vertices
+                && (r == 0 || ids[offsets[r - 1] as usize] <= a)
+        })
     }
 
     /// [`Topology::build`] with `block` vertices per task (any `block ≥ 1` gives the same result;
@@ -520,7 +757,9 @@ impl Topology {
         skip: &[bool],
         block: usize,
         full: bool,
-    ) -> (Topology, Vec<(u32, u32)>, Vec<FacetDefect>) {
+        scan: Option<&[&FaceTable]>,
+    ) -> Scanned {
+        let keep = scan.is_none();
         let n = model.dim();
         let m = n + 1;
         let nv = model.num_vertices();
@@ -545,6 +784,7 @@ impl Topology {
                 })
                 .collect(),
             neighbours: atomics(if full { ns * m } else { 0 }, NONE),
+            scan,
         };
         let chunk = block.max(1);
         let starts: Vec<usize> = (0..nv).step_by(chunk).collect();
@@ -553,16 +793,17 @@ impl Topology {
         let mut faces: Vec<Vec<u32>> = (0..n)
             .map(|k| {
                 let mut t = Vec::new();
-                if k >= 1 {
+                if k >= 1 && keep {
                     let _ = t.try_reserve_exact(ns.saturating_mul(per(k) * (k + 1)));
                 }
                 t
             })
             .collect();
         let mut first_face: Vec<Vec<u32>> = (0..=n)
-            .map(|k| Vec::with_capacity(if k >= 1 { nv + 1 } else { 0 }))
+            .map(|k| Vec::with_capacity(if k >= 1 && keep { nv + 1 } else { 0 }))
             .collect();
-        let mut top_order = Vec::with_capacity(ns);
+        let mut top_order = Vec::with_capacity(if keep { ns } else { 0 });
+        let mut lookups = vec![RecordLookup::default(); scan.map_or(0, <[_]>::len)];
         let mut bases: Vec<Vec<u32>> = vec![Vec::with_capacity(starts.len()); n];
         let mut next = vec![0u32; n + 1];
         let mut duplicates = Vec::new();
@@ -573,28 +814,38 @@ impl Topology {
                 .map(|&start| build.chunk(start..nv.min(start.saturating_add(chunk))))
                 .collect();
             // The batch's faces and top simplices land in the tables on every core.
-            for (k, table) in faces.iter_mut().enumerate().skip(1) {
-                let parts: Vec<&[u32]> = outs.iter().map(|o| o.faces[k].as_slice()).collect();
-                append_parallel(table, &parts);
+            if keep {
+                for (k, table) in faces.iter_mut().enumerate().skip(1) {
+                    let parts: Vec<&[u32]> = outs.iter().map(|o| o.faces[k].as_slice()).collect();
+                    append_parallel(table, &parts);
+                }
+                let parts: Vec<&[u32]> = outs.iter().map(|o| o.top.as_slice()).collect();
+                append_parallel(&mut top_order, &parts);
             }
-            let parts: Vec<&[u32]> = outs.iter().map(|o| o.top.as_slice()).collect();
-            append_parallel(&mut top_order, &parts);
             for out in outs {
                 for k in 1..=n {
                     if k < n {
                         bases[k].push(next[k]);
                     }
                     for &c in &out.counts[k] {
-                        first_face[k].push(next[k]);
+                        if keep {
+                            first_face[k].push(next[k]);
+                        }
                         next[k] += c;
                     }
                 }
                 duplicates.extend(out.duplicates);
                 defects.extend(out.defects);
+                for (all, part) in lookups.iter_mut().zip(out.lookups) {
+                    all.missing.extend(part.missing);
+                    all.repeats.extend(part.repeats);
+                }
             }
         }
-        for k in 1..=n {
-            first_face[k].push(next[k]);
+        if keep {
+            for k in 1..=n {
+                first_face[k].push(next[k]);
+            }
         }
         for table in &mut faces {
             table.shrink_to_fit();
@@ -655,8 +906,9 @@ impl Topology {
             neighbours,
             incidence_start,
             incidence,
+            face_counts: next.iter().map(|&c| c as usize).collect(),
         };
-        (topology, duplicates, defects)
+        (topology, duplicates, defects, lookups)
     }
 
     /// Space dimension `n`.
@@ -682,7 +934,7 @@ impl Topology {
                 .filter(|&v| self.incidence_start[v + 1] > self.incidence_start[v])
                 .count(),
             k if k == self.n => self.num_simplices,
-            k if k < self.n => self.faces[k].len() / (k + 1),
+            k if k < self.n => self.face_counts[k],
             _ => 0,
         }
     }
@@ -1459,17 +1711,166 @@ mod tests {
         for (n, g) in [(2, 4), (3, 3)] {
             let model = kuhn(n, g);
             let skip = vec![false; model.num_simplices()];
-            let whole = Topology::build_in_blocks(&model, &skip, usize::MAX, true);
+            let whole = Topology::build_in_blocks(&model, &skip, usize::MAX, true, None);
             for block in [1, 3, 7] {
-                assert_eq!(Topology::build_in_blocks(&model, &skip, block, true), whole);
+                assert_eq!(
+                    Topology::build_in_blocks(&model, &skip, block, true, None),
+                    whole
+                );
             }
             // A check that keeps nothing builds the same faces, without the per-simplex tables.
-            let (lean, duplicates, defects) = Topology::build_in_blocks(&model, &skip, 5, false);
+            let (lean, duplicates, defects, _) =
+                Topology::build_in_blocks(&model, &skip, 5, false, None);
             assert_eq!((duplicates, defects), (whole.1.clone(), whole.2.clone()));
             assert_eq!(lean.faces, whole.0.faces);
             assert_eq!(lean.first_face, whole.0.first_face);
             assert_eq!(lean.top_order, whole.0.top_order);
             assert!(lean.neighbours.is_empty());
+        }
+    }
+
+    /// Face records of every kind the scan must tell apart, sorted by first id: every face of the
+    /// complex (some named two or three times), non-faces, unsorted and repeated ids, too many
+    /// ids.
+    fn records_to_scan(model: &Model) -> Vec<Vec<u32>> {
+        let n = model.dim();
+        let nv = model.num_vertices() as u32;
+        let mut out: Vec<Vec<u32>> = Vec::new();
+        for size in 1..=n + 1 {
+            for (i, f) in brute_faces(model, size).into_iter().enumerate() {
+                for _ in 0..1 + usize::from(i % 3 == 0) + usize::from(i % 7 == 0) {
+                    out.push(f.clone());
+                }
+            }
+        }
+        for v in 0..nv {
+            for size in 2..=n + 2 {
+                // Ids far apart are no face of a Kuhn grid (of at least 2 cells a side).
+                let far: Vec<u32> = (0..size as u32).map(|i| v + i * nv / 3).collect();
+                if far.iter().all(|&x| x < nv) {
+                    out.push(far.clone());
+                }
+            }
+            if v + 1 < nv {
+                out.push(vec![v, v]);
+                out.push(vec![v, v + 1, v]);
+                let mut unsorted = vec![v];
+                unsorted.extend((1..=n as u32).rev().map(|i| (v + i).min(nv - 1)));
+                out.push(unsorted);
+            }
+        }
+        // Some faces named again, in decreasing order (a search before the last one's end).
+        for size in (1..=n + 1).rev() {
+            let faces: Vec<Vec<u32>> = brute_faces(model, size).into_iter().collect();
+            out.extend(faces.into_iter().rev().step_by(5));
+        }
+        // Stable: records of one first id keep the order above (repeats after their first).
+        out.sort_by_key(|f| f[0]);
+        out
+    }
+
+    fn lookup_by_brute_force(model: &Model, records: &[Vec<u32>]) -> RecordLookup {
+        let n = model.dim();
+        let faces: Vec<BTreeSet<Vec<u32>>> =
+            (0..=n + 1).map(|size| brute_faces(model, size)).collect();
+        let mut first: HashMap<&[u32], u32> = HashMap::new();
+        let mut out = RecordLookup::default();
+        for (r, f) in records.iter().enumerate() {
+            if f.len() > n + 1 || !faces[f.len()].contains(f) {
+                out.missing.push(r as u32);
+            } else if let Some(&a) = first.get(f.as_slice()) {
+                out.repeats.push((r as u32, a));
+            } else {
+                first.insert(f, r as u32);
+            }
+        }
+        out
+    }
+
+    #[test]
+    fn scanned_records_match_a_brute_force_lookup() {
+        // Ground truth: membership in the set of all vertex subsets of the simplices, and the
+        // first record naming each face in a pass over the records.
+        for threads in [1, 2, 3, 5] {
+            rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .expect("a pool")
+                .install(scan_matches_brute_force);
+        }
+    }
+
+    fn scan_matches_brute_force() {
+        for (n, g) in [(2, 4), (3, 3)] {
+            let model = kuhn(n, g);
+            let skip = vec![false; model.num_simplices()];
+            let records = records_to_scan(&model);
+            // Two tables: all records, and every other one (another numbering of repeats).
+            let mut tables = [FaceTable::new(), FaceTable::new()];
+            for (r, f) in records.iter().enumerate() {
+                tables[0].push(f, &[], &[]);
+                if r % 2 == 0 {
+                    tables[1].push(f, &[], &[]);
+                }
+            }
+            let halves: Vec<Vec<u32>> = records.iter().step_by(2).cloned().collect();
+            let expected = [
+                lookup_by_brute_force(&model, &records),
+                lookup_by_brute_force(&model, &halves),
+            ];
+            assert!(!expected[0].missing.is_empty() && !expected[0].repeats.is_empty());
+            let nv = model.num_vertices();
+            assert!(tables.iter().all(|t| Topology::scannable(t, nv)));
+            let refs: Vec<&FaceTable> = tables.iter().collect();
+            let whole = Topology::build_in_blocks(&model, &skip, usize::MAX, false, None);
+            for block in [1, 3, 7, STAR_CHUNK] {
+                let (t, duplicates, defects, lookups) =
+                    Topology::build_in_blocks(&model, &skip, block, false, Some(&refs));
+                assert_eq!(lookups, expected, "n={n} block={block}");
+                assert_eq!((duplicates, defects), (whole.1.clone(), whole.2.clone()));
+                for k in 0..=n {
+                    let brute = brute_faces(&model, k + 1).len();
+                    assert_eq!(t.num_faces(k), brute, "n={n} k={k}");
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn the_scan_and_the_face_tables_report_alike() {
+        // The check that keeps nothing scans; the one that keeps the index searches its face
+        // tables: same diagnostics, in the same order, whatever the cap.
+        for (n, g) in [(2, 4), (3, 3)] {
+            let mut model = kuhn(n, g);
+            let records = records_to_scan(&model);
+            let d = 2u32;
+            let mut bezier = Stage::identity(StageKind::Bezier, d);
+            let mut rational = Stage::identity(StageKind::Rational, d + 1);
+            for (r, f) in records.iter().enumerate() {
+                let owned = owned_count(f.len(), d);
+                // Some records with a point too few or a non-finite number.
+                let mut points = vec![0.25; owned * f.len()];
+                if r % 5 == 1 {
+                    points.pop();
+                }
+                if r % 11 == 2 {
+                    if let Some(x) = points.first_mut() {
+                        *x = f64::NAN;
+                    }
+                }
+                bezier.faces.push(f, &points, &[]);
+                let owned = owned_count(f.len(), d + 1);
+                rational
+                    .faces
+                    .push(f, &vec![0.25; owned * f.len()], &vec![1.0; owned]);
+            }
+            model.stages = vec![bezier, Stage::identity(StageKind::Monotonic, 1), rational];
+            for max in [3, 40, 1_000_000] {
+                let scanned = crate::structure::check_indexed(&model, max, false).0;
+                let searched = crate::structure::check_indexed(&model, max, true).0;
+                assert_eq!(scanned, searched, "n={n} max={max}");
+                assert!(scanned.len() >= max.min(100), "n={n} max={max}");
+            }
         }
     }
 

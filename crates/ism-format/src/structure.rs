@@ -7,7 +7,7 @@ use std::sync::atomic::{AtomicU64, Ordering};
 
 use rayon::prelude::*;
 
-use crate::indexed::{FacetDefect, Topology, NONE};
+use crate::indexed::{FacetDefect, RecordLookup, Topology, NONE};
 use crate::model::{Model, StageKind};
 use crate::multi_index::owned_count;
 use crate::rules::{Diagnostic, Location, Rule, Severity};
@@ -136,10 +136,10 @@ pub(crate) fn check_indexed(
     check_values(model, &mut c);
     check_extensions(model, &mut c);
     let record_faces = match (c.full(), topology.as_ref()) {
-        (false, Some(t)) => check_stages(model, t, &mut c),
+        (false, Some((t, lookups))) => check_stages(model, t, lookups.as_deref(), &mut c),
         _ => Vec::new(),
     };
-    (c.out, topology.map(|t| (t, record_faces)))
+    (c.out, topology.map(|(t, _)| (t, record_faces)))
 }
 
 fn check_arrays(model: &Model, c: &mut Collector) {
@@ -210,7 +210,11 @@ fn simplex_location(s: usize, m: usize) -> Location {
     }
 }
 
-fn check_simplices(model: &Model, c: &mut Collector, full: bool) -> Option<Topology> {
+/// The topology, and (check-only scan, `full = false`, when every stage's records allow it:
+/// [`Topology::scannable`]) what the scan found of each stage's records.
+type Indexed = (Topology, Option<Vec<RecordLookup>>);
+
+fn check_simplices(model: &Model, c: &mut Collector, full: bool) -> Option<Indexed> {
     let n = model.dim();
     let m = n + 1;
     // Per-simplex checks in parallel, one byte each; only the (rare) failures are formatted, in
@@ -271,8 +275,27 @@ fn check_simplices(model: &Model, c: &mut Collector, full: bool) -> Option<Topol
         return None;
     }
     // Duplicate simplices and facet sharing come out of indexing the complex: sorting face keys,
-    // not hashing, keeps memory flat on millions of simplices.
-    let (topology, duplicates, defects) = Topology::build(model, &repeated, full);
+    // not hashing, keeps memory flat on millions of simplices. A check that keeps nothing looks
+    // the stages' face records up in the same pass, when their order allows (the usual one: by
+    // first vertex), instead of building face tables to search.
+    let empty = crate::FaceTable::new();
+    let tables: Vec<&crate::FaceTable> = model
+        .stages
+        .iter()
+        .map(|s| match s.kind {
+            StageKind::Monotonic => &empty,
+            StageKind::Bezier | StageKind::Rational => &s.faces,
+        })
+        .collect();
+    let nv = model.num_vertices();
+    let scan = !full && tables.iter().all(|t| Topology::scannable(t, nv));
+    let (topology, duplicates, defects, lookups) = if scan {
+        let (t, d, f, l) = Topology::scan(model, &repeated, &tables);
+        (t, d, f, Some(l))
+    } else {
+        let (t, d, f) = Topology::build(model, &repeated, full);
+        (t, d, f, None)
+    };
     for (s, first) in duplicates {
         c.push(
             Rule::DuplicateSimplex,
@@ -315,7 +338,7 @@ fn check_simplices(model: &Model, c: &mut Collector, full: bool) -> Option<Topol
             }
         }
         if c.full() {
-            return Some(topology);
+            return Some((topology, lookups));
         }
     }
     for v in 0..model.num_vertices() {
@@ -331,7 +354,7 @@ fn check_simplices(model: &Model, c: &mut Collector, full: bool) -> Option<Topol
             );
         }
     }
-    Some(topology)
+    Some((topology, lookups))
 }
 
 fn check_values(model: &Model, c: &mut Collector) {
@@ -418,23 +441,39 @@ pub fn escape_pointer(token: &str) -> String {
 }
 
 /// Checks the stages; returns, per stage, the face index each record names ([`NONE`] where it
-/// names no face of the complex).
-fn check_stages(model: &Model, topology: &Topology, c: &mut Collector) -> RecordFaces {
+/// names no face of the complex) — empty when `scanned` gives, per stage, the records naming no
+/// face and the repeated ones instead (the check-only scan).
+fn check_stages(
+    model: &Model,
+    topology: &Topology,
+    scanned: Option<&[RecordLookup]>,
+    c: &mut Collector,
+) -> RecordFaces {
     let n = model.dim();
     let nv = model.num_vertices();
     let mut record_faces = Vec::with_capacity(model.stages.len());
     for (k, stage) in model.stages.iter().enumerate() {
         // Face lookups are the costly part: in parallel, once, kept for the stage tables.
-        let found: Vec<u32> = (0..stage.faces.len())
-            .into_par_iter()
-            .map(|r| {
-                topology
-                    .find(model, stage.faces.face(r))
-                    .map_or(NONE, |f| f.index)
-            })
-            .collect();
-        record_faces.push(found);
-        let found = &record_faces[k];
+        let scan = scanned.map(|s| &s[k]);
+        let found: Vec<u32> = match scan {
+            Some(_) => Vec::new(),
+            None => (0..stage.faces.len())
+                .into_par_iter()
+                .map(|r| {
+                    topology
+                        .find(model, stage.faces.face(r))
+                        .map_or(NONE, |f| f.index)
+                })
+                .collect(),
+        };
+        if scan.is_none() {
+            record_faces.push(found);
+        }
+        let found = record_faces.get(k).map_or(&[][..], Vec::as_slice);
+        let missing = |r: usize| match scan {
+            Some(s) => s.missing.binary_search(&(r as u32)).is_ok(),
+            None => found[r] == NONE,
+        };
         let base = format!("/stages/{k}");
         let at = |suffix: String| Location {
             stage: Some(k),
@@ -507,24 +546,31 @@ fn check_stages(model: &Model, topology: &Topology, c: &mut Collector) -> Record
                 }
                 // Duplicates by face id: one bit per face, set on every core; only when some
                 // face is named twice, the first record of each face, in one pass.
-                let slots: Vec<usize> = (0..=n).map(|k| topology.face_slots(k)).collect();
                 let key = |r: usize| {
                     let id = found[r];
                     (id != NONE).then(|| (stage.faces.face(r).len() - 1, id as usize))
                 };
-                let seen: Vec<Vec<AtomicU64>> = slots
-                    .iter()
-                    .map(|&len| (0..len.div_ceil(64)).map(|_| AtomicU64::new(0)).collect())
-                    .collect();
-                let clash = (0..found.len()).into_par_iter().any(|r| {
-                    key(r).is_some_and(|(dim, id)| {
-                        let bit = 1u64 << (id % 64);
-                        seen[dim][id / 64].fetch_or(bit, Ordering::Relaxed) & bit != 0
-                    })
-                });
-                drop(seen);
                 let mut repeats: Vec<(usize, usize)> = Vec::new();
+                let clash = match scan {
+                    Some(s) => {
+                        repeats.extend(s.repeats.iter().map(|&(r, f)| (r as usize, f as usize)));
+                        false
+                    }
+                    None => {
+                        let seen: Vec<Vec<AtomicU64>> = (0..=n)
+                            .map(|k| topology.face_slots(k))
+                            .map(|len| (0..len.div_ceil(64)).map(|_| AtomicU64::new(0)).collect())
+                            .collect();
+                        (0..found.len()).into_par_iter().any(|r| {
+                            key(r).is_some_and(|(dim, id)| {
+                                let bit = 1u64 << (id % 64);
+                                seen[dim][id / 64].fetch_or(bit, Ordering::Relaxed) & bit != 0
+                            })
+                        })
+                    }
+                };
                 if clash {
+                    let slots: Vec<usize> = (0..=n).map(|k| topology.face_slots(k)).collect();
                     let mut first: Vec<Vec<u32>> =
                         slots.iter().map(|&len| vec![NONE; len]).collect();
                     for r in 0..found.len() {
@@ -541,17 +587,30 @@ fn check_stages(model: &Model, topology: &Topology, c: &mut Collector) -> Record
                 // The per-record rules in parallel; only the records breaking one are visited
                 // below, in order, to format exactly what a visit of every record would.
                 let rational = stage.kind == StageKind::Rational;
-                let suspects: Vec<usize> = (0..stage.faces.len())
+                // (A superset of the records breaking a rule is enough: the visit below decides.
+                // The counts come straight from the offsets; when every number of the stage is
+                // finite, as usual, no record's numbers are looked at one by one.)
+                let table = &stage.faces;
+                let finite = table.all_points().par_iter().all(|x| x.is_finite())
+                    && table.all_weights().iter().all(|x| x.is_finite());
+                let owned_of: Vec<usize> = (0..=n + 1).map(|size| owned_count(size, d)).collect();
+                let (fo, po, wo) = (
+                    table.face_offsets(),
+                    table.point_offsets(),
+                    table.weight_offsets(),
+                );
+                let suspects: Vec<usize> = (0..table.len())
                     .into_par_iter()
                     .filter(|&r| {
-                        let rec = stage.faces.record(r);
-                        let owned = owned_count(rec.face.len(), d);
-                        found[r] == NONE
-                            || owned == 0
-                            || rec.points.len() != owned * rec.face.len()
-                            || rec.weights.len() != if rational { owned } else { 0 }
-                            || !rec.points.iter().all(|x| x.is_finite())
-                            || !rec.weights.iter().all(|x| x.is_finite())
+                        let size = (fo[r + 1] - fo[r]) as usize;
+                        let owned = owned_of.get(size).copied().unwrap_or(0);
+                        let points = (po[r + 1] - po[r]) as usize;
+                        let weights = (wo[r + 1] - wo[r]) as usize;
+                        owned == 0
+                            || points != owned * size
+                            || weights != if rational { owned } else { 0 }
+                            || !finite
+                            || missing(r)
                     })
                     .collect();
                 let mut visit: Vec<(usize, usize)> = suspects
@@ -584,7 +643,7 @@ fn check_stages(model: &Model, topology: &Topology, c: &mut Collector) -> Record
                         );
                         continue;
                     }
-                    if found[r] == NONE {
+                    if missing(r) {
                         c.push(
                             Rule::NotAFace,
                             loc("/face"),
