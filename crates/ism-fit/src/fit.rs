@@ -1,6 +1,6 @@
 //! Adaptive polygonization of an implicit function (Mello & Velho 2009, §9.2, `spec/mathematics.md` §6).
 //!
-//! 1. The Kuhn triangulation of the domain box, `f = g` at the vertices, identity map.
+//! 1. The Kuhn triangulation of the domain box, `f = g/|∇g|` at the vertices ([`vertex_value`]), identity map.
 //! 2. Topology: every cell whose bounding box fails the Plantinga–Vegter test
 //!    (`0 ∉ □g` or `⟨□∇g, □∇g⟩ > 0`) is bisected until all pass, so no small component or
 //!    handle hides inside a cell.
@@ -54,8 +54,9 @@ pub struct FitOptions {
     pub pv_min_edge: f64,
     /// Before the two-sided measure, put every optimized point back at its face's centre (no
     /// record) where the crossed cells around it still meet the tolerance without it
-    /// (`Fitter::prune`). On by default: the sphere preset at 2e-3 keeps 1,442 of 4,424
-    /// records, 279 kB → 113 kB, on the same simplices.
+    /// (`Fitter::prune`), crossing edges included. On by default: the sphere preset at 2e-3
+    /// kept 1,442 of 4,424 records, 279 kB → 113 kB, on the same simplices (crossing edges
+    /// kept, `f = g`); with the crossing edges prunable and `f = g/|∇g|`, 86 kB.
     pub prune: bool,
 }
 
@@ -200,9 +201,14 @@ fn rank_level(n: usize) -> usize {
     }
 }
 
-/// The refinement aims at this fraction of the tolerance: maxima between ranking samples are up
-/// to ~10% higher in our runs (sphere, torus at level 6 vs 8).
-const TOLERANCE_MARGIN: f64 = 0.8;
+/// The refinement and the pruning aim at this fraction of the tolerance: maxima between ranking
+/// samples are up to ~10% higher in our runs (sphere, torus at level 6 vs 8), and the loop checks
+/// the report's denser samples against the whole tolerance before it stops. 0.8 before: 0.9
+/// keeps the sphere preset at 2e-3 in 1,171 simplices instead of 1,260 and the torus 271 kB
+/// instead of 292 kB, true two-sided error 1.84e-3 and 1.89e-3 (tools/bench_fit_mc.py). The
+/// pruning must not aim higher than the refinement: pruned cells that then fail the report
+/// samples are refined with every point re-optimized (sphere at 0.9 / 0.8: 256 kB).
+const TOLERANCE_MARGIN: f64 = 0.9;
 
 /// Whether the fitter moves the interior control point of each crossed top simplex (the last
 /// stratum, `G_n`). Off: the faces' points alone reach the tolerance on fewer simplices and the
@@ -260,9 +266,24 @@ const CONTAINS_SLACK: f64 = 1e-9;
 /// end the loop earlier, as does [`FitOptions::max_simplices`].
 pub const TWO_SIDED_ROUNDS: usize = 6;
 
-/// `f(v)` for a vertex at `p`: `g(p)`, or `+ZERO_NUDGE · scale` where `g(p) = 0`.
+/// `f(v)` for a vertex at `p`: the first-order signed distance `g(p)/|∇g(p)|` (just `g(p)` where
+/// the gradient vanishes or is not finite), or `+ZERO_NUDGE · scale` where that is 0. Only the
+/// signs fix the complex's crossings, but the values also place the linear patch's corner on
+/// each crossing edge (`t* = f_a/(f_a − f_b)`): on a first-order distance it lies next to `g`'s
+/// root where the shape is smooth, so many crossing edges need no record of their own (see
+/// [`Fitter::prune`]). With `g` itself (a quartic for the torus) the corner is off by about the
+/// tolerance on almost every edge. Sphere preset at 2e-3: 113,000 → 95,524 bytes, torus
+/// 420,255 → 292,311 (BENCHMARKS.md, issue 17).
 pub fn vertex_value(g: &dyn ImplicitFunction, p: &[f64], scale: f64) -> f64 {
-    let v = g.value(p);
+    let mut grad = [0.0; 3];
+    let n = g.dim();
+    let v = g.gradient(p, &mut grad[..n]);
+    let norm = grad[..n].iter().map(|x| x * x).sum::<f64>().sqrt();
+    let v = if norm > 0.0 && norm.is_finite() {
+        v / norm
+    } else {
+        v
+    };
     if v == 0.0 || !v.is_finite() {
         ZERO_NUDGE * scale.max(f64::MIN_POSITIVE)
     } else {
@@ -898,7 +919,9 @@ impl Fitter<'_> {
 
     /// Puts back at its face's centre (no record) every optimized point whose crossing cells
     /// still meet `TOLERANCE_MARGIN × tolerance` at the ranking samples without it: smallest
-    /// displacement first, the crossing edges' points (they hold the roots) kept. A record costs
+    /// displacement first. That includes the crossing edges' points, which move the patch corner
+    /// from the linear crossing of the values onto `g`'s root: with distance-like values
+    /// ([`vertex_value`]) the two are often close enough. A record costs
     /// 48–60 bytes (edge, triangle) against 16 for a tetrahedron's ids, and most of the
     /// optimizer's moves are not needed once the cells are small enough for their worst one.
     /// The accuracy loop checks again afterwards (denser samples), and the two-sided measure
@@ -912,7 +935,6 @@ impl Fitter<'_> {
         let mut faces: Vec<(f64, Vec<u32>)> = self
             .map
             .entries()
-            .filter(|(f, _)| !(f.len() == 2 && self.is_crossing_edge((f[0], f[1]))))
             .map(|(f, l)| (centre_gap(l), f.clone()))
             .collect();
         faces.sort_by(|a, b| a.0.total_cmp(&b.0).then_with(|| a.1.cmp(&b.1)));
