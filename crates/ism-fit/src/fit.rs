@@ -171,7 +171,7 @@ pub struct Uncertain {
 pub struct Fitted {
     /// The final complex.
     pub complex: Complex,
-    /// `f` per vertex (`g`, with exact zeros nudged; see [`vertex_value`]).
+    /// `f` per vertex (`g/|∇g|`, with exact zeros nudged; see [`vertex_value`]).
     pub values: Vec<f64>,
     /// The fitted strata.
     pub map: StratifiedMap,
