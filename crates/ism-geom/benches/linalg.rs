@@ -49,6 +49,37 @@ fn to_dmat3(a: &Mat) -> DMat3 {
     )
 }
 
+/// glam's three operations on `(matrix, right-hand side)` pairs; a macro because `DMat2` and
+/// `DMat3` share these methods but no trait.
+macro_rules! bench_glam {
+    ($group:expr, $theirs:expr) => {
+        $group.bench_function(BenchmarkId::new("det", "glam"), |b| {
+            b.iter(|| {
+                $theirs
+                    .iter()
+                    .map(|(a, _)| black_box(a).determinant())
+                    .sum::<f64>()
+            })
+        });
+        $group.bench_function(BenchmarkId::new("inverse", "glam"), |b| {
+            b.iter(|| {
+                $theirs
+                    .iter()
+                    .map(|(a, _)| black_box(a).inverse().x_axis.x)
+                    .sum::<f64>()
+            })
+        });
+        $group.bench_function(BenchmarkId::new("solve", "glam"), |b| {
+            b.iter(|| {
+                $theirs
+                    .iter()
+                    .map(|(a, v)| (black_box(a).inverse() * *v).x)
+                    .sum::<f64>()
+            })
+        });
+    };
+}
+
 fn compare(c: &mut Criterion) {
     let mut rng = Rng(7);
     for k in [2usize, 3] {
@@ -85,59 +116,13 @@ fn compare(c: &mut Criterion) {
                 .iter()
                 .map(|(a, v)| (to_dmat2(a), DVec2::new(v[0], v[1])))
                 .collect();
-            group.bench_function(BenchmarkId::new("det", "glam"), |b| {
-                b.iter(|| {
-                    theirs
-                        .iter()
-                        .map(|(a, _)| black_box(a).determinant())
-                        .sum::<f64>()
-                })
-            });
-            group.bench_function(BenchmarkId::new("inverse", "glam"), |b| {
-                b.iter(|| {
-                    theirs
-                        .iter()
-                        .map(|(a, _)| black_box(a).inverse().x_axis.x)
-                        .sum::<f64>()
-                })
-            });
-            group.bench_function(BenchmarkId::new("solve", "glam"), |b| {
-                b.iter(|| {
-                    theirs
-                        .iter()
-                        .map(|(a, v)| (black_box(a).inverse() * *v).x)
-                        .sum::<f64>()
-                })
-            });
+            bench_glam!(group, theirs);
         } else {
             let theirs: Vec<(DMat3, DVec3)> = ours
                 .iter()
                 .map(|(a, v)| (to_dmat3(a), DVec3::new(v[0], v[1], v[2])))
                 .collect();
-            group.bench_function(BenchmarkId::new("det", "glam"), |b| {
-                b.iter(|| {
-                    theirs
-                        .iter()
-                        .map(|(a, _)| black_box(a).determinant())
-                        .sum::<f64>()
-                })
-            });
-            group.bench_function(BenchmarkId::new("inverse", "glam"), |b| {
-                b.iter(|| {
-                    theirs
-                        .iter()
-                        .map(|(a, _)| black_box(a).inverse().x_axis.x)
-                        .sum::<f64>()
-                })
-            });
-            group.bench_function(BenchmarkId::new("solve", "glam"), |b| {
-                b.iter(|| {
-                    theirs
-                        .iter()
-                        .map(|(a, v)| (black_box(a).inverse() * *v).x)
-                        .sum::<f64>()
-                })
-            });
+            bench_glam!(group, theirs);
         }
         group.finish();
     }
