@@ -48,6 +48,7 @@ use rstar::{PointDistance, RTree, RTreeNode, RTreeObject, AABB};
 use crate::expr::{Enclosure, ImplicitFunction};
 use crate::interval::Interval;
 use crate::FitError;
+use ism_format::io::Limits;
 
 type P3 = [f64; 3];
 
@@ -119,21 +120,45 @@ fn mesh_error(path: &Path, message: impl Into<String>) -> FitError {
 }
 
 impl TriangleMesh {
-    /// Reads `path` by its extension: `.obj` (tobj), `.glb` or `.gltf` (gltf).
+    /// Reads `path` by its extension: `.obj` (tobj), `.glb` or `.gltf` (gltf), with the default
+    /// [`Limits`] (which refuse nothing a mesh with `u32` vertex ids can hold).
     ///
     /// # Errors
     /// [`FitError::Mesh`] with the path when the file is unreadable, malformed, has another
     /// extension, or holds no triangle.
     pub fn load(path: &Path) -> Result<TriangleMesh, FitError> {
+        TriangleMesh::load_with_limits(path, &Limits::default())
+    }
+
+    /// [`TriangleMesh::load`] within `limits`: the file's size against `max_payload_bytes` before
+    /// it is read, then the vertices and triangles against `max_vertices` and `max_simplices`
+    /// before the mesh is built (a service fitting meshes from anyone lowers them, as for
+    /// `ism_export::import`).
+    ///
+    /// # Errors
+    /// As [`TriangleMesh::load`], and [`FitError::Mesh`] naming the limit passed.
+    pub fn load_with_limits(path: &Path, limits: &Limits) -> Result<TriangleMesh, FitError> {
         let ext = path
             .extension()
             .and_then(|e| e.to_str())
             .map(str::to_ascii_lowercase)
             .unwrap_or_default();
+        let size = std::fs::metadata(path)
+            .map_err(|e| mesh_error(path, e.to_string()))?
+            .len();
+        if size > limits.max_payload_bytes {
+            return Err(mesh_error(
+                path,
+                format!(
+                    "the file has {size} bytes, above the limit of {} (max_payload_bytes)",
+                    limits.max_payload_bytes
+                ),
+            ));
+        }
         let bytes = std::fs::read(path).map_err(|e| mesh_error(path, e.to_string()))?;
         match ext.as_str() {
-            "obj" => TriangleMesh::from_obj(&bytes, path),
-            "glb" | "gltf" => TriangleMesh::from_gltf(&bytes, path),
+            "obj" => TriangleMesh::from_obj_with_limits(&bytes, path, limits),
+            "glb" | "gltf" => TriangleMesh::from_gltf_with_limits(&bytes, path, limits),
             _ => Err(mesh_error(
                 path,
                 "unknown mesh format (expected .obj, .glb or .gltf)",
@@ -147,6 +172,19 @@ impl TriangleMesh {
     /// # Errors
     /// [`FitError::Mesh`] on a parse error, an index out of range or no triangle.
     pub fn from_obj(bytes: &[u8], path: &Path) -> Result<TriangleMesh, FitError> {
+        TriangleMesh::from_obj_with_limits(bytes, path, &Limits::default())
+    }
+
+    /// [`TriangleMesh::from_obj`] within `limits` (`max_vertices`, `max_simplices`; the text's
+    /// size is the caller's to bound).
+    ///
+    /// # Errors
+    /// As [`TriangleMesh::from_obj`], and [`FitError::Mesh`] naming the limit passed.
+    pub fn from_obj_with_limits(
+        bytes: &[u8],
+        path: &Path,
+        limits: &Limits,
+    ) -> Result<TriangleMesh, FitError> {
         let options = tobj::LoadOptions {
             triangulate: true,
             ..Default::default()
@@ -156,6 +194,9 @@ impl TriangleMesh {
             Err(tobj::LoadError::OpenFileFailed)
         })
         .map_err(|e| mesh_error(path, format!("OBJ: {e}")))?;
+        let vertices: usize = models.iter().map(|m| m.mesh.positions.len() / 3).sum();
+        let triangles: usize = models.iter().map(|m| m.mesh.indices.len() / 3).sum();
+        within_limits(vertices, triangles, limits, path)?;
         let mut positions = Vec::new();
         let mut triangles = Vec::new();
         for model in &models {
@@ -192,6 +233,20 @@ impl TriangleMesh {
     /// [`FitError::Mesh`] on a parse or validation error, a missing buffer, an index out of range
     /// or no triangle.
     pub fn from_gltf(bytes: &[u8], path: &Path) -> Result<TriangleMesh, FitError> {
+        TriangleMesh::from_gltf_with_limits(bytes, path, &Limits::default())
+    }
+
+    /// [`TriangleMesh::from_gltf`] within `limits`: the buffers' declared lengths together
+    /// against `max_payload_bytes` before any is read, the vertices and triangles gathered so far
+    /// against `max_vertices` and `max_simplices` before each primitive is added.
+    ///
+    /// # Errors
+    /// As [`TriangleMesh::from_gltf`], and [`FitError::Mesh`] naming the limit passed.
+    pub fn from_gltf_with_limits(
+        bytes: &[u8],
+        path: &Path,
+        limits: &Limits,
+    ) -> Result<TriangleMesh, FitError> {
         let raw = gltf::Gltf::from_slice_without_validation(bytes)
             .map_err(|e| mesh_error(path, format!("glTF: {e}")))?;
         // gltf-json 1.4.1's validation indexes `accessors[POSITION]` without a bounds check
@@ -233,6 +288,17 @@ impl TriangleMesh {
                 }
             }
         }
+        let declared: u64 = document.buffers().map(|b| b.length() as u64).sum();
+        if declared > limits.max_payload_bytes {
+            return Err(mesh_error(
+                path,
+                format!(
+                    "the glTF buffers declare {declared} bytes, above the limit of {} \
+                     (max_payload_bytes)",
+                    limits.max_payload_bytes
+                ),
+            ));
+        }
         let buffers = gltf::import_buffers(&document, path.parent(), raw.blob)
             .map_err(|e| mesh_error(path, format!("glTF buffers: {e}")))?;
         let mut out = (Vec::new(), Vec::new());
@@ -243,10 +309,16 @@ impl TriangleMesh {
         };
         if scenes.is_empty() {
             for mesh in doc.meshes() {
-                add_gltf_mesh(&mesh, &IDENTITY, &buffers, path, &mut out)?;
+                add_gltf_mesh(&mesh, &IDENTITY, &buffers, path, limits, &mut out)?;
             }
         }
-        for scene in scenes {
+        // glTF 2.0: the node hierarchy is a set of disjoint strict trees, so a node is reached
+        // once per scene. A file that reaches one twice (two parents, or the same child listed
+        // twice) would instance its subtree 2^depth times from a few bytes: refused. Scenes may
+        // share nodes; a node already loaded by an earlier scene is not loaded again (the shape
+        // would hold the same triangles twice).
+        let mut loaded_by: Vec<Option<usize>> = vec![None; doc.nodes().len()];
+        for (si, scene) in scenes.into_iter().enumerate() {
             // Explicit stack instead of recursion: a deep node chain in a hostile file cannot
             // overflow it. glTF validation forbids cycles, and the depth cap is a second guard.
             let mut stack: Vec<(gltf::Node, [[f64; 4]; 4], usize)> =
@@ -258,10 +330,24 @@ impl TriangleMesh {
                         format!("glTF node hierarchy deeper than {MAX_NODE_DEPTH}"),
                     ));
                 }
+                match loaded_by[node.index()] {
+                    Some(s) if s == si => {
+                        return Err(mesh_error(
+                            path,
+                            format!(
+                                "glTF node {} is reached twice in scene {si}; nodes form \
+                                 disjoint trees (glTF 2.0), each with at most one parent",
+                                node.index()
+                            ),
+                        ));
+                    }
+                    Some(_) => continue,
+                    None => loaded_by[node.index()] = Some(si),
+                }
                 let local = node.transform().matrix().map(|c| c.map(f64::from));
                 let world = mat_mul(&parent, &local);
                 if let Some(mesh) = node.mesh() {
-                    add_gltf_mesh(&mesh, &world, &buffers, path, &mut out)?;
+                    add_gltf_mesh(&mesh, &world, &buffers, path, limits, &mut out)?;
                 }
                 stack.extend(node.children().map(|c| (c, world, depth + 1)));
             }
@@ -557,11 +643,40 @@ fn transform(m: &[[f64; 4]; 4], p: [f32; 3]) -> P3 {
     [0, 1, 2].map(|r| m[0][r] * p[0] + m[1][r] * p[1] + m[2][r] * p[2] + m[3][r])
 }
 
+/// [`FitError::Mesh`] when `vertices` or `triangles` pass `limits` — or pass what `u32` vertex
+/// ids can address, whatever the limits say (a larger id would wrap).
+fn within_limits(
+    vertices: usize,
+    triangles: usize,
+    limits: &Limits,
+    path: &Path,
+) -> Result<(), FitError> {
+    let max_vertices = limits.max_vertices.min(u64::from(u32::MAX));
+    for (count, max, what, name) in [
+        (vertices, max_vertices, "vertices", "max_vertices"),
+        (
+            triangles,
+            limits.max_simplices,
+            "triangles",
+            "max_simplices",
+        ),
+    ] {
+        if count as u64 > max {
+            return Err(mesh_error(
+                path,
+                format!("the mesh has more than {max} {what} (limit {name})"),
+            ));
+        }
+    }
+    Ok(())
+}
+
 fn add_gltf_mesh(
     mesh: &gltf::Mesh,
     world: &[[f64; 4]; 4],
     buffers: &[gltf::buffer::Data],
     path: &Path,
+    limits: &Limits,
     out: &mut (Vec<P3>, Vec<[u32; 3]>),
 ) -> Result<(), FitError> {
     use gltf::mesh::Mode;
@@ -610,6 +725,8 @@ fn add_gltf_mesh(
             }
         }
         let base = out.0.len();
+        // Checked before anything is added: the positions' length is their accessor's count.
+        within_limits(base + positions.len(), out.1.len(), limits, path)?;
         out.0.extend(positions.map(|p| transform(world, p)));
         let count = out.0.len() - base;
         let indices: Vec<u32> = match reader.read_indices() {
@@ -643,6 +760,7 @@ fn add_gltf_mesh(
                 .map(|i| [indices[0], indices[i - 1], indices[i]])
                 .collect(),
         };
+        within_limits(out.0.len(), out.1.len() + tris.len(), limits, path)?;
         for t in tris {
             let mut t = t.map(|i| (base + i as usize) as u32);
             if mirrored {
@@ -1682,6 +1800,142 @@ mod tests {
                 "{component} {kind}: {message}"
             );
         }
+    }
+
+    /// The tetrahedron of [`indexed_glb`] (u32 indices) under the given `"scene"`/`"scenes"`/
+    /// `"nodes"` members.
+    fn tetra_glb(scenes_and_nodes: &str) -> Vec<u8> {
+        let glb = indexed_glb(5125, "SCALAR");
+        let json_len = u32::from_le_bytes(glb[12..16].try_into().unwrap()) as usize;
+        let json = std::str::from_utf8(&glb[20..20 + json_len]).unwrap();
+        let bin = glb[20 + json_len + 8..].to_vec();
+        let json = json.replacen(
+            r#""scene":0,"scenes":[{"nodes":[0]}],"nodes":[{"mesh":0}],"#,
+            scenes_and_nodes,
+            1,
+        );
+        assert!(json.contains(scenes_and_nodes), "the template changed");
+        glb_container(json, bin)
+    }
+
+    /// A node reached twice in one scene (two parents, or one child listed twice) is refused: 40
+    /// levels of `children: [next, next]` would instance the mesh 2⁴⁰ times from a few hundred
+    /// bytes (before, `ism fit --mesh` on such a file ran until killed). Scenes may share nodes: a
+    /// node loaded by an earlier scene is not loaded again. Truth: the triangle counts the files
+    /// were built with.
+    #[test]
+    fn gltf_nodes_are_instanced_once() {
+        let chain: Vec<String> = (0..40)
+            .map(|i| format!(r#"{{"children":[{},{}]}}"#, i + 1, i + 1))
+            .chain([r#"{"mesh":0}"#.to_string()])
+            .collect();
+        let dag = tetra_glb(&format!(
+            r#""scene":0,"scenes":[{{"nodes":[0]}}],"nodes":[{}],"#,
+            chain.join(",")
+        ));
+        let err = TriangleMesh::from_gltf(&dag, Path::new("dag.glb"))
+            .map(|m| m.triangles.len())
+            .expect_err("a node with two parents accepted");
+        assert!(
+            format!("{err}").contains("reached twice in scene 0"),
+            "{err}"
+        );
+        // Two parents of one mesh node, no repetition within a children list.
+        let two_parents = tetra_glb(
+            r#""scene":0,"scenes":[{"nodes":[0,1]}],"nodes":[{"children":[2]},{"children":[2]},{"mesh":0}],"#,
+        );
+        let err = TriangleMesh::from_gltf(&two_parents, Path::new("t.glb"))
+            .map(|m| m.triangles.len())
+            .expect_err("a node with two parents accepted");
+        assert!(
+            format!("{err}").contains("node 2 is reached twice"),
+            "{err}"
+        );
+        // Two scenes sharing the mesh node, none the default: every scene is read, the node once.
+        let shared = tetra_glb(r#""scenes":[{"nodes":[0]},{"nodes":[0]}],"nodes":[{"mesh":0}],"#);
+        let mesh = TriangleMesh::from_gltf(&shared, Path::new("t.glb")).unwrap();
+        assert_eq!(mesh.triangles.len(), 4);
+        // Two nodes instancing one mesh is legal and gives both copies.
+        let two = tetra_glb(
+            r#""scene":0,"scenes":[{"nodes":[0,1]}],"nodes":[{"mesh":0},{"mesh":0,"translation":[5,0,0]}],"#,
+        );
+        let mesh = TriangleMesh::from_gltf(&two, Path::new("t.glb")).unwrap();
+        assert_eq!(mesh.triangles.len(), 8);
+    }
+
+    /// `Limits` bound a mesh read: vertices and triangles (OBJ after parsing, glTF per primitive
+    /// before it is added) and the file's or buffers' bytes before reading. At the limit the
+    /// tetrahedron (4 vertices, 4 triangles) reads; one below, it is refused naming the limit.
+    #[test]
+    fn limits_refuse_larger_meshes() {
+        let obj = b"v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 4\n";
+        let glb = indexed_glb(5125, "SCALAR");
+        let at = Limits {
+            max_vertices: 4,
+            max_simplices: 4,
+            ..Limits::default()
+        };
+        let read = |bytes: &[u8], glb: bool, limits: &Limits| {
+            if glb {
+                TriangleMesh::from_gltf_with_limits(bytes, Path::new("t.glb"), limits)
+            } else {
+                TriangleMesh::from_obj_with_limits(bytes, Path::new("t.obj"), limits)
+            }
+            .map(|m| m.triangles.len())
+        };
+        for (bytes, is_glb) in [(&obj[..], false), (&glb[..], true)] {
+            assert_eq!(read(bytes, is_glb, &at).unwrap(), 4);
+            for (limits, name) in [
+                (
+                    Limits {
+                        max_vertices: 3,
+                        ..at
+                    },
+                    "max_vertices",
+                ),
+                (
+                    Limits {
+                        max_simplices: 3,
+                        ..at
+                    },
+                    "max_simplices",
+                ),
+            ] {
+                let err = read(bytes, is_glb, &limits).expect_err("over the limit");
+                assert!(format!("{err}").contains(name), "{name}: {err}");
+            }
+        }
+        // The GLB's one buffer declares 96 bytes.
+        let err = read(
+            &glb,
+            true,
+            &Limits {
+                max_payload_bytes: 95,
+                ..at
+            },
+        )
+        .expect_err("buffers over the limit");
+        assert!(format!("{err}").contains("max_payload_bytes"), "{err}");
+        // A file: its size is checked before it is read.
+        let dir = std::env::temp_dir().join(format!("ism-fit-limits-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("t.obj");
+        std::fs::write(&path, obj).unwrap();
+        let size = obj.len() as u64;
+        let load = |max_payload_bytes| {
+            TriangleMesh::load_with_limits(
+                &path,
+                &Limits {
+                    max_payload_bytes,
+                    ..Limits::default()
+                },
+            )
+            .map(|m| m.triangles.len())
+        };
+        assert_eq!(load(size).unwrap(), 4);
+        let err = load(size - 1).expect_err("file over the limit");
+        assert!(format!("{err}").contains("max_payload_bytes"), "{err}");
+        std::fs::remove_dir_all(&dir).unwrap();
     }
 
     /// A relative buffer URI whose percent-decoding is not UTF-8 is an error, not a panic in the
