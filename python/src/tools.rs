@@ -197,6 +197,7 @@ fn validate_options(
         max_pieces,
         quality,
         theorems,
+        ..ism_validate::Options::default()
     })
 }
 

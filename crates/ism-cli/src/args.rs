@@ -29,6 +29,54 @@ impl Threads {
     }
 }
 
+/// `--max-payload-bytes`, `--max-vertices`, `--max-simplices`, `--max-stages`, `--max-records`:
+/// the reader's resource limits ([`ism_format::io::Limits`]), the same spelling on every command
+/// that reads a model. A pipeline validating files from anyone caps what one file may cost; a file
+/// past a limit is unreadable (exit 2, ISM-007 naming the payload or the member). Absent: the library's
+/// defaults, which refuse nothing a readable file can hold.
+#[derive(clap::Args, Clone, Copy, Debug, Default)]
+#[command(next_help_heading = "Resource limits (refuse a file past one)")]
+pub(crate) struct ReadLimits {
+    /// Largest payload, in bytes [default: 8 GiB]
+    #[arg(long, value_name = "BYTES")]
+    max_payload_bytes: Option<u64>,
+    /// Most vertices [default: 2^32 - 1]
+    #[arg(long, value_name = "N")]
+    max_vertices: Option<u64>,
+    /// Most top simplices [default: 2^32 - 1]
+    #[arg(long, value_name = "N")]
+    max_simplices: Option<u64>,
+    /// Most stages [default: no limit]
+    #[arg(long, value_name = "N")]
+    max_stages: Option<u64>,
+    /// Most face records and vertex maps over all stages [default: no limit]
+    #[arg(long, value_name = "N")]
+    max_records: Option<u64>,
+}
+
+impl ReadLimits {
+    /// The limits: each given flag, the library's default for the others.
+    pub(crate) fn limits(self) -> ism_format::io::Limits {
+        let d = ism_format::io::Limits::default();
+        ism_format::io::Limits {
+            max_payload_bytes: self.max_payload_bytes.unwrap_or(d.max_payload_bytes),
+            max_vertices: self.max_vertices.unwrap_or(d.max_vertices),
+            max_simplices: self.max_simplices.unwrap_or(d.max_simplices),
+            max_stages: self.max_stages.unwrap_or(d.max_stages),
+            max_records: self.max_records.unwrap_or(d.max_records),
+        }
+    }
+
+    /// Reads and checks `path` within the limits; errors as [`cannot_read_model`].
+    pub(crate) fn read(self, path: &Path) -> anyhow::Result<ism_format::Document> {
+        let options = ism_format::io::ReadOptions {
+            limits: self.limits(),
+            ..ism_format::io::ReadOptions::default()
+        };
+        ism_format::io::read_path_with(path, &options).map_err(|e| cannot_read_model(path, e))
+    }
+}
+
 fn number(s: &str) -> Result<f64, String> {
     s.trim()
         .parse::<f64>()

@@ -38,6 +38,8 @@ pub struct Args {
     /// No progress display.
     #[arg(long, short)]
     quiet: bool,
+    #[command(flatten)]
+    limits: crate::args::ReadLimits,
 }
 
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
@@ -59,8 +61,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     }
     let progress = crate::progress::Progress::new(args.quiet);
     progress.phase(format!("reading {}", args.input.display()));
-    let doc =
-        io::read_path(&args.input).map_err(|e| crate::args::cannot_read_model(&args.input, e))?;
+    let doc = args.limits.read(&args.input)?;
     let encoding = args
         .to
         .or_else(|| Encoding::from_path(&args.output))

@@ -7,7 +7,6 @@ use std::time::Instant;
 use anyhow::Context;
 use ism_export::export::{self, ExportOptions, Exported};
 use ism_export::format::ExportFormat;
-use ism_format::io;
 
 const AFTER_HELP: &str = "\
 The output format follows the extension: .obj, .gltf, .glb, .vtk (legacy ASCII), .vtu (XML).
@@ -65,6 +64,8 @@ pub struct Args {
     /// Print a JSON summary on stdout.
     #[arg(long)]
     json: bool,
+    #[command(flatten)]
+    limits: crate::args::ReadLimits,
 }
 
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
@@ -83,8 +84,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     }
     let progress = crate::progress::Progress::new(args.quiet);
     progress.phase(format!("reading {}", args.input.display()));
-    let doc =
-        io::read_path(&args.input).map_err(|e| crate::args::cannot_read_model(&args.input, e))?;
+    let doc = args.limits.read(&args.input)?;
     let model = doc.model;
     let name = model.metadata.name.clone();
     let start = Instant::now();

@@ -39,13 +39,17 @@ pub struct Args {
     /// No progress display.
     #[arg(long, short)]
     quiet: bool,
+    // The mesh file's bytes, its points and cells are checked against these before anything is
+    // built (the stage and record limits do not apply to a mesh).
+    #[command(flatten)]
+    limits: crate::args::ReadLimits,
 }
 
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let options = ImportOptions {
         field: args.field.clone(),
         level: args.level,
-        ..ImportOptions::default()
+        limits: args.limits.limits(),
     };
     let progress = crate::progress::Progress::new(args.quiet);
     progress.phase(format!(

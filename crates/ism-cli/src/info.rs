@@ -28,6 +28,8 @@ pub struct Args {
     /// No progress display.
     #[arg(long, short)]
     quiet: bool,
+    #[command(flatten)]
+    limits: crate::args::ReadLimits,
 }
 
 #[derive(Serialize)]
@@ -67,9 +69,13 @@ struct Summary {
 
 /// Reads the file and runs the structural check, which counts the faces of each dimension on the
 /// way (nothing is indexed beyond what the check needs: `info` is as cheap as a checked read).
-fn read_counting_faces(path: &std::path::Path) -> ism_format::Result<(Document, Vec<usize>)> {
+fn read_counting_faces(
+    path: &std::path::Path,
+    limits: ism_format::io::Limits,
+) -> ism_format::Result<(Document, Vec<usize>)> {
     let unchecked = io::ReadOptions {
         check_structure: false,
+        limits,
         ..io::ReadOptions::default()
     };
     let doc = io::read_path_with(path, &unchecked)?;
@@ -157,7 +163,7 @@ fn summarize(path: &std::path::Path, doc: &Document, faces: &[usize]) -> Summary
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let progress = crate::progress::Progress::new(args.quiet);
     progress.phase(format!("reading {}", args.file.display()));
-    let (doc, faces) = match read_counting_faces(&args.file) {
+    let (doc, faces) = match read_counting_faces(&args.file, args.limits.limits()) {
         Ok(doc) => doc,
         Err(ism_format::Error::Structure(errors)) => {
             progress.finish();

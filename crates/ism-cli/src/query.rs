@@ -5,7 +5,6 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 
 use anyhow::Context;
-use ism_format::io;
 use ism_sample::{points, Sampler};
 
 use crate::sample::{choose_format, write_output, OutputArgs};
@@ -38,13 +37,14 @@ pub struct Args {
     points: PathBuf,
     #[command(flatten)]
     out: OutputArgs,
+    #[command(flatten)]
+    limits: crate::args::ReadLimits,
 }
 
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let progress = crate::progress::Progress::new(args.out.quiet);
     progress.phase(format!("reading {}", args.model.display()));
-    let doc =
-        io::read_path(&args.model).map_err(|e| crate::args::cannot_read_model(&args.model, e))?;
+    let doc = args.limits.read(&args.model)?;
     let model = doc.model;
     progress.phase(format!("reading points from {}", args.points.display()));
     let bytes = if args.points.as_os_str() == "-" {

@@ -60,6 +60,8 @@ pub struct Args {
     seed: u64,
     #[command(flatten)]
     out: OutputArgs,
+    #[command(flatten)]
+    limits: crate::args::ReadLimits,
 }
 
 /// Output options shared by `ism sample` and `ism query`.
@@ -163,8 +165,7 @@ pub(crate) fn write_output(
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let progress = crate::progress::Progress::new(args.out.quiet);
     progress.phase(format!("reading {}", args.model.display()));
-    let doc =
-        io::read_path(&args.model).map_err(|e| crate::args::cannot_read_model(&args.model, e))?;
+    let doc = args.limits.read(&args.model)?;
     let model = doc.model;
     let n = model.dim();
     let mut jobs = Vec::new();

@@ -77,6 +77,8 @@ pub struct Args {
     /// No progress display.
     #[arg(long, short)]
     quiet: bool,
+    #[command(flatten)]
+    limits: crate::args::ReadLimits,
 }
 
 fn show_jumps(s: Option<ism_fit::smooth::JumpStats>) -> String {
@@ -158,8 +160,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     args.threads.install()?;
     let progress = crate::progress::Progress::new(args.quiet);
     progress.phase(format!("reading {}", args.model.display()));
-    let doc =
-        io::read_path(&args.model).map_err(|e| crate::args::cannot_read_model(&args.model, e))?;
+    let doc = args.limits.read(&args.model)?;
     let options = match Mode::new(args.iterations, args.alpha, args.rational, args.degree)? {
         Mode::Rational(options) => options,
         Mode::Jumps(options) => {

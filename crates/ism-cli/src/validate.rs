@@ -53,6 +53,8 @@ pub struct Args {
     /// Certify every element numerically even where a theorem applies.
     #[arg(long)]
     no_theorems: bool,
+    #[command(flatten)]
+    limits: crate::args::ReadLimits,
 }
 
 /// A piece budget: a positive whole number of at most 2^32 (bounds memory and time per element).
@@ -162,6 +164,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         max_pieces: args.max_pieces,
         quality: args.quality,
         theorems: !args.no_theorems,
+        limits: args.limits.limits(),
     };
     let progress = crate::progress::Progress::new(args.quiet);
     // The positivity layer reports per stage, counted in simplices.

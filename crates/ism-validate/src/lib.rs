@@ -86,6 +86,11 @@ pub struct Options {
     pub quality: bool,
     /// Use theorems where they apply (off: certify every touched simplex numerically).
     pub theorems: bool,
+    /// Resource limits of the read, for the functions that read ([`validate_path`],
+    /// [`validate_bytes`] and their `_with_progress` forms): a file past one is unreadable
+    /// (ISM-007, naming the payload or the member). A service validating files from
+    /// anyone lowers them; the defaults refuse nothing a readable file can hold.
+    pub limits: io::Limits,
 }
 
 impl Default for Options {
@@ -96,6 +101,7 @@ impl Default for Options {
             max_pieces: DEFAULT_MAX_PIECES,
             quality: false,
             theorems: true,
+            limits: io::Limits::default(),
         }
     }
 }
@@ -234,6 +240,7 @@ pub fn validate_path_with_progress(
     // Streamed: a binary file is decoded as it arrives, never held whole beside its model.
     let read = io::ReadOptions {
         check_structure: false,
+        limits: options.limits,
         ..io::ReadOptions::default()
     };
     let doc = io::read_with(file, &read).map_err(|e| match e {
@@ -270,6 +277,7 @@ pub fn validate_bytes_with_progress(
 ) -> Result<Report, Error> {
     let read = io::ReadOptions {
         check_structure: false,
+        limits: options.limits,
         ..io::ReadOptions::default()
     };
     let doc = io::from_slice_with(bytes, &read)?;
