@@ -288,7 +288,11 @@ impl TriangleMesh {
                 }
             }
         }
-        let declared: u64 = document.buffers().map(|b| b.length() as u64).sum();
+        // Saturating: hostile lengths near u64::MAX must not overflow the sum (a panic in debug
+        // builds, a wrapped sum that passes the check in release).
+        let declared = document
+            .buffers()
+            .fold(0u64, |sum, b| sum.saturating_add(b.length() as u64));
         if declared > limits.max_payload_bytes {
             return Err(mesh_error(
                 path,
@@ -1915,6 +1919,13 @@ mod tests {
             },
         )
         .expect_err("buffers over the limit");
+        assert!(format!("{err}").contains("max_payload_bytes"), "{err}");
+        // Declared lengths whose sum overflows u64 are over the limit, not a panic.
+        let huge = format!(
+            r#"{{"asset":{{"version":"2.0"}},"buffers":[{{"byteLength":{m},"uri":"a.bin"}},{{"byteLength":{m},"uri":"b.bin"}}]}}"#,
+            m = u64::MAX - 1
+        );
+        let err = read(huge.as_bytes(), true, &at).expect_err("overflowing buffers accepted");
         assert!(format!("{err}").contains("max_payload_bytes"), "{err}");
         // A file: its size is checked before it is read.
         let dir = std::env::temp_dir().join(format!("ism-fit-limits-{}", std::process::id()));
