@@ -1824,7 +1824,7 @@ mod tests {
 
     /// A node reached twice in one scene (two parents, or one child listed twice) is refused: 40
     /// levels of `children: [next, next]` would instance the mesh 2⁴⁰ times from a few hundred
-    /// bytes (before, `ism fit --mesh` on such a file ran until killed). Scenes may share nodes: a
+    /// bytes (before, `ism fit --mesh` on such a file was still running when a 20 s timeout stopped it). Scenes may share nodes: a
     /// node loaded by an earlier scene is not loaded again. Truth: the triangle counts the files
     /// were built with.
     #[test]
