@@ -44,8 +44,9 @@ use std::collections::{HashMap, HashSet};
 use std::time::Instant;
 
 use ism_format::model::{Direction, Model, Stage, StageKind};
+use ism_format::IndexedModel;
 use ism_geom::linalg;
-use ism_geom::stage::{reduce, LocalMap, StageLookup};
+use ism_geom::stage::{reduce, LocalMap};
 use ism_geom::{Bary, Mat, MAX_VARS};
 use serde::Deserialize;
 
@@ -439,24 +440,23 @@ impl Layered {
         if taken {
             base.stages.drain(..n);
         }
-        let lookups: Vec<StageLookup> = base
-            .stages
-            .iter()
-            .enumerate()
-            .map(|(i, s)| StageLookup::new(s, i + if taken { n } else { 0 }))
-            .collect();
-        let mut frames = Vec::with_capacity(base.num_simplices());
-        for s in 0..base.num_simplices() {
-            let ids = base.simplex(s).to_vec();
-            let outer = LocalMap::new(&base.stages, &lookups, &ids)?;
+        // The kept stages are read through the indexed model: the topology names each simplex's
+        // faces, so no face key is hashed per simplex. `model` passed the structural check above,
+        // and dropping whole stages keeps it passing.
+        let indexed = IndexedModel::for_evaluation(base)
+            .map_err(|e| EditError::Model(format!("the kept stages do not index: {e}")))?;
+        let mut frames = Vec::with_capacity(indexed.num_simplices());
+        for s in 0..indexed.num_simplices() {
+            let ids = indexed.simplex(s).to_vec();
+            let outer = LocalMap::from_indexed(&indexed, s)?;
             let mut f = [0.0; MAX_VARS];
             for (i, &v) in ids.iter().enumerate() {
-                f[i] = base.values[v as usize] - base.level;
+                f[i] = indexed.values[v as usize] - indexed.level;
             }
-            let v0 = base.vertex(ids[0] as usize);
+            let v0 = indexed.vertex(ids[0] as usize);
             let mut a = [[0.0; MAX_VARS]; MAX_VARS];
             for c in 0..n {
-                let vc = base.vertex(ids[c + 1] as usize);
+                let vc = indexed.vertex(ids[c + 1] as usize);
                 for r in 0..n {
                     a[r][c] = vc[r] - v0[r];
                 }
@@ -472,7 +472,7 @@ impl Layered {
             });
         }
         Ok(Layered {
-            base,
+            base: indexed.into_model(),
             map,
             block_added: !taken,
             frames,

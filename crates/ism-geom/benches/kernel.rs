@@ -12,7 +12,7 @@ use std::hint::black_box;
 use common::Rng;
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion, Throughput};
 use ism_format::{Model, Stage};
-use ism_geom::{Bary, LocalStage, ModelEval, StageLookup};
+use ism_geom::{Bary, LocalStage, ModelEval};
 use rayon::prelude::*;
 
 const BATCH: usize = 4096;
@@ -52,8 +52,7 @@ fn stages(c: &mut Criterion) {
         group.throughput(Throughput::Elements(BATCH as u64));
         for d in [2u32, 3, 5] {
             let st = stage_for(kind, d, &model, &mut rng);
-            let local = LocalStage::new(&st, &StageLookup::new(&st, 0), model.simplex(0))
-                .expect("valid stage");
+            let local = LocalStage::from_stage(&st, 0, model.simplex(0)).expect("valid stage");
             let us: Vec<Bary> = ws.iter().map(|w| local.eval(w)).collect();
             group.bench_with_input(BenchmarkId::new("eval/1t", d), &d, |b, _| {
                 b.iter(|| ws.iter().map(|w| local.eval(black_box(w))[1]).sum::<f64>())

@@ -11,7 +11,7 @@ mod common;
 use std::hint::black_box;
 
 use common::Rng;
-use ism_geom::{Bary, LocalStage, StageLookup};
+use ism_geom::{Bary, LocalStage};
 
 fn main() {
     let args: Vec<String> = std::env::args().collect();
@@ -32,8 +32,7 @@ fn main() {
         "rational" => common::rational_fixed(&model, &mut rng, degree),
         _ => common::monotonic(&model, &mut rng, degree),
     };
-    let local = LocalStage::new(&stage, &StageLookup::new(&stage, 0), model.simplex(0))
-        .expect("valid stage");
+    let local = LocalStage::from_stage(&stage, 0, model.simplex(0)).expect("valid stage");
     let ws: Vec<Bary> = (0..4096)
         .map(|_| {
             let mut w = [0.0; 4];

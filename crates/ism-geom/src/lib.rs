@@ -63,7 +63,7 @@ mod tables;
 pub use bernstein::{Bernstein, Restriction};
 pub use error::{GeomError, Result};
 pub use model::{Located, ModelEval, ParamPoint, Patch, PatchCorner, LOCATE_TOLERANCE};
-pub use stage::{InverseResult, LocalMap, LocalStage, Solved, StageLookup, INVERSE_TOLERANCE};
+pub use stage::{InverseResult, LocalMap, LocalStage, Solved, INVERSE_TOLERANCE};
 
 /// Largest number of barycentric coordinates supported (`n ≤ 3`).
 pub const MAX_VARS: usize = 4;

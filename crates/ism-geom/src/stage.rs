@@ -134,9 +134,12 @@ pub struct InverseResult {
 }
 
 /// Map from sorted face ids to their record index, and from vertex ids to monotonic maps, for one
-/// stage. Build it once per stage and share it among all simplices.
+/// free-standing stage: the route of [`LocalStage::from_stage`] and [`LocalStage::from_model`],
+/// which build one simplex without indexing a model. Many simplices of a model are built from its
+/// [`IndexedModel`] instead ([`LocalStage::from_indexed`]), where the topology already names each
+/// simplex's faces; this hashing route stays as the independent one the tests compare it with.
 #[derive(Clone, Debug, Default)]
-pub struct StageLookup {
+struct StageLookup {
     stage_index: usize,
     faces: HashMap<Vec<u32>, usize>,
     vertices: HashMap<u32, usize>,
@@ -144,7 +147,7 @@ pub struct StageLookup {
 
 impl StageLookup {
     /// Indexes the records of `stage` (the `stage_index` is only used in error messages).
-    pub fn new(stage: &Stage, stage_index: usize) -> StageLookup {
+    fn new(stage: &Stage, stage_index: usize) -> StageLookup {
         let faces = stage
             .faces
             .iter()
@@ -220,8 +223,8 @@ pub struct LocalStage {
 impl LocalStage {
     /// Builds stage `stage_index` of `model` on top simplex `simplex_index`.
     ///
-    /// Indexes the stage's records on every call; to build many simplices of one stage use
-    /// [`StageLookup`] with [`LocalStage::new`] (or [`crate::ModelEval`], which caches).
+    /// Indexes the stage's records on every call (O(records)); to build many simplices index the
+    /// model once ([`IndexedModel`]) and use [`LocalStage::from_indexed`] (or [`crate::ModelEval`]).
     pub fn from_model(
         model: &Model,
         stage_index: usize,
@@ -238,12 +241,19 @@ impl LocalStage {
                 count,
             });
         }
-        let lookup = StageLookup::new(stage, stage_index);
-        LocalStage::new(stage, &lookup, model.simplex(simplex_index))
+        LocalStage::from_stage(stage, stage_index, model.simplex(simplex_index))
+    }
+
+    /// Builds a free-standing `stage` (not necessarily part of a model; `stage_index` is only used
+    /// in error messages) on the top simplex with vertex ids `simplex` (stored order, `m = n + 1`
+    /// ids). Indexes the stage's records on every call (O(records)), like
+    /// [`LocalStage::from_model`].
+    pub fn from_stage(stage: &Stage, stage_index: usize, simplex: &[u32]) -> Result<LocalStage> {
+        LocalStage::build(stage, &StageLookup::new(stage, stage_index), simplex)
     }
 
     /// Builds `stage` on the top simplex with vertex ids `simplex` (stored order, `m = n + 1` ids).
-    pub fn new(stage: &Stage, lookup: &StageLookup, simplex: &[u32]) -> Result<LocalStage> {
+    fn build(stage: &Stage, lookup: &StageLookup, simplex: &[u32]) -> Result<LocalStage> {
         let m = simplex.len();
         if !(2..=MAX_VARS).contains(&m) {
             return Err(GeomError::Dimension(m.saturating_sub(1)));
@@ -401,7 +411,7 @@ impl LocalStage {
     pub fn identity(kind: StageKind, degree: u32, m: usize) -> Result<LocalStage> {
         let stage = Stage::identity(kind, degree);
         let ids: Vec<u32> = (0..m as u32).collect();
-        LocalStage::new(&stage, &StageLookup::new(&stage, 0), &ids)
+        LocalStage::from_stage(&stage, 0, &ids)
     }
 
     fn fill_net(&mut self, stage: &Stage, lookup: &StageLookup, simplex: &[u32]) -> Result<()> {
@@ -1200,26 +1210,15 @@ impl LocalMap {
                 count,
             });
         }
-        let lookups: Vec<StageLookup> = model
+        let simplex = model.simplex(simplex_index);
+        let stages = model
             .stages
             .iter()
             .enumerate()
-            .map(|(i, s)| StageLookup::new(s, i))
-            .collect();
-        LocalMap::new(&model.stages, &lookups, model.simplex(simplex_index))
-    }
-
-    /// Builds the stages on the simplex with vertex ids `simplex`, using prebuilt lookups (one per
-    /// stage, same order).
-    pub fn new(stages: &[Stage], lookups: &[StageLookup], simplex: &[u32]) -> Result<LocalMap> {
-        let m = simplex.len();
-        let stages = stages
-            .iter()
-            .zip(lookups)
-            .map(|(s, l)| LocalStage::new(s, l, simplex))
+            .map(|(i, s)| LocalStage::from_stage(s, i, simplex))
             .collect::<Result<Vec<_>>>()?;
         Ok(LocalMap {
-            m,
+            m: simplex.len(),
             stages: stages.into_iter().filter(|s| !s.is_identity()).collect(),
         })
     }

@@ -308,23 +308,17 @@ proptest! {
 
     /// The indexed route (flat stage tables addressed through the topology) builds exactly the
     /// local maps of the independent route that hashes each face key of each simplex
-    /// (`StageLookup`), on every simplex of random stratified, rational, monotonic and adjusted
+    /// (`LocalStage::from_stage`), on every simplex of random stratified, rational, monotonic and adjusted
     /// models.
     #[test]
     fn indexed_local_maps_equal_the_hashed_lookup_route(seed in any::<u64>(), n in 2usize..=3) {
         let (model, _) = random_model(n, seed);
         let indexed = ism_format::IndexedModel::new(model.clone()).unwrap();
-        let lookups: Vec<ism_geom::StageLookup> = model
-            .stages
-            .iter()
-            .enumerate()
-            .map(|(i, s)| ism_geom::StageLookup::new(s, i))
-            .collect();
         let mut curved = 0;
         for s in 0..model.num_simplices() {
             for (k, stage) in model.stages.iter().enumerate() {
                 let a = ism_geom::LocalStage::from_indexed(&indexed, k, s).unwrap();
-                let b = ism_geom::LocalStage::new(stage, &lookups[k], model.simplex(s)).unwrap();
+                let b = ism_geom::LocalStage::from_stage(stage, k, model.simplex(s)).unwrap();
                 prop_assert_eq!(a.is_identity(), b.is_identity());
                 prop_assert_eq!(a.control_points(), b.control_points());
                 prop_assert_eq!(a.weights(), b.weights());

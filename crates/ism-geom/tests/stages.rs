@@ -8,7 +8,7 @@ mod common;
 
 use common::{make, Kind, Rng, KINDS};
 use ism_format::{Model, StageKind};
-use ism_geom::{linalg, Bary, Bernstein, LocalMap, LocalStage, StageLookup, INVERSE_TOLERANCE};
+use ism_geom::{linalg, Bary, Bernstein, LocalMap, LocalStage, INVERSE_TOLERANCE};
 use proptest::prelude::*;
 
 /// Round-trip tolerance on `w`: the residual target is 1e-12 in `u`; the inverse Jacobian of these
@@ -27,12 +27,11 @@ fn local_on_touched_simplex(
     rng: &mut Rng,
 ) -> (usize, LocalStage) {
     let stage = &model.stages[stage_index];
-    let lookup = StageLookup::new(stage, stage_index);
     let ns = model.num_simplices();
     let start = rng.below(ns);
     for k in 0..ns {
         let s = (start + k) % ns;
-        let local = LocalStage::new(stage, &lookup, model.simplex(s))
+        let local = LocalStage::from_stage(stage, stage_index, model.simplex(s))
             .expect("generated stages are well-formed");
         if !local.is_identity() {
             return (s, local);
@@ -40,7 +39,7 @@ fn local_on_touched_simplex(
     }
     (
         start,
-        LocalStage::new(stage, &lookup, model.simplex(start)).unwrap(),
+        LocalStage::from_stage(stage, stage_index, model.simplex(start)).unwrap(),
     )
 }
 
@@ -321,7 +320,7 @@ proptest! {
         let mut rng = Rng(seed);
         let model = common::kuhn(n, 1, &mut rng);
         let st = common::near_identity_bezier(&model, &mut rng, d, 0.3);
-        let local = LocalStage::new(&st, &StageLookup::new(&st, 0), model.simplex(rng.below(model.num_simplices()))).unwrap();
+        let local = LocalStage::from_stage(&st, 0, model.simplex(rng.below(model.num_simplices()))).unwrap();
         for _ in 0..20 {
             let w = rng.bary(n + 1);
             let (_, h) = local.homogeneous_jacobian_stored(&w);
@@ -338,7 +337,7 @@ proptest! {
         let mut rng = Rng(seed);
         let model = common::kuhn(n, 1, &mut rng);
         let st = common::near_identity_bezier(&model, &mut rng, d, 0.4);
-        let local = LocalStage::new(&st, &StageLookup::new(&st, 0), model.simplex(0)).unwrap();
+        let local = LocalStage::from_stage(&st, 0, model.simplex(0)).unwrap();
         let m = n + 1;
         let comps: Vec<Bernstein> = (0..m)
             .map(|i| Bernstein::new(m, d, local.control_points().iter().map(|b| b[i]).collect()).unwrap())

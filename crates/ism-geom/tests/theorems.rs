@@ -9,7 +9,7 @@ mod common;
 
 use common::Rng;
 use ism_format::{FaceRecord, Model, Stage, StageKind};
-use ism_geom::{Bernstein, LocalMap, LocalStage, StageLookup};
+use ism_geom::{Bernstein, LocalMap, LocalStage};
 use proptest::prelude::*;
 
 /// Barycentric lattice of resolution `r` (all `w = I/r`, `|I| = r`): vertices, edges and faces
@@ -126,8 +126,8 @@ fn degree_four_counterexample_has_negative_jacobian() {
     let ordered = edge_stage([0.1, 0.5, 0.9]);
     let swapped = edge_stage([0.9, 0.5, 0.1]);
     let mid = [0.5, 0.5, 0.0, 0.0];
-    let one_d = |st: &Stage| LocalStage::new(st, &StageLookup::new(st, 0), &[0, 1]).unwrap();
-    let two_d = |st: &Stage| LocalStage::new(st, &StageLookup::new(st, 0), &[0, 1, 2]).unwrap();
+    let one_d = |st: &Stage| LocalStage::from_stage(st, 0, &[0, 1]).unwrap();
+    let two_d = |st: &Stage| LocalStage::from_stage(st, 0, &[0, 1, 2]).unwrap();
 
     assert!(one_d(&swapped).det(&mid) < 0.0);
     assert!(two_d(&swapped).det(&mid) < 0.0);
