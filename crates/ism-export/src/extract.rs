@@ -643,6 +643,8 @@ fn test_edge(
 #[derive(Clone, Debug)]
 struct FacetEdge {
     key: [u32; 3],
+    /// The simplex that placed the points (their preimages are in its local coordinates).
+    owner: u32,
     /// Interior parameters, sorted, with their points.
     params: Vec<(Dyadic, SurfacePoint)>,
 }
@@ -1032,15 +1034,51 @@ impl SurfaceBuilder<'_> {
         self.vertex(key, u, point)
     }
 
+    /// Makes a facet point placed by the facet's owner `owner` a start for this simplex's
+    /// inversions: its preimage moved into this simplex's local coordinates (a point of the shared
+    /// facet, whose preimage lies on it) and `DX⁻¹` taken from this simplex's map (the owner's
+    /// differs across the facet). Its position and normal, which the mesh keeps, are untouched.
+    /// Only maps with an implicit stage use the preimage data.
+    fn adopt(&self, owner: usize, point: &mut SurfacePoint) {
+        let map = self.eval.local_map(self.s);
+        if map
+            .stages()
+            .iter()
+            .all(|st| st.direction() == Direction::Parametric)
+        {
+            return;
+        }
+        let model = self.eval.model();
+        let (from, to) = (model.simplex(owner), model.simplex(self.s));
+        let mut w = [0.0; MAX_VARS];
+        for (i, g) in from.iter().enumerate() {
+            if let Some(j) = to.iter().position(|x| x == g) {
+                w[j] = point.w[i];
+            }
+        }
+        point.w = w;
+        point.dx_inverse = map
+            .jacobian(&w)
+            .1
+            .and_then(|j| linalg::inverse(self.eval.dim(), &j));
+    }
+
     /// The midpoint vertex of an edge if the edge is split, else `None`.
     fn split(&mut self, a: u32, b: u32, edge: EdgeRef) -> Result<Option<u32>> {
         match edge {
             EdgeRef::Boundary { facet, start, end } => {
                 let mid = Dyadic::midpoint(start, end);
                 let fe = &self.facets[facet];
-                let Some(point) = fe.find(mid).copied() else {
+                let key = VertexKey::Facet(fe.key, mid);
+                if let Some(&i) = self.scratch.local.get(&key) {
+                    return Ok(Some(i));
+                }
+                let Some(mut point) = fe.find(mid).copied() else {
                     return Ok(None);
                 };
+                if fe.owner as usize != self.s {
+                    self.adopt(fe.owner as usize, &mut point);
+                }
                 let (ua, ub) = self
                     .scratch
                     .facet_ends
@@ -1049,7 +1087,7 @@ impl SurfaceBuilder<'_> {
                     .expect("every facet edge of the patch has its ends")
                     .1;
                 let u = lerp(&ua, &ub, mid.value());
-                Ok(Some(self.vertex(VertexKey::Facet(fe.key, mid), u, point)))
+                Ok(Some(self.vertex(key, u, point)))
             }
             EdgeRef::Interior { level } => {
                 let pair = (a.min(b), a.max(b));
@@ -1390,7 +1428,14 @@ fn extract_surface(
                 &mut params,
                 &mut c,
             )?;
-            Ok((FacetEdge { key, params }, c))
+            Ok((
+                FacetEdge {
+                    key,
+                    owner: s as u32,
+                    params,
+                },
+                c,
+            ))
         })
         .collect();
     progress.check()?;
