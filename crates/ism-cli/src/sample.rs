@@ -211,6 +211,10 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     };
     progress.phase("preparing the model's stages for evaluation and inversion");
     let mut sampler = Sampler::new(&model)?.seed(args.seed);
+    if matches!(job, Job::Surface(_) | Job::NearSurface(..)) {
+        // The table refines its bounds as far as `total` samples pay for it.
+        sampler = sampler.expected_surface_samples(total);
+    }
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(args.out.threads.count())
         .build()?;

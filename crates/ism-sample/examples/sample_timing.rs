@@ -1,6 +1,6 @@
 //! Times the surface table, surface sampling and volume sampling of a model file.
 //!
-//! `cargo run --release -p ism-sample --example sample_timing -- MODEL [SURFACE_COUNT] [VOLUME_COUNT]`
+//! `cargo run --release -p ism-sample --example sample_timing -- MODEL [SURFACE_COUNT] [VOLUME_COUNT] [EXPECTED]`
 
 use std::time::Instant;
 
@@ -28,7 +28,12 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let surface: u64 = args.get(2).map_or(Ok(100_000), |s| s.parse())?;
     let volume: u64 = args.get(3).map_or(Ok(100_000), |s| s.parse())?;
     let t = Instant::now();
-    let sampler = Sampler::new(&model)?.seed(1);
+    // As `ism sample --surface N` does: the table's refinement is sized for N samples (or for
+    // the fourth argument's count, to time a table apart from its samples).
+    let expected: u64 = args.get(4).map_or(Ok(surface), |s| s.parse())?;
+    let sampler = Sampler::new(&model)?
+        .seed(1)
+        .expected_surface_samples(expected);
     let table = sampler.surface_table()?;
     let build = t.elapsed().as_secs_f64();
     println!(

@@ -300,8 +300,14 @@ impl Restricted {
     /// The polynomials restricted to the face spanned by `vertices` (a region of the linear
     /// patch): polynomials in `vertices.len()` variables. The determinant is dropped (a
     /// parametric chain needs none).
-    fn restrict_to_face(&self, vertices: &[Vec<f64>]) -> Restricted {
-        let r = |p: &Bernstein| p.restrict_to_face(vertices);
+    fn restrict_to_face(&self, vertices: &[[f64; 4]]) -> Restricted {
+        // Allocation-free for the degrees the sampler meets (bit-identical to the kernel's).
+        let r = |p: &Bernstein| {
+            crate::homothety::restrict_to_face(p, vertices).unwrap_or_else(|| {
+                let refs: Vec<Vec<f64>> = vertices.iter().map(|v| v[..p.vars()].to_vec()).collect();
+                p.restrict_to_face(&refs)
+            })
+        };
         let r_opt = |p: &Option<Bernstein>| p.as_ref().map(r);
         Restricted {
             p: self.p.iter().map(r).collect(),
@@ -443,7 +449,11 @@ impl Chain<'_> {
         }
         let (mut image, first) = cell.restricted.ranges(n);
         let mut jacs = vec![first];
-        let mut dets = vec![cell.restricted.det_lo(n, &first)];
+        let mut dets = vec![if self.layout == Layout::Parametric {
+            1.0
+        } else {
+            cell.restricted.det_lo(n, &first)
+        }];
         for (k, stage) in self.rest.iter().enumerate() {
             // The image so far lies in {w ≥ lo}: restrict the next stage there exactly. A
             // parametric chain's last image is not used (its cells live in u).
@@ -455,6 +465,8 @@ impl Chain<'_> {
             let need_image = !(self.layout == Layout::Parametric && k + 1 == self.rest.len());
             let (next, jac, det) = match stage.homothety_ranges(n, lo, need_image) {
                 Some((may_cross, _, _)) if !may_cross => return None,
+                // A parametric chain needs no determinant (cofactors, below).
+                Some((_, next, jac)) if self.layout == Layout::Parametric => (next, jac, 1.0),
                 Some((_, next, jac)) => (next, jac, interval_det(n, &jac).lo),
                 None => {
                     let here = stage.restrict_to(lo);
@@ -842,7 +854,7 @@ pub fn parametric_leaves(
     values: &[f64],
     level: f64,
     roots: &[(Vec<[f64; 4]>, f64)],
-    samples: &[([f64; 4], f64)],
+    samples: &dyn Fn() -> Vec<([f64; 4], f64)>,
     (max_splits, min_excess): (usize, f64),
 ) -> Option<Result<Vec<Leaf>, String>> {
     let stages = map.stages();
@@ -874,8 +886,11 @@ pub fn parametric_leaves(
         level,
         linear,
     };
+    // The samples cost a kernel evaluation each: taken only once a cell might be split.
+    let taken = std::cell::OnceCell::new();
     let local = |b: &UBox, cell: &Cell| -> f64 {
-        let inside = samples
+        let inside = taken
+            .get_or_init(samples)
             .iter()
             .filter(|(u, _)| (0..m).all(|i| b[i].lo <= u[i] && u[i] <= b[i].hi))
             .map(|s| s.1)
@@ -892,6 +907,16 @@ pub fn parametric_leaves(
         cell: Cell,
     }
     let open = |bound: f64, ubox: &UBox, cell: Cell, root: usize, share: f64| -> Open {
+        // Below the threshold even with J's size 0: tight whatever the samples say.
+        if roots[root].1 * share * bound <= min_excess || cell.depth >= MAX_DEPTH {
+            return Open {
+                priority: 0.0,
+                bound,
+                root,
+                share,
+                cell,
+            };
+        }
         let size = local(ubox, &cell);
         // A NaN (0/0 on an empty root) would never be split: count it as the whole mass.
         let excess = roots[root].1 * share * (bound - size);
@@ -915,9 +940,8 @@ pub fn parametric_leaves(
     };
     let mut cells: Vec<Open> = Vec::with_capacity(roots.len() + 2 * max_splits.min(64));
     for (r, (corners, _)) in roots.iter().enumerate() {
-        let refs: Vec<Vec<f64>> = corners.iter().map(|c| c[..m].to_vec()).collect();
         let root = Cell {
-            restricted: first.restrict_to_face(&refs),
+            restricted: first.restrict_to_face(corners),
             vertices: corners.clone(),
             depth: 0,
         };
@@ -1106,7 +1130,7 @@ mod tests {
                         &values,
                         model.level,
                         &roots,
-                        &[],
+                        &Vec::new,
                         (budget, 0.0),
                     )
                     .unwrap()

@@ -23,7 +23,7 @@ use std::sync::OnceLock;
 
 use ism_format::multi_index;
 use ism_geom::interval::Interval;
-use ism_geom::MAX_VARS;
+use ism_geom::{Bernstein, MAX_VARS};
 
 use crate::bound::BOUND_ROUNDING_MARGIN;
 
@@ -205,10 +205,80 @@ impl Homothety {
     }
 }
 
+/// The restriction of `p` (degree ≤ [`MAX_DEGREE`], `m` variables) to the face spanned by
+/// `vertices` (`k ≤ m` of them, barycentric, first `m` entries each): a polynomial in `k`
+/// variables whose coefficient `I` is the blossom at `vertices[i]` repeated `I_i` times. The same
+/// de Casteljau steps in the same order as the kernel's [`Bernstein::restrict_to_face`] (vertex 0
+/// applied first, zero weights skipped), hence the same bits, but walked depth first in one
+/// stack buffer (one allocation, the result) where the kernel allocates per step. `None` for a
+/// degree without a plan (use the kernel).
+pub(crate) fn restrict_to_face(p: &Bernstein, vertices: &[[f64; 4]]) -> Option<Bernstein> {
+    let (m, d, k) = (p.vars(), p.degree(), vertices.len());
+    if d as usize > MAX_DEGREE || m == 0 || m > MAX_VARS || k == 0 || k > MAX_VARS {
+        return None;
+    }
+    let plan = plan(m, d);
+    let mut level = [0.0; LEVEL_CAP];
+    let top = plan.offsets[d as usize];
+    level[top..top + p.coeffs().len()].copy_from_slice(p.coeffs());
+    let mut out = vec![0.0; multi_index::count(k, d)];
+    let mut counts = [0u32; MAX_VARS];
+    face_walk(
+        &FaceWalk { plan, m, vertices },
+        &mut level,
+        d as usize,
+        0,
+        &mut counts,
+        &mut out,
+    );
+    Bernstein::new(k, d, out).ok()
+}
+
+/// What every node of [`face_walk`] shares.
+struct FaceWalk<'a> {
+    plan: &'a Plan,
+    m: usize,
+    vertices: &'a [[f64; 4]],
+}
+
+/// One node of the prefix tree: `level`'s degree-`t` block holds the blossom with
+/// `vertices[i]` applied `counts[i]` times; children apply a vertex `≥ first` once more.
+fn face_walk(
+    walk: &FaceWalk<'_>,
+    level: &mut [f64; LEVEL_CAP],
+    t: usize,
+    first: usize,
+    counts: &mut [u32; MAX_VARS],
+    out: &mut [f64],
+) {
+    let k = walk.vertices.len();
+    if t == 0 {
+        out[multi_index::rank(&counts[..k])] = level[walk.plan.offsets[0]];
+        return;
+    }
+    let m = walk.m;
+    let off = &walk.plan.offsets;
+    for v in first..k {
+        let x = &walk.vertices[v];
+        for pos in off[t - 1]..off[t] {
+            let ups = &walk.plan.up[pos * m..pos * m + m];
+            let mut s = 0.0;
+            for i in 0..m {
+                if x[i] != 0.0 {
+                    s += x[i] * level[ups[i] as usize];
+                }
+            }
+            level[pos] = s;
+        }
+        counts[v] += 1;
+        face_walk(walk, level, t - 1, v, counts, out);
+        counts[v] -= 1;
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
-    use ism_geom::Bernstein;
     use rand::{Rng, SeedableRng};
     use rand_chacha::ChaCha8Rng;
 
@@ -266,5 +336,58 @@ mod tests {
                 }
             }
         }
+    }
+
+    /// The kernel's `Bernstein::restrict_to_face` is the reference, bit for bit (the same steps in
+    /// the same order), on faces of every dimension with vertices on edges, inside faces and in
+    /// the interior, and with zero coordinates (skipped terms).
+    #[test]
+    fn face_restriction_equals_the_kernel_bit_for_bit() {
+        let mut rng = ChaCha8Rng::seed_from_u64(23);
+        for m in 1..=4usize {
+            for d in 0..=MAX_DEGREE as u32 {
+                for k in 1..=m {
+                    for _ in 0..6 {
+                        let p = Bernstein::from_fn(m, d, |_| rng.random_range(-2.0..2.0));
+                        let vertices: Vec<[f64; 4]> = (0..k)
+                            .map(|_| {
+                                let mut v = [0.0; 4];
+                                for x in v.iter_mut().take(m) {
+                                    // About a third of the coordinates are zero.
+                                    if rng.random_bool(0.67) {
+                                        *x = rng.random::<f64>();
+                                    }
+                                }
+                                let s: f64 = v.iter().sum();
+                                if s == 0.0 {
+                                    v[0] = 1.0;
+                                } else {
+                                    for x in v.iter_mut() {
+                                        *x /= s;
+                                    }
+                                }
+                                v
+                            })
+                            .collect();
+                        let refs: Vec<Vec<f64>> =
+                            vertices.iter().map(|v| v[..m].to_vec()).collect();
+                        let kernel = p.restrict_to_face(&refs);
+                        let ours = restrict_to_face(&p, &vertices).unwrap();
+                        assert_eq!(
+                            (ours.vars(), ours.degree()),
+                            (kernel.vars(), kernel.degree())
+                        );
+                        let same = ours
+                            .coeffs()
+                            .iter()
+                            .zip(kernel.coeffs())
+                            .all(|(a, b)| a.to_bits() == b.to_bits());
+                        assert!(same, "m {m} d {d} k {k}");
+                    }
+                }
+            }
+        }
+        let high = Bernstein::constant(3, MAX_DEGREE as u32 + 1, 1.0);
+        assert!(restrict_to_face(&high, &[[1.0, 0.0, 0.0, 0.0]]).is_none());
     }
 }

@@ -44,6 +44,8 @@ pub struct Sampler {
     seed: u64,
     weighting: Weighting,
     progress: Option<Progress>,
+    /// Surface samples expected in all ([`Sampler::expected_surface_samples`]).
+    expected_surface: Option<u64>,
     surface: OnceLock<Result<SurfaceTable>>,
     volumes: OnceLock<Vec<f64>>,
 }
@@ -75,6 +77,7 @@ impl Sampler {
             seed: 0,
             weighting: Weighting::CurvedArea,
             progress: None,
+            expected_surface: None,
             surface: OnceLock::new(),
             volumes: OnceLock::new(),
         }
@@ -89,6 +92,17 @@ impl Sampler {
     /// Calls `progress(rows_so_far)` after each batch of chunks.
     pub fn progress(mut self, progress: impl Fn(u64) + Send + Sync + 'static) -> Sampler {
         self.progress = Some(Box::new(progress));
+        self
+    }
+
+    /// How many surface (and near-surface) samples will be drawn in all: the surface table then
+    /// refines its certified bounds only as far as the candidates it saves on that many samples
+    /// pay for the refinement ([`SurfaceTable::with_expected_samples`]). Output for a seed then
+    /// depends on this number (not on the thread count). Without it the table uses a fixed
+    /// refinement threshold.
+    pub fn expected_surface_samples(mut self, count: u64) -> Sampler {
+        self.expected_surface = Some(count);
+        self.surface = OnceLock::new();
         self
     }
 
@@ -110,9 +124,9 @@ impl Sampler {
     /// # Errors
     /// See [`SurfaceTable::new`].
     pub fn surface_table(&self) -> Result<&SurfaceTable> {
-        let t = self
-            .surface
-            .get_or_init(|| SurfaceTable::new(&self.eval, self.weighting));
+        let t = self.surface.get_or_init(|| {
+            SurfaceTable::with_expected_samples(&self.eval, self.weighting, self.expected_surface)
+        });
         t.as_ref().map_err(SampleError::duplicate)
     }
 

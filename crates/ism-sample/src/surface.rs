@@ -70,7 +70,8 @@ pub struct PatchEntry {
     linear_gradient: f64,
     /// Whether the regions carry Newton starts (no: no stage, or all-parametric maps).
     guessed: bool,
-    /// Mean exact `J` at the lattice points: an estimate of the curved area per linear area.
+    /// Mean exact `J` at the lattice points: an estimate of the curved area per linear area
+    /// (implicit and mixed chains only, 0 otherwise: only their second pass reads it).
     sample_mean: f64,
     /// The stages of an all-parametric Bézier map as identity plus their moved control points, in
     /// processing order (last stored first); empty when the kernel's dense evaluation is used.
@@ -177,6 +178,14 @@ const LEAF_SPLITS: usize = 1024;
 /// second pass gave fitted sphere 0.56 s and `Σ A·B` 4.24× the curved area, fitted torus 1.95 s
 /// and 5.31×; this threshold gives 0.38 s and 3.99×, 1.80 s and 4.27×.
 const LEAF_EXCESS: f64 = 1.0 / 3.0;
+/// With an expected number of samples `N`, a leaf is bisected while the sampling mass its bound
+/// wastes exceeds this times the total linear area over `N`. A bisection saves about half its
+/// leaf's waste, i.e. that share of `N` candidates, so this is about twice the cost of a
+/// bisection in candidates. Scanned (session 12, whole runs, `-j 1`, CPU, load 8): 5 / 20 / 80
+/// against the fixed threshold gave, at `N = 10⁶`, fitted sphere 4.72 / 3.25 / 2.58 vs 2.51 s and
+/// fitted torus 6.61 / 4.17 / 4.78 vs 5.70 s; at `N = 2·10⁵` 1.30 / 0.94 / 0.72 vs 0.82 and
+/// 2.59 / 1.95 / 2.11 vs 2.19.
+const SPLIT_PAYS: f64 = 40.0;
 /// A patch gets the second pass when its excess is above this share of the whole bounded area.
 const REFINE_SHARE: f64 = 0.005;
 /// At most this many patches get the second pass (bounds the table's cost).
@@ -254,24 +263,25 @@ fn build_patch(
     // Exact J at the lattice preimages (points of the shape): where the certified
     // refinement should come close.
     let lin = norm(&g[..n]);
-    let samples: Vec<([f64; 4], f64)> = lattice
-        .iter()
-        .filter_map(|(u, w)| {
-            let (x, j) = match map.param_solve(u) {
-                Some(solved) => (solved.x, solved.jacobian),
-                None => {
-                    let (x, j) = map.jacobian(w);
-                    (x, j?)
-                }
-            };
-            // Only converged preimages are points of the shape.
-            let off = (0..=n).map(|i| (x[i] - u[i]).abs()).fold(0.0, f64::max);
-            let grad = eval.gradient_from_jacobian(s, &j);
-            let det = linalg::det(n, &j);
-            (det > 0.0 && off <= INVERSE_RESIDUAL).then(|| (*u, norm(&grad[..n]) / (lin * det)))
-        })
-        .collect();
-    let sample_mean = samples.iter().map(|s| s.1).sum::<f64>() / samples.len().max(1) as f64;
+    let compute_samples = || -> Vec<([f64; 4], f64)> {
+        lattice
+            .iter()
+            .filter_map(|(u, w)| {
+                let (x, j) = match map.param_solve(u) {
+                    Some(solved) => (solved.x, solved.jacobian),
+                    None => {
+                        let (x, j) = map.jacobian(w);
+                        (x, j?)
+                    }
+                };
+                // Only converged preimages are points of the shape.
+                let off = (0..=n).map(|i| (x[i] - u[i]).abs()).fold(0.0, f64::max);
+                let grad = eval.gradient_from_jacobian(s, &j);
+                let det = linalg::det(n, &j);
+                (det > 0.0 && off <= INVERSE_RESIDUAL).then(|| (*u, norm(&grad[..n]) / (lin * det)))
+            })
+            .collect()
+    };
     // Shares of the patch's area per root: the triangles, or the segment.
     let root_shares: Vec<f64> = match count {
         0 | 1 => vec![1.0],
@@ -288,10 +298,13 @@ fn build_patch(
         &values,
         model.level,
         &roots,
-        &samples,
+        // Computed only if a leaf is worth splitting (the refinement's threshold).
+        &compute_samples,
         // Relative to this patch: leaf masses are shares of its area.
         (LEAF_SPLITS, leaf_excess / area),
     );
+    // Mean exact J at the lattice: only the second pass of implicit chains reads it.
+    let mut sample_mean = 0.0;
     let regions: Vec<RegionEntry> = match leaves {
         // All-parametric maps: the leaves of the adaptive refinement, bounded directly (exact
         // restriction), are the regions.
@@ -312,6 +325,8 @@ fn build_patch(
             })
             .collect(),
         None => {
+            let samples = compute_samples();
+            sample_mean = samples.iter().map(|s| s.1).sum::<f64>() / samples.len().max(1) as f64;
             let bounds = implicit_region_bounds(
                 ImplicitInputs {
                     map,
@@ -427,6 +442,24 @@ impl SurfaceTable {
     /// [`SampleError::EmptySurface`] when no simplex is crossed; [`SampleError::Uncertified`] when a
     /// stage's area-element bound cannot be certified on a crossed simplex.
     pub fn new(eval: &ModelEval, weighting: Weighting) -> Result<SurfaceTable> {
+        Self::with_expected_samples(eval, weighting, None)
+    }
+
+    /// [`SurfaceTable::new`] for about `expected` samples in all: an all-parametric patch's
+    /// leaf is bisected only while the sampling mass its bound wastes exceeds
+    /// [`SPLIT_PAYS`] times the total linear area over `expected`, i.e. while the candidates the
+    /// split saves on `expected` samples cost more than the split. Few samples get the root
+    /// bounds alone (the cheapest certified table); many get tighter bounds than the fixed
+    /// threshold gives. `None`: the fixed threshold of [`SurfaceTable::new`]. The table, hence
+    /// the output for a seed, depends on `expected` but never on the thread count.
+    ///
+    /// # Errors
+    /// As [`SurfaceTable::new`].
+    pub fn with_expected_samples(
+        eval: &ModelEval,
+        weighting: Weighting,
+        expected: Option<u64>,
+    ) -> Result<SurfaceTable> {
         let model = eval.model();
         let crossed: Vec<(usize, ism_geom::Patch)> = (0..eval.num_simplices())
             .into_par_iter()
@@ -435,7 +468,10 @@ impl SurfaceTable {
         // A serial sum in a fixed order: the threshold, hence the table, is the same whatever
         // the thread count.
         let total_area: f64 = crossed.iter().map(|(s, p)| patch_area(eval, *s, p)).sum();
-        let leaf_excess = LEAF_EXCESS * total_area / crossed.len().max(1) as f64;
+        let leaf_excess = match expected {
+            Some(count) => SPLIT_PAYS * total_area / count.max(1) as f64,
+            None => LEAF_EXCESS * total_area / crossed.len().max(1) as f64,
+        };
         let mut patches: Vec<PatchEntry> = crossed
             .par_iter()
             .map(|(s, patch)| build_patch(eval, *s, patch, FIRST_SPLITS, leaf_excess))
@@ -1180,6 +1216,54 @@ impl PatchEntry {
 mod tests {
     use super::*;
     use ism_format::Direction;
+
+    /// A table sized for one sample keeps the root bounds of an all-parametric map (one region
+    /// per triangle of each patch); sized for a million it refines them, so its bounded area is
+    /// smaller; both bound the same curved area from above (the lattice's mean exact `J` per
+    /// patch is below each patch's bounded area). Without a size, the fixed threshold.
+    #[test]
+    fn a_table_sized_for_more_samples_is_tighter() {
+        let path = format!(
+            "{}/../../spec/examples/stratified-3d.ism.json",
+            env!("CARGO_MANIFEST_DIR")
+        );
+        let mut model = ism_format::io::read_path(path).unwrap().model;
+        for stage in &mut model.stages {
+            stage.direction = Direction::Parametric;
+        }
+        let eval = ModelEval::new(&model).unwrap();
+        let table = |e| SurfaceTable::with_expected_samples(&eval, Weighting::CurvedArea, e);
+        let one = table(Some(1)).unwrap();
+        let many = table(Some(1_000_000)).unwrap();
+        let fixed = table(None).unwrap();
+        assert_eq!(one.len(), many.len());
+        for p in &one.patches {
+            assert_eq!(p.regions(), usize::from(p.triangles.max(1)));
+        }
+        let regions = |t: &SurfaceTable| t.patches.iter().map(PatchEntry::regions).sum::<usize>();
+        assert!(regions(&many) > regions(&one) && regions(&fixed) > regions(&one));
+        assert!(many.bounded_area < one.bounded_area);
+        assert!(fixed.bounded_area < one.bounded_area);
+        // The exact J on the lattice of each patch (the kernel's evaluation) stays below its
+        // bound in either table.
+        for t in [&one, &many] {
+            for p in &t.patches {
+                let s = p.simplex as usize;
+                let map = eval.local_map(s);
+                let lin = p.linear_gradient;
+                for r in &p.regions {
+                    for k in 0..3 {
+                        let u = r.u[k];
+                        let solved = map.param_solve(&u).unwrap();
+                        let grad = eval.gradient_from_jacobian(s, &solved.jacobian);
+                        let det = linalg::det(3, &solved.jacobian);
+                        let j = norm(&grad[..3]) / (lin * det);
+                        assert!(j <= r.bound * (1.0 + 1e-12), "J {j} > bound {}", r.bound);
+                    }
+                }
+            }
+        }
+    }
 
     /// The sparse form of a Bézier stage gives the kernel's value and reduced Jacobian (its
     /// dense evaluation, independent code) to rounding, on every stage of every simplex of

@@ -168,8 +168,19 @@ fn local_coords(corners: &[Bary], u: &Bary) -> Vec<f64> {
 }
 
 /// Pearson chi-square p-value of the samples' cell counts against the curved areas.
-fn p_value(model: &Model, weighting: Weighting, count: u64, seed: u64) -> (f64, f64, usize) {
-    let sampler = Sampler::new(model).unwrap().seed(seed).weighting(weighting);
+/// `expected`: the table sized for that many samples ([`Sampler::expected_surface_samples`]).
+fn p_value(
+    model: &Model,
+    weighting: Weighting,
+    count: u64,
+    seed: u64,
+    expected: Option<u64>,
+) -> (f64, f64, usize) {
+    let mut sampler = Sampler::new(model).unwrap().seed(seed);
+    if let Some(e) = expected {
+        sampler = sampler.expected_surface_samples(e);
+    }
+    let sampler = sampler.weighting(weighting);
     let eval = sampler.eval();
     let cells = cells(eval);
     let mut by_simplex: std::collections::HashMap<usize, Vec<usize>> = Default::default();
@@ -230,13 +241,19 @@ fn p_value(model: &Model, weighting: Weighting, count: u64, seed: u64) -> (f64, 
 fn curved_area_sampling_passes_and_linear_area_sampling_fails() {
     for (name, model) in common::curved_models() {
         let count = if model.dim() == 2 { 40_000 } else { 60_000 };
-        let (p, chi2, bins) = p_value(&model, Weighting::CurvedArea, count, 11);
-        eprintln!("{name}: curved-area sampler chi2 = {chi2:.1} on {bins} bins, p = {p:.4}");
-        assert!(
-            p > ALPHA,
-            "{name}: uniform-by-curved-area sampler rejected, p = {p}, chi2 = {chi2} ({bins} bins)"
-        );
-        let (p_lin, chi2_lin, _) = p_value(&model, Weighting::LinearArea, count, 11);
+        // The fixed refinement threshold, the root bounds alone (a table sized for one sample:
+        // all-parametric patches are not refined at all) and a table sized for `count`.
+        for expected in [None, Some(1), Some(count)] {
+            let (p, chi2, bins) = p_value(&model, Weighting::CurvedArea, count, 11, expected);
+            eprintln!(
+                "{name} ({expected:?} expected): curved-area sampler chi2 = {chi2:.1} on {bins} bins, p = {p:.4}"
+            );
+            assert!(
+                p > ALPHA,
+                "{name} ({expected:?} expected): uniform-by-curved-area sampler rejected, p = {p}, chi2 = {chi2} ({bins} bins)"
+            );
+        }
+        let (p_lin, chi2_lin, _) = p_value(&model, Weighting::LinearArea, count, 11, None);
         eprintln!("{name}: linear-area sampler chi2 = {chi2_lin:.1}, p = {p_lin:.3e}");
         assert!(
             p_lin < 1e-9,
@@ -276,17 +293,36 @@ fn every_sample_is_in_its_simplex_and_on_the_level_set() {
     }
 }
 
-/// The same seed gives the same rows on one and on two threads.
+/// The same seed gives the same rows on one and on two threads: an implicit model with the
+/// fixed refinement threshold, and an all-parametric one with a table sized for the samples (as
+/// `ism sample` builds it).
 #[test]
 fn output_does_not_depend_on_the_thread_count() {
-    let model = &common::curved_models()[2].1;
+    let models = common::curved_models();
+    for (name, model, expected) in [
+        (models[2].0, &models[2].1, None),
+        (
+            models[6].0,
+            &models[6].1,
+            Some(3 * ism_sample::seed::CHUNK as u64 + 17),
+        ),
+    ] {
+        thread_count_check(name, model, expected);
+    }
+}
+
+fn thread_count_check(name: &str, model: &Model, expected: Option<u64>) {
+    assert!(name.contains("stratified"));
     let run = |threads: usize| {
         let pool = rayon::ThreadPoolBuilder::new()
             .num_threads(threads)
             .build()
             .unwrap();
         pool.install(|| {
-            let sampler = Sampler::new(model).unwrap().seed(99);
+            let mut sampler = Sampler::new(model).unwrap().seed(99);
+            if let Some(e) = expected {
+                sampler = sampler.expected_surface_samples(e);
+            }
             let mut rows = Collect::default();
             sampler
                 .surface(3 * ism_sample::seed::CHUNK as u64 + 17, &mut rows)
