@@ -378,6 +378,16 @@ fn probe(
     Ok((q.w, q.p))
 }
 
+/// Whether [`probe`] and [`surface_point`] use a start and a chord matrix on simplex `s`: only
+/// when its map has an implicit stage (no stage: the identity; all parametric: evaluated
+/// directly).
+fn needs_start(eval: &ModelEval, s: usize) -> bool {
+    eval.local_map(s)
+        .stages()
+        .iter()
+        .any(|st| st.direction() != Direction::Parametric)
+}
+
 /// The mean of the available `DX⁻¹` of nearby points: the chord steps' matrix in [`probe`].
 fn mean_inverse<'a>(n: usize, points: impl IntoIterator<Item = &'a SurfacePoint>) -> Option<Mat> {
     let mut acc = [[0.0; MAX_VARS]; MAX_VARS];
@@ -612,8 +622,22 @@ fn test_edge(
 ) -> Result<EdgeTest> {
     let (pa, pb) = (a.p, b.p);
     let n = eval.dim();
-    let curve = EdgeCurve::new(n, (ua, a), (ub, b));
-    let mean = mean_inverse(n, [a, b]);
+    // Starts and the chord matrix only serve maps with an implicit stage (module `probe`).
+    let starts = needs_start(eval, s);
+    let curve = if starts {
+        EdgeCurve::new(n, (ua, a), (ub, b))
+    } else {
+        EdgeCurve {
+            wa: a.w,
+            wb: b.w,
+            d: None,
+        }
+    };
+    let mean = if starts {
+        mean_inverse(n, [a, b])
+    } else {
+        None
+    };
     let (wm, pm) = match known_mid {
         Some(known) => known,
         None => probe(eval, s, um, &curve.at(0.5), mean.as_ref(), tol, counters)?,
@@ -1040,14 +1064,10 @@ impl SurfaceBuilder<'_> {
     /// differs across the facet). Its position and normal, which the mesh keeps, are untouched.
     /// Only maps with an implicit stage use the preimage data.
     fn adopt(&self, owner: usize, point: &mut SurfacePoint) {
-        let map = self.eval.local_map(self.s);
-        if map
-            .stages()
-            .iter()
-            .all(|st| st.direction() == Direction::Parametric)
-        {
+        if !needs_start(self.eval, self.s) {
             return;
         }
+        let map = self.eval.local_map(self.s);
         let model = self.eval.model();
         let (from, to) = (model.simplex(owner), model.simplex(self.s));
         let mut w = [0.0; MAX_VARS];
@@ -1172,9 +1192,20 @@ impl SurfaceBuilder<'_> {
         for k in 0..MAX_VARS {
             uc[k] = (us[0][k] + us[1][k] + us[2][k]) / 3.0;
         }
-        let guess = start_inside(n, &uc, &us, &pts);
+        let starts = needs_start(self.eval, self.s);
+        let guess = if starts {
+            start_inside(n, &uc, &us, &pts)
+        } else {
+            let mut w = [0.0; MAX_VARS];
+            for q in &pts {
+                for (wk, qk) in w.iter_mut().zip(&q.w) {
+                    *wk += qk / 3.0;
+                }
+            }
+            w
+        };
         let tol = EDGE_FRACTION * self.options.tolerance;
-        let mean = mean_inverse(n, &pts);
+        let mean = if starts { mean_inverse(n, &pts) } else { None };
         let (wc, pc) = probe(
             self.eval,
             self.s,
