@@ -404,9 +404,21 @@ pub fn from_slice_indexed(bytes: &[u8], options: &ReadOptions) -> Result<Indexed
 /// # Errors
 /// As [`from_slice`], plus [`Error::Io`] naming the path.
 pub fn read_path_indexed(path: impl AsRef<Path>) -> Result<IndexedDocument> {
+    read_path_indexed_with(path, &ReadOptions::default())
+}
+
+/// Reads a file within `options` (its limits and extensions; `check_structure` is ignored: an
+/// indexed model is always checked) and indexes the model; see [`from_slice_indexed`].
+///
+/// # Errors
+/// As [`from_slice_with`], plus [`Error::Io`] naming the path.
+pub fn read_path_indexed_with(
+    path: impl AsRef<Path>,
+    options: &ReadOptions,
+) -> Result<IndexedDocument> {
     let unchecked = ReadOptions {
         check_structure: false,
-        ..ReadOptions::default()
+        ..*options
     };
     let doc = read_path_with(path, &unchecked)?;
     Ok(IndexedDocument {
@@ -555,6 +567,18 @@ fn decode(bytes: &[u8], options: &ReadOptions) -> Result<Document> {
         .find(|b| !matches!(b, b' ' | b'\t' | b'\n' | b'\r'))
     {
         Some(b'{') => {
+            // A JSON text without a container is all payload. `read_with` holds at most the limit
+            // plus a header and one byte, so a longer text arrives cut short: refusing it here by
+            // its length gives the stream and the slice the same error (not a parse error at the
+            // cut).
+            let limit = options.limits.max_payload_bytes;
+            if bytes.len() as u64 > limit {
+                return Err(Error::format(
+                    Rule::LimitExceeded,
+                    Location::offset(limit),
+                    format!("the JSON text is longer than the payload limit of {limit} bytes"),
+                ));
+            }
             let model = decode_json(bytes, 0)?;
             check_version(&model)?;
             Ok(Document {

@@ -2,6 +2,7 @@
 //! pointer, in every encoding and on the streamed binary path; a count equal to its limit reads.
 //! The counts come from the JSON text itself (`serde_json::Value`), not from the reader.
 
+use std::io::Read;
 use std::path::PathBuf;
 
 use ism_format::io::{self, Limits, ReadOptions};
@@ -123,6 +124,50 @@ fn the_default_limits_read_every_example() {
         if path.is_file() {
             io::read_path_with(&path, &ReadOptions::default())
                 .unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+        }
+    }
+}
+
+/// The payload limit on every encoding, in memory and streamed: a container's declared payload
+/// above it is ISM-007 at offset 16; a JSON text without a container is all payload, so one byte
+/// over the limit is ISM-007 at the limit's offset on both paths (the stream holds the text cut
+/// short, which must not surface as a parse error at the cut). A payload equal to the limit reads.
+/// The payload lengths come from the container header's bytes 16..24 and the file size.
+#[test]
+fn payload_limit_is_the_same_error_in_memory_and_streamed() {
+    for ext in ["ism.json", "ism.msgpack", "ismb"] {
+        let bytes = std::fs::read(example(&format!("two-stage.{ext}"))).unwrap();
+        let container = bytes.starts_with(b"\x89ISM\r\n\x1a\n");
+        let payload = if container {
+            u64::from_le_bytes(bytes[16..24].try_into().unwrap())
+        } else {
+            bytes.len() as u64
+        };
+        for (limit, refused) in [(payload, false), (payload - 1, true), (payload / 2, true)] {
+            let options = ReadOptions {
+                limits: Limits {
+                    max_payload_bytes: limit,
+                    ..Limits::default()
+                },
+                ..ReadOptions::default()
+            };
+            let results = [
+                io::from_slice_with(&bytes, &options).map(|_| ()),
+                io::read_with(bytes.as_slice(), &options).map(|_| ()),
+                io::read_with(std::io::Cursor::new(&bytes).take(u64::MAX), &options).map(|_| ()),
+            ];
+            for r in &results {
+                if !refused {
+                    assert!(r.is_ok(), "{ext} at the limit {limit}: {r:?}");
+                    continue;
+                }
+                let Err(Error::Format(d)) = r else {
+                    panic!("{ext}, limit {limit}: expected ISM-007, got {r:?}");
+                };
+                assert_eq!(d.rule, Rule::LimitExceeded, "{ext}: {d:?}");
+                let at = if container { 16 } else { limit };
+                assert_eq!(d.location.offset, Some(at), "{ext}: {d:?}");
+            }
         }
     }
 }
