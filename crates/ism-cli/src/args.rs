@@ -29,14 +29,12 @@ impl Threads {
     }
 }
 
-/// `--max-payload-bytes`, `--max-vertices`, `--max-simplices`, `--max-stages`, `--max-records`:
-/// the reader's resource limits ([`ism_format::io::Limits`]), the same spelling on every command
-/// that reads a model. A pipeline validating files from anyone caps what one file may cost; a file
-/// past a limit is unreadable (exit 2, ISM-007 naming the payload or the member). Absent: the library's
-/// defaults, which refuse nothing a readable file can hold.
+/// `--max-payload-bytes`, `--max-vertices`, `--max-simplices`: the limits that apply to a mesh of
+/// another format as well as to a model ([`ism_format::io::Limits`]; `ism import` takes only these,
+/// a mesh having no stages).
 #[derive(clap::Args, Clone, Copy, Debug, Default)]
 #[command(next_help_heading = "Resource limits (refuse a file past one)")]
-pub(crate) struct ReadLimits {
+pub(crate) struct MeshLimits {
     /// Largest payload, in bytes [default: 8 GiB]
     #[arg(long, value_name = "BYTES")]
     max_payload_bytes: Option<u64>,
@@ -46,6 +44,31 @@ pub(crate) struct ReadLimits {
     /// Most top simplices [default: 2^32 - 1]
     #[arg(long, value_name = "N")]
     max_simplices: Option<u64>,
+}
+
+impl MeshLimits {
+    /// The limits: each given flag, the library's default for the others.
+    pub(crate) fn limits(self) -> ism_format::io::Limits {
+        let d = ism_format::io::Limits::default();
+        ism_format::io::Limits {
+            max_payload_bytes: self.max_payload_bytes.unwrap_or(d.max_payload_bytes),
+            max_vertices: self.max_vertices.unwrap_or(d.max_vertices),
+            max_simplices: self.max_simplices.unwrap_or(d.max_simplices),
+            ..d
+        }
+    }
+}
+
+/// [`MeshLimits`] plus `--max-stages` and `--max-records`: the reader's resource limits
+/// ([`ism_format::io::Limits`]), the same spelling on every command that reads a model. A pipeline
+/// validating files from anyone caps what one file may cost; a file past a limit is unreadable
+/// (exit 2, ISM-007 naming the payload or the member). Absent: the library's defaults, which
+/// refuse nothing a readable file can hold.
+#[derive(clap::Args, Clone, Copy, Debug, Default)]
+#[command(next_help_heading = "Resource limits (refuse a file past one)")]
+pub(crate) struct ReadLimits {
+    #[command(flatten)]
+    mesh: MeshLimits,
     /// Most stages [default: no limit]
     #[arg(long, value_name = "N")]
     max_stages: Option<u64>,
@@ -57,13 +80,11 @@ pub(crate) struct ReadLimits {
 impl ReadLimits {
     /// The limits: each given flag, the library's default for the others.
     pub(crate) fn limits(self) -> ism_format::io::Limits {
-        let d = ism_format::io::Limits::default();
+        let d = self.mesh.limits();
         ism_format::io::Limits {
-            max_payload_bytes: self.max_payload_bytes.unwrap_or(d.max_payload_bytes),
-            max_vertices: self.max_vertices.unwrap_or(d.max_vertices),
-            max_simplices: self.max_simplices.unwrap_or(d.max_simplices),
             max_stages: self.max_stages.unwrap_or(d.max_stages),
             max_records: self.max_records.unwrap_or(d.max_records),
+            ..d
         }
     }
 

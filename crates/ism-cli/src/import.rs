@@ -42,7 +42,7 @@ pub struct Args {
     // The mesh file's bytes, its points and cells are checked against these before anything is
     // built (the stage and record limits do not apply to a mesh).
     #[command(flatten)]
-    limits: crate::args::ReadLimits,
+    limits: crate::args::MeshLimits,
 }
 
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
