@@ -21,7 +21,7 @@ makes, so results are the CLI's, number for number.
 from __future__ import annotations
 
 import os
-from typing import Any, Union
+from typing import Any, Mapping, Optional, Union
 
 from . import errors
 from ._ism import FORMAT_VERSION, Model, Stage, __version__
@@ -78,12 +78,18 @@ __all__ = [
 Source = Union[str, "os.PathLike[str]", bytes, bytearray, memoryview, Any]
 
 
-def read(source: Source, *, check: bool = True) -> Model:
+def read(source: Source, *, check: bool = True, limits: Optional[Mapping[str, int]] = None) -> Model:
     """Reads a model from a path, ``bytes`` or a binary file object.
 
     The encoding (JSON, MessagePack or binary) is detected from the content, as the CLI does.
     With ``check`` (default) the structural rules are enforced; ``check=False`` reads a model that
     decodes but breaks them (to pass it to :meth:`Model.validate`).
+
+    ``limits`` bounds what the reader accepts from an untrusted file, as the CLI's ``--max-*``
+    flags do: a dict with any of ``max_payload_bytes``, ``max_vertices``, ``max_simplices``,
+    ``max_stages`` and ``max_records`` (face records plus vertex maps over all stages). A file past
+    a limit raises :class:`FormatError` with rule ``ISM-007`` and the member's JSON pointer; the
+    defaults refuse nothing a readable file can hold.
 
     Raises :class:`FileError`, :class:`FormatError` (rule id, byte offset or JSON pointer) or
     :class:`StructureError` (every structural error in ``diagnostics``).
@@ -93,22 +99,29 @@ def read(source: Source, *, check: bool = True) -> Model:
     >>> with open("spec/examples/circle-curved.ismb", "rb") as f:
     ...     ism.read(f) == m
     True
+    >>> try:
+    ...     ism.read("spec/examples/circle-curved.ismb", limits={"max_simplices": 31})
+    ... except ism.FormatError as e:
+    ...     print(e.rule, e.pointer)
+    ISM-007 /simplices
     """
     if isinstance(source, (bytes, bytearray, memoryview)):
-        return _read_bytes(bytes(source), check)
+        return _read_bytes(bytes(source), check, limits)
     if isinstance(source, (str, os.PathLike)):
-        return _read_path(os.fspath(source), check)
+        return _read_path(os.fspath(source), check, limits)
     if hasattr(source, "read"):
         data = source.read()
         if not isinstance(data, (bytes, bytearray)):
             raise TypeError("ism.read: the file object must be opened in binary mode ('rb')")
-        return _read_bytes(bytes(data), check)
+        return _read_bytes(bytes(data), check, limits)
     raise TypeError(f"ism.read: expected a path, bytes or a binary file object, got {type(source).__name__}")
 
 
-def loads(data: Union[bytes, bytearray, memoryview], *, check: bool = True) -> Model:
+def loads(
+    data: Union[bytes, bytearray, memoryview], *, check: bool = True, limits: Optional[Mapping[str, int]] = None
+) -> Model:
     """Reads a model from bytes (any encoding); see :func:`read`."""
-    return _read_bytes(bytes(data), check)
+    return _read_bytes(bytes(data), check, limits)
 
 
 def write(model: Model, dest: Any, encoding: Union[str, None] = None, **options: Any) -> None:
@@ -120,8 +133,9 @@ def validate(source: Union[Source, Model], **options: Any) -> ValidationReport:
     """Validates a model, a path, ``bytes`` or a binary file object as ``ism validate --json``
     does (for files, the report's ``file`` member names path, encoding and size).
 
-    Options: ``max_issues``, ``threads``, ``max_pieces``, ``quality``, ``theorems``, and
-    ``progress(phase, done, total)`` (Ctrl-C or an exception from it stops the run).
+    Options: ``max_issues``, ``threads``, ``max_pieces``, ``quality``, ``theorems``,
+    ``progress(phase, done, total)`` (Ctrl-C or an exception from it stops the run), and for
+    files ``limits`` (as in :func:`read`; a file past one is unreadable: :class:`FormatError`).
     A file that cannot be read raises :class:`FileError` or :class:`FormatError`; structural
     errors are findings of the report, not exceptions.
     """

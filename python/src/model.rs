@@ -622,17 +622,72 @@ impl Stage {
 /// What `__reduce__` returns: the reader and its arguments.
 type Reduced<'py> = (Bound<'py, PyAny>, (Bound<'py, PyBytes>, bool));
 
-/// Reads a model from a file (any encoding, detected from content).
+/// The reader's resource limits from the `limits` keyword: `None` or a dict whose keys are
+/// among [`LIMIT_NAMES`] (the names of `io::Limits`' fields and of the CLI's `--max-*` flags),
+/// each a whole number; what is not given keeps its default.
+pub(crate) fn limits_from(obj: Option<&Bound<'_, PyAny>>) -> PyResult<io::Limits> {
+    let mut limits = io::Limits::default();
+    let Some(obj) = obj.filter(|o| !o.is_none()) else {
+        return Ok(limits);
+    };
+    let dict = obj.downcast::<PyDict>().map_err(|_| {
+        PyTypeError::new_err(format!(
+            "limits: expected a dict with keys among {}",
+            LIMIT_NAMES.join(", ")
+        ))
+    })?;
+    for (k, v) in dict.iter() {
+        let key: String = k.extract()?;
+        let value: u64 = v.extract().map_err(|_| {
+            PyValueError::new_err(format!(
+                "limits[{key:?}]: expected a whole number from 0 to {}",
+                u64::MAX
+            ))
+        })?;
+        let field = match key.as_str() {
+            "max_payload_bytes" => &mut limits.max_payload_bytes,
+            "max_vertices" => &mut limits.max_vertices,
+            "max_simplices" => &mut limits.max_simplices,
+            "max_stages" => &mut limits.max_stages,
+            "max_records" => &mut limits.max_records,
+            _ => {
+                return Err(PyValueError::new_err(format!(
+                    "limits: unknown key {key:?} (expected one of {})",
+                    LIMIT_NAMES.join(", ")
+                )))
+            }
+        };
+        *field = value;
+    }
+    Ok(limits)
+}
+
+/// The keys `limits` accepts, in the order of `io::Limits`' fields.
+const LIMIT_NAMES: [&str; 5] = [
+    "max_payload_bytes",
+    "max_vertices",
+    "max_simplices",
+    "max_stages",
+    "max_records",
+];
+
+/// Reads a model from a file (any encoding, detected from content), within `limits`.
 #[pyfunction]
-#[pyo3(signature = (path, check = true))]
-pub fn read_path(py: Python<'_>, path: std::path::PathBuf, check: bool) -> PyResult<Model> {
+#[pyo3(signature = (path, check = true, limits = None))]
+pub fn read_path(
+    py: Python<'_>,
+    path: std::path::PathBuf,
+    check: bool,
+    limits: Option<&Bound<'_, PyAny>>,
+) -> PyResult<Model> {
     let options = io::ReadOptions {
         check_structure: check,
+        limits: limits_from(limits)?,
         ..io::ReadOptions::default()
     };
     if check {
         // The checked read keeps the topology its structural check builds.
-        return match py.allow_threads(|| io::read_path_indexed(&path)) {
+        return match py.allow_threads(|| io::read_path_indexed_with(&path, &options)) {
             Ok(doc) => Ok(Model::from_shared(
                 Shared::Indexed(doc.model),
                 Some(doc.encoding),
@@ -640,25 +695,24 @@ pub fn read_path(py: Python<'_>, path: std::path::PathBuf, check: bool) -> PyRes
             Err(e) => Err(format_error(py, &e)),
         };
     }
-    let result = py.allow_threads(|| {
-        let file = std::fs::File::open(&path).map_err(|e| ism_format::Error::Io {
-            path: Some(path.clone()),
-            error: e,
-        })?;
-        io::read_with(std::io::BufReader::new(file), &options)
-    });
-    match result {
+    match py.allow_threads(|| io::read_path_with(&path, &options)) {
         Ok(doc) => Ok(Model::new(doc.model, Some(doc.encoding))),
         Err(e) => Err(format_error(py, &e)),
     }
 }
 
-/// Reads a model from bytes (any encoding, detected from content).
+/// Reads a model from bytes (any encoding, detected from content), within `limits`.
 #[pyfunction]
-#[pyo3(signature = (data, check = true))]
-pub fn read_bytes(py: Python<'_>, data: &[u8], check: bool) -> PyResult<Model> {
+#[pyo3(signature = (data, check = true, limits = None))]
+pub fn read_bytes(
+    py: Python<'_>,
+    data: &[u8],
+    check: bool,
+    limits: Option<&Bound<'_, PyAny>>,
+) -> PyResult<Model> {
     let options = io::ReadOptions {
         check_structure: check,
+        limits: limits_from(limits)?,
         ..io::ReadOptions::default()
     };
     if check {

@@ -136,7 +136,7 @@ fn json_dict<'py>(py: Python<'py>, value: &serde_json::Value) -> PyResult<Bound<
 
 /// Validates a file's bytes as `ism validate --json` does (the report's `file` member included).
 #[pyfunction]
-#[pyo3(signature = (path, *, max_issues = ism_validate::DEFAULT_MAX_ISSUES, threads = 0, max_pieces = ism_validate::DEFAULT_MAX_PIECES, quality = false, theorems = true, progress = None))]
+#[pyo3(signature = (path, *, max_issues = ism_validate::DEFAULT_MAX_ISSUES, threads = 0, max_pieces = ism_validate::DEFAULT_MAX_PIECES, quality = false, theorems = true, progress = None, limits = None))]
 #[allow(clippy::too_many_arguments)]
 pub fn validate_path<'py>(
     py: Python<'py>,
@@ -147,8 +147,10 @@ pub fn validate_path<'py>(
     quality: bool,
     theorems: bool,
     progress: Option<&Bound<'py, PyAny>>,
+    limits: Option<&Bound<'py, PyAny>>,
 ) -> PyResult<Bound<'py, PyAny>> {
-    let options = validate_options(max_issues, threads, max_pieces, quality, theorems)?;
+    let mut options = validate_options(max_issues, threads, max_pieces, quality, theorems)?;
+    options.limits = crate::model::limits_from(limits)?;
     let report = run(py, 0, progress.map(|p| (p, 0)), move |control| {
         ism_validate::validate_path_with_progress(&path, &options, &control.hook())
     })?
@@ -158,7 +160,7 @@ pub fn validate_path<'py>(
 
 /// Validates bytes (any encoding), as [`validate_path`].
 #[pyfunction]
-#[pyo3(signature = (data, *, max_issues = ism_validate::DEFAULT_MAX_ISSUES, threads = 0, max_pieces = ism_validate::DEFAULT_MAX_PIECES, quality = false, theorems = true, progress = None))]
+#[pyo3(signature = (data, *, max_issues = ism_validate::DEFAULT_MAX_ISSUES, threads = 0, max_pieces = ism_validate::DEFAULT_MAX_PIECES, quality = false, theorems = true, progress = None, limits = None))]
 #[allow(clippy::too_many_arguments)]
 pub fn validate_bytes<'py>(
     py: Python<'py>,
@@ -169,8 +171,10 @@ pub fn validate_bytes<'py>(
     quality: bool,
     theorems: bool,
     progress: Option<&Bound<'py, PyAny>>,
+    limits: Option<&Bound<'py, PyAny>>,
 ) -> PyResult<Bound<'py, PyAny>> {
-    let options = validate_options(max_issues, threads, max_pieces, quality, theorems)?;
+    let mut options = validate_options(max_issues, threads, max_pieces, quality, theorems)?;
+    options.limits = crate::model::limits_from(limits)?;
     let report = run(py, 0, progress.map(|p| (p, 0)), move |control| {
         ism_validate::validate_bytes_with_progress(&data, &options, &control.hook())
     })?

@@ -231,3 +231,70 @@ def test_indexed_views_outlive_the_model_and_unchecked_models_are_indexed_on_dem
     broken = ism.Model(v, [[0, 2, 1]], [-1.0, 1.0, 1.0], check=False)  # negatively oriented
     with pytest.raises(ism.StructureError):
         broken.neighbours
+
+
+def _counts(name):
+    """Entity counts of an example from its JSON text (Python's json module, not the reader)."""
+    d = json.loads((EXAMPLES / (name + ".ism.json")).read_text())
+    n = d["dimension"]
+    records = [len(s.get("faces", [])) + len(s.get("vertexMaps", [])) for s in d["stages"]]
+    return {
+        "max_vertices": len(d["vertices"]) // n,
+        "max_simplices": len(d["simplices"]) // (n + 1),
+        "max_stages": len(d["stages"]),
+        "max_records": sum(records),
+    }, records
+
+
+def _payload_bytes(path):
+    """The payload length: a container header's `u64` at offset 16 (spec §7.3), else the whole
+    JSON text."""
+    data = path.read_bytes()
+    if data.startswith(b"\x89ISM\r\n\x1a\n"):
+        return int.from_bytes(data[16:24], "little")
+    return len(data)
+
+
+@pytest.mark.parametrize("name", ["two-stage", "torus", "sphere"])
+@pytest.mark.parametrize("ext", list(ENCODINGS.values()))
+def test_limits_refuse_one_below_the_count_and_accept_the_count(name, ext):
+    path = EXAMPLES / (name + ext)
+    counts, records = _counts(name)
+    counts["max_payload_bytes"] = _payload_bytes(path)
+    # The stage where the running total of records first passes `total - 1`: the last one with any.
+    last = max(k for k, r in enumerate(records) if r) if any(records) else None
+    pointers = {
+        "max_vertices": "/vertices",
+        "max_simplices": "/simplices",
+        "max_stages": "/stages",
+        "max_records": f"/stages/{last}",
+    }
+    for key, count in counts.items():
+        if count == 0:
+            continue
+        at = {key: count}
+        assert ism.read(path, limits=at) == ism.read(path)
+        assert ism.loads(path.read_bytes(), limits=at) == ism.read(path)
+        assert ism.validate(path, limits=at).valid
+        for reader in (
+            lambda: ism.read(path, limits={key: count - 1}),
+            lambda: ism.read(path.read_bytes(), check=False, limits={key: count - 1}),
+            lambda: ism.validate(path, limits={key: count - 1}),
+            lambda: ism.validate(path.read_bytes(), limits={key: count - 1}),
+        ):
+            with pytest.raises(ism.FormatError) as e:
+                reader()
+            assert e.value.rule == "ISM-007", (key, e.value)
+            if key in pointers:
+                assert e.value.pointer == pointers[key], (key, e.value)
+
+
+def test_limits_keys_and_values_are_checked():
+    path = EXAMPLES / "two-stage.ismb"
+    with pytest.raises(ValueError, match='unknown key "max_vertex"'):
+        ism.read(path, limits={"max_vertex": 10})
+    with pytest.raises(ValueError, match="whole number"):
+        ism.read(path, limits={"max_vertices": -1})
+    with pytest.raises(TypeError, match="expected a dict"):
+        ism.read(path, limits=[("max_vertices", 10)])
+    assert ism.read(path, limits={}) == ism.read(path, limits=None) == ism.read(path)
