@@ -133,8 +133,12 @@ fn read(file: &Path, mode: &str, repeat: usize) -> Result<(), Box<dyn std::error
         } else {
             (d.encoding, d.byte_len, d.model.num_simplices(), None)
         };
-        best = best.min(t.elapsed().as_secs_f64());
-        best_cpu = best_cpu.min(cpu_seconds() - c);
+        let (wall, cpu) = (t.elapsed().as_secs_f64(), cpu_seconds() - c);
+        if std::env::var_os("BENCH_EACH").is_some() {
+            eprintln!("read: {wall:.4} s, {cpu:.2} CPU-s");
+        }
+        best = best.min(wall);
+        best_cpu = best_cpu.min(cpu);
         out = Some(summary);
     }
     let (encoding, bytes, simplices, _) = out.expect("repeat ≥ 1");

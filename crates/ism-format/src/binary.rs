@@ -27,8 +27,10 @@ mod min_size {
 /// Window of a streamed payload: large enough that refills are rare, small enough to stay in cache.
 const WINDOW: usize = 1 << 18;
 
-/// In a streamed payload, sequences reserve at most this many elements before their data has
-/// arrived (a declared length is only a claim until the bytes are read).
+/// In a streamed payload, sequences of records (stages, vertex maps, extension names) reserve at
+/// most this many elements before their data has arrived (a declared length is only a claim until
+/// the bytes are read); arrays of numbers and face tables reserve their declared length, see
+/// `BinaryDecoder::reserve_exact`.
 const STREAM_RESERVE: usize = 1 << 16;
 
 /// A payload streamed from a reader through a fixed window, its CRC-32 computed on the way; never
@@ -343,16 +345,37 @@ impl<'a, 'r> BinaryDecoder<'a, 'r> {
         Ok(out)
     }
 
+    /// A length-prefixed array of `f64` in a vector of exactly its length (reserved once: see
+    /// [`Self::reserve_exact`]).
     fn f64s(&mut self, what: &str) -> Result<Vec<f64>> {
+        let n = self.length(min_size::F64, what)?;
         let mut out = Vec::new();
-        self.f64s_into(&mut out, what)?;
+        Self::reserve_exact(&mut out, n);
+        self.numbers_into(n, 8, what, &mut out, |c| {
+            f64::from_le_bytes(c.try_into().expect("8 bytes"))
+        })?;
         Ok(out)
     }
 
+    /// A length-prefixed array of `u32`, as [`Self::f64s`].
     fn u32s(&mut self, what: &str) -> Result<Vec<u32>> {
+        let n = self.length(min_size::U32, what)?;
         let mut out = Vec::new();
-        self.u32s_into(&mut out, what)?;
+        Self::reserve_exact(&mut out, n);
+        self.numbers_into(n, 4, what, &mut out, |c| {
+            u32::from_le_bytes(c.try_into().expect("4 bytes"))
+        })?;
         Ok(out)
+    }
+
+    /// Reserves room for `n` more elements the payload declares (and has room for: the caller
+    /// checked `n` against the bytes left), so a large array is allocated once instead of grown by
+    /// doubling (each growth copies it and touches its pages again). Reserving is not touching: a
+    /// streamed payload's pages are written only as its bytes arrive, so a file that declares more
+    /// than it holds costs address space, not memory, until it is found short; a reservation the
+    /// allocator refuses is skipped (the vector then grows as bytes arrive).
+    fn reserve_exact<T>(out: &mut Vec<T>, n: usize) {
+        let _ = out.try_reserve_exact(n);
     }
 
     /// Appends a length-prefixed array of `f64` to `out` (no allocation but `out`'s growth).
@@ -440,13 +463,86 @@ impl<'a, 'r> BinaryDecoder<'a, 'r> {
         true
     }
 
+    /// Of the next `left` face records, those wholly at hand that have the lengths every record of
+    /// `table` has so far (a uniform table, not empty): appended in one loop, without a record's
+    /// bookkeeping; how many. Stops before the first record of other lengths, the first one not
+    /// wholly at hand and the first one the table has no room for: the general path reads those.
+    /// What is appended is what [`Self::face_record_at_hand`] would append, record by record.
+    fn uniform_records_at_hand(&mut self, table: &mut FaceTable, left: usize) -> usize {
+        let Some([a, b, c]) = table.uniform_lengths() else {
+            return 0;
+        };
+        let room = table.uniform_room();
+        let bytes = match &self.src {
+            Source::Slice(p) => &p[self.at..],
+            Source::Stream(s) => &s.buf[s.lo..s.hi],
+        };
+        // A record: length a, the ids (to `fe`), length b, the points (from `ps` to `pe`),
+        // length c, the weights (from `ws` to the end).
+        let fe = 8 + 4 * a;
+        let (ps, pe) = (fe + 8, fe + 8 + 8 * b);
+        let ws = pe + 8;
+        let size = ws + 8 * c;
+        let most = (bytes.len() / size).min(left).min(room);
+        let prefix = |n: usize| (n as u64).to_le_bytes();
+        let (la, lb, lc) = (prefix(a), prefix(b), prefix(c));
+        let (ids, points, weights) = table.parts_mut();
+        let mut k = 0;
+        for rec in bytes.chunks_exact(size).take(most) {
+            if rec[..8] != la || rec[fe..ps] != lb || rec[pe..ws] != lc {
+                break;
+            }
+            ids.extend(
+                rec[8..fe]
+                    .chunks_exact(4)
+                    .map(|x| u32::from_le_bytes(x.try_into().expect("4 bytes"))),
+            );
+            points.extend(
+                rec[ps..pe]
+                    .chunks_exact(8)
+                    .map(|x| f64::from_le_bytes(x.try_into().expect("8 bytes"))),
+            );
+            weights.extend(
+                rec[ws..]
+                    .chunks_exact(8)
+                    .map(|x| f64::from_le_bytes(x.try_into().expect("8 bytes"))),
+            );
+            k += 1;
+        }
+        table.close_uniform(k);
+        self.advance(k * size);
+        k
+    }
+
     /// A stage's `faces`: straight into the flat table, one pass, nothing allocated per record.
     fn face_table(&mut self) -> Result<FaceTable> {
         let n = self.length(min_size::FACE_RECORD, "faces")?;
-        let mut table = FaceTable::with_capacity(self.reserve_hint(n));
-        for i in 0..n {
+        let mut table = FaceTable::new();
+        let mut i = 0;
+        while i < n {
+            if i > 0 {
+                i += self.uniform_records_at_hand(&mut table, n - i);
+                if i == n {
+                    break;
+                }
+            }
+            let before = self.at;
             if self.face_record_at_hand(&mut table) {
                 if table.close_record().is_ok() {
+                    if i == 0 {
+                        // Room for the rest, when the payload can hold that many records of the
+                        // first one's size (records of one face dimension, as usual): the parts
+                        // are allocated once (see `reserve_exact`).
+                        let size = self.at - before;
+                        let rest = n - 1;
+                        if rest
+                            .checked_mul(size)
+                            .is_some_and(|b| b <= self.remaining())
+                        {
+                            table.reserve_records(rest);
+                        }
+                    }
+                    i += 1;
                     continue;
                 }
                 // Past the table's capacity: the error the checked path gives at this record.
@@ -477,6 +573,7 @@ impl<'a, 'r> BinaryDecoder<'a, 'r> {
                 ));
             }
             self.path.pop();
+            i += 1;
         }
         Ok(table)
     }

@@ -12,6 +12,8 @@
 //! Reading yields borrowed views ([`FaceRef`]: `face`, `points`, `weights` slices); builders push the
 //! parts, or collect owned [`FaceRecord`]s. Serialization is the list of records, byte for byte.
 
+use std::borrow::Cow;
+
 use bincode::Encode;
 use serde::{Deserialize, Serialize};
 
@@ -74,14 +76,33 @@ impl std::error::Error for TableFull {}
 /// Offsets are `u32` (12 bytes per record rather than 24): a stage holds at most `u32::MAX` face
 /// ids, coordinates and weights each; the decoders report a larger one as a limit (ISM-007) and
 /// [`FaceTable::push`] panics.
+///
+/// A table whose records all have the same lengths (a stage of one face dimension, as written by
+/// every builder of strata) keeps no offsets at all: record `r`'s parts are at `r` times those
+/// lengths ([`FaceTable::uniform_lengths`]); the offsets are then computed on request. Which of
+/// the two forms a table has follows from its records alone, so equal records make equal tables.
 #[derive(Clone, PartialEq)]
 pub struct FaceTable {
     ids: Vec<u32>,
     points: Vec<f64>,
     weights: Vec<f64>,
-    face_offsets: Vec<u32>,
-    point_offsets: Vec<u32>,
-    weight_offsets: Vec<u32>,
+    /// Number of records.
+    len: usize,
+    rows: Rows,
+}
+
+/// Where a [`FaceTable`]'s records lie in its three arrays.
+#[derive(Clone, Debug, PartialEq)]
+enum Rows {
+    /// Every record has these lengths (ids, coordinates, weights); `[0, 0, 0]` when the table is
+    /// empty.
+    Uniform([u32; 3]),
+    /// `len + 1` end offsets per part, from 0 (records of different lengths).
+    Ragged {
+        face_offsets: Vec<u32>,
+        point_offsets: Vec<u32>,
+        weight_offsets: Vec<u32>,
+    },
 }
 
 impl Default for FaceTable {
@@ -90,9 +111,8 @@ impl Default for FaceTable {
             ids: Vec::new(),
             points: Vec::new(),
             weights: Vec::new(),
-            face_offsets: vec![0],
-            point_offsets: vec![0],
-            weight_offsets: vec![0],
+            len: 0,
+            rows: Rows::Uniform([0; 3]),
         }
     }
 }
@@ -103,25 +123,41 @@ impl FaceTable {
         FaceTable::default()
     }
 
-    /// An empty table with room for `records` records.
-    pub fn with_capacity(records: usize) -> FaceTable {
-        let offsets = || {
-            let mut v = Vec::with_capacity(records + 1);
-            v.push(0);
-            v
-        };
-        FaceTable {
-            face_offsets: offsets(),
-            point_offsets: offsets(),
-            weight_offsets: offsets(),
-            ..FaceTable::default()
+    /// An empty table. (`records` is not needed: a table of records of one length keeps no
+    /// offsets, and its parts can be reserved once the first record shows their lengths, by
+    /// [`FaceTable::reserve_records`].)
+    pub fn with_capacity(_records: usize) -> FaceTable {
+        FaceTable::default()
+    }
+
+    /// Reserves room for `more` records of the lengths of the records so far (nothing for an empty
+    /// or a ragged table, whose next lengths are unknown). Like `Vec::reserve`, but a reservation
+    /// the allocator refuses is skipped (the parts then grow as records arrive).
+    pub fn reserve_records(&mut self, more: usize) {
+        if let (Rows::Uniform(lens), true) = (&self.rows, self.len > 0) {
+            let [a, b, c] = lens.map(|x| (x as usize).saturating_mul(more));
+            let _ = self.ids.try_reserve_exact(a);
+            let _ = self.points.try_reserve_exact(b);
+            let _ = self.weights.try_reserve_exact(c);
+        }
+    }
+
+    /// The lengths (face ids, coordinates, weights) every record has, when they are all the same;
+    /// `None` when records differ (or the table is empty). Record `r`'s parts then start at `r`
+    /// times these lengths in [`FaceTable::all_face_ids`], [`FaceTable::all_points`] and
+    /// [`FaceTable::all_weights`].
+    #[inline]
+    pub fn uniform_lengths(&self) -> Option<[usize; 3]> {
+        match &self.rows {
+            Rows::Uniform(lens) if self.len > 0 => Some(lens.map(|x| x as usize)),
+            _ => None,
         }
     }
 
     /// Number of records.
     #[inline]
     pub fn len(&self) -> usize {
-        self.face_offsets.len() - 1
+        self.len
     }
 
     /// Whether there is no record.
@@ -132,15 +168,27 @@ impl FaceTable {
     /// Record `r`'s ranges in the three arrays, or `None` past the end.
     #[inline]
     fn ranges(&self, r: usize) -> Option<[std::ops::Range<usize>; 3]> {
-        if r >= self.len() {
+        if r >= self.len {
             return None;
         }
-        let range = |o: &[u32]| o[r] as usize..o[r + 1] as usize;
-        Some([
-            range(&self.face_offsets),
-            range(&self.point_offsets),
-            range(&self.weight_offsets),
-        ])
+        Some(match &self.rows {
+            Rows::Uniform(lens) => lens.map(|x| {
+                let x = x as usize;
+                r * x..(r + 1) * x
+            }),
+            Rows::Ragged {
+                face_offsets,
+                point_offsets,
+                weight_offsets,
+            } => {
+                let range = |o: &[u32]| o[r] as usize..o[r + 1] as usize;
+                [
+                    range(face_offsets),
+                    range(point_offsets),
+                    range(weight_offsets),
+                ]
+            }
+        })
     }
 
     /// Record `r`, or `None` past the end.
@@ -170,7 +218,20 @@ impl FaceTable {
     /// If `r ≥ len()`.
     #[inline]
     pub fn face(&self, r: usize) -> &[u32] {
-        &self.ids[self.face_offsets[r] as usize..self.face_offsets[r + 1] as usize]
+        match &self.rows {
+            Rows::Uniform(lens) => {
+                assert!(
+                    r < self.len,
+                    "face record {r} out of range: the table has {}",
+                    self.len
+                );
+                let a = lens[0] as usize;
+                &self.ids[r * a..(r + 1) * a]
+            }
+            Rows::Ragged { face_offsets, .. } => {
+                &self.ids[face_offsets[r] as usize..face_offsets[r + 1] as usize]
+            }
+        }
     }
 
     /// Record `r` with its numbers writable, or `None` past the end.
@@ -229,10 +290,78 @@ impl FaceTable {
             end(self.points.len())?,
             end(self.weights.len())?,
         ];
-        self.face_offsets.push(row[0]);
-        self.point_offsets.push(row[1]);
-        self.weight_offsets.push(row[2]);
+        match &mut self.rows {
+            Rows::Uniform(lens) => {
+                // The previous records end at `len` times their lengths, within u32 (checked when
+                // they were closed).
+                let end_of =
+                    |records: usize, i: usize| (records as u64 * u64::from(lens[i])) as u32;
+                let this = [0, 1, 2].map(|i| row[i] - end_of(self.len, i));
+                if self.len == 0 {
+                    *lens = this;
+                } else if this != *lens {
+                    // The first record of other lengths: the offsets of those before it, then on.
+                    let offsets = |i: usize| -> Vec<u32> {
+                        let mut o = Vec::with_capacity(self.len + 2);
+                        o.extend((0..=self.len).map(|r| end_of(r, i)));
+                        o.push(row[i]);
+                        o
+                    };
+                    self.rows = Rows::Ragged {
+                        face_offsets: offsets(0),
+                        point_offsets: offsets(1),
+                        weight_offsets: offsets(2),
+                    };
+                }
+            }
+            Rows::Ragged {
+                face_offsets,
+                point_offsets,
+                weight_offsets,
+            } => {
+                face_offsets.push(row[0]);
+                point_offsets.push(row[1]);
+                weight_offsets.push(row[2]);
+            }
+        }
+        self.len += 1;
         Ok(())
+    }
+
+    /// How many more records of the lengths of a uniform, nonempty table it has room for (the
+    /// `u32` offsets' bound); 0 for other tables.
+    pub(crate) fn uniform_room(&self) -> usize {
+        match (&self.rows, self.len > 0) {
+            (Rows::Uniform(lens), true) => [
+                (lens[0], self.ids.len()),
+                (lens[1], self.points.len()),
+                (lens[2], self.weights.len()),
+            ]
+            .iter()
+            .map(|&(per, used)| match per {
+                0 => usize::MAX,
+                per => (u32::MAX as usize).saturating_sub(used) / per as usize,
+            })
+            .min()
+            .unwrap_or(0),
+            _ => 0,
+        }
+    }
+
+    /// Ends `k` records of a uniform, nonempty table's lengths whose parts were appended to
+    /// [`FaceTable::parts_mut`]'s arrays (at most [`FaceTable::uniform_room`] of them).
+    pub(crate) fn close_uniform(&mut self, k: usize) {
+        if k == 0 {
+            return;
+        }
+        let Rows::Uniform(lens) = self.rows else {
+            unreachable!("close_uniform on a ragged table");
+        };
+        self.len += k;
+        debug_assert_eq!(
+            [self.ids.len(), self.points.len(), self.weights.len()],
+            lens.map(|x| x as usize * self.len)
+        );
     }
 
     /// The arrays a decoder appends a record's parts to before [`FaceTable::close_record`].
@@ -240,19 +369,37 @@ impl FaceTable {
         (&mut self.ids, &mut self.points, &mut self.weights)
     }
 
-    /// `len() + 1` offsets into [`FaceTable::all_face_ids`], from 0.
-    pub fn face_offsets(&self) -> &[u32] {
-        &self.face_offsets
+    /// `len() + 1` offsets into [`FaceTable::all_face_ids`], from 0 (computed when the records
+    /// all have the same lengths: [`FaceTable::uniform_lengths`]).
+    pub fn face_offsets(&self) -> Cow<'_, [u32]> {
+        self.offsets(0)
     }
 
-    /// `len() + 1` offsets into [`FaceTable::all_points`], from 0.
-    pub fn point_offsets(&self) -> &[u32] {
-        &self.point_offsets
+    /// `len() + 1` offsets into [`FaceTable::all_points`], from 0 (computed as
+    /// [`FaceTable::face_offsets`]).
+    pub fn point_offsets(&self) -> Cow<'_, [u32]> {
+        self.offsets(1)
     }
 
-    /// `len() + 1` offsets into [`FaceTable::all_weights`], from 0.
-    pub fn weight_offsets(&self) -> &[u32] {
-        &self.weight_offsets
+    /// `len() + 1` offsets into [`FaceTable::all_weights`], from 0 (computed as
+    /// [`FaceTable::face_offsets`]).
+    pub fn weight_offsets(&self) -> Cow<'_, [u32]> {
+        self.offsets(2)
+    }
+
+    /// Part `i`'s offsets.
+    fn offsets(&self, i: usize) -> Cow<'_, [u32]> {
+        match &self.rows {
+            // Within u32, as the part's length is.
+            Rows::Uniform(lens) => (0..=self.len)
+                .map(|r| (r as u64 * u64::from(lens[i])) as u32)
+                .collect(),
+            Rows::Ragged {
+                face_offsets,
+                point_offsets,
+                weight_offsets,
+            } => Cow::Borrowed([face_offsets, point_offsets, weight_offsets][i]),
+        }
     }
 
     /// Every record's face ids, concatenated.
@@ -390,11 +537,11 @@ impl Extend<FaceRecord> for FaceTable {
     fn extend<I: IntoIterator<Item = FaceRecord>>(&mut self, iter: I) {
         let iter = iter.into_iter();
         let more = iter.size_hint().0;
-        self.face_offsets.reserve(more);
-        self.point_offsets.reserve(more);
-        self.weight_offsets.reserve(more);
-        for r in iter {
+        for (i, r) in iter.enumerate() {
             self.push_record(&r);
+            if i == 0 {
+                self.reserve_records(more.saturating_sub(1));
+            }
         }
     }
 }
@@ -549,10 +696,134 @@ mod tests {
         assert_eq!(table.record(1).face, &[7]);
         assert_eq!(table.record(2).weights, &[1.5, 0.5]);
         assert_eq!(table.all_weights(), &[2.0, 1.5, 0.5]);
-        assert_eq!(table.weight_offsets(), &[0, 0, 1, 3]);
-        assert_eq!(table.face_offsets(), &[0, 2, 3, 6]);
-        assert_eq!(table.point_offsets(), &[0, 2, 2, 8]);
+        assert_eq!(&*table.weight_offsets(), &[0, 0, 1, 3]);
+        assert_eq!(&*table.face_offsets(), &[0, 2, 3, 6]);
+        assert_eq!(&*table.point_offsets(), &[0, 2, 2, 8]);
         table.clear();
         assert!(table.is_empty());
+    }
+
+    /// Offsets from the records' lengths by prefix sums (the test's own arithmetic).
+    fn prefix_sums(records: &[FaceRecord], part: impl Fn(&FaceRecord) -> usize) -> Vec<u32> {
+        let mut out = vec![0u32];
+        for r in records {
+            out.push(out.last().unwrap() + part(r) as u32);
+        }
+        out
+    }
+
+    fn record(face: &[u32], points: usize, weights: usize, seed: f64) -> FaceRecord {
+        FaceRecord {
+            face: face.to_vec(),
+            points: (0..points).map(|i| seed + i as f64).collect(),
+            weights: (0..weights).map(|i| -seed - i as f64).collect(),
+        }
+    }
+
+    /// Tables of records of one length keep no offsets; tables of records of several lengths
+    /// switch to offsets at the first record of other lengths. Either way every accessor gives the
+    /// records pushed (truth: the list of owned records and its prefix sums).
+    #[test]
+    fn uniform_and_ragged_tables_give_back_the_records() {
+        let uniform: Vec<FaceRecord> = (0..50)
+            .map(|i| record(&[i, i + 1, i + 2], 3, 1, f64::from(i)))
+            .collect();
+        let mut late = uniform.clone();
+        late.push(record(&[60, 61], 4, 2, 0.5));
+        late.extend(uniform.iter().cloned());
+        let mut early = vec![record(&[7], 0, 0, 0.0)];
+        early.extend(uniform.iter().cloned());
+        let empty_records: Vec<FaceRecord> = (0..5).map(|_| record(&[], 0, 0, 0.0)).collect();
+        for (name, records, lens) in [
+            ("uniform", &uniform, Some([3, 3, 1])),
+            ("one other record late", &late, None),
+            ("one other record first", &early, None),
+            ("empty records", &empty_records, Some([0, 0, 0])),
+            ("one record", &uniform[..1].to_vec(), Some([3, 3, 1])),
+            ("no record", &Vec::new(), None),
+        ] {
+            // Three ways to build the same table.
+            let pushed = {
+                let mut t = FaceTable::new();
+                for r in records {
+                    t.push(&r.face, &r.points, &r.weights);
+                }
+                t
+            };
+            let collected = FaceTable::from(records.clone());
+            let by_ref: FaceTable = pushed.iter().collect();
+            assert_eq!(pushed, collected, "{name}");
+            assert_eq!(by_ref, collected, "{name}");
+            assert_eq!(pushed.uniform_lengths(), lens, "{name}");
+            assert_eq!(pushed.len(), records.len(), "{name}");
+            assert_eq!(&pushed.to_records(), records, "{name}");
+            for (r, rec) in records.iter().enumerate() {
+                assert_eq!(pushed.face(r), rec.face.as_slice(), "{name} {r}");
+                assert_eq!(pushed.record(r).to_record(), *rec, "{name} {r}");
+            }
+            assert!(pushed.get(records.len()).is_none(), "{name}");
+            assert_eq!(
+                &*pushed.face_offsets(),
+                prefix_sums(records, |r| r.face.len()),
+                "{name}"
+            );
+            assert_eq!(
+                &*pushed.point_offsets(),
+                prefix_sums(records, |r| r.points.len()),
+                "{name}"
+            );
+            assert_eq!(
+                &*pushed.weight_offsets(),
+                prefix_sums(records, |r| r.weights.len()),
+                "{name}"
+            );
+            let concat = |f: fn(&FaceRecord) -> Vec<f64>| -> Vec<f64> {
+                records.iter().flat_map(f).collect()
+            };
+            assert_eq!(pushed.all_points(), concat(|r| r.points.clone()), "{name}");
+            assert_eq!(
+                pushed.all_weights(),
+                concat(|r| r.weights.clone()),
+                "{name}"
+            );
+            // The binary encoding is the list of records'.
+            let config = crate::io::binary_config();
+            assert_eq!(
+                bincode::encode_to_vec(&pushed, config).unwrap(),
+                bincode::encode_to_vec(records, config).unwrap(),
+                "{name}"
+            );
+        }
+        // Equal records, equal tables; different records, different tables (also when only the
+        // form would differ were it not decided by the records).
+        assert_ne!(
+            FaceTable::from(uniform.clone()),
+            FaceTable::from(late.clone())
+        );
+        let mut reserved = FaceTable::from(uniform[..1].to_vec());
+        reserved.reserve_records(1000);
+        for r in &uniform[1..] {
+            reserved.push_record(r);
+        }
+        assert_eq!(reserved, FaceTable::from(uniform.clone()));
+    }
+
+    #[test]
+    #[should_panic(expected = "out of range")]
+    fn a_record_past_the_end_of_a_table_of_empty_records_panics() {
+        let t = FaceTable::from(vec![record(&[], 0, 0, 0.0); 3]);
+        let _ = t.face(3);
+    }
+
+    #[test]
+    fn uniform_room_counts_what_u32_offsets_can_address() {
+        let t = FaceTable::from(vec![record(&[1, 2], 4, 0, 0.0); 3]);
+        // ids: 6 used of u32::MAX, 2 per record; points: 12 used, 4 per record.
+        assert_eq!(t.uniform_room(), (u32::MAX as usize - 12) / 4);
+        assert_eq!(FaceTable::new().uniform_room(), 0);
+        let ragged = FaceTable::from(vec![record(&[1], 1, 0, 0.0), record(&[1, 2], 1, 0, 0.0)]);
+        assert_eq!(ragged.uniform_room(), 0);
+        let empty = FaceTable::from(vec![record(&[], 0, 0, 0.0); 2]);
+        assert_eq!(empty.uniform_room(), usize::MAX);
     }
 }

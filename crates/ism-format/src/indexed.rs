@@ -741,7 +741,15 @@ impl Topology {
     /// Whether [`Topology::scan`] can look up the records of `table`: every record names at least
     /// one id, the first ids are non-decreasing and below `num_vertices`.
     pub(crate) fn scannable(table: &FaceTable, num_vertices: usize) -> bool {
-        let (offsets, ids) = (table.face_offsets(), table.all_face_ids());
+        let ids = table.all_face_ids();
+        if let Some([size, ..]) = table.uniform_lengths() {
+            // Records of `size` ids each: their first ids are every `size`-th.
+            return size > 0
+                && ids.par_chunks(size).enumerate().all(|(r, face)| {
+                    (face[0] as usize) < num_vertices && (r == 0 || ids[(r - 1) * size] <= face[0])
+                });
+        }
+        let offsets = table.face_offsets();
         offsets.par_windows(2).enumerate().all(|(r, w)| {
             let a = ids.get(w[0] as usize).copied().unwrap_or(u32::MAX);
             w[1] > w[0]

@@ -94,7 +94,9 @@ impl std::str::FromStr for Encoding {
 /// Bounds a reader enforces against hostile input (spec §7.6).
 ///
 /// The payload limit bounds memory: it is checked before anything is read past the header, and
-/// every decoder allocates only for elements the bytes at hand can hold. The entity limits bound
+/// every decoder allocates only for elements the bytes at hand can hold (a streamed binary payload
+/// may reserve address space for the large arrays its declared length can hold, see
+/// [`read_with`]; pages are written only as bytes arrive). The entity limits bound
 /// the *work* after decoding (structural check, indexing, validation, export): they are checked
 /// right after decoding, before any of it, and a count above one is ISM-007 at the member's
 /// pointer. The defaults of the entity limits refuse nothing a readable file can hold (ids are
@@ -251,8 +253,11 @@ pub fn read_path_with(path: impl AsRef<Path>, options: &ReadOptions) -> Result<D
     })
 }
 
-/// Reads a model from a reader. Allocates no more than the bytes that actually arrive (bounded by
-/// `options.limits`) plus the decoded model.
+/// Reads a model from a reader. Uses no more memory than the bytes that actually arrive (bounded
+/// by `options.limits`) plus the decoded model: a binary payload's large arrays (vertices,
+/// simplices, values, a stage's face records) are reserved once at the length they declare, when
+/// the declared payload can hold it, so they never grow by copying; reserved pages are touched
+/// only as bytes arrive, and a reservation the allocator refuses is skipped.
 ///
 /// A binary file is decoded as it streams in (its checksum computed on the way), so its bytes are
 /// never held in memory all at once; the other encodings are read whole first. Either way the

@@ -59,6 +59,46 @@ pub fn orientation(model: &Model, s: usize) -> (f64, f64) {
     (det, longest)
 }
 
+/// [`orientation`] of a simplex of `N + 1` vertices (`N` = 2 or 3, the model's dimension) with the
+/// loops unrolled: the same operations in the same order, so the same bits, but for the longest
+/// edge, which is the square root of the largest squared length instead of the largest square
+/// root (the same number: a correctly rounded square root is monotonic; a NaN squared length is
+/// skipped by `max` either way). Indices must be in range.
+fn orientation_of<const N: usize>(model: &Model, ids: &[u32]) -> (f64, f64) {
+    debug_assert!(N == 2 || N == 3);
+    let vertex = |id: u32| -> &[f64; N] {
+        let at = id as usize * N;
+        model.vertices[at..at + N]
+            .try_into()
+            .expect("N coordinates")
+    };
+    let v: [&[f64; N]; 4] = std::array::from_fn(|i| vertex(ids[i.min(N)]));
+    let mut e = [[0.0f64; 3]; 3];
+    for k in 0..N {
+        for c in 0..N {
+            e[k][c] = v[k + 1][c] - v[0][c];
+        }
+    }
+    let det = if N == 2 {
+        e[0][0] * e[1][1] - e[0][1] * e[1][0]
+    } else {
+        e[0][0] * (e[1][1] * e[2][2] - e[1][2] * e[2][1])
+            - e[0][1] * (e[1][0] * e[2][2] - e[1][2] * e[2][0])
+            + e[0][2] * (e[1][0] * e[2][1] - e[1][1] * e[2][0])
+    };
+    let mut longest2 = 0.0f64;
+    for a in 0..=N {
+        for b in (a + 1)..=N {
+            let mut d2 = (v[a][0] - v[b][0]).powi(2);
+            for (x, y) in v[a][1..].iter().zip(&v[b][1..]) {
+                d2 += (x - y).powi(2);
+            }
+            longest2 = longest2.max(d2);
+        }
+    }
+    (det, longest2.sqrt())
+}
+
 /// Collects up to `max` errors and, separately, up to `max` warnings: warnings never crowd out an
 /// error or stop the checks, so a file with many unused vertices still has its stages checked.
 struct Collector {
@@ -233,7 +273,11 @@ fn check_simplices(model: &Model, c: &mut Collector, full: bool) -> Option<Index
             if (0..m).any(|a| ids[a + 1..].contains(&ids[a])) {
                 return Status::Repeated;
             }
-            let (det, longest) = orientation(model, s);
+            let (det, longest) = match n {
+                2 => orientation_of::<2>(model, ids),
+                3 => orientation_of::<3>(model, ids),
+                _ => orientation(model, s),
+            };
             let tol = DEGENERACY_TOLERANCE * longest.powi(n as i32);
             if det.abs() <= tol || !det.is_finite() {
                 Status::Degenerate
@@ -594,25 +638,40 @@ fn check_stages(
                 let finite = table.all_points().par_iter().all(|x| x.is_finite())
                     && table.all_weights().iter().all(|x| x.is_finite());
                 let owned_of: Vec<usize> = (0..=n + 1).map(|size| owned_count(size, d)).collect();
-                let (fo, po, wo) = (
-                    table.face_offsets(),
-                    table.point_offsets(),
-                    table.weight_offsets(),
-                );
-                let suspects: Vec<usize> = (0..table.len())
-                    .into_par_iter()
-                    .filter(|&r| {
-                        let size = (fo[r + 1] - fo[r]) as usize;
-                        let owned = owned_of.get(size).copied().unwrap_or(0);
-                        let points = (po[r + 1] - po[r]) as usize;
-                        let weights = (wo[r + 1] - wo[r]) as usize;
-                        owned == 0
-                            || points != owned * size
-                            || weights != if rational { owned } else { 0 }
-                            || !finite
-                            || missing(r)
-                    })
-                    .collect();
+                let counts_wrong = |[size, points, weights]: [usize; 3]| {
+                    let owned = owned_of.get(size).copied().unwrap_or(0);
+                    owned == 0
+                        || points != owned * size
+                        || weights != if rational { owned } else { 0 }
+                };
+                let suspects: Vec<usize> = match table.uniform_lengths() {
+                    // Records of one length (one face dimension): their counts are right or
+                    // wrong all together.
+                    Some(lens) if finite && !counts_wrong(lens) => match scan {
+                        Some(s) => s.missing.iter().map(|&r| r as usize).collect(),
+                        None => (0..table.len())
+                            .into_par_iter()
+                            .filter(|&r| missing(r))
+                            .collect(),
+                    },
+                    Some(_) => (0..table.len()).collect(),
+                    None => {
+                        let (fo, po, wo) = (
+                            table.face_offsets(),
+                            table.point_offsets(),
+                            table.weight_offsets(),
+                        );
+                        (0..table.len())
+                            .into_par_iter()
+                            .filter(|&r| {
+                                let len = |o: &[u32]| (o[r + 1] - o[r]) as usize;
+                                !finite
+                                    || counts_wrong([len(&fo), len(&po), len(&wo)])
+                                    || missing(r)
+                            })
+                            .collect()
+                    }
+                };
                 let mut visit: Vec<(usize, usize)> = suspects
                     .into_iter()
                     .map(|r| (r, usize::MAX))
@@ -712,4 +771,161 @@ fn check_stages(
         }
     }
     record_faces
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The unrolled orientation gives the bits of [`orientation`] (the reference: the general
+    /// loops), NaN compared as NaN, on simplices with repeated, zero, negative, subnormal, huge,
+    /// infinite and NaN coordinates.
+    #[test]
+    fn unrolled_orientation_gives_the_same_bits() {
+        let specials = [
+            0.0,
+            -0.0,
+            1.0,
+            -1.0,
+            0.5,
+            1e-310,
+            -1e-310,
+            1e300,
+            -1e300,
+            f64::INFINITY,
+            f64::NEG_INFINITY,
+            f64::NAN,
+            f64::MIN_POSITIVE,
+            3.0,
+        ];
+        // A small xorshift: the values only need to vary.
+        let mut state = 0x9E37_79B9_7F4A_7C15u64;
+        let mut next = move || {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            state
+        };
+        let same = |a: f64, b: f64| a.to_bits() == b.to_bits() || (a.is_nan() && b.is_nan());
+        for n in [2usize, 3] {
+            let nv = 64;
+            let mut vertices = Vec::with_capacity(nv * n);
+            for i in 0..nv * n {
+                let r = next();
+                vertices.push(if i % 5 == 0 {
+                    specials[(r % specials.len() as u64) as usize]
+                } else {
+                    (r >> 11) as f64 / (1u64 << 53) as f64 * 4.0 - 2.0
+                });
+            }
+            let mut simplices = Vec::new();
+            for _ in 0..20_000 {
+                for _ in 0..=n {
+                    simplices.push((next() % nv as u64) as u32);
+                }
+            }
+            let model = Model {
+                vertices,
+                simplices,
+                ..Model::new(n as u8)
+            };
+            for s in 0..model.num_simplices() {
+                let ids = model.simplex(s);
+                let fast = if n == 2 {
+                    orientation_of::<2>(&model, ids)
+                } else {
+                    orientation_of::<3>(&model, ids)
+                };
+                let slow = orientation(&model, s);
+                assert!(
+                    same(fast.0, slow.0) && same(fast.1, slow.1),
+                    "simplex {s} {ids:?}: {fast:?} vs {slow:?}"
+                );
+            }
+        }
+    }
+
+    /// A unit square of two triangles with one stage whose records all have the same lengths
+    /// (a table keeping no offsets): each count or value rule is reported for exactly the records
+    /// breaking it, in record order (truth: written out by hand).
+    #[test]
+    fn stages_of_same_length_records_report_each_record() {
+        use crate::model::{FaceRecord, Stage};
+        let edges: [[u32; 2]; 5] = [[0, 1], [0, 2], [0, 3], [1, 2], [2, 3]];
+        let check_stage = |kind: StageKind, degree: u32, records: Vec<FaceRecord>| {
+            let mut m = Model::new(2);
+            m.vertices = vec![0.0, 0.0, 1.0, 0.0, 1.0, 1.0, 0.0, 1.0];
+            m.simplices = vec![0, 1, 2, 0, 2, 3];
+            m.values = vec![-1.0, 1.0, 1.0, 1.0];
+            let mut stage = Stage::identity(kind, degree);
+            stage.faces = crate::FaceTable::from(records);
+            assert!(stage.faces.uniform_lengths().is_some());
+            m.stages = vec![stage];
+            check(&m, 100)
+                .into_iter()
+                .map(|d| (d.rule, d.location.pointer.unwrap_or_default()))
+                .collect::<Vec<_>>()
+        };
+        let rec = |face: &[u32], points: Vec<f64>, weights: Vec<f64>| FaceRecord {
+            face: face.to_vec(),
+            points,
+            weights,
+        };
+        let valid: Vec<FaceRecord> = edges
+            .iter()
+            .map(|e| rec(e, vec![0.5, 0.5], vec![]))
+            .collect();
+        assert_eq!(check_stage(StageKind::Bezier, 2, valid.clone()), vec![]);
+        let every = |rule: Rule, suffix: &str| -> Vec<(Rule, String)> {
+            (0..5)
+                .map(|r| (rule, format!("/stages/0/faces/{r}{suffix}")))
+                .collect()
+        };
+        // Three coordinates per edge record: every record's count is wrong.
+        let three: Vec<FaceRecord> = edges
+            .iter()
+            .map(|e| rec(e, vec![0.5, 0.25, 0.25], vec![]))
+            .collect();
+        assert_eq!(
+            check_stage(StageKind::Bezier, 2, three),
+            every(Rule::PointCount, "/points")
+        );
+        // Degree 1: an edge owns no control point.
+        assert_eq!(
+            check_stage(StageKind::Bezier, 1, valid.clone()),
+            every(Rule::PointCount, "/points")
+        );
+        // Rational without weights.
+        assert_eq!(
+            check_stage(StageKind::Rational, 2, valid.clone()),
+            every(Rule::WeightCount, "/weights")
+        );
+        // One non-finite coordinate, one weight: only those records.
+        let mut nan = valid.clone();
+        nan[3].points[1] = f64::NAN;
+        assert_eq!(
+            check_stage(StageKind::Bezier, 2, nan),
+            vec![(Rule::NonFinite, "/stages/0/faces/3/points/1".to_string())]
+        );
+        let mut weighted: Vec<FaceRecord> = edges
+            .iter()
+            .map(|e| rec(e, vec![0.5, 0.5], vec![2.0]))
+            .collect();
+        weighted[0].weights[0] = f64::INFINITY;
+        assert_eq!(
+            check_stage(StageKind::Rational, 2, weighted),
+            vec![(Rule::NonFinite, "/stages/0/faces/0/weights/0".to_string())]
+        );
+        // Records naming no edge ([1, 3] is the square's other diagonal) and one edge twice.
+        let mut odd = valid.clone();
+        odd.insert(3, rec(&[1, 3], vec![0.5, 0.5], vec![]));
+        odd.push(rec(&[2, 3], vec![0.5, 0.5], vec![]));
+        assert_eq!(
+            check_stage(StageKind::Bezier, 2, odd),
+            vec![
+                (Rule::NotAFace, "/stages/0/faces/3/face".to_string()),
+                (Rule::DuplicateFace, "/stages/0/faces/6/face".to_string()),
+            ]
+        );
+    }
 }

@@ -256,3 +256,160 @@ fn streamed_reads_of_many_records_across_the_window() {
         assert_same(&bad, &options, &format!("byte {at} changed, CRC refreshed"));
     }
 }
+
+/// Records of several lengths in one stage, in the three orders a table can take: every record
+/// the same (rational edges: points and weights), lengths mixed from the start (cubic edges and
+/// triangles by first vertex), and thousands of records of one length followed by one of another
+/// (the decoder's run of same-length records must stop there and the table switch to offsets).
+fn grid_with_mixed_records() -> (Model, Vec<Vec<ism_format::FaceRecord>>) {
+    use ism_format::{FaceRecord, FaceTable, Stage, StageKind};
+    let mut m = grid_with_edge_records();
+    let edges: Vec<Vec<u32>> = m.stages[0].faces.iter().map(|r| r.face.to_vec()).collect();
+    let mut triangles: Vec<Vec<u32>> = m
+        .simplex_iter()
+        .map(|t| {
+            let mut t = t.to_vec();
+            t.sort_unstable();
+            t
+        })
+        .collect();
+    triangles.sort();
+    let edge = |f: &Vec<u32>, k: usize| FaceRecord {
+        face: f.clone(),
+        points: vec![2.0 / 3.0, 1.0 / 3.0, 1.0 / 3.0, 2.0 / 3.0 + k as f64 * 1e-9],
+        weights: vec![],
+    };
+    let triangle = |f: &Vec<u32>| FaceRecord {
+        face: f.clone(),
+        points: vec![1.0 / 3.0; 3],
+        weights: vec![],
+    };
+    let rational: Vec<FaceRecord> = edges
+        .iter()
+        .enumerate()
+        .map(|(k, f)| FaceRecord {
+            face: f.clone(),
+            points: vec![0.5, 0.5],
+            weights: vec![1.0 + k as f64 / 1e4],
+        })
+        .collect();
+    let mut mixed: Vec<FaceRecord> = edges
+        .iter()
+        .enumerate()
+        .map(|(k, f)| edge(f, k))
+        .chain(triangles.iter().map(triangle))
+        .collect();
+    mixed.sort_by(|a, b| a.face[0].cmp(&b.face[0]));
+    let mut late: Vec<FaceRecord> = edges.iter().enumerate().map(|(k, f)| edge(f, k)).collect();
+    late.push(triangle(triangles.last().unwrap()));
+    let mut records = vec![m.stages[0].faces.to_records()];
+    for (kind, degree, list) in [
+        (StageKind::Rational, 2, &rational),
+        (StageKind::Bezier, 3, &mixed),
+        (StageKind::Bezier, 3, &late),
+    ] {
+        let mut stage = Stage::identity(kind, degree);
+        stage.faces = FaceTable::from(list.clone());
+        m.stages.push(stage);
+        records.push(list.clone());
+    }
+    (m, records)
+}
+
+#[test]
+fn streamed_reads_of_records_of_several_lengths() {
+    let options = ReadOptions::default();
+    let (m, records) = grid_with_mixed_records();
+    assert!(ism_format::structure::check(&m, 10).is_empty());
+    let bytes = io::to_vec(&m, Encoding::Binary, WriteOptions::default()).unwrap();
+    assert!(bytes.len() > 4 * (1 << 18));
+    let read = |chunk: Option<usize>| match chunk {
+        None => io::from_slice(&bytes).unwrap().model,
+        Some(chunk) => {
+            io::read_with(
+                Chunky {
+                    bytes: &bytes,
+                    chunk,
+                },
+                &options,
+            )
+            .unwrap()
+            .model
+        }
+    };
+    for chunk in [None, Some(1), Some(4093), Some(1 << 16), Some(1 << 20)] {
+        let got = read(chunk);
+        // Ground truth: the records the stages were built from, as owned lists.
+        for (k, list) in records.iter().enumerate() {
+            assert_eq!(
+                &got.stages[k].faces.to_records(),
+                list,
+                "stage {k}, reads of {chunk:?}"
+            );
+        }
+        assert_eq!(got, m, "reads of {chunk:?}");
+    }
+    // One record of other point or weight counts (same face size) inside a run of same-length
+    // records: read unchecked it is the record written; checked, the error a read through the
+    // checked record path gives (1-byte reads: no record is ever wholly at hand).
+    let unchecked = ReadOptions {
+        check_structure: false,
+        ..ReadOptions::default()
+    };
+    for (r, points) in [(5000, true), (7000, false)] {
+        let mut odd = m.clone();
+        odd.stages[1].faces.edit(|recs| {
+            if points {
+                recs[r].points.push(0.25);
+            } else {
+                recs[r].weights.clear();
+            }
+        });
+        let mut expected = records[1].clone();
+        expected[r] = odd.stages[1].faces.record(r).to_record();
+        let odd_bytes = io::to_vec(&odd, Encoding::Binary, WriteOptions::default()).unwrap();
+        for chunk in [1, 4093, 1 << 20] {
+            let got = io::read_with(
+                Chunky {
+                    bytes: &odd_bytes,
+                    chunk,
+                },
+                &unchecked,
+            )
+            .unwrap()
+            .model;
+            assert_eq!(
+                got.stages[1].faces.to_records(),
+                expected,
+                "record {r}, reads of {chunk}"
+            );
+        }
+        let from_slice = io::from_slice_with(&odd_bytes, &unchecked).unwrap().model;
+        assert_eq!(
+            from_slice.stages[1].faces.to_records(),
+            expected,
+            "record {r}"
+        );
+        assert_same(
+            &odd_bytes,
+            &options,
+            &format!("record {r} of other lengths"),
+        );
+        assert!(io::from_slice(&odd_bytes).is_err());
+    }
+    // Cuts and changed bytes in each stage's records (the payload's second half holds them).
+    for at in [
+        bytes.len() / 3,
+        bytes.len() / 2 + 1,
+        (3 << 18) + 11,
+        bytes.len() * 3 / 4 + 2,
+        bytes.len() - 60,
+        bytes.len() - 9,
+    ] {
+        assert_same(&bytes[..at], &options, &format!("cut at {at}"));
+        let mut bad = bytes.clone();
+        bad[at] ^= 0x21;
+        refresh_crc(&mut bad);
+        assert_same(&bad, &options, &format!("byte {at} changed, CRC refreshed"));
+    }
+}
