@@ -96,7 +96,13 @@ impl Model {
                     }
                 }
             };
-            let sampler = sampler.seed(seed);
+            let mut sampler = sampler.seed(seed);
+            if let Job::Surface(c) | Job::NearSurface(c, _) = &job {
+                // As `ism sample` does: the surface table refines its bounds as far as `c`
+                // samples pay for it, so the rows for a seed are the CLI's, bit for bit (a cached
+                // table built for another count is rebuilt).
+                sampler = sampler.expected_surface_samples(*c);
+            }
             let mut sink = NpySink {
                 writer: FormatWriter::new(Vec::new(), OutputFormat::Npy),
                 control,

@@ -85,6 +85,23 @@ def test_samples_are_bit_identical_to_the_cli(name, seed, tmp_path):
         assert got.tobytes() == expected.tobytes(), args
 
 
+def test_fitted_samples_are_bit_identical_to_the_cli(tmp_path):
+    # A fitted (all-parametric) model: its surface table is sized by the count asked for, so one
+    # `Model` sampled with several counts, in turn and again, must give the CLI's rows each time.
+    path = tmp_path / "fitted.ismb"
+    cli("fit", "--preset", "circle", "--resolution", "5", "-o", path, "--quiet")
+    m = ism.read(path)
+    for i, (n, kind) in enumerate([(200, "surface"), (5000, "surface"), (200, "surface"), (900, "near")]):
+        out = tmp_path / f"{i}.npy"
+        if kind == "surface":
+            cli("sample", path, "--surface", n, "--seed", 3, "-o", out, "--quiet")
+            got = m.sample_surface(n, 3)
+        else:
+            cli("sample", path, "--near-surface", n, "--sigma", "0.01", "--seed", 3, "-o", out, "--quiet")
+            got = m.sample_near_surface(n, 0.01, 3)
+        assert got.tobytes() == np.load(out).tobytes(), (n, kind)
+
+
 def test_samples_do_not_depend_on_threads():
     m = ism.read(EXAMPLES / "torus.ismb")
     assert m.sample_surface(3000, 5, threads=1).tobytes() == m.sample_surface(3000, 5, threads=2).tobytes()

@@ -100,9 +100,13 @@ impl Sampler {
     /// pay for the refinement ([`SurfaceTable::with_expected_samples`]). Output for a seed then
     /// depends on this number (not on the thread count). Without it the table uses a fixed
     /// refinement threshold.
+    /// The table already built is kept when `count` is the one it was built for (a caller that
+    /// keeps its `Sampler` between calls, as the Python package does, pays for it once).
     pub fn expected_surface_samples(mut self, count: u64) -> Sampler {
-        self.expected_surface = Some(count);
-        self.surface = OnceLock::new();
+        if self.expected_surface != Some(count) {
+            self.expected_surface = Some(count);
+            self.surface = OnceLock::new();
+        }
         self
     }
 
