@@ -1626,7 +1626,7 @@ pub fn dense_error(
             let mut sum = 0.0;
             let samples = patch_samples(&corners, report_level(n));
             for u in &samples {
-                let p = eval.param_point(s, u).p;
+                let p = crate::measure::shape_point(&eval, s, u);
                 let d = g.distance_estimate(&p[..n]);
                 max = max.max(d);
                 sum += d;
