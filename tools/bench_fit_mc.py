@@ -93,7 +93,10 @@ def ellipsoid():
     def dist(p):
         # Eberly: the closest point of the ellipsoid to q (first octant by symmetry) is
         # q_i a_i^2 / (t + a_i^2) with t the root of sum (a_i q_i / (t + a_i^2))^2 = 1.
-        q = np.abs(p)
+        # A coordinate exactly 0 (fit vertices and patch corners on the grid plane z = 0) makes
+        # 0/0 at t = -a_i^2; 1e-12 instead moves the point by at most 1.7e-12 and keeps the
+        # degenerate case (closest point off the plane) as the limit of the root.
+        q = np.maximum(np.abs(p), 1e-12)
         f = lambda t: (((a * q) / (t[:, None] + a * a)) ** 2).sum(axis=1) - 1
         lo = -np.full(len(q), a[2] ** 2) + a[2] * q[:, 2]
         hi = np.linalg.norm(a * q, axis=1)
@@ -645,9 +648,14 @@ def main():
               f"Z->S {back.max():.3e} (report {report['shapeToTarget']:.3e} / "
               f"{report['targetToShape']:.3e}, met {report['toleranceMet']}), {cpu:.1f} CPU-s",
               file=sys.stderr)
-        # Marching cubes: from a coarse grid up, by the error's h^2 law, until at most the ISM's.
+        # Marching cubes: from a coarse grid up, by the error's h^2 law, until at most the ISM's,
+        # then down by bisection to the coarsest grid (cells per side) that still meets it.
         res, best = 16, None
         tried = {}
+
+        def meets(x):
+            return not any(math.isnan(v) for v in x) and max(x) <= ism_err
+
         max_res = args.max_res if n == 3 else 16 * args.max_res
         while res <= max_res and res not in tried:
             verts, faces, mcpu, glb, gpath = marching(shape, res, out)
@@ -655,18 +663,23 @@ def main():
             tried[res] = e
             print(f"  mc {res}: {len(verts)} verts {len(faces)} faces {glb} B err {e[0]:.3e} / "
                   f"{e[1]:.3e} ({mcpu:.1f} CPU-s)", file=sys.stderr)
-            err = max(e)
-            if err <= ism_err:
+            err = max(e) if not any(math.isnan(x) for x in e) else math.inf
+            passing = [r for r, x in tried.items() if meets(x)]
+            failing = [r for r, x in tried.items() if not meets(x)]
+            if meets(e):
                 best = (res, verts, faces, mcpu, glb, e)
-                # One step down to find the coarsest grid that still meets it.
-                lower = int(res / 1.08)
-                if lower in tried or lower < 8:
-                    break
-                res = lower
-                continue
             if best is not None:
-                break
-            res = max(res + 1, int(math.ceil(res * min(2.0, math.sqrt(err / ism_err) * 1.03))))
+                # The coarsest grid that meets it: bisect between the finest failing grid below
+                # the coarsest passing one and that one (one step down by 8 % when none failed).
+                top = min(passing)
+                below = [r for r in failing if r < top]
+                low = max(below) if below else int(top / 1.08)
+                if top - low <= 1 or low < 8:
+                    break
+                res = low if not below else (low + top) // 2
+                continue
+            grow = math.sqrt(err / ism_err) * 1.03 if math.isfinite(err) else 2.0
+            res = max(res + 1, int(math.ceil(res * min(2.0, grow))))
         topo = f"genus {shape['genus']}" if shape.get("genus") is not None else "—"
         ism_topo = f"{report.get('components')} comp., χ {report.get('euler')}"
         if best is None:
