@@ -90,7 +90,7 @@ impl Model {
                     match eval {
                         Ok(e) => Sampler::from_eval(e),
                         Err(e) => {
-                            let e = ism_sample::SampleError::Geometry(e.to_string());
+                            let e = ism_sample::SampleError::Geometry(e);
                             return (None, Err(e));
                         }
                     }

@@ -17,6 +17,10 @@ pub enum Error {
     /// The model cannot be extracted (e.g. a dimension other than 2 or 3).
     #[error("model not supported: {0}")]
     Unsupported(String),
+    /// The math kernel cannot evaluate the model (a degenerate simplex, a malformed stage
+    /// record): its error, kept as the source.
+    #[error("cannot evaluate the model: {0}")]
+    Geom(#[from] ism_geom::GeomError),
     /// A stage could not be inverted at a point of the linear patch of a simplex.
     #[error(
         "simplex {simplex}: stage inversion did not converge at u = {u:?} (residual {residual:e})"

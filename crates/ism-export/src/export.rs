@@ -156,7 +156,8 @@ pub fn check(options: &ExportOptions, format: Option<ExportFormat>) -> Result<()
 /// is cancelled.
 ///
 /// # Errors
-/// As [`check`]; [`Error::Unsupported`] for a model that cannot be evaluated or extracted;
+/// As [`check`]; [`Error::Geom`] for a model the kernel cannot evaluate (its error as the
+/// source); [`Error::Unsupported`] for one that cannot be extracted;
 /// [`Error::Inversion`] (a numerical failure of the extraction); [`Error::Cancelled`].
 pub fn build(model: &Model, options: &ExportOptions, progress: &Progress) -> Result<Exported> {
     check(options, None)?;
@@ -181,8 +182,7 @@ pub fn build(model: &Model, options: &ExportOptions, progress: &Progress) -> Res
         });
     }
     progress.report_count(phase::PREPARING, 0, 0);
-    let eval = ModelEval::new(model)
-        .map_err(|e| Error::Unsupported(format!("cannot evaluate the model: {e}")))?;
+    let eval = ModelEval::new(model)?;
     progress.check()?;
     progress.report_count(phase::EXTRACTING, 0, 0);
     let (mesh, report) = extract_with_progress(
@@ -313,4 +313,38 @@ pub fn surface_summary(mesh: &Mesh, extract: Option<&ExtractReport>) -> serde_js
         "max_inverse_residual": extract.map(|r| r.max_residual),
         "depth_limited_edges": extract.map(|r| r.depth_limited_edges),
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Three collinear vertices make a degenerate triangle: the kernel's error reaches the caller
+    /// as the source (its simplex and determinant), not as text.
+    #[test]
+    fn kernel_errors_are_kept_as_the_source() {
+        let mut model = Model::new(2);
+        model.vertices = vec![0.0, 0.0, 1.0, 0.0, 2.0, 0.0];
+        model.values = vec![-1.0, 1.0, 1.0];
+        model.simplices = vec![0, 1, 2];
+        for volume in [false, true] {
+            let options = ExportOptions {
+                volume,
+                field_tolerance: volume.then_some(1e-3),
+                ..ExportOptions::default()
+            };
+            let Err(err) = build(&model, &options, &Progress::none()) else {
+                panic!("a degenerate simplex must not export");
+            };
+            let source = std::error::Error::source(&err)
+                .and_then(|e| e.downcast_ref::<ism_geom::GeomError>());
+            assert!(
+                matches!(
+                    source,
+                    Some(ism_geom::GeomError::Degenerate { simplex: 0, .. })
+                ),
+                "volume {volume}: {err:?}"
+            );
+        }
+    }
 }

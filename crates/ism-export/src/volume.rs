@@ -686,7 +686,7 @@ pub fn volume_grid_with_progress(
         )));
     }
     let m = n + 1;
-    let eval = ModelEval::new(model).map_err(|e| Error::Unsupported(e.to_string()))?;
+    let eval = ModelEval::new(model)?;
     let ns = model.num_simplices();
     let fields: Vec<CellField> = (0..ns)
         .into_par_iter()

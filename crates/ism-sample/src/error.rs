@@ -42,9 +42,9 @@ pub enum SampleError {
         /// What failed.
         reason: String,
     },
-    /// The model could not be evaluated (from the math kernel).
+    /// The model could not be evaluated: the math kernel's error, kept as the source.
     #[error("model evaluation: {0}")]
-    Geometry(String),
+    Geometry(#[from] ism_geom::GeomError),
     /// A points file could not be parsed.
     #[error("points input{}: {message}", location.as_ref().map(|l| format!(" at {l}")).unwrap_or_default())]
     Points {
@@ -78,7 +78,7 @@ impl SampleError {
                 simplex: *simplex,
                 reason: reason.clone(),
             },
-            SampleError::Geometry(s) => SampleError::Geometry(s.clone()),
+            SampleError::Geometry(e) => SampleError::Geometry(e.clone()),
             SampleError::Points { location, message } => SampleError::Points {
                 location: location.clone(),
                 message: message.clone(),
@@ -89,3 +89,34 @@ impl SampleError {
 
 /// Shorthand for this crate's results.
 pub type Result<T, E = SampleError> = std::result::Result<T, E>;
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Three collinear vertices make a degenerate triangle: the kernel's error is the source of
+    /// [`SampleError::Geometry`] (its simplex and determinant), and survives `duplicate`.
+    #[test]
+    fn geometry_errors_keep_the_kernel_error_as_source() {
+        let mut model = ism_format::Model::new(2);
+        model.vertices = vec![0.0, 0.0, 1.0, 0.0, 2.0, 0.0];
+        model.values = vec![-1.0, 1.0, 1.0];
+        model.simplices = vec![0, 1, 2];
+        let Err(err) = crate::sampler::Sampler::new(&model) else {
+            panic!("a degenerate simplex must not evaluate");
+        };
+        let source =
+            std::error::Error::source(&err).and_then(|e| e.downcast_ref::<ism_geom::GeomError>());
+        assert!(
+            matches!(
+                source,
+                Some(ism_geom::GeomError::Degenerate { simplex: 0, .. })
+            ),
+            "{err:?}"
+        );
+        assert!(matches!(
+            err.duplicate(),
+            SampleError::Geometry(ism_geom::GeomError::Degenerate { simplex: 0, .. })
+        ));
+    }
+}

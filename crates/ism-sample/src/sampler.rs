@@ -66,7 +66,7 @@ impl Sampler {
     /// [`SampleError::Geometry`] when the model cannot be evaluated (bad shapes, degenerate
     /// simplices, malformed stage records).
     pub fn new(model: &Model) -> Result<Sampler> {
-        let eval = ModelEval::new(model).map_err(|e| SampleError::Geometry(e.to_string()))?;
+        let eval = ModelEval::new(model)?;
         Ok(Sampler::from_eval(eval))
     }
 
