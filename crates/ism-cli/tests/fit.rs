@@ -312,8 +312,19 @@ fn obj_and_glb_meshes_fit_validate_and_keep_the_sphere_topology() {
         let diagonal = m["diagonal"].as_f64().unwrap();
         assert!(rel > 0.0 && rel * diagonal <= 3e-2, "{r}");
     }
-    // The same shape moved by the node translation: the same complex size and error.
-    assert_eq!(a["simplices"], b["simplices"]);
+    // The same shape moved by the node translation: about the same complex size and the same
+    // error. Not the identical complex: translated coordinates round differently (~1e-16
+    // relative), and the fitter's refine/prune decisions compare error estimates with a margin of
+    // the tolerance, so a cell within rounding of that threshold may go either way and its split
+    // spreads to its neighbours (366 vs 378 simplices since the margin became 0.95 in 6bec71cd).
+    let (sa, sb) = (
+        a["simplices"].as_u64().unwrap() as f64,
+        b["simplices"].as_u64().unwrap() as f64,
+    );
+    assert!(
+        (sa - sb).abs() <= 0.05 * sa.max(sb),
+        "{sa} vs {sb} simplices"
+    );
     let (ea, eb) = (
         a["maxDistance"].as_f64().unwrap(),
         b["maxDistance"].as_f64().unwrap(),
