@@ -1276,12 +1276,37 @@ pub struct IndexedModel {
 #[derive(Debug)]
 struct Inner {
     model: Model,
-    topology: Topology,
-    /// Per stage, the face index of each record (from the structural check).
-    record_faces: Vec<Vec<u32>>,
+    /// The topology with its face tables, simplex → face tables and neighbours, and per stage the
+    /// face index of each record: built by the check ([`IndexedModel::new`]) or on first use
+    /// ([`IndexedModel::new_lazy_or_model`]).
+    full: OnceLock<(Topology, Vec<Vec<u32>>)>,
+    /// What the check that keeps nothing built (vertex → simplex incidence and face counts, no
+    /// face tables), while `full` is not built ([`IndexedModel::new_lazy_or_model`]).
+    checked: Option<Topology>,
     /// Per stage, built on first use.
     stages: Vec<OnceLock<StageRows>>,
     diagnostics: Vec<crate::rules::Diagnostic>,
+}
+
+impl Inner {
+    fn full(&self) -> &(Topology, Vec<Vec<u32>>) {
+        self.full.get_or_init(|| {
+            // Only a model without structural errors is indexed lazily: no simplex repeats a
+            // vertex (nothing to skip), and the tables are the ones the full check builds.
+            let model = &self.model;
+            let (topology, _, _) = Topology::build(model, &[], true);
+            let record_faces = crate::structure::record_faces(model, &topology);
+            (topology, record_faces)
+        })
+    }
+
+    /// The vertex → simplex incidence, from whichever topology is at hand (both hold the same).
+    fn incidence(&self) -> &Topology {
+        match (&self.checked, self.full.get()) {
+            (_, Some((t, _))) | (Some(t), None) => t,
+            (None, None) => &self.full().0,
+        }
+    }
 }
 
 impl PartialEq for IndexedModel {
@@ -1374,12 +1399,61 @@ impl IndexedModel {
         Ok(IndexedModel {
             inner: Arc::new(Inner {
                 model,
-                topology,
-                record_faces,
+                full: OnceLock::from((topology, record_faces)),
+                checked: None,
                 stages,
                 diagnostics,
             }),
         })
+    }
+
+    /// [`IndexedModel::new_or_model`] that builds now only what the check needs anyway: the
+    /// diagnostics (the same as [`IndexedModel::new`]'s) and the vertex → simplex incidence
+    /// ([`IndexedModel::vertex_simplices`]). The face tables, simplex → face tables, neighbours
+    /// and stage tables — the same ones [`IndexedModel::new`] builds — are built on the first call
+    /// of [`IndexedModel::topology`] or [`IndexedModel::stage`]. For a validator whose stages may
+    /// all be decided from their records alone (e.g. by a theorem).
+    ///
+    /// That first call builds on the current rayon pool: make it outside a parallel loop (a rayon
+    /// worker waiting inside it may pick up a job of the loop that calls it again, and a
+    /// [`OnceLock`] is not reentrant).
+    ///
+    /// # Errors
+    /// As [`IndexedModel::new_or_model`], with the model.
+    #[allow(clippy::result_large_err)]
+    pub fn new_lazy_or_model(model: Model) -> std::result::Result<IndexedModel, (Model, Error)> {
+        let (diagnostics, topology) = crate::structure::check_indexed(
+            &model,
+            crate::structure::DEFAULT_MAX_DIAGNOSTICS,
+            false,
+        );
+        let (errors, diagnostics): (Vec<_>, Vec<_>) = diagnostics
+            .into_iter()
+            .partition(|d| d.severity == Severity::Error);
+        // No error: the check ran every stage rule (its error budget is never spent).
+        let checked = match topology {
+            Some((t, _)) if errors.is_empty() => t,
+            _ => return Err((model, Error::Structure(errors))),
+        };
+        let stages = (0..model.stages.len()).map(|_| OnceLock::new()).collect();
+        Ok(IndexedModel {
+            inner: Arc::new(Inner {
+                model,
+                full: OnceLock::new(),
+                checked: Some(checked),
+                stages,
+                diagnostics,
+            }),
+        })
+    }
+
+    /// The simplices incident to vertex `v`, ascending (as [`Topology::vertex_simplices`], without
+    /// building the face tables of a lazily indexed model).
+    ///
+    /// # Panics
+    /// If `v` is out of range.
+    pub fn vertex_simplices(&self, v: usize) -> &[u32] {
+        self.inner.incidence().vertex_simplices(v)
     }
 
     /// The model as stored in the file.
@@ -1387,9 +1461,10 @@ impl IndexedModel {
         &self.inner.model
     }
 
-    /// The topology of the complex.
+    /// The topology of the complex (built on the first call for a model indexed by
+    /// [`IndexedModel::new_lazy_or_model`]).
     pub fn topology(&self) -> &Topology {
-        &self.inner.topology
+        &self.inner.full().0
     }
 
     /// The flat tables of stage `i`.
@@ -1399,8 +1474,9 @@ impl IndexedModel {
     pub fn stage(&self, i: usize) -> StageTable<'_> {
         let inner = &*self.inner;
         let stage = &inner.model.stages[i];
-        let rows = inner.stages[i]
-            .get_or_init(|| StageRows::build(stage, &inner.topology, &inner.record_faces[i]));
+        let (topology, record_faces) = inner.full();
+        let rows =
+            inner.stages[i].get_or_init(|| StageRows::build(stage, topology, &record_faces[i]));
         StageTable { stage, rows }
     }
 
@@ -1880,6 +1956,84 @@ mod tests {
                 assert!(scanned.len() >= max.min(100), "n={n} max={max}");
             }
         }
+    }
+
+    #[test]
+    fn a_lazy_index_builds_the_tables_of_an_eager_one() {
+        // Truth: the eagerly built index (its tables are checked against brute force above).
+        for (n, g) in [(2, 4), (3, 3)] {
+            let mut model = kuhn(n, g);
+            // An unused vertex: a warning, kept by both.
+            model.vertices.extend(std::iter::repeat_n(9.0, n));
+            model.values.push(1.0);
+            let plain = IndexedModel::new(model.clone()).expect("valid");
+            let d = 3;
+            let mut bezier = Stage::identity(StageKind::Bezier, d);
+            let mut rational = Stage::identity(StageKind::Rational, d);
+            for k in 1..n {
+                let faces = plain.topology().face_vertices(k);
+                for (i, face) in faces.chunks(k + 1).enumerate() {
+                    let owned = owned_count(k + 1, d);
+                    let points = vec![1.0 / (k + 1) as f64; owned * (k + 1)];
+                    if i % 3 == 0 {
+                        bezier.faces.push(face, &points, &[]);
+                    }
+                    if i % 4 == 1 {
+                        rational.faces.push(face, &points, &vec![2.0; owned]);
+                    }
+                }
+            }
+            // Records in decreasing face order: not scannable, the check keeps its face tables.
+            let mut reversed = Stage::identity(StageKind::Bezier, d);
+            for r in (0..bezier.faces.len()).rev() {
+                let rec = bezier.faces.record(r);
+                reversed.faces.push(rec.face, rec.points, rec.weights);
+            }
+            let mut mono = Stage::identity(StageKind::Monotonic, 2);
+            mono.vertex_maps.push(VertexMap {
+                vertex: 3,
+                coefficients: vec![0.0, 0.4, 1.0],
+            });
+            for stages in [vec![bezier.clone(), mono, rational], vec![reversed, bezier]] {
+                model.stages = stages;
+                let eager = IndexedModel::new(model.clone()).expect("valid");
+                let lazy = IndexedModel::new_lazy_or_model(model.clone()).expect("valid");
+                assert_eq!(lazy.diagnostics(), eager.diagnostics(), "n={n}");
+                assert_eq!(lazy.diagnostics().len(), 1);
+                // The incidence is there before the tables are built.
+                assert!(lazy.inner.full.get().is_none());
+                for v in 0..model.num_vertices() {
+                    assert_eq!(
+                        lazy.vertex_simplices(v),
+                        eager.topology().vertex_simplices(v)
+                    );
+                }
+                assert!(lazy.inner.full.get().is_none());
+                assert_eq!(lazy.topology(), eager.topology(), "n={n}");
+                for i in 0..model.stages.len() {
+                    let (a, b) = (lazy.stage(i), eager.stage(i));
+                    for k in 0..=n {
+                        assert_eq!(a.records(k), b.records(k), "n={n} stage {i} k={k}");
+                    }
+                    assert_eq!(a.coefficients(), b.coefficients());
+                    assert_eq!(a.vertex_records(), b.vertex_records());
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn a_lazy_index_refuses_what_an_eager_one_refuses() {
+        let mut model = kuhn(3, 2);
+        model.simplices.swap(1, 2); // invert simplex 0
+        let mut stage = Stage::identity(StageKind::Bezier, 2);
+        stage.faces.push(&[0, 20], &[0.5, 0.5], &[]); // not a face
+        model.stages.push(stage);
+        let eager = IndexedModel::new(model.clone()).unwrap_err();
+        let (back, lazy) = IndexedModel::new_lazy_or_model(model.clone()).unwrap_err();
+        assert_eq!(format!("{lazy:?}"), format!("{eager:?}"));
+        assert!(format!("{lazy:?}").contains("NotAFace"), "{lazy:?}");
+        assert_eq!(back, model);
     }
 
     #[test]

@@ -484,6 +484,28 @@ pub fn escape_pointer(token: &str) -> String {
     token.replace('~', "~0").replace('/', "~1")
 }
 
+/// The face index of each record of `stage` ([`NONE`] where it names no face of the complex;
+/// empty for a monotonic stage), in parallel.
+fn stage_record_faces(model: &Model, topology: &Topology, stage: &crate::model::Stage) -> Vec<u32> {
+    (0..stage.faces.len())
+        .into_par_iter()
+        .map(|r| {
+            topology
+                .find(model, stage.faces.face(r))
+                .map_or(NONE, |f| f.index)
+        })
+        .collect()
+}
+
+/// Per stage, [`stage_record_faces`]: what [`check_indexed`] returns with its full topology.
+pub(crate) fn record_faces(model: &Model, topology: &Topology) -> RecordFaces {
+    model
+        .stages
+        .iter()
+        .map(|stage| stage_record_faces(model, topology, stage))
+        .collect()
+}
+
 /// Checks the stages; returns, per stage, the face index each record names ([`NONE`] where it
 /// names no face of the complex) — empty when `scanned` gives, per stage, the records naming no
 /// face and the repeated ones instead (the check-only scan).
@@ -501,14 +523,7 @@ fn check_stages(
         let scan = scanned.map(|s| &s[k]);
         let found: Vec<u32> = match scan {
             Some(_) => Vec::new(),
-            None => (0..stage.faces.len())
-                .into_par_iter()
-                .map(|r| {
-                    topology
-                        .find(model, stage.faces.face(r))
-                        .map_or(NONE, |f| f.index)
-                })
-                .collect(),
+            None => stage_record_faces(model, topology, stage),
         };
         if scan.is_none() {
             record_faces.push(found);

@@ -6,8 +6,9 @@
 //! cargo run --release -p ism-validate --example validate_phases -- FILE [ROUNDS] [THREADS…]
 //! ```
 //!
-//! Phases: `read` (decode, no structural check), `index` (structural check + topology, the CLI's
-//! `IndexedModel::new_or_model`), `manifold` (ISM-150 stars), `invariance`, `positivity`, `drop`
+//! Phases: `read` (decode, no structural check), `index` (structural check + vertex incidence, the
+//! validator's `IndexedModel::new_lazy_or_model`: face tables only if a layer asks), `manifold`
+//! (ISM-150 stars, `topology::non_manifold_stars`), `invariance`, `positivity`, `drop`
 //! (freeing the model), then `calibration` (a compute-bound loop, not in the totals: what any loop
 //! can gain from more threads on the machine at that moment). CPU is the sum over the process's threads of their time on a CPU
 //! (`/proc/self/task/*/schedstat`), so a phase that scales keeps its CPU and halves its wall time.
@@ -61,9 +62,9 @@ fn round(path: &str) -> Result<Clock, Box<dyn std::error::Error + Send + Sync>> 
     };
     let doc = io::read_with(std::fs::File::open(path)?, &read)?;
     clock.lap("read");
-    let indexed = IndexedModel::new_or_model(doc.model).map_err(|(_, e)| e)?;
+    let indexed = IndexedModel::new_lazy_or_model(doc.model).map_err(|(_, e)| e)?;
     clock.lap("index");
-    let found = topology::non_manifold_indexed(&indexed);
+    let found = topology::non_manifold_stars(&indexed);
     clock.lap("manifold");
     let mut messages = found.len();
     for k in 0..indexed.stages.len() {

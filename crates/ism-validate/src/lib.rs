@@ -193,7 +193,9 @@ fn validate_owned(
     options: &Options,
     progress: &Progress,
 ) -> Result<Report, Cancelled> {
-    match IndexedModel::new_or_model(model) {
+    // The face tables are built only if a layer needs them (a stage not decided by a theorem
+    // from its records alone, or the quality layer).
+    match IndexedModel::new_lazy_or_model(model) {
         Ok(indexed) => run(&indexed, Some(&indexed), options, progress),
         Err((model, _)) => run(&model, None, options, progress),
     }
@@ -335,6 +337,8 @@ fn run(
     }
     if indexable {
         let found = match indexed {
+            // Without structural errors, the stars alone decide (no face tables needed).
+            Some(ix) if structure_ok => topology::non_manifold_stars(ix),
             Some(ix) => topology::non_manifold_indexed(ix),
             None => topology::non_manifold(model),
         };

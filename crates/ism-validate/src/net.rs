@@ -60,9 +60,9 @@ pub fn face_key(ids: &[u32]) -> FaceKey {
 pub struct StageIndex<'a> {
     model: &'a Model,
     stage: &'a Stage,
-    topology: &'a ism_format::Topology,
-    /// The indexed model and the stage's index in it: the stage's face → record table is built on
-    /// first use, so stages decided by a theorem never build it.
+    /// The indexed model and the stage's index in it: the stage's face → record table (and, for a
+    /// lazily indexed model, the topology's face tables) is built on first use, so stages decided
+    /// by a theorem never build it.
     indexed: &'a IndexedModel,
     stage_index: usize,
     /// All local multi-indices of degree `d` in `n + 1` variables, flat.
@@ -132,7 +132,6 @@ impl<'a> StageIndex<'a> {
         StageIndex {
             model,
             stage,
-            topology: indexed.topology(),
             indexed,
             stage_index: k,
             adjusted,
@@ -169,11 +168,12 @@ impl<'a> StageIndex<'a> {
         let m = self.model.dim() + 1;
         let mut out = SimplexRecords::default();
         let table = self.indexed.stage(self.stage_index);
+        let topology = self.indexed.topology();
         for size in 1..=m {
             let k = size - 1;
             let records = table.records(k);
             for (j, pos) in local_faces(m, size).iter().enumerate() {
-                let r = records[self.topology.simplex_face(self.model, s, k, j) as usize];
+                let r = records[topology.simplex_face(self.model, s, k, j) as usize];
                 if r != ism_format::indexed::NONE {
                     let mask = pos[..size].iter().fold(0usize, |acc, &p| acc | 1 << p);
                     out.records[mask] = Some(r as usize);

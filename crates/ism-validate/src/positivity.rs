@@ -185,6 +185,10 @@ pub fn check_stage_with_progress(
     let class = classify_stage(model, &index, options.theorems);
     let rational = stage.kind == StageKind::Rational;
     let kernel = if matches!(class, StageClass::PerSimplex) && stage.kind != StageKind::Monotonic {
+        // The simplices look their records up: build the stage's tables (and a lazily indexed
+        // model's face tables) here, not on first use inside the parallel loop below (a rayon
+        // worker waiting for a cell's initialisation could run a job that waits for it again).
+        let _ = indexed.stage(k);
         kernel_if_affordable(n, stage.degree, rational)
     } else {
         None

@@ -383,6 +383,157 @@ pub fn non_manifold_indexed(indexed: &IndexedModel) -> Vec<Message> {
     out
 }
 
+/// Buffers of [`vertex_defect`], reused from star to star.
+#[derive(Default)]
+struct StarScratch {
+    /// A facet through the vertex as its other ids (packed, `u64`) and a member's local index.
+    facets: Vec<u128>,
+    dsu: Dsu,
+    roots: Vec<u32>,
+    verts: Vec<u32>,
+}
+
+/// [`star_defect`] for a vertex `v` (`k = 1`) of a complex without structural errors: the same
+/// test, on the star's facets through `v` keyed by their other ids packed in one integer.
+fn vertex_defect(model: &Model, v: u32, members: &[u32], buf: &mut StarScratch) -> Option<String> {
+    let n = model.dim();
+    let r = members.len();
+    let StarScratch {
+        facets,
+        dsu,
+        roots,
+        verts,
+    } = buf;
+    facets.clear();
+    verts.clear();
+    for (local, &s) in members.iter().enumerate() {
+        let mut o = [0u32; 3];
+        let mut len = 0;
+        for &id in model.simplex(s as usize) {
+            if id != v && len < 3 {
+                o[len] = id;
+                len += 1;
+            }
+        }
+        let local = u128::from(local as u32);
+        if n == 3 {
+            // The facets through v: v and two of the three others.
+            for (a, b) in [(0, 1), (0, 2), (1, 2)] {
+                let (x, y) = (o[a].min(o[b]), o[a].max(o[b]));
+                facets.push((u128::from(x) << 32 | u128::from(y)) << 32 | local);
+            }
+            verts.extend_from_slice(&o[..3]);
+        } else {
+            for &x in &o[..len] {
+                facets.push(u128::from(x) << 32 | local);
+            }
+        }
+    }
+    facets.sort_unstable();
+    dsu.reset(r);
+    let (mut boundary, mut distinct) = (false, 0usize);
+    let mut i = 0;
+    while i < facets.len() {
+        let key = facets[i] >> 32;
+        let mut j = i + 1;
+        while j < facets.len() && facets[j] >> 32 == key {
+            j += 1;
+        }
+        if j - i == 2 {
+            dsu.union(facets[i] as u32, facets[i + 1] as u32);
+        }
+        boundary |= j - i == 1;
+        distinct += 1;
+        i = j;
+    }
+    if let Some(message) = split_star(dsu, roots, r, 1) {
+        return Some(message);
+    }
+    if n == 3 {
+        // Euler characteristic of the link: its vertices, edges (the facets through v) and
+        // triangles (the members).
+        verts.sort_unstable();
+        verts.dedup();
+        let chi = verts.len() as i64 - distinct as i64 + r as i64;
+        let expect = if boundary { 1 } else { 2 };
+        if chi != expect {
+            return Some(format!(
+                "its link has Euler characteristic {chi}; a manifold vertex has a disk (1) or sphere (2) link"
+            ));
+        }
+    }
+    None
+}
+
+/// [`non_manifold`] on an indexed model without structural errors, from its vertex → simplex
+/// incidence alone ([`IndexedModel::vertex_simplices`]: a lazily indexed model builds no face
+/// tables for it). Same messages, same order (edges first, then vertices).
+///
+/// Every vertex star is tested on every core. Edges are tested only between two non-manifold
+/// vertices: when a vertex `v` passes, its link is a disk or a sphere (the link is a
+/// pseudo-surface — a facet is held by at most two simplices — connected through its edges; its
+/// normalisation is then a connected surface of Euler characteristic at least the link's, and a
+/// connected surface has at most 2, or 1 with boundary, so the link is its own normalisation, a
+/// sphere or a disk). The star of an edge `{v, b}` is the star of `b` in the link of `v`, joined
+/// through the link's edges at `b`: in a disk or a sphere, a fan — connected, so the edge is
+/// manifold.
+pub fn non_manifold_stars(indexed: &IndexedModel) -> Vec<Message> {
+    let model: &Model = indexed;
+    let n = model.dim();
+    let bad: Vec<(u32, Message)> = (0..model.num_vertices())
+        .into_par_iter()
+        .map_init(StarScratch::default, |buf, v| {
+            let star = indexed.vertex_simplices(v);
+            if star.is_empty() {
+                return None;
+            }
+            let why = vertex_defect(model, v as u32, star, buf);
+            let key = [v as u32, u32::MAX, u32::MAX, u32::MAX];
+            star_message(model, &key, 1, star, why).map(|m| (v as u32, m))
+        })
+        .flatten()
+        .collect();
+    let mut out = Vec::new();
+    if n == 3 {
+        let is_bad = |b: u32| bad.binary_search_by_key(&b, |x| x.0).is_ok();
+        let edges: Vec<Vec<Message>> = bad
+            .par_iter()
+            .map_init(
+                || (Scratch::default(), Vec::new(), Vec::new()),
+                |(scratch, others, members), &(v, _)| {
+                    let star = indexed.vertex_simplices(v as usize);
+                    others.clear();
+                    for &s in star {
+                        others.extend(
+                            model
+                                .simplex(s as usize)
+                                .iter()
+                                .filter(|&&b| b > v && is_bad(b)),
+                        );
+                    }
+                    others.sort_unstable();
+                    others.dedup();
+                    let mut found = Vec::new();
+                    for &b in others.iter() {
+                        members.clear();
+                        members.extend(
+                            star.iter()
+                                .filter(|&&s| model.simplex(s as usize).contains(&b)),
+                        );
+                        let key = [v, b, u32::MAX, u32::MAX];
+                        let why = star_defect(model, &key, 2, members, scratch);
+                        found.extend(star_message(model, &key, 2, members, why));
+                    }
+                    found
+                },
+            )
+            .collect();
+        out.extend(edges.into_iter().flatten());
+    }
+    out.extend(bad.into_iter().map(|(_, m)| m));
+    out
+}
+
 /// ISM-150 warnings. The model must have passed the structural checks that index vertices.
 pub fn non_manifold(model: &Model) -> Vec<Message> {
     let n = model.dim();
@@ -482,11 +633,139 @@ mod tests {
                 .num_threads(threads)
                 .build()
                 .expect("a pool");
-            let found = pool.install(|| {
+            let (found, stars, lazy) = pool.install(|| {
                 let indexed = IndexedModel::new(model.clone()).expect("structurally valid");
-                text(non_manifold_indexed(&indexed))
+                let lazy = IndexedModel::new_lazy_or_model(model.clone()).expect("valid");
+                let stars = text(non_manifold_stars(&lazy));
+                (
+                    text(non_manifold_indexed(&indexed)),
+                    text(non_manifold_stars(&indexed)),
+                    stars,
+                )
             });
             assert_eq!(found, expected, "{threads} threads");
+            assert_eq!(stars, expected, "{threads} threads");
+            assert_eq!(lazy, expected, "{threads} threads");
+        }
+    }
+
+    /// A Kuhn triangulation of the grid `g^n` with the simplices `keep` accepts (by index),
+    /// positively oriented.
+    fn kuhn_part(n: usize, g: usize, keep: impl Fn(usize) -> bool) -> Model {
+        let mut model = Model::new(n as u8);
+        let side = g + 1;
+        let id = |c: &[usize]| c.iter().rev().fold(0, |acc, &x| acc * side + x) as u32;
+        for i in 0..side.pow(n as u32) {
+            let mut rest = i;
+            for _ in 0..n {
+                model.vertices.push((rest % side) as f64);
+                rest /= side;
+            }
+            model.values.push(if i % 3 == 0 { -1.0 } else { 1.0 });
+        }
+        let perms: Vec<Vec<usize>> = if n == 2 {
+            vec![vec![0, 1], vec![1, 0]]
+        } else {
+            vec![
+                vec![0, 1, 2],
+                vec![0, 2, 1],
+                vec![1, 0, 2],
+                vec![1, 2, 0],
+                vec![2, 0, 1],
+                vec![2, 1, 0],
+            ]
+        };
+        let mut index = 0;
+        for cell in 0..g.pow(n as u32) {
+            let mut base = vec![0usize; n];
+            let mut rest = cell;
+            for b in base.iter_mut() {
+                *b = rest % g;
+                rest /= g;
+            }
+            for p in &perms {
+                let mut c = base.clone();
+                let mut ids = vec![id(&c)];
+                for &axis in p {
+                    c[axis] += 1;
+                    ids.push(id(&c));
+                }
+                let inversions = (0..n)
+                    .flat_map(|a| (a + 1..n).map(move |b| (a, b)))
+                    .filter(|&(a, b)| p[a] > p[b])
+                    .count();
+                if inversions % 2 == 1 {
+                    ids.swap(1, 2);
+                }
+                if keep(index) {
+                    model.simplices.extend(ids);
+                }
+                index += 1;
+            }
+        }
+        model
+    }
+
+    #[test]
+    fn stars_agree_with_the_sort_on_grids_with_simplices_removed() {
+        // Truth: the sort-based enumeration of every vertex and edge star (`non_manifold`), which
+        // tests every edge whatever its vertices. Random removals pinch vertices and edges of
+        // every kind; the kinds met are counted so that each case is known to be exercised.
+        let mut kinds = std::collections::BTreeMap::<String, usize>::new();
+        let mut seed = 0x2545_f491_4f6c_dd1du64;
+        let mut random = move || {
+            seed ^= seed << 13;
+            seed ^= seed >> 7;
+            seed ^= seed << 17;
+            seed
+        };
+        for round in 0..120 {
+            let (n, g) = if round % 3 == 0 { (2, 5) } else { (3, 3) };
+            // Keep between a third and all but a few.
+            let keep_per_mille = 350 + random() % 600;
+            let draws: Vec<u64> = (0..6 * g * g * g).map(|_| random() % 1000).collect();
+            let model = kuhn_part(n, g, |s| draws[s] < keep_per_mille);
+            if model.simplices.is_empty() {
+                continue;
+            }
+            let expected = non_manifold(&model);
+            for m in &expected {
+                let what = if m.location.face.is_some() {
+                    "edge"
+                } else {
+                    "vertex"
+                };
+                let why = if m.message.contains("Euler") {
+                    "euler"
+                } else {
+                    "split"
+                };
+                *kinds.entry(format!("{n}d {what} {why}")).or_default() += 1;
+            }
+            let text = |w: &[Message]| format!("{w:?}");
+            let lazy = IndexedModel::new_lazy_or_model(model.clone()).expect("valid");
+            assert_eq!(
+                text(&non_manifold_stars(&lazy)),
+                text(&expected),
+                "round {round}"
+            );
+            let eager = IndexedModel::new(model).expect("valid");
+            assert_eq!(
+                text(&non_manifold_indexed(&eager)),
+                text(&expected),
+                "round {round}"
+            );
+        }
+        for kind in [
+            "2d vertex split",
+            "3d vertex split",
+            "3d vertex euler",
+            "3d edge split",
+        ] {
+            assert!(
+                kinds.get(kind).is_some_and(|&c| c >= 3),
+                "{kind}: {kinds:?}"
+            );
         }
     }
 
