@@ -93,6 +93,20 @@ fn read_counting_faces(
     }
 }
 
+/// Free numbers of a stage's face records: per record, its points less one coordinate per point
+/// (they sum to 1), plus its weights. A table whose records all have the same lengths (as every
+/// strata builder writes) is counted from those lengths, without visiting its millions of records.
+fn record_freedom(faces: &ism_format::FaceTable) -> usize {
+    let free = |face: usize, points: usize, weights: usize| points - points / face.max(1) + weights;
+    match faces.uniform_lengths() {
+        Some([face, points, weights]) => faces.len() * free(face, points, weights),
+        None => faces
+            .iter()
+            .map(|f| free(f.face.len(), f.points.len(), f.weights.len()))
+            .sum(),
+    }
+}
+
 fn summarize(path: &std::path::Path, doc: &Document, faces: &[usize]) -> Summary {
     let model: &ism_format::Model = &doc.model;
     let n = model.dim();
@@ -121,11 +135,7 @@ fn summarize(path: &std::path::Path, doc: &Document, faces: &[usize]) -> Summary
             stored_numbers: s.parameter_count(),
             // A control point on a k-face has k free coordinates (they sum to 1); weights are free
             // up to the per-face scale only for whole-face records, so count them all.
-            degrees_of_freedom: s
-                .faces
-                .iter()
-                .map(|f| f.points.len() - f.points.len() / f.face.len().max(1) + f.weights.len())
-                .sum::<usize>()
+            degrees_of_freedom: record_freedom(&s.faces)
                 + s.vertex_maps
                     .iter()
                     .map(|m| m.coefficients.len().saturating_sub(1))
@@ -248,4 +258,26 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         );
     }
     Ok(ExitCode::SUCCESS)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::record_freedom;
+    use ism_format::FaceTable;
+
+    #[test]
+    fn free_numbers_of_uniform_and_ragged_tables() {
+        let mut table = FaceTable::new();
+        assert_eq!(record_freedom(&table), 0);
+        // Edge records of two points (2 coordinates each, one free) and two weights: 2 + 2 each.
+        for r in 0..3 {
+            table.push(&[r, r + 1], &[0.3, 0.7, 0.6, 0.4], &[1.0, 2.0]);
+        }
+        assert!(table.uniform_lengths().is_some());
+        assert_eq!(record_freedom(&table), 12);
+        // A triangle record of one point (3 coordinates, 2 free) and one weight: 3 more.
+        table.push(&[0, 1, 2], &[0.2, 0.3, 0.5], &[1.5]);
+        assert!(table.uniform_lengths().is_none());
+        assert_eq!(record_freedom(&table), 15);
+    }
 }
