@@ -113,17 +113,70 @@ const LATTICE_POINTS: usize = (GUESS_LEVEL + 1) * (GUESS_LEVEL + 2) / 2;
 pub struct SurfaceTable {
     /// The patches, in simplex order.
     pub patches: Vec<PatchEntry>,
-    /// `(patch, region)` of each selection entry.
-    entries: Vec<(u32, u32)>,
-    /// Per selection entry `i`: `(threshold, alias)`: a uniform slot `i` keeps `i` with probability
-    /// `threshold`, else takes `alias` ([`alias_table`]).
-    alias: Vec<(f64, u32)>,
+    /// The selection entries (one per region of positive weight), each with its alias pair and
+    /// what a draw from it reads ([`Slot`]).
+    slots: Vec<Slot>,
+    /// What a draw reads of an all-parametric patch of sparse Bézier stages, in one record per
+    /// patch ([`FastPatch`]); the other patches are drawn through [`PatchEntry`] and the kernel.
+    fast: Vec<FastPatch>,
+    /// The moved control points of the [`FastPatch`]es' stages, back to back.
+    terms: Vec<Term>,
     /// `Σ A_σ B_σ`: an upper bound of the curved area of `O`.
     pub bounded_area: f64,
     /// `Σ A_σ`: the area of the linear isocomplex.
     pub linear_area: f64,
     scale: f64,
     weighting: Weighting,
+}
+
+/// One selection entry of the alias table with what a draw from it reads, in one record (two
+/// cache lines): the table is read at random, so the slot's alias pair, the region's corners and
+/// bound, and where its patch is are read together instead of from four arrays.
+#[derive(Clone, Debug)]
+#[repr(align(64))]
+struct Slot {
+    /// Corners of the region (barycentric `u`; a segment uses the first two).
+    u: [Bary; 3],
+    /// A uniform slot `i` keeps `i` with probability `threshold`, else takes `alias`
+    /// ([`alias_table`]).
+    threshold: f64,
+    /// Certified bound of the area element on the region.
+    bound: f64,
+    alias: u32,
+    /// Index of the patch in [`SurfaceTable::patches`] and of the region in it.
+    patch: u32,
+    region: u32,
+    /// Index in [`SurfaceTable::fast`], or `u32::MAX` when the patch has no fast record.
+    fast: u32,
+}
+
+/// A moved control point of a [`SparseStage`]: exponents `I` and `c_I`.
+type Term = ([u8; MAX_VARS], Bary);
+
+/// Most stages a [`FastPatch`] holds (fitted models have three).
+const FAST_STAGES: usize = 4;
+
+/// What drawing from an all-parametric patch of sparse Bézier stages reads, copied out of the
+/// model and the evaluator so that a candidate reads one record (and its stages' terms, back to
+/// back) instead of chasing the simplex's vertex ids, values, inverse edge matrix and local map.
+/// The arithmetic is the evaluator's, in the same order, so the results are the same bits.
+#[derive(Clone, Debug)]
+struct FastPatch {
+    simplex: u32,
+    /// Number of triangles (0 for a segment).
+    triangles: u8,
+    stages: u8,
+    /// `(start, end, degree)` of each stage's terms in [`SurfaceTable::terms`], processing order.
+    ranges: [(u32, u32, u32); FAST_STAGES],
+    linear_gradient: f64,
+    /// `f_{k+1} − f_0` (vertex values in the simplex's order), as
+    /// [`ModelEval::gradient_from_jacobian`] computes them.
+    df: [f64; 3],
+    /// The simplex's inverse edge matrix, as the evaluator stores it.
+    inv: [f64; 9],
+    /// Vertex values and positions of the simplex (an accepted sample's `F` and point).
+    values: [f64; MAX_VARS],
+    vertices: [[f64; 3]; MAX_VARS],
 }
 
 /// Diagonal of the model's bounding box (1 for an empty model).
@@ -509,7 +562,20 @@ impl SurfaceTable {
         }
         // Sequential sums and a sequential alias construction: the same table, bit for bit,
         // whatever the thread count.
-        let mut entries = Vec::new();
+        let mut terms = Vec::new();
+        let fast: Vec<Option<FastPatch>> = patches
+            .iter()
+            .map(|p| FastPatch::new(eval, p, &mut terms))
+            .collect();
+        let mut fast_index = vec![u32::MAX; patches.len()];
+        let mut fast_records = Vec::new();
+        for (i, f) in fast.into_iter().enumerate() {
+            if let Some(f) = f {
+                fast_index[i] = fast_records.len() as u32;
+                fast_records.push(f);
+            }
+        }
+        let mut slots = Vec::new();
         let mut weights = Vec::new();
         let mut acc = 0.0;
         let mut linear = 0.0;
@@ -522,16 +588,29 @@ impl SurfaceTable {
                 };
                 if weight > 0.0 {
                     acc += weight;
-                    entries.push((pi as u32, r as u32));
+                    slots.push(Slot {
+                        u: region.u,
+                        threshold: 1.0,
+                        bound: region.bound,
+                        alias: 0,
+                        patch: pi as u32,
+                        region: r as u32,
+                        fast: fast_index[pi],
+                    });
                     weights.push(weight);
                 }
             }
             linear += p.linear_area;
         }
+        for (slot, (threshold, alias)) in slots.iter_mut().zip(alias_table(&weights, acc)) {
+            slot.threshold = threshold;
+            slot.alias = alias;
+        }
         Ok(SurfaceTable {
             patches,
-            entries,
-            alias: alias_table(&weights, acc),
+            slots,
+            fast: fast_records,
+            terms,
             bounded_area: acc,
             linear_area: linear,
             scale: model_scale(model),
@@ -552,18 +631,16 @@ impl SurfaceTable {
     /// A selection entry with probability `A_r B_r / Σ A B`: one uniform picks a slot (its integer
     /// part) and decides between the slot and its alias (its fraction), O(1) with two memory
     /// reads where a binary search over the cumulative weights took `log₂` of the table's size.
-    fn pick(&self, rng: &mut impl Rng) -> (&PatchEntry, usize) {
-        let len = self.alias.len();
+    fn pick(&self, rng: &mut impl Rng) -> &Slot {
+        let len = self.slots.len();
         let x = rng.random::<f64>() * len as f64;
         let slot = (x as usize).min(len - 1);
-        let (threshold, other) = self.alias[slot];
-        let i = if x - (slot as f64) < threshold {
-            slot
+        let here = &self.slots[slot];
+        if x - (slot as f64) < here.threshold {
+            here
         } else {
-            other as usize
-        };
-        let (p, r) = self.entries[i];
-        (&self.patches[p as usize], r as usize)
+            &self.slots[here.alias as usize]
+        }
     }
 
     /// Draws one accepted surface sample.
@@ -574,7 +651,14 @@ impl SurfaceTable {
     pub fn draw(&self, eval: &ModelEval, rng: &mut impl Rng) -> Result<SurfacePoint> {
         let n = eval.dim();
         loop {
-            let (patch, region) = self.pick(rng);
+            let slot = self.pick(rng);
+            if let Some(fast) = self.fast.get(slot.fast as usize) {
+                match self.draw_fast(eval, slot, fast, rng)? {
+                    Some(point) => return Ok(point),
+                    None => continue,
+                }
+            }
+            let (patch, region) = (&self.patches[slot.patch as usize], slot.region as usize);
             let s = patch.simplex as usize;
             let (u, guess) = patch.propose(region, rng);
             let map = eval.local_map(s);
@@ -586,8 +670,14 @@ impl SurfaceTable {
                     Weighting::LinearArea => true,
                     Weighting::CurvedArea => {
                         let bound = patch.regions[region].bound;
-                        let j =
-                            self.area_element_parametric(s, &w, &scaled, det_dy, patch, bound)?;
+                        let j = area_element_parametric(
+                            s,
+                            &w,
+                            &scaled,
+                            det_dy,
+                            (patch_dim(patch), patch.linear_gradient),
+                            bound,
+                        )?;
                         rng.random::<f64>() * bound < j
                     }
                 };
@@ -638,6 +728,85 @@ impl SurfaceTable {
         }
     }
 
+    /// One candidate from a [`FastPatch`]: what the all-parametric branch of
+    /// [`SurfaceTable::draw`] does through the patch entry, the evaluator and the local map, on
+    /// the copied records instead: the same random numbers and the same arithmetic in the same
+    /// order, hence the same bits. `None`: rejected.
+    fn draw_fast(
+        &self,
+        eval: &ModelEval,
+        slot: &Slot,
+        fast: &FastPatch,
+        rng: &mut impl Rng,
+    ) -> Result<Option<SurfacePoint>> {
+        let n = eval.dim();
+        let s = fast.simplex as usize;
+        let u = region_point(
+            &slot.u,
+            &region_weights(fast.triangles, rng),
+            fast.triangles,
+        );
+        let mut w = ism_geom::stage::project(n + 1, &u);
+        let mut dy = ism_geom::stage::identity_mat(n);
+        for &(start, end, degree) in &fast.ranges[..usize::from(fast.stages)] {
+            let terms = &self.terms[start as usize..end as usize];
+            let (next, j) = sparse_jacobian(terms, degree as usize, n + 1, &w);
+            dy = linalg::mul(n, &j, &dy);
+            w = next;
+        }
+        let (adj, det_dy) = adjugate(n, &dy);
+        // ModelEval::gradient_from_jacobian with the simplex's values and inverse edges copied.
+        let mut dw = [0.0; 3];
+        for (l, d) in dw.iter_mut().enumerate().take(n) {
+            *d = (0..n).map(|k| fast.df[k] * adj[k][l]).sum();
+        }
+        let mut scaled = [0.0; 3];
+        for (x, g) in scaled.iter_mut().enumerate().take(n) {
+            *g = (0..n).map(|l| dw[l] * fast.inv[l * 3 + x]).sum();
+        }
+        if self.weighting == Weighting::CurvedArea {
+            let dim = if fast.triangles == 0 { 2 } else { 3 };
+            let j = area_element_parametric(
+                s,
+                &w,
+                &scaled,
+                det_dy,
+                (dim, fast.linear_gradient),
+                slot.bound,
+            )?;
+            if rng.random::<f64>() * slot.bound >= j {
+                return Ok(None);
+            }
+        }
+        let mut grad = [0.0; 3];
+        for x in 0..n {
+            grad[x] = scaled[x] / det_dy;
+        }
+        // SurfaceTable::finish_solved with the simplex's values and vertices copied.
+        let c = eval.model().level;
+        let f: f64 = (0..=n).map(|i| fast.values[i] * u[i]).sum();
+        let gn = norm(&grad[..n]);
+        if (f - c).abs() <= SURFACE_TOLERANCE * gn * self.scale && gn > 0.0 {
+            let mut normal = [0.0; 3];
+            for x in 0..n {
+                normal[x] = grad[x] / gn;
+            }
+            let mut p = [0.0; 3];
+            for (i, q) in fast.vertices.iter().enumerate().take(n + 1) {
+                for x in 0..n {
+                    p[x] += w[i] * q[x];
+                }
+            }
+            return Ok(Some(SurfacePoint {
+                p,
+                normal,
+                value: f,
+                simplex: s,
+            }));
+        }
+        self.finish(eval, s, w).map(Some)
+    }
+
     /// `J = |∇F| / (|∇F_lin| det DX)` (module doc of [`crate::bound`]), from the Jacobian the
     /// inverse returned.
     fn area_element(
@@ -657,34 +826,6 @@ impl SurfaceTable {
             });
         }
         let j = norm(&grad[..n]) / (patch.linear_gradient * det);
-        if j > bound {
-            return Err(SampleError::Numerical {
-                simplex: s,
-                reason: format!("area element {j} exceeds its certified bound {bound}"),
-            });
-        }
-        Ok(j)
-    }
-
-    /// `J = |E⁻ᵀ adj(DY)ᵀ Δf| / |∇F_lin|` for an all-parametric map, from `scaled` =
-    /// `det(DY) ∇F` ([`param_adjugate`]).
-    fn area_element_parametric(
-        &self,
-        s: usize,
-        w: &Bary,
-        scaled: &[f64; 3],
-        det_dy: f64,
-        patch: &PatchEntry,
-        bound: f64,
-    ) -> Result<f64> {
-        let n = patch_dim(patch);
-        if det_dy.is_nan() || det_dy <= 0.0 {
-            return Err(SampleError::Numerical {
-                simplex: s,
-                reason: format!("det DY = {det_dy} ≤ 0 at w = {:?}", &w[..=n]),
-            });
-        }
-        let j = norm(&scaled[..n]) / patch.linear_gradient;
         if j > bound {
             return Err(SampleError::Numerical {
                 simplex: s,
@@ -764,6 +905,32 @@ impl SurfaceTable {
     }
 }
 
+/// `J = |E⁻ᵀ adj(DY)ᵀ Δf| / |∇F_lin|` for an all-parametric map, from `scaled` =
+/// `det(DY) ∇F` ([`param_adjugate`]); `(n, |∇F_lin|)` of the patch.
+fn area_element_parametric(
+    s: usize,
+    w: &Bary,
+    scaled: &[f64; 3],
+    det_dy: f64,
+    (n, linear_gradient): (usize, f64),
+    bound: f64,
+) -> Result<f64> {
+    if det_dy.is_nan() || det_dy <= 0.0 {
+        return Err(SampleError::Numerical {
+            simplex: s,
+            reason: format!("det DY = {det_dy} ≤ 0 at w = {:?}", &w[..=n]),
+        });
+    }
+    let j = norm(&scaled[..n]) / linear_gradient;
+    if j > bound {
+        return Err(SampleError::Numerical {
+            simplex: s,
+            reason: format!("area element {j} exceeds its certified bound {bound}"),
+        });
+    }
+    Ok(j)
+}
+
 /// Walker's alias table (Vose's construction) of `weights` (positive, summing to `total`): entry
 /// `i` gets `(threshold_i, alias_i)` such that picking a slot uniformly, keeping it with
 /// probability `threshold_i` and taking `alias_i` otherwise selects `i` with probability
@@ -818,7 +985,7 @@ const POWERS: usize = ism_format::structure::MAX_DEGREE as usize + 1;
 #[derive(Clone, Debug)]
 struct SparseStage {
     /// `(exponents I, c_I)` per moved control point.
-    terms: Vec<([u8; MAX_VARS], Bary)>,
+    terms: Vec<Term>,
     degree: usize,
 }
 
@@ -865,44 +1032,49 @@ impl SparseStage {
     /// Value and reduced Jacobian (`R[i−1][l−1] = ∂_l S_i − ∂_0 S_i`, as the kernel's) at `w`
     /// (on the simplex).
     fn jacobian_stored(&self, m: usize, w: &Bary) -> (Bary, Mat) {
-        let mut pw = [[1.0f64; POWERS]; MAX_VARS];
-        for k in 0..m {
-            for p in 1..=self.degree {
-                pw[k][p] = pw[k][p - 1] * w[k];
-            }
-        }
-        let mut value = *w;
-        let mut jac = ism_geom::stage::identity_mat(m - 1);
-        for (e, c) in &self.terms {
-            let mut mono = 1.0;
-            for k in 0..m {
-                mono *= pw[k][e[k] as usize];
-            }
-            // ∂_j w^I = I_j w_j^{I_j − 1} Π_{k≠j} w_k^{I_k}.
-            let mut grad = [0.0; MAX_VARS];
-            for j in 0..m {
-                if e[j] == 0 {
-                    continue;
-                }
-                let mut g = f64::from(e[j]) * pw[j][e[j] as usize - 1];
-                for k in 0..m {
-                    if k != j {
-                        g *= pw[k][e[k] as usize];
-                    }
-                }
-                grad[j] = g;
-            }
-            for i in 0..m {
-                value[i] += c[i] * mono;
-            }
-            for i in 1..m {
-                for l in 1..m {
-                    jac[i - 1][l - 1] += c[i] * (grad[l] - grad[0]);
-                }
-            }
-        }
-        (value, jac)
+        sparse_jacobian(&self.terms, self.degree, m, w)
     }
+}
+
+/// [`SparseStage::jacobian_stored`] of the stage of degree `degree` with these terms.
+fn sparse_jacobian(terms: &[Term], degree: usize, m: usize, w: &Bary) -> (Bary, Mat) {
+    let mut pw = [[1.0f64; POWERS]; MAX_VARS];
+    for k in 0..m {
+        for p in 1..=degree {
+            pw[k][p] = pw[k][p - 1] * w[k];
+        }
+    }
+    let mut value = *w;
+    let mut jac = ism_geom::stage::identity_mat(m - 1);
+    for (e, c) in terms {
+        let mut mono = 1.0;
+        for k in 0..m {
+            mono *= pw[k][e[k] as usize];
+        }
+        // ∂_j w^I = I_j w_j^{I_j − 1} Π_{k≠j} w_k^{I_k}.
+        let mut grad = [0.0; MAX_VARS];
+        for j in 0..m {
+            if e[j] == 0 {
+                continue;
+            }
+            let mut g = f64::from(e[j]) * pw[j][e[j] as usize - 1];
+            for k in 0..m {
+                if k != j {
+                    g *= pw[k][e[k] as usize];
+                }
+            }
+            grad[j] = g;
+        }
+        for i in 0..m {
+            value[i] += c[i] * mono;
+        }
+        for i in 1..m {
+            for l in 1..m {
+                jac[i - 1][l - 1] += c[i] * (grad[l] - grad[0]);
+            }
+        }
+    }
+    (value, jac)
 }
 
 /// `w = Y(u)`, the adjugate `adj(DY) = det(DY) · DX` (reduced Jacobians) and `det DY` of an
@@ -930,6 +1102,12 @@ fn param_adjugate(map: &ism_geom::LocalMap, u: &Bary, sparse: &[SparseStage]) ->
             w = next;
         }
     }
+    let (adj, det) = adjugate(n, &dy);
+    (w, adj, det)
+}
+
+/// `adj(DY)` and `det DY` (reduced Jacobians, `n × n`).
+fn adjugate(n: usize, dy: &Mat) -> (Mat, f64) {
     let mut adj = [[0.0; MAX_VARS]; MAX_VARS];
     match n {
         1 => adj[0][0] = 1.0,
@@ -950,7 +1128,7 @@ fn param_adjugate(map: &ism_geom::LocalMap, u: &Bary, sparse: &[SparseStage]) ->
             }
         }
     }
-    (w, adj, linalg::det(n, &dy))
+    (adj, linalg::det(n, dy))
 }
 
 /// `X⁻¹(u)` with the robust per-stage solver (when Newton from the lattice guess fails), and the
@@ -1184,31 +1362,89 @@ impl PatchEntry {
     /// preimages at the region's corners.
     fn propose(&self, region: usize, rng: &mut impl Rng) -> (Bary, Bary) {
         let r = &self.regions[region];
-        let weights = if self.triangles == 0 {
-            let t: f64 = rng.random();
-            [1.0 - t, t, 0.0]
-        } else {
-            let r1: f64 = rng.random();
-            let r2: f64 = rng.random();
-            let s = r1.sqrt();
-            [1.0 - s, s * (1.0 - r2), s * r2]
-        };
-        let corners = if self.triangles == 0 { 2 } else { 3 };
-        let combine = |points: &[Bary; 3]| {
-            let mut out = [0.0; MAX_VARS];
-            for (wt, p) in weights.iter().zip(points).take(corners) {
-                for (o, x) in out.iter_mut().zip(p) {
-                    *o += wt * x;
-                }
-            }
-            out
-        };
-        let u = combine(&r.u);
+        let weights = region_weights(self.triangles, rng);
+        let u = region_point(&r.u, &weights, self.triangles);
         if !self.guessed {
             return (u, u);
         }
-        let g = combine(&r.g);
+        let g = region_point(&r.g, &weights, self.triangles);
         (u, g)
+    }
+}
+
+/// Weights of the corners of a uniform point of a region: a triangle (`triangles > 0`) or a
+/// segment.
+fn region_weights(triangles: u8, rng: &mut impl Rng) -> [f64; 3] {
+    if triangles == 0 {
+        let t: f64 = rng.random();
+        [1.0 - t, t, 0.0]
+    } else {
+        let r1: f64 = rng.random();
+        let r2: f64 = rng.random();
+        let s = r1.sqrt();
+        [1.0 - s, s * (1.0 - r2), s * r2]
+    }
+}
+
+/// `Σ weights_k points_k` over the region's corners (two for a segment).
+fn region_point(points: &[Bary; 3], weights: &[f64; 3], triangles: u8) -> Bary {
+    let corners = if triangles == 0 { 2 } else { 3 };
+    let mut out = [0.0; MAX_VARS];
+    for (wt, p) in weights.iter().zip(points).take(corners) {
+        for (o, x) in out.iter_mut().zip(p) {
+            *o += wt * x;
+        }
+    }
+    out
+}
+
+impl FastPatch {
+    /// The record of an all-parametric patch whose stages are all sparse Bézier stages (at most
+    /// [`FAST_STAGES`]), appending their terms to `terms`; `None` otherwise.
+    fn new(eval: &ModelEval, patch: &PatchEntry, terms: &mut Vec<Term>) -> Option<FastPatch> {
+        let s = patch.simplex as usize;
+        let stages = eval.local_map(s).stages().len();
+        if patch.guessed || stages == 0 || patch.sparse.len() != stages || stages > FAST_STAGES {
+            return None;
+        }
+        let model = eval.model();
+        let n = model.dim();
+        let ids = model.simplex(s);
+        let f0 = model.values[ids[0] as usize];
+        let mut df = [0.0; 3];
+        for (k, d) in df.iter_mut().enumerate().take(n) {
+            *d = model.values[ids[k + 1] as usize] - f0;
+        }
+        let edges = eval.inv_edges(s);
+        let mut inv = [0.0; 9];
+        for l in 0..n {
+            for x in 0..n {
+                inv[l * 3 + x] = edges[l][x];
+            }
+        }
+        let mut values = [0.0; MAX_VARS];
+        let mut vertices = [[0.0; 3]; MAX_VARS];
+        for (i, &v) in ids.iter().enumerate() {
+            values[i] = model.values[v as usize];
+            vertices[i][..n].copy_from_slice(model.vertex(v as usize));
+        }
+        let mut ranges = [(0, 0, 0); FAST_STAGES];
+        for (range, st) in ranges.iter_mut().zip(&patch.sparse) {
+            let start = terms.len() as u32;
+            terms.extend_from_slice(&st.terms);
+            *range = (start, terms.len() as u32, st.degree as u32);
+        }
+        Some(FastPatch {
+            simplex: patch.simplex,
+            triangles: patch.triangles,
+            stages: stages as u8,
+            ranges,
+            linear_gradient: patch.linear_gradient,
+            df,
+            inv,
+            values,
+            vertices,
+        })
     }
 }
 
@@ -1221,6 +1457,54 @@ mod tests {
     /// per triangle of each patch); sized for a million it refines them, so its bounded area is
     /// smaller; both bound the same curved area from above (the lattice's mean exact `J` per
     /// patch is below each patch's bounded area). Without a size, the fixed threshold.
+    /// The fast records of all-parametric patches give the same draws, bit for bit, as the
+    /// patch entries through the evaluator and the kernel's local maps (the truth: the same
+    /// table with its fast records removed, so every draw takes the general branch), in 2D and
+    /// 3D, weighted by curved and by linear area.
+    #[test]
+    fn fast_records_draw_the_same_bits_as_the_kernel_route() {
+        use rand::SeedableRng;
+        for (name, sized) in [
+            ("stratified-3d", Some(100_000)),
+            ("stratified-3d", None),
+            ("quadratic-edges", Some(10_000)),
+            ("quadratic-edges", None),
+        ] {
+            let path = format!(
+                "{}/../../spec/examples/{name}.ism.json",
+                env!("CARGO_MANIFEST_DIR")
+            );
+            let mut model = ism_format::io::read_path(path).unwrap().model;
+            for stage in &mut model.stages {
+                stage.direction = Direction::Parametric;
+            }
+            let eval = ModelEval::new(&model).unwrap();
+            for weighting in [Weighting::CurvedArea, Weighting::LinearArea] {
+                let table = SurfaceTable::with_expected_samples(&eval, weighting, sized).unwrap();
+                assert!(!table.fast.is_empty(), "{name}: no fast record");
+                let mut slow = table.clone();
+                slow.fast.clear();
+                let draws = |t: &SurfaceTable| {
+                    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(11);
+                    (0..3000)
+                        .map(|_| t.draw(&eval, &mut rng).unwrap())
+                        .collect::<Vec<_>>()
+                };
+                let (a, b) = (draws(&table), draws(&slow));
+                for (x, y) in a.iter().zip(&b) {
+                    let bits = |p: &SurfacePoint| {
+                        let mut v: Vec<u64> =
+                            p.p.iter().chain(&p.normal).map(|x| x.to_bits()).collect();
+                        v.push(p.value.to_bits());
+                        v.push(p.simplex as u64);
+                        v
+                    };
+                    assert_eq!(bits(x), bits(y), "{name} {weighting:?}");
+                }
+            }
+        }
+    }
+
     #[test]
     fn a_table_sized_for_more_samples_is_tighter() {
         let path = format!(
