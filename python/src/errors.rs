@@ -1,7 +1,12 @@
 //! The libraries' typed errors as the exceptions of `ism/errors.py`, keeping rule, place and text.
 
-use ism_format::Diagnostic;
+use ism_format::{Diagnostic, ErrorChain};
 use pyo3::prelude::*;
+
+/// An error's message with its causes, each once (see [`ErrorChain`]): the text of every exception.
+pub(crate) fn chain(err: &(dyn std::error::Error + 'static)) -> String {
+    ErrorChain(err).to_string()
+}
 
 /// An exception of class `kind` (a name in `ism.errors`) with `message` and the diagnostics the
 /// library gave (rule id, location, message each).
@@ -34,15 +39,15 @@ pub(crate) fn format_error(py: Python<'_>, err: &ism_format::Error) -> PyErr {
         ism_format::Error::Structure(_) => "StructureError",
         _ => "ISMError",
     };
-    raise(py, kind, &err.to_string(), err.diagnostics())
+    raise(py, kind, &chain(err), err.diagnostics())
 }
 
 /// `ism_validate::Error`: unreadable input.
 pub(crate) fn validate_error(py: Python<'_>, err: &ism_validate::Error) -> PyErr {
     match err {
         ism_validate::Error::Read(e) => format_error(py, e),
-        ism_validate::Error::Io { .. } => raise(py, "FileError", &err.to_string(), &[]),
-        _ => raise(py, "ISMError", &err.to_string(), &[]),
+        ism_validate::Error::Io { .. } => raise(py, "FileError", &chain(err), &[]),
+        _ => raise(py, "ISMError", &chain(err), &[]),
     }
 }
 
@@ -51,12 +56,12 @@ pub(crate) fn sample_error(py: Python<'_>, err: &ism_sample::SampleError) -> PyE
     let kind = match err {
         ism_sample::SampleError::Io { .. } => "FileError",
         ism_sample::SampleError::InvalidArgument(_) => {
-            return pyo3::exceptions::PyValueError::new_err(err.to_string())
+            return pyo3::exceptions::PyValueError::new_err(chain(err))
         }
         ism_sample::SampleError::Geometry(_) => "EvaluationError",
         _ => "SampleError",
     };
-    raise(py, kind, &err.to_string(), &[])
+    raise(py, kind, &chain(err), &[])
 }
 
 /// `ism_export::Error`.
@@ -65,7 +70,7 @@ pub(crate) fn export_error(py: Python<'_>, err: &ism_export::Error) -> PyErr {
         ism_export::Error::Inversion { .. } => "InversionError",
         _ => "ExportError",
     };
-    raise(py, kind, &err.to_string(), &[])
+    raise(py, kind, &chain(err), &[])
 }
 
 /// A Rust panic caught at the boundary (never unwinds into the interpreter).

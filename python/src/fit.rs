@@ -30,12 +30,13 @@ pub(crate) fn smooth(
     match mode {
         Mode::Rational(options) => {
             let s = smooth_rational_with_progress(model, options, progress)
-                .map_err(|e| e.to_string())?;
+                .map_err(|e| crate::errors::chain(&e))?;
             let report = s.report.to_json(verdict(&s.model));
             Ok((s.model, report))
         }
         Mode::Jumps(options) => {
-            let s = smooth_with_progress(model, options, progress).map_err(|e| e.to_string())?;
+            let s = smooth_with_progress(model, options, progress)
+                .map_err(|e| crate::errors::chain(&e))?;
             let report = s.report.to_json(verdict(&s.model));
             Ok((s.model, report))
         }
@@ -90,7 +91,8 @@ fn run_fit<'py>(
     progress: Option<&Bound<'py, PyAny>>,
 ) -> PyResult<(Model, Bound<'py, PyAny>)> {
     let result = run(py, 0, progress.map(|p| (p, 0)), move |control| {
-        let fitted = ism_fit::fit(&*g, &options, &control.fit_hook()).map_err(|e| e.to_string())?;
+        let fitted = ism_fit::fit(&*g, &options, &control.fit_hook())
+            .map_err(|e| crate::errors::chain(&e))?;
         let model = fitted.to_model(&name);
         let structural = ism_format::structure::check(&model, 20)
             .into_iter()
@@ -210,7 +212,8 @@ pub fn fit_mesh<'py>(
     if !(margin.is_finite() && margin >= 0.0) {
         return Err(PyValueError::new_err("margin: expected a number >= 0"));
     }
-    let g = MeshDistance::new(mesh).map_err(|e| raise(py, "FitError", &e.to_string(), &[]))?;
+    let g = MeshDistance::new(mesh)
+        .map_err(|e| raise(py, "FitError", &crate::errors::chain(&e), &[]))?;
     let check = g.check();
     if let Some(why) = g.refusal() {
         return Err(raise(py, "FitError", &format!("the mesh {why}"), &[]));
@@ -277,17 +280,19 @@ pub fn fit_hermite<'py>(
     };
     let base = model.map(|m| (*m.get().inner).clone());
     let result = run(py, 0, progress.map(|p| (p, 0)), move |control| {
-        let data = HermiteData::from_json(&text).map_err(|e| e.to_string())?;
+        let data = HermiteData::from_json(&text).map_err(|e| crate::errors::chain(&e))?;
         if data.model.is_some() && base.is_none() {
             return Err(
                 "the handles name a model file; read it with ism.read and pass it as model="
                     .to_string(),
             );
         }
-        let model = data.base_model(base).map_err(|e| e.to_string())?;
+        let model = data
+            .base_model(base)
+            .map_err(|e| crate::errors::chain(&e))?;
         let fitted =
             fit_hermite_with_progress(&model, &data.handles, &data.options(), &control.hook())
-                .map_err(|e| e.to_string())?;
+                .map_err(|e| crate::errors::chain(&e))?;
         let r = &fitted.report;
         let handles: Vec<_> = r
             .handles

@@ -266,7 +266,7 @@ fn export_options(
     };
     ism_export::export::check(&options, format).map_err(|e| match e {
         ism_export::Error::Unsupported(m) => PyValueError::new_err(m),
-        e => PyValueError::new_err(e.to_string()),
+        e => PyValueError::new_err(crate::errors::chain(&e)),
     })?;
     Ok(options)
 }

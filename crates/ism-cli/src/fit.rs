@@ -132,10 +132,54 @@ pub struct Args {
     /// Hermite handles file (JSON): build the free-form model it defines (Mello & Velho 2009, §9.1).
     #[arg(long, conflicts_with_all = ["expr", "preset"], long_help = crate::hermite::HELP)]
     hermite: Option<PathBuf>,
+    #[command(flatten)]
+    mesh_limits: MeshInputLimits,
+}
+
+/// The reader's limits for `--mesh` (`TriangleMesh::load_with_limits`). Other commands spell them
+/// `--max-payload-bytes/--max-vertices/--max-simplices`; here `--max-simplices` already caps the
+/// fit, so the mesh's limits are prefixed `--mesh-`.
+#[derive(clap::Args, Clone, Copy, Debug, Default)]
+#[command(next_help_heading = "Resource limits of --mesh (refuse a mesh past one)")]
+struct MeshInputLimits {
+    /// Largest mesh file, in bytes [default: 8 GiB]
+    #[arg(long, value_name = "BYTES")]
+    mesh_max_bytes: Option<u64>,
+    /// Most mesh vertices [default: 2^32 - 1]
+    #[arg(long, value_name = "N")]
+    mesh_max_vertices: Option<u64>,
+    /// Most mesh triangles [default: 2^32 - 1]
+    #[arg(long, value_name = "N")]
+    mesh_max_triangles: Option<u64>,
+}
+
+impl MeshInputLimits {
+    /// Whether any flag is given (they apply to `--mesh` only).
+    fn any(self) -> bool {
+        self.mesh_max_bytes.is_some()
+            || self.mesh_max_vertices.is_some()
+            || self.mesh_max_triangles.is_some()
+    }
+
+    /// Each given flag, the library's default for the others.
+    fn limits(self) -> io::Limits {
+        let d = io::Limits::default();
+        io::Limits {
+            max_payload_bytes: self.mesh_max_bytes.unwrap_or(d.max_payload_bytes),
+            max_vertices: self.mesh_max_vertices.unwrap_or(d.max_vertices),
+            max_simplices: self.mesh_max_triangles.unwrap_or(d.max_simplices),
+            ..d
+        }
+    }
 }
 
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     args.threads.install()?;
+    if args.mesh.is_none() && args.mesh_limits.any() {
+        bail!(
+            "--mesh-max-bytes, --mesh-max-vertices and --mesh-max-triangles apply to --mesh only"
+        );
+    }
     if let Some(handles) = &args.hermite {
         let (output, svg) = (args.output.as_deref(), args.svg.as_deref());
         return crate::hermite::run(handles, output, svg, args.json);
@@ -380,7 +424,10 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     if let Err(e) = &round_trip {
         // Reported, not fatal: the failures seen are in the exporter's and sampler's inversion
         // (issue 19), which the fitter must not paper over.
-        eprintln!("warning: round trip of the written model failed: {e}");
+        eprintln!(
+            "warning: round trip of the written model failed: {}",
+            ism_format::ErrorChain(e)
+        );
     }
     for u in &r.uncertain {
         eprintln!(
@@ -458,7 +505,7 @@ type MeshSetup = (MeshDistance, Vec<f64>, String, MeshInfo, Vec<String>);
 fn mesh_setup(args: &Args) -> anyhow::Result<MeshSetup> {
     let mut warnings = Vec::new();
     let path = args.mesh.as_ref().context("missing --mesh")?;
-    let loaded = TriangleMesh::load(path)?;
+    let loaded = TriangleMesh::load_with_limits(path, &args.mesh_limits.limits())?;
     let g = MeshDistance::new(loaded).map_err(|e| match e {
         ism_fit::FitError::Mesh { message, .. } => ism_fit::FitError::Mesh {
             path: path.clone(),

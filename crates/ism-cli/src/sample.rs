@@ -139,7 +139,7 @@ pub(crate) fn write_output(
             let written = io::write_atomic(path, |w| {
                 let mut sink = FormatWriter::new(w, format);
                 produce(&mut sink).map_err(|e| {
-                    let text = e.to_string();
+                    let text = ism_format::ErrorChain(&e).to_string();
                     failure = Some(e);
                     std::io::Error::other(text)
                 })

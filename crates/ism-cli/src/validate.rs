@@ -3,6 +3,7 @@
 use std::path::PathBuf;
 use std::process::ExitCode;
 
+use ism_format::ErrorChain;
 use ism_validate::{Options, Report, Verdict};
 
 const AFTER_HELP: &str = "\
@@ -189,12 +190,12 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             }
             Err(err) => {
                 worst = 2;
-                progress.suspend(|| eprintln!("error: {}: {err}", path.display()));
+                progress.suspend(|| eprintln!("error: {}: {}", path.display(), ErrorChain(&err)));
                 if args.json {
                     reports.push(serde_json::json!({
                         "file": { "path": path.display().to_string() },
                         "verdict": "unreadable",
-                        "error": err.to_string(),
+                        "error": ErrorChain(&err).to_string(),
                     }));
                 }
             }

@@ -420,6 +420,54 @@ fn bad_meshes_and_conflicting_arguments_exit_2() {
     }
 }
 
+/// `--mesh-max-bytes/--mesh-max-vertices/--mesh-max-triangles`: a mesh one past a limit is
+/// refused (exit 2, the limit named, nothing written); at the limit it is read and fitted.
+#[test]
+fn mesh_limits_refuse_one_past_and_accept_at_the_count() {
+    let dir = tempfile::tempdir().unwrap();
+    let model = dir.path().join("x.ismb");
+    let (points, tris) = icosphere(0, 1.0, [0.0; 3]);
+    let obj = dir.path().join("ico.obj");
+    std::fs::write(&obj, obj_text(&points, &tris)).unwrap();
+    // Truth: the counts of the mesh as generated and the file's size on disk.
+    let size = std::fs::metadata(&obj).unwrap().len();
+    let cases = [
+        ("--mesh-max-bytes", size, "max_payload_bytes"),
+        ("--mesh-max-vertices", points.len() as u64, "max_vertices"),
+        ("--mesh-max-triangles", tris.len() as u64, "max_simplices"),
+    ];
+    for (flag, count, name) in cases {
+        let below = (count - 1).to_string();
+        let out = ism()
+            .args(["fit", "--mesh", obj.to_str().unwrap(), flag, &below, "-q"])
+            .arg("-o")
+            .arg(&model)
+            .output()
+            .unwrap();
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(2), "{flag} {below}: {stderr}");
+        assert!(stderr.contains(name), "{flag} {below}: {stderr}");
+        assert!(!model.exists(), "{flag} {below} wrote a file");
+        let at = count.to_string();
+        let out = ism()
+            .args(["fit", "--mesh", obj.to_str().unwrap(), flag, &at, "-q"])
+            .args(["--resolution", "2", "--tolerance", "0.5", "--no-optimize"])
+            .arg("-o")
+            .arg(&model)
+            .output()
+            .unwrap();
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert!(!stderr.contains(name), "{flag} {at}: {stderr}");
+        assert!(model.exists(), "{flag} {at}: {stderr}");
+        std::fs::remove_file(&model).unwrap();
+    }
+    // The flags are for --mesh only.
+    assert_refused(
+        &["fit", "--preset", "circle", "--mesh-max-vertices", "4"],
+        &model,
+    );
+}
+
 #[test]
 fn open_mesh_is_refused() {
     let dir = tempfile::tempdir().unwrap();

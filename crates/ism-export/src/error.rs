@@ -6,7 +6,7 @@ use std::path::PathBuf;
 #[derive(Debug, thiserror::Error)]
 pub enum Error {
     /// Writing or reading bytes failed.
-    #[error("{}I/O error: {source}", path.as_ref().map(|p| format!("{}: ", p.display())).unwrap_or_default())]
+    #[error("{}I/O error", path.as_ref().map(|p| format!("{}: ", p.display())).unwrap_or_default())]
     Io {
         /// The file, when known.
         path: Option<PathBuf>,
@@ -19,7 +19,7 @@ pub enum Error {
     Unsupported(String),
     /// The math kernel cannot evaluate the model (a degenerate simplex, a malformed stage
     /// record): its error, kept as the source.
-    #[error("cannot evaluate the model: {0}")]
+    #[error("cannot evaluate the model")]
     Geom(#[from] ism_geom::GeomError),
     /// A stage could not be inverted at a point of the linear patch of a simplex.
     #[error(
@@ -45,7 +45,7 @@ pub enum Error {
     #[error("glTF serialization: {0}")]
     Gltf(String),
     /// The caller cancelled the call through its [`ism_format::Progress`].
-    #[error("cancelled")]
+    #[error(transparent)]
     Cancelled(#[from] ism_format::Cancelled),
     /// An imported mesh file is malformed.
     #[error("{format} import{}: {message}", location.as_ref().map(|l| format!(" at {l}")).unwrap_or_default())]

@@ -345,6 +345,28 @@ mod tests {
                 ),
                 "volume {volume}: {err:?}"
             );
+            // The kernel's message is printed once: by the chain, not by the wrapper too.
+            let kernel = "simplex 0 is degenerate (edge-matrix determinant";
+            assert!(!err.to_string().contains(kernel), "{err}");
+            let chain = ism_format::ErrorChain(&err).to_string();
+            assert_eq!(chain.matches(kernel).count(), 1, "{chain}");
+            assert!(chain.starts_with("cannot evaluate the model: simplex 0 is degenerate"));
         }
+    }
+
+    /// I/O errors keep the operating system's error as their source and name it once.
+    #[test]
+    fn io_errors_name_their_cause_once() {
+        let err = Error::Io {
+            path: Some("/out/shape.obj".into()),
+            source: std::io::Error::other("disk full"),
+        };
+        assert_eq!(err.to_string(), "/out/shape.obj: I/O error");
+        assert_eq!(
+            ism_format::ErrorChain(&err).to_string(),
+            "/out/shape.obj: I/O error: disk full"
+        );
+        let cancelled = Error::from(ism_format::Cancelled);
+        assert_eq!(ism_format::ErrorChain(&cancelled).to_string(), "cancelled");
     }
 }

@@ -93,11 +93,11 @@ const STALL_FRACTION: f64 = 1e-6;
 #[derive(Debug, thiserror::Error)]
 pub enum C1Error {
     /// The caller cancelled the call through its [`Progress`].
-    #[error("cancelled")]
+    #[error(transparent)]
     Cancelled(#[from] Cancelled),
-    /// The model has structural errors (the reader's checks).
-    #[error("model: {0}")]
-    Structure(String),
+    /// The model has structural errors (the reader's diagnostics, each with its rule and place).
+    #[error("model: {}", crate::join_diagnostics(.0))]
+    Structure(Vec<ism_format::Diagnostic>),
     /// The dimension is not 2 or 3.
     #[error("dimension {0}: rational C¹ smoothing needs 2 or 3")]
     Dimension(u8),
@@ -318,13 +318,9 @@ fn check_input(model: &Model, options: &C1Options) -> Result<(u32, InputWeights)
     if model.dimension != 2 && model.dimension != 3 {
         return Err(C1Error::Dimension(model.dimension));
     }
-    let errors: Vec<String> = ism_format::structure::check(model, 5)
-        .into_iter()
-        .filter(|d| d.severity == ism_format::Severity::Error)
-        .map(|d| d.to_string())
-        .collect();
+    let errors = crate::structural_errors(model);
     if !errors.is_empty() {
-        return Err(C1Error::Structure(errors.join("; ")));
+        return Err(C1Error::Structure(errors));
     }
     let n = model.dim() as u32;
     let mut weights = HashMap::new();
@@ -1177,10 +1173,19 @@ mod tests {
         ));
         let mut broken = linear.clone();
         broken.values.pop();
-        assert!(matches!(
-            smooth_rational(&broken, &o),
-            Err(C1Error::Structure(_))
-        ));
+        let e = smooth_rational(&broken, &o).err().unwrap();
+        let C1Error::Structure(diagnostics) = &e else {
+            panic!("expected C1Error::Structure, got {e:?}");
+        };
+        // Truth: the reader's own check of the same model, kept as data (rule and place).
+        let expected: Vec<_> = ism_format::structure::check(&broken, 5)
+            .into_iter()
+            .filter(|d| d.severity == ism_format::Severity::Error)
+            .collect();
+        assert!(!expected.is_empty());
+        assert_eq!(diagnostics, &expected);
+        let listed: Vec<String> = expected.iter().map(|d| d.to_string()).collect();
+        assert_eq!(e.to_string(), format!("model: {}", listed.join("; ")));
         let mut negative = good.clone();
         negative.stages[0].faces.record_mut(0).weights[0] = -1.0;
         let e = smooth_rational(&negative, &o).err().unwrap();

@@ -1395,7 +1395,7 @@ pub fn fit(
             .map(|c| (c.centre.clone(), c.radius + options.tolerance))
             .collect();
         let m = measure(g, &model, &options.domain, options.tolerance, &regions)
-            .map_err(|e| FitError::Options(format!("the fitted model does not evaluate: {e}")))?;
+            .map_err(FitError::Eval)?;
         let done = m.max() <= options.tolerance
             || rounds == TWO_SIDED_ROUNDS
             || fitter.complex.num_cells() >= options.max_simplices;

@@ -68,14 +68,21 @@ pub enum EditError {
         /// What is wrong.
         message: String,
     },
-    /// The complex or model is unusable (structure errors, bad sizes).
+    /// The complex or model is unusable (missing or inconsistent arrays, a degenerate simplex).
     #[error("model: {0}")]
     Model(String),
+    /// The model breaks structural rules (spec §2–5): the reader's diagnostics, each with its
+    /// rule and place.
+    #[error("model: {}", crate::join_diagnostics(.0))]
+    Structure(Vec<ism_format::Diagnostic>),
+    /// The kept stages cannot be indexed for evaluation.
+    #[error("the kept stages do not index")]
+    Index(#[source] ism_format::Error),
     /// The math kernel refused the model.
-    #[error("model does not evaluate: {0}")]
+    #[error("model does not evaluate")]
     Geom(#[from] ism_geom::GeomError),
     /// The caller cancelled the call through its [`Progress`].
-    #[error("cancelled")]
+    #[error(transparent)]
     Cancelled(#[from] Cancelled),
 }
 
@@ -169,7 +176,8 @@ impl HermiteData {
     /// vertex and value overrides, or the complex given in the file with no stages.
     ///
     /// # Errors
-    /// [`EditError::Model`] for missing or inconsistent arrays and structural errors.
+    /// [`EditError::Model`] for missing or inconsistent arrays; [`EditError::Structure`] for
+    /// structural errors.
     pub fn base_model(&self, base: Option<Model>) -> Result<Model, EditError> {
         let mut model = match base {
             Some(m) => {
@@ -244,17 +252,13 @@ impl HermiteData {
     }
 }
 
-/// Structural errors of a model as one [`EditError::Model`].
+/// Structural errors of a model (up to five) as one [`EditError::Structure`].
 pub(crate) fn check_structure(model: &Model) -> Result<(), EditError> {
-    let errors: Vec<String> = ism_format::structure::check(model, 5)
-        .into_iter()
-        .filter(|d| d.severity == ism_format::Severity::Error)
-        .map(|d| d.to_string())
-        .collect();
+    let errors = crate::structural_errors(model);
     if errors.is_empty() {
         Ok(())
     } else {
-        Err(EditError::Model(errors.join("; ")))
+        Err(EditError::Structure(errors))
     }
 }
 
@@ -404,8 +408,8 @@ impl Layered {
     /// stages.
     ///
     /// # Errors
-    /// [`EditError::Model`] for structural errors or a dimension other than 2 and 3;
-    /// [`EditError::Geom`] if a stage does not evaluate.
+    /// [`EditError::Structure`] for structural errors; [`EditError::Model`] for a dimension other
+    /// than 2 and 3; [`EditError::Index`] or [`EditError::Geom`] if a stage does not evaluate.
     pub fn new(model: &Model) -> Result<Layered, EditError> {
         check_structure(model)?;
         let n = model.dim();
@@ -443,8 +447,7 @@ impl Layered {
         // The kept stages are read through the indexed model: the topology names each simplex's
         // faces, so no face key is hashed per simplex. `model` passed the structural check above,
         // and dropping whole stages keeps it passing.
-        let indexed = IndexedModel::for_evaluation(base)
-            .map_err(|e| EditError::Model(format!("the kept stages do not index: {e}")))?;
+        let indexed = IndexedModel::for_evaluation(base).map_err(EditError::Index)?;
         let mut frames = Vec::with_capacity(indexed.num_simplices());
         for s in 0..indexed.num_simplices() {
             let ids = indexed.simplex(s).to_vec();
@@ -1374,6 +1377,34 @@ mod tests {
         let dup = vec![handles[0].clone(), handles[0].clone()];
         assert!(fit_hermite(&model, &dup, &HermiteOptions::default()).is_err());
         assert!(HermiteData::from_json("{\"dimension\": 2, \"bogus\": 1}").is_err());
+    }
+
+    /// A complex the reader refuses comes back as the reader's diagnostics (rule and place), not
+    /// as their text.
+    #[test]
+    fn structural_errors_are_the_readers_diagnostics() {
+        // Vertex id 7 of the second triangle does not exist (4 vertices).
+        let data = HermiteData::from_json(
+            r#"{"dimension": 2, "vertices": [0, 0, 1, 0, 1, 1, 0, 1],
+                "simplices": [0, 1, 2, 0, 2, 7], "values": [-1, 1, 1, 1], "handles": []}"#,
+        )
+        .unwrap();
+        let err = data.base_model(None).unwrap_err();
+        let EditError::Structure(found) = &err else {
+            panic!("expected EditError::Structure, got {err:?}");
+        };
+        let mut model = Model::new(2);
+        model.vertices = vec![0.0, 0.0, 1.0, 0.0, 1.0, 1.0, 0.0, 1.0];
+        model.simplices = vec![0, 1, 2, 0, 2, 7];
+        model.values = vec![-1.0, 1.0, 1.0, 1.0];
+        // Truth: the reader's own check of the same complex.
+        let expected: Vec<_> = ism_format::structure::check(&model, 5)
+            .into_iter()
+            .filter(|d| d.severity == ism_format::Severity::Error)
+            .collect();
+        assert!(!expected.is_empty());
+        assert_eq!(found, &expected);
+        assert!(err.to_string().starts_with("model: "), "{err}");
     }
 
     #[test]

@@ -57,6 +57,20 @@ pub use fit::{fit, FitOptions, FitReport, Fitted};
 pub use ism_format::progress::{Cancelled, Progress, Step};
 pub use presets::{Preset, PRESETS};
 
+/// The first five structural errors of `model` (the reader's checks; warnings left out).
+fn structural_errors(model: &ism_format::Model) -> Vec<ism_format::Diagnostic> {
+    ism_format::structure::check(model, 5)
+        .into_iter()
+        .filter(|d| d.severity == ism_format::Severity::Error)
+        .collect()
+}
+
+/// Diagnostics as one message, `; `-separated.
+fn join_diagnostics(list: &[ism_format::Diagnostic]) -> String {
+    let parts: Vec<String> = list.iter().map(|d| d.to_string()).collect();
+    parts.join("; ")
+}
+
 /// `(x, y[, z])` for messages.
 fn show_point(p: &[f64]) -> String {
     let parts: Vec<String> = p.iter().map(|x| format!("{x}")).collect();
@@ -67,7 +81,7 @@ fn show_point(p: &[f64]) -> String {
 #[derive(Debug, thiserror::Error)]
 pub enum FitError {
     /// The caller cancelled the fit through its [`Progress`].
-    #[error("cancelled")]
+    #[error(transparent)]
     Cancelled(#[from] Cancelled),
     /// An expression did not parse, or uses a variable the dimension does not have.
     #[error("expression `{text}`: {message}")]
@@ -80,6 +94,9 @@ pub enum FitError {
     /// Inconsistent or out-of-range options.
     #[error("{0}")]
     Options(String),
+    /// The kernel cannot evaluate the fitted (or given) model: its error, kept as the source.
+    #[error("the model does not evaluate")]
+    Eval(#[source] ism_geom::GeomError),
     /// `g` is not a finite number at a point of the domain.
     #[error(
         "g is {value} at {}: it is not defined there (e.g. sqrt or ln of a negative number, or a \

@@ -37,7 +37,7 @@ pub fn to_json(r: &Result<RoundTrip, RoundTripError>) -> serde_json::Value {
             "exportedBoundaryEdges": t.boundary_edges,
             "samplesDrawn": t.samples,
         }),
-        Err(e) => serde_json::json!({"ok": false, "error": e.to_string()}),
+        Err(e) => serde_json::json!({"ok": false, "error": ism_format::ErrorChain(e).to_string()}),
     }
 }
 
@@ -45,16 +45,16 @@ pub fn to_json(r: &Result<RoundTrip, RoundTripError>) -> serde_json::Value {
 #[derive(Debug, thiserror::Error)]
 pub enum RoundTripError {
     /// The model does not encode or decode.
-    #[error("the model does not round-trip through .ismb: {0}")]
+    #[error("the model does not round-trip through .ismb")]
     Encoding(#[source] ism_format::Error),
     /// It decodes to something else.
     #[error("the model decoded from .ismb differs from the one encoded")]
     Differs,
     /// The kernel cannot evaluate it.
-    #[error("the kernel cannot evaluate the model: {0}")]
+    #[error("the kernel cannot evaluate the model")]
     Eval(#[source] ism_geom::GeomError),
     /// The exporter fails on it.
-    #[error("the exporter cannot extract the shape: {0}")]
+    #[error("the exporter cannot extract the shape")]
     Export(#[source] ism_export::Error),
     /// The exported shape is not what the fit reports.
     #[error(
@@ -74,7 +74,7 @@ pub enum RoundTripError {
         expected_euler: i64,
     },
     /// The sampler fails on it.
-    #[error("the sampler cannot draw on the shape: {0}")]
+    #[error("the sampler cannot draw on the shape")]
     Sample(#[source] ism_sample::SampleError),
 }
 

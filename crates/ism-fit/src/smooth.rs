@@ -288,8 +288,8 @@ fn facet_pairs(layer: &Layered) -> Result<(usize, Vec<Pair>), EditError> {
 /// Reduces the normal jumps of `model` (see the module doc).
 ///
 /// # Errors
-/// [`EditError::Model`] for structural errors, a dimension other than 2 and 3, a negative
-/// `alpha`, or kept stages that do not invert at a point of the shape; [`EditError::Geom`] when a
+/// [`EditError::Structure`] for structural errors; [`EditError::Model`] for a dimension other than
+/// 2 and 3, a negative `alpha`, or kept stages that do not invert at a point of the shape; [`EditError::Geom`] when a
 /// stage does not evaluate.
 pub fn smooth(model: &Model, options: &SmoothOptions) -> Result<Smoothed, EditError> {
     smooth_with_progress(model, options, &Progress::none())

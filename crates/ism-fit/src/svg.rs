@@ -21,8 +21,7 @@ pub fn picture(model: &Model, title: &str) -> Result<String, crate::FitError> {
             "pictures are drawn for 2D models only".into(),
         ));
     }
-    let eval = ism_geom::ModelEval::new(model)
-        .map_err(|e| crate::FitError::Options(format!("model does not evaluate: {e}")))?;
+    let eval = ism_geom::ModelEval::new(model).map_err(crate::FitError::Eval)?;
     let (mut lo, mut hi) = ([f64::INFINITY; 2], [f64::NEG_INFINITY; 2]);
     for v in model.vertices.chunks_exact(2) {
         for k in 0..2 {

@@ -53,3 +53,46 @@ impl Error {
 
 /// Shorthand for this crate's results.
 pub type Result<T, E = Error> = std::result::Result<T, E>;
+
+/// An error and its causes as one line, outermost first, joined by `": "` — how the `ism` CLI
+/// and the Python package print every error.
+///
+/// The workspace's error types follow the Rust API guidelines' rule for wrapped errors: a variant
+/// that carries a cause returns it from [`std::error::Error::source`] and does not repeat it in its
+/// own message, so printing only `{err}` shows the outermost context and printing the chain shows
+/// each cause exactly once.
+///
+/// ```
+/// use ism_format::ErrorChain;
+///
+/// #[derive(Debug, thiserror::Error)]
+/// #[error("cannot write out.obj")]
+/// struct Write(#[source] std::io::Error);
+///
+/// let err = Write(std::io::Error::other("disk full"));
+/// assert_eq!(err.to_string(), "cannot write out.obj");
+/// assert_eq!(ErrorChain(&err).to_string(), "cannot write out.obj: disk full");
+/// ```
+///
+/// This crate's own [`Error`] carries no cause: its I/O variant names the operating system's
+/// error in its message, so its chain is its message.
+#[derive(Clone, Copy)]
+pub struct ErrorChain<'a>(pub &'a (dyn std::error::Error + 'static));
+
+impl std::fmt::Display for ErrorChain<'_> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{}", self.0)?;
+        let mut cause = self.0.source();
+        while let Some(c) = cause {
+            write!(f, ": {c}")?;
+            cause = c.source();
+        }
+        Ok(())
+    }
+}
+
+impl std::fmt::Debug for ErrorChain<'_> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        std::fmt::Display::fmt(self, f)
+    }
+}

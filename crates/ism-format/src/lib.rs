@@ -45,7 +45,7 @@ pub mod rules;
 pub mod structure;
 
 pub use decode::MAX_DEPTH;
-pub use error::{Error, Result};
+pub use error::{Error, ErrorChain, Result};
 pub use faces::{FaceMut, FaceRef, FaceTable};
 pub use indexed::{FaceId, IndexedModel, SimplexId, StageTable, Topology, VertexId};
 pub use io::{Document, Encoding};

@@ -7,7 +7,7 @@ use std::path::PathBuf;
 #[non_exhaustive]
 pub enum SampleError {
     /// The operating system refused a read or write.
-    #[error("I/O error{}: {source}", path.as_ref().map(|p| format!(" on {}", p.display())).unwrap_or_default())]
+    #[error("I/O error{}", path.as_ref().map(|p| format!(" on {}", p.display())).unwrap_or_default())]
     Io {
         /// The file, when known.
         path: Option<PathBuf>,
@@ -43,7 +43,7 @@ pub enum SampleError {
         reason: String,
     },
     /// The model could not be evaluated: the math kernel's error, kept as the source.
-    #[error("model evaluation: {0}")]
+    #[error("model evaluation")]
     Geometry(#[from] ism_geom::GeomError),
     /// A points file could not be parsed.
     #[error("points input{}: {message}", location.as_ref().map(|l| format!(" at {l}")).unwrap_or_default())]
@@ -118,5 +118,25 @@ mod tests {
             err.duplicate(),
             SampleError::Geometry(ism_geom::GeomError::Degenerate { simplex: 0, .. })
         ));
+        // The kernel's message is printed once: by the chain, not by the wrapper too.
+        let kernel = "simplex 0 is degenerate (edge-matrix determinant";
+        assert!(!err.to_string().contains(kernel), "{err}");
+        let chain = ism_format::ErrorChain(&err).to_string();
+        assert_eq!(chain.matches(kernel).count(), 1, "{chain}");
+        assert!(chain.starts_with("model evaluation: simplex 0 is degenerate"));
+    }
+
+    /// I/O errors keep the operating system's error as their source and name it once.
+    #[test]
+    fn io_errors_name_their_cause_once() {
+        let err = SampleError::Io {
+            path: Some("/out/points.csv".into()),
+            source: std::io::Error::other("disk full"),
+        };
+        assert_eq!(err.to_string(), "I/O error on /out/points.csv");
+        assert_eq!(
+            ism_format::ErrorChain(&err).to_string(),
+            "I/O error on /out/points.csv: disk full"
+        );
     }
 }

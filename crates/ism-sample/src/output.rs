@@ -484,7 +484,7 @@ pub fn write_path(
             .and_then(|_| sink.block(rows))
             .and_then(|_| sink.finish());
         run.map_err(|e| {
-            let msg = e.to_string();
+            let msg = ism_format::ErrorChain(&e).to_string();
             inner = Some(e);
             std::io::Error::other(msg)
         })

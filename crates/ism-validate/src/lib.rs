@@ -111,7 +111,7 @@ impl Default for Options {
 #[non_exhaustive]
 pub enum Error {
     /// The file could not be read.
-    #[error("cannot read {}: {source}", path.display())]
+    #[error("cannot read {}", path.display())]
     Io {
         /// The file.
         path: std::path::PathBuf,
@@ -119,10 +119,10 @@ pub enum Error {
         source: std::io::Error,
     },
     /// The file is not a readable ISM (I/O, container or encoding; spec ISM-0xx).
-    #[error("unreadable: {0}")]
+    #[error("unreadable")]
     Read(#[from] ism_format::Error),
     /// The caller cancelled the run through its [`Progress`].
-    #[error("cancelled")]
+    #[error(transparent)]
     Cancelled(#[from] Cancelled),
     /// The worker pool could not be started.
     #[error("cannot start {threads} worker threads: {message}")]
