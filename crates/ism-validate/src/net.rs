@@ -67,8 +67,8 @@ pub struct StageIndex<'a> {
     stage_index: usize,
     /// All local multi-indices of degree `d` in `n + 1` variables, flat.
     all: Vec<u32>,
-    /// Per record: every stored point equals the correctly rounded fixed point `J/d`.
-    fixed: Vec<bool>,
+    /// Per face size, the correctly rounded fixed points `J/d` of the owned multi-indices `J`.
+    fixed_points: Vec<Vec<f64>>,
     /// Per record: every stored point stays in its open face in every simplex's reduced
     /// coordinates (see [`reduced_adjusted`]): the hypothesis of the theorems.
     adjusted: Vec<bool>,
@@ -103,22 +103,13 @@ impl<'a> StageIndex<'a> {
         let model: &'a Model = indexed;
         let stage = &model.stages[k];
         let d = stage.degree;
-        // Per record, on every core; the fixed points `J / d` per face size are computed once.
+        // The fixed points `J / d` per face size, computed once.
         let fixed_points: Vec<Vec<f64>> = (0..=model.dim() + 1)
             .map(|k1| {
                 multi_index::owned(k1, d)
                     .iter()
                     .map(|&j| f64::from(j) / f64::from(d))
                     .collect()
-            })
-            .collect();
-        let fixed = (0..stage.faces.len())
-            .into_par_iter()
-            .map(|r| {
-                let rec = stage.faces.record(r);
-                fixed_points
-                    .get(rec.face.len())
-                    .is_some_and(|f| f.iter().zip(rec.points).all(|(&j, &x)| x == j))
             })
             .collect();
         let adjusted = (0..stage.faces.len())
@@ -136,7 +127,7 @@ impl<'a> StageIndex<'a> {
             stage_index: k,
             adjusted,
             all: multi_index::all(model.dim() + 1, d),
-            fixed,
+            fixed_points,
         }
     }
 
@@ -147,7 +138,11 @@ impl<'a> StageIndex<'a> {
 
     /// Whether record `r` stores exactly the fixed points (each coordinate the f64 nearest `J_j/d`).
     pub fn is_fixed(&self, r: usize) -> bool {
-        self.fixed[r]
+        // A few comparisons: decided when asked (only rational stages ask), not stored per record.
+        let rec = self.stage.faces.record(r);
+        self.fixed_points
+            .get(rec.face.len())
+            .is_some_and(|f| f.iter().zip(rec.points).all(|(&j, &x)| x == j))
     }
 
     /// Whether record `r` keeps every point in its open face whichever of its vertices a simplex

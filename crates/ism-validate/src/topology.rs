@@ -386,26 +386,70 @@ pub fn non_manifold_indexed(indexed: &IndexedModel) -> Vec<Message> {
 /// Buffers of [`vertex_defect`], reused from star to star.
 #[derive(Default)]
 struct StarScratch {
-    /// A facet through the vertex as its other ids (packed, `u64`) and a member's local index.
-    facets: Vec<u128>,
     dsu: Dsu,
     roots: Vec<u32>,
-    verts: Vec<u32>,
+    /// Open-addressing table of the star's facets through the vertex, keyed by their other ids
+    /// (packed): `(key, first member's local index, stamp)`; a slot of an older stamp is empty.
+    facets: Vec<(u64, u32, u32)>,
+    /// The same for the link's vertices (the star's other ids).
+    verts: Vec<(u32, u32)>,
+    stamp: u32,
 }
 
-/// [`star_defect`] for a vertex `v` (`k = 1`) of a complex without structural errors: the same
-/// test, on the star's facets through `v` keyed by their other ids packed in one integer.
+/// Slot of `key` in a table of `2^bits` slots (Fibonacci hashing).
+#[inline]
+fn slot(key: u64, bits: u32) -> usize {
+    (key.wrapping_mul(0x9e37_79b9_7f4a_7c15) >> (64 - bits)) as usize
+}
+
+/// [`star_defect`] for a vertex `v` (`k = 1`) of a complex without structural errors (a facet is
+/// held by at most two simplices): the same test, with the star's facets through `v` and the
+/// link's vertices counted in small hash tables instead of sorted.
 fn vertex_defect(model: &Model, v: u32, members: &[u32], buf: &mut StarScratch) -> Option<String> {
     let n = model.dim();
     let r = members.len();
     let StarScratch {
-        facets,
         dsu,
         roots,
+        facets,
         verts,
+        stamp,
     } = buf;
-    facets.clear();
-    verts.clear();
+    // At most n facets through v and n link vertices per member: tables at most half full.
+    let bits = (2 * n * r).next_power_of_two().trailing_zeros().max(4);
+    let size = 1usize << bits;
+    if facets.len() < size {
+        facets.resize(size, (0, 0, 0));
+        verts.resize(size, (0, 0));
+    }
+    *stamp = stamp.wrapping_add(1);
+    if *stamp == 0 {
+        // Wrapped: forget every older stamp.
+        facets.iter_mut().for_each(|e| e.2 = 0);
+        verts.iter_mut().for_each(|e| e.1 = 0);
+        *stamp = 1;
+    }
+    let stamp = *stamp;
+    dsu.reset(r);
+    let (mut entries, mut distinct, mut link_vertices) = (0usize, 0usize, 0usize);
+    let mut facet = |key: u64, local: u32, dsu: &mut Dsu| {
+        entries += 1;
+        let mut at = slot(key, bits);
+        loop {
+            let e = &mut facets[at];
+            if e.2 != stamp {
+                *e = (key, local, stamp);
+                distinct += 1;
+                return;
+            }
+            if e.0 == key {
+                // The second member holding this facet (no facet has a third).
+                dsu.union(e.1, local);
+                return;
+            }
+            at = (at + 1) & (size - 1);
+        }
+    };
     for (local, &s) in members.iter().enumerate() {
         let mut o = [0u32; 3];
         let mut len = 0;
@@ -415,46 +459,43 @@ fn vertex_defect(model: &Model, v: u32, members: &[u32], buf: &mut StarScratch) 
                 len += 1;
             }
         }
-        let local = u128::from(local as u32);
+        let local = local as u32;
         if n == 3 {
             // The facets through v: v and two of the three others.
             for (a, b) in [(0, 1), (0, 2), (1, 2)] {
                 let (x, y) = (o[a].min(o[b]), o[a].max(o[b]));
-                facets.push((u128::from(x) << 32 | u128::from(y)) << 32 | local);
+                facet(u64::from(x) << 32 | u64::from(y), local, dsu);
             }
-            verts.extend_from_slice(&o[..3]);
+            for &x in &o[..3] {
+                let mut at = slot(u64::from(x), bits);
+                loop {
+                    let e = &mut verts[at];
+                    if e.1 != stamp {
+                        *e = (x, stamp);
+                        link_vertices += 1;
+                        break;
+                    }
+                    if e.0 == x {
+                        break;
+                    }
+                    at = (at + 1) & (size - 1);
+                }
+            }
         } else {
             for &x in &o[..len] {
-                facets.push(u128::from(x) << 32 | local);
+                facet(u64::from(x), local, dsu);
             }
         }
-    }
-    facets.sort_unstable();
-    dsu.reset(r);
-    let (mut boundary, mut distinct) = (false, 0usize);
-    let mut i = 0;
-    while i < facets.len() {
-        let key = facets[i] >> 32;
-        let mut j = i + 1;
-        while j < facets.len() && facets[j] >> 32 == key {
-            j += 1;
-        }
-        if j - i == 2 {
-            dsu.union(facets[i] as u32, facets[i + 1] as u32);
-        }
-        boundary |= j - i == 1;
-        distinct += 1;
-        i = j;
     }
     if let Some(message) = split_star(dsu, roots, r, 1) {
         return Some(message);
     }
     if n == 3 {
         // Euler characteristic of the link: its vertices, edges (the facets through v) and
-        // triangles (the members).
-        verts.sort_unstable();
-        verts.dedup();
-        let chi = verts.len() as i64 - distinct as i64 + r as i64;
+        // triangles (the members). A facet held once is on the link's boundary: each facet is
+        // held once or twice, so `entries = once + 2 · twice` and `distinct = once + twice`.
+        let boundary = 2 * distinct > entries;
+        let chi = link_vertices as i64 - distinct as i64 + r as i64;
         let expect = if boundary { 1 } else { 2 };
         if chi != expect {
             return Some(format!(
