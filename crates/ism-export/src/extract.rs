@@ -698,14 +698,17 @@ fn corner_edge(ids: &[u32], edge: [usize; 2]) -> (u32, u32) {
 
 /// The facet (sorted global ids) containing two corners' K-edges in 3D.
 fn facet_of(ids: &[u32], e1: [usize; 2], e2: [usize; 2]) -> [u32; 3] {
-    let mut v: Vec<u32> = [e1[0], e1[1], e2[0], e2[1]]
-        .iter()
-        .map(|&i| ids[i])
-        .collect();
+    let mut v = [e1[0], e1[1], e2[0], e2[1]].map(|i| ids[i]);
     v.sort_unstable();
-    v.dedup();
-    debug_assert_eq!(v.len(), 3);
-    [v[0], v[1], v[2]]
+    // The two K-edges share exactly one vertex: drop one of the equal pair (as `dedup`).
+    debug_assert_eq!((0..3).filter(|&k| v[k] == v[k + 1]).count(), 1);
+    if v[0] == v[1] {
+        [v[1], v[2], v[3]]
+    } else if v[1] == v[2] {
+        [v[0], v[2], v[3]]
+    } else {
+        [v[0], v[1], v[3]]
+    }
 }
 
 /// Extracts `O` from a model evaluator.
@@ -1304,10 +1307,12 @@ fn extract_surface(
     progress: &Progress,
 ) -> Result<(Mesh, ExtractReport)> {
     let model = eval.model();
-    // 1. Facet table: (facet key, simplex, patch edge index), sorted so the owner comes first.
-    let mut entries: Vec<([u32; 3], u32, u8)> = patches
+    // 1. Facet table: (facet key, simplex, patch edge index, patch index), sorted so the owner
+    // comes first (simplex and patch index grow together).
+    let mut entries: Vec<([u32; 3], u32, u8, u32)> = patches
         .par_iter()
-        .flat_map_iter(|(s, patch)| {
+        .enumerate()
+        .flat_map_iter(|(pi, (s, patch))| {
             let ids = model.simplex(*s);
             let k = patch.corners.len();
             (0..k).map(move |j| {
@@ -1315,6 +1320,7 @@ fn extract_surface(
                     facet_of(ids, patch.corners[j].edge, patch.corners[(j + 1) % k].edge),
                     *s as u32,
                     j as u8,
+                    pi as u32,
                 )
             })
         })
@@ -1330,11 +1336,6 @@ fn extract_surface(
         groups.push((i, j));
         i = j;
     }
-    let patch_of: HashMap<u32, usize> = patches
-        .iter()
-        .enumerate()
-        .map(|(i, (s, _))| (*s as u32, i))
-        .collect();
 
     // Each patch's corners, placed once (in the patch's own coordinates) for both the facet
     // owners and the patch itself: they were placed twice over, a third of all exact placements
@@ -1369,9 +1370,8 @@ fn extract_surface(
                 return Err(Error::Cancelled(Cancelled));
             }
             counter.add(1);
-            let (key, s, j) = entries[first];
-            let s = s as usize;
-            let pi = patch_of[&(s as u32)];
+            let (key, s, j, pi) = entries[first];
+            let (s, pi) = (s as usize, pi as usize);
             let patch = &patches[pi].1;
             let ids = model.simplex(s);
             let k = patch.corners.len();
@@ -1476,12 +1476,11 @@ fn extract_surface(
         counters = counters.merge(c);
         facets.push(fe);
     }
-    // (simplex, patch edge) → facet index.
-    let mut facet_index: HashMap<(u32, u8), usize> =
-        HashMap::with_capacity_and_hasher(entries.len(), Default::default());
+    // (patch, patch edge) → facet index, at `4 · patch + edge`.
+    let mut facet_index = vec![u32::MAX; 4 * patches.len()];
     for (g, &(first, end)) in groups.iter().enumerate() {
-        for &(_, s, j) in &entries[first..end] {
-            facet_index.insert((s, j), g);
+        for &(_, _, j, pi) in &entries[first..end] {
+            facet_index[4 * pi as usize + j as usize] = g as u32;
         }
     }
 
@@ -1490,9 +1489,10 @@ fn extract_surface(
     let results: Vec<Result<Chunk>> = patches
         .par_iter()
         .zip(&corner_points)
+        .enumerate()
         .try_fold(
             || (Chunk::default(), Scratch::default()),
-            |(mut chunk, mut scratch), ((s, patch), corner_points)| {
+            |(mut chunk, mut scratch), (pi, ((s, patch), corner_points))| {
                 if counter.is_cancelled() {
                     return Err(Error::Cancelled(Cancelled));
                 }
@@ -1517,7 +1517,7 @@ fn extract_surface(
                 let mut edges = Vec::with_capacity(k);
                 for j in 0..k {
                     let (ca, cb) = (patch.corners[j], patch.corners[(j + 1) % k]);
-                    let facet = facet_index[&(s as u32, j as u8)];
+                    let facet = facet_index[4 * pi + j] as usize;
                     let forward = corner_edge(ids, ca.edge) < corner_edge(ids, cb.edge);
                     let ends = if forward { (ca.u, cb.u) } else { (cb.u, ca.u) };
                     b.scratch.facet_ends.push((facet, ends));
