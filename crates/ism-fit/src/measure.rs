@@ -15,8 +15,9 @@
 //!   arithmetic cannot clear of zeros (an expression), or by points of the mesh's triangles with a
 //!   known covering radius (a mesh). Each leaf box gets a point `z` of `Z` near its centre (a
 //!   [`bracket_point`]), and `z`'s distance to `S` is measured: the nearest point of a dense cloud
-//!   on `S`, improved by a few Gauss–Newton steps on its patch where it matters. Every point used
-//!   is a point of `S`, so a poor search only makes the figure larger. The largest of these is
+//!   on `S`, improved by a few Gauss–Newton steps on its patch where it matters; a point `z`
+//!   found from a sample `s` of `S` (`S → Z` above) is within `|z − s|` of `S` already. Every
+//!   point used is a point of `S`, so a poor search only makes the figure larger. The largest of these is
 //!   the estimate; it can be low by at most the covering radius (half-diagonal of a leaf, or the
 //!   mesh points' radius), and adding that gives a certified bound: the distance to a set is
 //!   1-Lipschitz, so every point of `Z` in a box with centre `c` and half-diagonal `r` lies within
@@ -291,8 +292,9 @@ pub struct Measure {
     /// The error near each region the caller named.
     pub regions: Vec<Region>,
     /// Samples of `S` and points of `Z` farther than the tolerance from the other set, both
-    /// directions (the `Z → S` ones after projection, at most [`MISS_PROJECTIONS`] beyond those
-    /// the maximum needs; so possibly not all of them when very many miss).
+    /// directions (the `Z → S` ones only where a projection onto `S` found no nearer point, at
+    /// most [`MISS_PROJECTIONS`] beyond those the maximum needs; so possibly not all of them
+    /// when very many miss).
     pub misses: Vec<Miss>,
 }
 
@@ -602,7 +604,7 @@ pub fn measure<G: ImplicitFunction + ?Sized>(
         cover: f64,
         points: Vec<([f64; 3], f64)>,
         /// Points of `Z` found from the samples (expressions).
-        zeros: Vec<[f64; 3]>,
+        zeros: Vec<([f64; 3], f64)>,
         /// Samples farther than the tolerance from `Z`.
         misses: Vec<Miss>,
     }
@@ -631,7 +633,8 @@ pub fn measure<G: ImplicitFunction + ?Sized>(
                 } else {
                     match bracket_point(g, &p[..n], reach) {
                         Some((d, z)) => {
-                            r.zeros.push(z);
+                            // `p` is a point of S: `dist(z, S) ≤ |z − p|`.
+                            r.zeros.push((z, distance(&p[..], &z)));
                             d
                         }
                         None => f64::INFINITY,
@@ -685,8 +688,9 @@ pub fn measure<G: ImplicitFunction + ?Sized>(
             .map_or(f64::INFINITY, |q| distance(&q.p[..], c))
     };
     // From the nearest cloud points on up to PROJECTION_PATCHES different simplices: the closest
-    // point of S may lie on a neighbour of the nearest sample's patch.
-    let project = |c: &[f64; 3]| -> f64 {
+    // point of S may lie on a neighbour of the nearest sample's patch. Stops as soon as a point
+    // of S within `enough` is found ([`tighten`] says when that decides nothing).
+    let project = |c: &[f64; 3], enough: f64| -> f64 {
         let mut best = f64::INFINITY;
         let mut seen: Vec<u32> = Vec::new();
         for q in tree.nearest_neighbor_iter(*c).take(64) {
@@ -694,11 +698,12 @@ pub fn measure<G: ImplicitFunction + ?Sized>(
                 continue;
             }
             seen.push(q.simplex);
-            best = best
-                .min(distance(&q.p[..], c))
-                .min(shape.project(q, c))
-                .min(shape.project_from_lattice(q.simplex as usize, c));
-            if seen.len() == PROJECTION_PATCHES {
+            best = best.min(distance(&q.p[..], c)).min(shape.project(q, c));
+            if best <= enough {
+                break;
+            }
+            best = best.min(shape.project_from_lattice(q.simplex as usize, c));
+            if seen.len() == PROJECTION_PATCHES || best <= enough {
                 break;
             }
         }
@@ -719,6 +724,7 @@ pub fn measure<G: ImplicitFunction + ?Sized>(
                     estimate: Some(d),
                     bound: d + radius,
                     box_term: Some(radius),
+                    projected: false,
                 }
             })
             .collect();
@@ -738,13 +744,20 @@ pub fn measure<G: ImplicitFunction + ?Sized>(
         let near: Vec<TargetPoint> = per_patch
             .par_iter()
             .flat_map_iter(|r| &r.zeros)
-            .map(|z| {
-                let d = to_shape(z);
+            .map(|(z, from_sample)| {
+                // `z` was found from a sample of S, so it is within `from_sample` of S; the
+                // nearest cloud point only where that is not already small.
+                let d = if *from_sample <= PROJECT_ABOVE * tolerance {
+                    *from_sample
+                } else {
+                    to_shape(z).min(*from_sample)
+                };
                 TargetPoint {
                     at: *z,
                     estimate: Some(d),
                     bound: 0.0,
                     box_term: None,
+                    projected: false,
                 }
             })
             .collect();
@@ -773,7 +786,7 @@ pub fn measure<G: ImplicitFunction + ?Sized>(
         .flat_map(|r| r.misses.iter().copied())
         .chain(points.iter().filter_map(|t| {
             let e = t.estimate?;
-            (e > tolerance).then_some(Miss {
+            (e > tolerance && t.projected).then_some(Miss {
                 at: t.at,
                 simplex: None,
                 distance: e,
@@ -950,11 +963,19 @@ fn cloud(shape: &Shape, spacing: f64) -> Vec<CloudPoint> {
 /// Replaces the largest estimates by projections until the largest is a projected one: every
 /// estimate left is an upper bound no larger than it, so the maximum is what projecting all of
 /// them would give, at a fraction of the cost. Then on down to `threshold` (at most
-/// [`MISS_PROJECTIONS`] more), so that every estimate left above it is a projected one (a miss).
-/// Certified bounds that used an estimate are lowered with it.
+/// [`MISS_PROJECTIONS`] more), so that the points projected above it are misses; the points
+/// left unprojected are not (their estimates are upper bounds, so the maximum stands, but
+/// they are not refined on: a nearest cloud point 2× the tolerance apart is often farther
+/// than the tolerance where `S` is not). Certified bounds that used an estimate are lowered
+/// with it.
+///
+/// A projection stops at the first point of `S` within the smaller of `threshold` and the
+/// largest projected estimate so far: below both, the rest of its search could change neither
+/// the maximum nor whether the point is a miss (the same maximum and misses as a full search;
+/// only the estimates below them, and bounds built on them, may stay higher).
 fn tighten(
     points: &mut [TargetPoint],
-    project: &(dyn Fn(&[f64; 3]) -> f64 + Sync),
+    project: &(dyn Fn(&[f64; 3], f64) -> f64 + Sync),
     threshold: f64,
 ) {
     let mut order: Vec<usize> = (0..points.len())
@@ -977,8 +998,13 @@ fn tighten(
             extra += BATCH;
         }
         let batch = &order[done..(done + BATCH).min(order.len())];
-        let projected: Vec<f64> = batch.par_iter().map(|&i| project(&points[i].at)).collect();
+        let enough = best.min(threshold);
+        let projected: Vec<f64> = batch
+            .par_iter()
+            .map(|&i| project(&points[i].at, enough))
+            .collect();
         for (&i, d) in batch.iter().zip(projected) {
+            points[i].projected = true;
             let old = points[i].estimate.unwrap_or(f64::INFINITY);
             if d < old {
                 points[i].estimate = Some(d);
@@ -1001,6 +1027,8 @@ struct TargetPoint {
     estimate: Option<f64>,
     /// Certified bound over the part of `Z` it stands for.
     bound: f64,
+    /// Whether `estimate` is a projection's (not only the nearest cloud point's).
+    projected: bool,
     /// What the bound adds to the estimate (`None`: the bound does not use the estimate).
     box_term: Option<f64>,
 }
@@ -1079,6 +1107,7 @@ fn box_cover<G: ImplicitFunction + ?Sized>(
                         estimate: Some(e),
                         bound: box_bound.min(e + half + r),
                         box_term: Some(half + r),
+                        projected: false,
                     }
                 }
                 None => TargetPoint {
@@ -1086,6 +1115,7 @@ fn box_cover<G: ImplicitFunction + ?Sized>(
                     estimate: None,
                     bound: box_bound,
                     box_term: None,
+                    projected: false,
                 },
             };
             (point, half)
@@ -1115,6 +1145,55 @@ fn box_cover<G: ImplicitFunction + ?Sized>(
 mod tests {
     use super::*;
     use crate::Expression;
+
+    #[test]
+    fn tighten_finds_the_full_projections_maximum_and_misses_with_early_exits() {
+        // Truth by definition: point i's full projection is `t_i ≤ e_i` (its nearest-cloud
+        // estimate). A projection may stop early at any value in [t_i, enough] once it is
+        // within `enough`. The maximum must be max t_i, and the misses (projected, above the
+        // threshold) exactly the points with t_i above it, at t_i.
+        let mut state = 0x9e37_79b9_7f4a_7c15u64;
+        let mut rand = || {
+            state = state
+                .wrapping_mul(6_364_136_223_846_793_005)
+                .wrapping_add(1_442_695_040_888_963_407);
+            (state >> 11) as f64 / (1u64 << 53) as f64
+        };
+        let count = 5000;
+        let (mut points, mut truth) = (Vec::new(), Vec::new());
+        for i in 0..count {
+            let e = 3.0 * rand();
+            truth.push(e * (0.2 + 0.8 * rand()));
+            points.push(TargetPoint {
+                at: [i as f64, 0.0, 0.0],
+                estimate: Some(e),
+                bound: e + 0.5,
+                projected: false,
+                box_term: Some(0.5),
+            });
+        }
+        let threshold = 1.0;
+        let project = |at: &[f64; 3], enough: f64| {
+            let t = truth[at[0] as usize];
+            if t <= enough {
+                0.5 * (t + enough)
+            } else {
+                t
+            }
+        };
+        tighten(&mut points, &project, threshold);
+        let max = points.iter().filter_map(|t| t.estimate).fold(0.0, f64::max);
+        assert_eq!(max, truth.iter().copied().fold(0.0, f64::max));
+        for (t, &truth) in points.iter().zip(&truth) {
+            let e = t.estimate.unwrap();
+            assert!(e >= truth);
+            let miss = t.projected && e > threshold;
+            assert_eq!(miss, truth > threshold, "{e} {truth}");
+            if miss {
+                assert_eq!(e, truth);
+            }
+        }
+    }
 
     #[test]
     fn shape_points_are_the_kernels_param_points_bit_for_bit() {
