@@ -348,6 +348,11 @@ impl LocalStage {
         if rational {
             local.weights = Vec::with_capacity(n_idx);
         }
+        // Per support mask (the local positions with a positive exponent): the face it names, if
+        // it has a record, with the positions ordered by global id (the face's own vertex order).
+        // Looked up once per mask, not once per control point.
+        type Support = Option<(FaceId, [usize; MAX_VARS], usize)>;
+        let mut supports: [Option<Support>; 1 << MAX_VARS] = [None; 1 << MAX_VARS];
         for e in &local.tables.exps {
             // Fixed default I/d, weight 1.
             let mut b = [0.0; MAX_VARS];
@@ -363,17 +368,18 @@ impl LocalStage {
                         mask |= 1 << i;
                     }
                 }
-                let size = mask.count_ones() as usize;
-                let j = local_faces(m, size)
-                    .iter()
-                    .position(|f| f[..size].iter().fold(0u8, |acc, &p| acc | 1 << p) == mask)
-                    .expect("every subset is listed");
-                let k = size - 1;
-                let face = FaceId {
-                    dim: k as u8,
-                    index: topology.simplex_face(model, s, k, j),
-                };
-                if table.record_of(face).is_some() {
+                let support = *supports[mask as usize].get_or_insert_with(|| {
+                    let size = mask.count_ones() as usize;
+                    let j = local_faces(m, size)
+                        .iter()
+                        .position(|f| f[..size].iter().fold(0u8, |acc, &p| acc | 1 << p) == mask)
+                        .expect("every subset is listed");
+                    let k = size - 1;
+                    let face = FaceId {
+                        dim: k as u8,
+                        index: topology.simplex_face(model, s, k, j),
+                    };
+                    table.record_of(face)?;
                     // Positions ordered by global id → the face's own vertex order t_0 < … < t_k.
                     let mut pos: [usize; MAX_VARS] = [0; MAX_VARS];
                     let mut len = 0;
@@ -384,12 +390,18 @@ impl LocalStage {
                         }
                     }
                     pos[..len].sort_unstable_by_key(|&i| simplex[i]);
-                    let jexp: Vec<u32> = pos[..len].iter().map(|&i| u32::from(e[i])).collect();
-                    let r = rank_owned(&jexp);
+                    Some((face, pos, len))
+                });
+                if let Some((face, pos, len)) = support {
+                    let mut shifted = [0u32; MAX_VARS];
+                    for (x, &p) in shifted.iter_mut().zip(&pos[..len]) {
+                        *x = u32::from(e[p]) - 1;
+                    }
+                    let r = multi_index::rank(&shifted[..len]);
                     let points = table.face_points(face);
                     b = [0.0; MAX_VARS];
                     for (jj, &p) in pos[..len].iter().enumerate() {
-                        b[p] = points[r * size + jj];
+                        b[p] = points[r * len + jj];
                     }
                     if rational {
                         q = table.face_weights(face)[r];
@@ -1227,13 +1239,14 @@ impl LocalMap {
     /// [`LocalStage::from_indexed`]).
     pub fn from_indexed(model: &IndexedModel, s: usize) -> Result<LocalMap> {
         let m = model.dim() + 1;
-        let stages = (0..model.stages.len())
-            .map(|i| LocalStage::from_indexed(model, i, s))
-            .collect::<Result<Vec<_>>>()?;
-        Ok(LocalMap {
-            m,
-            stages: stages.into_iter().filter(|s| !s.is_identity()).collect(),
-        })
+        let mut stages = Vec::with_capacity(model.stages.len());
+        for i in 0..model.stages.len() {
+            let stage = LocalStage::from_indexed(model, i, s)?;
+            if !stage.is_identity() {
+                stages.push(stage);
+            }
+        }
+        Ok(LocalMap { m, stages })
     }
 
     /// A map from explicit local stages (all with `m` variables), in application order.
