@@ -4,7 +4,11 @@
 //! closest triangle (an `rstar` R-tree over triangle boxes, exact point–triangle distance in the
 //! leaves), and the sign from the **generalized winding number** `w(p)` (Jacobson, Kavan and
 //! Sorkine-Hornung 2013): `w = Σ Ω_t(p) / 4π` over the triangles' signed solid angles, inside
-//! (`g < 0`) where `w > ½`.
+//! (`g < 0`) where `w > ½`. On a closed, consistently oriented manifold mesh the side of most
+//! queries is read off the closest point instead, by the angle-weighted pseudonormal there
+//! (Bærentzen and Aanæs 2005; same answer, a dot product instead of a sum of solid angles); the
+//! winding number decides the rest (points within rounding of the surface or of the
+//! pseudonormal's perpendicular) and every open or non-manifold mesh.
 //!
 //! `w` is evaluated hierarchically and exactly (the paper's §3.3, not the approximate dipole
 //! expansion): for every node of the R-tree we store the boundary chain `∂P` of its patch `P`
@@ -804,42 +808,117 @@ impl PointDistance for Tri {
 /// edges and face (Ericson, *Real-Time Collision Detection* §5.1.5). Hand-written: it is twenty
 /// lines, and the geometry crates that have it (`parry3d`) would pull in a second linear-algebra
 /// stack for one function. Needs a triangle of nonzero area.
-fn closest_point_on_triangle(p: P3, [a, b, c]: [P3; 3]) -> P3 {
+fn closest_point_on_triangle(p: P3, v: [P3; 3]) -> P3 {
+    closest_feature(p, v).0
+}
+
+/// Where on a triangle its closest point to a query lies (the Voronoi region Ericson's test ends
+/// in): a corner `k`, the edge from corner `k` to corner `k + 1 (mod 3)`, or the face.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Feature {
+    Corner(usize),
+    Edge(usize),
+    Face,
+}
+
+/// [`closest_point_on_triangle`] and the [`Feature`] it lies on (the same arithmetic).
+fn closest_feature(p: P3, [a, b, c]: [P3; 3]) -> (P3, Feature) {
     let ab = sub(b, a);
     let ac = sub(c, a);
     let ap = sub(p, a);
     let d1 = dot(ab, ap);
     let d2 = dot(ac, ap);
     if d1 <= 0.0 && d2 <= 0.0 {
-        return a;
+        return (a, Feature::Corner(0));
     }
     let bp = sub(p, b);
     let d3 = dot(ab, bp);
     let d4 = dot(ac, bp);
     if d3 >= 0.0 && d4 <= d3 {
-        return b;
+        return (b, Feature::Corner(1));
     }
     let vc = d1 * d4 - d3 * d2;
     if vc <= 0.0 && d1 >= 0.0 && d3 <= 0.0 {
-        return axpy(a, d1 / (d1 - d3), ab);
+        return (axpy(a, d1 / (d1 - d3), ab), Feature::Edge(0));
     }
     let cp = sub(p, c);
     let d5 = dot(ab, cp);
     let d6 = dot(ac, cp);
     if d6 >= 0.0 && d5 <= d6 {
-        return c;
+        return (c, Feature::Corner(2));
     }
     let vb = d5 * d2 - d1 * d6;
     if vb <= 0.0 && d2 >= 0.0 && d6 <= 0.0 {
-        return axpy(a, d2 / (d2 - d6), ac);
+        return (axpy(a, d2 / (d2 - d6), ac), Feature::Edge(2));
     }
     let va = d3 * d6 - d5 * d4;
     if va <= 0.0 && (d4 - d3) >= 0.0 && (d5 - d6) >= 0.0 {
-        return axpy(b, (d4 - d3) / ((d4 - d3) + (d5 - d6)), sub(c, b));
+        return (
+            axpy(b, (d4 - d3) / ((d4 - d3) + (d5 - d6)), sub(c, b)),
+            Feature::Edge(1),
+        );
     }
     let denom = 1.0 / (va + vb + vc);
-    axpy(axpy(a, vb * denom, ab), vc * denom, ac)
+    (axpy(axpy(a, vb * denom, ab), vc * denom, ac), Feature::Face)
 }
+
+/// Angle-weighted pseudonormals of a closed, consistently oriented manifold mesh with no
+/// degenerate triangle (Bærentzen and Aanæs 2005): at a corner the sum of the incident faces'
+/// unit normals weighted by their angles there, on an edge the sum of its two faces' normals. For
+/// `p` off the surface with closest point `q`, `⟨p − q, n(q)⟩ > 0` exactly when `p` is outside
+/// (their Theorem 1), `n(q)` being the face normal, the edge's or the corner's pseudonormal.
+#[derive(Debug)]
+struct Pseudonormals {
+    /// Per vertex.
+    corner: Vec<P3>,
+    /// Per triangle, its edge `k → k + 1 (mod 3)`.
+    edge: Vec<[P3; 3]>,
+}
+
+impl Pseudonormals {
+    /// `None` unless the mesh is a closed, consistently oriented manifold without degenerate
+    /// triangles (the theorem's setting).
+    fn new(mesh: &TriangleMesh, check: &MeshCheck, normals: &[P3]) -> Option<Pseudonormals> {
+        if !check.is_closed_manifold() || normals.contains(&[0.0; 3]) {
+            return None;
+        }
+        let mut corner = vec![[0.0; 3]; mesh.positions.len()];
+        let mut by_edge: HashMap<(u32, u32), P3> = HashMap::with_capacity(3 * normals.len());
+        for (t, n) in mesh.triangles.iter().zip(normals) {
+            let v = t.map(|i| mesh.positions[i as usize]);
+            for k in 0..3 {
+                let (e1, e2) = (sub(v[(k + 1) % 3], v[k]), sub(v[(k + 2) % 3], v[k]));
+                let angle = norm(cross(e1, e2)).atan2(dot(e1, e2));
+                corner[t[k] as usize] = axpy(corner[t[k] as usize], angle, *n);
+                let (a, b) = (t[k], t[(k + 1) % 3]);
+                let e = by_edge.entry((a.min(b), a.max(b))).or_insert([0.0; 3]);
+                *e = axpy(*e, 1.0, *n);
+            }
+        }
+        let edge = mesh
+            .triangles
+            .iter()
+            .map(|t| {
+                [0, 1, 2].map(|k| {
+                    let (a, b) = (t[k], t[(k + 1) % 3]);
+                    by_edge[&(a.min(b), a.max(b))]
+                })
+            })
+            .collect();
+        Some(Pseudonormals { corner, edge })
+    }
+}
+
+/// The pseudonormal sign is used only when `p − q` makes an angle with the pseudonormal farther
+/// than this cosine from 90°: rounding in the closest point (a few ulps of the coordinates) then
+/// cannot move the sign; nearer to 90° (or at the surface) the winding number decides.
+const PSEUDONORMAL_MIN_COS: f64 = 1e-3;
+
+/// ... and only when `|⟨p − q, n⟩|` is above this fraction of the coordinates' size times `|n|`:
+/// `q` and `p − q` are ~20 operations on coordinates of that size, so their rounding moves the
+/// product by ≲ 10⁻¹⁴ of it; 10⁻¹² keeps a factor of 100. Points nearer the surface than that
+/// (the fitter's root bisections end there) take the winding number.
+const PSEUDONORMAL_MIN_DOT_REL: f64 = 1e-12;
 
 /// Signed solid angle of triangle `[a, b, c]` seen from `p` (Van Oosterom and Strackee 1983):
 /// positive when `p` is on the side the counter-clockwise normal points away from.
@@ -979,6 +1058,8 @@ pub struct MeshDistance {
     normals: Vec<P3>,
     tree: RTree<Tri>,
     winding: WindingNode,
+    /// The fast sign, for a closed manifold mesh (`None` otherwise: the winding number decides).
+    pseudonormals: Option<Pseudonormals>,
     /// Size of the coordinates, for the rounding margins.
     scale: f64,
     /// Key of this instance in the per-thread query caches.
@@ -1065,6 +1146,7 @@ impl MeshDistance {
         let tree = RTree::bulk_load(tris);
         let mesh_diagonal = mesh.diagonal().max(f64::MIN_POSITIVE);
         let winding = WindingNode::build(tree.root(), &mesh, &mut Vec::new());
+        let pseudonormals = Pseudonormals::new(&mesh, &check, &normals);
         let scale = mesh
             .positions
             .iter()
@@ -1078,6 +1160,7 @@ impl MeshDistance {
             normals,
             tree,
             winding,
+            pseudonormals,
             scale,
             instance: NEXT_INSTANCE.fetch_add(1, std::sync::atomic::Ordering::Relaxed),
             cache_cell: CACHE_CELL_REL * mesh_diagonal,
@@ -1185,6 +1268,35 @@ impl MeshDistance {
         self.winding_number(p) > 0.5
     }
 
+    /// Whether `p` is inside, given its closest triangle `t`: the pseudonormal sign when the mesh
+    /// is a closed manifold and `p` is clearly off the surface and off the pseudonormal's
+    /// perpendicular ([`PSEUDONORMAL_MIN_COS`]), else the winding number. Same answer as
+    /// [`MeshDistance::is_inside`] (tested against it) for a dot product instead of a
+    /// hierarchical sum of solid angles (the winding number was 70 % of a bunny fit's CPU).
+    fn side(&self, p: P3, t: u32) -> bool {
+        self.pseudonormal_side(p, t)
+            .unwrap_or_else(|| self.is_inside(p))
+    }
+
+    /// The pseudonormal half of [`MeshDistance::side`]: `None` when it cannot decide.
+    fn pseudonormal_side(&self, p: P3, t: u32) -> Option<bool> {
+        let pn = self.pseudonormals.as_ref()?;
+        let tri = self.mesh.triangles[t as usize];
+        let (q, feature) = closest_feature(p, tri.map(|i| self.mesh.positions[i as usize]));
+        let n = match feature {
+            Feature::Face => self.normals[t as usize],
+            Feature::Edge(k) => pn.edge[t as usize][k],
+            Feature::Corner(k) => pn.corner[tri[k] as usize],
+        };
+        let d = sub(p, q);
+        let (ld, ln) = (norm(d), norm(n));
+        let s = dot(d, n);
+        let clear = ln > 0.0
+            && s.abs() > PSEUDONORMAL_MIN_COS * ld * ln
+            && s.abs() > PSEUDONORMAL_MIN_DOT_REL * self.scale * ln;
+        clear.then_some(s < 0.0)
+    }
+
     /// The closest point and triangle, searching only within the distance to `hint`'s
     /// triangle (exact: the closest triangle is no farther than any other). `hint` is a triangle
     /// the R-tree returned, so it is not degenerate.
@@ -1230,7 +1342,10 @@ impl MeshDistance {
         LAST_TRIANGLE.with(|c| c.set((self.instance, t)));
         let inside = match known {
             Some(k) if norm(sub(p, k.p)) < CACHE_BALL_FRACTION * k.dist => k.inside,
-            _ => self.is_inside(p),
+            // On the surface the side is not asked: the value is 0 and the gradient the face
+            // normal either way (the fitter's measure queries points of the triangles).
+            _ if p == q => false,
+            _ => self.side(p, t),
         };
         let dist = norm(sub(p, q));
         if dist > 0.0 {
@@ -1509,6 +1624,84 @@ mod tests {
 
     fn icosphere(level: usize) -> TriangleMesh {
         TriangleMesh::icosphere(level, 1.0, [0.0; 3])
+    }
+
+    /// A closed torus (radii `big`, `small`) of `n × m` quads split in two, outward: saddle
+    /// vertices and concave edges on its inner side.
+    fn torus_mesh(n: u32, m: u32, big: f64, small: f64) -> TriangleMesh {
+        let tau = std::f64::consts::TAU;
+        let mut positions = Vec::new();
+        for i in 0..n {
+            for j in 0..m {
+                let (u, v) = (tau * i as f64 / n as f64, tau * j as f64 / m as f64);
+                let r = big + small * v.cos();
+                positions.push([r * u.cos(), r * u.sin(), small * v.sin()]);
+            }
+        }
+        let id = |i: u32, j: u32| (i % n) * m + (j % m);
+        let mut triangles = Vec::new();
+        for i in 0..n {
+            for j in 0..m {
+                let q = [id(i, j), id(i + 1, j), id(i + 1, j + 1), id(i, j + 1)];
+                triangles.push([q[0], q[1], q[2]]);
+                triangles.push([q[0], q[2], q[3]]);
+            }
+        }
+        TriangleMesh {
+            positions,
+            triangles,
+        }
+    }
+
+    /// The pseudonormal sign agrees with the brute-force winding number (an independent sum of
+    /// all solid angles) on nonconvex closed meshes — a torus (saddle corners, concave edges) and
+    /// an icosphere with radial bumps — at random points in the box and at points just off the
+    /// surface near corners, edges and faces; and it is the fast path for most of them.
+    #[test]
+    fn pseudonormal_sign_agrees_with_the_winding_number() {
+        let mut bumpy = TriangleMesh::icosphere(3, 1.0, [0.0; 3]);
+        for (k, p) in bumpy.positions.iter_mut().enumerate() {
+            let f = 1.0 + 0.25 * ((k * 7919) % 13) as f64 / 13.0;
+            *p = p.map(|x| x * f);
+        }
+        for (name, mesh) in [("torus", torus_mesh(24, 12, 1.0, 0.35)), ("bumpy", bumpy)] {
+            let g = MeshDistance::new(mesh).unwrap();
+            assert!(g.check().is_closed_manifold(), "{name}");
+            assert!(g.pseudonormals.is_some(), "{name}");
+            let mut queries = points(3000, -1.6, 1.6, 11);
+            // Just off the surface: from each vertex and from edge midpoints and face centres,
+            // along a deterministic direction, at distances from 1e-12 to 1e-1.
+            let dirs = points(4 * g.mesh.triangles.len(), -1.0, 1.0, 29);
+            for (k, t) in g.mesh.triangles.iter().enumerate() {
+                let v = t.map(|i| g.mesh.positions[i as usize]);
+                let sites = [
+                    v[0],
+                    [0, 1, 2].map(|x| 0.5 * (v[0][x] + v[1][x])),
+                    [0, 1, 2].map(|x| (v[0][x] + v[1][x] + v[2][x]) / 3.0),
+                    v[1],
+                ];
+                for (j, site) in sites.into_iter().enumerate() {
+                    let h = 10f64.powi(-1 - ((k + j) % 12) as i32);
+                    queries.push(axpy(site, h, dirs[4 * k + j]));
+                }
+            }
+            let mut fast = 0;
+            for p in &queries {
+                let (_, t) = g.closest_point(*p);
+                let truth = g.winding_number_brute_force(*p) > 0.5;
+                assert_eq!(g.side(*p, t), truth, "{name} at {p:?}");
+                if let Some(side) = g.pseudonormal_side(*p, t) {
+                    assert_eq!(side, truth, "{name} at {p:?}");
+                    fast += 1;
+                }
+            }
+            // Every point but those within ~1e-12 of the surface (1 in 12 of the near ones).
+            assert!(
+                fast * 10 > queries.len() * 9,
+                "{name}: {fast} of {}",
+                queries.len()
+            );
+        }
     }
 
     /// Deterministic points in a box (a fixed LCG: the tests need no RNG crate for this).
