@@ -37,13 +37,13 @@ impl Threads {
 pub(crate) struct MeshLimits {
     /// Largest payload, in bytes [default: 8 GiB]
     #[arg(long, value_name = "BYTES")]
-    max_payload_bytes: Option<u64>,
+    pub(crate) max_payload_bytes: Option<u64>,
     /// Most vertices [default: 2^32 - 1]
     #[arg(long, value_name = "N")]
-    max_vertices: Option<u64>,
+    pub(crate) max_vertices: Option<u64>,
     /// Most top simplices [default: 2^32 - 1]
     #[arg(long, value_name = "N")]
-    max_simplices: Option<u64>,
+    pub(crate) max_simplices: Option<u64>,
 }
 
 impl MeshLimits {

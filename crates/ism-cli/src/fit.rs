@@ -161,15 +161,14 @@ impl MeshInputLimits {
             || self.mesh_max_triangles.is_some()
     }
 
-    /// Each given flag, the library's default for the others.
+    /// Each given flag, the library's default for the others (as `ism import`'s flags).
     fn limits(self) -> io::Limits {
-        let d = io::Limits::default();
-        io::Limits {
-            max_payload_bytes: self.mesh_max_bytes.unwrap_or(d.max_payload_bytes),
-            max_vertices: self.mesh_max_vertices.unwrap_or(d.max_vertices),
-            max_simplices: self.mesh_max_triangles.unwrap_or(d.max_simplices),
-            ..d
+        crate::args::MeshLimits {
+            max_payload_bytes: self.mesh_max_bytes,
+            max_vertices: self.mesh_max_vertices,
+            max_simplices: self.mesh_max_triangles,
         }
+        .limits()
     }
 }
 
