@@ -73,8 +73,11 @@ fn read_counting_faces(
     path: &std::path::Path,
     limits: ism_format::io::Limits,
 ) -> ism_format::Result<(Document, Vec<usize>)> {
+    // The summary needs the records' lengths, not their numbers: a binary file's control points
+    // and weights are tested (finite) as they are decoded, and not kept (the model's largest part).
     let unchecked = io::ReadOptions {
         check_structure: false,
+        keep_record_numbers: false,
         limits,
         ..io::ReadOptions::default()
     };
@@ -100,9 +103,10 @@ fn record_freedom(faces: &ism_format::FaceTable) -> usize {
     let free = |face: usize, points: usize, weights: usize| points - points / face.max(1) + weights;
     match faces.uniform_lengths() {
         Some([face, points, weights]) => faces.len() * free(face, points, weights),
-        None => faces
-            .iter()
-            .map(|f| free(f.face.len(), f.points.len(), f.weights.len()))
+        // From the lengths: a table read without its numbers keeps them.
+        None => (0..faces.len())
+            .filter_map(|r| faces.lengths(r))
+            .map(|[face, points, weights]| free(face, points, weights))
             .sum(),
     }
 }

@@ -171,6 +171,18 @@ pub(crate) struct BinaryDecoder<'a, 'r> {
     end: usize,
     base: u64,
     path: Vec<Seg>,
+    /// Keep face records' control points and weights (false: count them and test them finite,
+    /// [`crate::io::ReadOptions::keep_record_numbers`]).
+    keep_numbers: bool,
+}
+
+/// Whether every little-endian `f64` in `bytes` is finite, without stopping early (so the loop
+/// vectorizes: a file's numbers are finite almost always).
+#[inline]
+fn all_finite(bytes: &[u8]) -> bool {
+    bytes.chunks_exact(8).fold(true, |ok, c| {
+        ok & f64::from_le_bytes(c.try_into().expect("8 bytes")).is_finite()
+    })
 }
 
 impl<'a, 'r> BinaryDecoder<'a, 'r> {
@@ -182,6 +194,7 @@ impl<'a, 'r> BinaryDecoder<'a, 'r> {
             end: payload.len(),
             base,
             path: Vec::new(),
+            keep_numbers: true,
         }
     }
 
@@ -194,7 +207,15 @@ impl<'a, 'r> BinaryDecoder<'a, 'r> {
             end,
             base,
             path: Vec::new(),
+            keep_numbers: true,
         }
+    }
+
+    /// Whether face records keep their control points and weights (the default) or only count
+    /// them and test them finite: same bytes accepted, same errors, same face ids and lengths.
+    pub(crate) fn keep_numbers(mut self, keep: bool) -> Self {
+        self.keep_numbers = keep;
+        self
     }
 
     fn fail(&self, at: usize, message: impl Into<String>) -> Error {
@@ -449,6 +470,13 @@ impl<'a, 'r> BinaryDecoder<'a, 'r> {
                 .chunks_exact(4)
                 .map(|c| u32::from_le_bytes(c.try_into().expect("4 bytes"))),
         );
+        if !self.keep_numbers {
+            let finite =
+                all_finite(&bytes[f_end + 8..p_end]) && all_finite(&bytes[p_end + 8..w_end]);
+            table.count_numbers(np, nw, finite);
+            self.advance(w_end);
+            return true;
+        }
         points.extend(
             bytes[f_end + 8..p_end]
                 .chunks_exact(8)
@@ -486,6 +514,8 @@ impl<'a, 'r> BinaryDecoder<'a, 'r> {
         let most = (bytes.len() / size).min(left).min(room);
         let prefix = |n: usize| (n as u64).to_le_bytes();
         let (la, lb, lc) = (prefix(a), prefix(b), prefix(c));
+        let keep = self.keep_numbers;
+        let mut finite = true;
         let (ids, points, weights) = table.parts_mut();
         let mut k = 0;
         for rec in bytes.chunks_exact(size).take(most) {
@@ -497,6 +527,11 @@ impl<'a, 'r> BinaryDecoder<'a, 'r> {
                     .chunks_exact(4)
                     .map(|x| u32::from_le_bytes(x.try_into().expect("4 bytes"))),
             );
+            k += 1;
+            if !keep {
+                finite &= all_finite(&rec[ps..pe]) & all_finite(&rec[ws..]);
+                continue;
+            }
             points.extend(
                 rec[ps..pe]
                     .chunks_exact(8)
@@ -507,7 +542,9 @@ impl<'a, 'r> BinaryDecoder<'a, 'r> {
                     .chunks_exact(8)
                     .map(|x| f64::from_le_bytes(x.try_into().expect("8 bytes"))),
             );
-            k += 1;
+        }
+        if !keep {
+            table.count_numbers(k * b, k * c, finite);
         }
         table.close_uniform(k);
         self.advance(k * size);
@@ -518,6 +555,11 @@ impl<'a, 'r> BinaryDecoder<'a, 'r> {
     fn face_table(&mut self) -> Result<FaceTable> {
         let n = self.length(min_size::FACE_RECORD, "faces")?;
         let mut table = FaceTable::new();
+        if !self.keep_numbers {
+            table.elide_numbers();
+        }
+        // A record's numbers on the checked path, when the table does not keep them.
+        let mut scratch: Vec<f64> = Vec::new();
         let mut i = 0;
         while i < n {
             if i > 0 {
@@ -559,8 +601,17 @@ impl<'a, 'r> BinaryDecoder<'a, 'r> {
             self.path.push(Seg::Index(i));
             let (ids, points, weights) = table.parts_mut();
             self.member("face", |d| d.u32s_into(ids, "face"))?;
-            self.member("points", |d| d.f64s_into(points, "points"))?;
-            self.member("weights", |d| d.f64s_into(weights, "weights"))?;
+            if self.keep_numbers {
+                self.member("points", |d| d.f64s_into(points, "points"))?;
+                self.member("weights", |d| d.f64s_into(weights, "weights"))?;
+            } else {
+                scratch.clear();
+                self.member("points", |d| d.f64s_into(&mut scratch, "points"))?;
+                let np = scratch.len();
+                self.member("weights", |d| d.f64s_into(&mut scratch, "weights"))?;
+                let finite = scratch.iter().all(|x| x.is_finite());
+                table.count_numbers(np, scratch.len() - np, finite);
+            }
             if let Err(full) = table.close_record() {
                 return Err(Error::format(
                     Rule::LimitExceeded,

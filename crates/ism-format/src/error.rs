@@ -22,11 +22,30 @@ pub enum Error {
     /// The decoded model breaks structural requirements (spec §2–5); all errors found are listed.
     #[error("{} structural error(s); first: {}", .0.len(), .0.first().map(|d| d.to_string()).unwrap_or_default())]
     Structure(Vec<Diagnostic>),
+    /// The model was read without its face records' control points and weights
+    /// ([`crate::io::ReadOptions::keep_record_numbers`] off, for summaries such as `ism info`), so it
+    /// cannot be written or indexed.
+    #[error("stage {stage}'s face records were read without their control points and weights (ReadOptions::keep_record_numbers); read the file again keeping them to {action} it")]
+    NumbersNotKept {
+        /// The first such stage.
+        stage: usize,
+        /// What was asked: "write" or "index".
+        action: &'static str,
+    },
 }
 
 impl Error {
     pub(crate) fn format(rule: Rule, location: Location, message: impl Into<String>) -> Error {
         Error::Format(Box::new(Diagnostic::new(rule, location, message)))
+    }
+
+    /// [`Error::NumbersNotKept`] for the first stage of `model` whose table was read without its
+    /// numbers, if any.
+    pub(crate) fn unless_numbers_kept(model: &crate::Model, action: &'static str) -> Result<()> {
+        match model.stages.iter().position(|s| !s.faces.numbers_kept()) {
+            Some(stage) => Err(Error::NumbersNotKept { stage, action }),
+            None => Ok(()),
+        }
     }
 
     pub(crate) fn io(path: Option<PathBuf>, source: std::io::Error) -> Error {
@@ -39,7 +58,7 @@ impl Error {
     /// The diagnostics this error carries (empty for I/O errors).
     pub fn diagnostics(&self) -> &[Diagnostic] {
         match self {
-            Error::Io { .. } => &[],
+            Error::Io { .. } | Error::NumbersNotKept { .. } => &[],
             Error::Format(d) => std::slice::from_ref(d),
             Error::Structure(list) => list,
         }

@@ -89,6 +89,18 @@ pub struct FaceTable {
     /// Number of records.
     len: usize,
     rows: Rows,
+    /// `Some` for a table read without its numbers ([`crate::io::ReadOptions::keep_record_numbers`]):
+    /// `points` and `weights` are then empty, and this counts what the records hold.
+    elided: Option<Elided>,
+}
+
+/// What a table read without its numbers keeps of them: how many there were, and whether every
+/// one was finite (the structural check's only question about their values).
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct Elided {
+    points: usize,
+    weights: usize,
+    finite: bool,
 }
 
 /// Where a [`FaceTable`]'s records lie in its three arrays.
@@ -113,6 +125,7 @@ impl Default for FaceTable {
             weights: Vec::new(),
             len: 0,
             rows: Rows::Uniform([0; 3]),
+            elided: None,
         }
     }
 }
@@ -137,8 +150,72 @@ impl FaceTable {
         if let (Rows::Uniform(lens), true) = (&self.rows, self.len > 0) {
             let [a, b, c] = lens.map(|x| (x as usize).saturating_mul(more));
             let _ = self.ids.try_reserve_exact(a);
-            let _ = self.points.try_reserve_exact(b);
-            let _ = self.weights.try_reserve_exact(c);
+            if self.elided.is_none() {
+                let _ = self.points.try_reserve_exact(b);
+                let _ = self.weights.try_reserve_exact(c);
+            }
+        }
+    }
+
+    /// Whether the table holds its control points and weights: false only for a table read with
+    /// [`crate::io::ReadOptions::keep_record_numbers`] off. Such a table keeps every record's face
+    /// ids and lengths ([`FaceTable::lengths`], [`FaceTable::uniform_lengths`], the offsets,
+    /// [`FaceTable::num_points`]) but its records' `points` and `weights` are empty slices; it
+    /// cannot be written or indexed ([`crate::Error::NumbersNotKept`]).
+    pub fn numbers_kept(&self) -> bool {
+        self.elided.is_none()
+    }
+
+    /// Control point coordinates over all records (also for a table read without its numbers).
+    pub fn num_points(&self) -> usize {
+        self.part_lens()[1]
+    }
+
+    /// Weights over all records (also for a table read without its numbers).
+    pub fn num_weights(&self) -> usize {
+        self.part_lens()[2]
+    }
+
+    /// Record `r`'s lengths (face ids, coordinates, weights), or `None` past the end; also for a
+    /// table read without its numbers.
+    pub fn lengths(&self, r: usize) -> Option<[usize; 3]> {
+        self.ranges(r).map(|parts| parts.map(|p| p.len()))
+    }
+
+    /// Makes an empty table one that counts its records' numbers instead of keeping them (the
+    /// binary decoder, for a read with `keep_record_numbers` off).
+    pub(crate) fn elide_numbers(&mut self) {
+        debug_assert!(self.len == 0 && self.points.is_empty() && self.weights.is_empty());
+        self.elided = Some(Elided {
+            points: 0,
+            weights: 0,
+            finite: true,
+        });
+    }
+
+    /// For a table that does not keep its numbers: counts `points` coordinates and `weights`
+    /// weights of the record being built, `finite` when every one of them is.
+    pub(crate) fn count_numbers(&mut self, points: usize, weights: usize, finite: bool) {
+        let e = self
+            .elided
+            .as_mut()
+            .expect("count_numbers on a table that keeps its numbers");
+        e.points += points;
+        e.weights += weights;
+        e.finite &= finite;
+    }
+
+    /// `Some(all finite)` for a table read without its numbers; `None` for one that keeps them.
+    pub(crate) fn elided_finite(&self) -> Option<bool> {
+        self.elided.map(|e| e.finite)
+    }
+
+    /// The lengths of the three parts: the arrays', or what a table without its numbers counted.
+    #[inline]
+    fn part_lens(&self) -> [usize; 3] {
+        match self.elided {
+            None => [self.ids.len(), self.points.len(), self.weights.len()],
+            Some(e) => [self.ids.len(), e.points, e.weights],
         }
     }
 
@@ -195,6 +272,12 @@ impl FaceTable {
     #[inline]
     pub fn get(&self, r: usize) -> Option<FaceRef<'_>> {
         let [f, p, w] = self.ranges(r)?;
+        // A table read without its numbers has none to lend.
+        let (p, w) = if self.elided.is_some() {
+            (0..0, 0..0)
+        } else {
+            (p, w)
+        };
         Some(FaceRef {
             face: &self.ids[f],
             points: &self.points[p],
@@ -237,6 +320,11 @@ impl FaceTable {
     /// Record `r` with its numbers writable, or `None` past the end.
     pub fn get_mut(&mut self, r: usize) -> Option<FaceMut<'_>> {
         let [f, p, w] = self.ranges(r)?;
+        let (p, w) = if self.elided.is_some() {
+            (0..0, 0..0)
+        } else {
+            (p, w)
+        };
         Some(FaceMut {
             face: &mut self.ids[f],
             points: &mut self.points[p],
@@ -269,8 +357,13 @@ impl FaceTable {
     /// If the table would hold more than `u32::MAX` ids, coordinates or weights.
     pub fn push(&mut self, face: &[u32], points: &[f64], weights: &[f64]) {
         self.ids.extend_from_slice(face);
-        self.points.extend_from_slice(points);
-        self.weights.extend_from_slice(weights);
+        if self.elided.is_some() {
+            let finite = points.iter().chain(weights).all(|x| x.is_finite());
+            self.count_numbers(points.len(), weights.len(), finite);
+        } else {
+            self.points.extend_from_slice(points);
+            self.weights.extend_from_slice(weights);
+        }
         self.close_record().expect("face table overflow");
     }
 
@@ -285,11 +378,8 @@ impl FaceTable {
     /// Ends a record whose parts were appended to [`FaceTable::parts_mut`]'s arrays.
     pub(crate) fn close_record(&mut self) -> Result<(), TableFull> {
         let end = |n: usize| u32::try_from(n).map_err(|_| TableFull);
-        let row = [
-            end(self.ids.len())?,
-            end(self.points.len())?,
-            end(self.weights.len())?,
-        ];
+        let [ids, points, weights] = self.part_lens();
+        let row = [end(ids)?, end(points)?, end(weights)?];
         match &mut self.rows {
             Rows::Uniform(lens) => {
                 // The previous records end at `len` times their lengths, within u32 (checked when
@@ -331,19 +421,18 @@ impl FaceTable {
     /// How many more records of the lengths of a uniform, nonempty table it has room for (the
     /// `u32` offsets' bound); 0 for other tables.
     pub(crate) fn uniform_room(&self) -> usize {
+        let used = self.part_lens();
         match (&self.rows, self.len > 0) {
-            (Rows::Uniform(lens), true) => [
-                (lens[0], self.ids.len()),
-                (lens[1], self.points.len()),
-                (lens[2], self.weights.len()),
-            ]
-            .iter()
-            .map(|&(per, used)| match per {
-                0 => usize::MAX,
-                per => (u32::MAX as usize).saturating_sub(used) / per as usize,
-            })
-            .min()
-            .unwrap_or(0),
+            (Rows::Uniform(lens), true) => {
+                [(lens[0], used[0]), (lens[1], used[1]), (lens[2], used[2])]
+                    .iter()
+                    .map(|&(per, used)| match per {
+                        0 => usize::MAX,
+                        per => (u32::MAX as usize).saturating_sub(used) / per as usize,
+                    })
+                    .min()
+                    .unwrap_or(0)
+            }
             _ => 0,
         }
     }
@@ -358,10 +447,7 @@ impl FaceTable {
             unreachable!("close_uniform on a ragged table");
         };
         self.len += k;
-        debug_assert_eq!(
-            [self.ids.len(), self.points.len(), self.weights.len()],
-            lens.map(|x| x as usize * self.len)
-        );
+        debug_assert_eq!(self.part_lens(), lens.map(|x| x as usize * self.len));
     }
 
     /// The arrays a decoder appends a record's parts to before [`FaceTable::close_record`].
@@ -407,12 +493,13 @@ impl FaceTable {
         &self.ids
     }
 
-    /// Every record's control point coordinates, concatenated.
+    /// Every record's control point coordinates, concatenated (empty for a table read without its
+    /// numbers: [`FaceTable::numbers_kept`]).
     pub fn all_points(&self) -> &[f64] {
         &self.points
     }
 
-    /// Every record's weights, concatenated.
+    /// Every record's weights, concatenated (empty for a table read without its numbers).
     pub fn all_weights(&self) -> &[f64] {
         &self.weights
     }
@@ -434,6 +521,8 @@ impl FaceTable {
 
     /// Rewrites the table through an owned list of records: for the rare edit that changes lengths
     /// or order (tests that build wrong files, builders that sort).
+    /// (A table read without its numbers has records with empty `points` and `weights`: the
+    /// rewritten table keeps those empty numbers, not the lengths it was read with.)
     ///
     /// # Panics
     /// As [`FaceTable::push`].
@@ -548,6 +637,9 @@ impl Extend<FaceRecord> for FaceTable {
 
 impl Serialize for FaceTable {
     fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        if !self.numbers_kept() {
+            return Err(serde::ser::Error::custom(NOT_KEPT));
+        }
         s.collect_seq(self.iter())
     }
 }
@@ -558,6 +650,10 @@ impl<'de> Deserialize<'de> for FaceTable {
     }
 }
 
+/// Why a table read without its numbers is not serialized (writers refuse it earlier, with
+/// [`crate::Error::NumbersNotKept`]; this guards the serde and bincode impls themselves).
+const NOT_KEPT: &str = "a face table read without its control points and weights cannot be written";
+
 /// The binary encoding of `Vec<FaceRecord>` (spec §7.4: a `u64` count, then per record three
 /// `u64`-length-prefixed arrays of little-endian numbers), written a slice at a time.
 impl Encode for FaceTable {
@@ -566,6 +662,9 @@ impl Encode for FaceTable {
         encoder: &mut E,
     ) -> Result<(), bincode::error::EncodeError> {
         use bincode::enc::write::Writer;
+        if !self.numbers_kept() {
+            return Err(bincode::error::EncodeError::Other(NOT_KEPT));
+        }
         (self.len() as u64).encode(encoder)?;
         let w = encoder.writer();
         for r in self.iter() {

@@ -1385,6 +1385,9 @@ impl IndexedModel {
         max: usize,
         fatal: impl Fn(crate::rules::Rule) -> bool,
     ) -> std::result::Result<IndexedModel, (Model, Error)> {
+        if let Err(e) = Error::unless_numbers_kept(&model, "index") {
+            return Err((model, e));
+        }
         let (diagnostics, topology) = crate::structure::check_indexed(&model, max, true);
         let (errors, diagnostics): (Vec<_>, Vec<_>) = diagnostics
             .into_iter()
@@ -1422,6 +1425,9 @@ impl IndexedModel {
     /// As [`IndexedModel::new_or_model`], with the model.
     #[allow(clippy::result_large_err)]
     pub fn new_lazy_or_model(model: Model) -> std::result::Result<IndexedModel, (Model, Error)> {
+        if let Err(e) = Error::unless_numbers_kept(&model, "index") {
+            return Err((model, e));
+        }
         let (diagnostics, topology) = crate::structure::check_indexed(
             &model,
             crate::structure::DEFAULT_MAX_DIAGNOSTICS,

@@ -176,6 +176,15 @@ pub struct ReadOptions {
     pub check_structure: bool,
     /// Extensions this reader understands (spec §8): a required one not listed is refused.
     pub supported_extensions: &'static [&'static str],
+    /// Keep the face records' control points and weights (the default). Off, a binary file read
+    /// by [`read_path_with`] keeps every record's face ids and lengths but not its numbers (what a
+    /// summary such as `ism info` needs, without the memory): every check still runs and reports
+    /// what it would (the numbers are tested finite as they are decoded; a file with a non-finite
+    /// one is read again keeping them, so its errors are exactly a full read's). Such a model's
+    /// tables answer [`crate::FaceTable::numbers_kept`] false, and writing or indexing it is
+    /// [`Error::NumbersNotKept`]. Other encodings, and [`read_with`] / [`from_slice_with`] (which
+    /// cannot read their bytes twice), keep the numbers.
+    pub keep_record_numbers: bool,
 }
 
 impl Default for ReadOptions {
@@ -184,6 +193,7 @@ impl Default for ReadOptions {
             limits: Limits::default(),
             check_structure: true,
             supported_extensions: &[],
+            keep_record_numbers: true,
         }
     }
 }
@@ -245,12 +255,29 @@ pub fn read_path(path: impl AsRef<Path>) -> Result<Document> {
 /// As [`from_slice`], plus [`Error::Io`] naming the path.
 pub fn read_path_with(path: impl AsRef<Path>, options: &ReadOptions) -> Result<Document> {
     let path = path.as_ref();
-    let file = std::fs::File::open(path).map_err(|e| Error::io(Some(path.to_path_buf()), e))?;
-    // No BufReader: `read_with` streams binary payloads through its own window.
-    read_with(file, options).map_err(|e| match e {
-        Error::Io { path: None, error } => Error::io(Some(path.to_path_buf()), error),
-        other => other,
-    })
+    let read = |keep: bool| {
+        let file = std::fs::File::open(path).map_err(|e| Error::io(Some(path.to_path_buf()), e))?;
+        // No BufReader: `read_with` streams binary payloads through its own window.
+        read_keeping(file, options, keep).map_err(|e| match e {
+            Error::Io { path: None, error } => Error::io(Some(path.to_path_buf()), error),
+            other => other,
+        })
+    };
+    match read(options.keep_record_numbers)? {
+        Some(doc) => Ok(doc),
+        // A non-finite number in a table that did not keep its numbers: read again keeping them,
+        // for the structural check to name it.
+        None => read(true)?.ok_or_else(|| unreachable_reread(path)),
+    }
+}
+
+/// A read keeping every number always returns a document or an error; this stands in for the
+/// impossible third case instead of a panic.
+fn unreachable_reread(path: &Path) -> Error {
+    Error::io(
+        Some(path.to_path_buf()),
+        std::io::Error::other("a read keeping every number asked to be read again"),
+    )
 }
 
 /// Reads a model from a reader. Uses no more memory than the bytes that actually arrive (bounded
@@ -266,6 +293,19 @@ pub fn read_path_with(path: impl AsRef<Path>, options: &ReadOptions) -> Result<D
 /// # Errors
 /// As [`from_slice`], plus [`Error::Io`].
 pub fn read_with<R: Read>(reader: R, options: &ReadOptions) -> Result<Document> {
+    read_keeping(reader, options, true)?.ok_or_else(|| {
+        Error::io(
+            None,
+            std::io::Error::other("a read keeping every number asked to be read again"),
+        )
+    })
+}
+
+/// [`read_with`], a binary payload's face records keeping their numbers or not (`keep`); `None`
+/// when they were not kept and one was not finite (the caller reads the bytes again keeping them,
+/// so that the structural check can name it; nothing else was checked yet, so the errors a full
+/// read reports first, container and encoding, were already reported).
+fn read_keeping<R: Read>(reader: R, options: &ReadOptions, keep: bool) -> Result<Option<Document>> {
     // `take` bounds the read even for an endless stream; one extra byte detects "too long".
     let cap = options
         .limits
@@ -278,15 +318,23 @@ pub fn read_with<R: Read>(reader: R, options: &ReadOptions) -> Result<Document> 
         .read_to_end(&mut head)
         .map_err(|e| Error::io(None, e))?;
     if let Some((info, encoding)) = streamable(&head, options) {
-        let doc = read_binary_stream(&mut reader, info, cap)?;
+        let doc = read_binary_stream(&mut reader, info, cap, keep)?;
         debug_assert_eq!(doc.encoding, encoding);
-        return finish_read(doc, options);
+        let finite = doc
+            .model
+            .stages
+            .iter()
+            .all(|s| s.faces.elided_finite().unwrap_or(true));
+        if !finite {
+            return Ok(None);
+        }
+        return finish_read(doc, options).map(Some);
     }
     let mut bytes = head;
     reader
         .read_to_end(&mut bytes)
         .map_err(|e| Error::io(None, e))?;
-    from_slice_with(&bytes, options)
+    from_slice_with(&bytes, options).map(Some)
 }
 
 /// The container header of a binary file that can be streamed: one whose header is whole and valid
@@ -304,10 +352,16 @@ fn streamable(head: &[u8], options: &ReadOptions) -> Option<(ContainerInfo, Enco
 /// Decodes a binary payload as it streams from `reader` (positioned after the header), then reports
 /// exactly what [`decode`] would for the same bytes: a short file, trailing bytes or a checksum
 /// mismatch before any decoding error.
-fn read_binary_stream(reader: &mut dyn Read, info: ContainerInfo, cap: u64) -> Result<Document> {
+fn read_binary_stream(
+    reader: &mut dyn Read,
+    info: ContainerInfo,
+    cap: u64,
+    keep_numbers: bool,
+) -> Result<Document> {
     let mut stream = crate::binary::Stream::new(reader, info.payload_len);
     let reader_minor_is_older = info.minor > FORMAT_VERSION.minor;
     let decoded = crate::binary::BinaryDecoder::stream(&mut stream, HEADER_LEN as u64)
+        .keep_numbers(keep_numbers)
         .model(reader_minor_is_older);
     // The bytes `read_with` would have held: at most `cap`, the header included.
     let trailing_cap = cap.saturating_sub(HEADER_LEN as u64 + info.payload_len);
@@ -768,6 +822,7 @@ impl<W> Tracked<W> {
 /// Encodes the payload into `out` as the model stands (no checks but JSON's refusal of non-finite
 /// numbers), streaming: nothing but the encoder's own small buffers is allocated.
 fn encode_into<W: Write>(model: &Model, encoding: Encoding, pretty: bool, out: W) -> Result<()> {
+    Error::unless_numbers_kept(model, "write")?;
     let fail = |what: &str, e: String| {
         Error::format(Rule::Malformed, Location::default(), format!("{what}: {e}"))
     };
@@ -807,6 +862,7 @@ fn encode_into<W: Write>(model: &Model, encoding: Encoding, pretty: bool, out: W
 /// # Errors
 /// The first problem, with the rule and location a reader would report.
 pub fn check_writable(model: &Model) -> Result<()> {
+    Error::unless_numbers_kept(model, "write")?;
     if let Some((rule, location)) = first_non_finite(model) {
         return Err(Error::format(
             rule,
@@ -1141,4 +1197,62 @@ pub fn write_atomic(
     // result) and costs seconds on large models.
     tmp.persist(path).map_err(|e| e.error)?;
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Hands out one byte per read: no face record is ever wholly in the stream's window, so every
+    /// record takes the decoder's checked path.
+    struct OneByte<'a>(&'a [u8]);
+
+    impl Read for OneByte<'_> {
+        fn read(&mut self, buf: &mut [u8]) -> std::io::Result<usize> {
+            let n = buf.len().min(1).min(self.0.len());
+            buf[..n].copy_from_slice(&self.0[..n]);
+            self.0 = &self.0[n..];
+            Ok(n)
+        }
+    }
+
+    /// The checked record path without the numbers keeps the ids and lengths the full read keeps
+    /// (truth: the records written), and asks for a second read when a number is not finite.
+    #[test]
+    fn byte_by_byte_reads_without_numbers() {
+        use crate::builder::{ModelBuilder, StageBuilder};
+        // One triangle; records of two lengths (edges, the triangle), with weights.
+        let mut b = ModelBuilder::new(2);
+        for (p, f) in [([0.0, 0.0], -1.0), ([1.0, 0.0], 1.0), ([0.0, 1.0], 1.0)] {
+            b = b.vertex(&p, f);
+        }
+        let stage = StageBuilder::rational(3)
+            .face(&[0, 2], &[0.6, 0.4, 0.3, 0.7], &[1.5, 2.0])
+            .face(&[0, 1, 2], &[0.2, 0.3, 0.5], &[0.5])
+            .face(&[1, 2], &[0.5, 0.5, 0.25, 0.75], &[1.0, 3.0]);
+        let m = b.simplex(&[0, 1, 2]).stage(stage.build()).build().unwrap();
+        let options = ReadOptions::default();
+        let bytes = to_vec(&m, Encoding::Binary, WriteOptions::default()).unwrap();
+        let doc = read_keeping(OneByte(&bytes), &options, false)
+            .unwrap()
+            .unwrap();
+        let (got, want) = (&doc.model.stages[0].faces, &m.stages[0].faces);
+        assert!(!got.numbers_kept());
+        assert_eq!(got.all_face_ids(), want.all_face_ids());
+        assert_eq!(got.point_offsets(), want.point_offsets());
+        assert_eq!(got.weight_offsets(), want.weight_offsets());
+        assert_eq!((got.num_points(), got.num_weights()), (11, 5));
+        let mut nan = m.clone();
+        nan.stages[0].faces.record_mut(1).weights[0] = f64::NAN;
+        let bytes = to_vec_unchecked(&nan, Encoding::Binary, WriteOptions::default()).unwrap();
+        assert!(read_keeping(OneByte(&bytes), &options, false)
+            .unwrap()
+            .is_none());
+        assert_eq!(
+            read_keeping(OneByte(&bytes), &options, true)
+                .unwrap_err()
+                .rule(),
+            Some(Rule::NonFinite)
+        );
+    }
 }

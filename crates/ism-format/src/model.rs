@@ -322,8 +322,8 @@ impl Stage {
 
     /// Number of stored real parameters (coordinates, weights, coefficients).
     pub fn parameter_count(&self) -> usize {
-        self.faces.all_points().len()
-            + self.faces.all_weights().len()
+        self.faces.num_points()
+            + self.faces.num_weights()
             + self
                 .vertex_maps
                 .iter()

@@ -413,3 +413,173 @@ fn streamed_reads_of_records_of_several_lengths() {
         assert_same(&bad, &options, &format!("byte {at} changed, CRC refreshed"));
     }
 }
+
+/// A read without the records' numbers (`keep_record_numbers` off, what `ism info` reads) against
+/// the full read of the same file (ground truth: the established path, and the model written):
+/// every member but the face records' numbers is the same, every table keeps its face ids and
+/// lengths, and the outcome of a file with errors (structural, non-finite, cut, changed bytes) is
+/// exactly the full read's.
+#[test]
+fn reads_without_record_numbers_keep_ids_lengths_and_errors() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("m.ismb");
+    let lean = |check: bool| ReadOptions {
+        check_structure: check,
+        keep_record_numbers: false,
+        ..ReadOptions::default()
+    };
+    let full = |check: bool| ReadOptions {
+        check_structure: check,
+        ..ReadOptions::default()
+    };
+    let read = |bytes: &[u8], options: &ReadOptions| {
+        std::fs::write(&path, bytes).unwrap();
+        outcome(io::read_path_with(&path, options))
+    };
+    let (mixed, _) = grid_with_mixed_records();
+    for m in [mixed, model(true)] {
+        let bytes = io::to_vec(&m, Encoding::Binary, WriteOptions::default()).unwrap();
+        let got = read(&bytes, &lean(true)).unwrap();
+        let want = read(&bytes, &full(true)).unwrap();
+        assert_eq!(want.model, m);
+        assert_eq!(
+            (got.encoding, got.container, got.byte_len),
+            (want.encoding, want.container, want.byte_len)
+        );
+        let (mut a, mut b) = (got.model.clone(), want.model.clone());
+        for (k, (s, t)) in a.stages.iter_mut().zip(&mut b.stages).enumerate() {
+            let (f, g) = (&s.faces, &t.faces);
+            assert!(!f.numbers_kept() && g.numbers_kept(), "stage {k}");
+            assert_eq!(f.len(), g.len(), "stage {k}");
+            assert_eq!(f.all_face_ids(), g.all_face_ids(), "stage {k}");
+            assert_eq!(f.uniform_lengths(), g.uniform_lengths(), "stage {k}");
+            assert_eq!(f.face_offsets(), g.face_offsets(), "stage {k}");
+            assert_eq!(f.point_offsets(), g.point_offsets(), "stage {k}");
+            assert_eq!(f.weight_offsets(), g.weight_offsets(), "stage {k}");
+            assert_eq!(f.num_points(), g.all_points().len(), "stage {k}");
+            assert_eq!(f.num_weights(), g.all_weights().len(), "stage {k}");
+            assert!(f.all_points().is_empty() && f.all_weights().is_empty());
+            for r in 0..f.len() {
+                let lens =
+                    |x: ism_format::FaceRef<'_>| [x.face.len(), x.points.len(), x.weights.len()];
+                assert_eq!(
+                    f.lengths(r),
+                    Some(lens(g.record(r))),
+                    "stage {k} record {r}"
+                );
+                assert_eq!(f.record(r).face, g.face(r));
+            }
+            assert_eq!(s.parameter_count(), t.parameter_count(), "stage {k}");
+            // The rest of the stage is the same.
+            s.faces = Default::default();
+            t.faces = Default::default();
+        }
+        assert_eq!(a, b, "members other than the face tables");
+        if got.model.stages.iter().any(|s| !s.faces.is_empty()) {
+            // Nothing writes or indexes a model read without its numbers.
+            let refused = |e: Error| matches!(e, Error::NumbersNotKept { stage: 0, .. });
+            assert!(refused(
+                io::to_vec(&got.model, Encoding::Binary, WriteOptions::default()).unwrap_err()
+            ));
+            assert!(refused(io::check_writable(&got.model).unwrap_err()));
+            assert!(refused(
+                ism_format::IndexedModel::new(got.model.clone()).unwrap_err()
+            ));
+            assert!(serde_json::to_string(&got.model).is_err());
+            let out = dir.path().join("out.ismb");
+            assert!(refused(
+                io::write_path(
+                    &got.model,
+                    &out,
+                    Some(Encoding::Binary),
+                    WriteOptions::default()
+                )
+                .unwrap_err()
+            ));
+        }
+    }
+
+    let (m, _) = grid_with_mixed_records();
+    let bytes = io::to_vec(&m, Encoding::Binary, WriteOptions::default()).unwrap();
+    let mut cases: Vec<(String, Vec<u8>)> = Vec::new();
+    // Structural errors in a run of same-length records, and in the ragged stage.
+    for (k, r, what) in [(1, 5000, "point"), (1, 7000, "weight"), (2, 3, "point")] {
+        let mut odd = m.clone();
+        odd.stages[k].faces.edit(|recs| match what {
+            "point" => recs[r].points.push(0.25),
+            _ => recs[r].weights.clear(),
+        });
+        let bytes = io::to_vec_unchecked(&odd, Encoding::Binary, WriteOptions::default()).unwrap();
+        cases.push((
+            format!("stage {k} record {r}: one {what} more or less"),
+            bytes,
+        ));
+    }
+    // Non-finite numbers: a coordinate of a uniform stage, a weight, one in the ragged stage.
+    for (k, r, weight, x) in [
+        (0, 10, false, f64::NAN),
+        (1, 9000, true, f64::INFINITY),
+        (2, 77, false, f64::NEG_INFINITY),
+    ] {
+        let mut odd = m.clone();
+        let rec = odd.stages[k].faces.record_mut(r);
+        if weight {
+            rec.weights[0] = x;
+        } else {
+            rec.points[1] = x;
+        }
+        let bytes = io::to_vec_unchecked(&odd, Encoding::Binary, WriteOptions::default()).unwrap();
+        cases.push((
+            format!("stage {k} record {r}: {x} (weight {weight})"),
+            bytes,
+        ));
+    }
+    // Cuts and changed bytes in the records.
+    for at in [bytes.len() / 3, bytes.len() / 2 + 1, bytes.len() - 9] {
+        cases.push((format!("cut at {at}"), bytes[..at].to_vec()));
+        let mut bad = bytes.clone();
+        bad[at] ^= 0x21;
+        cases.push((format!("byte {at} changed"), bad.clone()));
+        refresh_crc(&mut bad);
+        cases.push((format!("byte {at} changed, CRC refreshed"), bad));
+    }
+    for (what, bytes) in &cases {
+        for check in [true, false] {
+            let got = read(bytes, &lean(check));
+            let want = read(bytes, &full(check));
+            match (&got, &want) {
+                (Ok(a), Ok(b)) => {
+                    // Same records read (the numbers, when kept, checked above).
+                    for (s, t) in a.model.stages.iter().zip(&b.model.stages) {
+                        assert_eq!(s.faces.all_face_ids(), t.faces.all_face_ids(), "{what}");
+                        assert_eq!(s.faces.point_offsets(), t.faces.point_offsets(), "{what}");
+                    }
+                    // A non-finite number is read again keeping every number.
+                    let finite = b.model.stages.iter().all(|s| {
+                        s.faces
+                            .all_points()
+                            .iter()
+                            .chain(s.faces.all_weights())
+                            .all(|x| x.is_finite())
+                    });
+                    if !finite {
+                        // (Compared bit for bit: NaN is not equal to itself.)
+                        let bits = |x: &[f64]| x.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
+                        for (s, t) in a.model.stages.iter().zip(&b.model.stages) {
+                            assert!(s.faces.numbers_kept(), "{what}");
+                            assert!(
+                                bits(s.faces.all_points()) == bits(t.faces.all_points())
+                                    && bits(s.faces.all_weights()) == bits(t.faces.all_weights()),
+                                "{what}"
+                            );
+                        }
+                    }
+                }
+                _ => assert_eq!(got, want, "{what}, checked {check}"),
+            }
+        }
+        if what.contains(": ") {
+            assert!(read(bytes, &full(true)).is_err(), "{what} is an error");
+        }
+    }
+}
