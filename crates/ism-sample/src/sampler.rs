@@ -197,14 +197,13 @@ impl Sampler {
             Purpose::Surface,
             sink,
             |rng, size, block| {
-                for _ in 0..size {
-                    let sp = table.draw(&self.eval, rng)?;
+                table.draw_each(&self.eval, rng, size, |sp, _| {
                     block.positions.extend_from_slice(&sp.p[..n]);
                     block.normals.extend_from_slice(&sp.normal[..n]);
                     block.values.push(sp.value);
                     block.simplices.push(sp.simplex as i32);
-                }
-                Ok(())
+                    Ok(())
+                })
             },
         )
     }
@@ -343,8 +342,7 @@ impl Sampler {
             Purpose::NearSurface,
             sink,
             |rng, size, block| {
-                for _ in 0..size {
-                    let sp = table.draw(&self.eval, rng)?;
+                table.draw_each(&self.eval, rng, size, |sp, rng| {
                     let dir = loop {
                         let mut d = [0.0; 3];
                         for x in d.iter_mut().take(n) {
@@ -362,8 +360,8 @@ impl Sampler {
                         p[x] += t * dir[x];
                     }
                     self.push_located(&p, block);
-                }
-                Ok(())
+                    Ok(())
+                })
             },
         )
     }

@@ -127,6 +127,24 @@ pub struct SurfaceTable {
     pub linear_area: f64,
     scale: f64,
     weighting: Weighting,
+    /// Whether [`SurfaceTable::draw_each`] picks [`PICK_AHEAD`] candidates at a time: set when
+    /// every patch has a [`FastPatch`] record (fitted models), where a candidate is cheap enough
+    /// that its cache misses dominate. Other tables (implicit chains: Newton per candidate) keep
+    /// one pick per candidate, hence their output for a seed.
+    pick_ahead: bool,
+}
+
+/// Candidates picked at a time by [`SurfaceTable::draw_each`] on tables with
+/// `pick_ahead`. The slots, patch records and terms are read at random from tables of
+/// megabytes; one candidate at a time, each of its first reads stalls on memory in turn. Picking
+/// several first issues their reads back to back, so the misses overlap.
+const PICK_AHEAD: usize = 8;
+
+/// Slots picked ahead by [`SurfaceTable::pick_ahead`], used in order.
+#[derive(Default)]
+struct Ahead {
+    slots: [u32; PICK_AHEAD],
+    next: usize,
 }
 
 /// One selection entry of the alias table with what a draw from it reads, in one record (two
@@ -615,6 +633,7 @@ impl SurfaceTable {
             linear_area: linear,
             scale: model_scale(model),
             weighting,
+            pick_ahead: fast_index.iter().all(|&f| f != u32::MAX),
         })
     }
 
@@ -649,9 +668,90 @@ impl SurfaceTable {
     /// [`SampleError::Numerical`] when the inverse map does not converge, the area element exceeds
     /// its certified bound, or the point cannot be brought within [`SURFACE_TOLERANCE`].
     pub fn draw(&self, eval: &ModelEval, rng: &mut impl Rng) -> Result<SurfacePoint> {
+        self.draw_with(eval, rng, None)
+    }
+
+    /// `count` accepted samples, each handed to `each` with the generator (which it may use
+    /// between samples). Equal in distribution to `count` calls of [`SurfaceTable::draw`]: on
+    /// tables with `pick_ahead` the candidates' slots are drawn [`PICK_AHEAD`] at a time (the
+    /// same alias pick, its uniforms taken from the stream in a different order), so the bits
+    /// for a seed differ from `draw`'s there; they never depend on the thread count. Picks left
+    /// over after the last sample are dropped: they are independent of every candidate's
+    /// acceptance, so dropping them biases nothing.
+    ///
+    /// # Errors
+    /// As [`SurfaceTable::draw`], and `each`'s errors.
+    pub fn draw_each<R: Rng>(
+        &self,
+        eval: &ModelEval,
+        rng: &mut R,
+        count: usize,
+        mut each: impl FnMut(SurfacePoint, &mut R) -> Result<()>,
+    ) -> Result<()> {
+        let mut ahead = Ahead {
+            next: PICK_AHEAD,
+            ..Ahead::default()
+        };
+        for _ in 0..count {
+            let point = self.draw_with(eval, rng, self.pick_ahead.then_some(&mut ahead))?;
+            each(point, rng)?;
+        }
+        Ok(())
+    }
+
+    /// The next slot of `ahead`, refilled [`PICK_AHEAD`] at a time when used up: the pick
+    /// uniforms are drawn first, then every slot is read (the reads are independent, so their
+    /// misses overlap), then the chosen slots' patch records and first stage terms are touched
+    /// for the same reason. Each pick is [`SurfaceTable::pick`]'s arithmetic.
+    fn pick_ahead(&self, rng: &mut impl Rng, ahead: &mut Ahead) -> &Slot {
+        if ahead.next == PICK_AHEAD {
+            let len = self.slots.len();
+            let mut x = [0.0; PICK_AHEAD];
+            for xk in &mut x {
+                *xk = rng.random::<f64>() * len as f64;
+            }
+            for (k, xk) in x.iter().enumerate() {
+                let slot = (*xk as usize).min(len - 1);
+                let here = &self.slots[slot];
+                ahead.slots[k] = if xk - (slot as f64) < here.threshold {
+                    slot as u32
+                } else {
+                    here.alias
+                };
+            }
+            // Touch what each candidate reads first; the sum only keeps the reads.
+            let mut touched = 0u64;
+            for &k in &ahead.slots {
+                let slot = &self.slots[k as usize];
+                touched ^= slot.u[2][0].to_bits();
+                if let Some(fast) = self.fast.get(slot.fast as usize) {
+                    touched ^= fast.vertices[MAX_VARS - 1][2].to_bits();
+                    for &(start, _, _) in &fast.ranges[..usize::from(fast.stages)] {
+                        touched ^= self.terms[start as usize].1[0].to_bits();
+                    }
+                }
+            }
+            std::hint::black_box(touched);
+            ahead.next = 0;
+        }
+        let slot = &self.slots[ahead.slots[ahead.next] as usize];
+        ahead.next += 1;
+        slot
+    }
+
+    /// [`SurfaceTable::draw`], its slots from `ahead` when given.
+    fn draw_with(
+        &self,
+        eval: &ModelEval,
+        rng: &mut impl Rng,
+        mut ahead: Option<&mut Ahead>,
+    ) -> Result<SurfacePoint> {
         let n = eval.dim();
         loop {
-            let slot = self.pick(rng);
+            let slot = match ahead.as_deref_mut() {
+                Some(ahead) => self.pick_ahead(rng, ahead),
+                None => self.pick(rng),
+            };
             if let Some(fast) = self.fast.get(slot.fast as usize) {
                 match self.draw_fast(eval, slot, fast, rng)? {
                     Some(point) => return Ok(point),
@@ -1490,8 +1590,23 @@ mod tests {
                         .map(|_| t.draw(&eval, &mut rng).unwrap())
                         .collect::<Vec<_>>()
                 };
+                // Picks drawn ahead: the slow table keeps `pick_ahead`, so both take the same
+                // slots and must again give the same bits.
+                assert!(table.pick_ahead, "{name}: a patch without a fast record");
+                let draws_each = |t: &SurfaceTable| {
+                    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(11);
+                    let mut out = Vec::new();
+                    t.draw_each(&eval, &mut rng, 3000, |p, _| {
+                        out.push(p);
+                        Ok(())
+                    })
+                    .unwrap();
+                    out
+                };
                 let (a, b) = (draws(&table), draws(&slow));
-                for (x, y) in a.iter().zip(&b) {
+                let (c, d) = (draws_each(&table), draws_each(&slow));
+                assert_eq!((a.len(), c.len()), (3000, 3000));
+                for (x, y) in a.iter().zip(&b).chain(c.iter().zip(&d)) {
                     let bits = |p: &SurfacePoint| {
                         let mut v: Vec<u64> =
                             p.p.iter().chain(&p.normal).map(|x| x.to_bits()).collect();
