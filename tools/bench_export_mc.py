@@ -15,7 +15,11 @@ For each model and chordal tolerance T:
      approximates: the model's samples, or uniform-by-area points of the analytic shape). SHAPE
      `model`: the grid holds the model's own F (from
      `ism query`), so both meshes approximate the same surface and are measured against it —
-     the issue's "marching cubes on a grid of the same implicit function". SHAPE sphere:R or
+     the issue's "marching cubes on a grid of the same implicit function". F exists only on |K|,
+     which need not cover the box (a fit's complex misses the box's corners): grid points outside
+     |K| get a value of the sign F − c has on all of ∂|K|, and only when that sign is proved from
+     the model (every vertex of ∂K has f on one side of c; `boundary_sign` gives the argument);
+     otherwise the case is refused. The count of such points is printed. SHAPE sphere:R or
      torus:R:r: the grid holds that analytic g and the error is the exact distance to it (for
      fitted models, whose surface is within the fit tolerance of the analytic shape).
      CPU time: marching cubes itself (`time.process_time`, best of 3); the grid's evaluation is
@@ -132,15 +136,66 @@ def ism_export(ism: str, model: str, tol: float, out: Path) -> tuple[float, dict
     return best, summary
 
 
-def query(ism: str, model: str, pts: np.ndarray, tmp: Path) -> tuple[np.ndarray, np.ndarray, float]:
-    """F, ∇F at `pts` from `ism query`, and the child's CPU seconds."""
+def query(ism: str, model: str, pts: np.ndarray, tmp: Path, with_simplex: bool = False):
+    """F, ∇F at `pts` from `ism query`, the child's CPU seconds (and the containing simplex, −1
+    outside |K|, when `with_simplex`)."""
     src, dst = tmp / "probe.npy", tmp / "probe-out.npy"
     np.save(src, pts)
     before = child_cpu()
     subprocess.run([ism, "query", model, str(src), "-o", str(dst), "-q", "-j", "1"], check=True)
     cpu = child_cpu() - before
     out = np.load(dst)
-    return out["f"], np.stack([out["gx"], out["gy"], out["gz"]], axis=1), cpu
+    g = np.stack([out["gx"], out["gy"], out["gz"]], axis=1)
+    if with_simplex:
+        return out["f"].copy(), g, cpu, np.asarray(out["simplex"])
+    return out["f"], g, cpu
+
+
+_BOUNDARY_SIGN: dict[str, int] = {}
+
+
+def boundary_sign(ism: str, model: str, tmp: Path) -> int:
+    """The sign of F − c on all of ∂|K|, proved from the model, or SystemExit.
+
+    X maps every face of K onto itself (spec/mathematics.md §1), so on a boundary triangle τ of K
+    F = Σ f(vᵢ) X_σ(w)ᵢ is a convex combination of f at τ's three vertices. Hence if f − c has one
+    strict sign s at every vertex of every boundary triangle (triangles in exactly one tetrahedron),
+    F − c has sign s on all of ∂|K|: the level set lies in the interior of |K|, and every point
+    outside |K| is on the side s of the shape (s = +1: outside the solid). Giving grid points
+    outside |K| any value of sign s then keeps every grid point's sign right, and no grid edge
+    gets a sign change that the surface does not cause. (Where the assigned magnitude places
+    marching cubes' vertex on such an edge is not exact; those vertices are measured like every
+    other one.) The comparisons are exact (stored values against the stored level)."""
+    if model in _BOUNDARY_SIGN:
+        return _BOUNDARY_SIGN[model]
+    js = tmp / "model.ism.json"
+    subprocess.run([ism, "convert", model, str(js)], check=True, capture_output=True)
+    doc = json.loads(js.read_text())
+    js.unlink()
+    if doc["dimension"] != 3:
+        raise SystemExit(f"{model}: grid points outside |K| are only handled for 3D models")
+    tets = np.asarray(doc["simplices"], dtype=np.int64).reshape(-1, 4)
+    f = np.asarray(doc["values"], dtype=np.float64)
+    c = float(doc.get("level", 0.0))
+    tris = np.sort(np.concatenate([tets[:, [1, 2, 3]], tets[:, [0, 2, 3]], tets[:, [0, 1, 3]], tets[:, [0, 1, 2]]]), axis=1)
+    uniq, count = np.unique(tris, axis=0, return_counts=True)
+    bverts = np.unique(uniq[count == 1])
+    d = f[bverts] - c
+    if np.all(d > 0):
+        s = 1
+    elif np.all(d < 0):
+        s = -1
+    else:
+        raise SystemExit(
+            f"{model}: grid points lie outside |K| and f − c changes sign on ∂K "
+            f"({int((d > 0).sum())} of {len(d)} boundary vertices above the level): the shape may "
+            "reach the complex's boundary, so no sign outside |K| is provably right; refusing this case"
+        )
+    print(f"  {model}: ∂K has {int((count == 1).sum()):,} triangles, {len(bverts):,} vertices, "
+          f"all with f {'>' if s > 0 else '<'} c: F − c {'>' if s > 0 else '<'} 0 on ∂|K|",
+          file=sys.stderr, flush=True)
+    _BOUNDARY_SIGN[model] = s
+    return s
 
 
 def model_distance(ism: str, model: str, level: float, pts: np.ndarray, tmp: Path) -> float:
@@ -175,15 +230,26 @@ def mc(grid: Grid, vol: np.ndarray, level: float):
     return v + grid.lo, f, best
 
 
-def sample(shape, ism, model, grid: Grid, tmp: Path) -> tuple[np.ndarray, float]:
+def sample(shape, ism, model, level: float, grid: Grid, tmp: Path) -> tuple[np.ndarray, float]:
     """The grid's values and the CPU seconds of computing them."""
     if shape is None:
         x, y, z = np.meshgrid(*grid.axes, indexing="ij")
         pts = np.stack([x.ravel(), y.ravel(), z.ravel()], axis=1)
         del x, y, z
-        f, _, cpu = query(ism, model, pts, tmp)
-        if not np.all(np.isfinite(f)):
-            raise SystemExit(f"{model}: a grid point is outside the complex")
+        f, _, cpu, simplex = query(ism, model, pts, tmp, with_simplex=True)
+        out = simplex < 0
+        if not np.all(np.isfinite(f[~out])):
+            raise SystemExit(f"{model}: `ism query` gave no F at a grid point inside |K|")
+        if out.any():
+            # Grid points outside |K| (`ism query`: simplex -1): give them the sign F − c has on all
+            # of ∂|K| — only when that sign is proved constant (`boundary_sign`, refuses otherwise).
+            s = boundary_sign(ism, model, tmp)
+            # The magnitude (the largest |F − c| inside) only places marching cubes' vertices on
+            # edges leaving |K|; they are measured like every other vertex.
+            f[out] = level + s * float(np.abs(f[~out] - level).max(initial=0.0) or 1.0)
+            print(f"  {int(out.sum()):,} of {len(f):,} grid points outside |K|: set to F − c "
+                  f"{'>' if s > 0 else '<'} 0 (every vertex of ∂K has f {'>' if s > 0 else '<'} c)",
+                  file=sys.stderr, flush=True)
         return f.reshape([len(a) for a in grid.axes]), cpu
     t = time.process_time()
     x, y, z = np.meshgrid(*grid.axes, indexing="ij")
@@ -232,7 +298,7 @@ def main() -> None:
                 tried = {}
                 for _ in range(12):
                     grid = Grid(box, cells)
-                    vol, grid_cpu = sample(shape, ism, model, grid, tmp)
+                    vol, grid_cpu = sample(shape, ism, model, level, grid, tmp)
                     v, f, mc_cpu = mc(grid, vol, 0.0 if shape else level)
                     del vol
                     probes = probe_points(v, f)
