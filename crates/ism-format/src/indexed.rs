@@ -1288,11 +1288,36 @@ struct Inner {
     diagnostics: Vec<crate::rules::Diagnostic>,
 }
 
+/// The structural rules whose breach makes a model impossible to evaluate
+/// ([`IndexedModel::for_evaluation`] refuses them; it keeps the others as diagnostics).
+fn evaluation_fatal(rule: crate::rules::Rule) -> bool {
+    use crate::rules::Rule::*;
+    matches!(
+        rule,
+        Dimension
+            | VertexArray
+            | SimplexArray
+            | IndexRange
+            | RepeatedIndex
+            | StageDegree
+            | KindMismatch
+            | NotAFace
+            | FaceSorted
+            | DuplicateFace
+            | PointCount
+            | WeightCount
+            | CoefficientCount
+            | VertexMapIndex
+            | NonFinite
+    )
+}
+
 impl Inner {
     fn full(&self) -> &(Topology, Vec<Vec<u32>>) {
         self.full.get_or_init(|| {
-            // Only a model without structural errors is indexed lazily: no simplex repeats a
-            // vertex (nothing to skip), and the tables are the ones the full check builds.
+            // A model is indexed lazily only when no simplex repeats a vertex (ISM-105 is fatal
+            // for every lazy index): nothing to skip, and the tables are the ones the full check
+            // builds.
             let model = &self.model;
             let (topology, _, _) = Topology::build(model, &[], true);
             let record_faces = crate::structure::record_faces(model, &topology);
@@ -1343,30 +1368,21 @@ impl IndexedModel {
     /// [`IndexedModel::diagnostics`]. Fitters evaluate intermediate models that are not yet valid
     /// files; readers use [`IndexedModel::new`].
     ///
+    /// A model without stages is indexed lazily (as [`IndexedModel::new_lazy_or_model`]): nothing
+    /// looks its face records up, so an evaluator that only locates points and reads vertices and
+    /// simplices (a linear isocomplex: the fitter's first models, the kernel's point-location
+    /// benchmark) does not pay for face tables it never reads; the first
+    /// [`IndexedModel::topology`] call builds them (outside a parallel loop, as for
+    /// [`IndexedModel::new_lazy_or_model`]).
+    ///
     /// # Errors
     /// [`Error::Structure`] with the errors that prevent indexing.
     pub fn for_evaluation(model: Model) -> Result<IndexedModel> {
-        IndexedModel::build(model, usize::MAX, |rule| {
-            use crate::rules::Rule::*;
-            matches!(
-                rule,
-                Dimension
-                    | VertexArray
-                    | SimplexArray
-                    | IndexRange
-                    | RepeatedIndex
-                    | StageDegree
-                    | KindMismatch
-                    | NotAFace
-                    | FaceSorted
-                    | DuplicateFace
-                    | PointCount
-                    | WeightCount
-                    | CoefficientCount
-                    | VertexMapIndex
-                    | NonFinite
-            )
-        })
+        if model.stages.is_empty() {
+            return IndexedModel::lazy_or_model(model, usize::MAX, evaluation_fatal)
+                .map_err(|(_, e)| e);
+        }
+        IndexedModel::build(model, usize::MAX, evaluation_fatal)
     }
 
     /// Runs the check (at most `max` errors), refuses when an error `fatal` deems fatal is found,
@@ -1425,18 +1441,29 @@ impl IndexedModel {
     /// As [`IndexedModel::new_or_model`], with the model.
     #[allow(clippy::result_large_err)]
     pub fn new_lazy_or_model(model: Model) -> std::result::Result<IndexedModel, (Model, Error)> {
+        IndexedModel::lazy_or_model(model, crate::structure::DEFAULT_MAX_DIAGNOSTICS, |_| true)
+    }
+
+    /// The lazy index: the check that keeps nothing (at most `max` errors), refused when an error
+    /// `fatal` deems fatal is found. Every caller counts ISM-105 (a simplex repeating a vertex)
+    /// fatal, so the face tables built later skip no simplex and are the eager ones.
+    #[allow(clippy::result_large_err)]
+    fn lazy_or_model(
+        model: Model,
+        max: usize,
+        fatal: impl Fn(crate::rules::Rule) -> bool,
+    ) -> std::result::Result<IndexedModel, (Model, Error)> {
         if let Err(e) = Error::unless_numbers_kept(&model, "index") {
             return Err((model, e));
         }
-        let (diagnostics, topology) = crate::structure::check_indexed(
-            &model,
-            crate::structure::DEFAULT_MAX_DIAGNOSTICS,
-            false,
-        );
+        let (diagnostics, topology) = crate::structure::check_indexed(&model, max, false);
         let (errors, diagnostics): (Vec<_>, Vec<_>) = diagnostics
             .into_iter()
-            .partition(|d| d.severity == Severity::Error);
-        // No error: the check ran every stage rule (its error budget is never spent).
+            .partition(|d| d.severity == Severity::Error && fatal(d.rule));
+        debug_assert!(fatal(crate::rules::Rule::RepeatedIndex));
+        // No fatal error: the check ran every stage rule (an error budget of `max` errors is
+        // spent only by errors, which are all fatal for the reader's lazy index, and `max` is
+        // unbounded for the evaluator's).
         let checked = match topology {
             Some((t, _)) if errors.is_empty() => t,
             _ => return Err((model, Error::Structure(errors))),
@@ -1961,6 +1988,48 @@ mod tests {
                 assert_eq!(scanned, searched, "n={n} max={max}");
                 assert!(scanned.len() >= max.min(100), "n={n} max={max}");
             }
+        }
+    }
+
+    /// An evaluator's index of a model without stages is lazy, and builds what the eager one
+    /// builds (truth: the eager index of the same model, `IndexedModel::build` with the same
+    /// rules): the same diagnostics, tolerated errors included, no face table before
+    /// `topology()`, then the same topology; the same refusal of a fatal error.
+    #[test]
+    fn an_evaluator_index_without_stages_is_lazy_and_the_same() {
+        for (n, g) in [(2, 4), (3, 3)] {
+            let mut model = kuhn(n, g);
+            // Tolerated: an unused vertex (warning), one simplex inverted (an orientation error),
+            // a vertex value at the level.
+            model.vertices.extend(std::iter::repeat_n(9.0, n));
+            model.values.push(1.0);
+            model.simplices.swap(0, 1);
+            model.values[2] = model.level;
+            let eager =
+                IndexedModel::build(model.clone(), usize::MAX, evaluation_fatal).expect("valid");
+            let lazy = IndexedModel::for_evaluation(model.clone()).expect("valid");
+            assert!(eager.diagnostics().len() >= 2, "{:?}", eager.diagnostics());
+            assert!(eager
+                .diagnostics()
+                .iter()
+                .any(|d| d.severity == Severity::Error));
+            assert_eq!(lazy.diagnostics(), eager.diagnostics(), "n={n}");
+            assert!(lazy.inner.full.get().is_none());
+            for v in 0..model.num_vertices() {
+                assert_eq!(
+                    lazy.vertex_simplices(v),
+                    eager.topology().vertex_simplices(v)
+                );
+            }
+            assert!(lazy.inner.full.get().is_none());
+            assert_eq!(lazy.topology(), eager.topology(), "n={n}");
+            // A simplex repeating a vertex is fatal for both.
+            let mut bad = model.clone();
+            bad.simplices[1] = bad.simplices[0];
+            let e = IndexedModel::build(bad.clone(), usize::MAX, evaluation_fatal).unwrap_err();
+            let l = IndexedModel::for_evaluation(bad).unwrap_err();
+            assert_eq!(l.diagnostics(), e.diagnostics());
+            assert_eq!(l.rule(), Some(crate::rules::Rule::RepeatedIndex));
         }
     }
 
