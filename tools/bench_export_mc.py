@@ -320,7 +320,16 @@ def main() -> None:
                     cells = nxt
                 ok = [c for c, t in tried.items() if t[2] <= err]
                 if not ok:
-                    print(f"| {name} | {tol:g} | no grid up to {args.max_cells} cells met {err:.3e}: {tried} |")
+                    # The finest grid tried, with the ISM side: MC's triangles there are a lower bound.
+                    cells = max(tried)
+                    n_mc, mc_cpu, mc_err, grid_cpu = tried[cells]
+                    print(
+                        f"| {name} | {tol:g} | {summary['cells']:,} | {err:.3e} | {cpu:.3f} | {cells} (none up to "
+                        f"{args.max_cells} met the error) | {n_mc:,} | {mc_err:.3e} | {mc_cpu:.3f} | {grid_cpu:.2f} "
+                        f"| < {summary['cells'] / n_mc:.2f} | — |",
+                        flush=True,
+                    )
+                    print(f"  grids tried (triangles, MC CPU s, error, grid values CPU s): {tried}", file=sys.stderr, flush=True)
                     continue
                 cells = min(ok)
                 n_mc, mc_cpu, mc_err, grid_cpu = tried[cells]
