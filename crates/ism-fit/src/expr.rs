@@ -338,6 +338,11 @@ pub struct Enclosure {
     pub gradient: Vec<Interval>,
 }
 
+/// Component-wise error allowed in the unit vectors of
+/// [`ImplicitFunction::gradient_generators`]: computed normals (a cross product of differences over
+/// its length) are within a few ulps; 10⁻⁹ is generous, as the mesh's own normal margin.
+pub const GENERATOR_ERROR: f64 = 1e-9;
+
 /// A function whose zero set is the shape to fit.
 pub trait ImplicitFunction: Sync {
     /// Number of variables `n` (2 or 3).
@@ -349,6 +354,18 @@ pub trait ImplicitFunction: Sync {
     /// Enclosures of `g` and `∇g` over the box `[lo, hi]`, or `None` when the function has no
     /// interval extension.
     fn enclose(&self, lo: &[f64], hi: &[f64]) -> Option<Enclosure>;
+
+    /// Appends to `out` unit vectors (`n` numbers each, each component within
+    /// [`GENERATOR_ERROR`] of the true vector's) whose conic hull holds `∇g` at every point of
+    /// the box `[lo, hi]` where it exists, and returns `true`; returns `false` (and appends
+    /// nothing) when the function has none to give. The Plantinga–Vegter test asks for them when
+    /// the component-wise [`Enclosure::gradient`] does not decide: two gradients in the hull of
+    /// generators whose pairwise dot products are positive have a positive dot product
+    /// (bilinearity), while a box of the same vectors loses that once they spread ±35° around an
+    /// axis. A mesh's distance gives its nearby triangles' normals.
+    fn gradient_generators(&self, _lo: &[f64], _hi: &[f64], _out: &mut Vec<f64>) -> bool {
+        false
+    }
 
     /// `|g(p)| / |∇g(p)|`: the first-order estimate of the distance from `p` to the zero set
     /// (infinite where the gradient vanishes).

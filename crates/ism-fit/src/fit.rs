@@ -468,7 +468,40 @@ impl Fitter<'_> {
                 })
             })
             .collect();
-        gradients_agree(&gradient)
+        gradients_agree(&gradient) || self.generators_agree(&lo, &hi, &inside)
+    }
+
+    /// The Plantinga–Vegter test from the function's gradient generators over the sub-boxes of
+    /// `[lo, hi]` that meet the cell (see [`ImplicitFunction::gradient_generators`]); `false`
+    /// when it has none.
+    fn generators_agree(
+        &self,
+        lo: &[f64],
+        hi: &[f64],
+        inside: &impl Fn(&[f64], &[f64]) -> bool,
+    ) -> bool {
+        let n = self.n;
+        let m = PV_SPLIT;
+        let mut generators = Vec::new();
+        let (mut l, mut h) = (vec![0.0; n], vec![0.0; n]);
+        for idx in 0..m.pow(n as u32) {
+            let mut rest = idx;
+            for k in 0..n {
+                let i = rest % m;
+                rest /= m;
+                let w = (hi[k] - lo[k]) / m as f64;
+                l[k] = lo[k] + i as f64 * w;
+                h[k] = if i + 1 == m {
+                    hi[k]
+                } else {
+                    lo[k] + (i + 1) as f64 * w
+                };
+            }
+            if inside(&l, &h) && !self.g.gradient_generators(&l, &h, &mut generators) {
+                return false;
+            }
+        }
+        unit_vectors_agree(n, &generators)
     }
 
     fn set_values_for_new_vertices(&mut self) {
@@ -1775,6 +1808,46 @@ fn gradients_agree(gradient: &[crate::interval::Interval]) -> bool {
     }
     dot.lo > 0.0
 }
+
+/// Pairwise dot products of unit vectors each within
+/// [`GENERATOR_ERROR`](crate::expr::GENERATOR_ERROR) per component of the true ones must exceed
+/// this to count as positive: the rounding of a dot product of vectors of length ≲ 1 is ~10⁻¹⁶,
+/// the generators' own error moves it by at most 2·√n·10⁻⁹ < 4·10⁻⁹.
+const GENERATOR_DOT_MARGIN: f64 = 4.0 * crate::expr::GENERATOR_ERROR;
+
+/// Whether every pair of the unit vectors in `flat` (`n` numbers each) has a dot product above
+/// [`GENERATOR_DOT_MARGIN`] — then so has every pair of vectors in their conic hull
+/// (bilinearity), which is the Plantinga–Vegter condition. `false` for none. First the cheap
+/// sufficient test: all within 45° (less the margin) of their mean direction; then every pair.
+pub(crate) fn unit_vectors_agree(n: usize, flat: &[f64]) -> bool {
+    let count = flat.len() / n;
+    if count == 0 || count > MAX_GENERATOR_PAIRS_OF {
+        return false;
+    }
+    let v = |i: usize| &flat[i * n..(i + 1) * n];
+    let dot = |a: &[f64], b: &[f64]| a.iter().zip(b).map(|(x, y)| x * y).sum::<f64>();
+    let mut mean = vec![0.0; n];
+    for i in 0..count {
+        for (m, x) in mean.iter_mut().zip(v(i)) {
+            *m += x;
+        }
+    }
+    let len = dot(&mean, &mean).sqrt();
+    if len > 0.0 {
+        mean.iter_mut().for_each(|m| *m /= len);
+        // Two vectors at angles a, b ≤ 45° − δ from one axis are at most 90° − 2δ apart. The
+        // mean is rounded: its own error (≲ 10⁻¹⁵) is far inside the margin.
+        let cos_limit = std::f64::consts::FRAC_1_SQRT_2 + GENERATOR_DOT_MARGIN;
+        if (0..count).all(|i| dot(v(i), &mean) > cos_limit) {
+            return true;
+        }
+    }
+    (0..count).all(|i| (i + 1..count).all(|j| dot(v(i), v(j)) > GENERATOR_DOT_MARGIN))
+}
+
+/// More generators than this for one cell fail the test rather than cost a quadratic number of
+/// dot products (a cell that sees this many triangles is far from passing anyway).
+const MAX_GENERATOR_PAIRS_OF: usize = 4096;
 
 /// A conservative test of whether a box `[l, h]` meets simplex `c`: `false` only when every
 /// corner of the box has the same barycentric coordinate below `−CONTAINS_SLACK` (the box lies beyond

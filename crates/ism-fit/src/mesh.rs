@@ -1031,11 +1031,15 @@ const VALUE_MARGIN_REL: f64 = 1e-9;
 
 /// Absolute widening of the computed unit normals' components (each is a cross product of
 /// differences divided by its length: a few ulps); generous, like [`VALUE_MARGIN_REL`].
-const NORMAL_MARGIN: f64 = 1e-9;
+const NORMAL_MARGIN: f64 = crate::expr::GENERATOR_ERROR;
 
-/// Normal turn (radians, 60°) across an edge beyond which the Plantinga–Vegter test may never pass
-/// near it: the test `⟨□∇g, □∇g⟩ > 0` on a component-wise enclosure of unit vectors fails once
-/// they spread ±32° around a coordinate axis, and every box on the edge sees both normals.
+/// Normal turn (radians, 60°) across an edge beyond which the Plantinga–Vegter phase is skipped.
+/// From 90° on the test can never pass near the edge (every cell on it sees both normals, whose
+/// dot product is then ≤ 0). Between 60° and 90° it passes only on cells small enough to see
+/// little more than the edge's two sides ([`ImplicitFunction::gradient_generators`]: the nearby
+/// normals pairwise; a component-wise box of them already failed from ±35° around an axis on).
+/// Kept at 60° because that refinement is costly: the Stanford bunny (82°) at 1e-2 with the phase
+/// on ran over 12 CPU-minutes without finishing, against 3.5 with it skipped (session 14).
 pub const PV_SHARPEST_EDGE: f64 = std::f64::consts::FRAC_PI_3;
 
 /// [`MeshDistance::enclose`] gathers candidate triangles per sub-box of the box split this many
@@ -1394,33 +1398,7 @@ impl MeshDistance {
     /// Unit-vector bounds containing `∇g` at every point of the box where it exists, or `None`
     /// when the normals there do not avoid the origin (see [`ImplicitFunction::enclose`]).
     fn gradient_bounds(&self, lo: &[f64], hi: &[f64]) -> Option<Vec<Interval>> {
-        // The triangles that can hold the closest point of some point of the box, gathered per
-        // sub-box: a sub-box of half-diagonal h around c needs the triangles within
-        // dist(c) + 2h of c, so splitting shrinks the 2h part, which dominates near the surface.
-        let mut ids: Vec<u32> = Vec::new();
-        let parts = 1usize << GRADIENT_SPLIT_LEVELS;
-        let edge = |k: usize, j: usize| {
-            if j == parts {
-                hi[k]
-            } else {
-                lo[k] + (hi[k] - lo[k]) * (j as f64 / parts as f64)
-            }
-        };
-        for i in 0..parts * parts * parts {
-            let j = [i % parts, (i / parts) % parts, i / (parts * parts)];
-            let sub_lo = [0, 1, 2].map(|k| edge(k, j[k]));
-            let sub_hi = [0, 1, 2].map(|k| edge(k, j[k] + 1));
-            let (c, half) = centre_and_half_diagonal(&sub_lo, &sub_hi);
-            let (q, _) = self.closest_point(c);
-            let radius = norm(sub(c, q)) + 2.0 * half + 2.0 * VALUE_MARGIN_REL * self.scale;
-            ids.extend(
-                self.tree
-                    .locate_within_distance(c, radius * radius)
-                    .map(|t| t.id),
-            );
-        }
-        ids.sort_unstable();
-        ids.dedup();
+        let ids = self.candidates(lo, hi);
         let mut nlo = [f64::INFINITY; 3];
         let mut nhi = [f64::NEG_INFINITY; 3];
         let mut sum = [0.0; 3];
@@ -1467,6 +1445,38 @@ impl MeshDistance {
                 })
                 .collect(),
         )
+    }
+
+    /// The triangles that can hold the closest point of some point of the box `[lo, hi]`,
+    /// sorted, without repeats. Gathered per sub-box: a sub-box of half-diagonal h around c needs
+    /// the triangles within dist(c) + 2h of c, so splitting shrinks the 2h part, which dominates
+    /// near the surface.
+    fn candidates(&self, lo: &[f64], hi: &[f64]) -> Vec<u32> {
+        let mut ids: Vec<u32> = Vec::new();
+        let parts = 1usize << GRADIENT_SPLIT_LEVELS;
+        let edge = |k: usize, j: usize| {
+            if j == parts {
+                hi[k]
+            } else {
+                lo[k] + (hi[k] - lo[k]) * (j as f64 / parts as f64)
+            }
+        };
+        for i in 0..parts * parts * parts {
+            let j = [i % parts, (i / parts) % parts, i / (parts * parts)];
+            let sub_lo = [0, 1, 2].map(|k| edge(k, j[k]));
+            let sub_hi = [0, 1, 2].map(|k| edge(k, j[k] + 1));
+            let (c, half) = centre_and_half_diagonal(&sub_lo, &sub_hi);
+            let (q, _) = self.closest_point(c);
+            let radius = norm(sub(c, q)) + 2.0 * half + 2.0 * VALUE_MARGIN_REL * self.scale;
+            ids.extend(
+                self.tree
+                    .locate_within_distance(c, radius * radius)
+                    .map(|t| t.id),
+            );
+        }
+        ids.sort_unstable();
+        ids.dedup();
+        ids
     }
 }
 
@@ -1590,6 +1600,19 @@ impl ImplicitFunction for MeshDistance {
             vec![unit; 3]
         };
         Some(Enclosure { value, gradient })
+    }
+
+    /// The normals of the triangles that can hold the closest point of a point of the box: the
+    /// gradient there is one of them, or lies between those of the triangles meeting at the
+    /// closest edge or vertex — the same hull [`MeshDistance::gradient_bounds`] bounds.
+    fn gradient_generators(&self, lo: &[f64], hi: &[f64], out: &mut Vec<f64>) -> bool {
+        if !self.check.is_closed_manifold() {
+            return false;
+        }
+        for t in self.candidates(lo, hi) {
+            out.extend_from_slice(&self.normals[t as usize]);
+        }
+        true
     }
 }
 
@@ -2256,6 +2279,111 @@ mod tests {
                 }
             });
             assert!(r.is_ok(), "panic on {}", String::from_utf8_lossy(&b));
+        }
+    }
+
+    /// A closed prism (length 2) whose roof turns by `turn` radians at its ridge (on y = h,
+    /// along z): triangles oriented outward from the centroid.
+    fn roof_prism(turn: f64) -> TriangleMesh {
+        // Roof faces at ±(90° − turn/2) from the base: apex angle π − turn.
+        let h = 1.0 / (0.5 * (std::f64::consts::PI - turn)).tan();
+        let mut positions = Vec::new();
+        for z in [-1.0, 1.0] {
+            positions.extend([[-1.0, 0.0, z], [1.0, 0.0, z], [0.0, h, z]]);
+        }
+        let quads = [[0, 1, 4, 3], [1, 2, 5, 4], [2, 0, 3, 5]];
+        let mut triangles: Vec<[u32; 3]> = quads
+            .iter()
+            .flat_map(|q| [[q[0], q[1], q[2]], [q[0], q[2], q[3]]])
+            .collect();
+        triangles.extend([[0, 2, 1], [3, 4, 5]]);
+        let centre = [0.0, h / 3.0, 0.0];
+        for t in &mut triangles {
+            let [a, b, c] = t.map(|i| positions[i as usize]);
+            if dot(cross(sub(b, a), sub(c, a)), sub(a, centre)) < 0.0 {
+                t.swap(1, 2);
+            }
+        }
+        TriangleMesh {
+            positions,
+            triangles,
+        }
+    }
+
+    /// The gradient generators hold the Plantinga–Vegter consequence they are used for: in every
+    /// box where they agree pairwise, the true gradients (the closest-point directions, sampled)
+    /// agree pairwise too — on an 82° ridge, a torus (saddles, concave edges) and a bumpy sphere.
+    /// And they are useful where the box of normals is not: small boxes on the 82° ridge pass.
+    #[test]
+    fn gradient_generators_agree_only_where_the_gradients_do() {
+        let turn = 82f64.to_radians();
+        let mut bumpy = TriangleMesh::icosphere(2, 1.0, [0.0; 3]);
+        for (k, p) in bumpy.positions.iter_mut().enumerate() {
+            let f = 1.0 + 0.25 * ((k * 7919) % 13) as f64 / 13.0;
+            *p = p.map(|x| x * f);
+        }
+        let h = 1.0 / (0.5 * (std::f64::consts::PI - turn)).tan();
+        for (name, mesh) in [
+            ("roof", roof_prism(turn)),
+            ("torus", torus_mesh(16, 8, 1.0, 0.35)),
+            ("bumpy", bumpy),
+        ] {
+            let d = MeshDistance::new(mesh).unwrap();
+            assert!(d.check().is_closed_manifold(), "{name}");
+            let mut boxes: Vec<(P3, f64)> = points(300, -1.4, 1.4, 5)
+                .into_iter()
+                .enumerate()
+                .map(|(i, lo)| (lo, [0.02, 0.08, 0.2, 0.5][i % 4]))
+                .collect();
+            // Boxes centred on the ridge's middle part, from 0.4 down to 0.003 wide.
+            let ridge: Vec<(P3, f64)> = (0..40)
+                .map(|i| {
+                    let w = 0.4 * 0.85f64.powi(i);
+                    let z = -0.5 + (i as f64 * 0.37) % 1.0;
+                    ([-0.5 * w, h - 0.5 * w, z - 0.5 * w], w)
+                })
+                .collect();
+            if name == "roof" {
+                boxes.extend(&ridge);
+            }
+            let (mut agreed, mut ridge_passed) = (0, 0);
+            for (i, (lo, w)) in boxes.iter().enumerate() {
+                let hi = lo.map(|x| x + w);
+                let mut gens = Vec::new();
+                assert!(d.gradient_generators(lo, &hi, &mut gens), "{name}");
+                if !crate::fit::unit_vectors_agree(3, &gens) {
+                    continue;
+                }
+                agreed += 1;
+                ridge_passed += usize::from(i >= 300);
+                let grads: Vec<P3> = points(60, 0.0, 1.0, i as u64 + 1)
+                    .into_iter()
+                    .map(|s| {
+                        let p = [0, 1, 2].map(|k| lo[k] + w * s[k]);
+                        let mut g = [0.0; 3];
+                        d.gradient(&p, &mut g);
+                        g
+                    })
+                    .collect();
+                for a in &grads {
+                    for b in &grads {
+                        assert!(dot(*a, *b) > 0.0, "{name} box {lo:?} +{w}: {a:?} {b:?}");
+                    }
+                }
+            }
+            assert!(agreed > 10, "{name}: {agreed} boxes agreed");
+            if name == "roof" {
+                assert!(ridge_passed > 10, "{ridge_passed} ridge boxes passed");
+                // The component-wise box of the two roof normals cannot pass there.
+                let (lo, w) = ridge[ridge.len() - 1];
+                let hi = lo.map(|x| x + w);
+                let enc = d.enclose(&lo, &hi).unwrap();
+                let mut dotb = Interval::point(0.0);
+                for gk in &enc.gradient {
+                    dotb = dotb + *gk * *gk;
+                }
+                assert!(enc.value.contains(0.0) && dotb.lo <= 0.0, "{enc:?}");
+            }
         }
     }
 
