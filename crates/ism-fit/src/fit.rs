@@ -430,18 +430,7 @@ impl Fitter<'_> {
         let mut zero = false;
         let (mut l, mut h) = (vec![0.0; n], vec![0.0; n]);
         for idx in 0..m.pow(n as u32) {
-            let mut rest = idx;
-            for k in 0..n {
-                let i = rest % m;
-                rest /= m;
-                let w = (hi[k] - lo[k]) / m as f64;
-                l[k] = lo[k] + i as f64 * w;
-                h[k] = if i + 1 == m {
-                    hi[k]
-                } else {
-                    lo[k] + (i + 1) as f64 * w
-                };
-            }
+            sub_box(&lo, &hi, m, idx, &mut l, &mut h);
             if !inside(&l, &h) {
                 continue;
             }
@@ -485,18 +474,7 @@ impl Fitter<'_> {
         let mut generators = Vec::new();
         let (mut l, mut h) = (vec![0.0; n], vec![0.0; n]);
         for idx in 0..m.pow(n as u32) {
-            let mut rest = idx;
-            for k in 0..n {
-                let i = rest % m;
-                rest /= m;
-                let w = (hi[k] - lo[k]) / m as f64;
-                l[k] = lo[k] + i as f64 * w;
-                h[k] = if i + 1 == m {
-                    hi[k]
-                } else {
-                    lo[k] + (i + 1) as f64 * w
-                };
-            }
+            sub_box(lo, hi, m, idx, &mut l, &mut h);
             if inside(&l, &h) && !self.g.gradient_generators(&l, &h, &mut generators) {
                 return false;
             }
@@ -1807,6 +1785,23 @@ fn gradients_agree(gradient: &[crate::interval::Interval]) -> bool {
         dot = dot + *gk * *gk;
     }
     dot.lo > 0.0
+}
+
+/// Sub-box `idx` (in 0..m^n, first axis fastest) of `[lo, hi]` split into `m` parts per axis,
+/// written to `[l, h]`; the last part ends exactly at `hi`.
+fn sub_box(lo: &[f64], hi: &[f64], m: usize, idx: usize, l: &mut [f64], h: &mut [f64]) {
+    let mut rest = idx;
+    for k in 0..lo.len() {
+        let i = rest % m;
+        rest /= m;
+        let w = (hi[k] - lo[k]) / m as f64;
+        l[k] = lo[k] + i as f64 * w;
+        h[k] = if i + 1 == m {
+            hi[k]
+        } else {
+            lo[k] + (i + 1) as f64 * w
+        };
+    }
 }
 
 /// Pairwise dot products of unit vectors each within
