@@ -479,7 +479,17 @@ impl Fitter<'_> {
                 return false;
             }
         }
-        unit_vectors_agree(n, &generators)
+        // Neighbouring sub-boxes give mostly the same vectors: each once (bit-equal copies).
+        let mut unique: Vec<&[f64]> = generators.chunks_exact(n).collect();
+        unique.sort_unstable_by(|a, b| {
+            a.iter()
+                .zip(*b)
+                .map(|(x, y)| x.total_cmp(y))
+                .find(|o| o.is_ne())
+                .unwrap_or(std::cmp::Ordering::Equal)
+        });
+        unique.dedup();
+        unit_vectors_agree(n, &unique.concat())
     }
 
     fn set_values_for_new_vertices(&mut self) {
@@ -1816,7 +1826,7 @@ const GENERATOR_DOT_MARGIN: f64 = 4.0 * crate::expr::GENERATOR_ERROR;
 /// sufficient test: all within 45° (less the margin) of their mean direction; then every pair.
 pub(crate) fn unit_vectors_agree(n: usize, flat: &[f64]) -> bool {
     let count = flat.len() / n;
-    if count == 0 || count > MAX_GENERATOR_PAIRS_OF {
+    if count == 0 || count > MAX_GENERATORS {
         return false;
     }
     let v = |i: usize| &flat[i * n..(i + 1) * n];
@@ -1840,9 +1850,9 @@ pub(crate) fn unit_vectors_agree(n: usize, flat: &[f64]) -> bool {
     (0..count).all(|i| (i + 1..count).all(|j| dot(v(i), v(j)) > GENERATOR_DOT_MARGIN))
 }
 
-/// More generators than this for one cell fail the test rather than cost a quadratic number of
-/// dot products (a cell that sees this many triangles is far from passing anyway).
-const MAX_GENERATOR_PAIRS_OF: usize = 4096;
+/// More distinct generators than this for one cell fail the test rather than cost a quadratic
+/// number of dot products (a cell that sees this many triangles is far from passing anyway).
+const MAX_GENERATORS: usize = 4096;
 
 /// A conservative test of whether a box `[l, h]` meets simplex `c`: `false` only when every
 /// corner of the box has the same barycentric coordinate below `−CONTAINS_SLACK` (the box lies beyond
