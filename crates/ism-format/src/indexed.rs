@@ -1290,6 +1290,28 @@ struct Inner {
 
 /// The structural rules whose breach makes a model impossible to evaluate
 /// ([`IndexedModel::for_evaluation`] refuses them; it keeps the others as diagnostics).
+/// What both indexes start from: a model that kept its numbers, the structural check (`full`:
+/// also building the face tables) with at most `max` errors, and its diagnostics split into the
+/// errors `fatal` deems fatal and the rest.
+#[allow(clippy::type_complexity)]
+fn check_for_index(
+    model: &Model,
+    max: usize,
+    full: bool,
+    fatal: impl Fn(crate::rules::Rule) -> bool,
+) -> Result<(
+    Vec<crate::rules::Diagnostic>,
+    Vec<crate::rules::Diagnostic>,
+    Option<(Topology, crate::structure::RecordFaces)>,
+)> {
+    Error::unless_numbers_kept(model, "index")?;
+    let (diagnostics, topology) = crate::structure::check_indexed(model, max, full);
+    let (errors, diagnostics) = diagnostics
+        .into_iter()
+        .partition(|d| d.severity == Severity::Error && fatal(d.rule));
+    Ok((errors, diagnostics, topology))
+}
+
 fn evaluation_fatal(rule: crate::rules::Rule) -> bool {
     use crate::rules::Rule::*;
     matches!(
@@ -1401,13 +1423,10 @@ impl IndexedModel {
         max: usize,
         fatal: impl Fn(crate::rules::Rule) -> bool,
     ) -> std::result::Result<IndexedModel, (Model, Error)> {
-        if let Err(e) = Error::unless_numbers_kept(&model, "index") {
-            return Err((model, e));
-        }
-        let (diagnostics, topology) = crate::structure::check_indexed(&model, max, true);
-        let (errors, diagnostics): (Vec<_>, Vec<_>) = diagnostics
-            .into_iter()
-            .partition(|d| d.severity == Severity::Error && fatal(d.rule));
+        let (errors, diagnostics, topology) = match check_for_index(&model, max, true, fatal) {
+            Ok(checked) => checked,
+            Err(e) => return Err((model, e)),
+        };
         let (topology, record_faces) = match topology {
             Some((t, faces)) if errors.is_empty() && faces.len() == model.stages.len() => {
                 (t, faces)
@@ -1453,13 +1472,10 @@ impl IndexedModel {
         max: usize,
         fatal: impl Fn(crate::rules::Rule) -> bool,
     ) -> std::result::Result<IndexedModel, (Model, Error)> {
-        if let Err(e) = Error::unless_numbers_kept(&model, "index") {
-            return Err((model, e));
-        }
-        let (diagnostics, topology) = crate::structure::check_indexed(&model, max, false);
-        let (errors, diagnostics): (Vec<_>, Vec<_>) = diagnostics
-            .into_iter()
-            .partition(|d| d.severity == Severity::Error && fatal(d.rule));
+        let (errors, diagnostics, topology) = match check_for_index(&model, max, false, &fatal) {
+            Ok(checked) => checked,
+            Err(e) => return Err((model, e)),
+        };
         debug_assert!(fatal(crate::rules::Rule::RepeatedIndex));
         // No fatal error: the check ran every stage rule (an error budget of `max` errors is
         // spent only by errors, which are all fatal for the reader's lazy index, and `max` is
