@@ -320,7 +320,7 @@ impl Model {
         let options = export_options(tolerance, max_depth, linear, false, None)?;
         let model = self.inner.clone();
         let built = run(py, threads, progress.map(|p| (p, 0)), move |control| {
-            ism_export::export::build(&model, &options, &control.hook())
+            export_build(&model, &options, control)
         })?
         .map_err(|e| export_error(py, &e))?;
         let Exported::Surface { mesh, extract } = built else {
@@ -366,7 +366,7 @@ impl Model {
         // raises (or Ctrl-C) while the worker finishes still means no file, which writing on
         // the worker could not promise (the worker may finish before the callback has run).
         let built = run(py, threads, progress.map(|p| (p, 0)), move |control| {
-            ism_export::export::build(&model, &options, &control.hook())
+            export_build(&model, &options, control)
         })?
         .map_err(|e| export_error(py, &e))?;
         py.allow_threads(|| ism_export::export::write_path(&built, format, name.as_deref(), &path))
@@ -587,4 +587,22 @@ pub(crate) fn triangle_mesh(
         positions,
         triangles,
     })
+}
+
+/// `ism export`'s build on a model's index: a checked read's is shared (no copy, no second
+/// structural check); a model built or read unchecked is indexed for evaluation here, as the
+/// evaluator did before (a copy).
+fn export_build(
+    model: &Shared,
+    options: &ExportOptions,
+    control: &Control,
+) -> Result<Exported, ism_export::Error> {
+    match model {
+        Shared::Indexed(indexed) => ism_export::export::build(indexed, options, &control.hook()),
+        Shared::Plain(plain) => {
+            let indexed = ism_format::IndexedModel::for_evaluation((**plain).clone())
+                .map_err(ism_geom::GeomError::from)?;
+            ism_export::export::build(&indexed, options, &control.hook())
+        }
+    }
 }

@@ -96,6 +96,20 @@ impl ReadLimits {
         };
         ism_format::io::read_path_with(path, &options).map_err(|e| cannot_read_model(path, e))
     }
+
+    /// Reads a model within the limits and indexes it: the structural check runs once and its
+    /// topology is kept for the evaluator (no copy of the model, no second check).
+    pub(crate) fn read_indexed(
+        self,
+        path: &Path,
+    ) -> anyhow::Result<ism_format::io::IndexedDocument> {
+        let options = ism_format::io::ReadOptions {
+            limits: self.limits(),
+            ..ism_format::io::ReadOptions::default()
+        };
+        ism_format::io::read_path_indexed_with(path, &options)
+            .map_err(|e| cannot_read_model(path, e))
+    }
 }
 
 fn number(s: &str) -> Result<f64, String> {

@@ -84,7 +84,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     }
     let progress = crate::progress::Progress::new(args.quiet);
     progress.phase(format!("reading {}", args.input.display()));
-    let doc = args.limits.read(&args.input)?;
+    let doc = args.limits.read_indexed(&args.input)?;
     let model = doc.model;
     let name = model.metadata.name.clone();
     let start = Instant::now();

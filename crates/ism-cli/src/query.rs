@@ -44,7 +44,7 @@ pub struct Args {
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let progress = crate::progress::Progress::new(args.out.quiet);
     progress.phase(format!("reading {}", args.model.display()));
-    let doc = args.limits.read(&args.model)?;
+    let doc = args.limits.read_indexed(&args.model)?;
     let model = doc.model;
     progress.phase(format!("reading points from {}", args.points.display()));
     let bytes = if args.points.as_os_str() == "-" {
@@ -62,7 +62,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let format = choose_format(args.out.format, args.out.output.as_deref())?;
     crate::sample::refuse_binary_on_terminal(format, args.out.output.as_deref())?;
     progress.phase("preparing the model's stages for evaluation");
-    let mut sampler = Sampler::new(&model)?;
+    let mut sampler = Sampler::from_indexed(&model)?;
     let counter = progress.counted(
         "evaluating",
         (pts.len() / model.dim().max(1)) as u64,

@@ -165,7 +165,7 @@ pub(crate) fn write_output(
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let progress = crate::progress::Progress::new(args.out.quiet);
     progress.phase(format!("reading {}", args.model.display()));
-    let doc = args.limits.read(&args.model)?;
+    let doc = args.limits.read_indexed(&args.model)?;
     let model = doc.model;
     let n = model.dim();
     let mut jobs = Vec::new();
@@ -210,7 +210,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         Job::Surface(c) | Job::Volume(c, _) | Job::NearSurface(c, _) => c,
     };
     progress.phase("preparing the model's stages for evaluation and inversion");
-    let mut sampler = Sampler::new(&model)?.seed(args.seed);
+    let mut sampler = Sampler::from_indexed(&model)?.seed(args.seed);
     if matches!(job, Job::Surface(_) | Job::NearSurface(..)) {
         // The table refines its bounds as far as `total` samples pay for it.
         sampler = sampler.expected_surface_samples(total);

@@ -6,7 +6,7 @@
 //! use ism_export::export::{build, ExportOptions};
 //! use ism_export::format::ExportFormat;
 //! use ism_format::builder::{ModelBuilder, StageBuilder};
-//! use ism_format::Progress;
+//! use ism_format::{IndexedModel, Progress};
 //!
 //! // A square of two triangles, one corner inside, with a quadratic stage bending the curve.
 //! let model = ModelBuilder::new(2)
@@ -18,6 +18,8 @@
 //!     .simplex(&[0, 2, 3])
 //!     .stage(StageBuilder::bezier(2).face(&[0, 2], &[0.7, 0.3], &[]).build())
 //!     .build()?;
+//! // Checked and indexed once (a file: `ism_format::io::read_path_indexed`).
+//! let model = IndexedModel::new(model)?;
 //! let options = ExportOptions::default();
 //! let built = build(&model, &options, &Progress::none())?;
 //! let mut obj = Vec::new();
@@ -37,7 +39,7 @@ use std::io::Write;
 use std::path::Path;
 
 use ism_format::progress::Progress;
-use ism_format::Model;
+use ism_format::IndexedModel;
 use ism_geom::ModelEval;
 
 use crate::extract::{extract_with_progress, ExtractOptions, ExtractReport, MAX_DEPTH_LIMIT};
@@ -152,14 +154,19 @@ pub fn check(options: &ExportOptions, format: Option<ExportFormat>) -> Result<()
     Ok(())
 }
 
-/// Builds what `options` ask for (see [`Exported`]), reporting to `progress` and stopping when it
-/// is cancelled.
+/// Builds what `options` ask for (see [`Exported`]) from a checked, indexed model (its index is
+/// shared by the evaluator: no copy, no second structural check), reporting to `progress` and
+/// stopping when it is cancelled.
 ///
 /// # Errors
 /// As [`check`]; [`Error::Geom`] for a model the kernel cannot evaluate (its error as the
 /// source); [`Error::Unsupported`] for one that cannot be extracted;
 /// [`Error::Inversion`] (a numerical failure of the extraction); [`Error::Cancelled`].
-pub fn build(model: &Model, options: &ExportOptions, progress: &Progress) -> Result<Exported> {
+pub fn build(
+    model: &IndexedModel,
+    options: &ExportOptions,
+    progress: &Progress,
+) -> Result<Exported> {
     check(options, None)?;
     progress.check()?;
     if options.volume {
@@ -182,7 +189,7 @@ pub fn build(model: &Model, options: &ExportOptions, progress: &Progress) -> Res
         });
     }
     progress.report_count(phase::PREPARING, 0, 0);
-    let eval = ModelEval::new(model)?;
+    let eval = ModelEval::from_indexed(model)?;
     progress.check()?;
     progress.report_count(phase::EXTRACTING, 0, 0);
     let (mesh, report) = extract_with_progress(
@@ -254,7 +261,7 @@ impl Exported {
 /// [`Error::Unsupported`] for an unknown extension; as [`build`]; [`Error::Io`] (with the path)
 /// when writing fails.
 pub fn export_path(
-    model: &Model,
+    model: &IndexedModel,
     path: &Path,
     options: &ExportOptions,
     progress: &Progress,
@@ -318,6 +325,7 @@ pub fn surface_summary(mesh: &Mesh, extract: Option<&ExtractReport>) -> serde_js
 #[cfg(test)]
 mod tests {
     use super::*;
+    use ism_format::Model;
 
     /// Three collinear vertices make a degenerate triangle: the kernel's error reaches the caller
     /// as the source (its simplex and determinant), not as text.
@@ -327,6 +335,8 @@ mod tests {
         model.vertices = vec![0.0, 0.0, 1.0, 0.0, 2.0, 0.0];
         model.values = vec![-1.0, 1.0, 1.0];
         model.simplices = vec![0, 1, 2];
+        // Indexed for evaluation (the reader's check would refuse it before the kernel sees it).
+        let model = IndexedModel::for_evaluation(model).unwrap();
         for volume in [false, true] {
             let options = ExportOptions {
                 volume,

@@ -47,7 +47,7 @@
 use std::collections::HashMap;
 
 use ism_format::progress::Progress;
-use ism_format::{multi_index, Direction, Model, StageKind};
+use ism_format::{multi_index, Direction, IndexedModel, Model, StageKind};
 use ism_geom::{Bernstein, LocalMap, LocalStage, ModelEval, MAX_VARS};
 use rayon::prelude::*;
 
@@ -80,8 +80,8 @@ pub const ROUNDING_ALLOWANCE_ULPS: f64 = 1024.0;
 /// Default field tolerance as a multiple of the surface tolerance: `ε_F = tolerance · g`, with `g`
 /// the median `|∇F|` of the linear interpolant over the simplices the shape crosses, so contouring
 /// the written field moves the surface by about `tolerance` (first order: `|δp| ≈ |δF| / |∇F|`).
-pub fn default_field_tolerance(model: &Model, surface_tolerance: f64) -> f64 {
-    let eval = match ModelEval::new(model) {
+pub fn default_field_tolerance(model: &IndexedModel, surface_tolerance: f64) -> f64 {
+    let eval = match ModelEval::from_indexed(model) {
         Ok(e) => e,
         Err(_) => return surface_tolerance,
     };
@@ -653,7 +653,7 @@ fn fit_sub(
 /// [`Error::Unsupported`] for a dimension other than 2 or 3, a non-positive tolerance or a model the
 /// evaluator rejects.
 pub fn volume_grid(
-    model: &Model,
+    model: &IndexedModel,
     options: &VolumeOptions,
 ) -> Result<(UnstructuredGrid, VolumeReport)> {
     volume_grid_with_progress(model, options, &Progress::none())
@@ -669,7 +669,7 @@ pub const PHASE: &str = "fitting the Bézier field of F per simplex";
 /// # Errors
 /// As [`volume_grid`]; [`Error::Cancelled`] when `progress` was cancelled.
 pub fn volume_grid_with_progress(
-    model: &Model,
+    model: &IndexedModel,
     options: &VolumeOptions,
     progress: &Progress,
 ) -> Result<(UnstructuredGrid, VolumeReport)> {
@@ -686,7 +686,7 @@ pub fn volume_grid_with_progress(
         )));
     }
     let m = n + 1;
-    let eval = ModelEval::new(model)?;
+    let eval = ModelEval::from_indexed(model)?;
     let ns = model.num_simplices();
     let fields: Vec<CellField> = (0..ns)
         .into_par_iter()
@@ -893,6 +893,7 @@ mod tests {
             if n != 2 && n != 3 {
                 continue;
             }
+            let model = IndexedModel::new(model).unwrap();
             let tol = default_field_tolerance(&model, 1e-3);
             let (grid, report) = volume_grid(
                 &model,
@@ -902,7 +903,7 @@ mod tests {
             )
             .unwrap_or_else(|e| panic!("{name}: {e}"));
             assert!(report.bound.is_finite(), "{name}: {report:?}");
-            let eval = ModelEval::new(&model).unwrap();
+            let eval = ModelEval::from_indexed(&model).unwrap();
             let ArrayValues::Float(f) = &grid.point_data[0].values else {
                 panic!("F is float")
             };

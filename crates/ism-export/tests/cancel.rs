@@ -28,8 +28,8 @@ fn recording(cancel: bool) -> (Progress, Seen) {
     (p, seen)
 }
 
-fn sphere() -> ism_format::Model {
-    ism_examples::large_stratified_model(3000)
+fn sphere() -> ism_format::IndexedModel {
+    ism_format::IndexedModel::new(ism_examples::large_stratified_model(3000)).unwrap()
 }
 
 #[test]
@@ -61,7 +61,7 @@ fn extraction_counts_facets_then_patches_and_stops_when_cancelled() {
 
 #[test]
 fn a_cancelled_volume_export_stops_and_writes_nothing() {
-    let model = ism_examples::large_stratified_model(200);
+    let model = ism_format::IndexedModel::new(ism_examples::large_stratified_model(200)).unwrap();
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("v.vtu");
     let options = ExportOptions {

@@ -1404,13 +1404,15 @@ pub fn fit(
             options,
             f64::NAN,
         )?;
-        let model = model_of(
+        // Indexed once for the kernel (no copy): the measure evaluates through the index.
+        let model = ism_format::IndexedModel::for_evaluation(model_of(
             &fitter.complex,
             &fitter.values,
             &fitter.map,
             &fitter.weights,
             "fit",
-        );
+        ))
+        .map_err(|e| FitError::Eval(e.into()))?;
         let regions: Vec<(Vec<f64>, f64)> = clusters
             .iter()
             .map(|c| (c.centre.clone(), c.radius + options.tolerance))
@@ -1634,15 +1636,16 @@ pub struct DenseError {
 }
 
 /// `|g|/|∇g|` at dense samples of the parametric form of the model's shape, evaluated by the
-/// kernel (`ism-geom`: `θ_σ` and `u ↦ p`), independently of the fitter's own evaluation.
+/// kernel (`ism-geom`: `θ_σ` and `u ↦ p`, through the model's index), independently of the
+/// fitter's own evaluation.
 ///
 /// # Errors
 /// The kernel's error when the model does not evaluate.
 pub fn dense_error(
     g: &dyn ImplicitFunction,
-    model: &Model,
+    model: &ism_format::IndexedModel,
 ) -> Result<DenseError, ism_geom::GeomError> {
-    let eval = ism_geom::ModelEval::new(model)?;
+    let eval = ism_geom::ModelEval::from_indexed(model)?;
     let n = model.dim();
     let per_cell: Vec<(f64, f64, usize)> = (0..model.num_simplices())
         .into_par_iter()
@@ -2098,7 +2101,8 @@ mod tests {
         assert!(own <= 1e-3);
         let both =
             crate::Expression::parse("(x^2 + y^2 - 0.25)*((x-0.7)^2 + y^2 - 0.01)", 2).unwrap();
-        let m = measure(&both, &fitted.to_model("c"), &domain, 1e-3, &[]).unwrap();
+        let c = ism_format::IndexedModel::for_evaluation(fitted.to_model("c")).unwrap();
+        let m = measure(&both, &c, &domain, 1e-3, &[]).unwrap();
         // Fit → target: every fit point is within `own` of the circle, so of the union; the
         // measure's figure is a certified bound through the product `g` (a bracket along its
         // gradient line, looser than through the circle's own `g`), so it is checked against
@@ -2258,7 +2262,8 @@ mod tests {
         let (c, rad) = ([0.05f64, 0.02f64], 0.45f64);
         let circle = crate::Expression::parse("((x-0.05)^2 + (y-0.02)^2 - 0.2025)^3", 2).unwrap();
         let tolerance = 1e-2;
-        let m = measure(&circle, &model, &domain, tolerance, &[]).unwrap();
+        let indexed = ism_format::IndexedModel::for_evaluation(model.clone()).unwrap();
+        let m = measure(&circle, &indexed, &domain, tolerance, &[]).unwrap();
         let chords = shape_polyline(&model, 256);
         let to_circle = |p: [f64; 2]| ((p[0] - c[0]).hypot(p[1] - c[1]) - rad).abs();
         let fit_to_target = chords.iter().map(|ch| to_circle(ch.0)).fold(0.0, f64::max);

@@ -32,7 +32,7 @@ use rstar::RTree;
 
 use crate::expr::ImplicitFunction;
 use crate::isocontour::{patch_samples, Bary};
-use ism_format::model::Model;
+use ism_format::IndexedModel;
 
 /// Points of `Z` whose nearest cloud point on `S` is farther than this fraction of the tolerance
 /// are projected onto `S` (Gauss–Newton on the patch); boxes whose `dist(centre, S) + half` is
@@ -341,8 +341,8 @@ struct Shape {
 }
 
 impl Shape {
-    fn new(model: &Model) -> Result<Shape, ism_geom::GeomError> {
-        let eval = ism_geom::ModelEval::new(model)?;
+    fn new(model: &IndexedModel) -> Result<Shape, ism_geom::GeomError> {
+        let eval = ism_geom::ModelEval::from_indexed(model)?;
         let n = model.dim();
         let patches: Vec<(usize, Vec<Bary>)> = (0..model.num_simplices())
             .filter_map(|s| {
@@ -603,13 +603,14 @@ fn distance(a: &[f64], b: &[f64; 3]) -> f64 {
 }
 
 /// Measures a model's shape against `g` (module doc). `tolerance` sets the resolution of the
-/// `Z → S` cover; `regions` are `(centre, radius)` pairs to report the error near.
+/// `Z → S` cover; `regions` are `(centre, radius)` pairs to report the error near. The kernel
+/// evaluates the model through its index (`IndexedModel::for_evaluation` of a fitter's model).
 ///
 /// # Errors
 /// The kernel's error when the model does not evaluate.
 pub fn measure<G: ImplicitFunction + ?Sized>(
     g: &G,
-    model: &Model,
+    model: &IndexedModel,
     domain: &[f64],
     tolerance: f64,
     regions: &[(Vec<f64>, f64)],
@@ -1177,6 +1178,7 @@ fn box_cover<G: ImplicitFunction + ?Sized>(
 mod tests {
     use super::*;
     use crate::Expression;
+    use ism_format::model::Model;
 
     #[test]
     fn tighten_finds_the_full_projections_maximum_and_misses_with_early_exits() {
@@ -1434,6 +1436,7 @@ mod tests {
         let worst = truths.iter().copied().fold(0.0, f64::max);
         // The tolerance the measure would run at: worst ≈ the tolerance, as in a fit.
         let tolerance = worst;
+        let model = IndexedModel::for_evaluation(model).unwrap();
         let shape = Shape::new(&model).unwrap();
         let tree = RTree::bulk_load(cloud(&shape, cloud_fraction(3) * tolerance));
         let mut far = 0;

@@ -96,13 +96,14 @@ pub fn round_trip(
     use ism_format::io::{self, Encoding, WriteOptions};
     let bytes = io::to_vec(model, Encoding::Binary, WriteOptions::default())
         .map_err(RoundTripError::Encoding)?;
-    let decoded = io::read(&bytes[..])
+    // A checked, indexed read: the evaluator shares its index (no copy, no second check).
+    let decoded = io::from_slice_indexed(&bytes, &io::ReadOptions::default())
         .map_err(RoundTripError::Encoding)?
         .model;
-    if &decoded != model {
+    if decoded.model() != model {
         return Err(RoundTripError::Differs);
     }
-    let eval = ModelEval::new(&decoded).map_err(RoundTripError::Eval)?;
+    let eval = ModelEval::from_indexed(&decoded).map_err(RoundTripError::Eval)?;
     let options = ism_export::extract::ExtractOptions {
         tolerance: EXPORT_FRACTION * tolerance,
         ..Default::default()

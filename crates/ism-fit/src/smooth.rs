@@ -472,10 +472,12 @@ mod tests {
                 },
             )
             .unwrap();
-            let d = crate::fit::dense_error(&g, &s.model).unwrap().max;
+            let indexed = ism_format::IndexedModel::for_evaluation(s.model).unwrap();
+            let d = crate::fit::dense_error(&g, &indexed).unwrap().max;
             (d, s.report.after.unwrap().max)
         };
-        let input = crate::fit::dense_error(&g, &model).unwrap().max;
+        let indexed = ism_format::IndexedModel::for_evaluation(model.clone()).unwrap();
+        let input = crate::fit::dense_error(&g, &indexed).unwrap().max;
         let (d_small, _) = distance(1e-3);
         let (d_large, jump_large) = distance(0.1);
         assert!(

@@ -6,7 +6,7 @@
 
 use std::sync::OnceLock;
 
-use ism_format::Model;
+use ism_format::{IndexedModel, Model};
 use ism_geom::{Bary, ModelEval, MAX_VARS};
 use rand::Rng;
 use rand_chacha::ChaCha8Rng;
@@ -60,13 +60,24 @@ impl std::fmt::Debug for Sampler {
 }
 
 impl Sampler {
-    /// A sampler of `model` with seed 0.
+    /// A sampler of `model` with seed 0. Indexes a copy of the model ([`ModelEval::new`]);
+    /// [`Sampler::from_indexed`] shares a checked, indexed model instead (a file read by
+    /// `ism_format::io::read_path_indexed`: no copy, no second structural check).
     ///
     /// # Errors
     /// [`SampleError::Geometry`] when the model cannot be evaluated (bad shapes, degenerate
     /// simplices, malformed stage records).
     pub fn new(model: &Model) -> Result<Sampler> {
         let eval = ModelEval::new(model)?;
+        Ok(Sampler::from_eval(eval))
+    }
+
+    /// A sampler of an indexed model with seed 0, sharing its index ([`ModelEval::from_indexed`]).
+    ///
+    /// # Errors
+    /// [`SampleError::Geometry`] for a degenerate simplex.
+    pub fn from_indexed(model: &IndexedModel) -> Result<Sampler> {
+        let eval = ModelEval::from_indexed(model)?;
         Ok(Sampler::from_eval(eval))
     }
 
