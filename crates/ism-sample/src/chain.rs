@@ -33,6 +33,7 @@ use ism_geom::{linalg, Bernstein, LocalMap, LocalStage, Mat, Restriction};
 use crate::bound::{
     det_poly, linear_gradient_norm, quotient_range, stage_components, BOUND_ROUNDING_MARGIN,
 };
+use crate::flat::Flat;
 use crate::homothety::Homothety;
 
 /// Refinement stops once every leaf's bound is within this factor of the largest exact sample of
@@ -74,6 +75,48 @@ fn clamp_unit(x: Interval) -> Interval {
 }
 
 type IMat = [[Interval; 3]; 3];
+
+/// Up to four values on the stack (a cell's image box, its corners), used as a slice.
+#[derive(Clone, Copy, Debug)]
+struct Four<T: Copy> {
+    items: [T; 4],
+    len: usize,
+}
+
+impl<T: Copy + Default> Four<T> {
+    /// `len` default values.
+    fn new(len: usize) -> Four<T> {
+        assert!(len <= 4, "at most four entries");
+        Four {
+            items: [T::default(); 4],
+            len,
+        }
+    }
+
+    fn from_slice(items: &[T]) -> Four<T> {
+        let mut f = Four::new(items.len());
+        f.copy_from_slice(items);
+        f
+    }
+}
+
+impl<T: Copy> std::ops::Deref for Four<T> {
+    type Target = [T];
+    fn deref(&self) -> &[T] {
+        &self.items[..self.len]
+    }
+}
+
+impl<T: Copy> std::ops::DerefMut for Four<T> {
+    fn deref_mut(&mut self) -> &mut [T] {
+        &mut self.items[..self.len]
+    }
+}
+
+/// The image box of a cell, one interval per barycentric coordinate.
+type Image = Four<Interval>;
+/// The corners of a cell (barycentric, first `m` entries each).
+type Corners = Four<[f64; 4]>;
 
 /// The first stage of the processing order, restricted to a cell exactly: components and
 /// denominator (image by the convex hull property), Jacobian numerators over `Q²` (elevated to a
@@ -195,16 +238,15 @@ impl Restricted {
 
     /// Image box (coefficient ratios `P_{i,I}/Q_I`: the restricted map's control points) and the
     /// interval Jacobian (coefficient ratios of the numerators over `Q²`).
-    fn ranges(&self, n: usize) -> (Vec<Interval>, IMat) {
+    fn ranges(&self, n: usize) -> (Image, IMat) {
         let ratio_range = |a: &Bernstein, b: Option<&Bernstein>| -> Interval {
             let (lo, hi) = quotient_range(a, b);
             Interval::new(lo, hi)
         };
-        let image = self
-            .p
-            .iter()
-            .map(|p| clamp_unit(ratio_range(p, self.q.as_ref())))
-            .collect();
+        let mut image = Image::new(self.p.len());
+        for (x, p) in image.iter_mut().zip(&self.p) {
+            *x = clamp_unit(ratio_range(p, self.q.as_ref()));
+        }
         let mut jac = [[Interval::point(0.0); 3]; 3];
         for (row, nums) in jac.iter_mut().zip(&self.num).take(n) {
             for (entry, num) in row.iter_mut().zip(nums).take(n) {
@@ -258,7 +300,8 @@ impl Restricted {
         n: usize,
         lo: &[f64],
         need_image: bool,
-    ) -> Option<(bool, Vec<Interval>, IMat)> {
+        h: &mut Homothety,
+    ) -> Option<(bool, Image, IMat)> {
         if self.q.is_some() {
             return None;
         }
@@ -269,16 +312,19 @@ impl Restricted {
         {
             return None;
         }
-        let mut h = Homothety::new(m, d, lo)?;
+        if !h.set(m, d, lo) {
+            return None;
+        }
         if let Some(c) = &self.cross {
             h.load(c.coeffs());
             let (range, top) = h.range();
             let slack = BOUND_ROUNDING_MARGIN * top;
             if range.lo > slack || range.hi < -slack {
-                return Some((false, Vec::new(), [[Interval::point(0.0); 3]; 3]));
+                return Some((false, Image::new(0), [[Interval::point(0.0); 3]; 3]));
             }
         }
-        let mut image = vec![Interval::new(0.0, 1.0); m];
+        let mut image = Image::new(m);
+        image.fill(Interval::new(0.0, 1.0));
         let mut jac = [[Interval::point(0.0); 3]; 3];
         for (i, p) in self.p.iter().enumerate() {
             if i == 0 && !need_image {
@@ -410,6 +456,8 @@ struct Chain<'a> {
     /// Stages in processing order after the first (implicit: stages 1.., parametric: stored
     /// stages m−2 down to 0), unrestricted; the last implicit one carries `F − c`.
     rest: Vec<Restricted>,
+    /// The buffers of [`Restricted::homothety_ranges`], reused from cell to cell.
+    homothety: std::cell::RefCell<Homothety>,
     inv_edges: &'a Mat,
     values: &'a [f64],
     level: f64,
@@ -417,10 +465,94 @@ struct Chain<'a> {
 }
 
 struct Cell {
-    restricted: Restricted,
+    restricted: First,
     /// Vertices of the cell (barycentric in the restricted stage's domain), `m` each.
-    vertices: Vec<[f64; 4]>,
+    vertices: Corners,
     depth: u32,
+}
+
+/// The first stage of the processing order restricted to a cell: the kernel's polynomials, or,
+/// for an all-parametric chain's polynomial stage of low degree, one fixed-size record (a
+/// bisection then allocates nothing).
+/// The record is large on purpose: boxing it would bring back an allocation per cell.
+#[derive(Clone)]
+#[allow(clippy::large_enum_variant)]
+enum First {
+    General(Restricted),
+    Flat(Flat),
+}
+
+/// `[lo, hi]` of coefficients: [`quotient_range`] without a denominator, on a slice.
+fn coeff_range(coeffs: &[f64]) -> Interval {
+    let (mut lo, mut hi, mut top) = (f64::INFINITY, f64::NEG_INFINITY, 0.0f64);
+    for &r in coeffs {
+        lo = lo.min(r);
+        hi = hi.max(r);
+        top = top.max(r.abs());
+    }
+    let slack = BOUND_ROUNDING_MARGIN * top + f64::MIN_POSITIVE;
+    Interval::new(lo - slack, hi + slack)
+}
+
+impl First {
+    /// The record for an all-parametric chain's restricted first stage when it fits one.
+    fn parametric(r: Restricted) -> First {
+        if r.q.is_none() && r.q2.is_none() && r.cross.is_none() && r.det.is_none() {
+            if let Some(flat) = Flat::new(&r.p, &r.num) {
+                return First::Flat(flat);
+            }
+        }
+        First::General(r)
+    }
+
+    fn split(&self, a: usize, b: usize) -> (First, First) {
+        match self {
+            First::General(r) => {
+                let (x, y) = r.split(a, b);
+                (First::General(x), First::General(y))
+            }
+            First::Flat(f) => {
+                let (x, y) = f.split(a, b);
+                (First::Flat(x), First::Flat(y))
+            }
+        }
+    }
+
+    /// [`Restricted::ranges`].
+    fn ranges(&self, n: usize) -> (Image, IMat) {
+        match self {
+            First::General(r) => r.ranges(n),
+            First::Flat(f) => {
+                let mut image = Image::new(f.components());
+                for (i, x) in image.iter_mut().enumerate() {
+                    *x = clamp_unit(coeff_range(f.component(i)));
+                }
+                let mut jac = [[Interval::point(0.0); 3]; 3];
+                for (row, entries) in jac.iter_mut().enumerate().take(n) {
+                    for (col, entry) in entries.iter_mut().enumerate().take(n) {
+                        *entry = coeff_range(f.partial(row, col));
+                    }
+                }
+                (image, jac)
+            }
+        }
+    }
+
+    /// [`Restricted::may_cross`] (a record carries no `F − c`: it may).
+    fn may_cross(&self) -> bool {
+        match self {
+            First::General(r) => r.may_cross(),
+            First::Flat(_) => true,
+        }
+    }
+
+    /// [`Restricted::det_lo`] (a record keeps no determinant polynomial).
+    fn det_lo(&self, n: usize, jac: &IMat) -> f64 {
+        match self {
+            First::General(r) => r.det_lo(n, jac),
+            First::Flat(_) => interval_det(n, jac).lo,
+        }
+    }
 }
 
 impl Chain<'_> {
@@ -433,7 +565,7 @@ impl Chain<'_> {
             // The shape is the flat patch f·u = c: linear, so its vertex values decide.
             let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
             let mut scale: f64 = self.level.abs();
-            for v in &cell.vertices {
+            for v in cell.vertices.iter() {
                 let f: f64 = (0..m).map(|i| self.values[i] * v[i]).sum();
                 lo = lo.min(f);
                 hi = hi.max(f);
@@ -448,61 +580,59 @@ impl Chain<'_> {
             return None;
         }
         let (mut image, first) = cell.restricted.ranges(n);
-        let mut jacs = vec![first];
-        let mut dets = vec![if self.layout == Layout::Parametric {
-            1.0
-        } else {
-            cell.restricted.det_lo(n, &first)
-        }];
-        for (k, stage) in self.rest.iter().enumerate() {
-            // The image so far lies in {w ≥ lo}: restrict the next stage there exactly. A
-            // parametric chain's last image is not used (its cells live in u).
-            let mut lo = [0.0; 4];
-            for (l, x) in lo.iter_mut().zip(&image) {
-                *l = x.lo.max(0.0);
-            }
-            let lo = &lo[..image.len()];
-            let need_image = !(self.layout == Layout::Parametric && k + 1 == self.rest.len());
-            let (next, jac, det) = match stage.homothety_ranges(n, lo, need_image) {
-                Some((may_cross, _, _)) if !may_cross => return None,
-                // A parametric chain needs no determinant (cofactors, below).
-                Some((_, next, jac)) if self.layout == Layout::Parametric => (next, jac, 1.0),
-                Some((_, next, jac)) => (next, jac, interval_det(n, &jac).lo),
-                None => {
-                    let here = stage.restrict_to(lo);
-                    if !here.may_cross() {
-                        return None;
-                    }
-                    let (next, jac) = here.ranges(n);
-                    (next, jac, here.det_lo(n, &jac))
-                }
-            };
-            dets.push(det);
-            jacs.push(jac);
-            image = next;
-        }
         let mut g = [Interval::point(0.0); 3];
         for (i, gi) in g.iter_mut().enumerate().take(n) {
             *gi = Interval::point(self.values[i + 1] - self.values[0]);
         }
-        let mut det_lo = 1.0f64;
-        match self.layout {
-            // DX = DX_{m−1} ⋯ DX_0 and jacs holds DX_0, DX_1, …: DXᵀΔf = DX_0ᵀ(⋯(DX_{m−1}ᵀ Δf)).
-            Layout::Implicit => {
-                for (jac, &d) in jacs.iter().zip(&dets).rev() {
-                    g = mat_vec(n, jac, &g, true);
-                    if d.is_nan() || d <= 0.0 {
-                        return Some((f64::INFINITY, self.u_box(cell, &image)));
+        // Implicit: DX = DX_{m−1} ⋯ DX_0 is applied last stage first, so the Jacobians (DX_0,
+        // DX_1, …) and determinants are kept. Parametric: cof(DY)Δf = cof(DY_0)(⋯(cof(DY_{m−1})Δf))
+        // and the Jacobians come as DY_{m−1}, DY_{m−2}, …: each is applied as it comes.
+        let parametric = self.layout == Layout::Parametric;
+        let mut kept: Vec<(IMat, f64)> = Vec::new();
+        if parametric {
+            g = mat_vec(n, &cofactor(n, &first), &g, false);
+        } else {
+            kept.push((first, cell.restricted.det_lo(n, &first)));
+        }
+        for (k, stage) in self.rest.iter().enumerate() {
+            // The image so far lies in {w ≥ lo}: restrict the next stage there exactly. A
+            // parametric chain's last image is not used (its cells live in u).
+            let mut lo = [0.0; 4];
+            for (l, x) in lo.iter_mut().zip(image.iter()) {
+                *l = x.lo.max(0.0);
+            }
+            let lo = &lo[..image.len()];
+            let need_image = !(parametric && k + 1 == self.rest.len());
+            let (next, jac, det) =
+                match stage.homothety_ranges(n, lo, need_image, &mut self.homothety.borrow_mut()) {
+                    Some((may_cross, _, _)) if !may_cross => return None,
+                    // A parametric chain needs no determinant (cofactors, below).
+                    Some((_, next, jac)) if parametric => (next, jac, 1.0),
+                    Some((_, next, jac)) => (next, jac, interval_det(n, &jac).lo),
+                    None => {
+                        let here = stage.restrict_to(lo);
+                        if !here.may_cross() {
+                            return None;
+                        }
+                        let (next, jac) = here.ranges(n);
+                        (next, jac, here.det_lo(n, &jac))
                     }
-                    det_lo *= d;
-                }
+                };
+            if parametric {
+                g = mat_vec(n, &cofactor(n, &jac), &g, false);
+            } else {
+                kept.push((jac, det));
             }
-            // cof(DY)Δf = cof(DY_0)(⋯(cof(DY_{m−1})Δf)) and jacs holds DY_{m−1}, DY_{m−2}, ….
-            Layout::Parametric => {
-                for jac in &jacs {
-                    g = mat_vec(n, &cofactor(n, jac), &g, false);
-                }
+            image = next;
+        }
+        let mut det_lo = 1.0f64;
+        // DXᵀΔf = DX_0ᵀ(⋯(DX_{m−1}ᵀ Δf)).
+        for (jac, d) in kept.iter().rev() {
+            g = mat_vec(n, jac, &g, true);
+            if d.is_nan() || *d <= 0.0 {
+                return Some((f64::INFINITY, self.u_box(cell, &image)));
             }
+            det_lo *= d;
         }
         // h = E⁻ᵀ g: h_x = Σ_l (E⁻¹)_{l x} g_l.
         let mut norm2 = 0.0;
@@ -552,7 +682,7 @@ impl Chain<'_> {
         let m = n + 1;
         let mut c = [0.0; 4];
         let count = cell.vertices.len() as f64;
-        for v in &cell.vertices {
+        for v in cell.vertices.iter() {
             for i in 0..m {
                 c[i] += v[i] / count;
             }
@@ -625,9 +755,9 @@ impl Chain<'_> {
         for (k, x) in mid.iter_mut().enumerate().take(m) {
             *x = 0.5 * (cell.vertices[a][k] + cell.vertices[b][k]);
         }
-        let mut v0 = cell.vertices.clone();
+        let mut v0 = cell.vertices;
         v0[b] = mid;
-        let mut v1 = cell.vertices.clone();
+        let mut v1 = cell.vertices;
         v1[a] = mid;
         (
             Cell {
@@ -767,17 +897,18 @@ pub fn chain_bound(
         layout,
         n,
         rest,
+        homothety: std::cell::RefCell::new(Homothety::empty()),
         inv_edges,
         values,
         level,
         linear,
     };
-    let mut vertices = vec![[0.0; 4]; m];
+    let mut vertices = Corners::new(m);
     for (i, v) in vertices.iter_mut().enumerate() {
         v[i] = 1.0;
     }
     let root = Cell {
-        restricted,
+        restricted: First::General(restricted),
         vertices,
         depth: 0,
     };
@@ -881,6 +1012,7 @@ pub fn parametric_leaves(
         layout: Layout::Parametric,
         n,
         rest,
+        homothety: std::cell::RefCell::new(Homothety::empty()),
         inv_edges,
         values,
         level,
@@ -941,8 +1073,8 @@ pub fn parametric_leaves(
     let mut cells: Vec<Open> = Vec::with_capacity(roots.len() + 2 * max_splits.min(64));
     for (r, (corners, _)) in roots.iter().enumerate() {
         let root = Cell {
-            restricted: first.restrict_to_face(corners),
-            vertices: corners.clone(),
+            restricted: First::parametric(first.restrict_to_face(corners)),
+            vertices: Corners::from_slice(corners),
             depth: 0,
         };
         let Some((b, ubox)) = chain.bound(&root) else {
@@ -983,7 +1115,7 @@ pub fn parametric_leaves(
         .into_iter()
         .map(|c| Leaf {
             root: c.root,
-            corners: c.cell.vertices,
+            corners: c.cell.vertices.to_vec(),
             fraction: c.share,
             bound: c.bound,
         })

@@ -136,30 +136,47 @@ pub(crate) struct Homothety {
 
 impl Homothety {
     /// `None` when the degree has no plan (use exact restriction).
+    #[cfg(test)]
     pub(crate) fn new(m: usize, d: u32, lo: &[f64]) -> Option<Homothety> {
+        let mut h = Homothety::empty();
+        h.set(m, d, lo).then_some(h)
+    }
+
+    /// A buffer for [`Homothety::set`] (the degree-0 plan in one variable until then).
+    pub(crate) fn empty() -> Homothety {
+        Homothety {
+            m: 1,
+            d: 0,
+            plan: plan(1, 0),
+            lower: None,
+            rpow: [1.0; MAX_DEGREE + 1],
+            lo: [0.0; MAX_VARS],
+            level: [0.0; LEVEL_CAP],
+            dlevel: [0.0; LEVEL_CAP],
+        }
+    }
+
+    /// Re-targets the buffers to degree `d` in `m` variables and the simplex `{w ≥ lo}`, as
+    /// [`Homothety::new`] would build them (without clearing the levels: every entry read is
+    /// written first). `false` when the degree has no plan; the buffer is then unchanged.
+    pub(crate) fn set(&mut self, m: usize, d: u32, lo: &[f64]) -> bool {
         if d as usize > MAX_DEGREE || m == 0 || m > MAX_VARS {
-            return None;
+            return false;
         }
         let plan = plan(m, d);
         debug_assert!(plan.offsets[d as usize + 1] <= LEVEL_CAP);
-        let lower = (d > 0).then(|| self::plan(m, d - 1));
-        let mut l = [0.0; MAX_VARS];
-        l[..m].copy_from_slice(&lo[..m]);
-        let r = (1.0 - l[..m].iter().sum::<f64>()).max(0.0);
-        let mut rpow = [1.0; MAX_DEGREE + 1];
+        self.m = m;
+        self.d = d;
+        self.plan = plan;
+        self.lower = (d > 0).then(|| self::plan(m, d - 1));
+        self.lo = [0.0; MAX_VARS];
+        self.lo[..m].copy_from_slice(&lo[..m]);
+        let r = (1.0 - self.lo[..m].iter().sum::<f64>()).max(0.0);
+        self.rpow = [1.0; MAX_DEGREE + 1];
         for k in 1..=d as usize {
-            rpow[k] = rpow[k - 1] * r;
+            self.rpow[k] = self.rpow[k - 1] * r;
         }
-        Some(Homothety {
-            m,
-            d,
-            plan,
-            lower,
-            rpow,
-            lo: l,
-            level: [0.0; LEVEL_CAP],
-            dlevel: [0.0; LEVEL_CAP],
-        })
+        true
     }
 
     /// Loads a polynomial's coefficients (canonical order, degree `d`) and runs de Casteljau at

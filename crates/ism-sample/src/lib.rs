@@ -47,6 +47,7 @@
 pub mod bound;
 pub mod chain;
 pub mod error;
+mod flat;
 mod homothety;
 pub mod output;
 pub mod points;
