@@ -110,6 +110,30 @@ impl ReadLimits {
         ism_format::io::read_path_indexed_with(path, &options)
             .map_err(|e| cannot_read_model(path, e))
     }
+
+    /// [`ReadLimits::read_indexed`] for a caller that may never look a face record up (`ism
+    /// export --linear`): the same check and errors, but only the vertex incidence is kept
+    /// ([`ism_format::IndexedModel::new_lazy_or_model`]); the face tables are built on first use.
+    pub(crate) fn read_indexed_lazily(
+        self,
+        path: &Path,
+    ) -> anyhow::Result<ism_format::io::IndexedDocument> {
+        let options = ism_format::io::ReadOptions {
+            limits: self.limits(),
+            check_structure: false,
+            ..ism_format::io::ReadOptions::default()
+        };
+        let doc = ism_format::io::read_path_with(path, &options)
+            .map_err(|e| cannot_read_model(path, e))?;
+        let model = ism_format::IndexedModel::new_lazy_or_model(doc.model)
+            .map_err(|(_, e)| cannot_read_model(path, e))?;
+        Ok(ism_format::io::IndexedDocument {
+            model,
+            encoding: doc.encoding,
+            container: doc.container,
+            byte_len: doc.byte_len,
+        })
+    }
 }
 
 fn number(s: &str) -> Result<f64, String> {
