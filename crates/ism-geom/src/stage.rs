@@ -291,6 +291,19 @@ impl LocalStage {
     /// point from the stage's flat tables (O(1) per multi-index: the simplex's face ids come from
     /// the topology, no face key is hashed).
     pub fn from_indexed(model: &IndexedModel, stage_index: usize, s: usize) -> Result<LocalStage> {
+        Ok(LocalStage::build_indexed(model, stage_index, s, false)?
+            .expect("built whether or not it is the identity"))
+    }
+
+    /// [`LocalStage::from_indexed`], or `None` without filling a net when `skip_identity` and no
+    /// record touches the simplex ([`LocalMap`] drops identity stages: their dense default net
+    /// was built only to be freed, a fifth of a fitted model's `--max-depth 0` export).
+    fn build_indexed(
+        model: &IndexedModel,
+        stage_index: usize,
+        s: usize,
+        skip_identity: bool,
+    ) -> Result<Option<LocalStage>> {
         let stage = model.stages.get(stage_index).ok_or(GeomError::NoStage {
             index: stage_index,
             count: model.stages.len(),
@@ -300,7 +313,6 @@ impl LocalStage {
             return Err(GeomError::NoSimplex { index: s, count });
         }
         let table = model.stage(stage_index);
-        let topology = model.topology();
         let simplex = model.simplex(s);
         let m = simplex.len();
         let d = table.degree();
@@ -308,16 +320,37 @@ impl LocalStage {
             return Err(GeomError::Dimension(m.saturating_sub(1)));
         }
         let per_vertex = d as usize + 1;
+        // Per support mask (a subset of the local positions): the face it names and its record
+        // (NONE without one), looked up once per face of the simplex.
+        let mut faces = [FaceId { dim: 0, index: 0 }; 1 << MAX_VARS];
+        let mut records = [NONE; 1 << MAX_VARS];
         let identity = match stage.kind {
             StageKind::Monotonic => simplex
                 .iter()
                 .all(|&v| table.vertex_records()[v as usize] == NONE),
-            _ => !(0..m).any(|k| {
-                (0..local_faces(m, k + 1).len()).any(|j| {
-                    table.records(k)[topology.simplex_face(model, s, k, j) as usize] != NONE
-                })
-            }),
+            _ => {
+                let topology = model.topology();
+                let mut identity = true;
+                for k in 0..m {
+                    let size = k + 1;
+                    let rows = table.records(k);
+                    for (j, f) in local_faces(m, size).iter().enumerate() {
+                        let mask = f[..size].iter().fold(0usize, |acc, &p| acc | 1 << p);
+                        let index = topology.simplex_face(model, s, k, j);
+                        faces[mask] = FaceId {
+                            dim: k as u8,
+                            index,
+                        };
+                        records[mask] = rows[index as usize];
+                        identity &= records[mask] == NONE;
+                    }
+                }
+                identity
+            }
         };
+        if identity && skip_identity {
+            return Ok(None);
+        }
         let mut local = LocalStage {
             kind: stage.kind,
             direction: stage.direction,
@@ -340,7 +373,7 @@ impl LocalStage {
                     .extend_from_slice(&table.coefficients()[v * per_vertex..(v + 1) * per_vertex]);
             }
             local.finish_monotonic();
-            return Ok(local);
+            return Ok(Some(local));
         }
         let rational = stage.kind == StageKind::Rational;
         let n_idx = local.tables.exps.len();
@@ -348,10 +381,10 @@ impl LocalStage {
         if rational {
             local.weights = Vec::with_capacity(n_idx);
         }
-        // Per support mask (the local positions with a positive exponent): the face it names, if
-        // it has a record, with the positions ordered by global id (the face's own vertex order).
-        // Looked up once per mask, not once per control point.
-        type Support = Option<(FaceId, [usize; MAX_VARS], usize)>;
+        // Per support mask with a record: the face's control points and weights, and the
+        // positions ordered by global id (the face's own vertex order). Made once per mask, not
+        // once per control point.
+        type Support<'a> = (&'a [f64], &'a [f64], [usize; MAX_VARS], usize);
         let mut supports: [Option<Support>; 1 << MAX_VARS] = [None; 1 << MAX_VARS];
         for e in &local.tables.exps {
             // Fixed default I/d, weight 1.
@@ -362,49 +395,39 @@ impl LocalStage {
             let mut q = 1.0;
             if !local.identity {
                 // The support's local positions (a subset, in increasing order) name the face.
-                let mut mask = 0u8;
+                let mut mask = 0usize;
                 for i in 0..m {
                     if e[i] > 0 {
                         mask |= 1 << i;
                     }
                 }
-                let support = *supports[mask as usize].get_or_insert_with(|| {
-                    let size = mask.count_ones() as usize;
-                    let j = local_faces(m, size)
-                        .iter()
-                        .position(|f| f[..size].iter().fold(0u8, |acc, &p| acc | 1 << p) == mask)
-                        .expect("every subset is listed");
-                    let k = size - 1;
-                    let face = FaceId {
-                        dim: k as u8,
-                        index: topology.simplex_face(model, s, k, j),
-                    };
-                    table.record_of(face)?;
-                    // Positions ordered by global id → the face's own vertex order t_0 < … < t_k.
-                    let mut pos: [usize; MAX_VARS] = [0; MAX_VARS];
-                    let mut len = 0;
-                    for i in 0..m {
-                        if e[i] > 0 {
-                            pos[len] = i;
-                            len += 1;
+                if records[mask] != NONE {
+                    let (points, weights, pos, len) = *supports[mask].get_or_insert_with(|| {
+                        let face = faces[mask];
+                        // Positions ordered by global id → the face's own vertex order
+                        // t_0 < … < t_k.
+                        let mut pos: [usize; MAX_VARS] = [0; MAX_VARS];
+                        let mut len = 0;
+                        for i in 0..m {
+                            if mask & (1 << i) != 0 {
+                                pos[len] = i;
+                                len += 1;
+                            }
                         }
-                    }
-                    pos[..len].sort_unstable_by_key(|&i| simplex[i]);
-                    Some((face, pos, len))
-                });
-                if let Some((face, pos, len)) = support {
+                        pos[..len].sort_unstable_by_key(|&i| simplex[i]);
+                        (table.face_points(face), table.face_weights(face), pos, len)
+                    });
                     let mut shifted = [0u32; MAX_VARS];
                     for (x, &p) in shifted.iter_mut().zip(&pos[..len]) {
                         *x = u32::from(e[p]) - 1;
                     }
-                    let r = multi_index::rank(&shifted[..len]);
-                    let points = table.face_points(face);
+                    let r = small_rank(&shifted[..len]);
                     b = [0.0; MAX_VARS];
                     for (jj, &p) in pos[..len].iter().enumerate() {
                         b[p] = points[r * len + jj];
                     }
                     if rational {
-                        q = table.face_weights(face)[r];
+                        q = weights[r];
                     }
                 }
             }
@@ -416,7 +439,7 @@ impl LocalStage {
         if rational {
             local.finish_rational();
         }
-        Ok(local)
+        Ok(Some(local))
     }
 
     /// An identity stage (no records) of the given kind and degree in `m` variables.
@@ -1205,6 +1228,42 @@ fn rank_owned(j: &[u32]) -> usize {
     multi_index::rank(&shifted)
 }
 
+/// Binomial coefficients `C(n, k)` for `n < 24` (Pascal's triangle, exact): enough for
+/// [`small_rank`] (`n ≤ MAX_DEGREE + MAX_VARS − 2`).
+const SMALL_BINOMIAL: [[u32; 24]; 24] = {
+    let mut c = [[0u32; 24]; 24];
+    let mut n = 0;
+    while n < 24 {
+        c[n][0] = 1;
+        let mut k = 1;
+        while k <= n {
+            c[n][k] = c[n - 1][k - 1] + c[n - 1][k];
+            k += 1;
+        }
+        n += 1;
+    }
+    c
+};
+
+/// [`multi_index::rank`] for the short indices of a local net (at most [`MAX_VARS`] entries,
+/// entries summing below [`MAX_DEGREE`]) from a table, without its per-term binomials: the indices with a
+/// larger entry `e > index[p]` at position `p` number `Σ_e C(rest − e + a, a)` with `a = m − p − 2`,
+/// which is `C(rest − index[p] + a, a + 1)` (the hockey-stick identity).
+#[inline]
+fn small_rank(index: &[u32]) -> usize {
+    let m = index.len();
+    let mut remaining: usize = index.iter().map(|&e| e as usize).sum();
+    let mut r = 0usize;
+    for (p, &entry) in index.iter().enumerate().take(m.saturating_sub(1)) {
+        let entry = entry as usize;
+        if remaining > entry {
+            r += SMALL_BINOMIAL[remaining - entry + m - p - 2][m - p - 1] as usize;
+        }
+        remaining -= entry;
+    }
+    r
+}
+
 /// All stages of one top simplex, in application order (`stages[0]` first).
 #[derive(Clone, Debug)]
 pub struct LocalMap {
@@ -1241,11 +1300,13 @@ impl LocalMap {
         let m = model.dim() + 1;
         let mut stages = Vec::with_capacity(model.stages.len());
         for i in 0..model.stages.len() {
-            let stage = LocalStage::from_indexed(model, i, s)?;
-            if !stage.is_identity() {
+            if let Some(stage) = LocalStage::build_indexed(model, i, s, true)? {
                 stages.push(stage);
             }
         }
+        // Identity stages are left out: give their room back (in place), a map per crossed simplex
+        // is kept.
+        stages.shrink_to_fit();
         Ok(LocalMap { m, stages })
     }
 
@@ -1513,4 +1574,24 @@ pub fn identity_mat(n: usize) -> Mat {
         row[i] = 1.0;
     }
     a
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const _: () = assert!((MAX_DEGREE as usize) + MAX_VARS - 2 < 24);
+
+    #[test]
+    fn small_rank_is_the_canonical_rank() {
+        for m in 1..=MAX_VARS {
+            for d in 0..MAX_DEGREE {
+                let all = multi_index::all(m, d);
+                for (r, index) in all.chunks(m).enumerate() {
+                    assert_eq!(small_rank(index), r, "{index:?}");
+                    assert_eq!(small_rank(index), multi_index::rank(index));
+                }
+            }
+        }
+    }
 }
