@@ -24,7 +24,7 @@ use crate::expr::ImplicitFunction;
 use crate::isocontour::{patch_corners, patch_samples, topology, Bary, Topology};
 use crate::measure::{measure, Measure, Miss};
 use crate::rational::{RationalWeights, LOG_WEIGHT_BOUND};
-use crate::strata::{edge_logits, LocalStrata, StratifiedMap, LOGIT_BOUND};
+use crate::strata::{edge_logits, LocalStrata, Slot, StratifiedMap, LOGIT_BOUND};
 use crate::FitError;
 
 /// Options of [`fit`].
@@ -814,7 +814,46 @@ impl Fitter<'_> {
             }
         };
         let k = x.len();
-        let mut pts = self.block_points(param, &x, &edges, cells, &samples, &mut map, &mut weights);
+        // A face's point moves only its own term of each cell's map: build the maps once, and
+        // apply the part before that term's stratum once per sample.
+        let mut cached: Option<Vec<(LocalStrata, Slot, Vec<Bary>)>> = match param {
+            Param::Point(face) => cells
+                .iter()
+                .zip(&samples)
+                .map(|(&c, us)| {
+                    let ids = self.complex.cell(c);
+                    let (local, slot) = map.local_with(ids, Some(face));
+                    let local = local.after(weights.local(ids));
+                    let slot = slot?;
+                    let before = us
+                        .iter()
+                        .map(|u| local.eval_before(u, Some(slot)))
+                        .collect();
+                    Some((local, slot, before))
+                })
+                .collect(),
+            Param::Weight(_) => None,
+        };
+        let mut block_points =
+            |x: &[f64], map: &mut StratifiedMap, weights: &mut RationalWeights| match cached
+                .as_mut()
+            {
+                Some(locals) => {
+                    let mut out = Vec::new();
+                    for (&c, (local, slot, before)) in cells.iter().zip(locals) {
+                        local.set_point(*slot, x);
+                        let ids = self.complex.cell(c);
+                        out.extend(
+                            before
+                                .iter()
+                                .map(|v| self.point_of(ids, &local.eval_after(v, Some(*slot)))),
+                        );
+                    }
+                    out
+                }
+                None => self.block_points(param, x, &edges, cells, &samples, map, weights),
+            };
+        let mut pts = block_points(&x, &mut map, &mut weights);
         let (mut r, mut normals) = self.residuals_at(&pts);
         let mut cost: f64 = r.iter().map(|v| v * v).sum();
         let mut lambda = 1e-3;
@@ -824,8 +863,7 @@ impl Fitter<'_> {
             for (j, col) in jac.iter_mut().enumerate() {
                 let mut xh = x.clone();
                 xh[j] += H;
-                let ph =
-                    self.block_points(param, &xh, &edges, cells, &samples, &mut map, &mut weights);
+                let ph = block_points(&xh, &mut map, &mut weights);
                 for (i, v) in col.iter_mut().enumerate() {
                     *v = (0..3)
                         .map(|d| normals[i][d] * (ph[i][d] - pts[i][d]))
@@ -854,8 +892,7 @@ impl Fitter<'_> {
                     .zip(&step)
                     .map(|(a, s)| (a + s).clamp(-bound, bound))
                     .collect();
-                let pn =
-                    self.block_points(param, &xn, &edges, cells, &samples, &mut map, &mut weights);
+                let pn = block_points(&xn, &mut map, &mut weights);
                 let (rn, nn) = self.residuals_at(&pn);
                 let cn: f64 = rn.iter().map(|v| v * v).sum();
                 if cn < cost {

@@ -61,6 +61,30 @@ struct Term {
     delta: [f64; M],
 }
 
+impl Term {
+    /// Sets the displacement from the face's logits (sorted ids, the order of `positions`):
+    /// the same numbers as [`softmax`] then `(b − 1/len)·len!`.
+    fn set(&mut self, logits: &[f64]) {
+        let len = self.len;
+        let mut e = [0.0; M];
+        for (x, l) in e.iter_mut().zip(&logits[..len]) {
+            *x = l.clamp(-LOGIT_BOUND, LOGIT_BOUND).exp();
+        }
+        let s: f64 = e[..len].iter().sum();
+        let factorial: f64 = (1..=len).map(|x| x as f64).product();
+        for (d, x) in self.delta.iter_mut().zip(&e[..len]) {
+            *d = (x / s - 1.0 / len as f64) * factorial;
+        }
+    }
+}
+
+/// Where a face's term is in a [`LocalStrata`] ([`StratifiedMap::local_with`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Slot {
+    stratum: usize,
+    term: usize,
+}
+
 /// The stratified map on one top simplex, in its local vertex order, optionally after the
 /// fitter's rational stage ([`crate::rational`]).
 #[derive(Clone, Debug)]
@@ -79,32 +103,61 @@ impl LocalStrata {
         self
     }
 
+    /// Moves the point of the face at `slot` to the one with these logits (clamped, as
+    /// [`StratifiedMap::set_logits`] stores them).
+    pub fn set_point(&mut self, slot: Slot, logits: &[f64]) {
+        self.strata[slot.stratum][slot.term].set(logits);
+    }
+
     /// `w = Y(u)`: the rational stage if any, then strata `n, n−1, …, 1` in turn.
     pub fn eval(&self, u: &[f64; M]) -> [f64; M] {
-        let mut v = match &self.pre {
+        self.eval_after(&self.eval_before(u, None), None)
+    }
+
+    /// The part of [`LocalStrata::eval`] that acts before the stratum of `slot` (the rational
+    /// stage and the higher strata; all of it for `None`): it does not depend on the slot's
+    /// point, so the optimizer computes it once per sample.
+    pub fn eval_before(&self, u: &[f64; M], slot: Option<Slot>) -> [f64; M] {
+        let v = match &self.pre {
             Some(r) => r.eval(u),
             None => *u,
         };
-        for terms in self.strata.iter().rev() {
-            let mut out = v;
-            for t in terms {
-                let mut b = 1.0;
-                for &p in &t.positions[..t.len] {
-                    b *= v[p];
-                }
-                for (k, &p) in t.positions[..t.len].iter().enumerate() {
-                    out[p] += t.delta[k] * b;
-                }
+        let from = slot.map_or(0, |s| s.stratum + 1);
+        self.strata[from.min(self.strata.len())..]
+            .iter()
+            .rev()
+            .fold(v, |v, terms| self.apply(terms, v))
+    }
+
+    /// The rest of [`LocalStrata::eval`] after [`LocalStrata::eval_before`] with the same
+    /// `slot`: `eval(u) = eval_after(eval_before(u, slot), slot)`, bit for bit.
+    pub fn eval_after(&self, v: &[f64; M], slot: Option<Slot>) -> [f64; M] {
+        let to = slot.map_or(0, |s| s.stratum + 1).min(self.strata.len());
+        self.strata[..to]
+            .iter()
+            .rev()
+            .fold(*v, |v, terms| self.apply(terms, v))
+    }
+
+    /// One stratum.
+    fn apply(&self, terms: &[Term], v: [f64; M]) -> [f64; M] {
+        let mut out = v;
+        for t in terms {
+            let mut b = 1.0;
+            for &p in &t.positions[..t.len] {
+                b *= v[p];
             }
-            // Keep exact zeros exact (a point on a face stays on it) and the sum at 1.
-            for x in out.iter_mut().take(self.m) {
-                if *x < 0.0 {
-                    *x = 0.0;
-                }
+            for (k, &p) in t.positions[..t.len].iter().enumerate() {
+                out[p] += t.delta[k] * b;
             }
-            v = out;
         }
-        v
+        // Keep exact zeros exact (a point on a face stays on it) and the sum at 1.
+        for x in out.iter_mut().take(self.m) {
+            if *x < 0.0 {
+                *x = 0.0;
+            }
+        }
+        out
     }
 }
 
@@ -166,44 +219,68 @@ impl StratifiedMap {
 
     /// The map on the simplex with vertex ids `cell` (local order).
     pub fn local(&self, cell: &[u32]) -> LocalStrata {
+        self.local_with(cell, None).0
+    }
+
+    /// [`StratifiedMap::local`], with a term for `face` (sorted ids, a face of `cell`) even when
+    /// it has no stored point (a zero displacement adds exactly nothing), and where that term
+    /// is: [`LocalStrata::set_point`] then moves the point without rebuilding the rest. The
+    /// optimizer moves one face at a time over the same cells (issue 17: rebuilding each cell's
+    /// map per trial, with its hash lookups, was ~20 % of a torus fit).
+    pub fn local_with(&self, cell: &[u32], face: Option<&[u32]>) -> (LocalStrata, Option<Slot>) {
         let m = cell.len();
         let mut strata = vec![Vec::new(); m.saturating_sub(1)];
+        let mut slot = None;
         // Every subset of ≥ 2 local positions, as a bit mask.
         for mask in 1u32..(1 << m) {
             let len = mask.count_ones() as usize;
             if len < 2 {
                 continue;
             }
-            let mut positions = [0usize; M];
-            let mut k = 0;
-            for (p, slot) in (0..m).filter(|p| mask & (1 << p) != 0).zip(0..) {
-                positions[slot] = p;
-                k += 1;
+            let mut ids = [(0u32, 0usize); M];
+            for (p, k) in (0..m).filter(|p| mask & (1 << p) != 0).zip(0..) {
+                ids[k] = (cell[p], p);
             }
-            let mut ids: Vec<(u32, usize)> = positions[..k].iter().map(|&p| (cell[p], p)).collect();
+            let ids = &mut ids[..len];
             ids.sort_unstable();
-            let face: Vec<u32> = ids.iter().map(|x| x.0).collect();
-            let Some(logits) = self.logits.get(&face) else {
+            let mut key = [0u32; M];
+            for (k, x) in key.iter_mut().zip(ids.iter()) {
+                *k = x.0;
+            }
+            let key = &key[..len];
+            let wanted = face == Some(key);
+            let logits = self.logits.get(key);
+            if logits.is_none() && !wanted {
                 continue;
-            };
-            let point = softmax(logits);
-            let factorial: f64 = (1..=len).map(|x| x as f64).product();
+            }
             let mut term = Term {
                 positions: [0; M],
                 len,
                 delta: [0.0; M],
             };
-            for (slot, &(_, p)) in ids.iter().enumerate() {
-                term.positions[slot] = p;
-                term.delta[slot] = (point[slot] - 1.0 / len as f64) * factorial;
+            for (k, &(_, p)) in ids.iter().enumerate() {
+                term.positions[k] = p;
+            }
+            match logits {
+                Some(l) => term.set(l),
+                None => term.set(&[0.0; M][..len]),
+            }
+            if wanted {
+                slot = Some(Slot {
+                    stratum: len - 2,
+                    term: strata[len - 2].len(),
+                });
             }
             strata[len - 2].push(term);
         }
-        LocalStrata {
-            m,
-            strata,
-            pre: None,
-        }
+        (
+            LocalStrata {
+                m,
+                strata,
+                pre: None,
+            },
+            slot,
+        )
     }
 
     /// The stages of a model: stratum `j` as a parametric Bézier stage of degree `j + 1`, edges
@@ -255,6 +332,37 @@ mod tests {
         assert_eq!(on_face[0], 0.0);
         // Vertices are fixed.
         assert_eq!(local.eval(&[0.0, 0.0, 1.0, 0.0]), [0.0, 0.0, 1.0, 0.0]);
+    }
+
+    #[test]
+    fn a_moved_slot_evaluates_as_the_rebuilt_map_bit_for_bit() {
+        let mut map = StratifiedMap::new(3);
+        let cell = [7u32, 2, 9, 4];
+        map.set_logits(&[2, 7], &[0.0, 1.0]);
+        map.set_logits(&[2, 4, 7, 9], &[0.3, -0.2, 0.5, 1.0]);
+        let us = [
+            [0.1, 0.2, 0.3, 0.4],
+            [0.0, 0.5, 0.25, 0.25],
+            [0.7, 0.0, 0.0, 0.3],
+        ];
+        // A face with a stored point and one without.
+        for face in [vec![2u32, 7], vec![2, 4, 9]] {
+            let (mut local, slot) = map.local_with(&cell, Some(&face));
+            for logits in [[0.4, -7.0, 2.0], [0.0, 0.0, 0.0], [-1.0, 3.0, 0.5]] {
+                let l = &logits[..face.len()];
+                local.set_point(slot.unwrap(), l);
+                let mut moved = map.clone();
+                moved.set_logits(&face, l);
+                let rebuilt = moved.local(&cell);
+                for u in &us {
+                    let (a, b) = (local.eval(u), rebuilt.eval(u));
+                    assert_eq!(a.map(f64::to_bits), b.map(f64::to_bits), "{face:?} {l:?}");
+                    // In two parts around the slot's stratum.
+                    let split = local.eval_after(&local.eval_before(u, slot), slot);
+                    assert_eq!(split.map(f64::to_bits), b.map(f64::to_bits));
+                }
+            }
+        }
     }
 
     #[test]
