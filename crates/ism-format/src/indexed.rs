@@ -1285,7 +1285,9 @@ struct Inner {
     checked: Option<Topology>,
     /// Per stage, built on first use.
     stages: Vec<OnceLock<StageRows>>,
-    diagnostics: Vec<crate::rules::Diagnostic>,
+    /// Found by the check, or on first use for an evaluator's index of a model without stages
+    /// whose arrays are sound ([`IndexedModel::for_evaluation`]).
+    diagnostics: OnceLock<Vec<crate::rules::Diagnostic>>,
 }
 
 /// The structural rules whose breach makes a model impossible to evaluate
@@ -1390,17 +1392,31 @@ impl IndexedModel {
     /// [`IndexedModel::diagnostics`]. Fitters evaluate intermediate models that are not yet valid
     /// files; readers use [`IndexedModel::new`].
     ///
-    /// A model without stages is indexed lazily (as [`IndexedModel::new_lazy_or_model`]): nothing
-    /// looks its face records up, so an evaluator that only locates points and reads vertices and
-    /// simplices (a linear isocomplex: the fitter's first models, the kernel's point-location
-    /// benchmark) does not pay for face tables it never reads; the first
-    /// [`IndexedModel::topology`] call builds them (outside a parallel loop, as for
-    /// [`IndexedModel::new_lazy_or_model`]).
+    /// A model without stages is indexed lazily: nothing looks its face records up, so an
+    /// evaluator that only locates points and reads vertices and simplices (a linear isocomplex:
+    /// the fitter's first models, the kernel's point-location benchmark) does not pay for face
+    /// tables it never reads; the first [`IndexedModel::topology`] call builds them (outside a
+    /// parallel loop, as for [`IndexedModel::new_lazy_or_model`]). When its arrays are sound and
+    /// no simplex repeats a vertex — all such a model can be refused for — not even the check
+    /// runs now: the first [`IndexedModel::diagnostics`] call runs it (the same diagnostics).
     ///
     /// # Errors
     /// [`Error::Structure`] with the errors that prevent indexing.
     pub fn for_evaluation(model: Model) -> Result<IndexedModel> {
         if model.stages.is_empty() {
+            if crate::structure::arrays_sound_and_no_repeated_vertex(&model) {
+                // Nothing to refuse: the check (its tolerated diagnostics) and the tables wait
+                // for their first use.
+                return Ok(IndexedModel {
+                    inner: Arc::new(Inner {
+                        model,
+                        full: OnceLock::new(),
+                        checked: None,
+                        stages: Vec::new(),
+                        diagnostics: OnceLock::new(),
+                    }),
+                });
+            }
             return IndexedModel::lazy_or_model(model, usize::MAX, evaluation_fatal)
                 .map_err(|(_, e)| e);
         }
@@ -1440,7 +1456,7 @@ impl IndexedModel {
                 full: OnceLock::from((topology, record_faces)),
                 checked: None,
                 stages,
-                diagnostics,
+                diagnostics: OnceLock::from(diagnostics),
             }),
         })
     }
@@ -1491,7 +1507,7 @@ impl IndexedModel {
                 full: OnceLock::new(),
                 checked: Some(checked),
                 stages,
-                diagnostics,
+                diagnostics: OnceLock::from(diagnostics),
             }),
         })
     }
@@ -1537,7 +1553,18 @@ impl IndexedModel {
     /// The structural diagnostics that did not prevent indexing: warnings (e.g. unused vertices)
     /// and, for [`IndexedModel::for_evaluation`], the errors it tolerates.
     pub fn diagnostics(&self) -> &[crate::rules::Diagnostic] {
-        &self.inner.diagnostics
+        self.inner.diagnostics.get_or_init(|| {
+            // Only an evaluator's index of a model without stages, whose arrays were sound,
+            // defers them: the check finds no error it refuses (no stage rule applies), so every
+            // diagnostic is kept, as the check at construction would have kept them.
+            match check_for_index(&self.inner.model, usize::MAX, false, evaluation_fatal) {
+                Ok((errors, diagnostics, _)) => {
+                    debug_assert!(errors.is_empty(), "{errors:?}");
+                    diagnostics
+                }
+                Err(_) => Vec::new(),
+            }
+        })
     }
 
     /// The model, without the index (a copy when the index is shared).
@@ -2024,6 +2051,9 @@ mod tests {
             let eager =
                 IndexedModel::build(model.clone(), usize::MAX, evaluation_fatal).expect("valid");
             let lazy = IndexedModel::for_evaluation(model.clone()).expect("valid");
+            // Sound arrays, no repeated vertex: not even the check ran yet.
+            assert!(lazy.inner.diagnostics.get().is_none());
+            assert!(lazy.inner.checked.is_none() && lazy.inner.full.get().is_none());
             assert!(eager.diagnostics().len() >= 2, "{:?}", eager.diagnostics());
             assert!(eager
                 .diagnostics()
@@ -2031,21 +2061,35 @@ mod tests {
                 .any(|d| d.severity == Severity::Error));
             assert_eq!(lazy.diagnostics(), eager.diagnostics(), "n={n}");
             assert!(lazy.inner.full.get().is_none());
+            assert_eq!(lazy.topology(), eager.topology(), "n={n}");
             for v in 0..model.num_vertices() {
                 assert_eq!(
                     lazy.vertex_simplices(v),
                     eager.topology().vertex_simplices(v)
                 );
             }
-            assert!(lazy.inner.full.get().is_none());
-            assert_eq!(lazy.topology(), eager.topology(), "n={n}");
-            // A simplex repeating a vertex is fatal for both.
-            let mut bad = model.clone();
-            bad.simplices[1] = bad.simplices[0];
-            let e = IndexedModel::build(bad.clone(), usize::MAX, evaluation_fatal).unwrap_err();
-            let l = IndexedModel::for_evaluation(bad).unwrap_err();
-            assert_eq!(l.diagnostics(), e.diagnostics());
-            assert_eq!(l.rule(), Some(crate::rules::Rule::RepeatedIndex));
+            // Fatal for both, with the same errors: a simplex repeating a vertex, a vertex
+            // index out of range, a coordinate that is not finite, a dimension the format has
+            // not.
+            let mut repeated = model.clone();
+            repeated.simplices[1] = repeated.simplices[0];
+            let mut range = model.clone();
+            range.simplices[2] = model.num_vertices() as u32;
+            let mut nan = model.clone();
+            nan.vertices[1] = f64::NAN;
+            let mut dim = model.clone();
+            dim.dimension = 4;
+            for (bad, rule) in [
+                (repeated, crate::rules::Rule::RepeatedIndex),
+                (range, crate::rules::Rule::IndexRange),
+                (nan, crate::rules::Rule::VertexArray),
+                (dim, crate::rules::Rule::Dimension),
+            ] {
+                let e = IndexedModel::build(bad.clone(), usize::MAX, evaluation_fatal).unwrap_err();
+                let l = IndexedModel::for_evaluation(bad).unwrap_err();
+                assert_eq!(l.diagnostics(), e.diagnostics());
+                assert_eq!(l.rule(), Some(rule), "{l:?}");
+            }
         }
     }
 

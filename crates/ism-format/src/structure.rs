@@ -243,6 +243,24 @@ fn check_arrays(model: &Model, c: &mut Collector) {
     }
 }
 
+/// Whether `model` has no array error (dimension, shapes, finite coordinates, index ranges) and
+/// no simplex repeating a vertex: then an evaluator's index of a model without stages refuses
+/// nothing ([`crate::IndexedModel::for_evaluation`]), and the rest of the check (orientation,
+/// manifoldness, values, …: diagnostics it only keeps) can wait. One pass over the arrays, no
+/// topology; `false` whenever in doubt (the full check then decides).
+pub(crate) fn arrays_sound_and_no_repeated_vertex(model: &Model) -> bool {
+    let mut c = Collector::new(usize::MAX);
+    check_arrays(model, &mut c);
+    if c.out.iter().any(|d| d.severity == Severity::Error) {
+        return false;
+    }
+    let m = model.dim() + 1;
+    model
+        .simplices
+        .par_chunks_exact(m)
+        .all(|ids| (0..m).all(|a| !ids[a + 1..].contains(&ids[a])))
+}
+
 fn simplex_location(s: usize, m: usize) -> Location {
     Location {
         simplex: Some(s),

@@ -85,30 +85,17 @@ impl std::fmt::Debug for ModelEval {
     }
 }
 
-impl ModelEval {
-    /// Indexes `model` for evaluation ([`IndexedModel::for_evaluation`]: shapes, index ranges and
-    /// stage records are checked), inverts every edge matrix and builds the spatial index (in
-    /// parallel). Copies the model; [`ModelEval::from_indexed`] shares an indexed one instead.
-    ///
-    /// # Errors
-    /// [`GeomError::Structure`] for a model that cannot be indexed (the structural rule and where),
-    /// [`GeomError::Degenerate`] for a simplex without an inverse edge matrix.
-    pub fn new(model: &Model) -> Result<ModelEval> {
-        let n = model.dim();
-        if !(1..=3).contains(&n) {
-            return Err(GeomError::Dimension(n));
-        }
-        let indexed = IndexedModel::for_evaluation(model.clone()).map_err(GeomError::from)?;
-        ModelEval::from_indexed(&indexed)
-    }
+/// What an evaluator computes from the model: per simplex the inverse edge matrix, the spatial
+/// index, the slots of the local maps.
+struct Tables {
+    n: usize,
+    inv_edges: Vec<[f64; 9]>,
+    maps: Vec<OnceLock<LocalMap>>,
+    index: SpatialIndex,
+}
 
-    /// An evaluator sharing `model`'s topology and stage tables (no copy): inverts every edge
-    /// matrix and builds the spatial index (in parallel).
-    ///
-    /// # Errors
-    /// [`GeomError::Degenerate`] for a simplex without an inverse edge matrix.
-    pub fn from_indexed(indexed: &IndexedModel) -> Result<ModelEval> {
-        let model: &Model = indexed;
+impl Tables {
+    fn build(model: &Model) -> Result<Tables> {
         let n = model.dim();
         if !(1..=3).contains(&n) {
             return Err(GeomError::Dimension(n));
@@ -168,13 +155,53 @@ impl ModelEval {
         } else {
             (0..ns).map(|_| OnceLock::new()).collect()
         };
-        Ok(ModelEval {
-            model: indexed.clone(),
+        Ok(Tables {
             n,
             inv_edges,
             maps,
             index,
         })
+    }
+
+    fn with(self, model: IndexedModel) -> ModelEval {
+        ModelEval {
+            model,
+            n: self.n,
+            inv_edges: self.inv_edges,
+            maps: self.maps,
+            index: self.index,
+        }
+    }
+}
+
+impl ModelEval {
+    /// Indexes `model` for evaluation ([`IndexedModel::for_evaluation`]: shapes, index ranges and
+    /// stage records are checked), inverts every edge matrix and builds the spatial index (in
+    /// parallel). Copies the model; [`ModelEval::from_indexed`] shares an indexed one instead.
+    ///
+    /// # Errors
+    /// [`GeomError::Structure`] for a model that cannot be indexed (the structural rule and where),
+    /// [`GeomError::Degenerate`] for a simplex without an inverse edge matrix.
+    pub fn new(model: &Model) -> Result<ModelEval> {
+        let n = model.dim();
+        if !(1..=3).contains(&n) {
+            return Err(GeomError::Dimension(n));
+        }
+        // The tables first, the copy after: the copy does not add to the tables' peak memory.
+        // The structural error, if any, is still the one reported (an indexing error comes
+        // before a degenerate simplex, as when the copy was indexed first).
+        let tables = Tables::build(model);
+        let indexed = IndexedModel::for_evaluation(model.clone()).map_err(GeomError::from)?;
+        Ok(tables?.with(indexed))
+    }
+
+    /// An evaluator sharing `model`'s topology and stage tables (no copy): inverts every edge
+    /// matrix and builds the spatial index (in parallel).
+    ///
+    /// # Errors
+    /// [`GeomError::Degenerate`] for a simplex without an inverse edge matrix.
+    pub fn from_indexed(indexed: &IndexedModel) -> Result<ModelEval> {
+        Ok(Tables::build(indexed)?.with(indexed.clone()))
     }
 
     /// The model evaluated.
