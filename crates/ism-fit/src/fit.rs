@@ -140,7 +140,9 @@ pub struct FitReport {
     pub pv_failures: usize,
     /// Topology of `O` (= that of the linear isocomplex of the final complex).
     pub topology: Topology,
-    /// Whether both directions of the two-sided distance are within the tolerance.
+    /// Whether both directions of the two-sided distance are within the tolerance, as
+    /// estimated ([`Measure::meets`]: `S → Z` at its samples plus its estimated error between
+    /// them, `Z → S` at the points of its cover).
     pub tolerance_met: bool,
     /// Whether the Plantinga–Vegter test certified the topology (every cell passes).
     pub topology_certified: bool,
@@ -1456,7 +1458,7 @@ pub fn fit(
             .collect();
         let m = measure(g, &model, &options.domain, options.tolerance, &regions)
             .map_err(FitError::Eval)?;
-        let done = m.max() <= options.tolerance
+        let done = m.meets(options.tolerance)
             || rounds == TWO_SIDED_ROUNDS
             || fitter.complex.num_cells() >= options.max_simplices;
         let new_vertices = if done {
@@ -1513,6 +1515,8 @@ pub fn fit(
                 samples: 0,
                 shape_spacing: 0.0,
                 shape_cover: 0.0,
+                dense_samples: 0,
+                shape_to_target_error: 0.0,
                 target_to_shape: 0.0,
                 target_to_shape_bound: 0.0,
                 target_to_shape_at: Vec::new(),
@@ -1541,7 +1545,7 @@ pub fn fit(
     r.max_distance = m.max();
     r.mean_distance = m.shape_to_target_mean;
     r.samples = m.samples;
-    r.tolerance_met = m.max() <= options.tolerance;
+    r.tolerance_met = m.meets(options.tolerance);
     r.uncertain = clusters
         .into_iter()
         .zip(&m.regions)
@@ -1593,6 +1597,8 @@ impl FitReport {
             "samples": self.samples,
             "shapeToTarget": m.shape_to_target,
             "shapeToTargetAt": m.shape_to_target_at,
+            "shapeToTargetError": m.shape_to_target_error,
+            "denseSamples": m.dense_samples,
             "sampleSpacing": m.shape_spacing,
             "sampleCover": m.shape_cover,
             "shapeToTargetBound": m.shape_to_target_bound(),
