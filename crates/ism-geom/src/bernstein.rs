@@ -634,21 +634,10 @@ impl Bernstein {
                 ranks[k] = sh.rank(&idx[..m], d);
                 line[k] = self.coeffs[ranks[k]];
             }
-            left[ranks[0]] = line[0];
-            right[ranks[l]] = line[l];
-            for level in 1..=l {
-                for j in 0..=(l - level) {
-                    // line[j] is the e_a-side term, line[j + 1] the e_b-side one.
-                    let (x, y) = (0.5 * line[j], 0.5 * line[j + 1]);
-                    line[j] = if a_first {
-                        (0.0 + x) + y
-                    } else {
-                        (0.0 + y) + x
-                    };
-                }
-                left[ranks[level]] = line[0];
-                right[ranks[l - level]] = line[l - level];
-            }
+            halve_line(&mut line[..=l], a_first, |level, lo, hi| {
+                left[ranks[level]] = lo;
+                right[ranks[l - level]] = hi;
+            });
         }
         let child = |coeffs| Bernstein {
             m,
@@ -775,8 +764,70 @@ struct FaceWalk<'a> {
     degree: u32,
 }
 
+/// Halves one line of Bernstein coefficients (the terms along edge `(a, b)`, `e_a`-side first) at
+/// the edge's midpoint by de Casteljau's algorithm, in place. `emit(level, lo, hi)` receives, for
+/// each level `0..=l` (`l = line.len() - 1`), the `level`-th coefficient of the half keeping `a`
+/// (`lo`) and the `(l - level)`-th of the half keeping `b` (`hi`).
+///
+/// `a_first` (`a < b`) fixes the summation order: the lower-indexed variable's term comes first,
+/// as in `replace_vertex`'s sums, so [`Bernstein::split_edge`] and every caller that must match it
+/// bit for bit (the sampler's flat stage tables) use this one routine.
+pub fn halve_line(line: &mut [f64], a_first: bool, mut emit: impl FnMut(usize, f64, f64)) {
+    let Some(l) = line.len().checked_sub(1) else {
+        return;
+    };
+    emit(0, line[0], line[l]);
+    for level in 1..=l {
+        for j in 0..=(l - level) {
+            // line[j] is the e_a-side term, line[j + 1] the e_b-side one.
+            let (x, y) = (0.5 * line[j], 0.5 * line[j + 1]);
+            line[j] = if a_first {
+                (0.0 + x) + y
+            } else {
+                (0.0 + y) + x
+            };
+        }
+        emit(level, line[0], line[l - level]);
+    }
+}
+
 #[cfg(test)]
 mod tests {
+    /// `halve_line` against the closed form of de Casteljau's halving: the half keeping `a` has
+    /// coefficients `2^-k Σ_i C(k, i) c_i` (k = 0..=l), the half keeping `b` has
+    /// `2^-(l-j) Σ_i C(l-j, i) c_(j+i)`. Integer coefficients and halving make both exact.
+    #[test]
+    fn halve_line_is_de_casteljau_closed_form() {
+        let binom =
+            |n: usize, k: usize| (0..k).fold(1.0, |acc, i| acc * (n - i) as f64 / (i + 1) as f64);
+        for l in 0..=7usize {
+            let coeffs: Vec<f64> = (0..=l).map(|i| ((i * 7 + 3) % 11) as f64 - 5.0).collect();
+            for a_first in [true, false] {
+                let mut line = coeffs.clone();
+                let (mut lo, mut hi) = (vec![f64::NAN; l + 1], vec![f64::NAN; l + 1]);
+                let mut levels = Vec::new();
+                halve_line(&mut line, a_first, |level, x, y| {
+                    levels.push(level);
+                    lo[level] = x;
+                    hi[l - level] = y;
+                });
+                assert_eq!(levels, (0..=l).collect::<Vec<_>>());
+                for (k, &got) in lo.iter().enumerate() {
+                    let want: f64 =
+                        (0..=k).map(|i| binom(k, i) * coeffs[i]).sum::<f64>() / 2f64.powi(k as i32);
+                    assert_eq!(got, want, "left {k} of degree {l}");
+                    let j = l - k;
+                    let want: f64 = (0..=k).map(|i| binom(k, i) * coeffs[j + i]).sum::<f64>()
+                        / 2f64.powi(k as i32);
+                    assert_eq!(hi[j], want, "right {j} of degree {l}");
+                }
+            }
+        }
+        halve_line(&mut [], true, |_, _, _| {
+            panic!("an empty line has no coefficient")
+        });
+    }
+
     use super::*;
 
     fn power_eval(p: &Bernstein, w: &[f64]) -> f64 {

@@ -12,6 +12,7 @@
 use std::sync::OnceLock;
 
 use ism_format::multi_index;
+use ism_geom::bernstein::halve_line;
 use ism_geom::Bernstein;
 
 /// Highest degree held (the components'; the partials are one lower).
@@ -65,8 +66,8 @@ fn split_plan(k: usize, d: u32, a: usize, b: usize) -> &'static SplitPlan {
 }
 
 /// Splits one polynomial (`src`, canonical order) at the midpoint of edge `(a, b)` into the half
-/// keeping vertex `a` (`left`) and the one keeping `b` (`right`): [`Bernstein::split_edge`]'s
-/// arithmetic, step for step.
+/// keeping vertex `a` (`left`) and the one keeping `b` (`right`) by the kernel's [`halve_line`],
+/// the routine [`Bernstein::split_edge`] uses, so the halves are its bits.
 fn split_block(plan: &SplitPlan, a_first: bool, src: &[f64], left: &mut [f64], right: &mut [f64]) {
     let mut line = [0.0; FLAT_DEGREE + 1];
     for &(start, len) in &plan.lines {
@@ -75,21 +76,10 @@ fn split_block(plan: &SplitPlan, a_first: bool, src: &[f64], left: &mut [f64], r
         for (x, &r) in line.iter_mut().zip(ranks) {
             *x = src[r as usize];
         }
-        left[ranks[0] as usize] = line[0];
-        right[ranks[l] as usize] = line[l];
-        for level in 1..=l {
-            for j in 0..=(l - level) {
-                // line[j] is the e_a-side term, line[j + 1] the e_b-side one.
-                let (x, y) = (0.5 * line[j], 0.5 * line[j + 1]);
-                line[j] = if a_first {
-                    (0.0 + x) + y
-                } else {
-                    (0.0 + y) + x
-                };
-            }
-            left[ranks[level] as usize] = line[0];
-            right[ranks[l - level] as usize] = line[l - level];
-        }
+        halve_line(&mut line[..=l], a_first, |level, lo, hi| {
+            left[ranks[level] as usize] = lo;
+            right[ranks[l - level] as usize] = hi;
+        });
     }
 }
 
@@ -182,27 +172,23 @@ impl Flat {
         let mut right = self.clone();
         let a_first = a < b;
         let top = self.m * self.pc;
-        let plan = split_plan(self.k, self.d, a, b);
-        for i in 0..self.m {
-            let r = i * self.pc..(i + 1) * self.pc;
-            split_block(
-                plan,
-                a_first,
-                &self.coeffs[r.clone()],
-                &mut left.coeffs[r.clone()],
-                &mut right.coeffs[r],
-            );
-        }
-        let plan = split_plan(self.k, self.dd, a, b);
-        for e in 0..self.n * self.n {
-            let r = top + e * self.nc..top + (e + 1) * self.nc;
-            split_block(
-                plan,
-                a_first,
-                &self.coeffs[r.clone()],
-                &mut left.coeffs[r.clone()],
-                &mut right.coeffs[r],
-            );
+        // The m output polynomials of degree d, then the n x n Jacobian entries of degree dd.
+        let blocks = [
+            (self.d, 0, self.pc, self.m),
+            (self.dd, top, self.nc, self.n * self.n),
+        ];
+        for (degree, base, stride, count) in blocks {
+            let plan = split_plan(self.k, degree, a, b);
+            for i in 0..count {
+                let r = base + i * stride..base + (i + 1) * stride;
+                split_block(
+                    plan,
+                    a_first,
+                    &self.coeffs[r.clone()],
+                    &mut left.coeffs[r.clone()],
+                    &mut right.coeffs[r],
+                );
+            }
         }
         (left, right)
     }
