@@ -47,7 +47,8 @@ use crate::format::{write_mesh, ExportFormat};
 use crate::marching::marching;
 use crate::mesh::Mesh;
 use crate::volume::{
-    default_field_tolerance, volume_grid_with_progress, VolumeOptions, VolumeReport,
+    check_dimension, default_field_tolerance, volume_grid_with_progress, VolumeOptions,
+    VolumeReport,
 };
 use crate::vtk::UnstructuredGrid;
 use crate::{Error, Result};
@@ -170,15 +171,18 @@ pub fn build(
     check(options, None)?;
     progress.check()?;
     if options.volume {
+        // One evaluator (inverses, spatial index) for the default tolerance and the grid.
+        check_dimension(model.dim())?;
+        let eval = ModelEval::from_indexed(model)?;
         let field_tolerance = match options.field_tolerance {
             Some(t) => t,
             None => {
                 progress.report_count(phase::FIELD_TOLERANCE, 0, 0);
-                default_field_tolerance(model, options.tolerance)
+                default_field_tolerance(&eval, options.tolerance)
             }
         };
         let (grid, report) =
-            volume_grid_with_progress(model, &VolumeOptions { field_tolerance }, progress)?;
+            volume_grid_with_progress(&eval, &VolumeOptions { field_tolerance }, progress)?;
         return Ok(Exported::Volume { grid, report });
     }
     if options.linear {

@@ -47,7 +47,7 @@
 use std::collections::HashMap;
 
 use ism_format::progress::Progress;
-use ism_format::{multi_index, Direction, IndexedModel, Model, StageKind};
+use ism_format::{multi_index, Direction, Model, StageKind};
 use ism_geom::{Bernstein, LocalMap, LocalStage, ModelEval, MAX_VARS};
 use rayon::prelude::*;
 
@@ -80,11 +80,11 @@ pub const ROUNDING_ALLOWANCE_ULPS: f64 = 1024.0;
 /// Default field tolerance as a multiple of the surface tolerance: `ε_F = tolerance · g`, with `g`
 /// the median `|∇F|` of the linear interpolant over the simplices the shape crosses, so contouring
 /// the written field moves the surface by about `tolerance` (first order: `|δp| ≈ |δF| / |∇F|`).
-pub fn default_field_tolerance(model: &IndexedModel, surface_tolerance: f64) -> f64 {
-    let eval = match ModelEval::from_indexed(model) {
-        Ok(e) => e,
-        Err(_) => return surface_tolerance,
-    };
+///
+/// Takes the evaluator [`volume_grid`] is given too: its inverses and spatial index are built once
+/// per export (`ism export --volume` built them twice before).
+pub fn default_field_tolerance(eval: &ModelEval, surface_tolerance: f64) -> f64 {
+    let model = eval.model();
     let n = model.dim();
     let mut g: Vec<f64> = (0..model.num_simplices())
         .filter(|&s| eval.patch(s).is_some())
@@ -647,16 +647,27 @@ fn fit_sub(
     (coeffs, bound, side)
 }
 
-/// Builds the volume grid at the cheapest `(p, k)` meeting `options.field_tolerance`.
+/// [`Error::Unsupported`] unless `n` is 2 or 3: the volume export writes VTK Bézier triangles or
+/// tetrahedra only. [`crate::export::build`] asks before building the evaluator.
+pub(crate) fn check_dimension(n: usize) -> Result<()> {
+    if n != 2 && n != 3 {
+        return Err(Error::Unsupported(format!(
+            "volume export needs a 2D or 3D model, got dimension {n}"
+        )));
+    }
+    Ok(())
+}
+
+/// Builds the volume grid of the model `eval` evaluates at the cheapest `(p, k)` meeting
+/// `options.field_tolerance`.
 ///
 /// # Errors
-/// [`Error::Unsupported`] for a dimension other than 2 or 3, a non-positive tolerance or a model the
-/// evaluator rejects.
+/// [`Error::Unsupported`] for a dimension other than 2 or 3 or a non-positive tolerance.
 pub fn volume_grid(
-    model: &IndexedModel,
+    eval: &ModelEval,
     options: &VolumeOptions,
 ) -> Result<(UnstructuredGrid, VolumeReport)> {
-    volume_grid_with_progress(model, options, &Progress::none())
+    volume_grid_with_progress(eval, options, &Progress::none())
 }
 
 /// The phase [`volume_grid_with_progress`] reports, once per (degree, refinement) candidate it
@@ -669,16 +680,13 @@ pub const PHASE: &str = "fitting the Bézier field of F per simplex";
 /// # Errors
 /// As [`volume_grid`]; [`Error::Cancelled`] when `progress` was cancelled.
 pub fn volume_grid_with_progress(
-    model: &IndexedModel,
+    eval: &ModelEval,
     options: &VolumeOptions,
     progress: &Progress,
 ) -> Result<(UnstructuredGrid, VolumeReport)> {
+    let model = eval.model();
     let n = model.dim();
-    if n != 2 && n != 3 {
-        return Err(Error::Unsupported(format!(
-            "volume export needs a 2D or 3D model, got dimension {n}"
-        )));
-    }
+    check_dimension(n)?;
     let tol = options.field_tolerance;
     if tol.is_nan() || tol <= 0.0 {
         return Err(Error::Unsupported(format!(
@@ -686,7 +694,6 @@ pub fn volume_grid_with_progress(
         )));
     }
     let m = n + 1;
-    let eval = ModelEval::from_indexed(model)?;
     let ns = model.num_simplices();
     let fields: Vec<CellField> = (0..ns)
         .into_par_iter()
@@ -720,7 +727,6 @@ pub fn volume_grid_with_progress(
             .into_par_iter()
             .flat_map_iter(|s| {
                 let field = &fields[s];
-                let eval = &eval;
                 let tables = &tables;
                 // Once cancelled, the remaining simplices yield nothing (checked below).
                 let live = !counter.is_cancelled();
@@ -867,6 +873,7 @@ fn assemble(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use ism_format::IndexedModel;
 
     fn eval_cell(n: usize, d: u32, coeffs: &[f64], w: &[f64]) -> f64 {
         let order = vtk_local_multi_indices(n, d);
@@ -894,16 +901,16 @@ mod tests {
                 continue;
             }
             let model = IndexedModel::new(model).unwrap();
-            let tol = default_field_tolerance(&model, 1e-3);
+            let eval = ModelEval::from_indexed(&model).unwrap();
+            let tol = default_field_tolerance(&eval, 1e-3);
             let (grid, report) = volume_grid(
-                &model,
+                &eval,
                 &VolumeOptions {
                     field_tolerance: tol,
                 },
             )
             .unwrap_or_else(|e| panic!("{name}: {e}"));
             assert!(report.bound.is_finite(), "{name}: {report:?}");
-            let eval = ModelEval::from_indexed(&model).unwrap();
             let ArrayValues::Float(f) = &grid.point_data[0].values else {
                 panic!("F is float")
             };
