@@ -289,7 +289,11 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             "{name}: {} triangles, {} parameters, max |g|/|∇g| {:.2e}",
             fitted.report.simplices, fitted.report.parameters, fitted.report.max_distance
         );
-        let text = ism_fit::svg::picture(&model, &title)?;
+        // The model is not needed after the picture: indexed by value, not copied (the error
+        // is the one the picture's evaluator reported when it indexed a copy).
+        let indexed = ism_format::IndexedModel::for_evaluation(model)
+            .map_err(|e| ism_fit::FitError::Eval(e.into()))?;
+        let text = ism_fit::svg::picture(&indexed, &title)?;
         io::write_atomic(svg, |w| std::io::Write::write_all(w, text.as_bytes()))
             .map_err(|e| crate::args::cannot_write(svg, &e))?;
     }

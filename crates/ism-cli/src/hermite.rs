@@ -50,6 +50,8 @@ pub fn run(
     io::write_path(&fitted.model, output, None, io::WriteOptions::default())
         .map_err(|e| crate::args::cannot_write_model(output, e))?;
     let r = &fitted.report;
+    let verdict = ism_validate::validate(&fitted.model, &ism_validate::Options::default()).verdict;
+    let simplices = fitted.model.num_simplices();
     if let Some(svg) = svg {
         let title = format!(
             "Hermite fit: {} handles, angle error max {:.2}° (before {:.2}°)",
@@ -57,11 +59,14 @@ pub fn run(
             r.max_angle_after,
             r.max_angle_before
         );
-        let picture = ism_fit::svg::picture(&fitted.model, &title)?;
+        // The model is not needed after the picture: indexed by value, not copied (the error
+        // is the one the picture's evaluator reported when it indexed a copy).
+        let indexed = ism_format::IndexedModel::for_evaluation(fitted.model)
+            .map_err(|e| ism_fit::FitError::Eval(e.into()))?;
+        let picture = ism_fit::svg::picture(&indexed, &title)?;
         io::write_atomic(svg, |w| std::io::Write::write_all(w, picture.as_bytes()))
             .map_err(|e| crate::args::cannot_write(svg, &e))?;
     }
-    let verdict = ism_validate::validate(&fitted.model, &ism_validate::Options::default()).verdict;
     let valid = verdict == ism_validate::Verdict::Valid;
     if json {
         let handles: Vec<_> = r
@@ -90,7 +95,7 @@ pub fn run(
             "freeFaces": r.free_faces,
             "blockAdded": r.block_added,
             "valuesAdjusted": r.values_adjusted,
-            "simplices": fitted.model.num_simplices(),
+            "simplices": simplices,
             "verdict": verdict.as_str(),
             "seconds": r.seconds,
         });
@@ -100,7 +105,7 @@ pub fn run(
         println!(
             "  handles          {} on {} simplices, {} free control points optimized",
             r.handles.len(),
-            fitted.model.num_simplices(),
+            simplices,
             r.free_faces
         );
         println!("  position error   max {:.3e}", r.max_position_error);

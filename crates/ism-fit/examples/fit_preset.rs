@@ -21,7 +21,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let fitted = fit(&g, &options, &progress)?;
     println!("{:#?}", fitted.report);
     if let Some(svg) = args.get(4) {
-        let model = fitted.to_model(preset.name);
+        let model = ism_format::IndexedModel::for_evaluation(fitted.to_model(preset.name))?;
         std::fs::write(svg, ism_fit::svg::picture(&model, preset.name)?)?;
     }
     Ok(())

@@ -3,7 +3,7 @@
 
 use std::fmt::Write as _;
 
-use ism_format::model::Model;
+use ism_format::IndexedModel;
 
 use crate::isocontour::{patch_samples, Bary};
 
@@ -12,16 +12,19 @@ const SIZE: f64 = 800.0;
 
 /// Draws a 2D model. Returns the SVG text.
 ///
+/// Takes the indexed model: the evaluator shares its index (no copy of the model) and the edges
+/// of the complex are its topology's edge table.
+///
 /// # Errors
 /// The kernel's error when the model does not evaluate; [`crate::FitError::Options`] when it is
 /// not 2D.
-pub fn picture(model: &Model, title: &str) -> Result<String, crate::FitError> {
+pub fn picture(model: &IndexedModel, title: &str) -> Result<String, crate::FitError> {
     if model.dim() != 2 {
         return Err(crate::FitError::Options(
             "pictures are drawn for 2D models only".into(),
         ));
     }
-    let eval = ism_geom::ModelEval::new(model).map_err(crate::FitError::Eval)?;
+    let eval = ism_geom::ModelEval::from_indexed(model).map_err(crate::FitError::Eval)?;
     let (mut lo, mut hi) = ([f64::INFINITY; 2], [f64::NEG_INFINITY; 2]);
     for v in model.vertices.chunks_exact(2) {
         for k in 0..2 {
@@ -52,19 +55,13 @@ pub fn picture(model: &Model, title: &str) -> Result<String, crate::FitError> {
         r#"<text x="{margin}" y="18" font-family="sans-serif" font-size="14">{}</text>"#,
         escape(title)
     );
-    // Edges of the complex, each once.
-    let mut edges = std::collections::BTreeSet::new();
-    for s in model.simplex_iter() {
-        for i in 0..3 {
-            let (a, b) = (s[i], s[(i + 1) % 3]);
-            edges.insert((a.min(b), a.max(b)));
-        }
-    }
+    // Edges of the complex, each once, in increasing order of their sorted ids.
     let _ = write!(
         out,
         r##"<path fill="none" stroke="#bbbbbb" stroke-width="0.6" d=""##
     );
-    for (a, b) in edges {
+    for edge in model.topology().face_vertices(1).chunks_exact(2) {
+        let (a, b) = (edge[0], edge[1]);
         let (x0, y0) = xy(model.vertex(a as usize));
         let (x1, y1) = xy(model.vertex(b as usize));
         let _ = write!(out, "M{x0:.2} {y0:.2}L{x1:.2} {y1:.2}");
