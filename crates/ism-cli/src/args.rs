@@ -88,13 +88,18 @@ impl ReadLimits {
         }
     }
 
-    /// Reads and checks `path` within the limits; errors as [`cannot_read_model`].
-    pub(crate) fn read(self, path: &Path) -> anyhow::Result<ism_format::Document> {
-        let options = ism_format::io::ReadOptions {
+    /// The reader's options: these limits, the library's defaults otherwise.
+    fn options(self) -> ism_format::io::ReadOptions {
+        ism_format::io::ReadOptions {
             limits: self.limits(),
             ..ism_format::io::ReadOptions::default()
-        };
-        ism_format::io::read_path_with(path, &options).map_err(|e| cannot_read_model(path, e))
+        }
+    }
+
+    /// Reads and checks `path` within the limits; errors as [`cannot_read_model`].
+    pub(crate) fn read(self, path: &Path) -> anyhow::Result<ism_format::Document> {
+        ism_format::io::read_path_with(path, &self.options())
+            .map_err(|e| cannot_read_model(path, e))
     }
 
     /// Reads a model within the limits and indexes it: the structural check runs once and its
@@ -103,11 +108,7 @@ impl ReadLimits {
         self,
         path: &Path,
     ) -> anyhow::Result<ism_format::io::IndexedDocument> {
-        let options = ism_format::io::ReadOptions {
-            limits: self.limits(),
-            ..ism_format::io::ReadOptions::default()
-        };
-        ism_format::io::read_path_indexed_with(path, &options)
+        ism_format::io::read_path_indexed_with(path, &self.options())
             .map_err(|e| cannot_read_model(path, e))
     }
 
@@ -119,9 +120,8 @@ impl ReadLimits {
         path: &Path,
     ) -> anyhow::Result<ism_format::io::IndexedDocument> {
         let options = ism_format::io::ReadOptions {
-            limits: self.limits(),
             check_structure: false,
-            ..ism_format::io::ReadOptions::default()
+            ..self.options()
         };
         let doc = ism_format::io::read_path_with(path, &options)
             .map_err(|e| cannot_read_model(path, e))?;
