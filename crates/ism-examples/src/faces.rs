@@ -1,10 +1,11 @@
 //! The faces of a complex, and deterministic pseudo-random numbers keyed by face.
 
-use ism_format::Model;
-use rayon::prelude::*;
+use ism_format::{Model, Topology};
 
 /// Every distinct `k`-face of the complex (`k + 1` sorted vertex ids each), flat and sorted
-/// lexicographically. `k = 0` gives the used vertices, `k = n` the top simplices.
+/// lexicographically. `k = 0` gives the used vertices, `k = n` the top simplices. The faces are
+/// the indexed model's ([`Topology::sorted_faces`]): nothing here enumerates faces again. A model
+/// whose arrays are unsound or with a simplex repeating a vertex has none (empty).
 ///
 /// ```
 /// use ism_examples::{faces_of_dimension, kuhn_grid_2d, Aabb};
@@ -13,47 +14,7 @@ use rayon::prelude::*;
 /// # Ok::<(), ism_examples::Error>(())
 /// ```
 pub fn faces_of_dimension(model: &Model, k: usize) -> Vec<u32> {
-    let m = model.dim() + 1;
-    if k + 1 > m {
-        return Vec::new();
-    }
-    let subsets = subsets(m, k + 1);
-    // Each face as one u128 (ids from the most significant 32 bits down), so sorting compares two
-    // machine words instead of four array elements; the keys are written into a preallocated buffer,
-    // one fixed-size chunk per simplex, rather than collected from a parallel iterator.
-    let per_simplex = subsets.len();
-    let mut keys = vec![0u128; model.num_simplices() * per_simplex];
-    keys.par_chunks_mut(per_simplex)
-        .zip(model.simplices.par_chunks_exact(m))
-        .for_each(|(out, ids)| {
-            let mut sorted = [0u32; 4];
-            sorted[..m].copy_from_slice(ids);
-            sorted[..m].sort_unstable();
-            for (slot, sub) in out.iter_mut().zip(&subsets) {
-                *slot = sub.iter().enumerate().fold(0u128, |key, (j, &pos)| {
-                    key | (u128::from(sorted[pos]) << (96 - 32 * j))
-                });
-            }
-        });
-    keys.par_sort_unstable();
-    keys.dedup();
-    let mut out = Vec::with_capacity(keys.len() * (k + 1));
-    for key in keys {
-        out.extend((0..=k).map(|j| (key >> (96 - 32 * j)) as u32));
-    }
-    out
-}
-
-/// All `size`-element subsets of `0..m` as increasing position lists, in lexicographic order.
-fn subsets(m: usize, size: usize) -> Vec<Vec<usize>> {
-    let mut out = Vec::new();
-    for mask in 0u32..(1 << m) {
-        if mask.count_ones() as usize == size {
-            out.push((0..m).filter(|&i| mask & (1 << i) != 0).collect());
-        }
-    }
-    out.sort();
-    out
+    Topology::of_complex(model).map_or_else(Vec::new, |t| t.sorted_faces(model, k))
 }
 
 /// A reproducible pseudo-random stream keyed by a seed and a face.

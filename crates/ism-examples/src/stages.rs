@@ -2,7 +2,7 @@
 //! simplicial diffeomorphism for every parameter they accept.
 
 use ism_format::multi_index::{owned, owned_count};
-use ism_format::{FaceRecord, FaceTable, Model, Stage, StageKind, VertexMap};
+use ism_format::{FaceRecord, FaceTable, Model, Stage, StageKind, Topology, VertexMap};
 use rayon::prelude::*;
 
 use crate::faces::{faces_of_dimension, FaceRng};
@@ -35,7 +35,11 @@ pub fn solitary_point(seed: u64, face: &[u32], amplitude: f64) -> Vec<f64> {
 /// `j`-face, each moved by [`solitary_point`]: the stratum `G_j` of the stratified scheme
 /// (`spec/mathematics.md` §3.2), a diffeomorphism for every position in 2D and 3D.
 pub fn stratum_stage(model: &Model, j: usize, seed: u64, amplitude: f64) -> Stage {
-    let faces = faces_of_dimension(model, j);
+    stratum_of_faces(&faces_of_dimension(model, j), j, seed, amplitude)
+}
+
+/// [`stratum_stage`] on the given `j`-faces (flat, sorted ids).
+fn stratum_of_faces(faces: &[u32], j: usize, seed: u64, amplitude: f64) -> Stage {
     // Points in parallel into one flat array, then the table in one pass (no record vectors).
     let points: Vec<f64> = faces
         .par_chunks_exact(j + 1)
@@ -58,9 +62,16 @@ pub fn stratum_stage(model: &Model, j: usize, seed: u64, amplitude: f64) -> Stag
 /// face gets independent moves in different models only if their seeds differ.
 pub fn stratified_stages(model: &Model, seed: u64, amplitude: f64) -> Vec<Stage> {
     let n = model.dim();
+    // The complex indexed once for all the strata.
+    let topology = Topology::of_complex(model);
     (1..=n)
         .rev()
-        .map(|j| stratum_stage(model, j, seed.wrapping_add(j as u64), amplitude))
+        .map(|j| {
+            let faces = topology
+                .as_ref()
+                .map_or_else(Vec::new, |t| t.sorted_faces(model, j));
+            stratum_of_faces(&faces, j, seed.wrapping_add(j as u64), amplitude)
+        })
         .collect()
 }
 

@@ -1215,12 +1215,8 @@ mod tests {
                 let mut model = example("circle-linear.ism.json");
                 let mut faces: Vec<Vec<u32>> = Vec::new();
                 for ids in model.simplex_iter() {
-                    for mask in 1u32..8 {
-                        let mut f: Vec<u32> =
-                            (0..3).filter(|i| mask & (1 << i) != 0).map(|i| ids[i]).collect();
-                        f.sort_unstable();
-                        faces.push(f);
-                    }
+                    let local = ism_format::indexed::simplex_faces(ids, 1);
+                    faces.extend(local.map(|f| f.ids().to_vec()));
                 }
                 faces.sort();
                 faces.dedup();

@@ -598,21 +598,7 @@ impl Fitter<'_> {
     }
 
     fn faces_of(&self, c: u32) -> Vec<Vec<u32>> {
-        let ids = self.complex.cell(c);
-        let m = ids.len();
-        let mut out = Vec::new();
-        for mask in 1u32..(1 << m) {
-            if mask.count_ones() < 2 {
-                continue;
-            }
-            let mut f: Vec<u32> = (0..m)
-                .filter(|p| mask & (1 << p) != 0)
-                .map(|p| ids[p])
-                .collect();
-            f.sort_unstable();
-            out.push(f);
-        }
-        out
+        crate::hermite::faces_of(self.complex.cell(c))
     }
 
     fn crossing_cells_with_face(&self, face: &[u32]) -> Vec<u32> {
@@ -1752,15 +1738,8 @@ fn model_of(
         let faces: HashSet<Vec<u32>> = {
             let mut set = HashSet::new();
             for c in complex.live_cells() {
-                let ids = complex.cell(c);
-                for mask in 1u32..(1 << ids.len()) {
-                    let mut f: Vec<u32> = (0..ids.len())
-                        .filter(|p| mask & (1 << p) != 0)
-                        .map(|p| ids[p])
-                        .collect();
-                    f.sort_unstable();
-                    set.insert(f);
-                }
+                let faces = ism_format::indexed::simplex_faces(complex.cell(c), 1);
+                set.extend(faces.map(|f| f.ids().to_vec()));
             }
             set
         };

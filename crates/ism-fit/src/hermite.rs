@@ -43,6 +43,7 @@ use ism_format::progress::{Cancelled, Progress};
 use std::collections::{HashMap, HashSet};
 use std::time::Instant;
 
+use ism_format::indexed::simplex_faces;
 use ism_format::model::{Direction, Model, Stage, StageKind};
 use ism_format::IndexedModel;
 use ism_geom::linalg;
@@ -621,22 +622,10 @@ pub(crate) struct Sample {
     a: [f64; 3],
 }
 
-/// Every face of dimension ≥ 1 of a simplex, as sorted ids.
+/// Every face of dimension ≥ 1 of a simplex, as sorted ids, in the order of
+/// [`simplex_faces`] (the fitters' complexes change as they run, so they are not indexed models).
 pub(crate) fn faces_of(ids: &[u32]) -> Vec<Vec<u32>> {
-    let m = ids.len();
-    let mut out = Vec::new();
-    for mask in 1u32..(1 << m) {
-        if mask.count_ones() < 2 {
-            continue;
-        }
-        let mut f: Vec<u32> = (0..m)
-            .filter(|p| mask & (1 << p) != 0)
-            .map(|p| ids[p])
-            .collect();
-        f.sort_unstable();
-        out.push(f);
-    }
-    out
+    simplex_faces(ids, 2).map(|f| f.ids().to_vec()).collect()
 }
 
 #[derive(Clone, Copy, Debug)]
@@ -660,18 +649,9 @@ impl Jet {
     pub(crate) fn new(map: &StratifiedMap, cell: &[u32]) -> Jet {
         let m = cell.len();
         let mut strata = vec![Vec::new(); m.saturating_sub(1)];
-        for mask in 1u32..(1 << m) {
-            let len = mask.count_ones() as usize;
-            if len < 2 {
-                continue;
-            }
-            let mut ids: Vec<(u32, usize)> = (0..m)
-                .filter(|p| mask & (1 << p) != 0)
-                .map(|p| (cell[p], p))
-                .collect();
-            ids.sort_unstable();
-            let face: Vec<u32> = ids.iter().map(|x| x.0).collect();
-            let logits = map.logits(&face);
+        for face in simplex_faces(cell, 2) {
+            let len = face.len();
+            let logits = map.logits(face.ids());
             if logits.iter().all(|&l| l == logits[0]) {
                 continue; // the fixed centre: no term
             }
@@ -682,8 +662,8 @@ impl Jet {
                 len,
                 delta: [0.0; MAX_VARS],
             };
-            for (slot, &(_, p)) in ids.iter().enumerate() {
-                term.positions[slot] = p;
+            for (slot, &p) in face.positions().iter().enumerate() {
+                term.positions[slot] = usize::from(p);
                 term.delta[slot] = (point[slot] - 1.0 / len as f64) * factorial;
             }
             strata[len - 2].push(term);

@@ -24,6 +24,7 @@
 use std::collections::HashSet;
 
 use ism_format::faces::FaceTable;
+use ism_format::indexed::simplex_faces;
 use ism_format::model::Model;
 
 /// The model restricted to the simplices with at least one inside vertex (see the module doc).
@@ -41,14 +42,7 @@ pub fn shell(model: &Model) -> Model {
         }
         kept.extend_from_slice(s);
         if ins < m {
-            for mask in 1u32..(1 << m) {
-                let mut f: Vec<u32> = (0..m)
-                    .filter(|p| mask & (1 << p) != 0)
-                    .map(|p| s[p])
-                    .collect();
-                f.sort_unstable();
-                crossed_faces.insert(f);
-            }
+            crossed_faces.extend(simplex_faces(s, 1).map(|f| f.ids().to_vec()));
         }
     }
     if kept.is_empty() {

@@ -17,6 +17,7 @@
 
 use std::collections::HashMap;
 
+use ism_format::indexed::simplex_faces;
 use ism_format::model::{Direction, FaceRecord, Stage, StageKind};
 
 use crate::rational::LocalRational;
@@ -231,23 +232,11 @@ impl StratifiedMap {
         let m = cell.len();
         let mut strata = vec![Vec::new(); m.saturating_sub(1)];
         let mut slot = None;
-        // Every subset of ≥ 2 local positions, as a bit mask.
-        for mask in 1u32..(1 << m) {
-            let len = mask.count_ones() as usize;
-            if len < 2 {
-                continue;
-            }
-            let mut ids = [(0u32, 0usize); M];
-            for (p, k) in (0..m).filter(|p| mask & (1 << p) != 0).zip(0..) {
-                ids[k] = (cell[p], p);
-            }
-            let ids = &mut ids[..len];
-            ids.sort_unstable();
-            let mut key = [0u32; M];
-            for (k, x) in key.iter_mut().zip(ids.iter()) {
-                *k = x.0;
-            }
-            let key = &key[..len];
+        // Every face of ≥ 2 vertices (the cells of the fitter's working complex: not an indexed
+        // model, so the faces come from the vertex list).
+        for local in simplex_faces(cell, 2) {
+            let len = local.len();
+            let key = local.ids();
             let wanted = face == Some(key);
             let logits = self.logits.get(key);
             if logits.is_none() && !wanted {
@@ -258,8 +247,8 @@ impl StratifiedMap {
                 len,
                 delta: [0.0; M],
             };
-            for (k, &(_, p)) in ids.iter().enumerate() {
-                term.positions[k] = p;
+            for (k, &p) in local.positions().iter().enumerate() {
+                term.positions[k] = usize::from(p);
             }
             match logits {
                 Some(l) => term.set(l),

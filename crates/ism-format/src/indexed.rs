@@ -93,6 +93,95 @@ pub fn local_faces(m: usize, size: usize) -> &'static [[u8; 4]] {
     &tables[m][size]
 }
 
+/// One face of a simplex given by its vertex list, named by the bit mask of its local positions:
+/// what code that works on a simplex outside an [`IndexedModel`] needs of a face — a stage's
+/// records looked up by sorted ids (`ism-geom`'s free-standing stages), the fitter's working
+/// complex (it changes every round, so it is never indexed), a control net filled in local order.
+/// [`simplex_faces`] enumerates them; an indexed model's faces come from [`Topology`] instead.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct LocalFace {
+    /// Bit `i` is set when local position `i` is a vertex of the face.
+    pub mask: u8,
+    len: u8,
+    positions: [u8; 4],
+    ids: [u32; 4],
+}
+
+impl LocalFace {
+    /// The face of the simplex with vertex ids `simplex` (at most 4) at the local positions whose
+    /// bits are set in `mask` (positions past the simplex are ignored).
+    #[inline]
+    pub fn of_mask(simplex: &[u32], mask: u8) -> LocalFace {
+        let mut face = LocalFace {
+            mask,
+            len: 0,
+            positions: [0; 4],
+            ids: [0; 4],
+        };
+        for (p, &id) in simplex.iter().enumerate().take(4) {
+            if mask >> p & 1 == 1 {
+                // Insertion by (id, position): the positions end up ordered by vertex id (ties,
+                // a simplex repeating a vertex, by position).
+                let mut at = face.len as usize;
+                while at > 0 && face.ids[at - 1] > id {
+                    face.ids[at] = face.ids[at - 1];
+                    face.positions[at] = face.positions[at - 1];
+                    at -= 1;
+                }
+                face.ids[at] = id;
+                face.positions[at] = p as u8;
+                face.len += 1;
+            }
+        }
+        face
+    }
+
+    /// Number of vertices (`k + 1` for a `k`-face).
+    #[inline]
+    pub fn len(&self) -> usize {
+        usize::from(self.len)
+    }
+
+    /// Whether the face has no vertex (mask 0).
+    #[inline]
+    pub fn is_empty(&self) -> bool {
+        self.len == 0
+    }
+
+    /// The face's vertex ids, ascending: the key the file's face records use.
+    #[inline]
+    pub fn ids(&self) -> &[u32] {
+        &self.ids[..self.len()]
+    }
+
+    /// The face's local positions in the simplex, ordered by vertex id (`positions()[j]` holds
+    /// `ids()[j]`): the face's own vertex order `t_0 < … < t_k`.
+    #[inline]
+    pub fn positions(&self) -> &[u8] {
+        &self.positions[..self.len()]
+    }
+}
+
+/// The faces with at least `min_len` vertices of the simplex with vertex ids `simplex` (at most 4
+/// ids), in increasing order of their position masks (`{0}, {1}, {0, 1}, {2}, {0, 2}, …`): the one
+/// enumeration of a simplex's faces for code that has a vertex list rather than an
+/// [`IndexedModel`].
+///
+/// ```
+/// use ism_format::indexed::simplex_faces;
+/// let edges: Vec<Vec<u32>> = simplex_faces(&[7, 2, 5], 2)
+///     .filter(|f| f.len() == 2)
+///     .map(|f| f.ids().to_vec())
+///     .collect();
+/// assert_eq!(edges, [vec![2, 7], vec![5, 7], vec![2, 5]]);
+/// ```
+pub fn simplex_faces(simplex: &[u32], min_len: usize) -> impl Iterator<Item = LocalFace> + '_ {
+    let m = simplex.len().min(4);
+    (1u8..(1 << m))
+        .filter(move |&mask| usize::from(BITS[usize::from(mask)]) >= min_len)
+        .map(move |mask| LocalFace::of_mask(simplex, mask))
+}
+
 /// Vertices per task of the topology build: a task numbers the faces whose smallest vertex lies in
 /// its range. Small enough to balance the cores, large enough to amortise a task (a few hundred
 /// stars of tens of simplices each).
@@ -919,6 +1008,43 @@ impl Topology {
         (topology, duplicates, defects, lookups)
     }
 
+    /// The topology of `model`'s complex alone, for a program that makes a model (its stages are
+    /// not looked at, nothing is checked beyond what indexing needs): `None` when an array is
+    /// unsound (shapes, index ranges, non-finite numbers) or a simplex repeats a vertex.
+    pub fn of_complex(model: &Model) -> Option<Topology> {
+        crate::structure::arrays_sound_and_no_repeated_vertex(model)
+            .then(|| Topology::build(model, &[], true).0)
+    }
+
+    /// Every distinct `k`-face of the complex (`0 ≤ k ≤ n`), `k + 1` sorted vertex ids each, flat
+    /// and in increasing lexicographic order: for `1 ≤ k < n` the face table
+    /// ([`Topology::face_vertices`]), for `k = 0` the vertices that belong to a simplex, for
+    /// `k = n` the top simplices' vertex sets (a repeated simplex once). `model` is the one
+    /// indexed.
+    pub fn sorted_faces(&self, model: &Model, k: usize) -> Vec<u32> {
+        match k {
+            0 => (0..self.num_vertices as u32)
+                .filter(|&v| !self.vertex_simplices(v as usize).is_empty())
+                .collect(),
+            k if k < self.n => self.faces[k].clone(),
+            k if k == self.n => {
+                let m = k + 1;
+                let mut out: Vec<u32> = Vec::with_capacity(self.top_order.len() * m);
+                for &s in &self.top_order {
+                    let mut key = [0u32; 4];
+                    key[..m].copy_from_slice(model.simplex(s as usize));
+                    key[..m].sort_unstable();
+                    // `top_order` is sorted by these keys: a repeat is the previous one.
+                    if out.len() < m || out[out.len() - m..] != key[..m] {
+                        out.extend_from_slice(&key[..m]);
+                    }
+                }
+                out
+            }
+            _ => Vec::new(),
+        }
+    }
+
     /// Space dimension `n`.
     pub fn dim(&self) -> usize {
         self.n
@@ -980,6 +1106,28 @@ impl Topology {
             let per = local_faces(m, k + 1).len();
             self.simplex_faces[k][s * per + j]
         }
+    }
+
+    /// Every face of simplex `s` by the bit mask of its local positions (bit `i`: local vertex
+    /// `i`; entry 0 and masks past `2^(n+1)` unused): what code filling a simplex's control net
+    /// wants, since a control point's support is such a mask.
+    ///
+    /// # Panics
+    /// If `s` is out of range.
+    pub fn faces_by_mask(&self, model: &Model, s: usize) -> [FaceId; 16] {
+        let m = self.n + 1;
+        let mut out = [FaceId { dim: 0, index: 0 }; 16];
+        for size in 1..=m {
+            let k = size - 1;
+            for (j, pos) in local_faces(m, size).iter().enumerate() {
+                let mask = pos[..size].iter().fold(0usize, |acc, &p| acc | 1 << p);
+                out[mask] = FaceId {
+                    dim: k as u8,
+                    index: self.simplex_face(model, s, k, j),
+                };
+            }
+        }
+        out
     }
 
     /// The face ids of dimension `k` of every simplex, `C(n + 1, k + 1)` per simplex, for
@@ -1711,6 +1859,62 @@ mod tests {
     }
 
     #[test]
+    fn simplex_faces_are_the_subsets_by_mask_with_ids_sorted() {
+        // Truth: each subset of positions written out, its (id, position) pairs sorted.
+        let lists: [&[u32]; 6] = [
+            &[5],
+            &[9, 2],
+            &[7, 2, 5],
+            &[3, 8, 1, 6],
+            &[4, 4, 1],
+            &[0, 1, 2, 3],
+        ];
+        for ids in lists {
+            let m = ids.len();
+            for min_len in 0..=m + 1 {
+                let mut expected = Vec::new();
+                for mask in 1u8..1 << m {
+                    let mut pairs: Vec<(u32, u8)> = (0..m)
+                        .filter(|&p| mask >> p & 1 == 1)
+                        .map(|p| (ids[p], p as u8))
+                        .collect();
+                    if pairs.len() < min_len {
+                        continue;
+                    }
+                    pairs.sort_unstable();
+                    let sorted: Vec<u32> = pairs.iter().map(|x| x.0).collect();
+                    let positions: Vec<u8> = pairs.iter().map(|x| x.1).collect();
+                    expected.push((mask, sorted, positions));
+                }
+                let found: Vec<(u8, Vec<u32>, Vec<u8>)> = simplex_faces(ids, min_len)
+                    .map(|f| (f.mask, f.ids().to_vec(), f.positions().to_vec()))
+                    .collect();
+                assert_eq!(found, expected, "{ids:?} min {min_len}");
+                assert!(
+                    simplex_faces(ids, min_len).all(|f| f.len() == f.ids().len() && !f.is_empty())
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn sorted_top_faces_list_a_repeated_simplex_once() {
+        // Truth: the distinct sorted vertex sets of the simplices, in lexicographic order.
+        let mut model = kuhn(2, 2);
+        let first = model.simplex(0).to_vec();
+        model.simplices.extend(first);
+        let topology = Topology::of_complex(&model).expect("sound arrays");
+        let expected: Vec<u32> = brute_faces(&model, 3).into_iter().flatten().collect();
+        assert_eq!(topology.sorted_faces(&model, 2), expected);
+        assert_eq!(expected.len(), 3 * 8);
+        // Unsound arrays or a simplex repeating a vertex: no topology.
+        model.simplices[1] = model.simplices[0];
+        assert!(Topology::of_complex(&model).is_none());
+        model.simplices[1] = 1000;
+        assert!(Topology::of_complex(&model).is_none());
+    }
+
+    #[test]
     fn faces_neighbours_and_euler_characteristic_match_brute_force() {
         // Whatever the thread count: the incidence rows are filled in one block of simplices per
         // thread, the face tables appended part by part on every core.
@@ -1733,6 +1937,10 @@ mod tests {
             for k in 0..=n {
                 let brute = brute_faces(&model, k + 1);
                 assert_eq!(t.num_faces(k), brute.len(), "n={n} k={k}");
+                let flat: Vec<u32> = brute.iter().flatten().copied().collect();
+                assert_eq!(t.sorted_faces(&model, k), flat, "n={n} k={k}");
+                let alone = Topology::of_complex(&model).expect("sound arrays");
+                assert_eq!(alone.sorted_faces(&model, k), flat, "n={n} k={k}");
                 euler += if k % 2 == 0 { 1 } else { -1 } * brute.len() as i64;
                 if (1..n).contains(&k) {
                     let listed: Vec<Vec<u32>> = t
@@ -1755,6 +1963,18 @@ mod tests {
             }
             // A triangulated square or cube is a disk or ball.
             assert_eq!(euler, 1, "n={n}");
+            // Each simplex's faces by position mask: the face of those positions' ids.
+            for (s, ids) in model.simplex_iter().enumerate() {
+                let by_mask = t.faces_by_mask(&model, s);
+                for (mask, &face) in by_mask.iter().enumerate().take(1 << m).skip(1) {
+                    let mut f: Vec<u32> = (0..m)
+                        .filter(|&p| mask >> p & 1 == 1)
+                        .map(|p| ids[p])
+                        .collect();
+                    f.sort_unstable();
+                    assert_eq!(Some(face), t.find(&model, &f), "s={s} mask={mask}");
+                }
+            }
             // Neighbours: brute force over all pairs sharing n vertices.
             let sets: Vec<BTreeSet<u32>> = model
                 .simplex_iter()

@@ -17,7 +17,7 @@
 
 use std::collections::HashMap;
 
-use ism_format::indexed::{local_faces, NONE};
+use ism_format::indexed::{simplex_faces, LocalFace, NONE};
 use ism_format::{multi_index, Direction, FaceId, IndexedModel, Model, Stage, StageKind};
 
 use crate::error::{GeomError, Result};
@@ -182,15 +182,7 @@ impl StageLookup {
                         .iter()
                         .any(|r| r.face.iter().all(|v| simplex.contains(v)))
                 } else {
-                    let mut sorted = simplex.to_vec();
-                    sorted.sort_unstable();
-                    (1u32..(1 << m)).any(|mask| {
-                        let face: Vec<u32> = (0..m)
-                            .filter(|i| mask & (1 << i) != 0)
-                            .map(|i| sorted[i])
-                            .collect();
-                        self.faces.contains_key(&face)
-                    })
+                    simplex_faces(simplex, 1).any(|f| self.faces.contains_key(f.ids()))
                 }
             }
         }
@@ -329,21 +321,11 @@ impl LocalStage {
                 .iter()
                 .all(|&v| table.vertex_records()[v as usize] == NONE),
             _ => {
-                let topology = model.topology();
+                faces = model.topology().faces_by_mask(model, s);
                 let mut identity = true;
-                for k in 0..m {
-                    let size = k + 1;
-                    let rows = table.records(k);
-                    for (j, f) in local_faces(m, size).iter().enumerate() {
-                        let mask = f[..size].iter().fold(0usize, |acc, &p| acc | 1 << p);
-                        let index = topology.simplex_face(model, s, k, j);
-                        faces[mask] = FaceId {
-                            dim: k as u8,
-                            index,
-                        };
-                        records[mask] = rows[index as usize];
-                        identity &= records[mask] == NONE;
-                    }
+                for (record, face) in records.iter_mut().zip(&faces).take(1 << m).skip(1) {
+                    *record = table.records(usize::from(face.dim))[face.index as usize];
+                    identity &= *record == NONE;
                 }
                 identity
             }
@@ -406,15 +388,12 @@ impl LocalStage {
                         let face = faces[mask];
                         // Positions ordered by global id → the face's own vertex order
                         // t_0 < … < t_k.
+                        let local = LocalFace::of_mask(simplex, mask as u8);
                         let mut pos: [usize; MAX_VARS] = [0; MAX_VARS];
-                        let mut len = 0;
-                        for i in 0..m {
-                            if mask & (1 << i) != 0 {
-                                pos[len] = i;
-                                len += 1;
-                            }
+                        for (slot, &p) in pos.iter_mut().zip(local.positions()) {
+                            *slot = usize::from(p);
                         }
-                        pos[..len].sort_unstable_by_key(|&i| simplex[i]);
+                        let len = local.len();
                         (table.face_points(face), table.face_weights(face), pos, len)
                     });
                     let mut shifted = [0u32; MAX_VARS];
@@ -466,10 +445,10 @@ impl LocalStage {
             let mut q = 1.0;
             if !self.identity {
                 // Local positions of the support, ordered by global id → t_0 < … < t_k.
-                let mut pos: Vec<usize> = (0..m).filter(|&i| e[i] > 0).collect();
-                pos.sort_unstable_by_key(|&i| simplex[i]);
-                let face: Vec<u32> = pos.iter().map(|&i| simplex[i]).collect();
-                if let Some(&ri) = lookup.faces.get(&face) {
+                let mask = (0..m).filter(|&i| e[i] > 0).fold(0u8, |a, i| a | 1 << i);
+                let face = LocalFace::of_mask(simplex, mask);
+                let pos: Vec<usize> = face.positions().iter().map(|&p| usize::from(p)).collect();
+                if let Some(&ri) = lookup.faces.get(face.ids()) {
                     let rec = stage.faces.record(ri);
                     let k1 = pos.len();
                     let owned = multi_index::owned_count(k1, d);

@@ -1,7 +1,7 @@
 //! Per-stage index of face records and expansion of one stage on one top simplex into its dense
 //! control net (the storage rules of spec/ism-format.md §5.2, restated in spec/validation.md §4.1).
 
-use ism_format::indexed::local_faces;
+use ism_format::indexed::LocalFace;
 use ism_format::{multi_index, IndexedModel, Model, Stage, StageKind};
 
 use rayon::prelude::*;
@@ -163,17 +163,9 @@ impl<'a> StageIndex<'a> {
         let m = self.model.dim() + 1;
         let mut out = SimplexRecords::default();
         let table = self.indexed.stage(self.stage_index);
-        let topology = self.indexed.topology();
-        for size in 1..=m {
-            let k = size - 1;
-            let records = table.records(k);
-            for (j, pos) in local_faces(m, size).iter().enumerate() {
-                let r = records[topology.simplex_face(self.model, s, k, j) as usize];
-                if r != ism_format::indexed::NONE {
-                    let mask = pos[..size].iter().fold(0usize, |acc, &p| acc | 1 << p);
-                    out.records[mask] = Some(r as usize);
-                }
-            }
+        let faces = self.indexed.topology().faces_by_mask(self.model, s);
+        for (record, &face) in out.records.iter_mut().zip(&faces).take(1 << m).skip(1) {
+            *record = table.record_of(face);
         }
         out
     }
@@ -210,21 +202,15 @@ impl<'a> StageIndex<'a> {
                 Some(r) => {
                     let rec = self.stage.faces.record(r);
                     // Local positions of the face, ordered by global id: t_0 < … < t_k.
-                    let mut pos = [0usize; 4];
-                    let mut k1 = 0;
-                    for i in 0..m {
-                        if mask & (1 << i) != 0 {
-                            pos[k1] = i;
-                            k1 += 1;
-                        }
-                    }
-                    pos[..k1].sort_unstable_by_key(|&i| ids[i]);
+                    let face = LocalFace::of_mask(ids, mask as u8);
+                    let pos = face.positions();
+                    let k1 = pos.len();
                     for j in 0..k1 {
-                        shifted[j] = idx[pos[j]] - 1;
+                        shifted[j] = idx[usize::from(pos[j])] - 1;
                     }
                     let rank = multi_index::rank(&shifted[..k1]);
                     for j in 0..k1 {
-                        p[pos[j]] = rec.points[rank * k1 + j];
+                        p[usize::from(pos[j])] = rec.points[rank * k1 + j];
                     }
                     if rational {
                         w = rec.weights[rank];

@@ -6,6 +6,7 @@
 //! star is connected through facets containing the vertex (or edge) and, for 3D vertices, the
 //! Euler characteristic of the link: 1 (disk) when it has boundary, 2 (sphere) when closed.
 
+use ism_format::indexed::simplex_faces;
 use ism_format::{IndexedModel, Location, Model, Rule};
 use rayon::prelude::*;
 
@@ -57,24 +58,13 @@ fn split_star(dsu: &mut Dsu, roots: &mut Vec<u32>, r: usize, k: usize) -> Option
 /// Sorted `(key, simplex)` pairs of the `k`-vertex faces of every simplex (built and sorted on every
 /// core: on a million tetrahedra these lists hold millions of entries).
 fn faces_of_size(model: &Model, k: usize) -> Vec<([u32; 4], u32)> {
-    let m = model.dim() + 1;
-    let masks: Vec<u32> = (0u32..(1 << m))
-        .filter(|mask| mask.count_ones() as usize == k)
-        .collect();
     let mut out: Vec<([u32; 4], u32)> = (0..model.num_simplices())
         .into_par_iter()
         .flat_map_iter(|s| {
-            let ids = model.simplex(s);
-            masks.iter().map(move |&mask| {
+            let faces = simplex_faces(model.simplex(s), k).filter(move |f| f.len() == k);
+            faces.map(move |f| {
                 let mut key = [u32::MAX; 4];
-                let mut len = 0;
-                for (i, &id) in ids.iter().enumerate() {
-                    if mask & (1 << i) != 0 {
-                        key[len] = id;
-                        len += 1;
-                    }
-                }
-                key[..len].sort_unstable();
+                key[..k].copy_from_slice(f.ids());
                 (key, s as u32)
             })
         })

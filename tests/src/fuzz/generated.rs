@@ -19,6 +19,7 @@ use num_bigint::BigInt;
 use num_rational::BigRational;
 use num_traits::{One, Signed, Zero};
 
+use ism_format::indexed::simplex_faces;
 use ism_format::{Direction, FaceRecord, Model, Stage, StageKind, VertexMap};
 
 type Q = BigRational;
@@ -174,14 +175,7 @@ impl Generated {
         // Every face, by its sorted ids.
         let mut faces: BTreeSet<Vec<u32>> = BTreeSet::new();
         for s in &simplices {
-            for mask in 1u32..(1 << (n + 1)) {
-                let mut f: Vec<u32> = (0..=n)
-                    .filter(|&i| mask & (1 << i) != 0)
-                    .map(|i| s[i])
-                    .collect();
-                f.sort_unstable();
-                faces.insert(f);
-            }
+            faces.extend(simplex_faces(s, 1).map(|f| f.ids().to_vec()));
         }
         let stage_count = u.int_in_range(1..=2)?;
         let mut stages = Vec::new();

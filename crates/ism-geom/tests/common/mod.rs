@@ -4,9 +4,9 @@
 //! property tests that use them test the kernel, not luck.
 #![allow(dead_code, clippy::needless_range_loop)]
 
-use std::collections::BTreeSet;
-
-use ism_format::{multi_index, Direction, FaceRecord, Model, Stage, StageKind, VertexMap};
+use ism_format::{
+    multi_index, Direction, FaceRecord, Model, Stage, StageKind, Topology, VertexMap,
+};
 
 /// SplitMix64: small, seedable, good enough for test data; proptest supplies the seeds.
 pub struct Rng(pub u64);
@@ -139,23 +139,15 @@ pub fn kuhn(n: usize, k: usize, rng: &mut Rng) -> Model {
     model
 }
 
-/// All faces with `k1` vertices (sorted ids), deduplicated.
+/// All faces with `k1` vertices (sorted ids), deduplicated, in lexicographic order: the indexed
+/// complex's face table.
 pub fn faces(model: &Model, k1: usize) -> Vec<Vec<u32>> {
-    let mut out = BTreeSet::new();
-    for s in model.simplex_iter() {
-        let m = s.len();
-        for mask in 1u32..(1 << m) {
-            if mask.count_ones() as usize == k1 {
-                let mut f: Vec<u32> = (0..m)
-                    .filter(|i| mask & (1 << i) != 0)
-                    .map(|i| s[i])
-                    .collect();
-                f.sort_unstable();
-                out.insert(f);
-            }
-        }
+    if k1 == 0 {
+        return Vec::new();
     }
-    out.into_iter().collect()
+    let topology = Topology::of_complex(model).expect("a generated grid indexes");
+    let flat = topology.sorted_faces(model, k1 - 1);
+    flat.chunks_exact(k1).map(<[u32]>::to_vec).collect()
 }
 
 fn stage(kind: StageKind, degree: u32) -> Stage {
