@@ -1,5 +1,6 @@
 //! Kuhn (Freudenthal) triangulations of boxes and vertex values from an implicit function.
 
+use ism_format::builder::kuhn_simplices;
 use ism_format::Model;
 
 use crate::Error;
@@ -147,30 +148,21 @@ pub fn kuhn_grid_2d(
                 .extend_from_slice(&[bbox.coordinate(0, i, nx), y]);
         }
     }
-    let id = |i: usize, j: usize| (i + (nx + 1) * j) as u32;
-    model.simplices.reserve(6 * nx * ny);
-    for j in 0..ny {
-        for i in 0..nx {
-            let (v00, v10, v11, v01) = (id(i, j), id(i + 1, j), id(i + 1, j + 1), id(i, j + 1));
-            model
-                .simplices
-                .extend_from_slice(&[v00, v10, v11, v00, v11, v01]);
-        }
-    }
+    kuhn_into(&mut model, &[nx, ny]);
     set_values(&mut model, g)?;
     Ok(model)
 }
 
-/// The six monotone lattice paths from corner `000` to `111` of a unit cube: axis order of each
-/// path, and whether the permutation is even (positively oriented as listed).
-const KUHN_PATHS: [([usize; 3], bool); 6] = [
-    ([0, 1, 2], true),
-    ([0, 2, 1], false),
-    ([1, 0, 2], false),
-    ([1, 2, 0], true),
-    ([2, 0, 1], true),
-    ([2, 1, 0], false),
-];
+/// Appends the simplices of the Kuhn triangulation of the grid ([`kuhn_simplices`]: cells axis 0
+/// fastest, grid point ids in the same flat order), each positively oriented
+/// ([`ism_format::builder::KuhnSimplex::oriented`]: an odd path's last two vertices swapped).
+fn kuhn_into(model: &mut Model, cells: &[usize]) {
+    let simplices = kuhn_simplices(cells);
+    model.simplices.reserve(simplices.len() * (cells.len() + 1));
+    for s in simplices {
+        model.simplices.extend(s.oriented());
+    }
+}
 
 /// The Kuhn (Freudenthal) triangulation of an `nx × ny × nz` grid of `bbox`: six tetrahedra per
 /// cube, one per monotone path from the cube's lowest to its highest corner, conforming because every
@@ -218,26 +210,7 @@ pub fn kuhn_grid_3d(
             }
         }
     }
-    let strides = [1usize, nx + 1, (nx + 1) * (ny + 1)];
-    model.simplices.reserve(24 * nx * ny * nz);
-    for k in 0..nz {
-        for j in 0..ny {
-            for i in 0..nx {
-                let corner = i + strides[1] * j + strides[2] * k;
-                for (path, even) in KUHN_PATHS {
-                    let v1 = corner + strides[path[0]];
-                    let v2 = v1 + strides[path[1]];
-                    let v3 = v2 + strides[path[2]];
-                    let tet = if even {
-                        [corner, v1, v2, v3]
-                    } else {
-                        [corner, v1, v3, v2]
-                    };
-                    model.simplices.extend(tet.iter().map(|&v| v as u32));
-                }
-            }
-        }
-    }
+    kuhn_into(&mut model, &[nx, ny, nz]);
     set_values(&mut model, g)?;
     Ok(model)
 }

@@ -60,14 +60,6 @@ impl Complex {
                 points.push(x);
             }
         }
-        let index = |grid: &[usize]| -> u32 {
-            let mut id = 0usize;
-            for k in (0..dim).rev() {
-                id = id * counts[k] + grid[k];
-            }
-            id as u32
-        };
-        let perms = permutations(dim);
         let mut complex = Complex {
             dim,
             points,
@@ -75,28 +67,9 @@ impl Complex {
             alive: Vec::new(),
             edges: HashMap::new(),
         };
-        let cubes: usize = cells.iter().product();
-        for c in 0..cubes {
-            let mut base = vec![0usize; dim];
-            let mut rest = c;
-            for k in 0..dim {
-                base[k] = rest % cells[k];
-                rest /= cells[k];
-            }
-            for (perm, odd) in &perms {
-                let mut corner = base.clone();
-                let mut ids = vec![index(&corner)];
-                for &axis in perm {
-                    corner[axis] += 1;
-                    ids.push(index(&corner));
-                }
-                // det[e_π(0) … e_π(n−1)] = sign(π): an odd permutation is fixed by swapping two
-                // vertices.
-                if *odd {
-                    ids.swap(dim - 1, dim);
-                }
-                complex.add_cell(&ids);
-            }
+        // Grid points are numbered axis 0 fastest, as the builder numbers its corners.
+        for s in ism_format::builder::kuhn_simplices(cells) {
+            complex.add_cell(&s.oriented());
         }
         complex
     }
@@ -323,35 +296,6 @@ impl Complex {
     }
 }
 
-/// All permutations of `0..n` with their parity (`true` = odd), in lexicographic order.
-fn permutations(n: usize) -> Vec<(Vec<usize>, bool)> {
-    let mut out = Vec::new();
-    let mut cur: Vec<usize> = Vec::new();
-    fn rec(n: usize, cur: &mut Vec<usize>, out: &mut Vec<(Vec<usize>, bool)>) {
-        if cur.len() == n {
-            let mut inversions = 0;
-            for i in 0..n {
-                for j in i + 1..n {
-                    if cur[i] > cur[j] {
-                        inversions += 1;
-                    }
-                }
-            }
-            out.push((cur.clone(), inversions % 2 == 1));
-            return;
-        }
-        for k in 0..n {
-            if !cur.contains(&k) {
-                cur.push(k);
-                rec(n, cur, out);
-                cur.pop();
-            }
-        }
-    }
-    rec(n, &mut cur, &mut out);
-    out
-}
-
 /// Determinant by Gaussian elimination with partial pivoting (`m` is overwritten). Small fixed
 /// sizes (n ≤ 3) only; a linear-algebra crate would be heavier than this loop.
 pub(crate) fn determinant(m: &mut [f64], n: usize) -> f64 {
@@ -465,10 +409,7 @@ mod tests {
     }
 
     #[test]
-    fn permutation_parity() {
-        let p = permutations(3);
-        assert_eq!(p.len(), 6);
-        assert_eq!(p.iter().filter(|(_, odd)| *odd).count(), 3);
+    fn determinant_of_a_swap_is_minus_one() {
         let mut m = vec![0.0, 1.0, 1.0, 0.0];
         assert_eq!(determinant(&mut m, 2), -1.0);
     }

@@ -1781,7 +1781,6 @@ mod tests {
     fn kuhn(n: usize, g: usize) -> Model {
         let mut model = Model::new(n as u8);
         let side = g + 1;
-        let id = |c: &[usize]| c.iter().rev().fold(0, |acc, &x| acc * side + x) as u32;
         let count = side.pow(n as u32);
         for i in 0..count {
             let mut rest = i;
@@ -1792,42 +1791,8 @@ mod tests {
             // Alternate signs so the level set is not empty; never zero.
             model.values.push(if i % 3 == 0 { -1.0 } else { 1.0 });
         }
-        let perms: Vec<Vec<usize>> = if n == 2 {
-            vec![vec![0, 1], vec![1, 0]]
-        } else {
-            vec![
-                vec![0, 1, 2],
-                vec![0, 2, 1],
-                vec![1, 0, 2],
-                vec![1, 2, 0],
-                vec![2, 0, 1],
-                vec![2, 1, 0],
-            ]
-        };
-        for cell in 0..g.pow(n as u32) {
-            let mut base = vec![0usize; n];
-            let mut rest = cell;
-            for b in base.iter_mut() {
-                *b = rest % g;
-                rest /= g;
-            }
-            for p in &perms {
-                let mut c = base.clone();
-                let mut ids = vec![id(&c)];
-                for &axis in p {
-                    c[axis] += 1;
-                    ids.push(id(&c));
-                }
-                // A Kuhn simplex's orientation is the sign of its permutation.
-                let inversions = (0..n)
-                    .flat_map(|a| (a + 1..n).map(move |b| (a, b)))
-                    .filter(|&(a, b)| p[a] > p[b])
-                    .count();
-                if inversions % 2 == 1 {
-                    ids.swap(1, 2);
-                }
-                model.simplices.extend(ids);
-            }
+        for s in crate::builder::kuhn_simplices(&vec![g; n]) {
+            model.simplices.extend(s.oriented());
         }
         model
     }

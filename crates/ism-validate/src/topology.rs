@@ -685,7 +685,6 @@ mod tests {
     fn kuhn_part(n: usize, g: usize, keep: impl Fn(usize) -> bool) -> Model {
         let mut model = Model::new(n as u8);
         let side = g + 1;
-        let id = |c: &[usize]| c.iter().rev().fold(0, |acc, &x| acc * side + x) as u32;
         for i in 0..side.pow(n as u32) {
             let mut rest = i;
             for _ in 0..n {
@@ -694,44 +693,10 @@ mod tests {
             }
             model.values.push(if i % 3 == 0 { -1.0 } else { 1.0 });
         }
-        let perms: Vec<Vec<usize>> = if n == 2 {
-            vec![vec![0, 1], vec![1, 0]]
-        } else {
-            vec![
-                vec![0, 1, 2],
-                vec![0, 2, 1],
-                vec![1, 0, 2],
-                vec![1, 2, 0],
-                vec![2, 0, 1],
-                vec![2, 1, 0],
-            ]
-        };
-        let mut index = 0;
-        for cell in 0..g.pow(n as u32) {
-            let mut base = vec![0usize; n];
-            let mut rest = cell;
-            for b in base.iter_mut() {
-                *b = rest % g;
-                rest /= g;
-            }
-            for p in &perms {
-                let mut c = base.clone();
-                let mut ids = vec![id(&c)];
-                for &axis in p {
-                    c[axis] += 1;
-                    ids.push(id(&c));
-                }
-                let inversions = (0..n)
-                    .flat_map(|a| (a + 1..n).map(move |b| (a, b)))
-                    .filter(|&(a, b)| p[a] > p[b])
-                    .count();
-                if inversions % 2 == 1 {
-                    ids.swap(1, 2);
-                }
-                if keep(index) {
-                    model.simplices.extend(ids);
-                }
-                index += 1;
+        let simplices = ism_format::builder::kuhn_simplices(&vec![g; n]);
+        for (index, s) in simplices.iter().enumerate() {
+            if keep(index) {
+                model.simplices.extend(s.oriented());
             }
         }
         model

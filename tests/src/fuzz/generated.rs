@@ -105,7 +105,6 @@ impl Generated {
         };
         // Grid vertices, x fastest, each coordinate perturbed by a multiple of 1/64 in [-6, 6]/64.
         let mut positions = Vec::new();
-        let mut id = BTreeMap::new();
         let ranges: Vec<usize> = cells.iter().map(|c| c + 1).collect();
         let total: usize = ranges.iter().product();
         for flat in 0..total {
@@ -119,46 +118,20 @@ impl Generated {
             for &c in &g {
                 p.push(c as f64 + dyadic(i64::from(u.int_in_range(-6i8..=6)?), 6));
             }
-            id.insert(g, positions.len() as u32);
             positions.push(p);
         }
-        // Kuhn triangulation: per cell, one simplex per permutation of the axes.
-        let perms: Vec<Vec<usize>> = if n == 2 {
-            vec![vec![0, 1], vec![1, 0]]
-        } else {
-            vec![
-                vec![0, 1, 2],
-                vec![0, 2, 1],
-                vec![1, 0, 2],
-                vec![1, 2, 0],
-                vec![2, 0, 1],
-                vec![2, 1, 0],
-            ]
-        };
+        // Kuhn triangulation: per cell, one simplex per permutation of the axes (grid points are
+        // numbered in the builder's flat order, so a corner's index is its vertex id).
         let mut simplices = Vec::new();
-        let cell_count: usize = cells.iter().product();
-        for flat in 0..cell_count {
-            let mut base = Vec::with_capacity(n);
-            let mut r = flat;
-            for &len in &cells {
-                base.push(r % len);
-                r /= len;
+        for kuhn in ism_format::builder::kuhn_simplices(&cells) {
+            let mut s: Vec<u32> = kuhn.corners.iter().map(|&c| c as u32).collect();
+            // Any stored order: rotate by an arbitrary amount, then orient positively.
+            let shift = u.int_in_range(0..=n)?;
+            s.rotate_left(shift);
+            if orientation(&positions, &s) < 0.0 {
+                s.swap(n - 1, n);
             }
-            for perm in &perms {
-                let mut corner = base.clone();
-                let mut s = vec![id[&corner]];
-                for &axis in perm {
-                    corner[axis] += 1;
-                    s.push(id[&corner]);
-                }
-                // Any stored order: rotate by an arbitrary amount, then orient positively.
-                let shift = u.int_in_range(0..=n)?;
-                s.rotate_left(shift);
-                if orientation(&positions, &s) < 0.0 {
-                    s.swap(n - 1, n);
-                }
-                simplices.push(s);
-            }
+            simplices.push(s);
         }
         let mut values = Vec::with_capacity(positions.len());
         for _ in 0..positions.len() {

@@ -98,43 +98,10 @@ pub fn kuhn(n: usize, k: usize, rng: &mut Rng) -> Model {
         let mag = rng.uniform(0.2, 1.0);
         model.values[id] = if rng.unit() < 0.5 { -mag } else { mag };
     }
-    let grid = |c: &[usize]| -> u32 {
-        let mut g = 0;
-        for x in (0..n).rev() {
-            g = g * side + c[x];
-        }
-        perm[g]
-    };
-    let perms: Vec<Vec<usize>> = if n == 2 {
-        vec![vec![0, 1], vec![1, 0]]
-    } else {
-        vec![
-            vec![0, 1, 2],
-            vec![0, 2, 1],
-            vec![1, 0, 2],
-            vec![1, 2, 0],
-            vec![2, 0, 1],
-            vec![2, 1, 0],
-        ]
-    };
-    let cells = k.pow(n as u32);
-    for cell in 0..cells {
-        let mut base = vec![0usize; n];
-        let mut c = cell;
-        for b in base.iter_mut() {
-            *b = c % k;
-            c /= k;
-        }
-        for p in &perms {
-            let mut cur = base.clone();
-            let mut ids = vec![grid(&cur)];
-            for &axis in p {
-                cur[axis] += 1;
-                ids.push(grid(&cur));
-            }
-            orient(&model, &mut ids);
-            model.simplices.extend_from_slice(&ids);
-        }
+    for s in ism_format::builder::kuhn_simplices(&vec![k; n]) {
+        let mut ids: Vec<u32> = s.corners.iter().map(|&g| perm[g]).collect();
+        orient(&model, &mut ids);
+        model.simplices.extend_from_slice(&ids);
     }
     model
 }

@@ -36,14 +36,16 @@ pub fn kuhn2d(k: usize, g: impl Fn(f64, f64) -> f64) -> Model {
             m.values.push(nudge(g(c(i), c(j))));
         }
     }
-    let id = |i: usize, j: usize| (i + (k + 1) * j) as u32;
-    for j in 0..k {
-        for i in 0..k {
-            let (a, b, cc, d) = (id(i, j), id(i + 1, j), id(i + 1, j + 1), id(i, j + 1));
-            m.simplices.extend_from_slice(&[a, b, cc, a, cc, d]);
-        }
-    }
+    kuhn_simplices_into(&mut m, &[k, k]);
     m
+}
+
+/// The Kuhn simplices of the grid (ids in the grid's flat order, axis 0 fastest), each positively
+/// oriented.
+fn kuhn_simplices_into(m: &mut Model, cells: &[usize]) {
+    for s in ism_format::builder::kuhn_simplices(cells) {
+        m.simplices.extend(s.oriented());
+    }
 }
 
 /// Kuhn triangulation of `[−1, 1]³` with `k³` cubes (6 tetrahedra each), values `g`.
@@ -58,33 +60,7 @@ pub fn kuhn3d(k: usize, g: impl Fn(f64, f64, f64) -> f64) -> Model {
             }
         }
     }
-    let stride = [1usize, k + 1, (k + 1) * (k + 1)];
-    let paths: [([usize; 3], bool); 6] = [
-        ([0, 1, 2], true),
-        ([0, 2, 1], false),
-        ([1, 0, 2], false),
-        ([1, 2, 0], true),
-        ([2, 0, 1], true),
-        ([2, 1, 0], false),
-    ];
-    for kk in 0..k {
-        for j in 0..k {
-            for i in 0..k {
-                let v0 = i + stride[1] * j + stride[2] * kk;
-                for (p, even) in paths {
-                    let v1 = v0 + stride[p[0]];
-                    let v2 = v1 + stride[p[1]];
-                    let v3 = v2 + stride[p[2]];
-                    let t = if even {
-                        [v0, v1, v2, v3]
-                    } else {
-                        [v0, v1, v3, v2]
-                    };
-                    m.simplices.extend(t.iter().map(|&v| v as u32));
-                }
-            }
-        }
-    }
+    kuhn_simplices_into(&mut m, &[k, k, k]);
     m
 }
 
