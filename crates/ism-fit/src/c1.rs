@@ -51,6 +51,7 @@ use ism_format::progress::{Cancelled, Progress};
 use std::collections::HashMap;
 use std::time::Instant;
 
+use ism_format::indexed::shared_facets;
 use ism_format::model::{Direction, FaceRecord, Model, Stage, StageKind};
 use ism_format::multi_index;
 use ism_geom::{linalg, Mat, MAX_VARS};
@@ -263,7 +264,7 @@ type WeightKey = (Vec<u32>, usize);
 type InputWeights = HashMap<Vec<u32>, Vec<f64>>;
 
 /// An interior facet: sorted ids and `[(simplex, opposite local position); 2]`.
-type FacetSides = (Vec<u32>, [(usize, usize); 2]);
+type FacetSides = ism_format::indexed::SharedFacet;
 
 /// The owner of local multi-index `index` of a simplex with vertex ids `ids`.
 fn owner(ids: &[u32], index: &[u32]) -> WeightKey {
@@ -420,30 +421,11 @@ fn barycentric(model: &Model, ids: &[u32], p: &[f64]) -> Option<[f64; MAX_VARS]>
 /// the lower simplex index first, in sorted order of the ids.
 fn crossed_facets(model: &Model) -> Vec<FacetSides> {
     let m = model.dim() + 1;
-    let mut by_key: HashMap<Vec<u32>, Vec<(usize, usize)>> = HashMap::new();
-    for (s, ids) in model.simplex_iter().enumerate() {
-        for skip in 0..m {
-            let mut key: Vec<u32> = (0..m).filter(|&i| i != skip).map(|i| ids[i]).collect();
-            key.sort_unstable();
-            by_key.entry(key).or_default().push((s, skip));
-        }
-    }
-    let mut out: Vec<FacetSides> = by_key
-        .into_iter()
-        .filter_map(|(key, mut sides)| {
-            if sides.len() != 2 {
-                return None;
-            }
-            let f: Vec<f64> = key
-                .iter()
-                .map(|&v| model.values[v as usize] - model.level)
-                .collect();
-            let crossed = f.iter().any(|&a| a < 0.0) && f.iter().any(|&a| a > 0.0);
-            sides.sort_unstable();
-            crossed.then_some((key, [sides[0], sides[1]]))
-        })
-        .collect();
-    out.sort();
+    let mut out = shared_facets(m, &model.simplices);
+    out.retain(|(key, _)| {
+        let f = |v: &u32| model.values[*v as usize] - model.level;
+        key.iter().any(|v| f(v) < 0.0) && key.iter().any(|v| f(v) > 0.0)
+    });
     out
 }
 

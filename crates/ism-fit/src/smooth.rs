@@ -35,6 +35,7 @@
 use std::collections::HashMap;
 use std::time::Instant;
 
+use ism_format::indexed::shared_facets;
 use ism_format::model::Model;
 use ism_format::progress::Progress;
 use ism_geom::{Bary, MAX_VARS};
@@ -214,25 +215,13 @@ struct Pair {
 fn facet_pairs(layer: &Layered) -> Result<(usize, Vec<Pair>), EditError> {
     let frames = layer.frames();
     let m = layer.dim() + 1;
-    let mut facets: HashMap<Vec<u32>, Vec<(usize, usize)>> = HashMap::new();
-    for (s, fr) in frames.iter().enumerate() {
-        for skip in 0..m {
-            let mut key: Vec<u32> = (0..m).filter(|&i| i != skip).map(|i| fr.ids[i]).collect();
-            key.sort_unstable();
-            facets.entry(key).or_default().push((s, skip));
-        }
-    }
-    let mut keys: Vec<&Vec<u32>> = facets.keys().collect();
-    keys.sort();
+    let ids: Vec<u32> = frames
+        .iter()
+        .flat_map(|fr| fr.ids.iter().copied())
+        .collect();
     let mut pairs = Vec::new();
     let mut crossing = 0;
-    for key in keys {
-        let sides = &facets[key];
-        if sides.len() != 2 {
-            continue;
-        }
-        let (s1, a1) = sides[0];
-        let (s2, _) = sides[1];
+    for (_, [(s1, a1), (s2, _)]) in shared_facets(m, &ids) {
         let f = &frames[s1].f;
         let pos: Vec<usize> = (0..m).filter(|&i| i != a1).collect();
         let mut ends: Vec<Bary> = Vec::new();

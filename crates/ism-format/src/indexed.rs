@@ -182,6 +182,55 @@ pub fn simplex_faces(simplex: &[u32], min_len: usize) -> impl Iterator<Item = Lo
         .map(move |mask| LocalFace::of_mask(simplex, mask))
 }
 
+/// A facet shared by two simplices: its sorted vertex ids and, per side, the simplex and the local
+/// position opposite the facet ([`shared_facets`]).
+pub type SharedFacet = (Vec<u32>, [(usize, usize); 2]);
+
+/// The facets shared by exactly two simplices of a complex given as vertex lists (`m` ids per
+/// simplex, `2 ≤ m ≤ 4`): `(sorted facet ids, [(simplex, local position opposite the facet); 2])`,
+/// the lower simplex first, in increasing order of the ids; a facet held by one simplex (the
+/// boundary) or by more than two is left out. The pairing [`Topology::neighbour`] gives an
+/// indexed model, for complexes that are not one (the fitters' working complexes, a model
+/// being edited).
+///
+/// ```
+/// use ism_format::indexed::shared_facets;
+/// // Two triangles of a square share the diagonal 0–2.
+/// let pairs = shared_facets(3, &[0, 1, 2, 0, 2, 3]);
+/// assert_eq!(pairs, [(vec![0, 2], [(0, 1), (1, 2)])]);
+/// ```
+pub fn shared_facets(m: usize, simplices: &[u32]) -> Vec<SharedFacet> {
+    if !(2..=4).contains(&m) {
+        return Vec::new();
+    }
+    // (facet ids padded with u32::MAX, simplex, opposite position): sorted, a facet's sides are
+    // adjacent and in (simplex, position) order.
+    let mut sides: Vec<([u32; 3], usize, usize)> = Vec::with_capacity(simplices.len());
+    for (s, ids) in simplices.chunks_exact(m).enumerate() {
+        for skip in 0..m {
+            let mut key = [u32::MAX; 3];
+            let facet = LocalFace::of_mask(ids, ((1u8 << m) - 1) & !(1 << skip));
+            key[..m - 1].copy_from_slice(facet.ids());
+            sides.push((key, s, skip));
+        }
+    }
+    sides.sort_unstable();
+    let mut out = Vec::new();
+    let mut i = 0;
+    while i < sides.len() {
+        let mut j = i + 1;
+        while j < sides.len() && sides[j].0 == sides[i].0 {
+            j += 1;
+        }
+        if j - i == 2 {
+            let (a, b) = (&sides[i], &sides[i + 1]);
+            out.push((a.0[..m - 1].to_vec(), [(a.1, a.2), (b.1, b.2)]));
+        }
+        i = j;
+    }
+    out
+}
+
 /// Vertices per task of the topology build: a task numbers the faces whose smallest vertex lies in
 /// its range. Small enough to balance the cores, large enough to amortise a task (a few hundred
 /// stars of tens of simplices each).
@@ -1860,6 +1909,41 @@ mod tests {
                 );
             }
         }
+    }
+
+    #[test]
+    fn shared_facets_are_the_neighbour_pairs() {
+        // Truth: the neighbour table (itself tested against brute force below) — each pair of
+        // neighbours once, its facet the ids but the opposite vertex.
+        for (n, g) in [(2, 3), (3, 2)] {
+            let model = kuhn(n, g);
+            let m = n + 1;
+            let t = IndexedModel::new(model.clone()).expect("valid");
+            let t = t.topology();
+            let mut expected = Vec::new();
+            for (s, ids) in model.simplex_iter().enumerate() {
+                for i in 0..m {
+                    let Some(SimplexId(other)) = t.neighbour(s, i) else {
+                        continue;
+                    };
+                    let other = other as usize;
+                    if other < s {
+                        continue;
+                    }
+                    let mut facet: Vec<u32> = (0..m).filter(|&p| p != i).map(|p| ids[p]).collect();
+                    facet.sort_unstable();
+                    let j = (0..m)
+                        .find(|&p| !facet.contains(&model.simplex(other)[p]))
+                        .expect("an opposite vertex");
+                    expected.push((facet, [(s, i), (other, j)]));
+                }
+            }
+            expected.sort();
+            assert_eq!(shared_facets(m, &model.simplices), expected, "n={n}");
+        }
+        // A facet held by three triangles, and the boundary: left out.
+        assert!(shared_facets(3, &[0, 1, 2, 1, 0, 3, 0, 1, 4]).is_empty());
+        assert!(shared_facets(5, &[0, 1, 2, 3, 4]).is_empty());
     }
 
     #[test]
