@@ -1,6 +1,8 @@
-//! Whole reader with content sniffing: arbitrary bytes must give Ok or a typed error, never a panic.
+//! Whole reader with content sniffing: arbitrary bytes must give Ok or a typed error, never a panic;
+//! every reader gives the same result (`ism_conformance::fuzz::readers_agree`).
 #![no_main]
 libfuzzer_sys::fuzz_target!(|data: &[u8]| {
+    ism_conformance::fuzz::readers_agree(data);
     if let Ok(doc) = ism_format::io::from_slice(data) {
         // Whatever reads must write and read back to the same model.
         let bytes = ism_format::io::to_vec(&doc.model, doc.encoding, Default::default())

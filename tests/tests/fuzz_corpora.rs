@@ -1,12 +1,13 @@
-//! The seeds, corpora and fixed crashes of the fuzz targets beyond the model readers
+//! The seeds, corpora and fixed crashes of the fuzz targets
 //! (`fuzz/seeds/<target>`, `fuzz/corpus/<target>`, `fuzz/artifacts/<target>`) replayed through the
 //! targets' own properties (`ism_conformance::fuzz`):
 //! one test per target, so every input a fuzzer kept stays a regression test. (The model readers'
-//! corpora run in `crates/ism-format/tests/fuzz_regressions.rs`.)
+//! round trips run in `crates/ism-format/tests/fuzz_regressions.rs`; here, that the readers agree.)
 
 use std::path::{Path, PathBuf};
 
 use ism_conformance::{fuzz, repo_root};
+use ism_format::Encoding;
 use libtest_mimic::{Arguments, Failed, Trial};
 
 /// A target's property: panics when it fails.
@@ -14,6 +15,16 @@ type Property = fn(&[u8]);
 
 /// Each target and its property.
 const TARGETS: &[(&str, Property)] = &[
+    ("read_any", fuzz::readers_agree),
+    ("read_binary", |b| {
+        fuzz::readers_agree_on_payload(Encoding::Binary, b)
+    }),
+    ("read_msgpack", |b| {
+        fuzz::readers_agree_on_payload(Encoding::MessagePack, b)
+    }),
+    ("read_json", |b| {
+        fuzz::readers_agree_on_payload(Encoding::Json, b)
+    }),
     ("import_mesh", fuzz::import_mesh),
     ("fit_mesh", fuzz::fit_mesh),
     ("read_hermite", fuzz::read_hermite),
