@@ -160,6 +160,21 @@ impl Flat {
         &self.coeffs[at..at + self.nc]
     }
 
+    /// Cell variables (3 for a triangle, 2 for a segment).
+    pub(crate) fn vars(&self) -> usize {
+        self.k
+    }
+
+    /// Degree of the components.
+    pub(crate) fn degree(&self) -> u32 {
+        self.d
+    }
+
+    /// Degree of the partials.
+    pub(crate) fn partial_degree(&self) -> u32 {
+        self.dd
+    }
+
     /// Number of components.
     pub(crate) fn components(&self) -> usize {
         self.m

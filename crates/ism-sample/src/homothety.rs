@@ -251,6 +251,41 @@ pub(crate) fn restrict_to_face(p: &Bernstein, vertices: &[[f64; 4]]) -> Option<B
     Bernstein::new(k, d, out).ok()
 }
 
+/// [`restrict_to_face`] of the coefficients `coeffs` (degree `d`, `m` variables) into `out`
+/// (`count(k, d)` entries, `k = vertices.len()`), with `level` as the de Casteljau buffer: the
+/// same bits, nothing allocated. `false` for a shape without a plan.
+pub(crate) fn restrict_to_face_into(
+    coeffs: &[f64],
+    m: usize,
+    d: u32,
+    vertices: &[[f64; 4]],
+    level: &mut [f64; LEVEL_CAP],
+    out: &mut [f64],
+) -> bool {
+    let k = vertices.len();
+    if d as usize > MAX_DEGREE || m == 0 || m > MAX_VARS || k == 0 || k > MAX_VARS {
+        return false;
+    }
+    let plan = plan(m, d);
+    let top = plan.offsets[d as usize];
+    level[top..top + coeffs.len()].copy_from_slice(coeffs);
+    let mut counts = [0u32; MAX_VARS];
+    face_walk(
+        &FaceWalk { plan, m, vertices },
+        level,
+        d as usize,
+        0,
+        &mut counts,
+        &mut out[..multi_index::count(k, d)],
+    );
+    true
+}
+
+/// A de Casteljau buffer for [`restrict_to_face_into`].
+pub(crate) fn level_buffer() -> [f64; LEVEL_CAP] {
+    [0.0; LEVEL_CAP]
+}
+
 /// What every node of [`face_walk`] shares.
 struct FaceWalk<'a> {
     plan: &'a Plan,
@@ -400,6 +435,21 @@ mod tests {
                             .zip(kernel.coeffs())
                             .all(|(a, b)| a.to_bits() == b.to_bits());
                         assert!(same, "m {m} d {d} k {k}");
+                        let mut level = level_buffer();
+                        let mut out = vec![f64::NAN; multi_index::count(k, d)];
+                        assert!(restrict_to_face_into(
+                            p.coeffs(),
+                            m,
+                            d,
+                            &vertices,
+                            &mut level,
+                            &mut out
+                        ));
+                        let same = out
+                            .iter()
+                            .zip(kernel.coeffs())
+                            .all(|(a, b)| a.to_bits() == b.to_bits());
+                        assert!(same, "into: m {m} d {d} k {k}");
                     }
                 }
             }

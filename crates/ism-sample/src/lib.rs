@@ -44,6 +44,7 @@
 //! ```
 #![deny(missing_docs)]
 
+mod affine;
 pub mod bound;
 pub mod chain;
 pub mod error;
