@@ -317,6 +317,13 @@ struct Fitter<'a> {
     /// The first point where `g` was not finite, or the first sign change without a root: the
     /// fit stops with this error at the next check.
     trouble: Option<FitError>,
+    /// [`Fitter::cell_error`] of crossing cells at [`rank_level`] and at [`report_level`], kept
+    /// until a face of the cell (or, with rational weights, a vertex's weight) changes: the
+    /// accuracy loop ranks every crossing cell after each refinement, and most of them were not
+    /// touched by it (issue 17, session 16: re-checking them was ~15 % of a torus fit). A cell's
+    /// error depends only on its vertices, their values, and its faces' points and weights, and
+    /// cells are never renumbered (a refined cell dies, its children are new ids).
+    errors: [HashMap<u32, f64>; 2],
 }
 
 /// One optimizable parameter block of the fitter.
@@ -396,6 +403,56 @@ impl Fitter<'_> {
             worst = worst.max(if d.is_nan() { f64::INFINITY } else { d });
         }
         worst
+    }
+
+    /// [`Fitter::cell_error`] of every crossing cell with a longest edge of at least `min_cell`,
+    /// at the ranking (`report = false`) or the report level, from the cache where the cell is
+    /// unchanged since it was last computed (the same number: the inputs are the same).
+    fn cell_errors(&mut self, min_cell: f64, report: bool, tolerance: f64) -> Vec<(u32, f64)> {
+        let slot = usize::from(report);
+        let out: Vec<(u32, f64)> = {
+            let f = &*self;
+            let level = if report {
+                report_level(f.n)
+            } else {
+                rank_level(f.n)
+            };
+            f.crossing_cells()
+                .into_par_iter()
+                .filter(|&c| f.longest_edge_length(c) >= min_cell)
+                .map(|c| match f.errors[slot].get(&c) {
+                    Some(&e) => {
+                        // The unit tests' fits check every cached value against a fresh one.
+                        #[cfg(test)]
+                        assert_eq!(
+                            e.to_bits(),
+                            f.cell_error(c, level, tolerance).to_bits(),
+                            "stale cached error of cell {c}"
+                        );
+                        (c, e)
+                    }
+                    None => (c, f.cell_error(c, level, tolerance)),
+                })
+                .collect()
+        };
+        self.errors[slot].extend(out.iter().copied());
+        out
+    }
+
+    /// Forgets the cached errors of the cells with the face `face` (sorted ids).
+    fn forget_face(&mut self, face: &[u32]) {
+        let cells: Vec<u32> = self
+            .complex
+            .cells_around(face[0], face[1])
+            .iter()
+            .copied()
+            .filter(|&c| face.iter().all(|v| self.complex.cell(c).contains(v)))
+            .collect();
+        for c in cells {
+            for cache in &mut self.errors {
+                cache.remove(&c);
+            }
+        }
     }
 
     fn longest_edge_length(&self, c: u32) -> f64 {
@@ -629,6 +686,9 @@ impl Fitter<'_> {
         }
         faces.sort();
         for f in &faces {
+            self.forget_face(f);
+        }
+        for f in &faces {
             if f.len() == 2 && self.is_crossing_edge((f[0], f[1])) {
                 self.init_crossing_edge((f[0], f[1]));
             }
@@ -653,6 +713,14 @@ impl Fitter<'_> {
                 for &v in self.complex.cell(c) {
                     if wanted.contains(&v) {
                         star.entry(v).or_default().push(c);
+                    }
+                }
+            }
+            // A vertex's weight bends every crossing cell around it.
+            for cells in star.values() {
+                for c in cells {
+                    for cache in &mut self.errors {
+                        cache.remove(c);
                     }
                 }
             }
@@ -914,14 +982,7 @@ impl Fitter<'_> {
     ) -> Result<(), FitError> {
         let mut pruned = false;
         loop {
-            let errors: Vec<(u32, f64)> = {
-                let f = &*self;
-                f.crossing_cells()
-                    .into_par_iter()
-                    .filter(|&c| f.longest_edge_length(c) >= min_cell)
-                    .map(|c| (c, f.cell_error(c, rank_level(f.n), options.tolerance)))
-                    .collect()
-            };
+            let errors = self.cell_errors(min_cell, false, options.tolerance);
             let worst = errors.iter().map(|e| e.1).fold(0.0, f64::max);
             step(progress, "refine", self.complex.num_cells(), options, worst)?;
             let mut bad: Vec<(u32, f64)> = errors
@@ -931,14 +992,8 @@ impl Fitter<'_> {
             if bad.is_empty() {
                 // Before stopping, the report's own (denser) samples: a patch can peak between
                 // the ranking samples, most with rational weights.
-                let f = &*self;
-                bad = f
-                    .crossing_cells()
-                    .into_par_iter()
-                    .filter(|&c| f.longest_edge_length(c) >= min_cell)
-                    .map(|c| (c, f.cell_error(c, report_level(f.n), options.tolerance)))
-                    .filter(|e| e.1 > options.tolerance)
-                    .collect();
+                bad = self.cell_errors(min_cell, true, options.tolerance);
+                bad.retain(|e| e.1 > options.tolerance);
             }
             if bad.is_empty() && !pruned && options.prune && options.optimize {
                 self.prune(options.tolerance);
@@ -998,7 +1053,9 @@ impl Fitter<'_> {
             let ok = cells
                 .iter()
                 .all(|&c| self.cell_error(c, level, tolerance) <= TOLERANCE_MARGIN * tolerance);
-            if !ok {
+            if ok {
+                self.forget_face(&f);
+            } else {
                 self.map.set_logits(&f, &old);
             }
         }
@@ -1337,6 +1394,7 @@ pub fn fit(
             .sqrt(),
         bisections: 0,
         trouble: None,
+        errors: [HashMap::new(), HashMap::new()],
     };
     fitter.set_values_for_new_vertices();
     fitter.check()?;

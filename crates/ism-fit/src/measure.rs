@@ -144,6 +144,66 @@ pub fn report_level(n: usize) -> usize {
     }
 }
 
+/// Final width of [`narrow`]'s bracket as a fraction of its first: the bound is then within a
+/// millionth of the bracket of a root (the 20 bisections this replaces gave the same).
+const NARROW_WIDTH: f64 = 1.0 / (1u64 << 20) as f64;
+
+/// Narrows the bracket `[lo, hi]` of a root of `h` (`y_lo = h(lo) > 0 ≥ y_hi = h(hi)`) until it
+/// is at most [`NARROW_WIDTH`] of its first width, and returns its upper end — a point where
+/// `h ≤ 0`, so the segment to it holds a zero — or the upper end so far when `h` is not a number.
+/// Each step puts two probes `2ε` apart (`2ε` the final width) around the regula falsi point:
+/// on a smooth `h` the second step's falsi point is within `ε` of the root, and the probes
+/// straddle it. A step that does not halve the bracket is followed by a bisection, so it is never
+/// slower than a third of bisection's rate. On the torus preset's samples it takes 4.8
+/// evaluations where the 20 bisections it replaces took 20, with the same guarantee (issue 17,
+/// session 16: the brackets were ~25 % of a torus fit).
+fn narrow(h: impl Fn(f64) -> f64, lo: f64, y_lo: f64, hi: f64, y_hi: f64) -> f64 {
+    let (mut a, mut b, mut ya, mut yb) = (lo, hi, y_lo, y_hi);
+    let eps = 0.5 * NARROW_WIDTH * (hi - lo);
+    let mut bisect = false;
+    // Bisection alone needs 20 steps; this bounds pathological inputs all the same.
+    for _ in 0..NARROW_STEPS {
+        if b - a <= 2.0 * eps {
+            break;
+        }
+        let width = b - a;
+        let mut probes = [0.5 * (a + b), f64::NAN];
+        if !bisect {
+            let falsi = if ya != yb && (ya - yb).is_finite() {
+                (yb * a - ya * b) / (yb - ya)
+            } else {
+                probes[0]
+            };
+            probes = [falsi - eps, falsi + eps];
+        }
+        for x in probes {
+            // A probe outside the open bracket (rounding, or the falsi point at an end) is
+            // moved to the midpoint of what is left.
+            if b - a <= 2.0 * eps || x.is_nan() {
+                break;
+            }
+            let x = if x > a && x < b { x } else { 0.5 * (a + b) };
+            let y = h(x);
+            if y.is_nan() {
+                return b;
+            }
+            if y > 0.0 {
+                (a, ya) = (x, y);
+            } else {
+                (b, yb) = (x, y);
+                // The second probe lies above the root now.
+                break;
+            }
+        }
+        bisect = !bisect && b - a > 0.5 * width;
+    }
+    b
+}
+
+/// Steps of [`narrow`] at most: with a bisection after every step that does not halve the
+/// bracket, 40 reach the width bisection reaches in 20.
+const NARROW_STEPS: usize = 48;
+
 /// A certified upper bound on the distance from `p` to `{g = 0}` for a continuous `g`: the
 /// shortest segment found from `p` along which `g` changes sign (it holds a zero). Searches along
 /// `−sign(g)∇g` first, then along the coordinate axes, out to `reach`; `∞` when no sign change is
@@ -184,32 +244,21 @@ pub fn bracket_point<G: ImplicitFunction + ?Sized>(
         }
         g.value(&q[..n])
     };
-    // Along one direction: grow `t` until g has the other sign, then bisect the bracket down.
+    // Along one direction: grow `t` until g has the other sign, then narrow the bracket down.
     let search = |d: &[f64; 3], start: f64, limit: f64| -> f64 {
-        let (mut lo, mut t) = (0.0f64, start);
+        // `g` with the sign that is positive on `p`'s side.
+        let h = |t: f64| if side { at(d, t) } else { -at(d, t) };
+        let (mut lo, mut y_lo, mut t) = (0.0f64, v.abs(), start);
         while t <= limit {
-            let x = at(d, t);
-            if x.is_nan() {
+            let y = h(t);
+            if y.is_nan() {
                 return f64::INFINITY;
             }
-            if (x > 0.0) != side || x == 0.0 {
-                let mut hi = t;
-                // 2⁻²⁰ of the bracket: the bound is then within a millionth of the root found.
-                for _ in 0..20 {
-                    let mid = 0.5 * (lo + hi);
-                    let y = at(d, mid);
-                    if y.is_nan() {
-                        break;
-                    }
-                    if (y > 0.0) == side && y != 0.0 {
-                        lo = mid;
-                    } else {
-                        hi = mid;
-                    }
-                }
-                return hi;
+            if y <= 0.0 {
+                return narrow(h, lo, y_lo, t, y);
             }
             lo = t;
+            y_lo = y;
             t *= 1.5;
         }
         f64::INFINITY
@@ -1424,6 +1473,130 @@ mod tests {
         // No zero within reach: ∞, never a finite claim.
         let g = Expression::parse("x^2 + y^2 + 1", 2).unwrap();
         assert!(bracket_distance(&g, &[0.3, 0.2], 10.0).is_infinite());
+    }
+
+    /// `g` that counts its evaluations.
+    struct Counted<'a>(&'a Expression, std::sync::atomic::AtomicUsize);
+
+    impl ImplicitFunction for Counted<'_> {
+        fn dim(&self) -> usize {
+            self.0.dim()
+        }
+        fn value(&self, p: &[f64]) -> f64 {
+            self.1.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+            self.0.value(p)
+        }
+        fn gradient(&self, p: &[f64], gradient: &mut [f64]) -> f64 {
+            self.0.gradient(p, gradient)
+        }
+        fn enclose(&self, lo: &[f64], hi: &[f64]) -> Option<crate::expr::Enclosure> {
+            self.0.enclose(lo, hi)
+        }
+    }
+
+    #[test]
+    fn the_narrowed_bracket_bounds_the_torus_distance_as_bisection_does_in_fewer_steps() {
+        // The torus preset's quartic; points at signed distance s along the true normal from
+        // the torus (radii 0.6, 0.25), so the exact distance is |s| (|s| < 0.25). Peer: the
+        // 20 bisections `narrow` replaced, on the same bracket; it and the ITP both end within
+        // 2⁻²⁰ of the bracket of its (single) root, and the bound must be ≥ |s|.
+        let e =
+            Expression::parse("(x^2 + y^2 + z^2 + 0.36 - 0.0625)^2 - 1.44*(x^2 + y^2)", 3).unwrap();
+        let g = Counted(&e, std::sync::atomic::AtomicUsize::new(0));
+        let bisect = |p: &[f64; 3]| -> f64 {
+            // The old search: along −sign(g)∇g from half the estimate, ×1.5, then 20 halvings.
+            let mut grad = [0.0; 3];
+            let v = e.gradient(p, &mut grad);
+            let norm = grad.iter().map(|x| x * x).sum::<f64>().sqrt();
+            let s = if v > 0.0 { -1.0 } else { 1.0 };
+            let at = |t: f64| e.value(&[0, 1, 2].map(|k| p[k] + t * s * grad[k] / norm));
+            let (mut lo, mut t) = (0.0, 0.5 * v.abs() / norm);
+            while (at(t) > 0.0) == (v > 0.0) {
+                lo = t;
+                t *= 1.5;
+            }
+            let mut hi = t;
+            for _ in 0..20 {
+                let mid = 0.5 * (lo + hi);
+                if (at(mid) > 0.0) == (v > 0.0) {
+                    lo = mid;
+                } else {
+                    hi = mid;
+                }
+            }
+            hi
+        };
+        let mut state = 0x2545_f491_4f6c_dd1du64;
+        let mut rand = || {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            (state >> 11) as f64 / (1u64 << 53) as f64
+        };
+        let count = 2000;
+        for i in 0..count {
+            let (a, b) = (
+                std::f64::consts::TAU * rand(),
+                std::f64::consts::TAU * rand(),
+            );
+            // 1e-6 … 1e-2, both sides.
+            let s = 10f64.powf(-6.0 + 4.0 * rand()) * if i % 2 == 0 { 1.0 } else { -1.0 };
+            let r = 0.6 + (0.25 + s) * b.cos();
+            let p = [r * a.cos(), r * a.sin(), (0.25 + s) * b.sin()];
+            let bound = bracket_distance(&g, &p, 10.0);
+            let peer = bisect(&p);
+            assert!(
+                bound >= s.abs() * (1.0 - 1e-9),
+                "{p:?}: {bound} < {}",
+                s.abs()
+            );
+            // Both within 2⁻²⁰ of a bracket no wider than 1.5× the bound of the root.
+            assert!(
+                (bound - peer).abs() <= 2.0 * NARROW_WIDTH * 1.5 * peer,
+                "{p:?}: {bound} vs bisection {peer}"
+            );
+        }
+        let evals = g.1.load(std::sync::atomic::Ordering::Relaxed) as f64 / count as f64;
+        // The bisection took 3 steps to bracket and 20 to narrow.
+        assert!(evals < 9.0, "{evals} evaluations per bound");
+    }
+
+    #[test]
+    fn narrow_ends_within_the_final_width_above_the_root_on_hostile_functions() {
+        // Roots known by construction; `narrow` must end at a point at or above the root
+        // within NARROW_WIDTH of the first bracket, whatever the function's shape.
+        let root = 0.3 + 1.0 / 3.0;
+        type Case = (&'static str, Box<dyn Fn(f64) -> f64>);
+        let cases: Vec<Case> = vec![
+            (
+                "step",
+                Box::new(move |t: f64| if t < root { 1.0 } else { -1.0 }),
+            ),
+            ("cubic", Box::new(move |t: f64| (root - t).powi(3))),
+            (
+                "steep near lo",
+                Box::new(move |t: f64| (root - t).signum() * (root - t).abs().sqrt()),
+            ),
+            ("linear", Box::new(move |t: f64| root - t)),
+            (
+                "huge",
+                Box::new(move |t: f64| if t < root { 1e300 } else { -1e-300 }),
+            ),
+        ];
+        for (name, h) in &cases {
+            let (lo, hi) = (0.3, 1.2);
+            let b = narrow(h, lo, h(lo), hi, h(hi));
+            assert!(b >= root, "{name}: {b} below the root {root}");
+            assert!(
+                b - root <= NARROW_WIDTH * (hi - lo),
+                "{name}: {b} vs {root}"
+            );
+            assert!(h(b) <= 0.0, "{name}");
+        }
+        // Not a number past the root: the upper end so far, still above the root.
+        let h = |t: f64| if t < root { 1.0 } else { f64::NAN };
+        let b = narrow(h, 0.3, 1.0, 1.2, -1.0);
+        assert!(b >= root);
     }
 
     #[test]
