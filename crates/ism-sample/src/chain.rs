@@ -1477,6 +1477,40 @@ mod tests {
     /// The leaves of all-parametric maps tile each root region (shares sum to 1) and their
     /// bounds dominate exact `J` (from the stage Jacobians at the point, not from the
     /// enclosures) on a lattice of each leaf, at small and large budgets.
+    /// The exact area element `|∇g| / (|∇f_lin| det J)` of simplex `s` at the points of a lattice
+    /// of `m` steps per side on the cell with corners `v` (a segment for n = 2, a triangle for
+    /// n = 3), from the stage Jacobians at each point — not from any enclosure: the ground truth
+    /// the certified bounds are tested against.
+    fn exact_area_elements(
+        eval: &ModelEval,
+        s: usize,
+        lin: f64,
+        v: &[[f64; 4]],
+        m: u32,
+    ) -> Vec<f64> {
+        let n = eval.model().dim();
+        let map = eval.local_map(s);
+        let mut out = Vec::new();
+        for k in 0..=m {
+            for j in 0..=(if n == 2 { 0 } else { m - k }) {
+                let (a, b) = (f64::from(k) / f64::from(m), f64::from(j) / f64::from(m));
+                let mut u = [0.0; MAX_VARS];
+                for t in 0..=n {
+                    u[t] = if n == 2 {
+                        (1.0 - a) * v[0][t] + a * v[1][t]
+                    } else {
+                        (1.0 - a - b) * v[0][t] + a * v[1][t] + b * v[2][t]
+                    };
+                }
+                let solved = map.param_solve(&u).unwrap();
+                let g = eval.gradient_from_jacobian(s, &solved.jacobian);
+                let det = linalg::det(n, &solved.jacobian);
+                out.push(g[..n].iter().map(|x| x * x).sum::<f64>().sqrt() / (lin * det));
+            }
+        }
+        out
+    }
+
     #[test]
     fn parametric_leaves_tile_the_patch_and_dominate_the_area_element() {
         let mut stratified = example("stratified-3d");
@@ -1531,29 +1565,12 @@ mod tests {
                         assert_eq!(total, 1.0, "simplex {s}: leaves of root {r} cover {total}");
                     }
                     for leaf in &leaves {
-                        let v = &leaf.corners;
-                        for k in 0..=12 {
-                            for j in 0..=(if n == 2 { 0 } else { 12 - k }) {
-                                let (a, b) = (f64::from(k) / 12.0, f64::from(j) / 12.0);
-                                let mut u = [0.0; MAX_VARS];
-                                for t in 0..=n {
-                                    u[t] = if n == 2 {
-                                        (1.0 - a) * v[0][t] + a * v[1][t]
-                                    } else {
-                                        (1.0 - a - b) * v[0][t] + a * v[1][t] + b * v[2][t]
-                                    };
-                                }
-                                let solved = map.param_solve(&u).unwrap();
-                                let g = eval.gradient_from_jacobian(s, &solved.jacobian);
-                                let det = linalg::det(n, &solved.jacobian);
-                                let exact =
-                                    g[..n].iter().map(|x| x * x).sum::<f64>().sqrt() / (lin * det);
-                                assert!(
-                                    exact <= leaf.bound,
-                                    "simplex {s}: J = {exact} > {}",
-                                    leaf.bound
-                                );
-                            }
+                        for exact in exact_area_elements(&eval, s, lin, &leaf.corners, 12) {
+                            assert!(
+                                exact <= leaf.bound,
+                                "simplex {s}: J = {exact} > {}",
+                                leaf.bound
+                            );
                         }
                     }
                 }
@@ -1606,28 +1623,11 @@ mod tests {
                     let interval = chain.bound_with(&cell, false).unwrap().0;
                     sum_affine[depth] += affine;
                     sum_interval[depth] += interval;
-                    let v = &cell.vertices;
-                    for k in 0..=8 {
-                        for j in 0..=(if n == 2 { 0 } else { 8 - k }) {
-                            let (a, b) = (f64::from(k) / 8.0, f64::from(j) / 8.0);
-                            let mut u = [0.0; MAX_VARS];
-                            for t in 0..=n {
-                                u[t] = if n == 2 {
-                                    (1.0 - a) * v[0][t] + a * v[1][t]
-                                } else {
-                                    (1.0 - a - b) * v[0][t] + a * v[1][t] + b * v[2][t]
-                                };
-                            }
-                            let solved = map.param_solve(&u).unwrap();
-                            let g = eval.gradient_from_jacobian(s, &solved.jacobian);
-                            let det = linalg::det(n, &solved.jacobian);
-                            let exact =
-                                g[..n].iter().map(|x| x * x).sum::<f64>().sqrt() / (lin * det);
-                            assert!(
-                                exact <= affine,
-                                "{name} simplex {s} depth {depth}: J = {exact} > affine bound {affine}"
-                            );
-                        }
+                    for exact in exact_area_elements(&eval, s, lin, &cell.vertices, 8) {
+                        assert!(
+                            exact <= affine,
+                            "{name} simplex {s} depth {depth}: J = {exact} > affine bound {affine}"
+                        );
                     }
                     // Down one half, alternating sides.
                     let (x, y) = chain.split(&cell);
