@@ -492,6 +492,30 @@ fn max_abs(p: &Bernstein) -> f64 {
     top * (1.0 + BOUND_ROUNDING_MARGIN)
 }
 
+/// A later stage's polynomial `p` (in the `m` barycentric coordinates of its simplex) restricted
+/// exactly to the triangle or tetrahedron spanned by `vertices` and turned into an affine form of
+/// the cell, widened by `carried`: what the previous image's remainder can move `p` by (a
+/// mean-value bound, so it carries [`BOUND_ROUNDING_MARGIN`] like every other widening). `None`
+/// when the restriction or the affine form has no plan for this shape and degree.
+fn restrict_affine(
+    p: &Bernstein,
+    m: usize,
+    vertices: &[[f64; 4]],
+    carried: f64,
+    level: &mut [f64; homothety::LEVEL_CAP],
+    out: &mut [f64; 64],
+) -> Option<Affine> {
+    if !homothety::restrict_to_face_into(p.coeffs(), m, p.degree(), vertices, level, out) {
+        return None;
+    }
+    let k = vertices.len();
+    let len = ism_format::multi_index::count(k, p.degree());
+    Some(
+        Affine::from_bernstein(k, p.degree(), &out[..len])?
+            .widen(carried * (1.0 + BOUND_ROUNDING_MARGIN)),
+    )
+}
+
 /// What [`Chain::affine_bound`] needs of a later stage beyond its polynomials: bounds over the
 /// stage's simplex of its reduced partials and of their reduced partials (the mean-value factors
 /// that carry an image's remainder through the stage).
@@ -819,47 +843,28 @@ impl Chain<'_> {
             let vertices = &vertices[..k];
             for (i, row) in jac.iter_mut().enumerate().take(n) {
                 for (l, e) in row.iter_mut().enumerate().take(n) {
-                    let p = &stage.num[i][l];
-                    if !homothety::restrict_to_face_into(
-                        p.coeffs(),
-                        m,
-                        p.degree(),
-                        vertices,
-                        &mut level,
-                        &mut out,
-                    ) {
-                        return None;
-                    }
-                    let len = ism_format::multi_index::count(k, p.degree());
                     // N(x) − N(A) = Σ_l' D_l'N(ξ) (x − A)_l' with ξ in the simplex.
                     let carried: f64 = (0..n).map(|t| bounds.hess[i][l][t] * rem[t + 1]).sum();
-                    *e = Affine::from_bernstein(k, p.degree(), &out[..len])?
-                        .widen(carried * (1.0 + BOUND_ROUNDING_MARGIN));
+                    *e = restrict_affine(
+                        &stage.num[i][l],
+                        m,
+                        vertices,
+                        carried,
+                        &mut level,
+                        &mut out,
+                    )?;
                 }
             }
             if s + 1 < self.rest.len() {
                 let mut next = [zero; 4];
                 for (i, x) in next.iter_mut().enumerate().take(m) {
-                    let p = &stage.p[i];
-                    if !homothety::restrict_to_face_into(
-                        p.coeffs(),
-                        m,
-                        p.degree(),
-                        vertices,
-                        &mut level,
-                        &mut out,
-                    ) {
-                        return None;
-                    }
-                    let len = ism_format::multi_index::count(k, p.degree());
                     let carried: f64 = if i == 0 {
                         // Coordinate 0's remainder is never read (reduced coordinates 1..n).
                         0.0
                     } else {
                         (0..n).map(|t| bounds.grad[i - 1][t] * rem[t + 1]).sum()
                     };
-                    *x = Affine::from_bernstein(k, p.degree(), &out[..len])?
-                        .widen(carried * (1.0 + BOUND_ROUNDING_MARGIN));
+                    *x = restrict_affine(&stage.p[i], m, vertices, carried, &mut level, &mut out)?;
                 }
                 image = next;
             }

@@ -31,7 +31,7 @@ use crate::bound::BOUND_ROUNDING_MARGIN;
 pub(crate) const MAX_DEGREE: usize = 8;
 
 /// Blossoms of every degree `0..=MAX_DEGREE` in `MAX_VARS` variables: `C(MAX_DEGREE + 4, 4)`.
-const LEVEL_CAP: usize = 495;
+pub(crate) const LEVEL_CAP: usize = 495;
 
 /// Index tables of one shape `(m, d)`.
 struct Plan {
