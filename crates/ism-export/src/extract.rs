@@ -1308,7 +1308,16 @@ fn extract_surface(
 ) -> Result<(Mesh, ExtractReport)> {
     let model = eval.model();
     // 1. Facet table: (facet key, simplex, patch edge index, patch index), sorted so the owner
-    // comes first (simplex and patch index grow together).
+    // comes first (simplex and patch index grow together). A patch crosses each facet of its
+    // simplex at most once, so the patch index is implied and the sort compares (facet key,
+    // simplex) packed in one `u128`, then the edge index (the tuple's comparison of an array and
+    // three integers made this sort ~4 % of a fitted model's export at 1e-3).
+    let pack = |e: &([u32; 3], u32, u8, u32)| {
+        (u128::from(e.0[0]) << 96)
+            | (u128::from(e.0[1]) << 64)
+            | (u128::from(e.0[2]) << 32)
+            | u128::from(e.1)
+    };
     let mut entries: Vec<([u32; 3], u32, u8, u32)> = patches
         .par_iter()
         .enumerate()
@@ -1325,7 +1334,7 @@ fn extract_surface(
             })
         })
         .collect();
-    entries.par_sort_unstable();
+    entries.par_sort_unstable_by_key(|e| (pack(e), e.2));
     let mut groups: Vec<(usize, usize)> = Vec::new(); // (first entry, end)
     let mut i = 0;
     while i < entries.len() {

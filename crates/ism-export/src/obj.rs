@@ -46,9 +46,13 @@ pub fn write_obj<W: Write>(mesh: &Mesh, name: Option<&str>, mut out: W) -> Resul
                 text.line.push(b'f');
                 for &v in t {
                     text.line.push(b' ');
-                    text.index(v + 1);
                     if has_normals {
+                        // `i//i`: the index formatted once, copied twice.
+                        let i = text.int.format(v + 1).as_bytes();
+                        text.line.extend_from_slice(i);
                         text.line.extend_from_slice(b"//");
+                        text.line.extend_from_slice(i);
+                    } else {
                         text.index(v + 1);
                     }
                 }
