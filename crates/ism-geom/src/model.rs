@@ -283,11 +283,25 @@ impl ModelEval {
     }
 
     /// The point `Σ w_i v_i` of simplex `s` (first `n` entries).
+    #[inline]
     pub fn point(&self, s: usize, w: &Bary) -> [f64; 3] {
+        // The dimension as a constant, so the loops unroll (the exporter maps every test point
+        // through here); the sums are the same, in the same order, for every `n`.
+        match self.n {
+            3 => self.point_n::<3>(s, w),
+            2 => self.point_n::<2>(s, w),
+            _ => self.point_n::<1>(s, w),
+        }
+    }
+
+    #[inline(always)]
+    fn point_n<const N: usize>(&self, s: usize, w: &Bary) -> [f64; 3] {
+        let ids = &self.model.simplices[s * (N + 1)..(s + 1) * (N + 1)];
+        let vertices = &self.model.vertices;
         let mut p = [0.0; 3];
-        for (i, &v) in self.model.simplex(s).iter().enumerate() {
-            let q = self.model.vertex(v as usize);
-            for x in 0..self.n {
+        for (i, &v) in ids.iter().enumerate() {
+            let q = &vertices[v as usize * N..(v as usize + 1) * N];
+            for x in 0..N {
                 p[x] += w[i] * q[x];
             }
         }
