@@ -391,6 +391,37 @@ pub(crate) mod tests {
         assert!(!t.is_closed_oriented_manifold());
     }
 
+    /// Three triangles on one edge (a "book" of three pages), and an isolated triangle: counted by
+    /// hand, one non-manifold edge, six boundary edges on the pages and three on the lone one,
+    /// two components.
+    #[test]
+    fn book_of_three_pages_has_one_non_manifold_edge() {
+        let mut m = Mesh::new(3, Primitive::Triangles);
+        m.positions = vec![
+            [0.0, 0.0, 0.0],
+            [0.0, 0.0, 1.0],
+            [1.0, 0.0, 0.0],
+            [0.0, 1.0, 0.0],
+            [-1.0, -1.0, 0.0],
+            [5.0, 0.0, 0.0],
+            [6.0, 0.0, 0.0],
+            [5.0, 1.0, 0.0],
+        ];
+        m.cells = vec![0, 1, 2, 1, 0, 3, 0, 1, 4, 5, 6, 7];
+        let t = m.topology();
+        assert_eq!(
+            (
+                t.components,
+                t.edges,
+                t.boundary_edges,
+                t.non_manifold_edges,
+                t.orientation_conflicts
+            ),
+            (2, 10, 9, 1, 0)
+        );
+        assert_eq!(t.euler_characteristic, 8 - 10 + 4);
+    }
+
     #[test]
     fn square_polyline_is_closed_with_positive_area() {
         let mut m = Mesh::new(2, Primitive::Segments);
