@@ -727,31 +727,38 @@ impl Fitter<'_> {
             weighted.extend(vertices.into_iter().map(|v| vec![v]));
             weighted.extend(faces.iter().filter(|f| f.len() == 2).cloned());
         }
+        // The blocks and their cells and samples: the sweeps move points only, so these stay.
+        let mut blocks: Vec<(Param, Vec<u32>, Vec<Vec<Bary>>)> = Vec::new();
+        for f in &faces {
+            if f.len() == 2 && self.is_crossing_edge((f[0], f[1])) {
+                continue;
+            }
+            // The interior point of a top simplex stays at its centre (no record): it bends
+            // one cell only, and measured with and without it (issue 17 notes, `ism fit
+            // --preset sphere --tolerance 2e-3`) the fits without it meet the same
+            // tolerance on fewer cells — 1,085 crossed tetrahedra instead of 1,481,
+            // 279 kB instead of 471 kB — since each such record costs 72 bytes.
+            if f.len() == self.n + 1 && !OPTIMIZE_TOP_INTERIOR {
+                continue;
+            }
+            let cells = self.crossing_cells_with_face(f);
+            let samples = self.cell_samples(&cells);
+            blocks.push((Param::Point(f), cells, samples));
+        }
+        for f in &weighted {
+            let cells = if f.len() == 1 {
+                star.get(&f[0]).cloned().unwrap_or_default()
+            } else {
+                self.crossing_cells_with_face(f)
+            };
+            let samples = self.cell_samples(&cells);
+            blocks.push((Param::Weight(f), cells, samples));
+        }
         // Gauss–Seidel sweeps: faces couple only through shared cells, so later passes let each
         // parameter see its neighbours' updates.
         for _ in 0..FIT_SWEEPS {
-            for f in &faces {
-                if f.len() == 2 && self.is_crossing_edge((f[0], f[1])) {
-                    continue;
-                }
-                // The interior point of a top simplex stays at its centre (no record): it bends
-                // one cell only, and measured with and without it (issue 17 notes, `ism fit
-                // --preset sphere --tolerance 2e-3`) the fits without it meet the same
-                // tolerance on fewer cells — 1,085 crossed tetrahedra instead of 1,481,
-                // 279 kB instead of 471 kB — since each such record costs 72 bytes.
-                if f.len() == self.n + 1 && !OPTIMIZE_TOP_INTERIOR {
-                    continue;
-                }
-                let cells = self.crossing_cells_with_face(f);
-                self.optimize(Param::Point(f), &cells);
-            }
-            for f in &weighted {
-                let cells = if f.len() == 1 {
-                    star.get(&f[0]).cloned().unwrap_or_default()
-                } else {
-                    self.crossing_cells_with_face(f)
-                };
-                self.optimize(Param::Weight(f), &cells);
+            for (param, cells, samples) in &blocks {
+                self.optimize(*param, cells, samples);
             }
         }
     }
@@ -840,11 +847,10 @@ impl Fitter<'_> {
     /// know the softmax and weight clamps. The Jacobian of `r = g/|∇g|` is `n̂ · ∂p/∂θ` (exact on
     /// the zero set, Gauss–Newton's usual approximation off it); `∂p/∂θ` by forward differences
     /// of the cheap map, so `g` is evaluated once per trial. Only improving steps are taken.
-    fn optimize(&mut self, param: Param, cells: &[u32]) {
+    fn optimize(&mut self, param: Param, cells: &[u32], samples: &[Vec<Bary>]) {
         if cells.is_empty() {
             return;
         }
-        let samples = self.cell_samples(cells);
         let mut map = std::mem::take(&mut self.map);
         let mut weights = std::mem::take(&mut self.weights);
         let (mut x, bound, edges) = match param {
@@ -875,7 +881,7 @@ impl Fitter<'_> {
         let mut cached: Option<Vec<(LocalStrata, Slot, Vec<Bary>)>> = match param {
             Param::Point(face) => cells
                 .iter()
-                .zip(&samples)
+                .zip(samples)
                 .map(|(&c, us)| {
                     let ids = self.complex.cell(c);
                     let (local, slot) = map.local_with(ids, Some(face));
@@ -907,7 +913,7 @@ impl Fitter<'_> {
                     }
                     out
                 }
-                None => self.block_points(param, x, &edges, cells, &samples, map, weights),
+                None => self.block_points(param, x, &edges, cells, samples, map, weights),
             };
         let mut pts = block_points(&x, &mut map, &mut weights);
         let (mut r, mut normals) = self.residuals_at(&pts);

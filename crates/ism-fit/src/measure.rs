@@ -144,6 +144,47 @@ pub fn report_level(n: usize) -> usize {
     }
 }
 
+/// For each sample of [`patch_samples`] at `DENSE_FACTOR × level` on a patch of `corners`
+/// corners, the index of the same point among the samples at `level` (every `DENSE_FACTOR`-th
+/// lattice point in each direction), `None` for the points between them. Follows
+/// `patch_samples`' order: a segment `0..=l`; a fan of triangles `(0, k, k+1)`, each `i` then
+/// `j ≤ l − i`, the shared edge `j = 0` skipped after the first.
+fn report_sample_indices(corners: usize, level: usize) -> Vec<Option<usize>> {
+    let fine = DENSE_FACTOR * level.max(1);
+    let on = |x: usize| (x % DENSE_FACTOR == 0).then_some(x / DENSE_FACTOR);
+    let mut out = Vec::new();
+    match corners {
+        0 => {}
+        1 => out.push(Some(0)),
+        2 => out.extend((0..=fine).map(on)),
+        _ => {
+            let l = level.max(1);
+            let mut coarse = 0;
+            for k in 1..corners - 1 {
+                for i in 0..=fine {
+                    for j in 0..=fine - i {
+                        if k > 1 && j == 0 {
+                            continue;
+                        }
+                        out.push(match (on(i), on(j)) {
+                            (Some(_), Some(_)) => {
+                                coarse += 1;
+                                Some(coarse - 1)
+                            }
+                            _ => None,
+                        });
+                    }
+                }
+            }
+            debug_assert_eq!(coarse, {
+                let per = (l + 1) * (l + 2) / 2;
+                per + (corners - 3) * (per - (l + 1))
+            });
+        }
+    }
+    out
+}
+
 /// Final width of [`narrow`]'s bracket as a fraction of its first: the bound is then within a
 /// millionth of the bracket of a root (the 20 bisections this replaces gave the same).
 const NARROW_WIDTH: f64 = 1.0 / (1u64 << 20) as f64;
@@ -795,6 +836,8 @@ pub fn measure<G: ImplicitFunction + ?Sized>(
                 error: 0.0,
                 unvisited: 0.0,
             };
+            // Each report sample's bound, kept for the denser pass (it holds these samples).
+            let mut report_bounds = Vec::with_capacity(pts.len());
             for (i, p) in pts.iter().enumerate() {
                 let d = if explicit {
                     g.distance_bound(&p[..n], reach)
@@ -812,6 +855,7 @@ pub fn measure<G: ImplicitFunction + ?Sized>(
                     r.max = if d.is_nan() { f64::INFINITY } else { d };
                     r.at = *p;
                 }
+                report_bounds.push(if d.is_nan() { f64::INFINITY } else { d });
                 r.sum += d;
                 let nearest = pts
                     .iter()
@@ -829,12 +873,19 @@ pub fn measure<G: ImplicitFunction + ?Sized>(
             r.unvisited = r.max;
             if r.max.is_finite() && r.max > DENSE_ABOVE * tolerance {
                 // The denser lattice holds the report's (every DENSE_FACTOR-th point), so its
-                // maximum is at least the report's.
+                // maximum is at least the report's. Those points are the same numbers
+                // (`a·F/(b·F)` and `a/b` round alike) and their bounds are the report's
+                // (`distance_bound` is `bracket_point`'s distance for an expression): reused,
+                // not evaluated again — 8 % of the lattice in 3D, 25 % in 2D (issue 17).
                 let level = DENSE_FACTOR * report_level(n);
                 let mut dense: Vec<(f64, Bary)> = Vec::new();
-                for u in patch_samples(corners, level) {
+                let coarse = report_sample_indices(corners.len(), report_level(n));
+                for (i, u) in patch_samples(corners, level).into_iter().enumerate() {
                     let p = shape.point(*s, &u);
-                    let d = g.distance_bound(&p[..n], reach);
+                    let d = match coarse.get(i).copied().flatten() {
+                        Some(j) => report_bounds[j],
+                        None => g.distance_bound(&p[..n], reach),
+                    };
                     let d = if d.is_nan() { f64::INFINITY } else { d };
                     if d > r.max {
                         r.max = d;
@@ -1788,6 +1839,41 @@ mod tests {
             "{} < {worst}",
             m.target_to_shape_bound
         );
+    }
+
+    #[test]
+    fn the_dense_lattice_holds_the_report_samples_at_the_indices_it_reuses() {
+        // Patch corners of a segment, a triangle, a quadrilateral and a pentagon fan, at
+        // irregular barycentric points (as the patch corners on a simplex's edges are).
+        let pool: [Bary; 5] = [
+            [0.7, 0.3, 0.0, 0.0],
+            [0.0, 0.37, 0.63, 0.0],
+            [0.11, 0.0, 0.0, 0.89],
+            [0.0, 0.0, 0.52, 0.48],
+            [0.0, 0.6, 0.0, 0.4],
+        ];
+        for corners in 1..=5 {
+            for level in [1, 3, 8, 64] {
+                let coarse = patch_samples(&pool[..corners], level);
+                let fine = patch_samples(&pool[..corners], DENSE_FACTOR * level);
+                let index = report_sample_indices(corners, level);
+                assert_eq!(index.len(), fine.len(), "{corners} corners, level {level}");
+                let mut seen = vec![false; coarse.len()];
+                for (u, j) in fine.iter().zip(&index) {
+                    match j {
+                        Some(j) => {
+                            // The same point, bit for bit, so the same bound.
+                            assert_eq!(u.map(f64::to_bits), coarse[*j].map(f64::to_bits));
+                            assert!(!seen[*j]);
+                            seen[*j] = true;
+                        }
+                        // A point between them is none of the report's.
+                        None => assert!(coarse.iter().all(|c| c != u)),
+                    }
+                }
+                assert!(seen.iter().all(|&x| x), "{corners} corners, level {level}");
+            }
+        }
     }
 
     #[test]
