@@ -24,7 +24,9 @@ use crate::expr::ImplicitFunction;
 use crate::isocontour::{patch_corners, patch_samples, topology, Bary, Topology};
 use crate::measure::{measure, Measure, Miss};
 use crate::rational::{RationalWeights, LOG_WEIGHT_BOUND};
-use crate::strata::{edge_logits, LocalStrata, Slot, StratifiedMap, LOGIT_BOUND};
+use crate::strata::{
+    displacement_derivative, edge_logits, LocalStrata, Slot, StratifiedMap, LOGIT_BOUND,
+};
 use crate::FitError;
 
 /// Options of [`fit`].
@@ -845,8 +847,9 @@ impl Fitter<'_> {
     /// Levenberg–Marquardt on one parameter block (≤ 4 unknowns) over the crossing `cells` it acts
     /// on. Hand-written: a dense 4×4 solve is all it needs, and a general solver crate would not
     /// know the softmax and weight clamps. The Jacobian of `r = g/|∇g|` is `n̂ · ∂p/∂θ` (exact on
-    /// the zero set, Gauss–Newton's usual approximation off it); `∂p/∂θ` by forward differences
-    /// of the cheap map, so `g` is evaluated once per trial. Only improving steps are taken.
+    /// the zero set, Gauss–Newton's usual approximation off it); `∂p/∂θ` exactly for a face's
+    /// point ([`LocalStrata::eval_after_jacobian`]) and by forward differences of the cheap map
+    /// for a weight, so `g` is evaluated once per trial. Only improving steps are taken.
     fn optimize(&mut self, param: Param, cells: &[u32], samples: &[Vec<Bary>]) {
         if cells.is_empty() {
             return;
@@ -896,41 +899,65 @@ impl Fitter<'_> {
                 .collect(),
             Param::Weight(_) => None,
         };
-        let mut block_points =
-            |x: &[f64], map: &mut StratifiedMap, weights: &mut RationalWeights| match cached
-                .as_mut()
-            {
-                Some(locals) => {
-                    let mut out = Vec::new();
-                    for (&c, (local, slot, before)) in cells.iter().zip(locals) {
-                        local.set_point(*slot, x);
-                        let ids = self.complex.cell(c);
-                        out.extend(
-                            before
-                                .iter()
-                                .map(|v| self.point_of(ids, &local.eval_after(v, Some(*slot)))),
-                        );
-                    }
-                    out
+        type Cached = Option<Vec<(LocalStrata, Slot, Vec<Bary>)>>;
+        let block_points = |x: &[f64],
+                            map: &mut StratifiedMap,
+                            weights: &mut RationalWeights,
+                            cached: &mut Cached| match cached.as_mut() {
+            Some(locals) => {
+                let mut out = Vec::new();
+                for (&c, (local, slot, before)) in cells.iter().zip(locals) {
+                    local.set_point(*slot, x);
+                    let ids = self.complex.cell(c);
+                    out.extend(
+                        before
+                            .iter()
+                            .map(|v| self.point_of(ids, &local.eval_after(v, Some(*slot)))),
+                    );
                 }
-                None => self.block_points(param, x, &edges, cells, samples, map, weights),
-            };
-        let mut pts = block_points(&x, &mut map, &mut weights);
+                out
+            }
+            None => self.block_points(param, x, &edges, cells, samples, map, weights),
+        };
+        let mut pts = block_points(&x, &mut map, &mut weights, &mut cached);
         let (mut r, mut normals) = self.residuals_at(&pts);
         let mut cost: f64 = r.iter().map(|v| v * v).sum();
         let mut lambda = 1e-3;
         for _ in 0..6 {
-            const H: f64 = 1e-7;
             let mut jac = vec![vec![0.0; r.len()]; k];
-            for (j, col) in jac.iter_mut().enumerate() {
-                let mut xh = x.clone();
-                xh[j] += H;
-                let ph = block_points(&xh, &mut map, &mut weights);
-                for (i, v) in col.iter_mut().enumerate() {
-                    *v = (0..3)
-                        .map(|d| normals[i][d] * (ph[i][d] - pts[i][d]))
-                        .sum::<f64>()
-                        / H;
+            match cached.as_mut() {
+                // A face's point: the exact derivative of the map in its logits.
+                Some(locals) => {
+                    let mut i = 0;
+                    let mut dw = [[0.0; 4]; 4];
+                    let dd = displacement_derivative(&x);
+                    for (&c, (local, slot, before)) in cells.iter().zip(locals.iter_mut()) {
+                        local.set_point(*slot, &x);
+                        let ids = self.complex.cell(c);
+                        for v in before.iter() {
+                            local.eval_after_jacobian(v, *slot, &dd, &mut dw);
+                            for (col, d) in jac.iter_mut().zip(&dw) {
+                                let dp = self.point_of(ids, d);
+                                col[i] = (0..3).map(|e| normals[i][e] * dp[e]).sum::<f64>();
+                            }
+                            i += 1;
+                        }
+                    }
+                }
+                // A weight moves the crossings too: forward differences of the whole map.
+                None => {
+                    const H: f64 = 1e-7;
+                    for (j, col) in jac.iter_mut().enumerate() {
+                        let mut xh = x.clone();
+                        xh[j] += H;
+                        let ph = block_points(&xh, &mut map, &mut weights, &mut cached);
+                        for (i, v) in col.iter_mut().enumerate() {
+                            *v = (0..3)
+                                .map(|d| normals[i][d] * (ph[i][d] - pts[i][d]))
+                                .sum::<f64>()
+                                / H;
+                        }
+                    }
                 }
             }
             let mut improved = false;
@@ -954,7 +981,7 @@ impl Fitter<'_> {
                     .zip(&step)
                     .map(|(a, s)| (a + s).clamp(-bound, bound))
                     .collect();
-                let pn = block_points(&xn, &mut map, &mut weights);
+                let pn = block_points(&xn, &mut map, &mut weights, &mut cached);
                 let (rn, nn) = self.residuals_at(&pn);
                 let cn: f64 = rn.iter().map(|v| v * v).sum();
                 if cn < cost {

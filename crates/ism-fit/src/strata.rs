@@ -40,6 +40,33 @@ pub fn softmax(logits: &[f64]) -> Vec<f64> {
     e.iter().map(|x| x / s).collect()
 }
 
+/// The derivative of a face term's displacement `δ_i = (σ_i − 1/k)·k!` (`σ` the softmax of the
+/// `k` logits `θ`, clamped as [`softmax`] clamps them) in the logits: `out[j][i] = ∂δ_i/∂θ_j =
+/// k!·σ_i(𝟙_{ij} − σ_j)`, and 0 for a logit at or beyond `+LOGIT_BOUND` or below
+/// `−LOGIT_BOUND` (where the clamp holds it: the forward difference the optimizer used there
+/// saw no change).
+pub fn displacement_derivative(logits: &[f64]) -> [[f64; M]; M] {
+    let k = logits.len().min(M);
+    let mut e = [0.0; M];
+    for (x, l) in e.iter_mut().zip(&logits[..k]) {
+        *x = l.clamp(-LOGIT_BOUND, LOGIT_BOUND).exp();
+    }
+    let s: f64 = e[..k].iter().sum();
+    let sigma = e.map(|x| x / s);
+    let factorial: f64 = (1..=k).map(|x| x as f64).product();
+    let mut out = [[0.0; M]; M];
+    for (j, row) in out.iter_mut().enumerate().take(k) {
+        if !(-LOGIT_BOUND..LOGIT_BOUND).contains(&logits[j]) {
+            continue;
+        }
+        for (i, x) in row.iter_mut().enumerate().take(k) {
+            let kronecker = if i == j { 1.0 } else { 0.0 };
+            *x = factorial * sigma[i] * (kronecker - sigma[j]);
+        }
+    }
+    out
+}
+
 /// Logits of the edge point that puts a fraction `alpha` of its weight on the second vertex.
 pub fn edge_logits(alpha: f64) -> [f64; 2] {
     let a = alpha.clamp(1e-9, 1.0 - 1e-9);
@@ -138,6 +165,88 @@ impl LocalStrata {
             .iter()
             .rev()
             .fold(*v, |v, terms| self.apply(terms, v))
+    }
+
+    /// [`LocalStrata::eval_after`] at `v` for the slot's point set to logits `θ` (call
+    /// [`LocalStrata::set_point`] with them first), with its exact derivative: `dw[j]` is
+    /// `∂w/∂θ_j`, for `j` below `k` (the face's size). `w` is bit for bit `eval_after(v, Some(slot))`.
+    /// `delta_derivative` is [`displacement_derivative`]`(θ)` (the same for every sample: the
+    /// optimizer computes it once per iteration).
+    ///
+    /// The slot's term adds `δ_i(θ)·b(v)` to coordinate `p_i`, with `b` the product of the
+    /// stratum's input over the face — which does not depend on `θ`; the strata below are then
+    /// carried forward with the tangents (product rule on each term). Issue 17: the optimizer's
+    /// forward-difference columns were `k` more map passes per Levenberg–Marquardt iteration.
+    pub fn eval_after_jacobian(
+        &self,
+        v: &[f64; M],
+        slot: Slot,
+        delta_derivative: &[[f64; M]; M],
+        dw: &mut [[f64; M]; M],
+    ) -> [f64; M] {
+        let t = &self.strata[slot.stratum][slot.term];
+        let len = t.len;
+        let mut b = 1.0;
+        for &p in &t.positions[..len] {
+            b *= v[p];
+        }
+        let mut w = self.apply(&self.strata[slot.stratum], *v);
+        let mut tangents = [[0.0; M]; M];
+        for (tangent, dd) in tangents.iter_mut().zip(delta_derivative).take(len) {
+            for (i, &p) in t.positions[..len].iter().enumerate() {
+                // A coordinate that `apply` clamped at 0 stays there.
+                if w[p] > 0.0 {
+                    tangent[p] = b * dd[i];
+                }
+            }
+        }
+        for terms in self.strata[..slot.stratum].iter().rev() {
+            w = self.apply_tangents(terms, w, &mut tangents[..len]);
+        }
+        dw[..len].copy_from_slice(&tangents[..len]);
+        w
+    }
+
+    /// [`LocalStrata::apply`] (bit for bit) and its derivative applied to each of `tangents`.
+    fn apply_tangents(&self, terms: &[Term], v: [f64; M], tangents: &mut [[f64; M]]) -> [f64; M] {
+        let mut out = v;
+        let mut inputs = [[0.0; M]; M];
+        inputs[..tangents.len()].copy_from_slice(tangents);
+        for t in terms {
+            let positions = &t.positions[..t.len];
+            let mut b = 1.0;
+            for &p in positions {
+                b *= v[p];
+            }
+            for (tangent, dv) in tangents.iter_mut().zip(&inputs) {
+                // d(Π v_p) = Σ_i dv_{p_i} Π_{l≠i} v_{p_l}.
+                let mut db = 0.0;
+                for (i, &p) in positions.iter().enumerate() {
+                    let mut rest = dv[p];
+                    for (l, &q) in positions.iter().enumerate() {
+                        if l != i {
+                            rest *= v[q];
+                        }
+                    }
+                    db += rest;
+                }
+                for (d, &p) in t.delta[..t.len].iter().zip(positions) {
+                    tangent[p] += d * db;
+                }
+            }
+            for (k, &p) in positions.iter().enumerate() {
+                out[p] += t.delta[k] * b;
+            }
+        }
+        for (x, p) in out.iter_mut().take(self.m).zip(0..) {
+            if *x < 0.0 {
+                *x = 0.0;
+                for tangent in tangents.iter_mut() {
+                    tangent[p] = 0.0;
+                }
+            }
+        }
+        out
     }
 
     /// One stratum.
@@ -349,6 +458,190 @@ mod tests {
                     // In two parts around the slot's stratum.
                     let split = local.eval_after(&local.eval_before(u, slot), slot);
                     assert_eq!(split.map(f64::to_bits), b.map(f64::to_bits));
+                }
+            }
+        }
+    }
+
+    /// A complex number, for the complex-step derivative `Im f(x + ih)/h` (exact to rounding,
+    /// no cancellation): the peer of [`LocalStrata::eval_after_jacobian`].
+    #[derive(Clone, Copy, Debug)]
+    struct C(f64, f64);
+
+    impl std::ops::Add for C {
+        type Output = C;
+        fn add(self, o: C) -> C {
+            C(self.0 + o.0, self.1 + o.1)
+        }
+    }
+
+    impl std::ops::Mul for C {
+        type Output = C;
+        fn mul(self, o: C) -> C {
+            C(self.0 * o.0 - self.1 * o.1, self.0 * o.1 + self.1 * o.0)
+        }
+    }
+
+    impl C {
+        fn exp(self) -> C {
+            let r = self.0.exp();
+            C(r * self.1.cos(), r * self.1.sin())
+        }
+        fn recip(self) -> C {
+            let d = self.0 * self.0 + self.1 * self.1;
+            C(self.0 / d, -self.1 / d)
+        }
+    }
+
+    /// The stratified map on `cell` straight from the module doc's closed form, in complex
+    /// arithmetic: `G_j(w) = w + Σ_τ (b_τ − 𝟙_τ/|τ|)·|τ|!·Π_{i∈τ} w_i` over the `j`-faces `τ`,
+    /// the interior stratum first and the edge stratum last; `b_τ` the softmax of the face's
+    /// logits (w.r.t. its sorted ids). `moved` adds `i·h` to logit `j` of one face.
+    fn closed_form(
+        faces: &[(Vec<u32>, Vec<f64>)],
+        cell: &[u32],
+        u: &[f64; M],
+        moved: Option<(&[u32], usize, f64)>,
+    ) -> [C; M] {
+        let mut w: Vec<C> = u.iter().map(|&x| C(x, 0.0)).collect();
+        for len in (2..=cell.len()).rev() {
+            let input = w.clone();
+            for (face, logits) in faces.iter().filter(|f| f.0.len() == len) {
+                let l: Vec<C> = logits
+                    .iter()
+                    .enumerate()
+                    .map(|(j, &x)| match moved {
+                        Some((f, mj, h)) if f == &face[..] && mj == j => C(x, h),
+                        _ => C(x, 0.0),
+                    })
+                    .collect();
+                let e: Vec<C> = l.iter().map(|x| x.exp()).collect();
+                let sum = e.iter().fold(C(0.0, 0.0), |a, &b| a + b).recip();
+                let factorial: f64 = (1..=len).map(|x| x as f64).product();
+                let positions: Vec<usize> = face
+                    .iter()
+                    .map(|v| cell.iter().position(|c| c == v).unwrap())
+                    .collect();
+                let product = positions.iter().fold(C(1.0, 0.0), |a, &p| a * input[p]);
+                for (i, &p) in positions.iter().enumerate() {
+                    let b = e[i] * sum + C(-1.0 / len as f64, 0.0);
+                    w[p] = w[p] + b * C(factorial, 0.0) * product;
+                }
+            }
+        }
+        [w[0], w[1], w[2], w[3]]
+    }
+
+    #[test]
+    fn the_exact_jacobian_agrees_with_the_complex_step_and_with_differences() {
+        let cell = [7u32, 2, 9, 4];
+        let faces: Vec<(Vec<u32>, Vec<f64>)> = vec![
+            (vec![2, 7], vec![0.0, 0.7]),
+            (vec![4, 9], vec![-0.4, 0.3]),
+            (vec![2, 9], vec![0.2, -0.5]),
+            (vec![2, 4, 9], vec![0.3, -0.2, 0.5]),
+            (vec![4, 7, 9], vec![-0.6, 0.1, 0.4]),
+            (vec![2, 4, 7, 9], vec![0.3, -0.2, 0.5, 1.0]),
+        ];
+        let mut map = StratifiedMap::new(3);
+        for (f, l) in &faces {
+            map.set_logits(f, l);
+        }
+        let us = [
+            [0.1, 0.2, 0.3, 0.4],
+            [0.25, 0.25, 0.25, 0.25],
+            [0.6, 0.05, 0.15, 0.2],
+            [0.0, 0.5, 0.25, 0.25],
+        ];
+        // Faces with a stored point, one without (its term starts at the centre), one edge of
+        // the stratum acting last and triangles of the one before it.
+        for face in [
+            vec![2u32, 7],
+            vec![2, 4, 9],
+            vec![4, 7, 9],
+            vec![2, 4],
+            vec![2, 4, 7],
+        ] {
+            let (mut local, slot) = map.local_with(&cell, Some(&face));
+            let slot = slot.unwrap();
+            let x = map.logits(&face);
+            local.set_point(slot, &x);
+            let mut faces = faces.clone();
+            if !faces.iter().any(|f| f.0 == face) {
+                faces.push((face.clone(), x.clone()));
+            }
+            for u in &us {
+                let v = local.eval_before(u, Some(slot));
+                let mut dw = [[f64::NAN; M]; M];
+                let w = local.eval_after_jacobian(&v, slot, &displacement_derivative(&x), &mut dw);
+                let plain = local.eval_after(&v, Some(slot));
+                assert_eq!(w.map(f64::to_bits), plain.map(f64::to_bits));
+                let peer = closed_form(&faces, &cell, u, None);
+                for c in 0..M {
+                    assert!((peer[c].0 - w[c]).abs() < 1e-14, "{face:?} {u:?}");
+                }
+                for j in 0..face.len() {
+                    const H: f64 = 1e-30;
+                    let cs = closed_form(&faces, &cell, u, Some((&face, j, H)));
+                    // Central differences of the map itself, a second peer.
+                    const D: f64 = 1e-6;
+                    let mut xp = x.clone();
+                    let mut xm = x.clone();
+                    xp[j] += D;
+                    xm[j] -= D;
+                    local.set_point(slot, &xp);
+                    let wp = local.eval_after(&v, Some(slot));
+                    local.set_point(slot, &xm);
+                    let wm = local.eval_after(&v, Some(slot));
+                    local.set_point(slot, &x);
+                    for c in 0..M {
+                        let exact = cs[c].1 / H;
+                        assert!(
+                            (dw[j][c] - exact).abs() <= 1e-13 * (1.0 + exact.abs()),
+                            "{face:?} {u:?} logit {j} coordinate {c}: {} vs {exact}",
+                            dw[j][c]
+                        );
+                        let fd = (wp[c] - wm[c]) / (2.0 * D);
+                        assert!((dw[j][c] - fd).abs() < 1e-8, "{} vs {fd}", dw[j][c]);
+                    }
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn a_logit_at_its_clamp_has_the_forward_differences_zero_column() {
+        let cell = [3u32, 5, 8];
+        let face = [3u32, 5, 8];
+        let mut map = StratifiedMap::new(2);
+        map.set_logits(&[3, 5], &[0.0, -1.0]);
+        let (mut local, slot) = map.local_with(&cell, Some(&face));
+        let slot = slot.unwrap();
+        let x = [LOGIT_BOUND, 0.5, -LOGIT_BOUND];
+        local.set_point(slot, &x);
+        let u = [0.2, 0.3, 0.5, 0.0];
+        let v = local.eval_before(&u, Some(slot));
+        let mut dw = [[0.0; M]; M];
+        let w = local.eval_after_jacobian(&v, slot, &displacement_derivative(&x), &mut dw);
+        for j in 0..3 {
+            const H: f64 = 1e-7;
+            let mut xh = x;
+            xh[j] += H;
+            local.set_point(slot, &xh);
+            let wh = local.eval_after(&v, Some(slot));
+            for c in 0..M {
+                let fd = (wh[c] - w[c]) / H;
+                if j == 0 {
+                    // Held at +LOGIT_BOUND: moving it up changes nothing.
+                    assert_eq!(dw[j][c], 0.0);
+                    assert_eq!(fd, 0.0);
+                } else {
+                    assert!(dw[j][c] != 0.0 || c == 3);
+                    assert!(
+                        (dw[j][c] - fd).abs() < 1e-6,
+                        "{j} {c}: {} vs {fd}",
+                        dw[j][c]
+                    );
                 }
             }
         }
