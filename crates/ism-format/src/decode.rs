@@ -984,26 +984,8 @@ impl<'a, T: Tokens<'a>> Decoder<'a, T> {
         Ok(offset)
     }
 
-    fn array(
-        &mut self,
-        what: &str,
-        mut element: impl FnMut(&mut Self) -> Result<()>,
-    ) -> Result<()> {
-        let (head, offset) = self.head()?;
-        let Head::Array(count) = head else {
-            return Err(self.wrong(offset, what, &head));
-        };
-        self.enter(offset)?;
-        let mut seq = Seq::new(count);
-        let mut i = 0;
-        while self.tok.next_element(&mut seq).map_err(|f| self.err(f))? {
-            self.path.push(Seg::Index(i));
-            element(self)?;
-            self.path.pop();
-            i += 1;
-        }
-        self.depth -= 1;
-        Ok(())
+    fn array(&mut self, what: &str, element: impl FnMut(&mut Self) -> Result<()>) -> Result<()> {
+        self.array_of::<false>(what, element)
     }
 
     /// [`Decoder::array`] for elements that are neither arrays nor objects (numbers): the index is
@@ -1012,6 +994,17 @@ impl<'a, T: Tokens<'a>> Decoder<'a, T> {
     fn flat_array(
         &mut self,
         what: &str,
+        element: impl FnMut(&mut Self) -> Result<()>,
+    ) -> Result<()> {
+        self.array_of::<true>(what, element)
+    }
+
+    /// The array walk of [`Decoder::array`] (`FLAT = false`: each index pushed on the path) and
+    /// [`Decoder::flat_array`] (`FLAT = true`: noted in [`Decoder::element`]); a const parameter so
+    /// each keeps its own loop with no branch per element.
+    fn array_of<const FLAT: bool>(
+        &mut self,
+        what: &str,
         mut element: impl FnMut(&mut Self) -> Result<()>,
     ) -> Result<()> {
         let (head, offset) = self.head()?;
@@ -1022,9 +1015,15 @@ impl<'a, T: Tokens<'a>> Decoder<'a, T> {
         let mut seq = Seq::new(count);
         let mut i = 0;
         while self.tok.next_element(&mut seq).map_err(|f| self.err(f))? {
-            self.element = Some(i);
-            element(self)?;
-            self.element = None;
+            if FLAT {
+                self.element = Some(i);
+                element(self)?;
+                self.element = None;
+            } else {
+                self.path.push(Seg::Index(i));
+                element(self)?;
+                self.path.pop();
+            }
             i += 1;
         }
         self.depth -= 1;
