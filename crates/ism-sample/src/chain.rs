@@ -1441,31 +1441,19 @@ mod tests {
                 .sum::<f64>()
                 .sqrt();
             let c: Vec<_> = patch.corners.iter().map(|c| c.u).collect();
-            let k = 24;
-            for i in 0..=k {
-                for j in 0..=(if n == 2 { 0 } else { k - i }) {
-                    let (a, b) = (f64::from(i) / f64::from(k), f64::from(j) / f64::from(k));
-                    let mut u = [0.0; MAX_VARS];
-                    for t in 0..=n {
-                        u[t] = if n == 2 {
-                            (1.0 - a) * c[0][t] + a * c[1][t]
-                        } else {
-                            (1.0 - a - b) * c[0][t] + a * c[1][t] + b * c[2][t]
-                        };
-                    }
-                    let w = map.inverse(&u).w;
-                    let jac = map.jacobian(&w).1.unwrap();
-                    let g = eval.gradient_from_jacobian(s, &jac);
-                    let det = linalg::det(n, &jac);
-                    let exact = g[..n].iter().map(|x| x * x).sum::<f64>().sqrt() / (lin * det);
-                    let bound = chain.over(&u[..=n], &u[..=n]);
-                    assert!(
-                        exact <= bound,
-                        "simplex {s}, u {:?}: J = {exact} > bound {bound}",
-                        &u[..=n]
-                    );
-                    checked += 1;
-                }
+            for u in lattice(n, &c, 24) {
+                let w = map.inverse(&u).w;
+                let jac = map.jacobian(&w).1.unwrap();
+                let g = eval.gradient_from_jacobian(s, &jac);
+                let det = linalg::det(n, &jac);
+                let exact = g[..n].iter().map(|x| x * x).sum::<f64>().sqrt() / (lin * det);
+                let bound = chain.over(&u[..=n], &u[..=n]);
+                assert!(
+                    exact <= bound,
+                    "simplex {s}, u {:?}: J = {exact} > bound {bound}",
+                    &u[..=n]
+                );
+                checked += 1;
             }
         }
         assert!(checked > 0);
@@ -1479,9 +1467,27 @@ mod tests {
         check(&parametric_square(), 64);
     }
 
-    /// The leaves of all-parametric maps tile each root region (shares sum to 1) and their
-    /// bounds dominate exact `J` (from the stage Jacobians at the point, not from the
-    /// enclosures) on a lattice of each leaf, at small and large budgets.
+    /// The points of a lattice of `m` steps per side on the cell with corners `v` (a segment for
+    /// n = 2, a triangle for n = 3), in the coordinates of the corners.
+    fn lattice(n: usize, v: &[[f64; 4]], m: u32) -> Vec<[f64; MAX_VARS]> {
+        let mut out = Vec::new();
+        for k in 0..=m {
+            for j in 0..=(if n == 2 { 0 } else { m - k }) {
+                let (a, b) = (f64::from(k) / f64::from(m), f64::from(j) / f64::from(m));
+                let mut u = [0.0; MAX_VARS];
+                for t in 0..=n {
+                    u[t] = if n == 2 {
+                        (1.0 - a) * v[0][t] + a * v[1][t]
+                    } else {
+                        (1.0 - a - b) * v[0][t] + a * v[1][t] + b * v[2][t]
+                    };
+                }
+                out.push(u);
+            }
+        }
+        out
+    }
+
     /// The exact area element `|∇g| / (|∇f_lin| det J)` of simplex `s` at the points of a lattice
     /// of `m` steps per side on the cell with corners `v` (a segment for n = 2, a triangle for
     /// n = 3), from the stage Jacobians at each point — not from any enclosure: the ground truth
@@ -1495,27 +1501,20 @@ mod tests {
     ) -> Vec<f64> {
         let n = eval.model().dim();
         let map = eval.local_map(s);
-        let mut out = Vec::new();
-        for k in 0..=m {
-            for j in 0..=(if n == 2 { 0 } else { m - k }) {
-                let (a, b) = (f64::from(k) / f64::from(m), f64::from(j) / f64::from(m));
-                let mut u = [0.0; MAX_VARS];
-                for t in 0..=n {
-                    u[t] = if n == 2 {
-                        (1.0 - a) * v[0][t] + a * v[1][t]
-                    } else {
-                        (1.0 - a - b) * v[0][t] + a * v[1][t] + b * v[2][t]
-                    };
-                }
-                let solved = map.param_solve(&u).unwrap();
+        lattice(n, v, m)
+            .iter()
+            .map(|u| {
+                let solved = map.param_solve(u).unwrap();
                 let g = eval.gradient_from_jacobian(s, &solved.jacobian);
                 let det = linalg::det(n, &solved.jacobian);
-                out.push(g[..n].iter().map(|x| x * x).sum::<f64>().sqrt() / (lin * det));
-            }
-        }
-        out
+                g[..n].iter().map(|x| x * x).sum::<f64>().sqrt() / (lin * det)
+            })
+            .collect()
     }
 
+    /// The leaves of all-parametric maps tile each root region (shares sum to 1) and their
+    /// bounds dominate exact `J` (from the stage Jacobians at the point, not from the
+    /// enclosures) on a lattice of each leaf, at small and large budgets.
     #[test]
     fn parametric_leaves_tile_the_patch_and_dominate_the_area_element() {
         let mut stratified = example("stratified-3d");
