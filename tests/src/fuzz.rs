@@ -152,8 +152,8 @@ pub fn import_mesh(data: &[u8]) {
     }
 }
 
-/// Target `fit_mesh`: the bytes as OBJ and as glTF/GLB (`ism fit --mesh`'s readers). Never a
-/// panic; a mesh read has triangles whose ids are in range and finite positions.
+/// Target `fit_mesh`: the bytes as OBJ and as glTF/GLB (`ism fit --mesh`'s readers: `ism_export`'s
+/// `obj::read_obj` and `gltf::read_gltf`, then `ism_fit`'s welding). Never a panic; a mesh read has triangles whose ids are in range and finite positions.
 pub fn fit_mesh(data: &[u8]) {
     use ism_fit::mesh::TriangleMesh;
     // A path whose directory holds no buffer: relative glTF buffer URIs fail as missing files.

@@ -85,3 +85,151 @@ impl From<std::io::Error> for Error {
 
 /// `Result` with this crate's [`Error`].
 pub type Result<T> = std::result::Result<T, Error>;
+
+/// Why an OBJ or glTF/GLB triangle mesh could not be read ([`crate::obj::read_obj`],
+/// [`crate::gltf::read_gltf`]). Each variant says where: the OBJ object and triangle, the glTF mesh,
+/// primitive, accessor, buffer, node or scene. The messages are those `ism fit --mesh` prints after
+/// the file's name.
+#[derive(Debug, thiserror::Error)]
+pub enum MeshReadError {
+    /// `tobj` could not parse the text.
+    #[error("OBJ: {0}")]
+    Obj(tobj::LoadError),
+    /// A face names a vertex its object does not have.
+    #[error(
+        "OBJ object `{object}`, triangle {triangle}: vertex index out of range (has {vertices} \
+         vertices)"
+    )]
+    ObjIndex {
+        /// The object's name.
+        object: String,
+        /// The triangle, counted within the object after triangulation.
+        triangle: usize,
+        /// The object's vertices.
+        vertices: usize,
+    },
+    /// The `gltf` crate could not parse or validate the document.
+    #[error("glTF: {0}")]
+    Gltf(::gltf::Error),
+    /// A primitive names an accessor the document does not have.
+    #[error("glTF mesh {mesh}, primitive {primitive}: accessor {accessor} does not exist")]
+    GltfAccessor {
+        /// Mesh index.
+        mesh: usize,
+        /// Primitive index within the mesh.
+        primitive: usize,
+        /// The missing accessor.
+        accessor: usize,
+    },
+    /// A relative buffer URI whose percent-decoding is not UTF-8.
+    #[error("glTF buffer {buffer}: URI is not UTF-8 after percent-decoding")]
+    GltfBufferUri {
+        /// Buffer index.
+        buffer: usize,
+    },
+    /// The buffers' declared lengths together pass `Limits::max_payload_bytes`.
+    #[error(
+        "the glTF buffers declare {declared} bytes, above the limit of {limit} (max_payload_bytes)"
+    )]
+    GltfBufferBytes {
+        /// Sum of the declared lengths (saturating).
+        declared: u64,
+        /// The limit.
+        limit: u64,
+    },
+    /// A buffer could not be loaded (a missing file, a bad `data:` URI, a short blob).
+    #[error("glTF buffers: {0}")]
+    GltfBuffers(::gltf::Error),
+    /// A node chain deeper than the reader walks.
+    #[error("glTF node hierarchy deeper than {max}")]
+    GltfNodeDepth {
+        /// The deepest level walked.
+        max: usize,
+    },
+    /// A node reached twice within one scene (two parents, or a child listed twice).
+    #[error(
+        "glTF node {node} is reached twice in scene {scene}; nodes form disjoint trees (glTF \
+         2.0), each with at most one parent"
+    )]
+    GltfNodeTwice {
+        /// Node index.
+        node: usize,
+        /// Scene index, in the order the scenes are read.
+        scene: usize,
+    },
+    /// A triangle primitive without positions.
+    #[error("mesh {mesh}, primitive {primitive}: no POSITION data")]
+    GltfNoPositions {
+        /// Mesh index.
+        mesh: usize,
+        /// Primitive index within the mesh.
+        primitive: usize,
+    },
+    /// An indices accessor of a type glTF 2.0 §3.7.2.1 forbids.
+    #[error(
+        "mesh {mesh}, primitive {primitive}: indices accessor {accessor} holds {data_type:?} \
+         {dimensions:?}; expected unsigned byte, short or int scalars"
+    )]
+    GltfIndexType {
+        /// Mesh index.
+        mesh: usize,
+        /// Primitive index within the mesh.
+        primitive: usize,
+        /// The accessor.
+        accessor: usize,
+        /// Its component type.
+        data_type: ::gltf::accessor::DataType,
+        /// Its element type.
+        dimensions: ::gltf::accessor::Dimensions,
+    },
+    /// An index past the primitive's vertices.
+    #[error(
+        "mesh {mesh}, primitive {primitive}: index {index} out of range ({vertices} vertices)"
+    )]
+    GltfIndexRange {
+        /// Mesh index.
+        mesh: usize,
+        /// Primitive index within the mesh.
+        primitive: usize,
+        /// The index.
+        index: u32,
+        /// The primitive's vertices.
+        vertices: usize,
+    },
+    /// More vertices or triangles than the limits allow (or than `u32` ids can address).
+    #[error("the mesh has more than {max} {what} (limit {limit})")]
+    TooLarge {
+        /// The bound passed.
+        max: u64,
+        /// `vertices` or `triangles`.
+        what: &'static str,
+        /// The `Limits` field: `max_vertices` or `max_simplices`.
+        limit: &'static str,
+    },
+}
+
+impl MeshReadError {
+    /// [`MeshReadError::TooLarge`] when `vertices` or `triangles` pass `limits` — or pass what
+    /// `u32` vertex ids can address, whatever the limits say (a larger id would wrap).
+    pub(crate) fn check_counts(
+        vertices: usize,
+        triangles: usize,
+        limits: &ism_format::io::Limits,
+    ) -> std::result::Result<(), MeshReadError> {
+        let max_vertices = limits.max_vertices.min(u64::from(u32::MAX));
+        for (count, max, what, limit) in [
+            (vertices, max_vertices, "vertices", "max_vertices"),
+            (
+                triangles,
+                limits.max_simplices,
+                "triangles",
+                "max_simplices",
+            ),
+        ] {
+            if count as u64 > max {
+                return Err(MeshReadError::TooLarge { max, what, limit });
+            }
+        }
+        Ok(())
+    }
+}

@@ -1,19 +1,26 @@
-//! glTF 2.0 writer (`.gltf` with an embedded base64 buffer, and binary `.glb`), built with the
-//! `gltf-json` data model so the document is the spec's own types.
+//! glTF 2.0: the writer (`.gltf` with an embedded base64 buffer, and binary `.glb`), built with the
+//! `gltf-json` data model so the document is the spec's own types, and the triangle reader
+//! `ism fit --mesh` uses ([`read_gltf`], through the `gltf` crate, with the checks that keep its
+//! panics on hostile input out of reach).
 //!
-//! Layout: one buffer holding positions (`VEC3` f32, with the exact f32 `min`/`max` the spec
+//! Writer layout: //! one buffer holding positions (`VEC3` f32, with the exact f32 `min`/`max` the spec
 //! requires), unit normals (`VEC3` f32), then indices (`SCALAR` u32); one mesh with one primitive
 //! (`TRIANGLES`, or `LINES` for 2D curves), one node, one scene. Every section is a multiple of 4
 //! bytes, so every accessor is aligned.
 
 use std::borrow::Cow;
 use std::io::Write;
+use std::path::Path;
 
 use base64::Engine;
 use gltf_json as json;
 use json::validation::{Checked, USize64};
 
-use crate::mesh::{Mesh, Primitive};
+use ism_format::io::Limits;
+
+use crate::error::MeshReadError;
+use crate::import::RawMesh;
+use crate::mesh::{cross, dot, Mesh, Primitive};
 use crate::{Error, Result};
 
 /// Which glTF container to write.
@@ -269,6 +276,242 @@ fn unit_f32(n: [f64; 3]) -> [f32; 3] {
     ]
 }
 
+/// Reads glTF JSON or binary GLB as triangles: every triangle primitive (triangles, strips, fans)
+/// of every mesh instanced by the nodes of the default scene (all scenes if none is marked default;
+/// every mesh untransformed if there is no scene), with the nodes' transforms applied (mirroring
+/// ones flip the triangles back to counter-clockwise). Buffers referenced by relative URIs are read
+/// from `base` (the file's directory). Within `limits`: the buffers' declared lengths together
+/// against `max_payload_bytes` before any is read, the vertices and triangles gathered so far
+/// against `max_vertices` and `max_simplices` before each primitive is added. The vertices are as
+/// stored, not welded; the fields and tetrahedra of the [`RawMesh`] are empty.
+///
+/// # Errors
+/// A [`MeshReadError`] naming the mesh, primitive, accessor, buffer, node or scene: a parse or
+/// validation error, a missing buffer, an index out of range, a node reached twice, a limit passed.
+pub fn read_gltf(
+    bytes: &[u8],
+    base: Option<&Path>,
+    limits: &Limits,
+) -> std::result::Result<RawMesh, MeshReadError> {
+    let raw = ::gltf::Gltf::from_slice_without_validation(bytes).map_err(MeshReadError::Gltf)?;
+    // gltf-json 1.4.1's validation indexes `accessors[POSITION]` without a bounds check
+    // (src/mesh.rs:151) and panics on a bad index; check those indices before validating.
+    let json = raw.document.as_json();
+    for (mi, mesh) in json.meshes.iter().enumerate() {
+        for (pi, p) in mesh.primitives.iter().enumerate() {
+            let bad = p
+                .attributes
+                .values()
+                .chain(p.indices.as_ref())
+                .find(|a| a.value() >= json.accessors.len());
+            if let Some(a) = bad {
+                return Err(MeshReadError::GltfAccessor {
+                    mesh: mi,
+                    primitive: pi,
+                    accessor: a.value(),
+                });
+            }
+        }
+    }
+    let document =
+        ::gltf::Document::from_json(raw.document.into_json()).map_err(MeshReadError::Gltf)?;
+    // gltf 1.4.1's `import_buffers` unwraps the percent-decoding of a relative buffer URI
+    // (src/import.rs:50) and panics when the result is not UTF-8: refuse such a URI first, with
+    // the same decoder (found by the `fit_mesh` fuzz target).
+    for buffer in document.buffers() {
+        if let ::gltf::buffer::Source::Uri(uri) = buffer.source() {
+            if !uri.contains(':') && urlencoding::decode(uri).is_err() {
+                return Err(MeshReadError::GltfBufferUri {
+                    buffer: buffer.index(),
+                });
+            }
+        }
+    }
+    // Saturating: hostile lengths near u64::MAX must not overflow the sum (a panic in debug
+    // builds, a wrapped sum that passes the check in release).
+    let declared = document
+        .buffers()
+        .fold(0u64, |sum, b| sum.saturating_add(b.length() as u64));
+    if declared > limits.max_payload_bytes {
+        return Err(MeshReadError::GltfBufferBytes {
+            declared,
+            limit: limits.max_payload_bytes,
+        });
+    }
+    let buffers =
+        ::gltf::import_buffers(&document, base, raw.blob).map_err(MeshReadError::GltfBuffers)?;
+    let mut out = RawMesh::default();
+    let doc = &document;
+    let scenes: Vec<::gltf::Scene> = match doc.default_scene() {
+        Some(s) => vec![s],
+        None => doc.scenes().collect(),
+    };
+    if scenes.is_empty() {
+        for mesh in doc.meshes() {
+            add_mesh(&mesh, &IDENTITY, &buffers, limits, &mut out)?;
+        }
+    }
+    // glTF 2.0: the node hierarchy is a set of disjoint strict trees, so a node is reached
+    // once per scene. A file that reaches one twice (two parents, or the same child listed
+    // twice) would instance its subtree 2^depth times from a few bytes: refused. Scenes may
+    // share nodes; a node already loaded by an earlier scene is not loaded again (the shape
+    // would hold the same triangles twice).
+    let mut loaded_by: Vec<Option<usize>> = vec![None; doc.nodes().len()];
+    for (si, scene) in scenes.into_iter().enumerate() {
+        // Explicit stack instead of recursion: a deep node chain in a hostile file cannot
+        // overflow it. glTF validation forbids cycles, and the depth cap is a second guard.
+        let mut stack: Vec<(::gltf::Node, [[f64; 4]; 4], usize)> =
+            scene.nodes().map(|n| (n, IDENTITY, 0)).collect();
+        while let Some((node, parent, depth)) = stack.pop() {
+            if depth > MAX_NODE_DEPTH {
+                return Err(MeshReadError::GltfNodeDepth {
+                    max: MAX_NODE_DEPTH,
+                });
+            }
+            match loaded_by[node.index()] {
+                Some(s) if s == si => {
+                    return Err(MeshReadError::GltfNodeTwice {
+                        node: node.index(),
+                        scene: si,
+                    });
+                }
+                Some(_) => continue,
+                None => loaded_by[node.index()] = Some(si),
+            }
+            let local = node.transform().matrix().map(|c| c.map(f64::from));
+            let world = mat_mul(&parent, &local);
+            if let Some(mesh) = node.mesh() {
+                add_mesh(&mesh, &world, &buffers, limits, &mut out)?;
+            }
+            stack.extend(node.children().map(|c| (c, world, depth + 1)));
+        }
+    }
+    Ok(out)
+}
+
+/// Deeper node chains are rejected rather than walked (no real asset comes near this).
+const MAX_NODE_DEPTH: usize = 1024;
+
+const IDENTITY: [[f64; 4]; 4] = [
+    [1.0, 0.0, 0.0, 0.0],
+    [0.0, 1.0, 0.0, 0.0],
+    [0.0, 0.0, 1.0, 0.0],
+    [0.0, 0.0, 0.0, 1.0],
+];
+
+/// Column-major 4×4 product `a · b` (glTF's layout: `m[column][row]`).
+fn mat_mul(a: &[[f64; 4]; 4], b: &[[f64; 4]; 4]) -> [[f64; 4]; 4] {
+    let mut out = [[0.0; 4]; 4];
+    for (c, col) in out.iter_mut().enumerate() {
+        for (r, x) in col.iter_mut().enumerate() {
+            *x = (0..4).map(|k| a[k][r] * b[c][k]).sum();
+        }
+    }
+    out
+}
+
+/// `m · (p, 1)`, the affine part of a column-major transform applied to a point.
+fn transform(m: &[[f64; 4]; 4], p: [f32; 3]) -> [f64; 3] {
+    let p = p.map(f64::from);
+    [0, 1, 2].map(|r| m[0][r] * p[0] + m[1][r] * p[1] + m[2][r] * p[2] + m[3][r])
+}
+
+/// Appends the triangle primitives of `mesh`, placed by `world`, to `out`.
+fn add_mesh(
+    mesh: &::gltf::Mesh,
+    world: &[[f64; 4]; 4],
+    buffers: &[::gltf::buffer::Data],
+    limits: &Limits,
+    out: &mut RawMesh,
+) -> std::result::Result<(), MeshReadError> {
+    use ::gltf::mesh::Mode;
+    // A mirroring transform turns counter-clockwise triangles clockwise (glTF spec §3.7.4).
+    let linear = [
+        [world[0][0], world[0][1], world[0][2]],
+        [world[1][0], world[1][1], world[1][2]],
+        [world[2][0], world[2][1], world[2][2]],
+    ];
+    let mirrored = dot(linear[0], cross(linear[1], linear[2])) < 0.0;
+    for (pi, primitive) in mesh.primitives().enumerate() {
+        let mode = primitive.mode();
+        if !matches!(
+            mode,
+            Mode::Triangles | Mode::TriangleStrip | Mode::TriangleFan
+        ) {
+            continue;
+        }
+        let reader = primitive.reader(|b| buffers.get(b.index()).map(|d| &d.0[..]));
+        let Some(positions) = reader.read_positions() else {
+            return Err(MeshReadError::GltfNoPositions {
+                mesh: mesh.index(),
+                primitive: pi,
+            });
+        };
+        // glTF 2.0 §3.7.2.1: an indices accessor MUST hold unsigned byte, short or int scalars. The
+        // `gltf` crate's index reader assumes it (`unreachable!` otherwise), so check first.
+        if let Some(acc) = primitive.indices() {
+            use ::gltf::accessor::{DataType, Dimensions};
+            if !matches!(
+                acc.data_type(),
+                DataType::U8 | DataType::U16 | DataType::U32
+            ) || acc.dimensions() != Dimensions::Scalar
+            {
+                return Err(MeshReadError::GltfIndexType {
+                    mesh: mesh.index(),
+                    primitive: pi,
+                    accessor: acc.index(),
+                    data_type: acc.data_type(),
+                    dimensions: acc.dimensions(),
+                });
+            }
+        }
+        let base = out.points.len();
+        // Checked before anything is added: the positions' length is their accessor's count.
+        MeshReadError::check_counts(base + positions.len(), out.triangles.len(), limits)?;
+        out.points.extend(positions.map(|p| transform(world, p)));
+        let count = out.points.len() - base;
+        let indices: Vec<u32> = match reader.read_indices() {
+            Some(i) => i.into_u32().collect(),
+            None => (0..count as u32).collect(),
+        };
+        if let Some(&bad) = indices.iter().find(|&&i| i as usize >= count) {
+            return Err(MeshReadError::GltfIndexRange {
+                mesh: mesh.index(),
+                primitive: pi,
+                index: bad,
+                vertices: count,
+            });
+        }
+        let tris: Vec<[u32; 3]> = match mode {
+            Mode::Triangles => indices
+                .chunks_exact(3)
+                .map(|c| [c[0], c[1], c[2]])
+                .collect(),
+            Mode::TriangleStrip => (2..indices.len())
+                .map(|i| {
+                    if i % 2 == 0 {
+                        [indices[i - 2], indices[i - 1], indices[i]]
+                    } else {
+                        [indices[i - 1], indices[i - 2], indices[i]]
+                    }
+                })
+                .collect(),
+            _ => (2..indices.len())
+                .map(|i| [indices[0], indices[i - 1], indices[i]])
+                .collect(),
+        };
+        MeshReadError::check_counts(out.points.len(), out.triangles.len() + tris.len(), limits)?;
+        for t in tris {
+            let mut t = t.map(|i| (base + i as usize) as u32);
+            if mirrored {
+                t.swap(1, 2);
+            }
+            out.triangles.push(t);
+        }
+    }
+    Ok(())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -329,5 +572,26 @@ mod tests {
         let doc = read_back(&bytes);
         assert_eq!(doc.scenes().count(), 0);
         assert_eq!(doc.meshes().count(), 0);
+    }
+
+    /// The reader reads what the writer wrote, in both containers: the same triangles on the
+    /// same (f32-rounded) positions.
+    #[test]
+    fn read_gltf_reads_the_writer() {
+        let mesh = tetrahedron_surface();
+        for container in [GltfContainer::Binary, GltfContainer::Text] {
+            let mut bytes = Vec::new();
+            write_gltf(&mesh, Some("tet"), container, &mut bytes).unwrap();
+            let raw = read_gltf(&bytes, None, &Limits::default()).unwrap();
+            assert_eq!(raw.triangles.len() * 3, mesh.cells.len(), "{container:?}");
+            for (t, c) in raw.triangles.iter().zip(mesh.cells.chunks(3)) {
+                for k in 0..3 {
+                    let ours = mesh.positions[c[k] as usize].map(|x| f64::from(x as f32));
+                    assert_eq!(raw.points[t[k] as usize], ours, "{container:?}");
+                }
+            }
+        }
+        let err = read_gltf(b"{", None, &Limits::default()).unwrap_err();
+        assert!(matches!(err, MeshReadError::Gltf(_)), "{err:?}");
     }
 }

@@ -10,6 +10,8 @@
 //!   [`vtk`] (legacy `.vtk` and XML `.vtu`); [`format`](mod@format) picks one from a file name.
 //! - [`volume`]: the complex with `F` as VTK Bézier cells (exact for one polynomial stage).
 //! - [`import`]: `.vtu` / `.vtk` / `.msh` simplicial meshes with a point field → linear ISM.
+//! - Triangle-mesh readers beside their writers, for `ism fit --mesh`: [`obj::read_obj`],
+//!   [`gltf::read_gltf`] (errors: [`MeshReadError`]).
 //!
 //! ```
 //! use ism_export::{extract::{extract, ExtractOptions}, format::{write_mesh, ExportFormat}, marching::marching};
@@ -58,5 +60,5 @@ pub mod volume;
 pub mod vtk;
 mod vtu_data;
 
-pub use error::{Error, Result};
+pub use error::{Error, MeshReadError, Result};
 pub use mesh::Mesh;

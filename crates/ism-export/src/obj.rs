@@ -1,4 +1,5 @@
-//! Wavefront OBJ writer: `v`, `vn`, and `f` (triangles) or `l` (segments).
+//! Wavefront OBJ: the writer (`v`, `vn`, and `f` (triangles) or `l` (segments)) and the triangle
+//! reader `ism fit --mesh` uses ([`read_obj`], through `tobj`).
 //!
 //! Our own writer: the format is a few lines of text, and the crate that reads it (`tobj`) does not
 //! write. Numbers are printed in their shortest round-trip form (`zmij`, as `serde_json` prints
@@ -8,8 +9,59 @@
 
 use std::io::Write;
 
+use crate::error::MeshReadError;
+use crate::import::RawMesh;
 use crate::mesh::{Mesh, Primitive};
 use crate::Result;
+
+/// Reads Wavefront OBJ text as triangles (polygons are triangulated by `tobj`, materials ignored,
+/// the objects concatenated), within `limits` (`max_vertices`, `max_simplices`; the text's size is
+/// the caller's to bound). The vertices are as written: not welded, possibly unused; the fields and
+/// tetrahedra of the [`RawMesh`] are empty.
+///
+/// # Errors
+/// [`MeshReadError::Obj`] on a parse error, [`MeshReadError::ObjIndex`] on a vertex index out of
+/// range, [`MeshReadError::TooLarge`] past a limit.
+pub fn read_obj(
+    bytes: &[u8],
+    limits: &ism_format::io::Limits,
+) -> std::result::Result<RawMesh, MeshReadError> {
+    let options = tobj::LoadOptions {
+        triangulate: true,
+        ..Default::default()
+    };
+    // Materials are irrelevant to the shape: the loader is told none exist.
+    let (models, _) = tobj::load_obj_buf(&mut std::io::Cursor::new(bytes), &options, |_| {
+        Err(tobj::LoadError::OpenFileFailed)
+    })
+    .map_err(MeshReadError::Obj)?;
+    let vertices: usize = models.iter().map(|m| m.mesh.positions.len() / 3).sum();
+    let triangles: usize = models.iter().map(|m| m.mesh.indices.len() / 3).sum();
+    MeshReadError::check_counts(vertices, triangles, limits)?;
+    let mut raw = RawMesh::default();
+    for model in &models {
+        let m = &model.mesh;
+        let base = raw.points.len();
+        let count = m.positions.len() / 3;
+        raw.points.extend(
+            m.positions
+                .chunks_exact(3)
+                .map(|c| [f64::from(c[0]), f64::from(c[1]), f64::from(c[2])]),
+        );
+        for (t, tri) in m.indices.chunks_exact(3).enumerate() {
+            if tri.iter().any(|&i| i as usize >= count) {
+                return Err(MeshReadError::ObjIndex {
+                    object: model.name.clone(),
+                    triangle: t,
+                    vertices: count,
+                });
+            }
+            raw.triangles
+                .push([0, 1, 2].map(|k| (base + tri[k] as usize) as u32));
+        }
+    }
+    Ok(raw)
+}
 
 /// Writes `mesh` as OBJ text. Vertex `i` of the mesh is OBJ vertex `i + 1`, with normal `i + 1`.
 ///
@@ -147,5 +199,38 @@ mod tests {
         for (&theirs, &ours) in m.indices.iter().zip(&mesh.cells) {
             assert_eq!(corners(theirs), mesh.positions[ours as usize].to_vec());
         }
+    }
+
+    /// The reader reads what the writer wrote (the same triangles, exact positions: the writer
+    /// prints shortest round-trip numbers), and names the object and triangle of a bad index.
+    #[test]
+    fn read_obj_reads_the_writer_and_locates_bad_indices() {
+        let mesh = tetrahedron_surface();
+        let mut bytes = Vec::new();
+        write_obj(&mesh, Some("tet"), &mut bytes).unwrap();
+        let limits = ism_format::io::Limits::default();
+        let raw = read_obj(&bytes, &limits).unwrap();
+        let ours: Vec<[u32; 3]> = mesh.cells.chunks(3).map(|c| [c[0], c[1], c[2]]).collect();
+        assert_eq!(raw.triangles.len(), ours.len());
+        for (theirs, ours) in raw.triangles.iter().zip(&ours) {
+            let p = |t: &[u32; 3], k: usize| t[k] as usize;
+            for k in 0..3 {
+                assert_eq!(raw.points[p(theirs, k)], mesh.positions[p(ours, k)]);
+            }
+        }
+        let bad = b"o box\nv 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\nf 1 2 9\n";
+        match read_obj(bad, &limits) {
+            Err(MeshReadError::ObjIndex { .. }) | Err(MeshReadError::Obj(_)) => {}
+            other => panic!("{other:?}"),
+        }
+        let small = ism_format::io::Limits {
+            max_simplices: 3,
+            ..limits
+        };
+        let err = read_obj(&bytes, &small).unwrap_err();
+        assert_eq!(
+            err.to_string(),
+            "the mesh has more than 3 triangles (limit max_simplices)"
+        );
     }
 }
