@@ -15,6 +15,10 @@
 //! - [`shell`]: the written complex — the simplices that hold the solid, the records that move
 //!   the shape.
 //! - [`isocontour`]: the linear isocomplex, its topology and samples; [`svg`]: 2D pictures.
+//! - [`mesh`]: closed triangle meshes as targets (loading, winding numbers, signed distance).
+//! - Editing models: [`hermite`] (free-form modeling from Hermite data), [`smooth`] (normal jumps
+//!   across facets), [`c1`] (rational C¹ weights); the first two optimize the layered map of
+//!   [`layered`] (`X = S ∘ Y⁻¹`, the block's exact Jacobian) face by face with [`lm`].
 //!
 //! ```
 //! use ism_fit::{fit, FitOptions, Preset};
@@ -42,6 +46,8 @@ pub mod fit;
 pub mod hermite;
 pub mod interval;
 pub mod isocontour;
+pub mod layered;
+pub mod lm;
 pub mod measure;
 pub mod mesh;
 pub mod presets;

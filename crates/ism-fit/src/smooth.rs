@@ -40,7 +40,8 @@ use ism_format::model::Model;
 use ism_format::progress::Progress;
 use ism_geom::{Bary, MAX_VARS};
 
-use crate::hermite::{check_structure, lm_face, EditError, Jet, Layered, Sample};
+use crate::layered::{check_structure, EditError, Jet, Layered, Sample};
+use crate::lm::lm_face;
 use crate::strata::StratifiedMap;
 
 /// Points of `O` sampled per 3D facet along `θ ∩ δ` — the value ISM-401 uses, so the objective
@@ -408,7 +409,7 @@ pub fn smooth_with_progress(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::hermite::faces_of;
+    use crate::layered::faces_of;
     use crate::{fit, FitOptions, Preset};
 
     fn valid(model: &Model) -> bool {
@@ -530,7 +531,7 @@ mod tests {
             let jb = Jet::new(&layer.map, &layer.frames()[p.b.cell].ids);
             let na = layer.normal(&ja, &p.a).unwrap().1;
             let nb = layer.normal(&jb, &p.b).unwrap().1;
-            worst = worst.max(crate::hermite::angle_deg(&na, &nb));
+            worst = worst.max(crate::layered::angle_deg(&na, &nb));
         }
         assert!((worst - b.max).abs() < 1e-6, "{worst} vs {}", b.max);
     }
