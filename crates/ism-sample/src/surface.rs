@@ -149,9 +149,10 @@ struct Ahead {
 
 /// One selection entry of the alias table with what a draw from it reads, in one record (two
 /// cache lines): the table is read at random, so the slot's alias pair, the region's corners and
-/// bound, and where its patch is are read together instead of from four arrays.
+/// bound, and where its patch is are read together instead of from four arrays. Laid out in
+/// declaration order: the corners fill the first line and half the second.
 #[derive(Clone, Debug)]
-#[repr(align(64))]
+#[repr(C, align(64))]
 struct Slot {
     /// Corners of the region (barycentric `u`; a segment uses the first two).
     u: [Bary; 3],
@@ -178,14 +179,22 @@ const FAST_STAGES: usize = 4;
 /// model and the evaluator so that a candidate reads one record (and its stages' terms, back to
 /// back) instead of chasing the simplex's vertex ids, values, inverse edge matrix and local map.
 /// The arithmetic is the evaluator's, in the same order, so the results are the same bits.
+/// Four cache lines exactly (laid out in declaration order, aligned to a line), so that
+/// [`SurfaceTable::pick_ahead`] can touch each of them.
 #[derive(Clone, Debug)]
+#[repr(C, align(64))]
 struct FastPatch {
     simplex: u32,
     /// Number of triangles (0 for a segment).
     triangles: u8,
     stages: u8,
-    /// `(start, end, degree)` of each stage's terms in [`SurfaceTable::terms`], processing order.
-    ranges: [(u32, u32, u32); FAST_STAGES],
+    /// Where the first stage's terms start in [`SurfaceTable::terms`]; the stages' terms follow
+    /// each other, in processing order.
+    first: u32,
+    /// End of each stage's terms, counted from `first` (what fits a `u16`: see
+    /// [`FastPatch::new`]).
+    ends: [u16; FAST_STAGES],
+    degrees: [u8; FAST_STAGES],
     linear_gradient: f64,
     /// `f_{k+1} − f_0` (vertex values in the simplex's order), as
     /// [`ModelEval::gradient_from_jacobian`] computes them.
@@ -196,6 +205,8 @@ struct FastPatch {
     values: [f64; MAX_VARS],
     vertices: [[f64; 3]; MAX_VARS],
 }
+
+const _: () = assert!(std::mem::size_of::<FastPatch>() == 4 * 64);
 
 /// Diagonal of the model's bounding box (1 for an empty model).
 pub(crate) fn model_scale(model: &Model) -> f64 {
@@ -316,8 +327,11 @@ fn build_patch(
             ([t, t], 1u8, 1.0, a0)
         }
     };
-    let values: Vec<f64> = ids.iter().map(|&v| model.values[v as usize]).collect();
     let map = eval.local_map(s);
+    if map.stages().is_empty() {
+        return Ok(stage_free_patch(s, &tris, count, first_fraction, area, &g));
+    }
+    let values: Vec<f64> = ids.iter().map(|&v| model.values[v as usize]).collect();
     let parametric = map
         .stages()
         .iter()
@@ -444,6 +458,44 @@ fn build_patch(
             Vec::new()
         },
     })
+}
+
+/// The patch of a simplex whose local map has no stage (fitted models leave the simplices no
+/// control point moves without one): the shape there is the linear patch itself, `DX = I` and
+/// `F = F_lin`, so `J = |∇F| / (|∇F_lin| det DX) = 1` exactly and `1` is its certified bound
+/// on the whole patch. The regions are the patch's triangles (its segment in 2D): every
+/// candidate is accepted, so splitting them further would only lengthen the selection table.
+fn stage_free_patch(
+    s: usize,
+    tris: &[[Bary; 3]; 2],
+    count: u8,
+    first_fraction: f64,
+    area: f64,
+    gradient: &[f64; 3],
+) -> PatchEntry {
+    let regions = (0..usize::from(count.max(1)))
+        .map(|t| RegionEntry {
+            u: tris[t],
+            g: tris[t],
+            fraction: if t == 0 {
+                first_fraction
+            } else {
+                1.0 - first_fraction
+            },
+            bound: 1.0,
+        })
+        .collect();
+    PatchEntry {
+        simplex: s as u32,
+        triangles: count,
+        linear_area: area,
+        bound: 1.0,
+        regions,
+        linear_gradient: norm(gradient),
+        guessed: false,
+        sample_mean: 1.0,
+        sparse: Vec::new(),
+    }
 }
 
 /// Inputs of [`implicit_region_bounds`].
@@ -719,15 +771,18 @@ impl SurfaceTable {
                     here.alias
                 };
             }
-            // Touch what each candidate reads first; the sum only keeps the reads.
+            // Touch what each candidate reads: both lines of its slot, the four lines of its
+            // patch record, its stages' first terms; the sum only keeps the reads.
             let mut touched = 0u64;
             for &k in &ahead.slots {
                 let slot = &self.slots[k as usize];
-                touched ^= slot.u[2][0].to_bits();
+                touched ^= slot.u[0][0].to_bits() ^ slot.bound.to_bits();
                 if let Some(fast) = self.fast.get(slot.fast as usize) {
-                    touched ^= fast.vertices[MAX_VARS - 1][2].to_bits();
-                    for &(start, _, _) in &fast.ranges[..usize::from(fast.stages)] {
-                        touched ^= self.terms[start as usize].1[0].to_bits();
+                    touched ^= fast.inv[1].to_bits()
+                        ^ fast.values[0].to_bits()
+                        ^ fast.vertices[MAX_VARS - 1][0].to_bits();
+                    for k in 0..usize::from(fast.stages) {
+                        touched ^= self.terms[fast.stage(k).0].1[0].to_bits();
                     }
                 }
             }
@@ -846,11 +901,17 @@ impl SurfaceTable {
             &region_weights(fast.triangles, rng),
             fast.triangles,
         );
-        let mut w = ism_geom::stage::project(n + 1, &u);
+        // A stage-free patch draws as `draw_with`'s stage-free branch: `w = u`, `J ≡ 1`.
+        let mut w = if fast.stages == 0 {
+            u
+        } else {
+            ism_geom::stage::project(n + 1, &u)
+        };
         let mut dy = ism_geom::stage::identity_mat(n);
-        for &(start, end, degree) in &fast.ranges[..usize::from(fast.stages)] {
-            let terms = &self.terms[start as usize..end as usize];
-            let (next, j) = sparse_jacobian(terms, degree as usize, n + 1, &w);
+        for k in 0..usize::from(fast.stages) {
+            let (start, end, degree) = fast.stage(k);
+            let terms = &self.terms[start..end];
+            let (next, j) = sparse_jacobian(terms, degree, n + 1, &w);
             dy = linalg::mul(n, &j, &dy);
             w = next;
         }
@@ -864,7 +925,8 @@ impl SurfaceTable {
         for (x, g) in scaled.iter_mut().enumerate().take(n) {
             *g = (0..n).map(|l| dw[l] * fast.inv[l * 3 + x]).sum();
         }
-        if self.weighting == Weighting::CurvedArea {
+        // No stage: the shape is the linear patch, `J ≡ 1` (no rounding should decide).
+        if self.weighting == Weighting::CurvedArea && fast.stages > 0 {
             let dim = if fast.triangles == 0 { 2 } else { 3 };
             let j = area_element_parametric(
                 s,
@@ -1499,12 +1561,28 @@ fn region_point(points: &[Bary; 3], weights: &[f64; 3], triangles: u8) -> Bary {
 }
 
 impl FastPatch {
+    /// `(start, end, degree)` of stage `k`'s terms in [`SurfaceTable::terms`].
+    fn stage(&self, k: usize) -> (usize, usize, usize) {
+        let first = self.first as usize;
+        let start = if k == 0 {
+            0
+        } else {
+            usize::from(self.ends[k - 1])
+        };
+        (
+            first + start,
+            first + usize::from(self.ends[k]),
+            usize::from(self.degrees[k]),
+        )
+    }
+
     /// The record of an all-parametric patch whose stages are all sparse Bézier stages (at most
-    /// [`FAST_STAGES`]), appending their terms to `terms`; `None` otherwise.
+    /// [`FAST_STAGES`] with at most `u16::MAX` terms in all; none: a stage-free patch), appending
+    /// their terms to `terms`; `None` otherwise (the patch is then drawn through the kernel).
     fn new(eval: &ModelEval, patch: &PatchEntry, terms: &mut Vec<Term>) -> Option<FastPatch> {
         let s = patch.simplex as usize;
         let stages = eval.local_map(s).stages().len();
-        if patch.guessed || stages == 0 || patch.sparse.len() != stages || stages > FAST_STAGES {
+        if patch.guessed || patch.sparse.len() != stages || stages > FAST_STAGES {
             return None;
         }
         let model = eval.model();
@@ -1528,17 +1606,25 @@ impl FastPatch {
             values[i] = model.values[v as usize];
             vertices[i][..n].copy_from_slice(model.vertex(v as usize));
         }
-        let mut ranges = [(0, 0, 0); FAST_STAGES];
-        for (range, st) in ranges.iter_mut().zip(&patch.sparse) {
-            let start = terms.len() as u32;
+        let first = u32::try_from(terms.len()).ok()?;
+        let mut ends = [0; FAST_STAGES];
+        let mut degrees = [0; FAST_STAGES];
+        let mut end = 0usize;
+        for (k, st) in patch.sparse.iter().enumerate() {
+            end += st.terms.len();
+            ends[k] = u16::try_from(end).ok()?;
+            degrees[k] = u8::try_from(st.degree).ok()?;
+        }
+        for st in &patch.sparse {
             terms.extend_from_slice(&st.terms);
-            *range = (start, terms.len() as u32, st.degree as u32);
         }
         Some(FastPatch {
             simplex: patch.simplex,
             triangles: patch.triangles,
             stages: stages as u8,
-            ranges,
+            first,
+            ends,
+            degrees,
             linear_gradient: patch.linear_gradient,
             df,
             inv,
@@ -1618,6 +1704,120 @@ mod tests {
                 }
             }
         }
+    }
+
+    /// `stratified-3d` made parametric, its stages' moved points kept only on the faces that
+    /// contain vertex `keep`: the simplices without that vertex have no stage at all (as fitted
+    /// models leave the simplices no control point moves).
+    fn partly_stage_free(keep: u32) -> ism_format::Model {
+        let path = format!(
+            "{}/../../spec/examples/stratified-3d.ism.json",
+            env!("CARGO_MANIFEST_DIR")
+        );
+        let mut model = ism_format::io::read_path(path).unwrap().model;
+        for stage in &mut model.stages {
+            stage.direction = Direction::Parametric;
+            stage
+                .faces
+                .edit(|faces| faces.retain(|f| f.face.contains(&keep)));
+        }
+        model
+    }
+
+    /// A stage-free patch is drawn from its triangles with the bound 1 — the kernel's exact `J`
+    /// there is 1 to rounding, checked on a lattice of each — while the staged patches of the
+    /// same table keep their refined leaves; the fast records (stage-free ones included) draw the
+    /// same bits as the general route, one pick at a time and eight ahead.
+    #[test]
+    fn stage_free_patches_are_their_triangles_with_bound_one() {
+        use rand::SeedableRng;
+        let model = partly_stage_free(model_vertex_of_a_crossed_simplex());
+        let eval = ModelEval::new(&model).unwrap();
+        let table =
+            SurfaceTable::with_expected_samples(&eval, Weighting::CurvedArea, Some(100_000))
+                .unwrap();
+        let (mut free, mut staged) = (0, 0);
+        for p in &table.patches {
+            let s = p.simplex as usize;
+            let map = eval.local_map(s);
+            if !map.stages().is_empty() {
+                staged += 1;
+                continue;
+            }
+            free += 1;
+            assert_eq!(p.regions(), usize::from(p.triangles.max(1)));
+            for r in &p.regions {
+                assert_eq!(r.bound, 1.0);
+                for k in 0..3 {
+                    for l in 0..3 {
+                        // Points of the region (corners and edge midpoints).
+                        let u: Bary = std::array::from_fn(|x| 0.5 * (r.u[k][x] + r.u[l][x]));
+                        let solved = map.param_solve(&u).unwrap();
+                        let grad = eval.gradient_from_jacobian(s, &solved.jacobian);
+                        let det = linalg::det(3, &solved.jacobian);
+                        let j = norm(&grad[..3]) / (p.linear_gradient * det);
+                        assert!((j - 1.0).abs() <= 1e-12, "simplex {s}: J = {j}");
+                    }
+                }
+            }
+            let fractions: f64 = p.regions.iter().map(|r| r.fraction).sum();
+            assert!((fractions - 1.0).abs() <= 1e-15);
+        }
+        assert!(
+            free > 0 && staged > 0,
+            "{free} stage-free, {staged} staged patches"
+        );
+        assert!(table.pick_ahead, "a patch without a fast record");
+        let mut slow = table.clone();
+        slow.fast.clear();
+        let draws = |t: &SurfaceTable, ahead: bool| {
+            let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(5);
+            let mut out = Vec::new();
+            if ahead {
+                t.draw_each(&eval, &mut rng, 3000, |p, _| {
+                    out.push(p);
+                    Ok(())
+                })
+                .unwrap();
+            } else {
+                out = (0..3000)
+                    .map(|_| t.draw(&eval, &mut rng).unwrap())
+                    .collect();
+            }
+            out
+        };
+        for ahead in [false, true] {
+            let (a, b) = (draws(&table, ahead), draws(&slow, ahead));
+            let free_drawn = a
+                .iter()
+                .filter(|p| eval.local_map(p.simplex).stages().is_empty())
+                .count();
+            assert!(free_drawn > 0, "no sample on a stage-free patch");
+            for (x, y) in a.iter().zip(&b) {
+                let bits = |p: &SurfacePoint| {
+                    let mut v: Vec<u64> =
+                        p.p.iter().chain(&p.normal).map(|x| x.to_bits()).collect();
+                    v.push(p.value.to_bits());
+                    v.push(p.simplex as u64);
+                    v
+                };
+                assert_eq!(bits(x), bits(y), "ahead {ahead}");
+            }
+        }
+    }
+
+    /// A vertex of the first crossed simplex of `stratified-3d`.
+    fn model_vertex_of_a_crossed_simplex() -> u32 {
+        let path = format!(
+            "{}/../../spec/examples/stratified-3d.ism.json",
+            env!("CARGO_MANIFEST_DIR")
+        );
+        let model = ism_format::io::read_path(path).unwrap().model;
+        let eval = ModelEval::new(&model).unwrap();
+        let s = (0..model.num_simplices())
+            .find(|&s| eval.patch(s).is_some())
+            .unwrap();
+        model.simplex(s)[0]
     }
 
     #[test]

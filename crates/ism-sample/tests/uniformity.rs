@@ -294,8 +294,8 @@ fn every_sample_is_in_its_simplex_and_on_the_level_set() {
 }
 
 /// The same seed gives the same rows on one and on two threads: an implicit model with the
-/// fixed refinement threshold, and an all-parametric one with a table sized for the samples (as
-/// `ism sample` builds it).
+/// fixed refinement threshold, and all-parametric ones (one partly stage-free) with a table sized
+/// for the samples (as `ism sample` builds it).
 #[test]
 fn output_does_not_depend_on_the_thread_count() {
     let models = common::curved_models();
@@ -304,6 +304,11 @@ fn output_does_not_depend_on_the_thread_count() {
         (
             models[6].0,
             &models[6].1,
+            Some(3 * ism_sample::seed::CHUNK as u64 + 17),
+        ),
+        (
+            models[7].0,
+            &models[7].1,
             Some(3 * ism_sample::seed::CHUNK as u64 + 17),
         ),
     ] {

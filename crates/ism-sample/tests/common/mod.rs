@@ -186,6 +186,25 @@ pub fn curved_models() -> Vec<(&'static str, Model)> {
     for stage in &mut pst.stages {
         stage.direction = ism_format::Direction::Parametric;
     }
-    out.push(("3d stratified, parametric", pst));
+    out.push(("3d stratified, parametric", pst.clone()));
+    // As fitted models are: stages that move nothing on part of the complex (here the faces
+    // with a vertex at x < 0 keep their identity points), whose simplices have no stage at all.
+    let mut half = pst;
+    let x = |v: u32| half.vertices[3 * v as usize];
+    let kept: Vec<Vec<FaceRecord>> = half
+        .stages
+        .iter()
+        .map(|st| {
+            st.faces
+                .to_records()
+                .into_iter()
+                .filter(|f| f.face.iter().all(|&v| x(v) > 0.0))
+                .collect()
+        })
+        .collect();
+    for (st, faces) in half.stages.iter_mut().zip(kept) {
+        st.faces = faces.into();
+    }
+    out.push(("3d stratified, parametric, half stage-free", half));
     out
 }
