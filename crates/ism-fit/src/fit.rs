@@ -22,7 +22,7 @@ use rayon::prelude::*;
 use crate::complex::{Complex, EdgeKey};
 use crate::expr::ImplicitFunction;
 use crate::isocontour::{patch_corners, patch_samples, topology, Bary, Topology};
-use crate::measure::{measure, Measure, Miss};
+use crate::measure::{measure_cached, Measure, MeasureCache, Miss};
 use crate::rational::{RationalWeights, LOG_WEIGHT_BOUND};
 use crate::strata::{
     displacement_derivative, edge_logits, LocalStrata, Slot, StratifiedMap, LOGIT_BOUND,
@@ -1492,6 +1492,8 @@ pub fn fit(
     // refine there and go again.
     let min_cell = (MIN_CELL_FRACTION * options.tolerance).max(MIN_CELL_OF_DOMAIN * size);
     let mut rounds = 0;
+    // Each round's measure re-measures only the patches the round changed (same numbers).
+    let mut measure_cache = MeasureCache::new();
     let (model, m, clusters, pv_failures, pv_unfinished) = loop {
         fitter.accuracy(options, min_cell, progress)?;
         // The complex's Plantinga–Vegter status, whether or not the topology phase ran.
@@ -1533,8 +1535,15 @@ pub fn fit(
             .iter()
             .map(|c| (c.centre.clone(), c.radius + options.tolerance))
             .collect();
-        let m = measure(g, &model, &options.domain, options.tolerance, &regions)
-            .map_err(FitError::Eval)?;
+        let m = measure_cached(
+            g,
+            &model,
+            &options.domain,
+            options.tolerance,
+            &regions,
+            &mut measure_cache,
+        )
+        .map_err(FitError::Eval)?;
         let done = m.meets(options.tolerance)
             || rounds == TWO_SIDED_ROUNDS
             || fitter.complex.num_cells() >= options.max_simplices;
@@ -2015,6 +2024,7 @@ fn simplex_test(complex: &Complex, c: u32) -> Option<impl Fn(&[f64], &[f64]) -> 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::measure::measure;
     use crate::presets::Preset;
 
     #[test]

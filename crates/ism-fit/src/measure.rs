@@ -773,6 +773,131 @@ fn distance(a: &[f64], b: &[f64; 3]) -> f64 {
         .sqrt()
 }
 
+/// One patch's `S → Z` result (at the report samples, then the dense pass and the ascents):
+/// a function of the target, the measure's settings and the patch's own data only, so a
+/// [`MeasureCache`] can keep it while that data is unchanged. Nothing in it names the patch's
+/// simplex index (which changes when the complex does).
+#[derive(Clone, Debug)]
+struct PatchResult {
+    max: f64,
+    at: [f64; 3],
+    sum: f64,
+    count: usize,
+    spacing: f64,
+    cover: f64,
+    /// The samples and their bounds, when the measure reports regions (`with_points`).
+    points: Vec<([f64; 3], f64)>,
+    with_points: bool,
+    /// Points of `Z` found from the samples (expressions).
+    zeros: Vec<([f64; 3], f64)>,
+    /// Samples of the denser pass.
+    dense: usize,
+    /// The most a local ascent gained over its start.
+    error: f64,
+    /// The largest sample value no ascent started from.
+    unvisited: f64,
+}
+
+impl PatchResult {
+    /// Whether `self` and `other` hold the same numbers, bit for bit (NaN included).
+    #[cfg(test)]
+    fn same_bits(&self, other: &PatchResult) -> bool {
+        let f = |a: f64, b: f64| a.to_bits() == b.to_bits();
+        let p = |a: &[f64; 3], b: &[f64; 3]| a.iter().zip(b).all(|(x, y)| f(*x, *y));
+        let pts = |a: &[([f64; 3], f64)], b: &[([f64; 3], f64)]| {
+            a.len() == b.len() && a.iter().zip(b).all(|(x, y)| p(&x.0, &y.0) && f(x.1, y.1))
+        };
+        f(self.max, other.max)
+            && p(&self.at, &other.at)
+            && f(self.sum, other.sum)
+            && self.count == other.count
+            && f(self.spacing, other.spacing)
+            && f(self.cover, other.cover)
+            && pts(&self.points, &other.points)
+            && self.with_points == other.with_points
+            && pts(&self.zeros, &other.zeros)
+            && self.dense == other.dense
+            && f(self.error, other.error)
+            && f(self.unvisited, other.unvisited)
+    }
+}
+
+/// The measure's per-patch `S → Z` results kept across the measures of one fit (issue 17:
+/// each two-sided round measured every patch again although only the refined cells and their
+/// neighbours changed; that was about a third of each measure). A result is reused only where
+/// everything it was computed from is the same, bit for bit: the patch's simplex (its vertex
+/// ids in order, their coordinates and values, the model's level) and every stage's kind,
+/// degree, direction and records on the simplex's faces ([`patch_key`]) — what the kernel's
+/// map on the simplex and the patch's corners are built from — and the measure's settings
+/// (domain, tolerance). So a measure with the cache returns the same numbers as one without.
+/// One cache serves one target `g`: the caller must not share it between targets.
+#[derive(Debug, Default)]
+pub struct MeasureCache {
+    /// `(domain, tolerance)` bits the results were measured with.
+    settings: Vec<u64>,
+    /// Per simplex (its vertex ids in order): its [`patch_key`] and result.
+    patches: std::collections::HashMap<Vec<u32>, (Vec<u64>, std::sync::Arc<PatchResult>)>,
+    /// The `Z → S` box cover's leaves, where they do not depend on `S` ([`box_cover`]).
+    leaves: Option<Vec<Leaf>>,
+    /// Results reused by the last measure (for tests and traces).
+    reused: usize,
+}
+
+impl MeasureCache {
+    /// An empty cache.
+    pub fn new() -> MeasureCache {
+        MeasureCache::default()
+    }
+
+    /// How many patches the last measure took from the cache.
+    pub fn reused(&self) -> usize {
+        self.reused
+    }
+}
+
+/// Everything the kernel's shape on simplex `s` is built from, as bits (see [`MeasureCache`]);
+/// `None` for a model with a monotonic stage (its per-vertex maps are not keyed here, so such
+/// a model is always measured afresh).
+fn patch_key(model: &IndexedModel, s: usize) -> Option<Vec<u64>> {
+    use ism_format::model::{Direction, StageKind};
+    let ids = model.simplex(s);
+    let m = ids.len();
+    let mut key = Vec::with_capacity(64);
+    key.push(model.level.to_bits());
+    for &v in ids {
+        key.push(u64::from(v));
+        key.extend(model.vertex(v as usize).iter().map(|x| x.to_bits()));
+        key.push(model.values[v as usize].to_bits());
+    }
+    let faces = model.topology().faces_by_mask(model, s);
+    for (i, stage) in model.stages.iter().enumerate() {
+        let kind = match stage.kind {
+            StageKind::Bezier => 0,
+            StageKind::Rational => 1,
+            StageKind::Monotonic => return None,
+        };
+        let direction = match stage.direction {
+            Direction::Implicit => 0,
+            Direction::Parametric => 1,
+        };
+        key.extend([kind, direction, u64::from(stage.degree)]);
+        let table = model.stage(i);
+        for face in &faces[1..1 << m] {
+            // A face without a record takes the identity's control points: only whether it has
+            // one matters, and what it holds when it does.
+            match table.record_of(*face) {
+                None => key.push(u64::MAX),
+                Some(_) => {
+                    let (points, weights) = (table.face_points(*face), table.face_weights(*face));
+                    key.extend([points.len() as u64, weights.len() as u64]);
+                    key.extend(points.iter().chain(weights).map(|x| x.to_bits()));
+                }
+            }
+        }
+    }
+    Some(key)
+}
+
 /// Measures a model's shape against `g` (module doc). `tolerance` sets the resolution of the
 /// `Z → S` cover; `regions` are `(centre, radius)` pairs to report the error near. The kernel
 /// evaluates the model through its index (`IndexedModel::for_evaluation` of a fitter's model).
@@ -786,6 +911,149 @@ pub fn measure<G: ImplicitFunction + ?Sized>(
     tolerance: f64,
     regions: &[(Vec<f64>, f64)],
 ) -> Result<Measure, ism_geom::GeomError> {
+    measure_with(g, model, domain, tolerance, regions, None)
+}
+
+/// [`measure`], taking each unchanged patch's `S → Z` result from `cache` (and leaving there
+/// this model's): the same numbers as [`measure`], in less time when few patches changed since
+/// the cache's last measure of the same target `g`.
+///
+/// # Errors
+/// The kernel's error when the model does not evaluate.
+pub fn measure_cached<G: ImplicitFunction + ?Sized>(
+    g: &G,
+    model: &IndexedModel,
+    domain: &[f64],
+    tolerance: f64,
+    regions: &[(Vec<f64>, f64)],
+    cache: &mut MeasureCache,
+) -> Result<Measure, ism_geom::GeomError> {
+    measure_with(g, model, domain, tolerance, regions, Some(cache))
+}
+
+/// The `S → Z` result of the patch of simplex `s` with `corners` (module doc).
+#[allow(clippy::too_many_arguments)]
+fn measure_patch<G: ImplicitFunction + ?Sized>(
+    g: &G,
+    shape: &Shape,
+    s: usize,
+    corners: &[Bary],
+    reach: f64,
+    tolerance: f64,
+    want_points: bool,
+) -> PatchResult {
+    let n = shape.n;
+    let explicit = g.is_explicit();
+    let us = patch_samples(corners, report_level(n));
+    let pts: Vec<[f64; 3]> = us.iter().map(|u| shape.point(s, u)).collect();
+    let mut r = PatchResult {
+        max: 0.0,
+        at: pts[0],
+        sum: 0.0,
+        count: pts.len(),
+        spacing: 0.0,
+        cover: lattice_cover(&pts, corners.len(), report_level(n)),
+        points: Vec::new(),
+        with_points: want_points,
+        zeros: Vec::new(),
+        dense: 0,
+        error: 0.0,
+        unvisited: 0.0,
+    };
+    // Each report sample's bound, kept for the denser pass (it holds these samples).
+    let mut report_bounds = Vec::with_capacity(pts.len());
+    for (i, p) in pts.iter().enumerate() {
+        let d = if explicit {
+            g.distance_bound(&p[..n], reach)
+        } else {
+            match bracket_point(g, &p[..n], reach) {
+                Some((d, z)) => {
+                    // `p` is a point of S: `dist(z, S) ≤ |z − p|`.
+                    r.zeros.push((z, distance(&p[..], &z)));
+                    d
+                }
+                None => f64::INFINITY,
+            }
+        };
+        if d > r.max || d.is_nan() {
+            r.max = if d.is_nan() { f64::INFINITY } else { d };
+            r.at = *p;
+        }
+        report_bounds.push(if d.is_nan() { f64::INFINITY } else { d });
+        r.sum += d;
+        let nearest = pts
+            .iter()
+            .enumerate()
+            .filter(|(j, _)| *j != i)
+            .map(|(_, q)| distance(&p[..], q))
+            .fold(f64::INFINITY, f64::min);
+        if nearest.is_finite() {
+            r.spacing = r.spacing.max(nearest);
+        }
+        if want_points {
+            r.points.push((*p, d));
+        }
+    }
+    r.unvisited = r.max;
+    if r.max.is_finite() && r.max > DENSE_ABOVE * tolerance {
+        // The denser lattice holds the report's (every DENSE_FACTOR-th point), so its
+        // maximum is at least the report's. Those points are the same numbers
+        // (`a·F/(b·F)` and `a/b` round alike) and their bounds are the report's
+        // (`distance_bound` is `bracket_point`'s distance for an expression): reused,
+        // not evaluated again — 8 % of the lattice in 3D, 25 % in 2D (issue 17).
+        let level = DENSE_FACTOR * report_level(n);
+        let mut dense: Vec<(f64, Bary)> = Vec::new();
+        let coarse = report_sample_indices(corners.len(), report_level(n));
+        for (i, u) in patch_samples(corners, level).into_iter().enumerate() {
+            let p = shape.point(s, &u);
+            let d = match coarse.get(i).copied().flatten() {
+                Some(j) => report_bounds[j],
+                None => g.distance_bound(&p[..n], reach),
+            };
+            let d = if d.is_nan() { f64::INFINITY } else { d };
+            if d > r.max {
+                r.max = d;
+                r.at = p;
+            }
+            dense.push((d, u));
+        }
+        r.dense += dense.len();
+        // Then uphill from the worst few: the peak can be narrower than the lattice
+        // (near a patch corner close to a vertex of the simplex the map is steep).
+        dense.sort_by(|a, b| b.0.total_cmp(&a.0));
+        r.unvisited = dense.get(ASCENT_STARTS).map_or(0.0, |x| x.0);
+        for &(d0, u0) in dense.iter().take(ASCENT_STARTS) {
+            if !d0.is_finite() {
+                break;
+            }
+            let (d, u, evals) = ascend(corners, d0, u0, level, |u| {
+                let p = shape.point(s, u);
+                let d = g.distance_bound(&p[..n], reach);
+                if d.is_nan() {
+                    f64::INFINITY
+                } else {
+                    d
+                }
+            });
+            r.dense += evals;
+            r.error = r.error.max(d - d0);
+            if d > r.max {
+                r.max = d;
+                r.at = shape.point(s, &u);
+            }
+        }
+    }
+    r
+}
+
+fn measure_with<G: ImplicitFunction + ?Sized>(
+    g: &G,
+    model: &IndexedModel,
+    domain: &[f64],
+    tolerance: f64,
+    regions: &[(Vec<f64>, f64)],
+    mut cache: Option<&mut MeasureCache>,
+) -> Result<Measure, ism_geom::GeomError> {
     let shape = Shape::new(model)?;
     let n = shape.n;
     let reach = domain
@@ -794,142 +1062,71 @@ pub fn measure<G: ImplicitFunction + ?Sized>(
         .sum::<f64>()
         .sqrt();
 
-    // S → Z at the report samples.
-    struct PatchResult {
-        max: f64,
-        at: [f64; 3],
-        sum: f64,
-        count: usize,
-        spacing: f64,
-        cover: f64,
-        points: Vec<([f64; 3], f64)>,
-        /// Points of `Z` found from the samples (expressions).
-        zeros: Vec<([f64; 3], f64)>,
-        /// Samples farther than the tolerance from `Z`.
-        misses: Vec<Miss>,
-        /// Samples of the denser pass.
-        dense: usize,
-        /// The most a local ascent gained over its start.
-        error: f64,
-        /// The largest sample value no ascent started from.
-        unvisited: f64,
-    }
-    let explicit = g.is_explicit();
+    // S → Z at the report samples, per patch: from the cache where the patch is unchanged.
     let want_points = !regions.is_empty();
-    let per_patch: Vec<PatchResult> = shape
+    let settings: Vec<u64> = domain
+        .iter()
+        .chain([&tolerance])
+        .map(|x| x.to_bits())
+        .collect();
+    if let Some(c) = cache.as_deref_mut() {
+        if c.settings != settings {
+            c.patches.clear();
+            c.leaves = None;
+            c.settings = settings;
+        }
+    }
+    let kept = cache.as_deref().map(|c| &c.patches);
+    let per_patch: Vec<(Option<Vec<u64>>, bool, std::sync::Arc<PatchResult>)> = shape
         .patches
         .par_iter()
         .map(|(s, corners)| {
-            let us = patch_samples(corners, report_level(n));
-            let pts: Vec<[f64; 3]> = us.iter().map(|u| shape.point(*s, u)).collect();
-            let mut r = PatchResult {
-                max: 0.0,
-                at: pts[0],
-                sum: 0.0,
-                count: pts.len(),
-                spacing: 0.0,
-                cover: lattice_cover(&pts, corners.len(), report_level(n)),
-                points: Vec::new(),
-                zeros: Vec::new(),
-                misses: Vec::new(),
-                dense: 0,
-                error: 0.0,
-                unvisited: 0.0,
-            };
-            // Each report sample's bound, kept for the denser pass (it holds these samples).
-            let mut report_bounds = Vec::with_capacity(pts.len());
-            for (i, p) in pts.iter().enumerate() {
-                let d = if explicit {
-                    g.distance_bound(&p[..n], reach)
-                } else {
-                    match bracket_point(g, &p[..n], reach) {
-                        Some((d, z)) => {
-                            // `p` is a point of S: `dist(z, S) ≤ |z − p|`.
-                            r.zeros.push((z, distance(&p[..], &z)));
-                            d
-                        }
-                        None => f64::INFINITY,
-                    }
-                };
-                if d > r.max || d.is_nan() {
-                    r.max = if d.is_nan() { f64::INFINITY } else { d };
-                    r.at = *p;
+            let key = kept.and_then(|_| patch_key(model, *s));
+            let hit = key.as_ref().and_then(|key| {
+                let (k, r) = kept?.get(model.simplex(*s))?;
+                (k == key && (r.with_points || !want_points)).then(|| r.clone())
+            });
+            match hit {
+                Some(r) => {
+                    // The unit tests' fits check every reused result against a fresh one.
+                    #[cfg(test)]
+                    assert!(
+                        r.same_bits(&measure_patch(
+                            g,
+                            &shape,
+                            *s,
+                            corners,
+                            reach,
+                            tolerance,
+                            r.with_points
+                        )),
+                        "stale cached S -> Z result of simplex {s}"
+                    );
+                    (key, true, r)
                 }
-                report_bounds.push(if d.is_nan() { f64::INFINITY } else { d });
-                r.sum += d;
-                let nearest = pts
-                    .iter()
-                    .enumerate()
-                    .filter(|(j, _)| *j != i)
-                    .map(|(_, q)| distance(&p[..], q))
-                    .fold(f64::INFINITY, f64::min);
-                if nearest.is_finite() {
-                    r.spacing = r.spacing.max(nearest);
-                }
-                if want_points {
-                    r.points.push((*p, d));
+                None => {
+                    let r = measure_patch(g, &shape, *s, corners, reach, tolerance, want_points);
+                    (key, false, std::sync::Arc::new(r))
                 }
             }
-            r.unvisited = r.max;
-            if r.max.is_finite() && r.max > DENSE_ABOVE * tolerance {
-                // The denser lattice holds the report's (every DENSE_FACTOR-th point), so its
-                // maximum is at least the report's. Those points are the same numbers
-                // (`a·F/(b·F)` and `a/b` round alike) and their bounds are the report's
-                // (`distance_bound` is `bracket_point`'s distance for an expression): reused,
-                // not evaluated again — 8 % of the lattice in 3D, 25 % in 2D (issue 17).
-                let level = DENSE_FACTOR * report_level(n);
-                let mut dense: Vec<(f64, Bary)> = Vec::new();
-                let coarse = report_sample_indices(corners.len(), report_level(n));
-                for (i, u) in patch_samples(corners, level).into_iter().enumerate() {
-                    let p = shape.point(*s, &u);
-                    let d = match coarse.get(i).copied().flatten() {
-                        Some(j) => report_bounds[j],
-                        None => g.distance_bound(&p[..n], reach),
-                    };
-                    let d = if d.is_nan() { f64::INFINITY } else { d };
-                    if d > r.max {
-                        r.max = d;
-                        r.at = p;
-                    }
-                    dense.push((d, u));
-                }
-                r.dense += dense.len();
-                // Then uphill from the worst few: the peak can be narrower than the lattice
-                // (near a patch corner close to a vertex of the simplex the map is steep).
-                dense.sort_by(|a, b| b.0.total_cmp(&a.0));
-                r.unvisited = dense.get(ASCENT_STARTS).map_or(0.0, |x| x.0);
-                for &(d0, u0) in dense.iter().take(ASCENT_STARTS) {
-                    if !d0.is_finite() {
-                        break;
-                    }
-                    let (d, u, evals) = ascend(corners, d0, u0, level, |u| {
-                        let p = shape.point(*s, u);
-                        let d = g.distance_bound(&p[..n], reach);
-                        if d.is_nan() {
-                            f64::INFINITY
-                        } else {
-                            d
-                        }
-                    });
-                    r.dense += evals;
-                    r.error = r.error.max(d - d0);
-                    if d > r.max {
-                        r.max = d;
-                        r.at = shape.point(*s, &u);
-                    }
-                }
-            }
-            // One miss per patch, its worst sample: a refinement acts on the simplex.
-            if r.max > tolerance {
-                r.misses = vec![Miss {
-                    at: r.at,
-                    simplex: Some(*s),
-                    distance: r.max,
-                }];
-            }
-            r
         })
         .collect();
+    let (keys, per_patch): (Vec<_>, Vec<_>) = per_patch
+        .into_iter()
+        .map(|(key, hit, r)| ((key, hit), r))
+        .unzip();
+    if let Some(c) = cache.as_deref_mut() {
+        c.reused = keys.iter().filter(|k| k.1).count();
+        c.patches = shape
+            .patches
+            .iter()
+            .zip(keys)
+            .zip(&per_patch)
+            .filter_map(|(((s, _), (key, _)), r)| {
+                Some((model.simplex(*s).to_vec(), (key?, r.clone())))
+            })
+            .collect();
+    }
     let samples: usize = per_patch.iter().map(|r| r.count).sum();
     let worst = per_patch.iter().max_by(|a, b| a.max.total_cmp(&b.max));
     let shape_to_target = worst.map_or(0.0, |r| r.max);
@@ -987,7 +1184,11 @@ pub fn measure<G: ImplicitFunction + ?Sized>(
             },
         )
     } else if g.enclose(&lo_of(domain), &hi_of(domain)).is_some() {
-        let leaves = box_cover(g, domain, tolerance, &to_shape);
+        let mut tree = cache.as_deref_mut().and_then(|c| c.leaves.take());
+        let leaves = box_cover(g, domain, tolerance, &to_shape, &mut tree);
+        if let Some(c) = cache {
+            c.leaves = tree;
+        }
         let largest = leaves.iter().map(|l| l.1).fold(0.0, f64::max);
         let count = leaves.len();
         // The points of Z found from the fit's samples: dense where the fit is, so the estimate
@@ -1032,9 +1233,16 @@ pub fn measure<G: ImplicitFunction + ?Sized>(
         f64::INFINITY
     };
     let target_at = worst_estimate.map_or(Vec::new(), |w| w.1[..n].to_vec());
+    // One miss per patch, its worst sample: a refinement acts on the simplex.
     let misses: Vec<Miss> = per_patch
         .iter()
-        .flat_map(|r| r.misses.iter().copied())
+        .zip(&shape.patches)
+        .filter(|(r, _)| r.max > tolerance)
+        .map(|(r, (s, _))| Miss {
+            at: r.at,
+            simplex: Some(*s),
+            distance: r.max,
+        })
         .chain(points.iter().filter_map(|t| {
             let e = t.estimate?;
             (e > tolerance && t.projected).then_some(Miss {
@@ -1311,16 +1519,85 @@ struct TargetPoint {
     box_term: Option<f64>,
 }
 
+/// An upper bound of `dist(point, S)` (the nearest cloud point's distance).
+type ToShape<'a> = &'a (dyn Fn(&[f64; 3]) -> f64 + Sync);
+
+/// A leaf of the `Z → S` box cover before any distance to `S`: its centre, half-diagonal and
+/// the point of `Z` bracketed near the centre (`(bracket length, point)`), if any.
+#[derive(Clone, Copy, Debug)]
+struct Leaf {
+    centre: [f64; 3],
+    half: f64,
+    zero: Option<(f64, [f64; 3])>,
+}
+
+/// Whether the box cover's tree is the same whatever `S` is: a box is split when
+/// `dist(centre, S) + half > PROJECT_ABOVE · tolerance` and `half > leaf_fraction · tolerance`
+/// (or the budget's larger limit); with `leaf_fraction ≥ PROJECT_ABOVE` (3D) the second implies
+/// the first, a distance being ≥ 0 (a NaN distance, from a shape point with NaN coordinates,
+/// stopped the split before; the kernel's shapes have none). Then the tree is kept across the measures of one fit
+/// ([`MeasureCache`]), and only each leaf's distances to the new `S` are measured again.
+fn cover_is_shape_free(n: usize) -> bool {
+    leaf_fraction(n) >= PROJECT_ABOVE
+}
+
 /// The adaptive box cover of `Z` (module doc): leaves with their half-diagonal. A box is a leaf
 /// when interval arithmetic clears it of zeros (dropped), when `dist(centre, S) + half` is
 /// already below [`PROJECT_ABOVE`] of the tolerance, or when its half-diagonal is at most
 /// [`leaf_fraction`] of the tolerance; a leaf then gets a point of `Z` near its centre.
+/// `leaves` holds the tree of an earlier measure of the same `g`, domain and tolerance, or
+/// gets this one's, where the tree does not depend on `S` ([`cover_is_shape_free`]).
 fn box_cover<G: ImplicitFunction + ?Sized>(
     g: &G,
     domain: &[f64],
     tolerance: f64,
-    to_shape: &(dyn Fn(&[f64; 3]) -> f64 + Sync),
+    to_shape: ToShape,
+    leaves: &mut Option<Vec<Leaf>>,
 ) -> Vec<(TargetPoint, f64)> {
+    let n = domain.len() / 2;
+    let fresh;
+    let tree: &[Leaf] = if cover_is_shape_free(n) {
+        leaves.get_or_insert_with(|| box_tree(g, domain, tolerance, None))
+    } else {
+        fresh = box_tree(g, domain, tolerance, Some(to_shape));
+        &fresh
+    };
+    tree.par_iter()
+        .map(|leaf| {
+            let (c, half) = (leaf.centre, leaf.half);
+            let box_bound = to_shape(&c) + half;
+            let point = match leaf.zero {
+                Some((r, z)) => {
+                    let e = to_shape(&z);
+                    TargetPoint {
+                        at: z,
+                        estimate: Some(e),
+                        bound: box_bound.min(e + half + r),
+                        box_term: Some(half + r),
+                        projected: false,
+                    }
+                }
+                None => TargetPoint {
+                    at: c,
+                    estimate: None,
+                    bound: box_bound,
+                    box_term: None,
+                    projected: false,
+                },
+            };
+            (point, half)
+        })
+        .collect()
+}
+
+/// The leaves of [`box_cover`]'s tree, in the order the levels produce them. `to_shape` decides
+/// the splits where the tree depends on `S`; `None` where it does not ([`cover_is_shape_free`]).
+fn box_tree<G: ImplicitFunction + ?Sized>(
+    g: &G,
+    domain: &[f64],
+    tolerance: f64,
+    to_shape: Option<ToShape>,
+) -> Vec<Leaf> {
     let n = domain.len() / 2;
     let mut leaf_half = leaf_fraction(n) * tolerance;
     let sides: Vec<f64> = domain.chunks(2).map(|c| c[1] - c[0]).collect();
@@ -1345,7 +1622,8 @@ fn box_cover<G: ImplicitFunction + ?Sized>(
     }
     let mut leaves = Vec::new();
     while !level.is_empty() {
-        // `(index, centre, half-diagonal, dist(centre, S))` of the boxes that may hold a zero.
+        // `(index, centre, half-diagonal, dist(centre, S))` of the boxes that may hold a zero
+        // (the distance 0 where the tree does not depend on it: only `half` decides then).
         let kept: Vec<(usize, [f64; 3], f64, f64)> = level
             .par_iter()
             .enumerate()
@@ -1362,11 +1640,11 @@ fn box_cover<G: ImplicitFunction + ?Sized>(
                     c[k] = 0.5 * (lo[k] + hi[k]);
                     half += (0.5 * (hi[k] - lo[k])).powi(2);
                 }
-                Some((i, c, half.sqrt(), to_shape(&c)))
+                Some((i, c, half.sqrt(), to_shape.map_or(0.0, |f| f(&c))))
             })
             .collect();
         let splits = |k: &(usize, [f64; 3], f64, f64), leaf_half: f64| {
-            k.3 + k.2 > PROJECT_ABOVE * tolerance && k.2 > leaf_half
+            (to_shape.is_none() || k.3 + k.2 > PROJECT_ABOVE * tolerance) && k.2 > leaf_half
         };
         let to_split = kept.iter().filter(|k| splits(k, leaf_half)).count();
         // Keep the work bounded: when splitting would blow the budget, the boxes stay leaves
@@ -1375,28 +1653,10 @@ fn box_cover<G: ImplicitFunction + ?Sized>(
             leaf_half = f64::INFINITY;
         }
         let (done, split): (Vec<_>, Vec<_>) = kept.into_iter().partition(|k| !splits(k, leaf_half));
-        leaves.par_extend(done.into_par_iter().map(|(_, c, half, d)| {
-            let box_bound = d + half;
-            let point = match bracket_point(g, &c[..n], 2.0 * half) {
-                Some((r, z)) => {
-                    let e = to_shape(&z);
-                    TargetPoint {
-                        at: z,
-                        estimate: Some(e),
-                        bound: box_bound.min(e + half + r),
-                        box_term: Some(half + r),
-                        projected: false,
-                    }
-                }
-                None => TargetPoint {
-                    at: c,
-                    estimate: None,
-                    bound: box_bound,
-                    box_term: None,
-                    projected: false,
-                },
-            };
-            (point, half)
+        leaves.par_extend(done.into_par_iter().map(|(_, c, half, _)| Leaf {
+            centre: c,
+            half,
+            zero: bracket_point(g, &c[..n], 2.0 * half),
         }));
         let mut next = Vec::with_capacity(split.len() << n);
         for (i, ..) in split {
@@ -1912,5 +2172,134 @@ mod tests {
             m.shape_to_target_error
         );
         assert!(!m.meets(tolerance), "{m:?}");
+    }
+
+    #[test]
+    fn a_cached_measure_reuses_exactly_the_unchanged_patches_and_returns_the_same_numbers() {
+        // Ground truth: a measure without the cache (every patch afresh) for the numbers, and,
+        // for which patches may be reused, the crossing simplices (mixed signs of the values)
+        // that do not hold the changed face or vertex, counted from the model's simplex list.
+        // Every reused result is also checked against a fresh one inside the measure (tests).
+        let same = |a: &Measure, b: &Measure| format!("{a:?}") == format!("{b:?}");
+        let crossing = |model: &Model| -> Vec<Vec<u32>> {
+            let m = model.dim() + 1;
+            model
+                .simplices
+                .chunks(m)
+                .filter(|ids| {
+                    let f = |v: &&u32| model.values[**v as usize] < model.level;
+                    ids.iter().any(|v| f(&v)) && !ids.iter().all(|v| f(&v))
+                })
+                .map(|ids| ids.to_vec())
+                .collect()
+        };
+        let cases = [
+            ("x^2/0.81 + y^2/0.09 - 1", vec![-1.0, 1.0, -1.0, 1.0], 2e-3),
+            (
+                "x^2 + y^2 + z^2 - 0.36",
+                vec![-1.0, 1.0, -1.0, 1.0, -1.0, 1.0],
+                2e-2,
+            ),
+        ];
+        for (text, domain, tolerance) in cases {
+            let n = domain.len() / 2;
+            let g = Expression::parse(text, n).unwrap();
+            let mut options = crate::FitOptions::new(&domain);
+            options.tolerance = tolerance;
+            let fitted = crate::fit(&g, &options, &ism_format::Progress::none()).unwrap();
+            let base = fitted.to_model("cache");
+            let indexed = |m: &Model| IndexedModel::for_evaluation(m.clone()).unwrap();
+            let fresh = |m: &Model| measure(&g, &indexed(m), &domain, tolerance, &[]).unwrap();
+            let cached = |m: &Model, cache: &mut MeasureCache| {
+                measure_cached(&g, &indexed(m), &domain, tolerance, &[], cache).unwrap()
+            };
+            let patches = crossing(&base).len();
+            assert!(patches > 10, "{text}: {patches} patches");
+
+            let mut cache = MeasureCache::new();
+            let m0 = fresh(&base);
+            assert!(same(&cached(&base, &mut cache), &m0));
+            assert_eq!(cache.reused(), 0);
+            assert!(same(&cached(&base, &mut cache), &m0));
+            assert_eq!(cache.reused(), patches, "{text}: unchanged model");
+
+            // One face record moved (a stage's control point): the simplices holding the face
+            // are measured again, the rest reused.
+            let mut moved = base.clone();
+            let (stage, r) = (0..moved.stages.len())
+                .flat_map(|i| (0..moved.stages[i].faces.len()).map(move |r| (i, r)))
+                .find(|&(i, r)| {
+                    let face = base.stages[i].faces.face(r);
+                    face.len() >= 2
+                        && crossing(&base)
+                            .iter()
+                            .any(|ids| face.iter().all(|v| ids.contains(v)))
+                })
+                .expect("a record on a crossing simplex");
+            let face = moved.stages[stage].faces.face(r).to_vec();
+            let rec = moved.stages[stage].faces.record_mut(r);
+            rec.points[0] += 1e-3;
+            rec.points[1] -= 1e-3;
+            let holding = crossing(&moved)
+                .iter()
+                .filter(|ids| face.iter().all(|v| ids.contains(v)))
+                .count();
+            assert!(holding >= 1);
+            let m1 = cached(&moved, &mut cache);
+            assert!(same(&m1, &fresh(&moved)), "{text}: moved record");
+            assert_eq!(cache.reused(), patches - holding, "{text}: moved record");
+
+            // One vertex's value nudged (same sign): its crossing simplices' corners move.
+            let mut nudged = moved.clone();
+            let v = crossing(&moved)[0][0];
+            nudged.values[v as usize] *= 1.0 + 1e-6;
+            let changed = crossing(&nudged)
+                .iter()
+                .filter(|ids| ids.contains(&v))
+                .count();
+            assert_eq!(crossing(&nudged).len(), patches);
+            let m2 = cached(&nudged, &mut cache);
+            assert!(same(&m2, &fresh(&nudged)), "{text}: nudged value");
+            assert_eq!(cache.reused(), patches - changed, "{text}: nudged value");
+
+            // Another tolerance: nothing reused.
+            let other = measure_cached(
+                &g,
+                &indexed(&nudged),
+                &domain,
+                2.0 * tolerance,
+                &[],
+                &mut cache,
+            )
+            .unwrap();
+            assert_eq!(cache.reused(), 0);
+            let again = measure(&g, &indexed(&nudged), &domain, 2.0 * tolerance, &[]).unwrap();
+            assert!(same(&other, &again));
+        }
+    }
+
+    #[test]
+    fn the_3d_box_tree_is_the_same_whatever_the_distances_to_the_shape() {
+        // Ground truth: the tree built with the split rule that reads `dist(centre, S)` (as
+        // before the tree was kept across measures), for several `S`: the distance to a point
+        // of `Z`, to a point far off, to the shape everywhere (0) and to none (∞).
+        let g = Expression::parse("(sqrt(x^2 + y^2) - 0.6)^2 + z^2 - 0.0625", 3).unwrap();
+        let domain = [-1.0, 1.0, -1.0, 1.0, -0.5, 0.5];
+        let tolerance = 1e-2;
+        assert!(cover_is_shape_free(3));
+        let free = box_tree(&g, &domain, tolerance, None);
+        assert!(free.len() > 1000, "{}", free.len());
+        let near = |c: &[f64; 3]| distance(&[0.85, 0.0, 0.0], c);
+        let far = |c: &[f64; 3]| distance(&[9.0, 9.0, 9.0], c);
+        let zero = |_: &[f64; 3]| 0.0;
+        let none = |_: &[f64; 3]| f64::INFINITY;
+        let rules: [ToShape; 4] = [&near, &far, &zero, &none];
+        for to_shape in rules {
+            let tree = box_tree(&g, &domain, tolerance, Some(to_shape));
+            assert_eq!(tree.len(), free.len());
+            for (a, b) in tree.iter().zip(&free) {
+                assert_eq!(format!("{a:?}"), format!("{b:?}"));
+            }
+        }
     }
 }
