@@ -4,7 +4,7 @@
 
 use ism_fit::c1::smooth_rational_with_progress;
 use ism_fit::hermite::{fit_hermite_with_progress, HermiteData};
-use ism_fit::mesh::MeshDistance;
+use ism_fit::mesh::{MeshDistance, MeshPlanError};
 use ism_fit::smooth::{smooth_with_progress, Mode};
 use ism_fit::{Expression, FitOptions, ImplicitFunction, Preset, PRESETS};
 use pyo3::exceptions::PyValueError;
@@ -214,20 +214,16 @@ pub fn fit_mesh<'py>(
     }
     let g = MeshDistance::new(mesh)
         .map_err(|e| raise(py, "FitError", &crate::errors::chain(&e), &[]))?;
-    let check = g.check();
-    if let Some(why) = g.refusal() {
-        return Err(raise(py, "FitError", &format!("the mesh {why}"), &[]));
-    }
-    let domain = match domain {
-        Some(d) if d.len() != 6 => {
-            return Err(PyValueError::new_err(format!(
-                "domain with a mesh needs 6 numbers, got {}",
-                d.len()
-            )))
-        }
-        Some(d) => d,
-        None => g.mesh().domain(margin),
-    };
+    let plan = g
+        .plan(domain.as_deref(), margin, topology)
+        .map_err(|e| match e {
+            MeshPlanError::NotClosedManifold(why) => {
+                raise(py, "FitError", &format!("the mesh {why}"), &[])
+            }
+            MeshPlanError::DomainLength(n) => {
+                PyValueError::new_err(format!("domain with a mesh needs 6 numbers, got {n}"))
+            }
+        })?;
     let args = FitArgs {
         resolution,
         tolerance,
@@ -236,20 +232,20 @@ pub fn fit_mesh<'py>(
         rational,
         topology,
     };
-    let mut options = args.options(&domain)?;
-    g.adapt_options(&mut options, topology);
-    let diagonal = g.mesh().diagonal();
+    let mut options = args.options(&plan.domain)?;
+    plan.apply(&mut options);
+    let check = plan.check;
+    let diagonal = plan.diagonal;
     let info = serde_json::json!({
         "vertices": check.vertices,
         "triangles": check.triangles,
         "closedManifold": check.is_closed_manifold(),
         "components": check.components,
         "euler": check.euler,
-        "flipped": g.flipped(),
+        "flipped": plan.flipped,
         "diagonal": diagonal,
     });
-    let components = check.components;
-    let euler = check.euler;
+    let (components, euler) = plan.expected_topology();
     run_fit(
         py,
         Box::new(g),

@@ -4,7 +4,7 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 
 use anyhow::{bail, Context};
-use ism_fit::mesh::{MeshCheck, MeshDistance, TriangleMesh};
+use ism_fit::mesh::{MeshCheck, MeshDistance, MeshPlan, MeshPlanError, TriangleMesh};
 use ism_fit::{Expression, FitOptions, ImplicitFunction, Preset, PRESETS};
 use ism_format::io;
 
@@ -197,7 +197,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     }
     let progress = crate::progress::Progress::new(args.quiet);
     let mut mesh: Option<MeshInfo> = None;
-    let mut mesh_distance: Option<&MeshDistance> = None;
+    let mut mesh_plan: Option<&MeshPlan> = None;
     type Setup<'a> = (
         &'a dyn ImplicitFunction,
         Vec<f64>,
@@ -211,11 +211,11 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         (None, None) if args.mesh.is_some() => {
             progress.phase("reading the mesh and building its signed distance");
             mesh_setup_result = mesh_setup(&args)?;
-            let (g, domain, name, info, warnings) = &mesh_setup_result;
+            let (g, plan, name, warnings) = &mesh_setup_result;
             progress.suspend(|| warnings.iter().for_each(|w| eprintln!("warning: {w}")));
-            mesh = Some(*info);
-            mesh_distance = Some(g);
-            (g, domain.clone(), name.clone(), None)
+            mesh = Some((plan.check, plan.diagonal, plan.flipped));
+            mesh_plan = Some(plan);
+            (g, plan.domain.clone(), name.clone(), None)
         }
         (Some(name), _) => {
             let p = Preset::find(name).context("--preset")?;
@@ -253,8 +253,8 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     options.optimize = !args.no_optimize;
     options.rational = args.rational;
     options.topology = !args.no_topology;
-    if let Some(g) = mesh_distance {
-        g.adapt_options(&mut options, !args.no_topology);
+    if let Some(plan) = mesh_plan {
+        plan.apply(&mut options);
     }
 
     let tolerance = options.tolerance;
@@ -510,11 +510,12 @@ fn show(p: &[f64]) -> String {
 /// What the report needs to know about a mesh: its check, diagonal, and whether it was flipped.
 type MeshInfo = (MeshCheck, f64, bool);
 
-/// What [`mesh_setup`] prepares: the signed distance, the domain, the name, the [`MeshInfo`],
+/// What [`mesh_setup`] prepares: the signed distance, the library's [`MeshPlan`] for it, the name,
 /// and the warnings to print.
-type MeshSetup = (MeshDistance, Vec<f64>, String, MeshInfo, Vec<String>);
+type MeshSetup = (MeshDistance, MeshPlan, String, Vec<String>);
 
-/// `--mesh`: reads the mesh and builds its signed distance.
+/// `--mesh`: reads the mesh, builds its signed distance and asks the library for the plan; here
+/// only the words around its decisions.
 fn mesh_setup(args: &Args) -> anyhow::Result<MeshSetup> {
     let mut warnings = Vec::new();
     let path = args.mesh.as_ref().context("missing --mesh")?;
@@ -526,12 +527,14 @@ fn mesh_setup(args: &Args) -> anyhow::Result<MeshSetup> {
         },
         e => e,
     })?;
-    let check = g.check();
-    if let Some(why) = g.refusal() {
-        bail!("{} {why}", path.display());
-    }
-    let sharpest = g.sharpest_edge();
-    if sharpest > ism_fit::mesh::PV_SHARPEST_EDGE && !args.no_topology {
+    let plan = match g.plan(args.domain.as_deref(), args.mesh_margin, !args.no_topology) {
+        Ok(plan) => plan,
+        Err(MeshPlanError::NotClosedManifold(why)) => bail!("{} {why}", path.display()),
+        Err(MeshPlanError::DomainLength(n)) => {
+            bail!("--domain with --mesh needs 6 numbers, got {n}")
+        }
+    };
+    if let Some(sharpest) = plan.skipped_for_sharp_edge {
         warnings.push(format!(
             "{} has edges where the normal turns by {:.0}°: the Plantinga–Vegter test cannot \
              pass there at any cell size, so it is skipped (as with --no-topology); the topology is \
@@ -540,22 +543,16 @@ fn mesh_setup(args: &Args) -> anyhow::Result<MeshSetup> {
             sharpest.to_degrees()
         ));
     }
-    if g.flipped() {
+    if plan.flipped {
         warnings.push(format!(
             "{} faces inward; fitted with its orientation reversed",
             path.display()
         ));
     }
-    let domain = match &args.domain {
-        Some(d) if d.len() != 6 => bail!("--domain with --mesh needs 6 numbers, got {}", d.len()),
-        Some(d) => d.clone(),
-        None => g.mesh().domain(args.mesh_margin),
-    };
     let name = path
         .file_stem()
         .and_then(|s| s.to_str())
         .unwrap_or("mesh")
         .to_string();
-    let info = (check, g.mesh().diagonal(), g.flipped());
-    Ok((g, domain, name, info, warnings))
+    Ok((g, plan, name, warnings))
 }

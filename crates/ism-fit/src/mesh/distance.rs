@@ -326,19 +326,6 @@ impl MeshDistance {
         })
     }
 
-    /// Sets the options `ism fit --mesh` uses for this mesh: with `topology` asked for, the
-    /// Plantinga–Vegter phase runs only when no edge is sharper than [`PV_SHARPEST_EDGE`] (at a
-    /// crease the test fails at every cell size) and stops at cells shorter than half the median
-    /// mesh edge or the tolerance (below that it can only find the creases, not features the
-    /// mesh has; the topology is checked against the mesh's afterwards). Returns whether the
-    /// phase was skipped because of a sharp edge.
-    pub fn adapt_options(&self, options: &mut crate::FitOptions, topology: bool) -> bool {
-        let sharp = self.sharpest_edge() > PV_SHARPEST_EDGE;
-        options.topology = topology && !sharp;
-        options.pv_min_edge = (0.5 * self.mesh.median_edge_length()).max(options.tolerance);
-        topology && sharp
-    }
-
     /// The largest angle (radians) between the normals of two triangles sharing an edge: above
     /// [`PV_SHARPEST_EDGE`], cells on that edge can fail the Plantinga–Vegter test at every size.
     pub fn sharpest_edge(&self) -> f64 {

@@ -49,15 +49,19 @@
 //! are `ism_export::obj::read_obj` and `ism_export::gltf::read_gltf`, beside their writers; here
 //! the file's size is bounded and identical positions are welded); [`winding`] is the hierarchical
 //! generalized winding number; [`distance`] the signed distance [`MeshDistance`] (R-tree, closest
-//! points, pseudonormals, enclosures for the fitter).
+//! points, pseudonormals, enclosures for the fitter); [`plan`] the fitting policy for a mesh
+//! ([`MeshDistance::plan`]: refusal, domain, topology phase, expected topology), which `ism fit
+//! --mesh` and the Python package render.
 
 use std::collections::HashMap;
 
 pub mod distance;
 pub mod load;
+pub mod plan;
 mod winding;
 
 pub use distance::{MeshDistance, PV_SHARPEST_EDGE};
+pub use plan::{MeshPlan, MeshPlanError};
 
 type P3 = [f64; 3];
 
