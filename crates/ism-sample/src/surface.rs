@@ -1650,6 +1650,31 @@ mod tests {
     use super::*;
     use ism_format::Direction;
 
+    /// 3,000 draws from `t` with a ChaCha8 stream of `seed`: one at a time through
+    /// `SurfaceTable::draw`, or (`ahead`) through `draw_each`, which picks 8 slots ahead.
+    fn draws(t: &SurfaceTable, eval: &ModelEval, seed: u64, ahead: bool) -> Vec<SurfacePoint> {
+        use rand::SeedableRng;
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+        if !ahead {
+            return (0..3000).map(|_| t.draw(eval, &mut rng).unwrap()).collect();
+        }
+        let mut out = Vec::new();
+        t.draw_each(eval, &mut rng, 3000, |p, _| {
+            out.push(p);
+            Ok(())
+        })
+        .unwrap();
+        out
+    }
+
+    /// Every bit of a sample: position, normal, value and simplex.
+    fn point_bits(p: &SurfacePoint) -> Vec<u64> {
+        let mut v: Vec<u64> = p.p.iter().chain(&p.normal).map(|x| x.to_bits()).collect();
+        v.push(p.value.to_bits());
+        v.push(p.simplex as u64);
+        v
+    }
+
     /// A table sized for one sample keeps the root bounds of an all-parametric map (one region
     /// per triangle of each patch); sized for a million it refines them, so its bounded area is
     /// smaller; both bound the same curved area from above (the lattice's mean exact `J` per
@@ -1660,7 +1685,6 @@ mod tests {
     /// 3D, weighted by curved and by linear area.
     #[test]
     fn fast_records_draw_the_same_bits_as_the_kernel_route() {
-        use rand::SeedableRng;
         for (name, sized) in [
             ("stratified-3d", Some(100_000)),
             ("stratified-3d", None),
@@ -1681,37 +1705,20 @@ mod tests {
                 assert!(!table.fast.is_empty(), "{name}: no fast record");
                 let mut slow = table.clone();
                 slow.fast.clear();
-                let draws = |t: &SurfaceTable| {
-                    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(11);
-                    (0..3000)
-                        .map(|_| t.draw(&eval, &mut rng).unwrap())
-                        .collect::<Vec<_>>()
-                };
                 // Picks drawn ahead: the slow table keeps `pick_ahead`, so both take the same
                 // slots and must again give the same bits.
                 assert!(table.pick_ahead, "{name}: a patch without a fast record");
-                let draws_each = |t: &SurfaceTable| {
-                    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(11);
-                    let mut out = Vec::new();
-                    t.draw_each(&eval, &mut rng, 3000, |p, _| {
-                        out.push(p);
-                        Ok(())
-                    })
-                    .unwrap();
-                    out
-                };
-                let (a, b) = (draws(&table), draws(&slow));
-                let (c, d) = (draws_each(&table), draws_each(&slow));
+                let (a, b) = (
+                    draws(&table, &eval, 11, false),
+                    draws(&slow, &eval, 11, false),
+                );
+                let (c, d) = (
+                    draws(&table, &eval, 11, true),
+                    draws(&slow, &eval, 11, true),
+                );
                 assert_eq!((a.len(), c.len()), (3000, 3000));
                 for (x, y) in a.iter().zip(&b).chain(c.iter().zip(&d)) {
-                    let bits = |p: &SurfacePoint| {
-                        let mut v: Vec<u64> =
-                            p.p.iter().chain(&p.normal).map(|x| x.to_bits()).collect();
-                        v.push(p.value.to_bits());
-                        v.push(p.simplex as u64);
-                        v
-                    };
-                    assert_eq!(bits(x), bits(y), "{name} {weighting:?}");
+                    assert_eq!(point_bits(x), point_bits(y), "{name} {weighting:?}");
                 }
             }
         }
@@ -1741,7 +1748,6 @@ mod tests {
     /// same bits as the general route, one pick at a time and eight ahead.
     #[test]
     fn stage_free_patches_are_their_triangles_with_bound_one() {
-        use rand::SeedableRng;
         let model = partly_stage_free(model_vertex_of_a_crossed_simplex());
         let eval = ModelEval::new(&model).unwrap();
         let table =
@@ -1781,38 +1787,18 @@ mod tests {
         assert!(table.pick_ahead, "a patch without a fast record");
         let mut slow = table.clone();
         slow.fast.clear();
-        let draws = |t: &SurfaceTable, ahead: bool| {
-            let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(5);
-            let mut out = Vec::new();
-            if ahead {
-                t.draw_each(&eval, &mut rng, 3000, |p, _| {
-                    out.push(p);
-                    Ok(())
-                })
-                .unwrap();
-            } else {
-                out = (0..3000)
-                    .map(|_| t.draw(&eval, &mut rng).unwrap())
-                    .collect();
-            }
-            out
-        };
         for ahead in [false, true] {
-            let (a, b) = (draws(&table, ahead), draws(&slow, ahead));
+            let (a, b) = (
+                draws(&table, &eval, 5, ahead),
+                draws(&slow, &eval, 5, ahead),
+            );
             let free_drawn = a
                 .iter()
                 .filter(|p| eval.local_map(p.simplex).stages().is_empty())
                 .count();
             assert!(free_drawn > 0, "no sample on a stage-free patch");
             for (x, y) in a.iter().zip(&b) {
-                let bits = |p: &SurfacePoint| {
-                    let mut v: Vec<u64> =
-                        p.p.iter().chain(&p.normal).map(|x| x.to_bits()).collect();
-                    v.push(p.value.to_bits());
-                    v.push(p.simplex as u64);
-                    v
-                };
-                assert_eq!(bits(x), bits(y), "ahead {ahead}");
+                assert_eq!(point_bits(x), point_bits(y), "ahead {ahead}");
             }
         }
     }
