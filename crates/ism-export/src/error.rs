@@ -137,6 +137,12 @@ pub enum MeshReadError {
         /// The limit.
         limit: u64,
     },
+    /// A GLB header whose total length is below the header's own 12 bytes.
+    #[error("GLB header (byte 8): total length {length} is below the 12-byte header")]
+    GlbLength {
+        /// The declared total length.
+        length: u32,
+    },
     /// A buffer could not be loaded (a missing file, a bad `data:` URI, a short blob).
     #[error("glTF buffers: {0}")]
     GltfBuffers(::gltf::Error),

@@ -276,6 +276,9 @@ fn unit_f32(n: [f64; 3]) -> [f32; 3] {
     ]
 }
 
+/// Bytes of a GLB header: magic, version, total length (glTF 2.0 §4.4.3).
+const GLB_HEADER_BYTES: u32 = 12;
+
 /// Reads glTF JSON or binary GLB as triangles: every triangle primitive (triangles, strips, fans)
 /// of every mesh instanced by the nodes of the default scene (all scenes if none is marked default;
 /// every mesh untransformed if there is no scene), with the nodes' transforms applied (mirroring
@@ -293,6 +296,18 @@ pub fn read_gltf(
     base: Option<&Path>,
     limits: &Limits,
 ) -> std::result::Result<RawMesh, MeshReadError> {
+    // gltf 1.4.1's `Glb::from_slice` subtracts the 12-byte header from the declared total length
+    // unchecked (src/binary.rs:252): a length below 12 panics with overflow checks on and wraps to
+    // a huge length (then an error) without. Refuse it first (found by the `fit_mesh` fuzz target).
+    if let Some(length) = bytes
+        .strip_prefix(b"glTF")
+        .and_then(|rest| rest.get(4..8))
+        .map(|l| u32::from_le_bytes([l[0], l[1], l[2], l[3]]))
+    {
+        if length < GLB_HEADER_BYTES {
+            return Err(MeshReadError::GlbLength { length });
+        }
+    }
     let raw = ::gltf::Gltf::from_slice_without_validation(bytes).map_err(MeshReadError::Gltf)?;
     // gltf-json 1.4.1's validation indexes `accessors[POSITION]` without a bounds check
     // (src/mesh.rs:151) and panics on a bad index; check those indices before validating.
@@ -593,5 +608,27 @@ mod tests {
         }
         let err = read_gltf(b"{", None, &Limits::default()).unwrap_err();
         assert!(matches!(err, MeshReadError::Gltf(_)), "{err:?}");
+    }
+
+    /// A GLB whose header declares a total length below its own 12 bytes is an error, not a
+    /// panic (the `fit_mesh` fuzz target's input: magic, version 0x3a00ff, length 0); lengths
+    /// from 12 on reach the `gltf` crate, which reports the short file.
+    #[test]
+    fn glb_length_below_the_header_is_refused() {
+        let mut bytes = b"glTF\xff\x00\x3a\x00".to_vec();
+        bytes.extend([0u8; 4]);
+        bytes.extend([0u8; 30]);
+        for length in [0u32, 1, 11, 12, 13, u32::MAX] {
+            bytes[8..12].copy_from_slice(&length.to_le_bytes());
+            let err = read_gltf(&bytes, None, &Limits::default()).unwrap_err();
+            if length < 12 {
+                assert!(
+                    matches!(err, MeshReadError::GlbLength { length: l } if l == length),
+                    "{length}: {err:?}"
+                );
+            } else {
+                assert!(matches!(err, MeshReadError::Gltf(_)), "{length}: {err:?}");
+            }
+        }
     }
 }
