@@ -188,6 +188,23 @@ pub enum MeshReadError {
         /// Its element type.
         dimensions: ::gltf::accessor::Dimensions,
     },
+    /// A `POSITION` accessor that does not hold float `VEC3`s (glTF 2.0 §3.7.2.1).
+    #[error(
+        "mesh {mesh}, primitive {primitive}: POSITION accessor {accessor} holds {data_type:?} \
+         {dimensions:?}; expected float VEC3"
+    )]
+    GltfPositionType {
+        /// Mesh index.
+        mesh: usize,
+        /// Primitive index within the mesh.
+        primitive: usize,
+        /// The accessor.
+        accessor: usize,
+        /// Its component type.
+        data_type: ::gltf::accessor::DataType,
+        /// Its element type.
+        dimensions: ::gltf::accessor::Dimensions,
+    },
     /// An index past the primitive's vertices.
     #[error(
         "mesh {mesh}, primitive {primitive}: index {index} out of range ({vertices} vertices)"

@@ -455,6 +455,21 @@ fn add_mesh(
         ) {
             continue;
         }
+        // glTF 2.0 §3.7.2.1: POSITION MUST be float VEC3. The `gltf` crate's position reader
+        // assumes it (a debug assertion on the element size, else other bytes read as
+        // positions), so check first (found by the `fit_mesh` fuzz target).
+        if let Some(acc) = primitive.get(&::gltf::Semantic::Positions) {
+            use ::gltf::accessor::{DataType, Dimensions};
+            if acc.data_type() != DataType::F32 || acc.dimensions() != Dimensions::Vec3 {
+                return Err(MeshReadError::GltfPositionType {
+                    mesh: mesh.index(),
+                    primitive: pi,
+                    accessor: acc.index(),
+                    data_type: acc.data_type(),
+                    dimensions: acc.dimensions(),
+                });
+            }
+        }
         let reader = primitive.reader(|b| buffers.get(b.index()).map(|d| &d.0[..]));
         let Some(positions) = reader.read_positions() else {
             return Err(MeshReadError::GltfNoPositions {
@@ -608,6 +623,41 @@ mod tests {
         }
         let err = read_gltf(b"{", None, &Limits::default()).unwrap_err();
         assert!(matches!(err, MeshReadError::Gltf(_)), "{err:?}");
+    }
+
+    /// A POSITION accessor of another element or component type is refused with its mesh,
+    /// primitive and accessor (the writer's `.gltf` with that accessor's `type` or
+    /// `componentType` changed), not read as other bytes or stopped by a debug assertion.
+    #[test]
+    fn position_accessor_of_another_type_is_refused() {
+        let mut bytes = Vec::new();
+        write_gltf(
+            &tetrahedron_surface(),
+            Some("tet"),
+            GltfContainer::Text,
+            &mut bytes,
+        )
+        .unwrap();
+        let json: serde_json::Value = serde_json::from_slice(&bytes).unwrap();
+        let position = json["meshes"][0]["primitives"][0]["attributes"]["POSITION"]
+            .as_u64()
+            .unwrap() as usize;
+        for (key, value) in [
+            ("type", serde_json::json!("VEC4")),
+            ("type", serde_json::json!("VEC2")),
+            ("componentType", serde_json::json!(5125)),
+        ] {
+            let mut j = json.clone();
+            j["accessors"][position][key] = value.clone();
+            let text = serde_json::to_vec(&j).unwrap();
+            let err = read_gltf(&text, None, &Limits::default()).unwrap_err();
+            assert!(
+                matches!(err, MeshReadError::GltfPositionType { mesh: 0, primitive: 0, accessor, .. } if accessor == position),
+                "{key} {value}: {err:?}"
+            );
+        }
+        // Unchanged, it reads.
+        assert!(read_gltf(&bytes, None, &Limits::default()).is_ok());
     }
 
     /// A GLB whose header declares a total length below its own 12 bytes is an error, not a
