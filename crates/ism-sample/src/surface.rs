@@ -1198,7 +1198,6 @@ impl SparseStage {
     }
 }
 
-/// [`SparseStage::jacobian_stored`] of the stage of degree `degree` with these terms.
 /// [`ism_geom::stage::identity_mat`] (the same matrix), inlined: the draw builds one per stage
 /// per candidate, and the kernel's is an out-of-line call (3 % of a fitted torus's 1e6 run).
 #[inline]
@@ -1210,6 +1209,7 @@ fn identity(n: usize) -> Mat {
     a
 }
 
+/// [`SparseStage::jacobian_stored`] of the stage of degree `degree` with these terms.
 fn sparse_jacobian(terms: &[Term], degree: usize, m: usize, w: &Bary) -> (Bary, Mat) {
     let mut pw = [[1.0f64; POWERS]; MAX_VARS];
     for k in 0..m {
