@@ -234,20 +234,17 @@ pub(crate) fn restrict_to_face(p: &Bernstein, vertices: &[[f64; 4]]) -> Option<B
     if d as usize > MAX_DEGREE || m == 0 || m > MAX_VARS || k == 0 || k > MAX_VARS {
         return None;
     }
-    let plan = plan(m, d);
-    let mut level = [0.0; LEVEL_CAP];
-    let top = plan.offsets[d as usize];
-    level[top..top + p.coeffs().len()].copy_from_slice(p.coeffs());
+    // The de Casteljau buffer is the thread's: zeroing 4 KB on the stack per call was a tenth
+    // of a small model's setup in instruction counts (session 19). What a previous call left in
+    // it is never read: the walk writes every block below the top before reading it.
+    thread_local! {
+        static LEVEL: std::cell::RefCell<[f64; LEVEL_CAP]> =
+            const { std::cell::RefCell::new([0.0; LEVEL_CAP]) };
+    }
     let mut out = vec![0.0; multi_index::count(k, d)];
-    let mut counts = [0u32; MAX_VARS];
-    face_walk(
-        &FaceWalk { plan, m, vertices },
-        &mut level,
-        d as usize,
-        0,
-        &mut counts,
-        &mut out,
-    );
+    LEVEL.with_borrow_mut(|level| {
+        restrict_to_face_into(p.coeffs(), m, d, vertices, level, &mut out)
+    });
     Bernstein::new(k, d, out).ok()
 }
 
@@ -269,13 +266,17 @@ pub(crate) fn restrict_to_face_into(
     let plan = plan(m, d);
     let top = plan.offsets[d as usize];
     level[top..top + coeffs.len()].copy_from_slice(coeffs);
-    let mut counts = [0u32; MAX_VARS];
     face_walk(
-        &FaceWalk { plan, m, vertices },
+        &FaceWalk {
+            plan,
+            m,
+            vertices,
+            ranks: face_ranks(k, d),
+        },
         level,
         d as usize,
         0,
-        &mut counts,
+        &mut 0,
         &mut out[..multi_index::count(k, d)],
     );
     true
@@ -291,21 +292,52 @@ struct FaceWalk<'a> {
     plan: &'a Plan,
     m: usize,
     vertices: &'a [[f64; 4]],
+    /// [`face_ranks`] of the face's vertex count and the degree.
+    ranks: &'static [u32],
 }
 
-/// One node of the prefix tree: `level`'s degree-`t` block holds the blossom with
-/// `vertices[i]` applied `counts[i]` times; children apply a vertex `≥ first` once more.
+/// The output positions of [`face_walk`]'s leaves in the order it reaches them, for `k`
+/// vertices and degree `d`: leaf `i` has applied vertex `v` `counts[v]` times, and its
+/// coefficient's place is `multi_index::rank(counts)` (ranking at every leaf was a fifth of the
+/// walk, session 19). The walk's order depends on `(k, d)` only.
+fn face_ranks(k: usize, d: u32) -> &'static [u32] {
+    static RANKS: [[OnceLock<Vec<u32>>; MAX_DEGREE + 1]; MAX_VARS + 1] =
+        [const { [const { OnceLock::new() }; MAX_DEGREE + 1] }; MAX_VARS + 1];
+    /// The same recursion as [`face_walk`]'s, ranking each leaf.
+    fn walk(k: usize, t: u32, first: usize, counts: &mut [u32; MAX_VARS], out: &mut Vec<u32>) {
+        if t == 0 {
+            out.push(multi_index::rank(&counts[..k]) as u32);
+            return;
+        }
+        for v in first..k {
+            counts[v] += 1;
+            walk(k, t - 1, v, counts, out);
+            counts[v] -= 1;
+        }
+    }
+    RANKS[k][d as usize].get_or_init(|| {
+        let mut out = Vec::with_capacity(multi_index::count(k, d));
+        walk(k, d, 0, &mut [0; MAX_VARS], &mut out);
+        out
+    })
+}
+
+/// One node of the prefix tree: `level`'s degree-`t` block holds the blossom with the vertices
+/// applied so far (vertex `i` as often as the path from the root chose it); children apply a
+/// vertex `≥ first` once more. Leaves are numbered in visiting order (`leaf`) and placed by
+/// [`face_ranks`].
 fn face_walk(
     walk: &FaceWalk<'_>,
     level: &mut [f64; LEVEL_CAP],
     t: usize,
     first: usize,
-    counts: &mut [u32; MAX_VARS],
+    leaf: &mut usize,
     out: &mut [f64],
 ) {
     let k = walk.vertices.len();
     if t == 0 {
-        out[multi_index::rank(&counts[..k])] = level[walk.plan.offsets[0]];
+        out[walk.ranks[*leaf] as usize] = level[walk.plan.offsets[0]];
+        *leaf += 1;
         return;
     }
     let m = walk.m;
@@ -322,9 +354,7 @@ fn face_walk(
             }
             level[pos] = s;
         }
-        counts[v] += 1;
-        face_walk(walk, level, t - 1, v, counts, out);
-        counts[v] -= 1;
+        face_walk(walk, level, t - 1, v, leaf, out);
     }
 }
 
