@@ -1,6 +1,12 @@
-//! The binary encoding's decoder (spec §7.4), written from the grammar rather than with bincode so
-//! that every error names the member (JSON pointer) and the byte offset, and so that a declared
-//! length is checked against the bytes left before anything is allocated for it.
+//! The decoder of the binary encoding (spec §7.4) and of the compact binary encoding (§7.5), written
+//! from the grammar rather than with bincode so that every error names the member (JSON pointer) and
+//! the byte offset, and so that a declared length is checked against the bytes left before anything
+//! is allocated for it.
+//!
+//! The two encodings share one grammar and differ only in how integers wider than a byte (lengths,
+//! `u32` ids, enumeration indices) are written: fixed width, or as bincode's variable-length
+//! integer. One decoder does both, parameterised by `VARINT` (a const generic, so the fixed-width
+//! decoder compiles to the same code it was before the compact encoding existed).
 
 use std::collections::BTreeMap;
 use std::io::Read;
@@ -11,17 +17,114 @@ use crate::faces::FaceTable;
 use crate::model::{Direction, JsonValue, Metadata, Model, Stage, StageKind, VertexMap};
 use crate::rules::{Location, Rule};
 
-/// Smallest encoded size of one element, per sequence type (spec §7.4): what a declared length is
-/// checked against.
-mod min_size {
-    pub const F64: usize = 8;
-    pub const U32: usize = 4;
-    pub const STRING: usize = 8;
-    /// kind, degree, direction (u32 each), name tag, three lengths (faces, vertexMaps, extras text).
-    pub const STAGE: usize = 4 + 4 + 4 + 1 + 8 + 8 + 8;
-    pub const FACE_RECORD: usize = 8 * 3;
-    pub const VERTEX_MAP: usize = 4 + 8;
-    pub const EXTENSION: usize = 8 + 8;
+/// Smallest encoded size of one element, per sequence type (spec §7.4, §7.5): what a declared
+/// length is checked against.
+#[derive(Clone, Copy)]
+struct MinSize {
+    f64: usize,
+    u32: usize,
+    string: usize,
+    /// kind, degree, direction, name tag, three lengths (faces, vertexMaps, extras text).
+    stage: usize,
+    /// Three lengths.
+    face_record: usize,
+    /// vertex, the coefficients' length.
+    vertex_map: usize,
+    /// The name's length, the value's text length.
+    extension: usize,
+}
+
+/// The binary encoding: `u32` 4 bytes, lengths 8.
+const FIXED_MIN: MinSize = MinSize {
+    f64: 8,
+    u32: 4,
+    string: 8,
+    stage: 4 + 4 + 4 + 1 + 8 + 8 + 8,
+    face_record: 8 * 3,
+    vertex_map: 4 + 8,
+    extension: 8 + 8,
+};
+
+/// The compact encoding: every integer and length at least one byte.
+const VARINT_MIN: MinSize = MinSize {
+    f64: 8,
+    u32: 1,
+    string: 1,
+    stage: 1 + 1 + 1 + 1 + 1 + 1 + 1,
+    face_record: 3,
+    vertex_map: 1 + 1,
+    extension: 1 + 1,
+};
+
+/// First bytes of bincode's variable-length integer (spec §7.5): below 251 the byte is the value;
+/// 251, 252, 253 announce a little-endian `u16`, `u32`, `u64`.
+const VARINT_U16: u8 = 251;
+const VARINT_U32: u8 = 252;
+const VARINT_U64: u8 = 253;
+
+/// A variable-length integer at the start of some bytes.
+#[derive(Debug, PartialEq, Eq)]
+enum Varint {
+    /// Its value and encoded length.
+    Value(u64, usize),
+    /// Its first byte announces this many bytes in all, more than are there.
+    Short(usize),
+    /// Not a minimal varint of the member's type (the reason).
+    Bad(&'static str),
+}
+
+/// Reads a canonical varint of a `u32` (`wide` false) or `u64` (`wide` true) member from the start
+/// of `bytes` (spec §7.5): the minimal form only, so each value has one encoding.
+#[inline]
+fn varint(bytes: &[u8], wide: bool) -> Varint {
+    let Some(&first) = bytes.first() else {
+        return Varint::Short(1);
+    };
+    let (len, least) = match first {
+        0..=250 => return Varint::Value(u64::from(first), 1),
+        VARINT_U16 => (3, 251),
+        VARINT_U32 => (5, 1 << 16),
+        VARINT_U64 if wide => (9, 1 << 32),
+        VARINT_U64 => return Varint::Bad("first byte 253 (a u64) in a u32 member"),
+        _ => return Varint::Bad("first byte 254 or 255 is not a varint of a u32 or u64"),
+    };
+    let Some(rest) = bytes.get(1..len) else {
+        return Varint::Short(len);
+    };
+    let mut le = [0u8; 8];
+    le[..len - 1].copy_from_slice(rest);
+    let value = u64::from_le_bytes(le);
+    if value < least {
+        return Varint::Bad("not the minimal varint of its value");
+    }
+    Varint::Value(value, len)
+}
+
+/// Decodes up to `most` complete, canonical `u32` varints from the start of `bytes` into `out`;
+/// how many, and the bytes they took. Stops before the first one that is not wholly there or not
+/// canonical (the checked path reads that one, with its error).
+#[inline]
+fn varint_u32_run(bytes: &[u8], most: usize, out: &mut Vec<u32>) -> (usize, usize) {
+    let mut at = 0;
+    let mut k = 0;
+    while k < most {
+        match bytes.get(at) {
+            Some(&b) if b <= 250 => {
+                out.push(u32::from(b));
+                at += 1;
+            }
+            Some(_) => match varint(&bytes[at..], false) {
+                Varint::Value(v, len) => {
+                    out.push(v as u32);
+                    at += len;
+                }
+                _ => break,
+            },
+            None => break,
+        }
+        k += 1;
+    }
+    (k, at)
 }
 
 /// Window of a streamed payload: large enough that refills are rare, small enough to stay in cache.
@@ -163,7 +266,9 @@ enum Source<'a, 'r> {
     Stream(&'a mut Stream<'r>),
 }
 
-pub(crate) struct BinaryDecoder<'a, 'r> {
+/// The decoder of a binary payload: fixed-width integers (`VARINT` false, spec §7.4) or bincode
+/// varints (`VARINT` true, the compact encoding, §7.5).
+pub(crate) struct BinaryDecoder<'a, 'r, const VARINT: bool> {
     src: Source<'a, 'r>,
     /// Payload bytes consumed.
     at: usize,
@@ -185,9 +290,12 @@ fn all_finite(bytes: &[u8]) -> bool {
     })
 }
 
-impl<'a, 'r> BinaryDecoder<'a, 'r> {
+impl<'a, 'r, const VARINT: bool> BinaryDecoder<'a, 'r, VARINT> {
+    /// The smallest element sizes of this encoding.
+    const MIN: MinSize = if VARINT { VARINT_MIN } else { FIXED_MIN };
+
     /// A decoder of `payload`, whose first byte is at file offset `base`.
-    pub(crate) fn new(payload: &'a [u8], base: u64) -> BinaryDecoder<'a, 'r> {
+    pub(crate) fn new(payload: &'a [u8], base: u64) -> Self {
         BinaryDecoder {
             src: Source::Slice(payload),
             at: 0,
@@ -199,7 +307,7 @@ impl<'a, 'r> BinaryDecoder<'a, 'r> {
     }
 
     /// A decoder of a streamed payload whose first byte is at file offset `base`.
-    pub(crate) fn stream(stream: &'a mut Stream<'r>, base: u64) -> BinaryDecoder<'a, 'r> {
+    pub(crate) fn stream(stream: &'a mut Stream<'r>, base: u64) -> Self {
         let end = usize::try_from(stream.len).unwrap_or(usize::MAX);
         BinaryDecoder {
             src: Source::Stream(stream),
@@ -306,8 +414,47 @@ impl<'a, 'r> BinaryDecoder<'a, 'r> {
     }
 
     fn u32(&mut self, what: &str) -> Result<u32> {
+        if VARINT {
+            // `wide` false: a value above u32::MAX cannot be read.
+            return Ok(self.varint_checked(false, what)? as u32);
+        }
         let bytes = self.take(4, what)?;
         Ok(u32::from_le_bytes(bytes.try_into().expect("4 bytes")))
+    }
+
+    /// A canonical varint of a `u32` or (`wide`) `u64` member, every error at its first byte: a
+    /// first byte that is no such varint, a varint that runs past the payload, one that is not
+    /// minimal (spec §7.5).
+    fn varint_checked(&mut self, wide: bool, what: &str) -> Result<u64> {
+        let start = self.at;
+        let first = self.take_with(1, || what.to_string())?[0];
+        let len = match first {
+            0..=250 => return Ok(u64::from(first)),
+            VARINT_U16 => 3,
+            VARINT_U32 => 5,
+            VARINT_U64 if wide => 9,
+            _ => 1,
+        };
+        if len > 1 && self.remaining() < len - 1 {
+            return Err(self.fail(
+                start,
+                format!(
+                    "{what}: a varint of {len} bytes; the payload ends after {}",
+                    self.remaining() + 1
+                ),
+            ));
+        }
+        let mut bytes = [0u8; 9];
+        bytes[0] = first;
+        if len > 1 {
+            let rest = self.take(len - 1, what)?;
+            bytes[1..len].copy_from_slice(rest);
+        }
+        match varint(&bytes[..len], wide) {
+            Varint::Value(v, _) => Ok(v),
+            Varint::Bad(why) => Err(self.fail(start, format!("{what}: {why} (spec §7.5)"))),
+            Varint::Short(_) => unreachable!("all {len} bytes are there"),
+        }
     }
 
     fn f64(&mut self, what: &str) -> Result<f64> {
@@ -315,12 +462,16 @@ impl<'a, 'r> BinaryDecoder<'a, 'r> {
         Ok(f64::from_le_bytes(bytes.try_into().expect("8 bytes")))
     }
 
-    /// A `u64` length prefix, checked against the bytes left: `min` is the smallest size of one
+    /// A length prefix (`u64`, or a varint), checked against the bytes left: `min` is the smallest size of one
     /// element, so nothing is allocated for elements the payload cannot hold.
     fn length(&mut self, min: usize, what: &str) -> Result<usize> {
         let start = self.at;
-        let bytes = self.take_with(8, || format!("the length of {what}"))?;
-        let n = u64::from_le_bytes(bytes.try_into().expect("8 bytes"));
+        let n = if VARINT {
+            self.varint_checked(true, &format!("the length of {what}"))?
+        } else {
+            let bytes = self.take_with(8, || format!("the length of {what}"))?;
+            u64::from_le_bytes(bytes.try_into().expect("8 bytes"))
+        };
         let left = self.remaining();
         if n > (left / min) as u64 {
             return Err(self.fail(
@@ -334,13 +485,19 @@ impl<'a, 'r> BinaryDecoder<'a, 'r> {
     }
 
     fn string(&mut self, what: &str) -> Result<String> {
+        Ok(self.string_at(what)?.0)
+    }
+
+    /// A string and the payload offset of its first byte (after the length prefix).
+    fn string_at(&mut self, what: &str) -> Result<(String, usize)> {
         let n = self.length(1, what)?;
         let at = self.at;
         let bytes = self.take(n, what)?;
         let text = std::str::from_utf8(bytes)
             .map(str::to_string)
             .map_err(|e| e.valid_up_to());
-        text.map_err(|valid| self.fail(at + valid, format!("invalid UTF-8 in {what}")))
+        text.map(|t| (t, at))
+            .map_err(|valid| self.fail(at + valid, format!("invalid UTF-8 in {what}")))
     }
 
     fn optional_string(&mut self, what: &str) -> Result<Option<String>> {
@@ -369,7 +526,7 @@ impl<'a, 'r> BinaryDecoder<'a, 'r> {
     /// A length-prefixed array of `f64` in a vector of exactly its length (reserved once: see
     /// [`Self::reserve_exact`]).
     fn f64s(&mut self, what: &str) -> Result<Vec<f64>> {
-        let n = self.length(min_size::F64, what)?;
+        let n = self.length(Self::MIN.f64, what)?;
         let mut out = Vec::new();
         Self::reserve_exact(&mut out, n);
         self.numbers_into(n, 8, what, &mut out, |c| {
@@ -380,12 +537,10 @@ impl<'a, 'r> BinaryDecoder<'a, 'r> {
 
     /// A length-prefixed array of `u32`, as [`Self::f64s`].
     fn u32s(&mut self, what: &str) -> Result<Vec<u32>> {
-        let n = self.length(min_size::U32, what)?;
+        let n = self.length(Self::MIN.u32, what)?;
         let mut out = Vec::new();
         Self::reserve_exact(&mut out, n);
-        self.numbers_into(n, 4, what, &mut out, |c| {
-            u32::from_le_bytes(c.try_into().expect("4 bytes"))
-        })?;
+        self.u32_elements(n, what, &mut out)?;
         Ok(out)
     }
 
@@ -401,7 +556,7 @@ impl<'a, 'r> BinaryDecoder<'a, 'r> {
 
     /// Appends a length-prefixed array of `f64` to `out` (no allocation but `out`'s growth).
     fn f64s_into(&mut self, out: &mut Vec<f64>, what: &str) -> Result<()> {
-        let n = self.length(min_size::F64, what)?;
+        let n = self.length(Self::MIN.f64, what)?;
         self.numbers_into(n, 8, what, out, |c| {
             f64::from_le_bytes(c.try_into().expect("8 bytes"))
         })
@@ -409,10 +564,29 @@ impl<'a, 'r> BinaryDecoder<'a, 'r> {
 
     /// Appends a length-prefixed array of `u32` to `out`.
     fn u32s_into(&mut self, out: &mut Vec<u32>, what: &str) -> Result<()> {
-        let n = self.length(min_size::U32, what)?;
-        self.numbers_into(n, 4, what, out, |c| {
-            u32::from_le_bytes(c.try_into().expect("4 bytes"))
-        })
+        let n = self.length(Self::MIN.u32, what)?;
+        self.u32_elements(n, what, out)
+    }
+
+    /// Appends `n` `u32` elements to `out`: fixed width a window at a time, or varints, as many at
+    /// a time as are wholly at hand (the checked path reads the one that is not, with its error).
+    fn u32_elements(&mut self, n: usize, what: &str, out: &mut Vec<u32>) -> Result<()> {
+        if !VARINT {
+            return self.numbers_into(n, 4, what, out, |c| {
+                u32::from_le_bytes(c.try_into().expect("4 bytes"))
+            });
+        }
+        let mut left = n;
+        while left > 0 {
+            let (k, used) = varint_u32_run(self.at_hand(), left, out);
+            self.advance(used);
+            left -= k;
+            if left > 0 {
+                out.push(self.u32(what)?);
+                left -= 1;
+            }
+        }
+        Ok(())
     }
 
     /// The payload bytes already at hand (in memory, or in the stream's window), unconsumed.
@@ -440,6 +614,9 @@ impl<'a, 'r> BinaryDecoder<'a, 'r> {
     /// checked path would pass: the two paths accept the same bytes and decode them alike.
     #[inline]
     fn face_record_at_hand(&mut self, table: &mut FaceTable) -> bool {
+        if VARINT {
+            return self.varint_record_at_hand(table);
+        }
         let bytes = self.at_hand();
         let length = |at: usize| -> Option<usize> {
             let b = bytes.get(at..at + 8)?;
@@ -491,12 +668,65 @@ impl<'a, 'r> BinaryDecoder<'a, 'r> {
         true
     }
 
+    /// [`Self::face_record_at_hand`] for the compact encoding: lengths and ids are varints, so the
+    /// record's layout is found as it is read; `false` (nothing consumed, nothing appended) when
+    /// a part is not wholly at hand or not canonical.
+    fn varint_record_at_hand(&mut self, table: &mut FaceTable) -> bool {
+        let bytes = self.at_hand();
+        let length = |at: usize| -> Option<(usize, usize)> {
+            match varint(bytes.get(at..)?, true) {
+                Varint::Value(v, len) => Some((usize::try_from(v).ok()?, len)),
+                _ => None,
+            }
+        };
+        let (ids, points, weights) = table.parts_mut();
+        let ids_before = ids.len();
+        let layout = (|| {
+            let (nf, l) = length(0)?;
+            let (k, used) = varint_u32_run(&bytes[l..], nf, ids);
+            (k == nf).then_some(())?;
+            let (np, l2) = length(l + used)?;
+            let p_start = l + used + l2;
+            let p_end = np.checked_mul(8)?.checked_add(p_start)?;
+            let (nw, l3) = length(p_end)?;
+            let w_start = p_end + l3;
+            let w_end = nw.checked_mul(8)?.checked_add(w_start)?;
+            (w_end <= bytes.len()).then_some((np, p_start, p_end, nw, w_start, w_end))
+        })();
+        let Some((np, p_start, p_end, nw, w_start, w_end)) = layout else {
+            ids.truncate(ids_before);
+            return false;
+        };
+        if !self.keep_numbers {
+            let finite = all_finite(&bytes[p_start..p_end]) && all_finite(&bytes[w_start..w_end]);
+            table.count_numbers(np, nw, finite);
+            self.advance(w_end);
+            return true;
+        }
+        points.extend(
+            bytes[p_start..p_end]
+                .chunks_exact(8)
+                .map(|c| f64::from_le_bytes(c.try_into().expect("8 bytes"))),
+        );
+        weights.extend(
+            bytes[w_start..w_end]
+                .chunks_exact(8)
+                .map(|c| f64::from_le_bytes(c.try_into().expect("8 bytes"))),
+        );
+        self.advance(w_end);
+        true
+    }
+
     /// Of the next `left` face records, those wholly at hand that have the lengths every record of
     /// `table` has so far (a uniform table, not empty): appended in one loop, without a record's
     /// bookkeeping; how many. Stops before the first record of other lengths, the first one not
     /// wholly at hand and the first one the table has no room for: the general path reads those.
     /// What is appended is what [`Self::face_record_at_hand`] would append, record by record.
     fn uniform_records_at_hand(&mut self, table: &mut FaceTable, left: usize) -> usize {
+        if VARINT {
+            // Records of one shape still differ in size (varint ids): record by record.
+            return 0;
+        }
         let Some([a, b, c]) = table.uniform_lengths() else {
             return 0;
         };
@@ -553,7 +783,7 @@ impl<'a, 'r> BinaryDecoder<'a, 'r> {
 
     /// A stage's `faces`: straight into the flat table, one pass, nothing allocated per record.
     fn face_table(&mut self) -> Result<FaceTable> {
-        let n = self.length(min_size::FACE_RECORD, "faces")?;
+        let n = self.length(Self::MIN.face_record, "faces")?;
         let mut table = FaceTable::new();
         if !self.keep_numbers {
             table.elide_numbers();
@@ -649,8 +879,8 @@ impl<'a, 'r> BinaryDecoder<'a, 'r> {
     /// `depth` arrays and objects.
     fn json(&mut self, depth: usize) -> Result<JsonValue> {
         let start = self.at;
-        let text = self.string("JSON text")?;
-        let tokens = JsonTokens::new(text.as_bytes(), self.base + start as u64 + 8);
+        let (text, text_at) = self.string_at("JSON text")?;
+        let tokens = JsonTokens::new(text.as_bytes(), self.base + text_at as u64);
         let mut d = Decoder::nested(tokens, self.path.clone(), depth);
         let value = d.json()?;
         d.end()?;
@@ -695,7 +925,7 @@ impl<'a, 'r> BinaryDecoder<'a, 'r> {
         let name = self.member("name", |d| d.optional_string("name"))?;
         let faces = self.member("faces", |d| d.face_table())?;
         let vertex_maps = self.member("vertexMaps", |d| {
-            d.seq(min_size::VERTEX_MAP, "vertexMaps", |d| {
+            d.seq(Self::MIN.vertex_map, "vertexMaps", |d| {
                 Ok(VertexMap {
                     vertex: d.member("vertex", |d| d.u32("vertex"))?,
                     coefficients: d.member("coefficients", |d| d.f64s("coefficients"))?,
@@ -716,7 +946,7 @@ impl<'a, 'r> BinaryDecoder<'a, 'r> {
     }
 
     fn extensions(&mut self) -> Result<BTreeMap<String, JsonValue>> {
-        let n = self.length(min_size::EXTENSION, "extensions")?;
+        let n = self.length(Self::MIN.extension, "extensions")?;
         let mut out = BTreeMap::new();
         let mut previous: Option<String> = None;
         for _ in 0..n {
@@ -762,15 +992,15 @@ impl<'a, 'r> BinaryDecoder<'a, 'r> {
         let values = self.member("values", |d| d.f64s("values"))?;
         let level = self.member("level", |d| d.f64("level"))?;
         let stages = self.member("stages", |d| {
-            d.seq(min_size::STAGE, "stages", |d| d.stage())
+            d.seq(Self::MIN.stage, "stages", |d| d.stage())
         })?;
         let extensions_used = self.member("extensionsUsed", |d| {
-            d.seq(min_size::STRING, "extensionsUsed", |d| {
+            d.seq(Self::MIN.string, "extensionsUsed", |d| {
                 d.string("an extension name")
             })
         })?;
         let extensions_required = self.member("extensionsRequired", |d| {
-            d.seq(min_size::STRING, "extensionsRequired", |d| {
+            d.seq(Self::MIN.string, "extensionsRequired", |d| {
                 d.string("an extension name")
             })
         })?;

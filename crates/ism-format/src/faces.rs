@@ -655,7 +655,9 @@ impl<'de> Deserialize<'de> for FaceTable {
 const NOT_KEPT: &str = "a face table read without its control points and weights cannot be written";
 
 /// The binary encoding of `Vec<FaceRecord>` (spec §7.4: a `u64` count, then per record three
-/// `u64`-length-prefixed arrays of little-endian numbers), written a slice at a time.
+/// `u64`-length-prefixed arrays of little-endian numbers), written a slice at a time; with a
+/// varint configuration (the compact encoding, §7.5) lengths and ids go through bincode's own
+/// integer encoder, the numbers still a slice at a time.
 impl Encode for FaceTable {
     fn encode<E: bincode::enc::Encoder>(
         &self,
@@ -666,6 +668,20 @@ impl Encode for FaceTable {
             return Err(bincode::error::EncodeError::Other(NOT_KEPT));
         }
         (self.len() as u64).encode(encoder)?;
+        use bincode::config::Config;
+        if encoder.config().int_encoding() != bincode::config::IntEncoding::Fixed {
+            for r in self.iter() {
+                (r.face.len() as u64).encode(encoder)?;
+                for id in r.face {
+                    id.encode(encoder)?;
+                }
+                (r.points.len() as u64).encode(encoder)?;
+                write_le(encoder.writer(), r.points)?;
+                (r.weights.len() as u64).encode(encoder)?;
+                write_le(encoder.writer(), r.weights)?;
+            }
+            return Ok(());
+        }
         let w = encoder.writer();
         for r in self.iter() {
             w.write(&(r.face.len() as u64).to_le_bytes())?;

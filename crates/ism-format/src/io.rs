@@ -1,4 +1,4 @@
-//! Reading and writing the three encodings and the container (spec §7).
+//! Reading and writing the four encodings and the container (spec §7).
 
 use std::io::{Read, Write};
 use std::path::Path;
@@ -14,7 +14,7 @@ pub const MAGIC: [u8; 8] = [0x89, b'I', b'S', b'M', 0x0D, 0x0A, 0x1A, 0x0A];
 /// Container header length in bytes.
 pub const HEADER_LEN: usize = 32;
 
-/// How the model is encoded (spec §7.2–7.4).
+/// How the model is encoded (spec §7.2–7.5).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, serde::Serialize)]
 #[serde(rename_all = "lowercase")]
 pub enum Encoding {
@@ -24,11 +24,20 @@ pub enum Encoding {
     MessagePack,
     /// bincode 2 fixed-width little-endian (`.ismb`), in a container.
     Binary,
+    /// Compact binary (`.ismc`): the binary encoding's grammar with every integer wider than a
+    /// byte written as bincode 2's variable-length integer (spec §7.5), in a container. The
+    /// smallest encoding: a length or an id below 251 takes one byte.
+    Compact,
 }
 
 impl Encoding {
     /// Every encoding.
-    pub const ALL: [Encoding; 3] = [Encoding::Json, Encoding::MessagePack, Encoding::Binary];
+    pub const ALL: [Encoding; 4] = [
+        Encoding::Json,
+        Encoding::MessagePack,
+        Encoding::Binary,
+        Encoding::Compact,
+    ];
 
     /// The container's encoding tag.
     pub fn tag(self) -> u8 {
@@ -36,6 +45,7 @@ impl Encoding {
             Encoding::Json => 1,
             Encoding::MessagePack => 2,
             Encoding::Binary => 3,
+            Encoding::Compact => 4,
         }
     }
 
@@ -50,6 +60,7 @@ impl Encoding {
             Encoding::Json => "ism.json",
             Encoding::MessagePack => "ism.msgpack",
             Encoding::Binary => "ismb",
+            Encoding::Compact => "ismc",
         }
     }
 
@@ -62,6 +73,8 @@ impl Encoding {
             Some(Encoding::MessagePack)
         } else if name.ends_with(".ismb") {
             Some(Encoding::Binary)
+        } else if name.ends_with(".ismc") {
+            Some(Encoding::Compact)
         } else {
             None
         }
@@ -73,6 +86,7 @@ impl Encoding {
             Encoding::Json => "json",
             Encoding::MessagePack => "msgpack",
             Encoding::Binary => "binary",
+            Encoding::Compact => "compact",
         }
     }
 }
@@ -84,8 +98,9 @@ impl std::str::FromStr for Encoding {
             "json" => Ok(Encoding::Json),
             "msgpack" | "messagepack" => Ok(Encoding::MessagePack),
             "binary" | "bincode" | "ismb" => Ok(Encoding::Binary),
+            "compact" | "ismc" => Ok(Encoding::Compact),
             other => Err(format!(
-                "unknown encoding {other:?}; expected json, msgpack or binary"
+                "unknown encoding {other:?}; expected json, msgpack, binary or compact"
             )),
         }
     }
@@ -318,7 +333,7 @@ fn read_keeping<R: Read>(reader: R, options: &ReadOptions, keep: bool) -> Result
         .read_to_end(&mut head)
         .map_err(|e| Error::io(None, e))?;
     if let Some((info, encoding)) = streamable(&head, options) {
-        let doc = read_binary_stream(&mut reader, info, cap, keep)?;
+        let doc = read_binary_stream(&mut reader, info, encoding, cap, keep)?;
         debug_assert_eq!(doc.encoding, encoding);
         let finite = doc
             .model
@@ -345,24 +360,33 @@ fn streamable(head: &[u8], options: &ReadOptions) -> Option<(ContainerInfo, Enco
         return None;
     }
     let (encoding, info) = parse_header(head).ok()?;
-    (encoding == Encoding::Binary && info.payload_len <= options.limits.max_payload_bytes)
+    (matches!(encoding, Encoding::Binary | Encoding::Compact)
+        && info.payload_len <= options.limits.max_payload_bytes)
         .then_some((info, encoding))
 }
 
-/// Decodes a binary payload as it streams from `reader` (positioned after the header), then reports
+/// Decodes a binary or compact payload as it streams from `reader` (positioned after the header), then reports
 /// exactly what [`decode`] would for the same bytes: a short file, trailing bytes or a checksum
 /// mismatch before any decoding error.
 fn read_binary_stream(
     reader: &mut dyn Read,
     info: ContainerInfo,
+    encoding: Encoding,
     cap: u64,
     keep_numbers: bool,
 ) -> Result<Document> {
+    use crate::binary::BinaryDecoder;
     let mut stream = crate::binary::Stream::new(reader, info.payload_len);
     let reader_minor_is_older = info.minor > FORMAT_VERSION.minor;
-    let decoded = crate::binary::BinaryDecoder::stream(&mut stream, HEADER_LEN as u64)
-        .keep_numbers(keep_numbers)
-        .model(reader_minor_is_older);
+    let decoded = if encoding == Encoding::Compact {
+        BinaryDecoder::<true>::stream(&mut stream, HEADER_LEN as u64)
+            .keep_numbers(keep_numbers)
+            .model(reader_minor_is_older)
+    } else {
+        BinaryDecoder::<false>::stream(&mut stream, HEADER_LEN as u64)
+            .keep_numbers(keep_numbers)
+            .model(reader_minor_is_older)
+    };
     // The bytes `read_with` would have held: at most `cap`, the header included.
     let trailing_cap = cap.saturating_sub(HEADER_LEN as u64 + info.payload_len);
     let end = stream.finish(trailing_cap);
@@ -397,7 +421,7 @@ fn read_binary_stream(
             ),
         ));
     }
-    container_document(decoded?, Encoding::Binary, info, file_len)
+    container_document(decoded?, encoding, info, file_len)
 }
 
 /// Reads a model from bytes with explicit options; see [`from_slice`].
@@ -544,7 +568,7 @@ pub fn parse_header(bytes: &[u8]) -> Result<(Encoding, ContainerInfo)> {
             Rule::UnknownEncoding,
             Location::offset(12),
             format!(
-                "encoding tag {}; expected 1 (JSON), 2 (MessagePack) or 3 (binary)",
+                "encoding tag {}; expected 1 (JSON), 2 (MessagePack), 3 (binary) or 4 (compact)",
                 bytes[12]
             ),
         )
@@ -616,7 +640,12 @@ fn decode(bytes: &[u8], options: &ReadOptions) -> Result<Document> {
         let model = match encoding {
             Encoding::Json => decode_json(payload, HEADER_LEN as u64)?,
             Encoding::MessagePack => decode_msgpack(payload, HEADER_LEN as u64)?,
-            Encoding::Binary => decode_binary(payload, HEADER_LEN as u64, reader_minor_is_older)?,
+            Encoding::Binary => {
+                decode_binary::<false>(payload, HEADER_LEN as u64, reader_minor_is_older)?
+            }
+            Encoding::Compact => {
+                decode_binary::<true>(payload, HEADER_LEN as u64, reader_minor_is_older)?
+            }
         };
         return container_document(model, encoding, info, bytes.len() as u64);
     }
@@ -750,8 +779,21 @@ pub fn binary_config(
         .with_fixed_int_encoding()
 }
 
-fn decode_binary(bytes: &[u8], base: u64, allow_trailing: bool) -> Result<Model> {
-    crate::binary::BinaryDecoder::new(bytes, base).model(allow_trailing)
+/// The bincode configuration that writes the compact encoding (spec §7.5): little-endian, integers
+/// as bincode's variable-length integers (its standard configuration, so a second implementation can
+/// use bincode's defaults directly).
+pub fn compact_config(
+) -> bincode::config::Configuration<bincode::config::LittleEndian, bincode::config::Varint> {
+    bincode::config::standard().with_little_endian()
+}
+
+/// Decodes a binary (`VARINT` false) or compact (`VARINT` true) payload.
+fn decode_binary<const VARINT: bool>(
+    bytes: &[u8],
+    base: u64,
+    allow_trailing: bool,
+) -> Result<Model> {
+    crate::binary::BinaryDecoder::<VARINT>::new(bytes, base).model(allow_trailing)
 }
 
 /// Options for writing.
@@ -848,6 +890,9 @@ fn encode_into<W: Write>(model: &Model, encoding: Encoding, pretty: bool, out: W
         Encoding::Binary => bincode::encode_into_std_write(model, &mut w, binary_config())
             .map(drop)
             .map_err(|e| fail("binary", e.to_string())),
+        Encoding::Compact => bincode::encode_into_std_write(model, &mut w, compact_config())
+            .map(drop)
+            .map_err(|e| fail("compact", e.to_string())),
     };
     match (result, w.error) {
         (Ok(()), _) => Ok(()),
