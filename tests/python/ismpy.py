@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """ismpy: an independent ISM reader and writer, written from spec/ism-format.md alone.
 
-It reads and writes all three encodings (JSON, MessagePack, binary) and the container, and reports every
+It reads and writes all four encodings (JSON, MessagePack, binary, compact binary) and the container, and reports every
 reader rule of spec §9 (ISM-0xx, ISM-1xx) with the location of spec §7.8 and §9. No Rust and no JSON or
 MessagePack library is used for reading (the standard `json` module is too lenient: it accepts NaN,
 duplicate keys and big integers), so the spec, not a library, decides every byte.
@@ -11,7 +11,8 @@ Command line (the protocol of tools/conformance):
     ismpy.py read FILE                 prints {"ok": true} (exit 0) or {"rule": ..., "location": {...}}
                                        (exit 1): the first error a reader reports
     ismpy.py convert IN OUT ENCODING   reads IN and writes OUT in ENCODING: json, json-pretty, msgpack,
-                                       binary (exit 0), or prints the error as `read` does (exit 1)
+                                       binary, compact (exit 0), or prints the error as `read` does
+                                       (exit 1)
 """
 
 from __future__ import annotations
@@ -641,15 +642,39 @@ def probe_version(tok):
 
 
 class BinaryDecoder:
-    """The binary grammar of spec §7.4."""
+    """The binary grammar of spec §7.4; with `compact`, the compact binary encoding of §7.4.1 (every
+    length, u32 and enumeration index a minimal varint)."""
 
-    MIN = {"f64": 8, "u32": 4, "string": 8, "stage": 37, "record": 24, "vmap": 12, "ext": 16}
-
-    def __init__(self, data: bytes, base: int):
+    def __init__(self, data: bytes, base: int, compact: bool = False):
         self.b = data
         self.at = 0
         self.base = base
         self.path = []
+        self.compact = compact
+        # Smallest element sizes (§7.4, §7.4.1).
+        if compact:
+            self.MIN = {"f64": 8, "u32": 1, "string": 1, "stage": 7, "record": 3, "vmap": 2, "ext": 2}
+        else:
+            self.MIN = {"f64": 8, "u32": 4, "string": 8, "stage": 37, "record": 24, "vmap": 12, "ext": 16}
+
+    def varint(self, wide: bool) -> int:
+        """A minimal varint (§7.4.1) of a u64 (`wide`) or u32 member; errors at its first byte."""
+        start = self.at
+        first = self.take(1)[0]
+        if first <= 250:
+            return first
+        sizes = {251: (2, "<H", 251), 252: (4, "<I", 1 << 16)}
+        if wide:
+            sizes[253] = (8, "<Q", 1 << 32)
+        if first not in sizes:
+            raise self.fail(start, f"varint first byte {first}")
+        n, fmt, least = sizes[first]
+        if len(self.b) - self.at < n:
+            raise self.fail(start, "varint runs past the payload")
+        (value,) = struct.unpack(fmt, self.take(n))
+        if value < least:
+            raise self.fail(start, "varint not minimal")
+        return value
 
     def fail(self, at, message) -> IsmError:
         return IsmError("ISM-006", message, pointer=pointer_of(self.path), offset=self.base + at)
@@ -665,6 +690,8 @@ class BinaryDecoder:
         return self.take(1)[0]
 
     def u32(self):
+        if self.compact:
+            return self.varint(False)
         return struct.unpack("<I", self.take(4))[0]
 
     def f64(self):
@@ -672,7 +699,7 @@ class BinaryDecoder:
 
     def length(self, minimum: int) -> int:
         start = self.at
-        (n,) = struct.unpack("<Q", self.take(8))
+        (n,) = (self.varint(True),) if self.compact else struct.unpack("<Q", self.take(8))
         if n > (len(self.b) - self.at) // minimum:
             raise self.fail(start, f"declares {n} elements; too few bytes remain")
         return n
@@ -706,7 +733,9 @@ class BinaryDecoder:
         return list(struct.unpack(f"<{n}d", self.take(8 * n)))
 
     def u32s(self):
-        n = self.length(4)
+        n = self.length(self.MIN["u32"])
+        if self.compact:
+            return [self.u32() for _ in range(n)]
         return list(struct.unpack(f"<{n}I", self.take(4 * n)))
 
     def seq(self, minimum, read):
@@ -720,8 +749,11 @@ class BinaryDecoder:
 
     def data(self, depth: int):
         start = self.at
+        self.length(1)
+        text_at = self.at
+        self.at = start
         text = self.string()
-        d = Decoder(JsonTokens(text.encode("utf-8"), self.base + start + 8), self.path, depth)
+        d = Decoder(JsonTokens(text.encode("utf-8"), self.base + text_at), self.path, depth)
         value = d.data()
         d.call(d.tok.end)
         if json_text(value) != text:
@@ -753,13 +785,13 @@ class BinaryDecoder:
         def vmap():
             return {"vertex": self.member("vertex", self.u32), "coefficients": self.member("coefficients", self.f64s)}
 
-        s["faces"] = self.member("faces", lambda: self.seq(24, record))
-        s["vertexMaps"] = self.member("vertexMaps", lambda: self.seq(12, vmap))
+        s["faces"] = self.member("faces", lambda: self.seq(self.MIN["record"], record))
+        s["vertexMaps"] = self.member("vertexMaps", lambda: self.seq(self.MIN["vmap"], vmap))
         s["extras"] = self.member("extras", lambda: self.data(3))
         return s
 
     def extensions(self) -> dict:
-        n = self.length(16)
+        n = self.length(self.MIN["ext"])
         out = {}
         previous = None
         for _ in range(n):
@@ -791,9 +823,9 @@ class BinaryDecoder:
         m["simplices"] = self.member("simplices", self.u32s)
         m["values"] = self.member("values", self.f64s)
         m["level"] = self.member("level", self.f64)
-        m["stages"] = self.member("stages", lambda: self.seq(37, self.stage))
+        m["stages"] = self.member("stages", lambda: self.seq(self.MIN["stage"], self.stage))
         for key in ("extensionsUsed", "extensionsRequired"):
-            m[key] = self.member(key, lambda: self.seq(8, self.string))
+            m[key] = self.member(key, lambda: self.seq(self.MIN["string"], self.string))
         m["extensions"] = self.member("extensions", self.extensions)
         m["extras"] = self.member("extras", lambda: self.data(1))
         if self.at < len(self.b) and not allow_trailing:
@@ -849,7 +881,7 @@ def decode(data: bytes, payload_limit: int = DEFAULT_PAYLOAD_LIMIT):
         major, minor, tag = struct.unpack_from("<HHB", data, 8)
         if major != MAJOR:
             raise IsmError("ISM-002", f"major version {major}", offset=8)
-        if tag not in (1, 2, 3):
+        if tag not in (1, 2, 3, 4):
             raise IsmError("ISM-005", f"encoding tag {tag}", offset=12)
         if data[13:16] != b"\0\0\0":
             raise IsmError("ISM-006", "reserved bytes", offset=13)
@@ -868,11 +900,11 @@ def decode(data: bytes, payload_limit: int = DEFAULT_PAYLOAD_LIMIT):
         elif tag == 2:
             model = decode_map_encoding(MsgpackTokens, payload, HEADER_LEN)
         else:
-            model = BinaryDecoder(payload, HEADER_LEN).model(allow_trailing=minor > MINOR)
+            model = BinaryDecoder(payload, HEADER_LEN, compact=tag == 4).model(allow_trailing=minor > MINOR)
         version = check_version(model["version"])
         if version != (major, minor):
             raise IsmError("ISM-009", "header and payload versions differ", pointer="/version")
-        return model, {1: "json", 2: "msgpack", 3: "binary"}[tag]
+        return model, {1: "json", 2: "msgpack", 3: "binary", 4: "compact"}[tag]
     stripped = data.lstrip(b" \t\n\r")
     if stripped[:1] != b"{":
         raise IsmError("ISM-001", "not an ISM file", offset=0)
@@ -1266,17 +1298,41 @@ def header(n: int, fix: int, fix_limit: int, markers, out: bytearray, allow8=Fal
 
 
 class BinaryWriter:
-    """The binary grammar of §7.4."""
+    """The binary grammar of §7.4; with `compact`, §7.4.1 (lengths, u32s and enumeration indices as
+    minimal varints)."""
 
-    def __init__(self):
+    def __init__(self, compact: bool = False):
         self.out = bytearray()
+        self.compact = compact
 
     def put(self, fmt, *values):
         self.out += struct.pack(fmt, *values)
 
+    def varint(self, n: int):
+        if n <= 250:
+            self.put("<B", n)
+        elif n < 1 << 16:
+            self.put("<BH", 251, n)
+        elif n < 1 << 32:
+            self.put("<BI", 252, n)
+        else:
+            self.put("<BQ", 253, n)
+
+    def length(self, n: int):
+        if self.compact:
+            self.varint(n)
+        else:
+            self.put("<Q", n)
+
+    def u32(self, n: int):
+        if self.compact:
+            self.varint(n)
+        else:
+            self.put("<I", n)
+
     def string(self, s: str):
         data = s.encode("utf-8")
-        self.put("<Q", len(data))
+        self.length(len(data))
         self.out += data
 
     def optional(self, value):
@@ -1287,12 +1343,13 @@ class BinaryWriter:
             self.string(value)
 
     def f64s(self, xs):
-        self.put("<Q", len(xs))
+        self.length(len(xs))
         self.put(f"<{len(xs)}d", *xs)
 
     def u32s(self, xs):
-        self.put("<Q", len(xs))
-        self.put(f"<{len(xs)}I", *xs)
+        self.length(len(xs))
+        for x in xs:
+            self.u32(x)
 
     def model(self, m: dict) -> bytes:
         self.string(f"{MAJOR}.{MINOR}")
@@ -1303,26 +1360,27 @@ class BinaryWriter:
         self.u32s(m["simplices"])
         self.f64s(m["values"])
         self.put("<d", m["level"])
-        self.put("<Q", len(m["stages"]))
+        self.length(len(m["stages"]))
         for s in m["stages"]:
-            self.put("<III", KINDS.index(s["kind"]), s["degree"], DIRECTIONS.index(s.get("direction", "implicit")))
+            for x in (KINDS.index(s["kind"]), s["degree"], DIRECTIONS.index(s.get("direction", "implicit"))):
+                self.u32(x)
             self.optional(s.get("name"))
-            self.put("<Q", len(s.get("faces", [])))
+            self.length(len(s.get("faces", [])))
             for r in s.get("faces", []):
                 self.u32s(r["face"])
                 self.f64s(r.get("points", []))
                 self.f64s(r.get("weights", []))
-            self.put("<Q", len(s.get("vertexMaps", [])))
+            self.length(len(s.get("vertexMaps", [])))
             for v in s.get("vertexMaps", []):
-                self.put("<I", v["vertex"])
+                self.u32(v["vertex"])
                 self.f64s(v["coefficients"])
             self.string(json_text(s.get("extras")))
         for key in ("extensionsUsed", "extensionsRequired"):
-            self.put("<Q", len(m[key]))
+            self.length(len(m[key]))
             for name in m[key]:
                 self.string(name)
         names = sorted(m["extensions"], key=lambda k: k.encode("utf-8"))
-        self.put("<Q", len(names))
+        self.length(len(names))
         for name in names:
             self.string(name)
             self.string(json_text(m["extensions"][name]))
@@ -1336,7 +1394,7 @@ def container(payload: bytes, tag: int, major: int = MAJOR, minor: int = MINOR) 
 
 
 def write(model: dict, encoding: str) -> bytes:
-    """The canonical file of `model` in `encoding`: json, json-pretty, msgpack or binary."""
+    """The canonical file of `model` in `encoding`: json, json-pretty, msgpack, binary or compact."""
     check_writable(model)
     if encoding in ("json", "json-pretty"):
         return to_json(canonical_members(model), indent=2 if encoding == "json-pretty" else None).encode("utf-8")
@@ -1346,6 +1404,8 @@ def write(model: dict, encoding: str) -> bytes:
         return container(bytes(out), 2)
     if encoding == "binary":
         return container(BinaryWriter().model(model), 3)
+    if encoding == "compact":
+        return container(BinaryWriter(compact=True).model(model), 4)
     raise ValueError(f"unknown encoding {encoding}")
 
 

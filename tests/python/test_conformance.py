@@ -66,11 +66,13 @@ def test_ismpy_reproduces_every_example_in_every_encoding(name):
         "json-pretty": EXAMPLES / f"{name}.ism.json",
         "msgpack": EXAMPLES / f"{name}.ism.msgpack",
         "binary": EXAMPLES / f"{name}.ismb",
+        "compact": EXAMPLES / f"{name}.ismc",
     }
     models = {enc: ismpy.read(path.read_bytes()) for enc, path in files.items()}
     bits = lambda m: ismpy.BinaryWriter().model(m)  # noqa: E731 -- every f64 as its 8 bytes
     assert bits(models["msgpack"]) == bits(models["json-pretty"])
     assert bits(models["binary"]) == bits(models["json-pretty"])
+    assert bits(models["compact"]) == bits(models["json-pretty"])
     for enc, path in files.items():
         assert ismpy.write(models["binary"], enc) == path.read_bytes(), f"{path.name}"
 

@@ -778,7 +778,77 @@ fn strictness_vectors() -> Vec<ReaderVector> {
     short.truncate(HEADER_LEN + 16 + 8 + 20);
     reseal_payload(&mut short);
     push("binary-short-payload", B, short, Rule::Malformed);
+
+    // Compact binary: canonical varints only, every varint error at its first byte (spec §7.4.1).
+    let c = Encoding::Compact;
+    push(
+        "compact-non-minimal-varint",
+        c,
+        compact_vertices_length(&tri, &[0xFB, 6, 0], false),
+        Rule::Malformed,
+    );
+    push(
+        "compact-non-minimal-u64-varint",
+        c,
+        compact_vertices_length(&tri, &[0xFD, 6, 0, 0, 0, 0, 0, 0, 0], false),
+        Rule::Malformed,
+    );
+    push(
+        "compact-truncated-varint",
+        c,
+        compact_vertices_length(&tri, &[0xFC, 6, 0], true),
+        Rule::Malformed,
+    );
+    let mut huge = vec![0xFD];
+    huge.extend((1u64 << 61).to_le_bytes());
+    push(
+        "compact-huge-length",
+        c,
+        compact_vertices_length(&tri, &huge, false),
+        Rule::Malformed,
+    );
+    push(
+        "compact-varint-byte-254",
+        c,
+        compact_vertices_length(&tri, &[0xFE], false),
+        Rule::Malformed,
+    );
+    push(
+        "compact-varint-byte-255",
+        c,
+        compact_vertices_length(&tri, &[0xFF], false),
+        Rule::Malformed,
+    );
+    let mut kind = encode(&staged, c);
+    // The stage follows `level` (8 zero bytes) and the stage count 1: kind 0, degree 1.
+    let at = kind[HEADER_LEN..]
+        .windows(11)
+        .position(|w| w == [0, 0, 0, 0, 0, 0, 0, 0, 1, 0, 1])
+        .expect("stage header")
+        + HEADER_LEN
+        + 9;
+    kind.splice(at..at + 1, [0xFD, 0, 0, 0, 0, 1, 0, 0, 0]);
+    reseal_payload(&mut kind);
+    push("compact-u64-varint-in-u32", c, kind, Rule::Malformed);
     v
+}
+
+/// A compact file of `model` whose `vertices` length (one byte, at payload offset 9: version, dimension,
+/// four absent metadata members before it) is replaced by `with`; the payload ends there when `cut`.
+fn compact_vertices_length(model: &Model, with: &[u8], cut: bool) -> Vec<u8> {
+    let mut bytes = encode(model, Encoding::Compact);
+    let at = HEADER_LEN + 1 + model.version.len() + 1 + 4;
+    assert_eq!(
+        usize::from(bytes[at]),
+        model.vertices.len(),
+        "compact layout changed: update the offset"
+    );
+    bytes.splice(at..at + 1, with.iter().copied());
+    if cut {
+        bytes.truncate(at + with.len());
+    }
+    reseal_payload(&mut bytes);
+    bytes
 }
 
 /// A binary file whose `vertices` length prefix claims 2⁶¹ numbers, with both CRCs valid.

@@ -20,11 +20,12 @@ pub struct WriterVector {
 }
 
 /// The output forms of a writer vector: file suffix, encoding, and whether JSON is pretty.
-pub const OUTPUTS: [(&str, Encoding, bool); 4] = [
+pub const OUTPUTS: [(&str, Encoding, bool); 5] = [
     ("ism.json", Encoding::Json, false),
     ("pretty.ism.json", Encoding::Json, true),
     ("ism.msgpack", Encoding::MessagePack, false),
     ("ismb", Encoding::Binary, false),
+    ("ismc", Encoding::Compact, false),
 ];
 
 /// `levels` nested arrays around `0`, as JSON text with spaces.

@@ -1,4 +1,4 @@
-//! The decoder of the binary encoding (spec §7.4) and of the compact binary encoding (§7.5), written
+//! The decoder of the binary encoding (spec §7.4) and of the compact binary encoding (§7.4.1), written
 //! from the grammar rather than with bincode so that every error names the member (JSON pointer) and
 //! the byte offset, and so that a declared length is checked against the bytes left before anything
 //! is allocated for it.
@@ -17,7 +17,7 @@ use crate::faces::FaceTable;
 use crate::model::{Direction, JsonValue, Metadata, Model, Stage, StageKind, VertexMap};
 use crate::rules::{Location, Rule};
 
-/// Smallest encoded size of one element, per sequence type (spec §7.4, §7.5): what a declared
+/// Smallest encoded size of one element, per sequence type (spec §7.4, §7.4.1): what a declared
 /// length is checked against.
 #[derive(Clone, Copy)]
 struct MinSize {
@@ -56,7 +56,7 @@ const VARINT_MIN: MinSize = MinSize {
     extension: 1 + 1,
 };
 
-/// First bytes of bincode's variable-length integer (spec §7.5): below 251 the byte is the value;
+/// First bytes of bincode's variable-length integer (spec §7.4.1): below 251 the byte is the value;
 /// 251, 252, 253 announce a little-endian `u16`, `u32`, `u64`.
 const VARINT_U16: u8 = 251;
 const VARINT_U32: u8 = 252;
@@ -74,7 +74,7 @@ enum Varint {
 }
 
 /// Reads a canonical varint of a `u32` (`wide` false) or `u64` (`wide` true) member from the start
-/// of `bytes` (spec §7.5): the minimal form only, so each value has one encoding.
+/// of `bytes` (spec §7.4.1): the minimal form only, so each value has one encoding.
 #[inline]
 fn varint(bytes: &[u8], wide: bool) -> Varint {
     let Some(&first) = bytes.first() else {
@@ -267,7 +267,7 @@ enum Source<'a, 'r> {
 }
 
 /// The decoder of a binary payload: fixed-width integers (`VARINT` false, spec §7.4) or bincode
-/// varints (`VARINT` true, the compact encoding, §7.5).
+/// varints (`VARINT` true, the compact encoding, §7.4.1).
 pub(crate) struct BinaryDecoder<'a, 'r, const VARINT: bool> {
     src: Source<'a, 'r>,
     /// Payload bytes consumed.
@@ -424,7 +424,7 @@ impl<'a, 'r, const VARINT: bool> BinaryDecoder<'a, 'r, VARINT> {
 
     /// A canonical varint of a `u32` or (`wide`) `u64` member, every error at its first byte: a
     /// first byte that is no such varint, a varint that runs past the payload, one that is not
-    /// minimal (spec §7.5).
+    /// minimal (spec §7.4.1).
     fn varint_checked(&mut self, wide: bool, what: &str) -> Result<u64> {
         let start = self.at;
         let first = self.take_with(1, || what.to_string())?[0];
@@ -452,7 +452,7 @@ impl<'a, 'r, const VARINT: bool> BinaryDecoder<'a, 'r, VARINT> {
         }
         match varint(&bytes[..len], wide) {
             Varint::Value(v, _) => Ok(v),
-            Varint::Bad(why) => Err(self.fail(start, format!("{what}: {why} (spec §7.5)"))),
+            Varint::Bad(why) => Err(self.fail(start, format!("{what}: {why} (spec §7.4.1)"))),
             Varint::Short(_) => unreachable!("all {len} bytes are there"),
         }
     }

@@ -656,7 +656,7 @@ const NOT_KEPT: &str = "a face table read without its control points and weights
 
 /// The binary encoding of `Vec<FaceRecord>` (spec §7.4: a `u64` count, then per record three
 /// `u64`-length-prefixed arrays of little-endian numbers), written a slice at a time; with a
-/// varint configuration (the compact encoding, §7.5) lengths and ids go through bincode's own
+/// varint configuration (the compact encoding, §7.4.1) lengths and ids go through bincode's own
 /// integer encoder, the numbers still a slice at a time.
 impl Encode for FaceTable {
     fn encode<E: bincode::enc::Encoder>(

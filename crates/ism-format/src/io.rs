@@ -14,7 +14,7 @@ pub const MAGIC: [u8; 8] = [0x89, b'I', b'S', b'M', 0x0D, 0x0A, 0x1A, 0x0A];
 /// Container header length in bytes.
 pub const HEADER_LEN: usize = 32;
 
-/// How the model is encoded (spec §7.2–7.5).
+/// How the model is encoded (spec §7.2–7.4.1).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, serde::Serialize)]
 #[serde(rename_all = "lowercase")]
 pub enum Encoding {
@@ -25,7 +25,7 @@ pub enum Encoding {
     /// bincode 2 fixed-width little-endian (`.ismb`), in a container.
     Binary,
     /// Compact binary (`.ismc`): the binary encoding's grammar with every integer wider than a
-    /// byte written as bincode 2's variable-length integer (spec §7.5), in a container. The
+    /// byte written as bincode 2's variable-length integer (spec §7.4.1), in a container. The
     /// smallest encoding: a length or an id below 251 takes one byte.
     Compact,
 }
@@ -779,7 +779,7 @@ pub fn binary_config(
         .with_fixed_int_encoding()
 }
 
-/// The bincode configuration that writes the compact encoding (spec §7.5): little-endian, integers
+/// The bincode configuration that writes the compact encoding (spec §7.4.1): little-endian, integers
 /// as bincode's variable-length integers (its standard configuration, so a second implementation can
 /// use bincode's defaults directly).
 pub fn compact_config(

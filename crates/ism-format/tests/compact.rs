@@ -1,4 +1,4 @@
-//! The compact binary encoding (spec §7.5): its bytes written out by hand from the spec, bincode's
+//! The compact binary encoding (spec §7.4.1): its bytes written out by hand from the spec, bincode's
 //! own varint encoder as a second writer, and the errors of its varints (non-minimal, truncated,
 //! bad first byte, a length the payload cannot hold), each typed and located.
 
@@ -27,7 +27,7 @@ fn f64s(xs: &[f64]) -> Vec<u8> {
     xs.iter().flat_map(|x| x.to_le_bytes()).collect()
 }
 
-/// Appendix A's payload in the compact encoding, written field by field from spec §7.4/§7.5.
+/// Appendix A's payload in the compact encoding, written field by field from spec §7.4/§7.4.1.
 fn appendix_a_payload() -> Vec<u8> {
     let mut p = Vec::new();
     p.extend([3, b'1', b'.', b'0']); // version

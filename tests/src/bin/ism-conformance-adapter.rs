@@ -53,9 +53,10 @@ fn main() -> ExitCode {
                 "json-pretty" => (Encoding::Json, true),
                 "msgpack" => (Encoding::MessagePack, false),
                 "binary" => (Encoding::Binary, false),
+                "compact" => (Encoding::Compact, false),
                 other => {
                     eprintln!(
-                        "unknown encoding {other:?}; expected json, json-pretty, msgpack or binary"
+                        "unknown encoding {other:?}; expected json, json-pretty, msgpack, binary or compact"
                     );
                     return ExitCode::from(2);
                 }
@@ -72,7 +73,7 @@ fn main() -> ExitCode {
             }
         }
         _ => {
-            eprintln!("usage: ism-conformance-adapter read FILE | convert IN OUT json|json-pretty|msgpack|binary");
+            eprintln!("usage: ism-conformance-adapter read FILE | convert IN OUT json|json-pretty|msgpack|binary|compact");
             ExitCode::from(2)
         }
     }

@@ -36,7 +36,7 @@ struct Args {
     #[arg(long, default_value = "spec/vectors/writer")]
     writer_vectors_dir: PathBuf,
     /// Also write `large_stratified_model(TETS)` to FILE (encoding from the extension: .ism.json,
-    /// .ism.msgpack, .ismb).
+    /// .ism.msgpack, .ismb, .ismc).
     #[arg(long, num_args = 2, value_names = ["TETS", "FILE"])]
     large: Option<Vec<String>>,
 }
