@@ -19,6 +19,9 @@ const TARGETS: &[(&str, Property)] = &[
     ("read_binary", |b| {
         fuzz::readers_agree_on_payload(Encoding::Binary, b)
     }),
+    ("read_compact", |b| {
+        fuzz::readers_agree_on_payload(Encoding::Compact, b)
+    }),
     ("read_msgpack", |b| {
         fuzz::readers_agree_on_payload(Encoding::MessagePack, b)
     }),

@@ -7,7 +7,8 @@ use anyhow::Context;
 use ism_format::{io, Encoding};
 
 const AFTER_HELP: &str = "\
-The output encoding follows --to, else the output extension (.ism.json, .ism.msgpack, .ismb).
+The output encoding follows --to, else the output extension (.ism.json, .ism.msgpack, .ismb,
+.ismc). Compact binary (.ismc) is the smallest: the binary encoding with variable-length integers.
 The input encoding is detected from its content, whatever its name. The output is written to a
 temporary file and renamed, so a failure leaves no partial file.
 
@@ -15,6 +16,7 @@ Examples:
   ism convert sphere.ism.json sphere.ismb
   ism convert sphere.ismb sphere.ism.json --pretty
   ism convert in.dat out.dat --to msgpack
+  ism convert sphere.ismb sphere.ismc
 
 Exit status: 0 on success, 2 when the input is unreadable or the output cannot be written.";
 
@@ -26,7 +28,7 @@ pub struct Args {
     input: PathBuf,
     /// Output file.
     output: PathBuf,
-    /// Output encoding: json, msgpack or binary.
+    /// Output encoding: json, msgpack, binary or compact.
     #[arg(long)]
     to: Option<Encoding>,
     /// Indent JSON output.
@@ -67,7 +69,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         .or_else(|| Encoding::from_path(&args.output))
         .with_context(|| {
             format!(
-                "cannot tell the encoding of {}: use --to json|msgpack|binary",
+                "cannot tell the encoding of {}: use --to json|msgpack|binary|compact",
                 args.output.display()
             )
         })?;

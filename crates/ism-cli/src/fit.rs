@@ -118,7 +118,7 @@ pub struct Args {
     /// Skip the Plantinga–Vegter refinement (topology not guaranteed).
     #[arg(long)]
     no_topology: bool,
-    /// Output model (.ism.json, .ism.msgpack or .ismb).
+    /// Output model (.ism.json, .ism.msgpack, .ismb, or .ismc: compact binary, the smallest).
     #[arg(short, long, required_unless_present = "list_presets")]
     output: Option<PathBuf>,
     /// Also draw the result as SVG (2D only).

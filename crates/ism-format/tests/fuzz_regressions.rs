@@ -83,6 +83,18 @@ fn check_payload(encoding: Encoding, payload: &[u8]) {
     let mut bytes = io::header(encoding, FORMAT_VERSION, payload).to_vec();
     bytes.extend_from_slice(payload);
     check_any(&bytes);
+    // The binary encodings leave a writer no choice (spec §7.7): a payload that reads is the one
+    // the writer writes for its model.
+    if matches!(encoding, Encoding::Binary | Encoding::Compact) {
+        if let Ok(doc) = io::from_slice(&bytes) {
+            let again = io::to_vec(&doc.model, encoding, Default::default()).unwrap();
+            assert_eq!(
+                &again[io::HEADER_LEN..],
+                payload,
+                "{encoding:?} not canonical"
+            );
+        }
+    }
 }
 
 #[test]
@@ -93,6 +105,7 @@ fn fuzz_corpus_and_crashes_are_handled() {
         for (target, encoding) in [
             ("read_any", None),
             ("read_binary", Some(Encoding::Binary)),
+            ("read_compact", Some(Encoding::Compact)),
             ("read_msgpack", Some(Encoding::MessagePack)),
             ("read_json", Some(Encoding::Json)),
             ("cross_encoding", None),
