@@ -28,9 +28,10 @@ mesh target), the grid refined until the mesh's two-sided true error, measured t
 triangles) is at most the ISM's; the mesh is written as binary glTF (.glb, trimesh). 2D shapes
 use `find_contours` and a .glb of line segments.
 
-Prints one Markdown row per shape: tolerance, simplices, stored numbers, .ismb bytes, ISM
-two-sided true error (both directions), the report's own claim, topology, CPU seconds; and the
-marching-cubes grid, vertices+faces numbers, .glb bytes, its error, topology, CPU seconds.
+Prints one Markdown row per shape: tolerance, simplices, stored numbers, .ismb and .ismc (compact
+binary) bytes, ISM two-sided true error (both directions), the report's own claim, topology, CPU
+seconds; and the marching-cubes grid, vertices+faces numbers, .glb bytes, its error, topology, CPU
+seconds.
 Needs numpy, scipy, scikit-image, trimesh (tools/requirements.txt); the mesh target needs the
 bunny that ships in the pymeshlab wheel (skipped when pymeshlab is not installed).
 """
@@ -414,6 +415,14 @@ def fit_ism(shape, tol, out, timeout, extra=()):
     return path, report, cpu, wall, pts, nrm
 
 
+def compact_bytes(path):
+    """Bytes of the same model in the compact binary encoding (spec ism-format.md §7.4.1: the
+    binary grammar with variable-length integers), written by `ism convert`."""
+    c = path[: -len(".ismb")] + ".ismc"
+    subprocess.run([ISM, "convert", path, c, "-q"], check=True)
+    return os.path.getsize(c)
+
+
 def byte_parts(path):
     """Where the .ismb's bytes go (spec ism-format.md §7.4: u32 ids, f64 numbers, a u64 length
     before every array): from the model re-encoded as JSON by `ism convert`."""
@@ -640,11 +649,12 @@ def main():
         back = back[np.isfinite(back)]
         ism_err = max(fwd.max(), back_max)
         ism_bytes = os.path.getsize(path)
+        ismc_bytes = compact_bytes(path)
         total, crossed, simplices, parts = byte_parts(path)
         print(f"  .ismb {total} B: {simplices} simplices ({crossed} crossed); " + ", ".join(
             f"{k} {v} B ({100 * v / total:.0f} %)" for k, v in parts.items()), file=sys.stderr)
         print(f"{key}: ISM tol {tol:.2e}: {report['simplices']} simplices, "
-              f"{report['storedNumbers']} numbers, {ism_bytes} B, true S->Z {fwd.max():.3e} "
+              f"{report['storedNumbers']} numbers, {ism_bytes} B (.ismc {ismc_bytes} B), true S->Z {fwd.max():.3e} "
               f"Z->S {back.max():.3e} (report {report['shapeToTarget']:.3e} / "
               f"{report['targetToShape']:.3e}, met {report['toleranceMet']}), {cpu:.1f} CPU-s",
               file=sys.stderr)
@@ -683,23 +693,23 @@ def main():
         topo = f"genus {shape['genus']}" if shape.get("genus") is not None else "—"
         ism_topo = f"{report.get('components')} comp., χ {report.get('euler')}"
         if best is None:
-            mc = f"not reached by {max_res} cells | — | — | — | — | — |"
+            mc = f"not reached by {max_res} cells | — | — | — | — | — | — |"
         else:
             r, v, f, mcpu, glb, e = best
             chi = euler(v, f)
             nums = v.size + f.size
             mc = (f"{r} | {nums:,} | {glb:,} | {max(e):.2e} ({e[0]:.1e}/{e[1]:.1e}) | "
                   f"{'χ ' + str(chi) if chi is not None else str(len(f)) + ' segments'}, "
-                  f"{mcpu:.1f} CPU-s | {glb / ism_bytes:.2f} |")
+                  f"{mcpu:.1f} CPU-s | {glb / ism_bytes:.2f} | {glb / ismc_bytes:.2f} |")
         rows.append(
             f"| {shape['name']} ({topo}) | {tol:.1e} | {report['simplices']:,} | "
-            f"{report['storedNumbers']:,} | {ism_bytes:,} | {ism_err:.2e} ({fwd.max():.1e}/"
+            f"{report['storedNumbers']:,} | {ism_bytes:,} | {ismc_bytes:,} | {ism_err:.2e} ({fwd.max():.1e}/"
             f"{back.max():.1e}) | {report['maxDistance']:.2e}, met {report['toleranceMet']} | "
             f"{ism_topo}, {cpu:.1f} CPU-s | {mc}")
-    print("| shape | tolerance | ISM simplices | stored numbers | .ismb bytes | true two-sided "
-          "error (S→Z/Z→S) | report's claim | ISM topology, CPU | MC grid | MC numbers | .glb bytes "
-          "| MC true error | MC topology, CPU | .glb / .ismb |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    print("| shape | tolerance | ISM simplices | stored numbers | .ismb bytes | .ismc bytes | true "
+          "two-sided error (S→Z/Z→S) | report's claim | ISM topology, CPU | MC grid | MC numbers | "
+          ".glb bytes | MC true error | MC topology, CPU | .glb / .ismb | .glb / .ismc |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         print(r)
 

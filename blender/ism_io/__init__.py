@@ -1,4 +1,4 @@
-"""Blender extension: File > Import / Export > Iso-Simplicial Model (.ism.json, .ismb, .ism.msgpack).
+"""Blender extension: File > Import / Export > Iso-Simplicial Model (.ism.json, .ismb, .ismc, .ism.msgpack).
 
 A thin layer over the ``ism`` Python package (bundled as a wheel in the extension zip): reading,
 validation, surface extraction and fitting are the package's; this add-on turns its arrays into
@@ -14,9 +14,9 @@ from bpy_extras.io_utils import ExportHelper, ImportHelper
 
 from . import exporter, importer
 
-EXTENSIONS = (".ism.json", ".ismb", ".ism.msgpack")
+EXTENSIONS = (".ism.json", ".ismb", ".ismc", ".ism.msgpack")
 FILTER_GLOB = ";".join("*" + e for e in EXTENSIONS)
-ENCODING_EXT = {"binary": ".ismb", "json": ".ism.json", "msgpack": ".ism.msgpack"}
+ENCODING_EXT = {"binary": ".ismb", "compact": ".ismc", "json": ".ism.json", "msgpack": ".ism.msgpack"}
 
 
 def _package_errors() -> tuple:
@@ -103,7 +103,8 @@ class ISM_OT_export(bpy.types.Operator, ExportHelper):
     encoding: EnumProperty(  # type: ignore[valid-type]
         name="Encoding",
         items=(
-            ("binary", "Binary (.ismb)", "Compact binary encoding"),
+            ("binary", "Binary (.ismb)", "Binary encoding, fixed-width integers"),
+            ("compact", "Compact binary (.ismc)", "Binary encoding with variable-length integers: the smallest file"),
             ("json", "JSON (.ism.json)", "Human-readable JSON encoding"),
             ("msgpack", "MessagePack (.ism.msgpack)", "MessagePack encoding"),
         ),
@@ -198,7 +199,7 @@ class ISM_OT_export(bpy.types.Operator, ExportHelper):
 
 
 class ISM_FH_import(bpy.types.FileHandler):
-    """Drag and drop of .ism.json / .ismb / .ism.msgpack files onto the viewport."""
+    """Drag and drop of .ism.json / .ismb / .ismc / .ism.msgpack files onto the viewport."""
 
     bl_idname = "ISM_FH_import"
     bl_label = "Iso-Simplicial Model"
@@ -212,11 +213,11 @@ class ISM_FH_import(bpy.types.FileHandler):
 
 
 def _menu_import(self, context):
-    self.layout.operator(ISM_OT_import.bl_idname, text="Iso-Simplicial Model (.ism.json, .ismb, .ism.msgpack)")
+    self.layout.operator(ISM_OT_import.bl_idname, text="Iso-Simplicial Model (.ism.json, .ismb, .ismc, .ism.msgpack)")
 
 
 def _menu_export(self, context):
-    self.layout.operator(ISM_OT_export.bl_idname, text="Iso-Simplicial Model (.ism.json, .ismb, .ism.msgpack)")
+    self.layout.operator(ISM_OT_export.bl_idname, text="Iso-Simplicial Model (.ism.json, .ismb, .ismc, .ism.msgpack)")
 
 
 _CLASSES = (ISM_OT_import, ISM_OT_export, ISM_FH_import)

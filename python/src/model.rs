@@ -137,8 +137,9 @@ pub(crate) fn encoding_from_str(text: &str) -> PyResult<Encoding> {
         "json" => Ok(Encoding::Json),
         "msgpack" | "messagepack" => Ok(Encoding::MessagePack),
         "binary" => Ok(Encoding::Binary),
+        "compact" => Ok(Encoding::Compact),
         _ => Err(PyValueError::new_err(format!(
-            "encoding {text:?}: expected 'json', 'msgpack' or 'binary'"
+            "encoding {text:?}: expected 'json', 'msgpack', 'binary' or 'compact'"
         ))),
     }
 }
@@ -868,7 +869,8 @@ impl Model {
         self.inner.num_simplices()
     }
 
-    /// The encoding the model was read from (``"json"``, ``"msgpack"``, ``"binary"``), or ``None``
+    /// The encoding the model was read from (``"json"``, ``"msgpack"``, ``"binary"``,
+    /// ``"compact"``), or ``None``
     /// for a model built in memory.
     #[getter]
     fn encoding(&self) -> Option<&'static str> {
@@ -1076,7 +1078,8 @@ impl Model {
         Ok(d)
     }
 
-    /// The file's bytes in ``encoding`` (``"json"``, ``"msgpack"`` or ``"binary"``); ``pretty``
+    /// The file's bytes in ``encoding`` (``"json"``, ``"msgpack"``, ``"binary"`` or ``"compact"``,
+    /// the smallest: the binary encoding with variable-length integers); ``pretty``
     /// indents JSON; ``container`` wraps JSON in the checksummed container.
     #[pyo3(signature = (encoding = "binary", *, pretty = false, container = false))]
     fn to_bytes<'py>(
@@ -1100,7 +1103,7 @@ impl Model {
 
     /// Writes the model to ``path`` atomically (a failure leaves no partial file). The encoding
     /// defaults to the extension's (``.ism.json``/``.json``, ``.ism.msgpack``/``.msgpack``,
-    /// ``.ismb``; binary otherwise).
+    /// ``.ismb``, ``.ismc``; binary otherwise).
     #[pyo3(signature = (path, encoding = None, *, pretty = false, container = false))]
     fn write_path(
         &self,

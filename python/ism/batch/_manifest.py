@@ -25,7 +25,7 @@ from typing import Any, Dict, Iterable, List, Optional
 #: Per-item options (manifest columns / run defaults) and their types.
 OPTION_TYPES: Dict[str, type] = {
     "steps": str,  # comma list of validate,convert,export,sample (read/fit always runs)
-    "encoding": str,  # convert: binary | json | msgpack
+    "encoding": str,  # convert: binary | compact | json | msgpack
     "export": str,  # export format: glb | gltf | obj | vtk | vtu
     "export_tolerance": float,
     "surface": int,  # sample counts (0 = none)
@@ -39,7 +39,7 @@ OPTION_TYPES: Dict[str, type] = {
 }
 
 #: File endings of models and meshes (a directory manifest takes these).
-MODEL_SUFFIXES = (".ism.json", ".ism.msgpack", ".ismb")
+MODEL_SUFFIXES = (".ism.json", ".ism.msgpack", ".ismb", ".ismc")
 MESH_SUFFIXES = (".obj",)
 KNOWN_SUFFIXES = MODEL_SUFFIXES + MESH_SUFFIXES + (".json", ".msgpack")
 
