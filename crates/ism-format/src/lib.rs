@@ -2,9 +2,9 @@
 //!
 //! An *Iso-Simplicial Model* is a simplicial complex with a nonzero value per vertex and a sequence
 //! of simplicial diffeomorphism stages; its shape is the level set `F = c` of the deformed
-//! piecewise-linear function. This crate reads and writes the three encodings of
-//! `spec/ism-format.md` (JSON, MessagePack, binary), detects them by content, and enforces the
-//! structural requirements a reader must. It does no geometry beyond orientation signs.
+//! piecewise-linear function. This crate reads and writes the four encodings of
+//! `spec/ism-format.md` (JSON, MessagePack, binary, compact binary), detects them by content, and
+//! enforces the structural requirements a reader must. It does no geometry beyond orientation signs.
 //!
 //! ```
 //! use ism_format::{builder::{ModelBuilder, StageBuilder}, io, Encoding};

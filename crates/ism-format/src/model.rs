@@ -53,7 +53,7 @@ impl std::fmt::Display for Version {
 
 /// Any JSON value, carried verbatim by every encoding (spec §2.7: `extras`, `extensions`).
 ///
-/// The binary encoding stores it as its canonical compact JSON text (spec §7.7), so all three
+/// The binary encoding stores it as its canonical compact JSON text (spec §7.7), so all four
 /// encodings keep it exactly.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, JsonSchema, Default)]
 #[serde(transparent)]

@@ -16,7 +16,7 @@ Examples:
 Output is deterministic: running it twice gives identical bytes.
 Exit status: 0 when every file was written, 2 on a write error or a vector that does not fail as intended.";
 
-/// Writes the ISM example models (three encodings each) and the reader test vectors.
+/// Writes the ISM example models (four encodings each) and the reader test vectors.
 #[derive(Parser)]
 #[command(name = "ism-make-examples", version, about, after_help = AFTER_HELP)]
 struct Args {
