@@ -37,7 +37,7 @@ IMPORT_TOL = 1e-3
 EXAMPLES_3D = [
     os.path.join(EXAMPLES, f"{name}{ext}")
     for name in ("sphere", "stratified-3d", "torus")
-    for ext in (".ismb", ".ism.json", ".ism.msgpack")
+    for ext in (".ismb", ".ismc", ".ism.json", ".ism.msgpack")
 ]
 
 
