@@ -154,12 +154,15 @@ def fit(expr: Union[str, None] = None, domain: Any = None, **options: Any) -> "t
     """Fits an ISM to the zero set of ``expr`` over ``domain`` (or ``preset=``), as ``ism fit``.
 
     Returns ``(model, report)``; the report has the members of ``ism fit --json``
-    (``maxDistance``, ``toleranceMet``, ``components``, ``euler``, ...).
+    (``maxDistance``, ``toleranceMet``, ``components``, ``euler``, ...) and the same verdict:
+    ``outcome`` is ``"passed"`` or the first failure (``"structural errors"``, ``"tolerance not
+    met"``, ``"topology not certified"``, ``"topology differs"``); ``topologyMatches`` is ``None``
+    when there is no reference topology (an expression), so nothing is claimed unchecked.
 
     >>> import ism
     >>> m, r = ism.fit("x^2 + y^2 - 0.25", (-1, 1, -1, 1), resolution=6)
-    >>> r["toleranceMet"], r["components"], r["euler"]
-    (True, 1, 0)
+    >>> r["toleranceMet"], r["components"], r["euler"], r["outcome"], r["topologyMatches"]
+    (True, 1, 0, 'passed', None)
     """
     return _fit(expr, None if domain is None else [float(x) for x in domain], **options)
 

@@ -6,6 +6,7 @@ use ism_fit::c1::smooth_rational_with_progress;
 use ism_fit::hermite::{fit_hermite_with_progress, HermiteData};
 use ism_fit::mesh::{MeshDistance, MeshPlanError};
 use ism_fit::smooth::{smooth_with_progress, Mode};
+use ism_fit::verdict::{ExpectedTopology, Verdict};
 use ism_fit::{Expression, FitOptions, ImplicitFunction, Preset, PRESETS};
 use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
@@ -78,15 +79,12 @@ impl FitArgs {
     }
 }
 
-/// Expected topology: `(what, components, euler)`.
-type Expected = Option<(&'static str, usize, i64)>;
-
 fn run_fit<'py>(
     py: Python<'py>,
     g: Box<dyn ImplicitFunction + Send>,
     options: FitOptions,
     name: String,
-    expected: Expected,
+    expected: Option<ExpectedTopology>,
     mesh: Option<serde_json::Value>,
     progress: Option<&Bound<'py, PyAny>>,
 ) -> PyResult<(Model, Bound<'py, PyAny>)> {
@@ -94,26 +92,11 @@ fn run_fit<'py>(
         let fitted = ism_fit::fit(&*g, &options, &control.fit_hook())
             .map_err(|e| crate::errors::chain(&e))?;
         let model = fitted.to_model(&name);
-        let structural = ism_format::structure::check(&model, 20)
-            .into_iter()
-            .filter(|d| d.severity == ism_format::Severity::Error)
-            .count();
-        let r = &fitted.report;
-        let matches = expected.map(|(_, c, e)| c == r.topology.components && e == r.topology.euler);
-        // The library's report, plus what `ism fit --json` adds from its input.
-        let round_trip = ism_fit::roundtrip::round_trip(&model, r.topology, options.tolerance);
-        let mut report = r.to_json();
-        let mut add = |k: &str, v: serde_json::Value| report.insert(k.to_string(), v);
-        add("topologyChecked", matches.is_some().into());
-        add("topologyMatchesPreset", matches.into());
-        add("topologyMatches", matches.unwrap_or(true).into());
-        add(
-            "topologyReference",
-            expected.map(|(what, _, _)| what).into(),
-        );
-        add("mesh", mesh.into());
-        add("structuralErrors", structural.into());
-        add("roundTrip", ism_fit::roundtrip::to_json(&round_trip));
+        // The library's verdict (the same as `ism fit`'s), plus what this call adds from its input.
+        let verdict = Verdict::judge(&fitted, &model, options.tolerance, expected, |_| {});
+        let mut report = fitted.report.to_json();
+        verdict.add_to_json(&mut report);
+        report.insert("mesh".to_string(), mesh.into());
         let report = serde_json::Value::Object(report);
         Ok::<_, String>((model, report))
     })?;
@@ -154,7 +137,7 @@ pub fn fit<'py>(
         Box<dyn ImplicitFunction + Send>,
         Vec<f64>,
         String,
-        Expected,
+        Option<ExpectedTopology>,
     ) = match (preset, expr) {
         (Some(_), Some(_)) => return Err(PyValueError::new_err("give expr or preset, not both")),
         (Some(name), None) => {
@@ -166,7 +149,7 @@ pub fn fit<'py>(
                 Box::new(p.expression().map_err(|e| fail(&e))?),
                 p.domain.to_vec(),
                 p.name.to_string(),
-                Some(("the true shape", p.components, p.euler)),
+                Some(ExpectedTopology::of_preset(p)),
             )
         }
         (None, Some(text)) => {
@@ -245,13 +228,12 @@ pub fn fit_mesh<'py>(
         "flipped": plan.flipped,
         "diagonal": diagonal,
     });
-    let (components, euler) = plan.expected_topology();
     run_fit(
         py,
         Box::new(g),
         options,
         name.to_string(),
-        Some(("the mesh", components, euler)),
+        Some(ExpectedTopology::of_mesh(&plan)),
         Some(info),
         progress,
     )

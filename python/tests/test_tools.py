@@ -179,6 +179,12 @@ def test_fit_expression_matches_the_cli(tmp_path):
     assert m.to_bytes("binary") == out.read_bytes()
     for key in ("simplices", "vertices", "parameters", "maxDistance", "meanDistance", "toleranceMet", "components", "euler"):
         assert report[key] == expected[key], key
+    # One verdict for both (ism_fit::verdict): an expression has no reference topology to check.
+    for key in ("outcome", "topologyChecked", "topologyMatches", "topologyMatchesPreset", "topologyReference", "structuralErrors"):
+        assert report[key] == expected[key], key
+    assert (report["outcome"], report["topologyChecked"], report["topologyReference"]) == ("passed", False, None)
+    # Nothing was checked, so nothing is claimed to match (issue 17: "true" where nothing was checked).
+    assert report["topologyMatches"] is None and report["topologyMatchesPreset"] is None
 
 
 def test_fit_preset_matches_the_cli(tmp_path):
@@ -210,6 +216,9 @@ def test_fit_mesh_matches_the_cli(tmp_path):
     assert m.to_bytes("binary") == out.read_bytes()
     assert report["maxDistance"] == expected["maxDistance"]
     assert report["components"] == 1 and report["euler"] == 2
+    for key in ("outcome", "topologyChecked", "topologyMatches", "topologyReference", "structuralErrors"):
+        assert report[key] == expected[key], key
+    assert report["topologyReference"] == "the mesh" and report["topologyChecked"] is True
 
 
 def test_fit_hermite_matches_the_cli(tmp_path):

@@ -5,6 +5,7 @@ use std::process::ExitCode;
 
 use anyhow::{bail, Context};
 use ism_fit::mesh::{MeshCheck, MeshDistance, MeshPlan, MeshPlanError, TriangleMesh};
+use ism_fit::verdict::{ExpectedTopology, Outcome, Verdict};
 use ism_fit::{Expression, FitOptions, ImplicitFunction, Preset, PRESETS};
 use ism_format::io;
 
@@ -64,7 +65,8 @@ reported (roundTrip in --json, a warning on stderr).
 Exit status: 0 when the fit meets the tolerance and the model passes the structural checks;
 1 when the tolerance was not met within --max-simplices, the topology phase ran out of
 --max-simplices, or the true topology of a preset or closed mesh was not reproduced (the model
-is still written); 2 on bad arguments, an undefined g or a pole on the shape, or a failed write.";
+is still written; --json's outcome member names which); 2 on bad arguments, an undefined g or a
+pole on the shape, or a failed write.";
 
 /// Arguments of `ism fit`.
 #[derive(clap::Args)]
@@ -271,16 +273,15 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         )
     });
     let fitted = ism_fit::fit(expression, &options, &hook)?;
-    progress.phase("checking the model's structure");
     let model = fitted.to_model(&name);
-
-    let structural: Vec<_> = ism_format::structure::check(&model, 20)
-        .into_iter()
-        .filter(|d| d.severity == ism_format::Severity::Error)
-        .collect();
-    progress.phase("round trip: encoding, export and sampling of the fitted model");
-    let round_trip =
-        ism_fit::roundtrip::round_trip(&model, fitted.report.topology, fitted_tolerance);
+    let expected = match (preset, mesh_plan) {
+        (Some(p), _) => Some(ExpectedTopology::of_preset(p)),
+        (None, Some(plan)) => Some(ExpectedTopology::of_mesh(plan)),
+        (None, None) => None,
+    };
+    let verdict = Verdict::judge(&fitted, &model, fitted_tolerance, expected, |phase| {
+        progress.phase(phase)
+    });
     io::write_path(&model, &output, None, io::WriteOptions::default())
         .map_err(|e| crate::args::cannot_write_model(&output, e))?;
     progress.finish();
@@ -299,18 +300,6 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     }
 
     let r = &fitted.report;
-    let expected = match (preset, &mesh) {
-        (Some(p), _) => Some(("the true shape", p.components, p.euler)),
-        (None, Some((c, _, _))) if c.is_closed_manifold() => {
-            Some(("the mesh", c.components, c.euler))
-        }
-        _ => None,
-    };
-    // `None` when there is nothing to compare with (an expression): then only the
-    // Plantinga–Vegter certificate speaks for the topology.
-    let topology_matches =
-        expected.map(|(_, c, e)| c == r.topology.components && e == r.topology.euler);
-    let topology_ok = topology_matches.unwrap_or(true);
     let m = &r.measure;
     // True distances to the mesh relative to its diagonal (|g|/|∇g| = |g| for a distance).
     let relative = mesh
@@ -319,8 +308,6 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     if args.json {
         let mut value = r.to_json();
         let mut add = |k: &str, v: serde_json::Value| value.insert(k.to_string(), v);
-        add("topologyChecked", topology_matches.is_some().into());
-        add("topologyMatchesPreset", topology_matches.into());
         add(
             "mesh",
             mesh.as_ref()
@@ -341,8 +328,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
                 })
                 .into(),
         );
-        add("structuralErrors", structural.len().into());
-        add("roundTrip", ism_fit::roundtrip::to_json(&round_trip));
+        verdict.add_to_json(&mut value);
         let value = serde_json::Value::Object(value);
         println!("{value}");
     } else {
@@ -404,7 +390,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             );
             println!("  distance to mesh max {max:.3e}, mean {mean:.3e} of the diagonal");
         }
-        if let Ok(t) = &round_trip {
+        if let Ok(t) = &verdict.round_trip {
             println!(
                 "  round trip       .ismb {} bytes decoded bit-exactly; exported {} vertices, {} cells \
                  with the fit's topology; {} points sampled",
@@ -419,12 +405,10 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
                 format!("{} cells still fail: topology not certified", r.pv_failures)
             }
         );
-        match topology_matches {
-            Some(true) => println!("  topology check   as {}", expected.map_or("", |e| e.0)),
-            Some(false) => println!(
-                "  topology check   DIFFERS from {}",
-                expected.map_or("", |e| e.0)
-            ),
+        let reference = verdict.expected.map_or("", |e| e.reference);
+        match verdict.topology_matches {
+            Some(true) => println!("  topology check   as {reference}"),
+            Some(false) => println!("  topology check   DIFFERS from {reference}"),
             None => println!("  topology check   nothing to compare with"),
         }
         println!(
@@ -432,7 +416,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             r.seconds, r.bisections
         );
     }
-    if let Err(e) = &round_trip {
+    if let Err(e) = &verdict.round_trip {
         // Reported, not fatal: the failures seen are in the exporter's and sampler's inversion
         // (issue 19), which the fitter must not paper over.
         eprintln!(
@@ -462,14 +446,15 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             r.unresolved_cells
         );
     }
-    if !structural.is_empty() {
-        for d in &structural {
-            eprintln!("structural error: {d:?}");
+    // The library decides the outcome (`Verdict::judge`); here only its words.
+    match verdict.outcome {
+        Outcome::Passed => return Ok(ExitCode::SUCCESS),
+        Outcome::StructuralErrors => {
+            for d in &verdict.structural {
+                eprintln!("structural error: {d:?}");
+            }
         }
-        return Ok(ExitCode::from(1));
-    }
-    if !r.tolerance_met {
-        eprintln!(
+        Outcome::ToleranceNotMet => eprintln!(
             "tolerance {tolerance:.1e} not met: fit → target ≤ {:.3e} (worst near {}; ≈ {:.1e} more \
              between the samples, estimated), target → fit ≤ {:.3e} (worst near {}); raise \
              --max-simplices or --resolution",
@@ -478,27 +463,22 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             m.shape_to_target_error,
             m.target_to_shape,
             show(&m.target_to_shape_at)
-        );
-        return Ok(ExitCode::from(1));
-    }
-    if r.pv_unfinished > 0 {
-        eprintln!(
+        ),
+        Outcome::TopologyUncertified => eprintln!(
             "topology not certified: {} cells still fail the Plantinga–Vegter test at \
              --max-simplices {}; raise it",
             r.pv_unfinished, args.max_simplices
-        );
-        return Ok(ExitCode::from(1));
-    }
-    if !topology_ok {
-        if let Some((what, c, e)) = expected {
-            eprintln!(
-                "topology {} component(s), χ = {} differs from {what}'s {c} component(s), χ = {e}",
-                r.topology.components, r.topology.euler
-            );
+        ),
+        Outcome::TopologyDiffers => {
+            if let Some(e) = verdict.expected {
+                eprintln!(
+                    "topology {} component(s), χ = {} differs from {}'s {} component(s), χ = {}",
+                    r.topology.components, r.topology.euler, e.reference, e.components, e.euler
+                );
+            }
         }
-        return Ok(ExitCode::from(1));
     }
-    Ok(ExitCode::SUCCESS)
+    Ok(ExitCode::from(1))
 }
 
 /// `(x, y[, z])` with 4 significant digits.

@@ -11,7 +11,7 @@
 //!   Levenberg–Marquardt, refinement of cells above the tolerance) and its report.
 //! - [`measure`]: the two-sided distance between a fitted shape and its target (certified
 //!   bounds, not first-order estimates); [`roundtrip`]: the encoding/export/sampling check a fit
-//!   passes before it is written.
+//!   passes before it is written; [`verdict`]: the outcome every front end reports.
 //! - [`shell`]: the written complex — the simplices that hold the solid, the records that move
 //!   the shape.
 //! - [`isocontour`]: the linear isocomplex, its topology and samples; [`svg`]: 2D pictures.
@@ -57,6 +57,7 @@ pub mod shell;
 pub mod smooth;
 pub mod strata;
 pub mod svg;
+pub mod verdict;
 
 pub use expr::{Expression, ImplicitFunction};
 pub use fit::{fit, FitOptions, FitReport, Fitted};

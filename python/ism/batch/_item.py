@@ -229,9 +229,10 @@ def process_item(item: Dict[str, Any], out: str, threads: int = 1, max_points: i
             data = model.to_bytes("binary")
             write_bytes_atomic(paths["fit"], data)
             st.row.update(bytes=len(data), output=paths["fit"])
-            if not (report.get("toleranceMet", True) and report.get("topologyMatches", True) is not False):
+            # The library's verdict (`outcome`, as `ism fit` exits 1 on anything but "passed").
+            if report["outcome"] != "passed":
                 st.row["verdict"] = "warning"
-                st.row["error"] = f"fit: tolerance met {report.get('toleranceMet')}, topology matches {report.get('topologyMatches')}"
+                st.row["error"] = f"fit: {report['outcome']} (tolerance met {report.get('toleranceMet')}, topology matches {report.get('topologyMatches')})"
         else:
             size = os.path.getsize(item["path"])
             if size > max_input_bytes:
