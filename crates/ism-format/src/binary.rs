@@ -416,7 +416,7 @@ impl<'a, 'r, const VARINT: bool> BinaryDecoder<'a, 'r, VARINT> {
     fn u32(&mut self, what: &str) -> Result<u32> {
         if VARINT {
             // `wide` false: a value above u32::MAX cannot be read.
-            return Ok(self.varint_checked(false, what)? as u32);
+            return Ok(self.varint_checked(false, || what.to_string())? as u32);
         }
         let bytes = self.take(4, what)?;
         Ok(u32::from_le_bytes(bytes.try_into().expect("4 bytes")))
@@ -424,10 +424,11 @@ impl<'a, 'r, const VARINT: bool> BinaryDecoder<'a, 'r, VARINT> {
 
     /// A canonical varint of a `u32` or (`wide`) `u64` member, every error at its first byte: a
     /// first byte that is no such varint, a varint that runs past the payload, one that is not
-    /// minimal (spec §7.4.1).
-    fn varint_checked(&mut self, wide: bool, what: &str) -> Result<u64> {
+    /// minimal (spec §7.4.1). `what` names the member and is called only on failure: a length
+    /// prefix's "the length of …" is not formatted per sequence read.
+    fn varint_checked(&mut self, wide: bool, what: impl Fn() -> String) -> Result<u64> {
         let start = self.at;
-        let first = self.take_with(1, || what.to_string())?[0];
+        let first = self.take_with(1, &what)?[0];
         let len = match first {
             0..=250 => return Ok(u64::from(first)),
             VARINT_U16 => 3,
@@ -439,7 +440,8 @@ impl<'a, 'r, const VARINT: bool> BinaryDecoder<'a, 'r, VARINT> {
             return Err(self.fail(
                 start,
                 format!(
-                    "{what}: a varint of {len} bytes; the payload ends after {}",
+                    "{}: a varint of {len} bytes; the payload ends after {}",
+                    what(),
                     self.remaining() + 1
                 ),
             ));
@@ -447,12 +449,12 @@ impl<'a, 'r, const VARINT: bool> BinaryDecoder<'a, 'r, VARINT> {
         let mut bytes = [0u8; 9];
         bytes[0] = first;
         if len > 1 {
-            let rest = self.take(len - 1, what)?;
+            let rest = self.take_with(len - 1, &what)?;
             bytes[1..len].copy_from_slice(rest);
         }
         match varint(&bytes[..len], wide) {
             Varint::Value(v, _) => Ok(v),
-            Varint::Bad(why) => Err(self.fail(start, format!("{what}: {why} (spec §7.4.1)"))),
+            Varint::Bad(why) => Err(self.fail(start, format!("{}: {why} (spec §7.4.1)", what()))),
             Varint::Short(_) => unreachable!("all {len} bytes are there"),
         }
     }
@@ -467,7 +469,7 @@ impl<'a, 'r, const VARINT: bool> BinaryDecoder<'a, 'r, VARINT> {
     fn length(&mut self, min: usize, what: &str) -> Result<usize> {
         let start = self.at;
         let n = if VARINT {
-            self.varint_checked(true, &format!("the length of {what}"))?
+            self.varint_checked(true, || format!("the length of {what}"))?
         } else {
             let bytes = self.take_with(8, || format!("the length of {what}"))?;
             u64::from_le_bytes(bytes.try_into().expect("8 bytes"))
