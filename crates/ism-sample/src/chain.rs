@@ -150,14 +150,16 @@ struct Restricted {
 impl Restricted {
     /// `with_det`: keep the determinant polynomial (`det DX ≥ …` of an implicit chain's first
     /// stage); a parametric chain's bound needs none, and a later stage's restriction drops it.
-    fn new(polys: &Polys, values: Option<(&[f64], f64)>, with_det: bool) -> Restricted {
-        let m = polys.p.len();
-        let (num, q2) = match &polys.q {
-            None => (polys.dp.clone(), None),
+    /// The polynomials are moved in (a polynomial stage's partials are its numerators as they
+    /// are: cloning them was a dozen allocations per stage and patch).
+    fn new(polys: Polys, values: Option<(&[f64], f64)>, with_det: bool) -> Restricted {
+        let Polys { p, q, dp, dq } = polys;
+        let m = p.len();
+        let (num, q2) = match &q {
+            None => (dp, None),
             Some(q) => {
                 let q2 = q.mul(q);
-                let num = polys
-                    .dp
+                let num = dp
                     .iter()
                     .enumerate()
                     .map(|(i, row)| {
@@ -165,7 +167,7 @@ impl Restricted {
                             .enumerate()
                             .map(|(l, d)| {
                                 d.mul(q)
-                                    .add(&polys.p[i + 1].mul(&polys.dq[l]).scale(-1.0))
+                                    .add(&p[i + 1].mul(&dq[l]).scale(-1.0))
                                     .elevate_to(q2.degree())
                             })
                             .collect()
@@ -183,18 +185,18 @@ impl Restricted {
             acc
         });
         let cross = values.map(|(f, c)| {
-            let mut nf = polys.p[0].scale(f[0]);
-            for (pi, &fi) in polys.p.iter().zip(f).skip(1) {
+            let mut nf = p[0].scale(f[0]);
+            for (pi, &fi) in p.iter().zip(f).skip(1) {
                 nf = nf.add(&pi.scale(fi));
             }
-            match &polys.q {
+            match &q {
                 None => nf.add(&Bernstein::constant(m, nf.degree(), -c)),
                 Some(q) => nf.add(&q.scale(-c)),
             }
         });
         Restricted {
-            p: polys.p.clone(),
-            q: polys.q.clone(),
+            p,
+            q,
             num,
             q2,
             det,
@@ -509,7 +511,7 @@ fn restrict_affine(
         return None;
     }
     let k = vertices.len();
-    let len = ism_format::multi_index::count(k, p.degree());
+    let len = homothety::coeff_count(k, p.degree());
     Some(
         Affine::from_bernstein(k, p.degree(), &out[..len])?
             .widen(carried * (1.0 + BOUND_ROUNDING_MARGIN)),
@@ -554,7 +556,11 @@ impl AffineStage {
                             st.hess[i][j][l] = if p.degree() == 0 {
                                 0.0
                             } else {
-                                max_abs(&p.derivative(l + 1))
+                                // `max_abs(&p.derivative(l + 1))` without building it.
+                                homothety::derivative_max_abs(p, l + 1).map_or_else(
+                                    || max_abs(&p.derivative(l + 1)),
+                                    |top| top * (1.0 + BOUND_ROUNDING_MARGIN),
+                                )
                             };
                         }
                     }
@@ -563,6 +569,16 @@ impl AffineStage {
             })
             .collect()
     }
+}
+
+thread_local! {
+    /// The buffers of [`Restricted::homothety_ranges`], the thread's for every chain it bounds
+    /// (a chain's own was 8 KB zeroed per patch); [`Homothety::set`] retargets them and every
+    /// entry read is written first.
+    static HOMOTHETY: std::cell::RefCell<Homothety> = std::cell::RefCell::new(Homothety::empty());
+    /// The de Casteljau buffer of [`Chain::affine_bound`].
+    static LEVEL: std::cell::RefCell<[f64; homothety::LEVEL_CAP]> =
+        const { std::cell::RefCell::new([0.0; homothety::LEVEL_CAP]) };
 }
 
 /// Which chain layout a map has.
@@ -579,8 +595,6 @@ struct Chain<'a> {
     /// Stages in processing order after the first (implicit: stages 1.., parametric: stored
     /// stages m−2 down to 0), unrestricted; the last implicit one carries `F − c`.
     rest: Vec<Restricted>,
-    /// The buffers of [`Restricted::homothety_ranges`], reused from cell to cell.
-    homothety: std::cell::RefCell<Homothety>,
     /// Derivative bounds of the later stages for the affine bound ([`Chain::affine_bound`]);
     /// `None` unless the chain is all parametric and every later stage a polynomial it covers.
     affine: Option<Vec<AffineStage>>,
@@ -629,6 +643,26 @@ impl First {
             }
         }
         First::General(r)
+    }
+
+    /// [`First::parametric`] of `r` restricted to the face spanned by `vertices`
+    /// ([`Restricted::restrict_to_face`]); a polynomial stage is restricted straight into its
+    /// record ([`Flat::restricted`], the same bits).
+    fn parametric_face(r: &Restricted, vertices: &[[f64; 4]]) -> First {
+        // The batched de Casteljau buffer is the thread's (35 KB: zeroed once, not per root);
+        // every lane a walk reads is written first.
+        thread_local! {
+            static LEVELS: std::cell::RefCell<Box<homothety::BatchLevels>> =
+                std::cell::RefCell::new(Box::new([[0.0; homothety::BATCH]; homothety::LEVEL_CAP]));
+        }
+        if r.q.is_none() && r.q2.is_none() && r.cross.is_none() {
+            let flat =
+                LEVELS.with_borrow_mut(|level| Flat::restricted(&r.p, &r.num, vertices, level));
+            if let Some(flat) = flat {
+                return First::Flat(flat);
+            }
+        }
+        First::parametric(r.restrict_to_face(vertices))
     }
 
     fn split(&self, a: usize, b: usize) -> (First, First) {
@@ -744,7 +778,7 @@ impl Chain<'_> {
             let lo = &lo[..image.len()];
             let need_image = !(parametric && k + 1 == self.rest.len());
             let (next, jac, det) =
-                match stage.homothety_ranges(n, lo, need_image, &mut self.homothety.borrow_mut()) {
+                match HOMOTHETY.with_borrow_mut(|h| stage.homothety_ranges(n, lo, need_image, h)) {
                     Some((may_cross, _, _)) if !may_cross => return None,
                     // A parametric chain needs no determinant (cofactors, below).
                     Some((_, next, jac)) if parametric => (next, jac, 1.0),
@@ -804,12 +838,25 @@ impl Chain<'_> {
     /// values (their derivative bounds over the simplex carry the image's remainder), and the
     /// cofactor products are taken on the models. `None` when a polynomial has no plan.
     fn affine_bound(&self, flat: &Flat, stages: &[AffineStage]) -> Option<f64> {
+        let k = flat.vars();
+        if !(2..=3).contains(&k) || flat.components() != self.n + 1 {
+            return None;
+        }
+        // The de Casteljau buffer is the thread's: zeroing 4 KB per call was 3 % of a small
+        // model's setup instructions (session 20); every entry read is written first.
+        LEVEL.with_borrow_mut(|level| self.affine_bound_in(flat, stages, level))
+    }
+
+    /// [`Chain::affine_bound`] with `level` as the de Casteljau buffer.
+    fn affine_bound_in(
+        &self,
+        flat: &Flat,
+        stages: &[AffineStage],
+        level: &mut [f64; homothety::LEVEL_CAP],
+    ) -> Option<f64> {
         let n = self.n;
         let m = n + 1;
         let k = flat.vars();
-        if !(2..=3).contains(&k) || flat.components() != m {
-            return None;
-        }
         let zero = Affine::constant(0.0);
         let mut image = [zero; 4];
         for (i, x) in image.iter_mut().enumerate().take(m) {
@@ -826,7 +873,6 @@ impl Chain<'_> {
             *gi = Affine::constant(self.values[i + 1] - self.values[0]);
         }
         g = affine_cof_vec(n, &jac, &g);
-        let mut level = homothety::level_buffer();
         let mut out = [0.0; 64];
         for (s, (stage, bounds)) in self.rest.iter().zip(stages).enumerate() {
             // The image's vertex values span the triangle the stage is restricted to; they are
@@ -845,14 +891,7 @@ impl Chain<'_> {
                 for (l, e) in row.iter_mut().enumerate().take(n) {
                     // N(x) − N(A) = Σ_l' D_l'N(ξ) (x − A)_l' with ξ in the simplex.
                     let carried: f64 = (0..n).map(|t| bounds.hess[i][l][t] * rem[t + 1]).sum();
-                    *e = restrict_affine(
-                        &stage.num[i][l],
-                        m,
-                        vertices,
-                        carried,
-                        &mut level,
-                        &mut out,
-                    )?;
+                    *e = restrict_affine(&stage.num[i][l], m, vertices, carried, level, &mut out)?;
                 }
             }
             if s + 1 < self.rest.len() {
@@ -864,7 +903,7 @@ impl Chain<'_> {
                     } else {
                         (0..n).map(|t| bounds.grad[i - 1][t] * rem[t + 1]).sum()
                     };
-                    *x = restrict_affine(&stage.p[i], m, vertices, carried, &mut level, &mut out)?;
+                    *x = restrict_affine(&stage.p[i], m, vertices, carried, level, &mut out)?;
                 }
                 image = next;
             }
@@ -1128,11 +1167,12 @@ pub fn chain_bound(
     };
     let first = polys.remove(0);
     // F − c is tested on the last implicit stage (the one whose output is u).
+    let later = polys.len();
     let last_cross =
-        |k: usize| (layout == Layout::Implicit && k == polys.len()).then_some((values, level));
-    let restricted = Restricted::new(&first, last_cross(0), layout == Layout::Implicit);
+        |k: usize| (layout == Layout::Implicit && k == later).then_some((values, level));
+    let restricted = Restricted::new(first, last_cross(0), layout == Layout::Implicit);
     let rest: Vec<Restricted> = polys
-        .iter()
+        .into_iter()
         .enumerate()
         .map(|(k, p)| Restricted::new(p, last_cross(k + 1), false))
         .collect();
@@ -1141,7 +1181,6 @@ pub fn chain_bound(
         layout,
         n,
         rest,
-        homothety: std::cell::RefCell::new(Homothety::empty()),
         affine: None,
         inv_edges,
         values,
@@ -1208,9 +1247,9 @@ fn parametric_chain<'a>(
 ) -> Result<(Chain<'a>, Restricted), String> {
     let n = map.vars() - 1;
     let (linear, mut polys) = prepare(map, Layout::Parametric, inv_edges, values)?;
-    let first = Restricted::new(&polys.remove(0), None, false);
+    let first = Restricted::new(polys.remove(0), None, false);
     let rest: Vec<Restricted> = polys
-        .iter()
+        .into_iter()
         .map(|p| Restricted::new(p, None, false))
         .collect();
     let affine = AffineStage::all(&rest, n);
@@ -1219,7 +1258,6 @@ fn parametric_chain<'a>(
         layout: Layout::Parametric,
         n,
         rest,
-        homothety: std::cell::RefCell::new(Homothety::empty()),
         affine,
         inv_edges,
         values,
@@ -1331,7 +1369,7 @@ pub fn parametric_leaves(
     let mut cells: Vec<Open> = Vec::with_capacity(roots.len() + 2 * max_splits.min(64));
     for (r, (corners, _)) in roots.iter().enumerate() {
         let root = Cell {
-            restricted: First::parametric(first.restrict_to_face(corners)),
+            restricted: First::parametric_face(&first, corners),
             vertices: Corners::from_slice(corners),
             depth: 0,
         };

@@ -15,6 +15,8 @@ use ism_format::multi_index;
 use ism_geom::bernstein::halve_line;
 use ism_geom::Bernstein;
 
+use crate::homothety::{coeff_count, restrict_batch_into, BatchLevels, BATCH};
+
 /// Highest degree held (the components'; the partials are one lower).
 pub(crate) const FLAT_DEGREE: usize = 4;
 /// Most cell variables (a triangle of the linear patch; a segment in 2D).
@@ -145,6 +147,67 @@ impl Flat {
                 let at = m * pc + (row * n + col) * nc;
                 flat.coeffs[at..at + nc].copy_from_slice(e.coeffs());
             }
+        }
+        Some(flat)
+    }
+
+    /// [`Flat::new`] of `p` and `num` (polynomials in the same `m` variables) restricted to the
+    /// face spanned by `vertices` ([`crate::homothety::restrict_to_face`] of each, the same bits),
+    /// restricted straight into the record by one batched walk per degree: no kernel polynomial
+    /// per entry (13 allocations per root region of a 3D patch, and the walk's index work
+    /// shared). `None` where [`Flat::new`] of the restrictions would give `None`, or a shape the
+    /// batched walk does not cover (then restrict with the kernel's polynomials and try
+    /// [`Flat::new`]).
+    pub(crate) fn restricted(
+        p: &[Bernstein],
+        num: &[Vec<Bernstein>],
+        vertices: &[[f64; 4]],
+        level: &mut BatchLevels,
+    ) -> Option<Flat> {
+        let first = p.first()?;
+        let (vars, d) = (first.vars(), first.degree());
+        let (k, n, m) = (vertices.len(), num.len(), p.len());
+        if k == 0 || k > FLAT_VARS || d as usize > FLAT_DEGREE || n == 0 || m > BATCH {
+            return None;
+        }
+        let dd = num[0].first()?.degree();
+        if dd as usize > FLAT_DEGREE || n * n > BATCH {
+            return None;
+        }
+        if p.iter().any(|pi| pi.vars() != vars || pi.degree() != d)
+            || num.iter().any(|row| {
+                row.len() != n || row.iter().any(|e| e.vars() != vars || e.degree() != dd)
+            })
+        {
+            return None;
+        }
+        let (pc, nc) = (coeff_count(k, d), coeff_count(k, dd));
+        if m * pc + n * n * nc > FLAT_CAP {
+            return None;
+        }
+        let mut flat = Flat {
+            k,
+            m,
+            n,
+            d,
+            dd,
+            pc,
+            nc,
+            coeffs: [0.0; FLAT_CAP],
+        };
+        let mut srcs: [&[f64]; BATCH] = [&[]; BATCH];
+        for (s, pi) in srcs.iter_mut().zip(p) {
+            *s = pi.coeffs();
+        }
+        let (head, tail) = flat.coeffs.split_at_mut(m * pc);
+        if !restrict_batch_into(&srcs[..m], (vars, d), vertices, level, head, pc) {
+            return None;
+        }
+        for (s, e) in srcs.iter_mut().zip(num.iter().flatten()) {
+            *s = e.coeffs();
+        }
+        if !restrict_batch_into(&srcs[..n * n], (vars, dd), vertices, level, tail, nc) {
+            return None;
         }
         Some(flat)
     }

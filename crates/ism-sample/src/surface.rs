@@ -1164,10 +1164,24 @@ impl SparseStage {
         if d as usize >= POWERS {
             return None;
         }
-        let identity = ism_geom::LocalStage::identity(stage.kind(), d, m).ok()?;
+        // The kernel's identity net of this shape, built once per shape (it was built per
+        // patch and stage: a dense stage and its allocations, 2 % of a small model's setup).
+        type Nets = [[std::sync::OnceLock<Option<Vec<Bary>>>; POWERS]; MAX_VARS + 1];
+        static IDENTITY: Nets =
+            [const { [const { std::sync::OnceLock::new() }; POWERS] }; MAX_VARS + 1];
+        if m > MAX_VARS {
+            return None;
+        }
+        let identity = IDENTITY[m][d as usize]
+            .get_or_init(|| {
+                ism_geom::LocalStage::identity(ism_format::StageKind::Bezier, d, m)
+                    .ok()
+                    .map(|id| id.control_points().to_vec())
+            })
+            .as_deref()?;
         let fact = |k: u32| (1..=k).map(f64::from).product::<f64>();
         let mut terms = Vec::new();
-        for (b, id) in stage.control_points().iter().zip(identity.control_points()) {
+        for (b, id) in stage.control_points().iter().zip(identity) {
             let mut c = [0.0; MAX_VARS];
             for k in 0..m {
                 c[k] = b[k] - id[k];
