@@ -1,9 +1,10 @@
 //! Extraction against the topology reference (marching) and the implicit form (distance to O),
 //! on every named example.
 
-use ism_export::extract::{extract, ExtractOptions};
+use ism_export::extract::{extract, extract_coarsened, ExtractOptions};
 use ism_export::marching::marching;
 use ism_export::mesh::{Mesh, Primitive};
+use ism_export::Result;
 use ism_geom::ModelEval;
 
 /// Distance from `p` to `O` estimated by Newton projection along ∇F: iterate
@@ -31,9 +32,19 @@ fn examples() -> Vec<(&'static str, ism_format::Model)> {
     ism_examples::named::all_examples()
 }
 
+type Extractor =
+    fn(&ModelEval, &ExtractOptions) -> Result<(Mesh, ism_export::extract::ExtractReport)>;
+
+/// Both extractions: refined, and refined then coarsened.
+const EXTRACTORS: [(&str, Extractor); 2] = [("refined", extract), ("coarsened", extract_coarsened)];
+
 #[test]
 fn every_example_keeps_the_linear_topology_and_lies_on_the_shape() {
-    for (name, model) in examples() {
+    for ((name, model), (how, extract)) in examples()
+        .into_iter()
+        .flat_map(|e| EXTRACTORS.map(|x| (e.clone(), x)))
+    {
+        let name = format!("{name} ({how})");
         let eval = ModelEval::new(&model).unwrap();
         let linear = marching(&model).unwrap().topology();
         let options = ExtractOptions {
@@ -199,4 +210,53 @@ fn max_depth_zero_maps_only_the_patch_corners() {
     let linear = marching(&model).unwrap();
     assert_eq!(mesh.num_vertices(), linear.num_vertices());
     assert_eq!(mesh.num_cells(), linear.num_cells());
+}
+
+/// Coarsening only removes vertices inside patches: never more cells than the refined mesh, the
+/// same vertices on the patches' boundaries, and on curved 3D examples strictly fewer triangles.
+#[test]
+fn coarsening_removes_triangles_and_keeps_the_boundary_vertices() {
+    for (name, model) in examples() {
+        let eval = ModelEval::new(&model).unwrap();
+        let options = ExtractOptions {
+            tolerance: 1e-3,
+            max_depth: 8,
+        };
+        let (fine, _) = extract(&eval, &options).unwrap();
+        let (coarse, _) = extract_coarsened(&eval, &options).unwrap();
+        assert!(coarse.num_cells() <= fine.num_cells(), "{name}");
+        if fine.primitive == Primitive::Triangles && ["sphere", "torus"].contains(&name) {
+            assert!(
+                (coarse.num_cells() as f64) < 0.9 * fine.num_cells() as f64,
+                "{name}: {} of {} triangles",
+                coarse.num_cells(),
+                fine.num_cells()
+            );
+        }
+        // Every vertex on a patch boundary (used by cells of two simplices) is kept, bit for bit.
+        let shared = |m: &Mesh| {
+            let mut owner: Vec<Option<u32>> = vec![None; m.positions.len()];
+            let mut on_boundary = vec![false; m.positions.len()];
+            let arity = m.primitive.arity();
+            for (i, &s) in m.cell_simplex.iter().enumerate() {
+                for &v in &m.cells[i * arity..(i + 1) * arity] {
+                    match owner[v as usize] {
+                        None => owner[v as usize] = Some(s),
+                        Some(o) if o != s => on_boundary[v as usize] = true,
+                        _ => {}
+                    }
+                }
+            }
+            let mut pts: Vec<[u64; 3]> = m
+                .positions
+                .iter()
+                .zip(&on_boundary)
+                .filter(|(_, &b)| b)
+                .map(|(p, _)| p.map(f64::to_bits))
+                .collect();
+            pts.sort_unstable();
+            pts
+        };
+        assert_eq!(shared(&fine), shared(&coarse), "{name}");
+    }
 }

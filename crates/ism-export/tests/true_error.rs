@@ -15,7 +15,7 @@
 //! patch edge on a facet shows the bump — the case edge tests alone cannot see.
 
 use ism_examples::{kuhn_grid_3d, stratum_stage, Aabb};
-use ism_export::extract::{extract, ExtractOptions};
+use ism_export::extract::{extract, extract_coarsened, ExtractOptions};
 use ism_export::mesh::Mesh;
 use ism_format::Direction;
 use ism_geom::{ModelEval, MAX_VARS};
@@ -226,18 +226,22 @@ fn two_sided(eval: &ModelEval, mesh: &Mesh, scale: f64) -> (f64, f64) {
     (m2o, o2m)
 }
 
+/// Checks the refined and the coarsened extraction ([`extract_coarsened`]).
 fn check(name: &str, model: &ism_format::Model, tolerances: &[f64]) {
     let eval = ModelEval::new(model).unwrap();
-    for &tolerance in tolerances {
-        let (mesh, report) = extract(
-            &eval,
-            &ExtractOptions {
-                tolerance,
-                max_depth: 12,
-            },
-        )
+    for (&tolerance, coarsened) in tolerances.iter().flat_map(|t| [(t, false), (t, true)]) {
+        let options = ExtractOptions {
+            tolerance,
+            max_depth: 12,
+        };
+        let (mesh, report) = if coarsened {
+            extract_coarsened(&eval, &options)
+        } else {
+            extract(&eval, &options)
+        }
         .unwrap();
         let (m2o, o2m) = two_sided(&eval, &mesh, 1.0);
+        let name = format!("{name}{}", if coarsened { " (coarsened)" } else { "" });
         eprintln!(
             "{name} T {tolerance:e}: {} cells, {} depth-limited, mesh→O {:.3} T, O→mesh {:.3} T",
             mesh.num_cells(),
