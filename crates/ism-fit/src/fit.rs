@@ -343,6 +343,12 @@ struct Fitter<'a> {
     /// error depends only on its vertices, their values, and its faces' points and weights, and
     /// cells are never renumbered (a refined cell dies, its children are new ids).
     errors: [HashMap<u32, f64>; 2],
+    /// [`Fitter::pv_passes`] of every cell tested so far. The test reads only `g` and the cell's
+    /// vertex coordinates, which never change for a cell id (a refined cell dies, its children are
+    /// new ids), so each cell is tested once per fit: the topology phase re-tested every live cell
+    /// after each refinement, and the status check every cell after each two-sided round (the
+    /// Stanford bunny's 3,000 failing cells, 64 sub-boxes each, four times: issue 17, session 20).
+    pv: HashMap<u32, bool>,
     /// [`FitOptions::lm_done_fraction`] of the tolerance: [`Fitter::optimize`] stops when every
     /// residual of a block is at most this.
     lm_done: f64,
@@ -411,6 +417,7 @@ impl<'a> Fitter<'a> {
             bisections: 0,
             trouble: None,
             errors: [HashMap::new(), HashMap::new()],
+            pv: HashMap::new(),
             lm_done: options.lm_done_fraction * options.tolerance,
         }
     }
@@ -575,6 +582,31 @@ impl Fitter<'_> {
             })
             .collect();
         gradients_agree(&gradient) || self.generators_agree(&lo, &hi, &inside)
+    }
+
+    /// The cells of `cells` that fail [`Fitter::pv_passes`], in their order: cells not tested
+    /// before in parallel, the others from [`Fitter::pv`] (under `cfg(test)` re-tested and checked
+    /// to give the same answer).
+    fn pv_failing(&mut self, cells: Vec<u32>) -> Vec<u32> {
+        let fresh: Vec<(u32, bool)> = {
+            let f = &*self;
+            cells
+                .par_iter()
+                .filter(|c| !f.pv.contains_key(c))
+                .map(|&c| (c, f.pv_passes(c)))
+                .collect()
+        };
+        #[cfg(test)]
+        {
+            let f = &*self;
+            cells.par_iter().for_each(|c| {
+                if let Some(&known) = f.pv.get(c) {
+                    assert_eq!(known, f.pv_passes(*c), "cached PV status of cell {c}");
+                }
+            });
+        }
+        self.pv.extend(fresh);
+        cells.into_iter().filter(|c| !self.pv[c]).collect()
     }
 
     /// The Plantinga–Vegter test from the function's gradient generators over the sub-boxes of
@@ -1514,14 +1546,15 @@ pub fn fit(
         .max((PV_MIN_CELL_FRACTION * options.tolerance).min(PV_MIN_CELL_OF_DOMAIN * size));
     if options.topology {
         loop {
-            let failing: Vec<u32> = {
+            let large: Vec<u32> = {
                 let f = &fitter;
                 f.complex
                     .live_cells()
-                    .into_par_iter()
-                    .filter(|&c| f.longest_edge_length(c) > pv_min_edge && !f.pv_passes(c))
+                    .into_iter()
+                    .filter(|&c| f.longest_edge_length(c) > pv_min_edge)
                     .collect()
             };
+            let failing = fitter.pv_failing(large);
             step(
                 progress,
                 "topology",
@@ -1568,14 +1601,7 @@ pub fn fit(
     let (model, m, clusters, pv_failures, pv_unfinished) = loop {
         fitter.accuracy(options, min_cell, progress)?;
         // The complex's Plantinga–Vegter status, whether or not the topology phase ran.
-        let failing: Vec<u32> = {
-            let f = &fitter;
-            f.complex
-                .live_cells()
-                .into_par_iter()
-                .filter(|&c| !f.pv_passes(c))
-                .collect()
-        };
+        let failing = fitter.pv_failing(fitter.complex.live_cells());
         let pv_failures = failing.len();
         let pv_unfinished = if options.topology {
             failing

@@ -6,7 +6,7 @@
 use std::collections::HashMap;
 use std::path::PathBuf;
 
-use rstar::{PointDistance, RTree, RTreeObject, AABB};
+use rstar::{PointDistance, RTree, RTreeObject, SelectionFunction, AABB};
 
 use super::winding::{solid_angle, WindingNode};
 use super::{axpy, cross, dot, norm, sub, MeshCheck, TriangleMesh, P3};
@@ -18,14 +18,28 @@ use crate::FitError;
 pub(super) struct Tri {
     pub(super) id: u32,
     pub(super) v: [P3; 3],
+    /// The bounding box of `v`, kept: `rstar` asks for a leaf's envelope before each of its
+    /// exact distances (`distance_2_if_less_or_equal`), and rebuilding it there was ~10 % of a
+    /// bunny fit (issue 17, session 20).
+    env: AABB<P3>,
+}
+
+impl Tri {
+    pub(super) fn new(id: u32, v: [P3; 3]) -> Tri {
+        let lo = [0, 1, 2].map(|k| v[0][k].min(v[1][k]).min(v[2][k]));
+        let hi = [0, 1, 2].map(|k| v[0][k].max(v[1][k]).max(v[2][k]));
+        Tri {
+            id,
+            v,
+            env: AABB::from_corners(lo, hi),
+        }
+    }
 }
 
 impl RTreeObject for Tri {
     type Envelope = AABB<P3>;
     fn envelope(&self) -> Self::Envelope {
-        let lo = [0, 1, 2].map(|k| self.v[0][k].min(self.v[1][k]).min(self.v[2][k]));
-        let hi = [0, 1, 2].map(|k| self.v[0][k].max(self.v[1][k]).max(self.v[2][k]));
-        AABB::from_corners(lo, hi)
+        self.env
     }
 }
 
@@ -235,7 +249,20 @@ thread_local! {
     /// This thread's previous (instance, closest triangle): consecutive queries are usually near
     /// each other, so it bounds the next search radius tightly.
     static LAST_TRIANGLE: std::cell::Cell<(u64, u32)> = const { std::cell::Cell::new((u64::MAX, 0)) };
+    /// This thread's last [`CANDIDATE_MEMO`] candidate sets: (instance, bits of the box's
+    /// corners) → [`MeshDistance::candidates`], oldest first.
+    static CANDIDATES: std::cell::RefCell<std::collections::VecDeque<CandidateEntry>> =
+        const { std::cell::RefCell::new(std::collections::VecDeque::new()) };
 }
+
+/// A memoized candidate set: the instance, the box's corners as bits, the sorted triangle ids.
+type CandidateEntry = (u64, [u64; 6], std::rc::Rc<[u32]>);
+
+/// Candidate sets each thread keeps: the Plantinga–Vegter test asks for the same sub-boxes of a
+/// cell twice — their enclosures, then, when the hull of those fails, their gradient generators
+/// (`PV_SPLIT`³ = 64 sub-boxes, plus the cell's box) — and each set costs 64 nearest-point and 64
+/// range queries of the R-tree ([`GRADIENT_SPLIT_LEVELS`]).
+const CANDIDATE_MEMO: usize = 160;
 
 impl MeshDistance {
     /// Orients the mesh outward ([`TriangleMesh::orient_outward`]) and builds the R-tree and the
@@ -265,10 +292,7 @@ impl MeshDistance {
             .iter()
             .enumerate()
             .filter(|(i, _)| normals[*i] != [0.0; 3])
-            .map(|(i, t)| Tri {
-                id: i as u32,
-                v: t.map(|v| mesh.positions[v as usize]),
-            })
+            .map(|(i, t)| Tri::new(i as u32, t.map(|v| mesh.positions[v as usize])))
             .collect();
         if tris.is_empty() {
             return Err(FitError::Mesh {
@@ -519,7 +543,7 @@ impl MeshDistance {
         let mut nhi = [f64::NEG_INFINITY; 3];
         let mut sum = [0.0; 3];
         let mut normals = Vec::with_capacity(ids.len());
-        for t in ids {
+        for &t in ids.iter() {
             let n = self.normals[t as usize];
             for k in 0..3 {
                 nlo[k] = nlo[k].min(n[k] - NORMAL_MARGIN);
@@ -567,8 +591,39 @@ impl MeshDistance {
     /// sorted, without repeats. Gathered per sub-box: a sub-box of half-diagonal h around c needs
     /// the triangles within dist(c) + 2h of c, so splitting shrinks the 2h part, which dominates
     /// near the surface.
-    fn candidates(&self, lo: &[f64], hi: &[f64]) -> Vec<u32> {
-        let mut ids: Vec<u32> = Vec::new();
+    fn candidates(&self, lo: &[f64], hi: &[f64]) -> std::rc::Rc<[u32]> {
+        let mut key = [0u64; 6];
+        for k in 0..3 {
+            key[k] = lo[k].to_bits();
+            key[3 + k] = hi[k].to_bits();
+        }
+        let known = CANDIDATES.with(|m| {
+            m.borrow()
+                .iter()
+                .find(|(i, b, _)| *i == self.instance && *b == key)
+                .map(|(_, _, ids)| ids.clone())
+        });
+        if let Some(ids) = known {
+            return ids;
+        }
+        let ids: std::rc::Rc<[u32]> = self.candidates_uncached(lo, hi).into();
+        CANDIDATES.with(|m| {
+            let mut m = m.borrow_mut();
+            if m.len() >= CANDIDATE_MEMO {
+                m.pop_front();
+            }
+            m.push_back((self.instance, key, ids.clone()));
+        });
+        ids
+    }
+
+    /// [`MeshDistance::candidates`] without the memo. Each sub-box's nearest-point query is
+    /// bounded by the previous sub-box's closest triangle ([`MeshDistance::closest_point_near`]:
+    /// the same distance as the R-tree's nearest neighbour, from a range query instead of its
+    /// best-first search), and the sub-boxes' balls are gathered in one traversal of the tree
+    /// ([`WithinAny`]: the union of their range queries, each triangle once).
+    fn candidates_uncached(&self, lo: &[f64], hi: &[f64]) -> Vec<u32> {
+        let mut hint: Option<u32> = None;
         let parts = 1usize << GRADIENT_SPLIT_LEVELS;
         let edge = |k: usize, j: usize| {
             if j == parts {
@@ -577,22 +632,71 @@ impl MeshDistance {
                 lo[k] + (hi[k] - lo[k]) * (j as f64 / parts as f64)
             }
         };
+        let mut balls: Vec<(P3, f64, f64)> = Vec::with_capacity(parts * parts * parts);
         for i in 0..parts * parts * parts {
             let j = [i % parts, (i / parts) % parts, i / (parts * parts)];
             let sub_lo = [0, 1, 2].map(|k| edge(k, j[k]));
             let sub_hi = [0, 1, 2].map(|k| edge(k, j[k] + 1));
             let (c, half) = centre_and_half_diagonal(&sub_lo, &sub_hi);
-            let (q, _) = self.closest_point(c);
+            let (q, t) = match hint {
+                Some(h) => self.closest_point_near(c, h),
+                None => self.closest_point(c),
+            };
+            hint = Some(t);
             let radius = norm(sub(c, q)) + 2.0 * half + 2.0 * VALUE_MARGIN_REL * self.scale;
-            ids.extend(
-                self.tree
-                    .locate_within_distance(c, radius * radius)
-                    .map(|t| t.id),
-            );
+            balls.push((c, radius, radius * radius));
         }
+        let (centre, _) = centre_and_half_diagonal(lo, hi);
+        let reach = balls
+            .iter()
+            .map(|(c, r, _)| norm(sub(*c, centre)) + r)
+            .fold(0.0, f64::max);
+        let bound = reach * (1.0 + WITHIN_ANY_MARGIN) + f64::MIN_POSITIVE;
+        let select = WithinAny {
+            balls: balls.into_iter().map(|(c, _, r2)| (c, r2)).collect(),
+            centre,
+            bound2: bound * bound,
+        };
+        let mut ids: Vec<u32> = self
+            .tree
+            .locate_with_selection_function(select)
+            .map(|t| t.id)
+            .collect();
         ids.sort_unstable();
-        ids.dedup();
         ids
+    }
+}
+
+/// Relative widening of [`WithinAny`]'s enclosing ball, so rounding in the triangle inequality
+/// cannot make it reject what one of its balls selects.
+const WITHIN_ANY_MARGIN: f64 = 1e-6;
+
+/// The union of `locate_within_distance(c, r²)` over the balls `(c, r²)`, in one traversal: a
+/// node is opened, a triangle selected, when it passes the same test as in one of those queries
+/// (envelope, then exact distance, both `≤ r²`), so the same triangles come out, each once. The
+/// enclosing ball (`centre`, `bound2`, containing every ball) only rejects early what no ball can
+/// select.
+struct WithinAny {
+    balls: Vec<(P3, f64)>,
+    centre: P3,
+    bound2: f64,
+}
+
+impl SelectionFunction<Tri> for WithinAny {
+    fn should_unpack_parent(&self, envelope: &AABB<P3>) -> bool {
+        envelope.distance_2(&self.centre) <= self.bound2
+            && self
+                .balls
+                .iter()
+                .any(|(c, r2)| envelope.distance_2(c) <= *r2)
+    }
+
+    fn should_unpack_leaf(&self, leaf: &Tri) -> bool {
+        leaf.env.distance_2(&self.centre) <= self.bound2
+            && self
+                .balls
+                .iter()
+                .any(|(c, r2)| leaf.distance_2_if_less_or_equal(c, *r2).is_some())
     }
 }
 
@@ -725,7 +829,7 @@ impl ImplicitFunction for MeshDistance {
         if !self.check.is_closed_manifold() {
             return false;
         }
-        for t in self.candidates(lo, hi) {
+        for &t in self.candidates(lo, hi).iter() {
             out.extend_from_slice(&self.normals[t as usize]);
         }
         true

@@ -805,3 +805,81 @@ fn enclosures_contain_point_values_and_gradients() {
     // Small boxes on a smooth mesh pass the test (the enclosure is useful, not just safe).
     assert!(passed_near_surface > 0);
 }
+
+/// The candidate triangles of a box (the R-tree's nearest-point queries bounded by the previous
+/// sub-box's triangle, range queries, the per-thread memo) are exactly the brute-force set: per
+/// sub-box of the 4³ split, every triangle within (distance from the centre to its closest
+/// triangle, over all triangles) + 2 × half-diagonal + margin of the centre — on a torus mesh
+/// (saddles, concave edges), boxes on and off the surface, each asked twice with more than the
+/// memo's capacity of other boxes between (so both a memo hit and a recomputation are compared).
+#[test]
+fn candidates_are_the_brute_force_set() {
+    let d = MeshDistance::new(torus_mesh(24, 12, 1.0, 0.35)).unwrap();
+    let tris: Vec<[P3; 3]> = d
+        .mesh
+        .triangles
+        .iter()
+        .map(|t| t.map(|i| d.mesh.positions[i as usize]))
+        .collect();
+    let dist2 = |p: P3, v: [P3; 3]| {
+        let e = sub(p, closest_point_on_triangle(p, v));
+        dot(e, e)
+    };
+    let brute = |lo: &P3, hi: &P3| -> Vec<u32> {
+        let parts = 1usize << GRADIENT_SPLIT_LEVELS;
+        let mut ids = Vec::new();
+        for i in 0..parts * parts * parts {
+            let j = [i % parts, (i / parts) % parts, i / (parts * parts)];
+            let at = |k: usize, j: usize| {
+                if j == parts {
+                    hi[k]
+                } else {
+                    lo[k] + (hi[k] - lo[k]) * (j as f64 / parts as f64)
+                }
+            };
+            let sub_lo = [0, 1, 2].map(|k| at(k, j[k]));
+            let sub_hi = [0, 1, 2].map(|k| at(k, j[k] + 1));
+            let (c, half) = centre_and_half_diagonal(&sub_lo, &sub_hi);
+            let nearest = tris
+                .iter()
+                .map(|&v| dist2(c, v))
+                .fold(f64::INFINITY, f64::min)
+                .sqrt();
+            let r = nearest + 2.0 * half + 2.0 * VALUE_MARGIN_REL * d.scale;
+            ids.extend((0..tris.len() as u32).filter(|&t| dist2(c, tris[t as usize]) <= r * r));
+        }
+        ids.sort_unstable();
+        ids.dedup();
+        ids
+    };
+    let boxes: Vec<(P3, P3)> = points(200, -1.5, 1.2, 17)
+        .into_iter()
+        .enumerate()
+        .map(|(i, lo)| {
+            let w = [0.01, 0.05, 0.15, 0.4][i % 4];
+            (lo, lo.map(|x| x + w))
+        })
+        .collect();
+    let expected: Vec<Vec<u32>> = boxes.iter().map(|(lo, hi)| brute(lo, hi)).collect();
+    for pass in 0..2 {
+        for (i, (lo, hi)) in boxes.iter().enumerate() {
+            let got = d.candidates(lo, hi);
+            assert_eq!(
+                &got[..],
+                &expected[i][..],
+                "pass {pass}, box {i}: {lo:?} {hi:?}"
+            );
+            // Asked again at once: the memo's answer.
+            assert_eq!(&d.candidates(lo, hi)[..], &expected[i][..], "memo, box {i}");
+        }
+    }
+    // Not every triangle everywhere: the small boxes' sets are a small part of the mesh.
+    let small = (0..boxes.len())
+        .step_by(4)
+        .filter(|&i| expected[i].len() * 10 < tris.len())
+        .count();
+    assert!(
+        small > 40,
+        "{small} of 50 small boxes with < 10 % of the triangles"
+    );
+}
