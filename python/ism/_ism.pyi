@@ -150,7 +150,8 @@ class Model:
         progress: _Steps = None,
     ) -> ValidationReport: ...
     def extract_surface(
-        self, tolerance: float = 1e-3, *, max_depth: int = 8, linear: bool = False, threads: int = 0, progress: _Steps = None
+        self, tolerance: float = 1e-3, *, max_depth: int = 8, linear: bool = False, coarsen: bool = False, threads: int = 0,
+        progress: _Steps = None
     ) -> Surface: ...
     def export(
         self,
@@ -160,6 +161,7 @@ class Model:
         max_depth: int = 8,
         linear: bool = False,
         volume: bool = False,
+        coarsen: bool = False,
         threads: int = 0,
         progress: _Steps = None,
     ) -> Dict[str, Any]: ...

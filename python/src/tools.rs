@@ -255,6 +255,7 @@ fn export_options(
     max_depth: u32,
     linear: bool,
     volume: bool,
+    coarsen: bool,
     format: Option<ExportFormat>,
 ) -> PyResult<ExportOptions> {
     let options = ExportOptions {
@@ -263,6 +264,7 @@ fn export_options(
         linear,
         volume,
         field_tolerance: None,
+        coarsen,
     };
     ism_export::export::check(&options, format).map_err(|e| match e {
         ism_export::Error::Unsupported(m) => PyValueError::new_err(m),
@@ -303,21 +305,25 @@ impl Model {
     /// (Nv, n), cells (Nc, 3) triangles or, in 2D, (Nc, 2) segments, cell_simplex,
     /// vertex_simplex, gradient_norm; and a ``report`` dict), as ``ism export`` extracts it:
     /// patches refined until the chordal error is below ``tolerance`` or ``max_depth`` halvings.
-    /// ``linear`` gives the linear isocomplex (marching simplices, stages ignored).
+    /// ``linear`` gives the linear isocomplex (marching simplices, stages ignored); ``coarsen``
+    /// merges vertices inside patches wherever the coarser mesh still passes the refinement's
+    /// tests (``ism export --coarsen``: fewer triangles at the same error, more CPU).
     ///
     /// ``progress(phase, done, total)`` is called as the extraction goes (counted phases: facets,
     /// then patches); Ctrl-C or an exception from it stops the extraction.
-    #[pyo3(signature = (tolerance = 1e-3, *, max_depth = 8, linear = false, threads = 0, progress = None))]
+    #[pyo3(signature = (tolerance = 1e-3, *, max_depth = 8, linear = false, coarsen = false, threads = 0, progress = None))]
+    #[allow(clippy::too_many_arguments)]
     fn extract_surface<'py>(
         &self,
         py: Python<'py>,
         tolerance: f64,
         max_depth: u32,
         linear: bool,
+        coarsen: bool,
         threads: usize,
         progress: Option<&Bound<'py, PyAny>>,
     ) -> PyResult<Bound<'py, PyAny>> {
-        let options = export_options(tolerance, max_depth, linear, false, None)?;
+        let options = export_options(tolerance, max_depth, linear, false, coarsen, None)?;
         let model = self.inner.clone();
         let built = run(py, threads, progress.map(|p| (p, 0)), move |control| {
             export_build(&model, &options, control)
@@ -338,9 +344,10 @@ impl Model {
 
     /// Writes the shape to ``path`` as ``ism export`` does: the format follows the extension
     /// (.obj, .gltf, .glb, .vtk, .vtu); ``linear`` writes the linear isocomplex, ``volume`` the
-    /// complex with F as a Bézier field (VTK only). Returns the summary of ``ism export --json``
-    /// (without its timings). ``progress(phase, done, total)`` as :meth:`extract_surface`.
-    #[pyo3(signature = (path, *, tolerance = 1e-3, max_depth = 8, linear = false, volume = false, threads = 0, progress = None))]
+    /// complex with F as a Bézier field (VTK only), ``coarsen`` as :meth:`extract_surface`.
+    /// Returns the summary of ``ism export --json`` (without its timings).
+    /// ``progress(phase, done, total)`` as :meth:`extract_surface`.
+    #[pyo3(signature = (path, *, tolerance = 1e-3, max_depth = 8, linear = false, volume = false, coarsen = false, threads = 0, progress = None))]
     #[allow(clippy::too_many_arguments)]
     fn export<'py>(
         &self,
@@ -350,6 +357,7 @@ impl Model {
         max_depth: u32,
         linear: bool,
         volume: bool,
+        coarsen: bool,
         threads: usize,
         progress: Option<&Bound<'py, PyAny>>,
     ) -> PyResult<Bound<'py, PyAny>> {
@@ -359,7 +367,7 @@ impl Model {
                 path.display()
             ))
         })?;
-        let options = export_options(tolerance, max_depth, linear, volume, Some(format))?;
+        let options = export_options(tolerance, max_depth, linear, volume, coarsen, Some(format))?;
         let model = self.inner.clone();
         let name = self.inner.metadata.name.clone();
         // Built on the worker, written here once `run` has returned: a progress callback that

@@ -23,6 +23,7 @@ marked as an estimate.
 Examples:
   ism export spec/examples/sphere.ism.json sphere.glb --tolerance 1e-3
   ism export spec/examples/torus.ismb torus.obj --tolerance 5e-4 --max-depth 10
+  ism export spec/examples/torus.ismb torus-small.glb --tolerance 1e-4 --coarsen
   ism export spec/examples/circle-curved.ism.json circle.vtu
   ism export spec/examples/sphere.ism.json sphere-linear.obj --linear
   ism export spec/examples/sphere.ism.json sphere-volume.vtu --volume
@@ -56,6 +57,10 @@ pub struct Args {
     /// below].
     #[arg(long, requires = "volume", value_parser = crate::args::positive, allow_hyphen_values = true)]
     field_tolerance: Option<f64>,
+    /// After refinement, merge vertices inside patches wherever the coarser mesh still passes the
+    /// refinement's tests: fewer triangles (0.6–0.8×) at the same error, more CPU (1.1–1.5×).
+    #[arg(long, conflicts_with_all = ["volume", "linear"])]
+    coarsen: bool,
     #[command(flatten)]
     threads: crate::args::Threads,
     /// No progress display.
@@ -99,6 +104,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         linear: args.linear,
         volume: args.volume,
         field_tolerance: args.field_tolerance,
+        coarsen: args.coarsen,
     };
     // The library reports its phases; counted ones get a labelled bar.
     let unit = |phase: &str| match phase {

@@ -43,6 +43,32 @@ fn curve_export_writes_obj_lines_and_reports_a_closed_curve() {
     assert!(text.lines().filter(|l| l.starts_with("v ")).count() > 8);
 }
 
+/// `--coarsen`: fewer triangles, the refined export's topology, closed; refused with `--linear`.
+#[test]
+fn coarsened_export_has_fewer_triangles_and_the_same_topology() {
+    let dir = tempfile::tempdir().unwrap();
+    let run = |extra: &[&str]| {
+        let out = dir.path().join("t.obj");
+        let mut args = vec!["--tolerance", "1e-4", "--json", "-q"];
+        args.extend_from_slice(extra);
+        let o = export(&example("torus.ism.json"), &out, &args);
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        serde_json::from_slice::<serde_json::Value>(&o.stdout).unwrap()
+    };
+    let (fine, coarse) = (run(&[]), run(&["--coarsen"]));
+    assert!(coarse["cells"].as_u64().unwrap() < fine["cells"].as_u64().unwrap());
+    for key in ["components", "euler_characteristic", "boundary_edges"] {
+        assert_eq!(coarse[key], fine[key], "{key}");
+    }
+    assert_eq!(coarse["boundary_edges"], 0);
+    let o = export(
+        &example("torus.ism.json"),
+        &dir.path().join("l.obj"),
+        &["--coarsen", "--linear"],
+    );
+    assert_eq!(o.status.code(), Some(2));
+}
+
 #[test]
 fn every_extension_writes_a_file() {
     let dir = tempfile::tempdir().unwrap();

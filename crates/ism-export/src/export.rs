@@ -42,7 +42,10 @@ use ism_format::progress::Progress;
 use ism_format::IndexedModel;
 use ism_geom::ModelEval;
 
-use crate::extract::{extract_with_progress, ExtractOptions, ExtractReport, MAX_DEPTH_LIMIT};
+use crate::extract::{
+    extract_coarsened_with_progress, extract_with_progress, ExtractOptions, ExtractReport,
+    MAX_DEPTH_LIMIT,
+};
 use crate::format::{write_mesh, ExportFormat};
 use crate::marching::marching;
 use crate::mesh::Mesh;
@@ -66,6 +69,11 @@ pub struct ExportOptions {
     pub volume: bool,
     /// The volume field's tolerance; `None`: [`default_field_tolerance`] of `tolerance`.
     pub field_tolerance: Option<f64>,
+    /// After refinement, collapse vertices inside patches where the coarser mesh still passes the
+    /// refinement's own tests ([`crate::extract::extract_coarsened`]): 0.6–0.8× the triangles at
+    /// the same true error, for 1.1–1.5× the CPU (BENCHMARKS.md, issue 19, session 20). Curved
+    /// surface exports only.
+    pub coarsen: bool,
 }
 
 impl Default for ExportOptions {
@@ -77,6 +85,7 @@ impl Default for ExportOptions {
             linear: false,
             volume: false,
             field_tolerance: None,
+            coarsen: false,
         }
     }
 }
@@ -144,6 +153,11 @@ pub fn check(options: &ExportOptions, format: Option<ExportFormat>) -> Result<()
     if options.volume && options.linear {
         return bad("linear and volume exclude each other".into());
     }
+    if options.coarsen && (options.volume || options.linear) {
+        return bad(
+            "coarsening applies to the curved surface only, not to linear or volume".into(),
+        );
+    }
     if let Some(f) = format {
         if options.volume && !f.supports_volume() {
             return bad(format!(
@@ -196,14 +210,15 @@ pub fn build(
     let eval = ModelEval::from_indexed(model)?;
     progress.check()?;
     progress.report_count(phase::EXTRACTING, 0, 0);
-    let (mesh, report) = extract_with_progress(
-        &eval,
-        &ExtractOptions {
-            tolerance: options.tolerance,
-            max_depth: options.max_depth,
-        },
-        progress,
-    )?;
+    let extract_options = ExtractOptions {
+        tolerance: options.tolerance,
+        max_depth: options.max_depth,
+    };
+    let (mesh, report) = if options.coarsen {
+        extract_coarsened_with_progress(&eval, &extract_options, progress)?
+    } else {
+        extract_with_progress(&eval, &extract_options, progress)?
+    };
     Ok(Exported::Surface {
         mesh,
         extract: Some(report),
