@@ -620,6 +620,28 @@ struct EdgeTest {
 /// the quarter points and measured to under-split: accepted on the prediction alone or checked at
 /// the midpoint only, `rational-degree5` kept curve segments 1.21 × and 1.17 × the tolerance from
 /// the curve — `tools/bench_export_error.py`; a bump like `t²(1 − t)²` is invisible to the ends.)
+/// The starts of an edge's inversions: the preimage curve between its ends and the ends' mean
+/// inverse Jacobian. Both only serve maps with an implicit stage (module `probe`); otherwise the
+/// curve carries the ends' preimages alone and there is no matrix.
+fn edge_guides(
+    eval: &ModelEval,
+    s: usize,
+    (ua, a): (&Bary, &SurfacePoint),
+    (ub, b): (&Bary, &SurfacePoint),
+) -> (EdgeCurve, Option<Mat>) {
+    let n = eval.dim();
+    if needs_start(eval, s) {
+        (EdgeCurve::new(n, (ua, a), (ub, b)), mean_inverse(n, [a, b]))
+    } else {
+        let curve = EdgeCurve {
+            wa: a.w,
+            wb: b.w,
+            d: None,
+        };
+        (curve, None)
+    }
+}
+
 #[allow(clippy::too_many_arguments)]
 fn test_edge(
     eval: &ModelEval,
@@ -632,23 +654,7 @@ fn test_edge(
     counters: &mut Counters,
 ) -> Result<EdgeTest> {
     let (pa, pb) = (a.p, b.p);
-    let n = eval.dim();
-    // Starts and the chord matrix only serve maps with an implicit stage (module `probe`).
-    let starts = needs_start(eval, s);
-    let curve = if starts {
-        EdgeCurve::new(n, (ua, a), (ub, b))
-    } else {
-        EdgeCurve {
-            wa: a.w,
-            wb: b.w,
-            d: None,
-        }
-    };
-    let mean = if starts {
-        mean_inverse(n, [a, b])
-    } else {
-        None
-    };
+    let (curve, mean) = edge_guides(eval, s, (ua, a), (ub, b));
     let (wm, pm) = match known_mid {
         Some(known) => known,
         None => probe(eval, s, um, &curve.at(0.5), mean.as_ref(), tol, counters)?,
@@ -1387,22 +1393,7 @@ impl SurfaceBuilder<'_> {
             self.scratch.points[a as usize],
             self.scratch.points[b as usize],
         );
-        let n = self.eval.dim();
-        let starts = needs_start(self.eval, self.s);
-        let curve = if starts {
-            EdgeCurve::new(n, (&ua, &pa), (&ub, &pb))
-        } else {
-            EdgeCurve {
-                wa: pa.w,
-                wb: pb.w,
-                d: None,
-            }
-        };
-        let mean = if starts {
-            mean_inverse(n, [&pa, &pb])
-        } else {
-            None
-        };
+        let (curve, mean) = edge_guides(self.eval, self.s, (&ua, &pa), (&ub, &pb));
         let (wm, pm) = probe(
             self.eval,
             self.s,

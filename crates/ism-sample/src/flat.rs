@@ -116,20 +116,8 @@ impl Flat {
             return None;
         }
         let (pc, nc) = (multi_index::count(k, d), multi_index::count(k, dd));
-        let m = p.len();
-        if m * pc + n * n * nc > FLAT_CAP {
-            return None;
-        }
-        let mut flat = Flat {
-            k,
-            m,
-            n,
-            d,
-            dd,
-            pc,
-            nc,
-            coeffs: [0.0; FLAT_CAP],
-        };
+        let mut flat = Flat::zeroed(k, p.len(), n, (d, pc), (dd, nc))?;
+        let m = flat.m;
         for (i, pi) in p.iter().enumerate() {
             if pi.vars() != k || pi.degree() != d {
                 return None;
@@ -149,6 +137,31 @@ impl Flat {
             }
         }
         Some(flat)
+    }
+
+    /// A record of `m` polynomials of degree `d` (`pc` coefficients each) and `n × n` entries of
+    /// degree `dd` (`nc` each) in `k` variables, all zero; `None` when they do not fit in
+    /// [`FLAT_CAP`] numbers.
+    fn zeroed(
+        k: usize,
+        m: usize,
+        n: usize,
+        (d, pc): (u32, usize),
+        (dd, nc): (u32, usize),
+    ) -> Option<Flat> {
+        if m * pc + n * n * nc > FLAT_CAP {
+            return None;
+        }
+        Some(Flat {
+            k,
+            m,
+            n,
+            d,
+            dd,
+            pc,
+            nc,
+            coeffs: [0.0; FLAT_CAP],
+        })
     }
 
     /// [`Flat::new`] of `p` and `num` (polynomials in the same `m` variables) restricted to the
@@ -182,19 +195,7 @@ impl Flat {
             return None;
         }
         let (pc, nc) = (coeff_count(k, d), coeff_count(k, dd));
-        if m * pc + n * n * nc > FLAT_CAP {
-            return None;
-        }
-        let mut flat = Flat {
-            k,
-            m,
-            n,
-            d,
-            dd,
-            pc,
-            nc,
-            coeffs: [0.0; FLAT_CAP],
-        };
+        let mut flat = Flat::zeroed(k, m, n, (d, pc), (dd, nc))?;
         let mut srcs: [&[f64]; BATCH] = [&[]; BATCH];
         for (s, pi) in srcs.iter_mut().zip(p) {
             *s = pi.coeffs();

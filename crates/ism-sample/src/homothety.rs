@@ -557,6 +557,30 @@ mod tests {
         }
     }
 
+    /// `k` random points of the simplex in `m` variables (barycentric, summing to 1), about a
+    /// third of their coordinates zero (the restriction skips those terms).
+    fn random_face(rng: &mut ChaCha8Rng, m: usize, k: usize) -> Vec<[f64; 4]> {
+        (0..k)
+            .map(|_| {
+                let mut v = [0.0; 4];
+                for x in v.iter_mut().take(m) {
+                    if rng.random_bool(0.67) {
+                        *x = rng.random::<f64>();
+                    }
+                }
+                let s: f64 = v.iter().sum();
+                if s == 0.0 {
+                    v[0] = 1.0;
+                } else {
+                    for x in v.iter_mut() {
+                        *x /= s;
+                    }
+                }
+                v
+            })
+            .collect()
+    }
+
     /// The kernel's `Bernstein::restrict_to_face` is the reference, bit for bit (the same steps in
     /// the same order), on faces of every dimension with vertices on edges, inside faces and in
     /// the interior, and with zero coordinates (skipped terms).
@@ -568,26 +592,7 @@ mod tests {
                 for k in 1..=m {
                     for _ in 0..6 {
                         let p = Bernstein::from_fn(m, d, |_| rng.random_range(-2.0..2.0));
-                        let vertices: Vec<[f64; 4]> = (0..k)
-                            .map(|_| {
-                                let mut v = [0.0; 4];
-                                for x in v.iter_mut().take(m) {
-                                    // About a third of the coordinates are zero.
-                                    if rng.random_bool(0.67) {
-                                        *x = rng.random::<f64>();
-                                    }
-                                }
-                                let s: f64 = v.iter().sum();
-                                if s == 0.0 {
-                                    v[0] = 1.0;
-                                } else {
-                                    for x in v.iter_mut() {
-                                        *x /= s;
-                                    }
-                                }
-                                v
-                            })
-                            .collect();
+                        let vertices = random_face(&mut rng, m, k);
                         let refs: Vec<Vec<f64>> =
                             vertices.iter().map(|v| v[..m].to_vec()).collect();
                         let kernel = p.restrict_to_face(&refs);
@@ -670,26 +675,7 @@ mod tests {
                         let polys: Vec<Bernstein> = (0..count)
                             .map(|_| Bernstein::from_fn(m, d, |_| rng.random_range(-2.0..2.0)))
                             .collect();
-                        let vertices: Vec<[f64; 4]> = (0..k)
-                            .map(|_| {
-                                let mut v = [0.0; 4];
-                                for x in v.iter_mut().take(m) {
-                                    // About a third of the coordinates are zero.
-                                    if rng.random_bool(0.67) {
-                                        *x = rng.random::<f64>();
-                                    }
-                                }
-                                let s: f64 = v.iter().sum();
-                                if s == 0.0 {
-                                    v[0] = 1.0;
-                                } else {
-                                    for x in v.iter_mut() {
-                                        *x /= s;
-                                    }
-                                }
-                                v
-                            })
-                            .collect();
+                        let vertices = random_face(&mut rng, m, k);
                         let refs: Vec<Vec<f64>> =
                             vertices.iter().map(|v| v[..m].to_vec()).collect();
                         let len = multi_index::count(k, d);
