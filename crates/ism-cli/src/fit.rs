@@ -501,9 +501,9 @@ fn mesh_setup(args: &Args) -> anyhow::Result<MeshSetup> {
     let path = args.mesh.as_ref().context("missing --mesh")?;
     let loaded = TriangleMesh::load_with_limits(path, &args.mesh_limits.limits())?;
     let g = MeshDistance::new(loaded).map_err(|e| match e {
-        ism_fit::FitError::Mesh { message, .. } => ism_fit::FitError::Mesh {
+        ism_fit::FitError::Mesh { source, .. } => ism_fit::FitError::Mesh {
             path: path.clone(),
-            message,
+            source,
         },
         e => e,
     })?;

@@ -152,11 +152,12 @@ pub enum FitError {
         at: Vec<f64>,
     },
     /// A mesh file that cannot be read, or a mesh that cannot define a distance.
-    #[error("mesh {}: {message}", path.display())]
+    #[error("mesh {}", path.display())]
     Mesh {
         /// The file (empty for an in-memory mesh).
         path: std::path::PathBuf,
-        /// What went wrong.
-        message: String,
+        /// What went wrong, typed (the reader's error says where in the file).
+        #[source]
+        source: mesh::MeshError,
     },
 }

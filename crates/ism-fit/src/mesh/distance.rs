@@ -297,7 +297,7 @@ impl MeshDistance {
         if tris.is_empty() {
             return Err(FitError::Mesh {
                 path: PathBuf::new(),
-                message: "every triangle has zero area".into(),
+                source: super::MeshError::AllDegenerate,
             });
         }
         let tree = RTree::bulk_load(tris);

@@ -6,23 +6,18 @@
 use std::collections::HashMap;
 use std::path::Path;
 
-use ism_export::error::MeshReadError;
 use ism_export::import::RawMesh;
 use ism_format::io::Limits;
 
-use super::TriangleMesh;
+use super::{MeshError, TriangleMesh};
 use crate::FitError;
 
-fn mesh_error(path: &Path, message: impl Into<String>) -> FitError {
+/// [`FitError::Mesh`] for `path`.
+fn mesh_error(path: &Path, source: impl Into<MeshError>) -> FitError {
     FitError::Mesh {
         path: path.to_path_buf(),
-        message: message.into(),
+        source: source.into(),
     }
-}
-
-/// [`FitError::Mesh`] with the reader's message (which says where in the file).
-fn read_error(path: &Path, e: MeshReadError) -> FitError {
-    mesh_error(path, e.to_string())
 }
 
 impl TriangleMesh {
@@ -50,26 +45,34 @@ impl TriangleMesh {
             .and_then(|e| e.to_str())
             .map(str::to_ascii_lowercase)
             .unwrap_or_default();
+        // The format first: a file we could not parse is not worth reading.
+        let gltf = match ext.as_str() {
+            "obj" => false,
+            "glb" | "gltf" => true,
+            _ => {
+                return Err(mesh_error(
+                    path,
+                    MeshError::UnknownFormat { extension: ext },
+                ))
+            }
+        };
         let size = std::fs::metadata(path)
-            .map_err(|e| mesh_error(path, e.to_string()))?
+            .map_err(|e| mesh_error(path, MeshError::Io(e)))?
             .len();
         if size > limits.max_payload_bytes {
             return Err(mesh_error(
                 path,
-                format!(
-                    "the file has {size} bytes, above the limit of {} (max_payload_bytes)",
-                    limits.max_payload_bytes
-                ),
+                MeshError::FileTooLarge {
+                    bytes: size,
+                    limit: limits.max_payload_bytes,
+                },
             ));
         }
-        let bytes = std::fs::read(path).map_err(|e| mesh_error(path, e.to_string()))?;
-        match ext.as_str() {
-            "obj" => TriangleMesh::from_obj_with_limits(&bytes, path, limits),
-            "glb" | "gltf" => TriangleMesh::from_gltf_with_limits(&bytes, path, limits),
-            _ => Err(mesh_error(
-                path,
-                "unknown mesh format (expected .obj, .glb or .gltf)",
-            )),
+        let bytes = std::fs::read(path).map_err(|e| mesh_error(path, MeshError::Io(e)))?;
+        if gltf {
+            TriangleMesh::from_gltf_with_limits(&bytes, path, limits)
+        } else {
+            TriangleMesh::from_obj_with_limits(&bytes, path, limits)
         }
     }
 
@@ -92,7 +95,7 @@ impl TriangleMesh {
         path: &Path,
         limits: &Limits,
     ) -> Result<TriangleMesh, FitError> {
-        let raw = ism_export::obj::read_obj(bytes, limits).map_err(|e| read_error(path, e))?;
+        let raw = ism_export::obj::read_obj(bytes, limits).map_err(|e| mesh_error(path, e))?;
         TriangleMesh::welded(raw, path)
     }
 
@@ -120,7 +123,7 @@ impl TriangleMesh {
         limits: &Limits,
     ) -> Result<TriangleMesh, FitError> {
         let raw = ism_export::gltf::read_gltf(bytes, path.parent(), limits)
-            .map_err(|e| read_error(path, e))?;
+            .map_err(|e| mesh_error(path, e))?;
         TriangleMesh::welded(raw, path)
     }
 
@@ -134,7 +137,7 @@ impl TriangleMesh {
             ..
         } = raw;
         if triangles.is_empty() {
-            return Err(mesh_error(path, "no triangles"));
+            return Err(mesh_error(path, MeshError::NoTriangles));
         }
         let mut ids: HashMap<[u64; 3], u32> = HashMap::new();
         let mut remap: Vec<Option<u32>> = vec![None; positions.len()];
@@ -150,7 +153,10 @@ impl TriangleMesh {
                         if p.iter().any(|x| !x.is_finite()) {
                             return Err(mesh_error(
                                 path,
-                                format!("vertex {v} has a non-finite coordinate {p:?}"),
+                                MeshError::NonFinite {
+                                    vertex: v,
+                                    point: p,
+                                },
                             ));
                         }
                         // +0.0 for -0.0, so both weld.

@@ -63,6 +63,47 @@ mod winding;
 pub use distance::{MeshDistance, PV_SHARPEST_EDGE};
 pub use plan::{MeshPlan, MeshPlanError};
 
+/// Why a mesh cannot be a target: the cause of [`FitError::Mesh`](crate::FitError::Mesh), which
+/// adds the file.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum MeshError {
+    /// The file could not be opened or read.
+    #[error("cannot read the file")]
+    Io(#[source] std::io::Error),
+    /// The file is larger than `Limits::max_payload_bytes` (checked before it is read).
+    #[error("the file has {bytes} bytes, above the limit of {limit} (max_payload_bytes)")]
+    FileTooLarge {
+        /// The file's size.
+        bytes: u64,
+        /// The limit it passes.
+        limit: u64,
+    },
+    /// The extension names no mesh format this crate reads.
+    #[error("unknown mesh format `{extension}` (expected .obj, .glb or .gltf)")]
+    UnknownFormat {
+        /// The file's extension, lowercased (empty when it has none).
+        extension: String,
+    },
+    /// The OBJ or glTF reader refused the content; its error says where in the file.
+    #[error(transparent)]
+    Read(#[from] ism_export::error::MeshReadError),
+    /// The file parsed but holds no triangle.
+    #[error("no triangles")]
+    NoTriangles,
+    /// A vertex a triangle uses has a NaN or infinite coordinate.
+    #[error("vertex {vertex} has a non-finite coordinate {point:?}")]
+    NonFinite {
+        /// The vertex, as numbered by the reader (before welding).
+        vertex: u32,
+        /// Its coordinates.
+        point: P3,
+    },
+    /// Every triangle has zero area, so no distance or orientation can be defined.
+    #[error("every triangle has zero area")]
+    AllDegenerate,
+}
+
 type P3 = [f64; 3];
 
 fn sub(a: P3, b: P3) -> P3 {

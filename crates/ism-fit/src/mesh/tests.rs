@@ -10,6 +10,11 @@ use super::super::*;
 use super::*;
 
 /// A cube `[-s, s]³` as 12 outward triangles, with the 8 corners shifted by `offset`.
+/// The error's text with its causes, as the CLI and the Python package print it.
+fn error_text(err: &FitError) -> String {
+    ism_format::ErrorChain(err).to_string()
+}
+
 fn cube(s: f64, offset: P3) -> TriangleMesh {
     let mut positions = Vec::new();
     for i in 0..8 {
@@ -403,7 +408,7 @@ fn gltf_indices_of_a_type_the_spec_forbids_are_an_error() {
     ] {
         let err = TriangleMesh::from_gltf(&indexed_glb(component, kind), Path::new("t.glb"))
             .map(|m| m.triangles.len());
-        let message = format!("{}", err.expect_err("forbidden index type accepted"));
+        let message = error_text(&err.expect_err("forbidden index type accepted"));
         assert!(
             message.contains("indices accessor 1"),
             "{component} {kind}: {message}"
@@ -446,7 +451,7 @@ fn gltf_nodes_are_instanced_once() {
         .map(|m| m.triangles.len())
         .expect_err("a node with two parents accepted");
     assert!(
-        format!("{err}").contains("reached twice in scene 0"),
+        error_text(&err).contains("reached twice in scene 0"),
         "{err}"
     );
     // Two parents of one mesh node, no repetition within a children list.
@@ -457,7 +462,7 @@ fn gltf_nodes_are_instanced_once() {
         .map(|m| m.triangles.len())
         .expect_err("a node with two parents accepted");
     assert!(
-        format!("{err}").contains("node 2 is reached twice"),
+        error_text(&err).contains("node 2 is reached twice"),
         "{err}"
     );
     // Two scenes sharing the mesh node, none the default: every scene is read, the node once.
@@ -511,7 +516,7 @@ fn limits_refuse_larger_meshes() {
             ),
         ] {
             let err = read(bytes, is_glb, &limits).expect_err("over the limit");
-            assert!(format!("{err}").contains(name), "{name}: {err}");
+            assert!(error_text(&err).contains(name), "{name}: {err}");
         }
     }
     // The GLB's one buffer declares 96 bytes.
@@ -524,14 +529,14 @@ fn limits_refuse_larger_meshes() {
         },
     )
     .expect_err("buffers over the limit");
-    assert!(format!("{err}").contains("max_payload_bytes"), "{err}");
+    assert!(error_text(&err).contains("max_payload_bytes"), "{err}");
     // Declared lengths whose sum overflows u64 are over the limit, not a panic.
     let huge = format!(
         r#"{{"asset":{{"version":"2.0"}},"buffers":[{{"byteLength":{m},"uri":"a.bin"}},{{"byteLength":{m},"uri":"b.bin"}}]}}"#,
         m = u64::MAX - 1
     );
     let err = read(huge.as_bytes(), true, &at).expect_err("overflowing buffers accepted");
-    assert!(format!("{err}").contains("max_payload_bytes"), "{err}");
+    assert!(error_text(&err).contains("max_payload_bytes"), "{err}");
     // A file: its size is checked before it is read.
     let dir = std::env::temp_dir().join(format!("ism-fit-limits-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
@@ -550,7 +555,7 @@ fn limits_refuse_larger_meshes() {
     };
     assert_eq!(load(size).unwrap(), 4);
     let err = load(size - 1).expect_err("file over the limit");
-    assert!(format!("{err}").contains("max_payload_bytes"), "{err}");
+    assert!(error_text(&err).contains("max_payload_bytes"), "{err}");
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
@@ -568,14 +573,14 @@ fn gltf_buffer_uris_that_do_not_decode_are_an_error() {
     )
     .map(|m| m.triangles.len())
     .expect_err("undecodable URI accepted");
-    assert!(format!("{err}").contains("not UTF-8"), "{err}");
+    assert!(error_text(&err).contains("not UTF-8"), "{err}");
     let err = TriangleMesh::from_gltf(
         gltf("missing%20file.bin").as_bytes(),
         Path::new("/nonexistent/t.gltf"),
     )
     .map(|m| m.triangles.len())
     .expect_err("a missing buffer file accepted");
-    assert!(format!("{err}").contains("buffers"), "{err}");
+    assert!(error_text(&err).contains("buffers"), "{err}");
 }
 
 #[test]
@@ -634,9 +639,83 @@ fn bad_input_is_an_error_not_a_panic() {
         positions: vec![[0.0; 3], [1.0, 0.0, 0.0], [2.0, 0.0, 0.0]],
         triangles: vec![[0, 1, 2]],
     };
-    assert!(MeshDistance::new(flat).is_err());
-    assert!(TriangleMesh::load(Path::new("/nonexistent/x.obj")).is_err());
-    assert!(TriangleMesh::load(Path::new("x.stl")).is_err());
+    assert!(matches!(
+        MeshDistance::new(flat),
+        Err(FitError::Mesh {
+            source: MeshError::AllDegenerate,
+            ..
+        })
+    ));
+    assert!(matches!(
+        TriangleMesh::load(Path::new("/nonexistent/x.obj")),
+        Err(FitError::Mesh {
+            source: MeshError::Io(_),
+            ..
+        })
+    ));
+    assert!(matches!(
+        TriangleMesh::load(Path::new("x.stl")),
+        Err(FitError::Mesh { source: MeshError::UnknownFormat { extension }, .. }) if extension == "stl"
+    ));
+}
+
+/// Each failure keeps its cause as a typed value: the reader's error (with the place in the
+/// file), the limit, the vertex — and the text the CLI prints names the file, then the cause.
+#[test]
+fn mesh_errors_are_typed_and_keep_their_cause() {
+    use ism_export::error::MeshReadError;
+    let path = Path::new("m.obj");
+    // tobj's own check of face indices: its error is the cause, under the reader's.
+    let r = TriangleMesh::from_obj(b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 9\n", path);
+    let Err(err) = r else {
+        panic!("index out of range accepted")
+    };
+    assert!(
+        matches!(
+            &err,
+            FitError::Mesh { path: p, source: MeshError::Read(MeshReadError::Obj(_)) } if p == path
+        ),
+        "{err:?}"
+    );
+    assert!(std::error::Error::source(&err).is_some());
+    let text = error_text(&err);
+    assert!(text.starts_with("mesh m.obj: OBJ: "), "{text}");
+    // The limit, with the count and the limit's name.
+    let limits = Limits {
+        max_simplices: 0,
+        ..Limits::default()
+    };
+    let r =
+        TriangleMesh::from_obj_with_limits(b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n", path, &limits);
+    assert!(
+        matches!(
+            &r,
+            Err(FitError::Mesh {
+                source: MeshError::Read(MeshReadError::TooLarge {
+                    limit: "max_simplices",
+                    ..
+                }),
+                ..
+            })
+        ),
+        "{r:?}"
+    );
+    let r = TriangleMesh::from_obj(b"v 0 0 nan\nv 1 0 0\nv 0 1 0\nf 1 2 3\n", path);
+    assert!(
+        matches!(&r, Err(FitError::Mesh { source: MeshError::NonFinite { vertex: 0, point }, .. }) if point[2].is_nan()),
+        "{r:?}"
+    );
+    let r = TriangleMesh::from_obj(b"v 0 0 0\n", path);
+    assert!(
+        matches!(
+            &r,
+            Err(FitError::Mesh {
+                source: MeshError::NoTriangles,
+                ..
+            })
+        ),
+        "{r:?}"
+    );
 }
 
 #[test]
