@@ -1,9 +1,11 @@
 #!/usr/bin/env python3
 """ismpy: an independent ISM reader and writer, written from spec/ism-format.md alone.
 
-It reads and writes all four encodings (JSON, MessagePack, binary, compact binary) and the container, and reports every
+It reads and writes all five encodings (JSON, MessagePack, binary, compact binary, compressed) and the container, and
+reports every
 reader rule of spec §9 (ISM-0xx, ISM-1xx) with the location of spec §7.8 and §9. No Rust and no JSON or
-MessagePack library is used for reading (the standard `json` module is too lenient: it accepts NaN,
+MessagePack library is used for reading (the compressed encoding's xz stream is decompressed by the standard
+`lzma` module) (the standard `json` module is too lenient: it accepts NaN,
 duplicate keys and big integers), so the spec, not a library, decides every byte.
 
 Command line (the protocol of tools/conformance):
@@ -11,13 +13,14 @@ Command line (the protocol of tools/conformance):
     ismpy.py read FILE                 prints {"ok": true} (exit 0) or {"rule": ..., "location": {...}}
                                        (exit 1): the first error a reader reports
     ismpy.py convert IN OUT ENCODING   reads IN and writes OUT in ENCODING: json, json-pretty, msgpack,
-                                       binary, compact (exit 0), or prints the error as `read` does
+                                       binary, compact, compressed (exit 0), or prints the error as `read` does
                                        (exit 1)
 """
 
 from __future__ import annotations
 
 import json
+import lzma
 import math
 import struct
 import sys
@@ -28,6 +31,9 @@ HEADER_LEN = 32
 MAJOR, MINOR = 1, 0
 MAX_DEPTH = 64
 MAX_DEGREE = 16
+# The xz decoder's memory limit for the compressed encoding (spec §7.4.2): above what every xz preset needs
+# (preset 9: 64 MiB dictionary), so a stream declaring a larger dictionary is refused (ISM-007) before allocating.
+XZ_MEMORY_LIMIT = 128 << 20
 DEFAULT_PAYLOAD_LIMIT = 8 << 30
 KINDS = ["bezier", "rational", "monotonic"]
 DIRECTIONS = ["implicit", "parametric"]
@@ -871,6 +877,32 @@ def decode_map_encoding(tokens_of, payload: bytes, base: int) -> dict:
         raise
 
 
+def decompress(payload: bytes, payload_limit: int) -> bytes:
+    """The compact payload inside a compressed one (spec §7.4.2), with the checks in the spec's order; never
+    decompresses more than the declared length plus one byte."""
+    end = HEADER_LEN + len(payload)
+    if len(payload) < 8:
+        raise IsmError("ISM-006", "compressed payload shorter than its length", offset=end)
+    (length,) = struct.unpack_from("<Q", payload, 0)
+    if length > payload_limit:
+        raise IsmError("ISM-007", "uncompressed length above the limit", offset=HEADER_LEN)
+    stream = payload[8:]
+    d = lzma.LZMADecompressor(format=lzma.FORMAT_XZ, memlimit=XZ_MEMORY_LIMIT)
+    try:
+        out = d.decompress(stream, max_length=length + 1)
+    except lzma.LZMAError as e:
+        rule = "ISM-007" if "Memory usage limit" in str(e) else "ISM-006"
+        raise IsmError(rule, f"xz: {e}", offset=HEADER_LEN + 8) from None
+    if len(out) <= length and not d.eof:
+        # All input consumed without the stream's end: it is cut short.
+        raise IsmError("ISM-006", "truncated xz stream", offset=end)
+    if len(out) != length:
+        raise IsmError("ISM-006", f"xz stream holds other than {length} bytes", offset=HEADER_LEN)
+    if d.unused_data:
+        raise IsmError("ISM-006", "bytes after the xz stream", offset=end - len(d.unused_data))
+    return out
+
+
 def decode(data: bytes, payload_limit: int = DEFAULT_PAYLOAD_LIMIT):
     """Container, encoding and version (spec §7.1, §7.5): returns (model, encoding)."""
     if data[:8] == MAGIC:
@@ -881,7 +913,7 @@ def decode(data: bytes, payload_limit: int = DEFAULT_PAYLOAD_LIMIT):
         major, minor, tag = struct.unpack_from("<HHB", data, 8)
         if major != MAJOR:
             raise IsmError("ISM-002", f"major version {major}", offset=8)
-        if tag not in (1, 2, 3, 4):
+        if tag not in (1, 2, 3, 4, 5):
             raise IsmError("ISM-005", f"encoding tag {tag}", offset=12)
         if data[13:16] != b"\0\0\0":
             raise IsmError("ISM-006", "reserved bytes", offset=13)
@@ -899,12 +931,15 @@ def decode(data: bytes, payload_limit: int = DEFAULT_PAYLOAD_LIMIT):
             model = decode_map_encoding(JsonTokens, payload, HEADER_LEN)
         elif tag == 2:
             model = decode_map_encoding(MsgpackTokens, payload, HEADER_LEN)
+        elif tag == 5:
+            compact = decompress(payload, payload_limit)
+            model = BinaryDecoder(compact, HEADER_LEN, compact=True).model(allow_trailing=minor > MINOR)
         else:
             model = BinaryDecoder(payload, HEADER_LEN, compact=tag == 4).model(allow_trailing=minor > MINOR)
         version = check_version(model["version"])
         if version != (major, minor):
             raise IsmError("ISM-009", "header and payload versions differ", pointer="/version")
-        return model, {1: "json", 2: "msgpack", 3: "binary", 4: "compact"}[tag]
+        return model, {1: "json", 2: "msgpack", 3: "binary", 4: "compact", 5: "compressed"}[tag]
     stripped = data.lstrip(b" \t\n\r")
     if stripped[:1] != b"{":
         raise IsmError("ISM-001", "not an ISM file", offset=0)
@@ -1394,7 +1429,8 @@ def container(payload: bytes, tag: int, major: int = MAJOR, minor: int = MINOR) 
 
 
 def write(model: dict, encoding: str) -> bytes:
-    """The canonical file of `model` in `encoding`: json, json-pretty, msgpack, binary or compact."""
+    """The canonical file of `model` in `encoding`: json, json-pretty, msgpack, binary, compact or compressed (whose
+    compressed bytes depend on the xz encoder: preset 6, CRC64, like the reference writer)."""
     check_writable(model)
     if encoding in ("json", "json-pretty"):
         return to_json(canonical_members(model), indent=2 if encoding == "json-pretty" else None).encode("utf-8")
@@ -1406,6 +1442,10 @@ def write(model: dict, encoding: str) -> bytes:
         return container(BinaryWriter().model(model), 3)
     if encoding == "compact":
         return container(BinaryWriter(compact=True).model(model), 4)
+    if encoding == "compressed":
+        compact = BinaryWriter(compact=True).model(model)
+        xz = lzma.compress(compact, format=lzma.FORMAT_XZ, check=lzma.CHECK_CRC64, preset=6)
+        return container(struct.pack("<Q", len(compact)) + xz, 5)
     raise ValueError(f"unknown encoding {encoding}")
 
 

@@ -7,6 +7,8 @@ target fuzzed a bare payload. A disagreement is a bug in one of them or a gap in
 from __future__ import annotations
 
 import json
+import lzma
+import struct
 import subprocess
 from pathlib import Path
 
@@ -30,19 +32,33 @@ def python_result(data: bytes) -> dict:
 
 #: (target, container tag) pairs: every target's own encoding, plus the compact binary reader (spec §7.4.1,
 #: tag 4) on the other binary-ish corpora, whose arbitrary bytes exercise every varint error (the
-#: read_compact corpus itself is small).
+#: read_compact corpus itself is small), and the compressed reader (spec §7.4.2, tag 5) on those payloads
+#: compressed here, and on its own corpus (the fuzz target's first byte: even, a compressed payload as it is;
+#: odd, a compact payload to compress).
 RUNS = [(t, tag) for t, tag in sorted(TARGETS.items())] + [("read_binary", 4), ("read_msgpack", 4), ("read_compact", 4)]
+RUNS += [("read_binary", 5), ("read_compact", 5), ("read_compressed", "mode")]
+
+
+def compressed(compact: bytes) -> bytes:
+    """A compressed payload (spec §7.4.2) holding `compact`, by Python's own xz encoder."""
+    return struct.pack("<Q", len(compact)) + lzma.compress(compact, format=lzma.FORMAT_XZ, preset=0)
 
 
 @pytest.mark.parametrize("target,tag", RUNS)
 def test_both_implementations_agree_on_every_fuzz_input(target, tag, tmp_path):
     files = sorted((ROOT / "fuzz" / "corpus" / target).iterdir())
-    assert len(files) > (20 if target == "read_compact" else 100), f"the {target} corpus is missing"
+    assert len(files) > (20 if target in ("read_compact", "read_compressed") else 100), f"the {target} corpus is missing"
     inputs = []
     for i, f in enumerate(files):
         data = f.read_bytes()
-        if tag is not None:
+        if tag == "mode":
+            mode, data = data[:1], data[1:]
+            data = ismpy.container(data if mode[0] % 2 == 0 else compressed(data), 5) if mode else b""
+        elif tag == 5:
+            data = ismpy.container(compressed(data), 5)
+        elif tag is not None:
             data = ismpy.container(data, tag)
+        if tag is not None:
             f = tmp_path / f"{i}"
             f.write_bytes(data)
         inputs.append((f, data))

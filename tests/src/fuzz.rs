@@ -117,6 +117,47 @@ pub fn readers_agree_on_payload(encoding: Encoding, payload: &[u8]) {
     readers_agree(&bytes);
 }
 
+/// Target `read_compressed` (spec §7.4.2). The first byte picks what the rest is:
+/// - even: a compressed payload as it is, behind a valid container (the length, the xz framing,
+///   bombs, bytes after the stream): the readers agree ([`readers_agree`]) and never panic;
+/// - odd: a compact payload, compressed here (xz preset 0): the compressed file reads exactly as
+///   the `.ismc` file of the same payload does — the same model, or the same error (rule, location
+///   and message): the compact reader is the peer that says what the streamed decompression must
+///   give. A model that reads is written compressed and reads back to itself.
+pub fn read_compressed(data: &[u8]) {
+    let Some((&mode, rest)) = data.split_first() else {
+        return;
+    };
+    if mode % 2 == 0 {
+        readers_agree_on_payload(Encoding::Compressed, rest);
+        return;
+    }
+    let contain = |encoding: Encoding, payload: &[u8]| {
+        let mut bytes = io::header(encoding, ism_format::FORMAT_VERSION, payload).to_vec();
+        bytes.extend_from_slice(payload);
+        bytes
+    };
+    let mut xz = liblzma::write::XzEncoder::new((rest.len() as u64).to_le_bytes().to_vec(), 0);
+    std::io::Write::write_all(&mut xz, rest).expect("in memory");
+    let compressed = contain(Encoding::Compressed, &xz.finish().expect("in memory"));
+    readers_agree(&compressed);
+    let text = |r: ism_format::Result<io::Document>| match r {
+        Ok(d) => Ok(d.model),
+        Err(e) => Err(e.to_string()),
+    };
+    let got = text(io::from_slice(&compressed));
+    assert_eq!(
+        got,
+        text(io::from_slice(&contain(Encoding::Compact, rest))),
+        "the compressed read differs from the compact read of the same payload"
+    );
+    if let Ok(model) = got {
+        let again = io::to_vec(&model, Encoding::Compressed, WriteOptions::default())
+            .expect("a model read is written");
+        assert_eq!(io::from_slice(&again).expect("re-read").model, model);
+    }
+}
+
 /// Target `import_mesh`: the bytes as `.vtu`, legacy `.vtk` and `.msh` (`ism import`'s parsers).
 /// Each parse gives a mesh or a typed error; a mesh converts to a model or a typed error (with the
 /// first field and with a named one at another level); a converted model is one `ism` reads back.

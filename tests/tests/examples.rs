@@ -1,5 +1,5 @@
-//! Conformance: every example in `spec/examples/` reads in each of its four encodings, passes the
-//! reader's structural checks, and the four encodings carry bit-identical models. One test per
+//! Conformance: every example in `spec/examples/` reads in each of its five encodings, passes the
+//! reader's structural checks, and the five encodings carry bit-identical models. One test per
 //! example.
 
 use std::collections::BTreeMap;
@@ -30,7 +30,7 @@ fn check(name: &str, files: &[PathBuf]) -> Result<(), Failed> {
     }
     encodings.sort_by_key(|e| e.tag());
     if encodings != Encoding::ALL {
-        return Err(format!("{name}: expected all four encodings, found {encodings:?}").into());
+        return Err(format!("{name}: expected all five encodings, found {encodings:?}").into());
     }
     Ok(())
 }
@@ -46,7 +46,7 @@ fn main() {
             .and_then(|n| n.to_str())
             .unwrap_or("")
             .to_string();
-        let stem = [".ism.json", ".ism.msgpack", ".ismb", ".ismc"]
+        let stem = [".ism.json", ".ism.msgpack", ".ismb", ".ismc", ".ismz"]
             .iter()
             .find_map(|ext| name.strip_suffix(ext));
         if let Some(stem) = stem {

@@ -22,6 +22,7 @@ const TARGETS: &[(&str, Property)] = &[
     ("read_compact", |b| {
         fuzz::readers_agree_on_payload(Encoding::Compact, b)
     }),
+    ("read_compressed", fuzz::read_compressed),
     ("read_msgpack", |b| {
         fuzz::readers_agree_on_payload(Encoding::MessagePack, b)
     }),

@@ -1,6 +1,6 @@
 //! Conformance of the validator (spec/validation.md §7): every vector in `spec/vectors/validate/`
 //! gets exactly the `(code, location)` pairs and the verdict of its `NAME.expect.json`, and every
-//! example in `spec/examples/` (all four encodings) is valid. One test per file.
+//! example in `spec/examples/` (all five encodings) is valid. One test per file.
 
 use std::path::{Path, PathBuf};
 

@@ -191,7 +191,7 @@ pub fn example_bytes(model: &Model, encoding: Encoding) -> ism_format::Result<Ve
     )
 }
 
-/// Writes every example in all four encodings into `dir` (atomically, file by file); returns the
+/// Writes every example in all five encodings into `dir` (atomically, file by file); returns the
 /// paths written.
 ///
 /// # Errors

@@ -830,7 +830,138 @@ fn strictness_vectors() -> Vec<ReaderVector> {
     kind.splice(at..at + 1, [0xFD, 0, 0, 0, 0, 1, 0, 0, 0]);
     reseal_payload(&mut kind);
     push("compact-u64-varint-in-u32", c, kind, Rule::Malformed);
+
+    // Compressed: the uncompressed length, the xz stream and the compact payload inside, each
+    // error at its location of spec §7.4.2.
+    let z = Encoding::Compressed;
+    let compact = encode(&tri, c)[HEADER_LEN..].to_vec();
+    push(
+        "compressed-short-payload",
+        z,
+        compressed_file(&[1, 2, 3, 4, 5]),
+        Rule::Malformed,
+    );
+    push(
+        "compressed-huge-length",
+        z,
+        compressed_with(1 << 62, &xz(&compact)),
+        Rule::LimitExceeded,
+    );
+    let mut magic = xz(&compact);
+    magic[0] ^= 0x01;
+    push(
+        "compressed-not-xz",
+        z,
+        compressed_with(compact.len() as u64, &magic),
+        Rule::Malformed,
+    );
+    // The stream's last 12 bytes are its footer; the CRC64 of the block's content is the 8 bytes
+    // before the index, which a one-block stream of a short payload places right after the data.
+    let good = xz(&compact);
+    let mut check = good.clone();
+    let at = xz_check_offset(&good);
+    check[at] ^= 0x01;
+    push(
+        "compressed-bad-check",
+        z,
+        compressed_with(compact.len() as u64, &check),
+        Rule::Malformed,
+    );
+    push(
+        "compressed-truncated-stream",
+        z,
+        compressed_with(compact.len() as u64, &good[..good.len() - 12]),
+        Rule::Malformed,
+    );
+    push(
+        "compressed-length-short",
+        z,
+        compressed_with(compact.len() as u64 + 1, &good),
+        Rule::Malformed,
+    );
+    // A bomb: 16 MiB of zeros (about 2.5 kB of xz) declared as 64 bytes; refused after 65.
+    push(
+        "compressed-bomb",
+        z,
+        compressed_with(64, &xz(&vec![0u8; 16 << 20])),
+        Rule::Malformed,
+    );
+    push(
+        "compressed-dictionary-too-large",
+        z,
+        compressed_with(compact.len() as u64, &xz_with_dictionary_4gib(&good)),
+        Rule::LimitExceeded,
+    );
+    let mut padded = good.clone();
+    padded.extend_from_slice(&[0, 0, 0, 0]);
+    push(
+        "compressed-trailing-data",
+        z,
+        compressed_with(compact.len() as u64, &padded),
+        Rule::Malformed,
+    );
+    let mut inner = compact_vertices_length(&tri, &[0xFB, 6, 0], false);
+    let inner = inner.split_off(HEADER_LEN);
+    push(
+        "compressed-bad-compact",
+        z,
+        compressed_with(inner.len() as u64, &xz(&inner)),
+        Rule::Malformed,
+    );
     v
+}
+
+/// `bytes` compressed as one xz stream by the reference writer's preset.
+fn xz(bytes: &[u8]) -> Vec<u8> {
+    use std::io::Write;
+    let mut e = liblzma::write::XzEncoder::new(Vec::new(), ism_format::compressed::WRITE_PRESET);
+    e.write_all(bytes).expect("in memory");
+    e.finish().expect("in memory")
+}
+
+/// The first byte of a one-block xz stream's CRC64 check (xz file format 1.2, §2.1.3 and §4):
+/// the index (which starts with a zero byte, then the record count 1 as a varint) and the
+/// 12-byte footer follow it; the index of one record is `size` bytes, read from the footer.
+fn xz_check_offset(stream: &[u8]) -> usize {
+    let footer = stream.len() - 12;
+    let backward = u32::from_le_bytes(stream[footer + 4..footer + 8].try_into().expect("4 bytes"));
+    let index_len = (backward as usize + 1) * 4;
+    footer - index_len - 8
+}
+
+/// `stream` (one block, LZMA2) with its block header declaring the largest LZMA2 dictionary,
+/// 4 GiB − 1 (property byte 40, xz file format 1.2 §5.3.1), and the header's CRC32 rewritten: a
+/// decoder would need 4 GiB, which readers refuse before allocating (spec §7.4.2).
+fn xz_with_dictionary_4gib(stream: &[u8]) -> Vec<u8> {
+    let mut out = stream.to_vec();
+    // The block header follows the 12-byte stream header; its first byte is (size / 4) − 1.
+    let start = 12;
+    let size = (usize::from(out[start]) + 1) * 4;
+    let header = &mut out[start..start + size];
+    // Filter flags of LZMA2: id 0x21, property size 1, the dictionary byte.
+    let at = header
+        .windows(2)
+        .position(|w| w == [0x21, 0x01])
+        .expect("LZMA2 filter flags")
+        + 2;
+    header[at] = 40;
+    let crc = crc32fast::hash(&header[..size - 4]);
+    header[size - 4..].copy_from_slice(&crc.to_le_bytes());
+    out
+}
+
+/// A compressed container: uncompressed length `declared`, then `stream`.
+fn compressed_with(declared: u64, stream: &[u8]) -> Vec<u8> {
+    let mut payload = declared.to_le_bytes().to_vec();
+    payload.extend_from_slice(stream);
+    compressed_file(&payload)
+}
+
+/// A compressed container around `payload` as it is, both CRCs valid.
+fn compressed_file(payload: &[u8]) -> Vec<u8> {
+    let mut bytes = io::header(Encoding::Compressed, ism_format::FORMAT_VERSION, payload).to_vec();
+    bytes.extend_from_slice(payload);
+    bytes
 }
 
 /// A compact file of `model` whose `vertices` length (one byte, at payload offset 9: version, dimension,

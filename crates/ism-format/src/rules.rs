@@ -44,7 +44,7 @@ rules! {
     UnsupportedVersion = "ISM-002", Error, "The major version is one this reader implements";
     ChecksumMismatch = "ISM-003", Error, "The payload CRC-32 and header CRC-32 match the stored values";
     Truncated = "ISM-004", Error, "The file holds the whole header and the declared payload";
-    UnknownEncoding = "ISM-005", Error, "The encoding tag is 1 (JSON), 2 (MessagePack) or 3 (binary)";
+    UnknownEncoding = "ISM-005", Error, "The encoding tag is 1 (JSON), 2 (MessagePack), 3 (binary), 4 (compact) or 5 (compressed)";
     Malformed = "ISM-006", Error, "The payload decodes as the declared encoding and matches the data model";
     LimitExceeded = "ISM-007", Error, "The declared payload length and the model's entity counts fit the reader's limits";
     ExtensionRequired = "ISM-008", Error, "Every extension in extensionsRequired is supported by the reader";

@@ -54,9 +54,10 @@ fn main() -> ExitCode {
                 "msgpack" => (Encoding::MessagePack, false),
                 "binary" => (Encoding::Binary, false),
                 "compact" => (Encoding::Compact, false),
+                "compressed" => (Encoding::Compressed, false),
                 other => {
                     eprintln!(
-                        "unknown encoding {other:?}; expected json, json-pretty, msgpack, binary or compact"
+                        "unknown encoding {other:?}; expected json, json-pretty, msgpack, binary, compact or compressed"
                     );
                     return ExitCode::from(2);
                 }

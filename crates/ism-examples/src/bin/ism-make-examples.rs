@@ -16,7 +16,7 @@ Examples:
 Output is deterministic: running it twice gives identical bytes.
 Exit status: 0 when every file was written, 2 on a write error or a vector that does not fail as intended.";
 
-/// Writes the ISM example models (four encodings each) and the reader test vectors.
+/// Writes the ISM example models (five encodings each) and the reader test vectors.
 #[derive(Parser)]
 #[command(name = "ism-make-examples", version, about, after_help = AFTER_HELP)]
 struct Args {
@@ -36,7 +36,7 @@ struct Args {
     #[arg(long, default_value = "spec/vectors/writer")]
     writer_vectors_dir: PathBuf,
     /// Also write `large_stratified_model(TETS)` to FILE (encoding from the extension: .ism.json,
-    /// .ism.msgpack, .ismb, .ismc).
+    /// .ism.msgpack, .ismb, .ismc, .ismz).
     #[arg(long, num_args = 2, value_names = ["TETS", "FILE"])]
     large: Option<Vec<String>>,
 }
