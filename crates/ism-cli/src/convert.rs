@@ -8,7 +8,9 @@ use ism_format::{io, Encoding};
 
 const AFTER_HELP: &str = "\
 The output encoding follows --to, else the output extension (.ism.json, .ism.msgpack, .ismb,
-.ismc). Compact binary (.ismc) is the smallest: the binary encoding with variable-length integers.
+.ismc, .ismz). Compact binary (.ismc) is the binary encoding with variable-length integers;
+compressed (.ismz) is the compact payload compressed by xz, the smallest (any xz decoder reads it,
+e.g. Python's lzma module; writing is slower, several MB/s).
 The input encoding is detected from its content, whatever its name. The output is written to a
 temporary file and renamed, so a failure leaves no partial file.
 
@@ -17,6 +19,7 @@ Examples:
   ism convert sphere.ismb sphere.ism.json --pretty
   ism convert in.dat out.dat --to msgpack
   ism convert sphere.ismb sphere.ismc
+  ism convert sphere.ismb sphere.ismz
 
 Exit status: 0 on success, 2 when the input is unreadable or the output cannot be written.";
 
@@ -28,7 +31,7 @@ pub struct Args {
     input: PathBuf,
     /// Output file.
     output: PathBuf,
-    /// Output encoding: json, msgpack, binary or compact.
+    /// Output encoding: json, msgpack, binary, compact or compressed.
     #[arg(long)]
     to: Option<Encoding>,
     /// Indent JSON output.
@@ -69,7 +72,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         .or_else(|| Encoding::from_path(&args.output))
         .with_context(|| {
             format!(
-                "cannot tell the encoding of {}: use --to json|msgpack|binary|compact",
+                "cannot tell the encoding of {}: use --to json|msgpack|binary|compact|compressed",
                 args.output.display()
             )
         })?;
