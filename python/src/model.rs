@@ -138,8 +138,9 @@ pub(crate) fn encoding_from_str(text: &str) -> PyResult<Encoding> {
         "msgpack" | "messagepack" => Ok(Encoding::MessagePack),
         "binary" => Ok(Encoding::Binary),
         "compact" => Ok(Encoding::Compact),
+        "compressed" => Ok(Encoding::Compressed),
         _ => Err(PyValueError::new_err(format!(
-            "encoding {text:?}: expected 'json', 'msgpack', 'binary' or 'compact'"
+            "encoding {text:?}: expected 'json', 'msgpack', 'binary', 'compact' or 'compressed'"
         ))),
     }
 }
@@ -870,7 +871,7 @@ impl Model {
     }
 
     /// The encoding the model was read from (``"json"``, ``"msgpack"``, ``"binary"``,
-    /// ``"compact"``), or ``None``
+    /// ``"compact"``, ``"compressed"``), or ``None``
     /// for a model built in memory.
     #[getter]
     fn encoding(&self) -> Option<&'static str> {
@@ -1078,8 +1079,9 @@ impl Model {
         Ok(d)
     }
 
-    /// The file's bytes in ``encoding`` (``"json"``, ``"msgpack"``, ``"binary"`` or ``"compact"``,
-    /// the smallest: the binary encoding with variable-length integers); ``pretty``
+    /// The file's bytes in ``encoding`` (``"json"``, ``"msgpack"``, ``"binary"``, ``"compact"``:
+    /// the binary encoding with variable-length integers, or ``"compressed"``: the compact payload
+    /// compressed by xz, the smallest); ``pretty``
     /// indents JSON; ``container`` wraps JSON in the checksummed container.
     #[pyo3(signature = (encoding = "binary", *, pretty = false, container = false))]
     fn to_bytes<'py>(
@@ -1103,7 +1105,7 @@ impl Model {
 
     /// Writes the model to ``path`` atomically (a failure leaves no partial file). The encoding
     /// defaults to the extension's (``.ism.json``/``.json``, ``.ism.msgpack``/``.msgpack``,
-    /// ``.ismb``, ``.ismc``; binary otherwise).
+    /// ``.ismb``, ``.ismc``, ``.ismz``; binary otherwise).
     #[pyo3(signature = (path, encoding = None, *, pretty = false, container = false))]
     fn write_path(
         &self,
