@@ -28,15 +28,17 @@ mesh target), the grid refined until the mesh's two-sided true error, measured t
 triangles) is at most the ISM's; the mesh is written as binary glTF (.glb, trimesh). 2D shapes
 use `find_contours` and a .glb of line segments.
 
-Prints one Markdown row per shape: tolerance, simplices, stored numbers, .ismb and .ismc (compact
-binary) bytes, ISM two-sided true error (both directions), the report's own claim, topology, CPU
+Prints one Markdown row per shape: tolerance, simplices, stored numbers, .ismb, .ismc (compact
+binary) and .ismz (compressed: the compact payload in xz, spec §7.4.2) bytes, ISM two-sided true error (both directions), the report's own claim, topology, CPU
 seconds; and the marching-cubes grid, vertices+faces numbers, .glb bytes, its error, topology, CPU
-seconds.
+seconds; the ratios .glb / .ismb, .ismc, .ismz, and — for an honest comparison — the .glb compressed by
+the same codec (xz preset 6, what `ism` writes) over the .ismz.
 Needs numpy, scipy, scikit-image, trimesh (tools/requirements.txt); the mesh target needs the
 bunny that ships in the pymeshlab wheel (skipped when pymeshlab is not installed).
 """
 import argparse
 import json
+import lzma
 import math
 import os
 import resource
@@ -423,6 +425,21 @@ def compact_bytes(path):
     return os.path.getsize(c)
 
 
+def compressed_bytes(path):
+    """Bytes of the same model in the compressed encoding (spec ism-format.md §7.4.2: the compact
+    payload compressed by xz), written by `ism convert`."""
+    z = path[: -len(".ismb")] + ".ismz"
+    subprocess.run([ISM, "convert", path, z, "-q"], check=True)
+    return os.path.getsize(z)
+
+
+def xz_bytes(path):
+    """Bytes of a file compressed by the codec of the compressed encoding at the writer's preset (xz
+    preset 6, Python's lzma: the same liblzma), for the marching-cubes .glb beside the .ismz."""
+    with open(path, "rb") as f:
+        return len(lzma.compress(f.read(), format=lzma.FORMAT_XZ, preset=6))
+
+
 def byte_parts(path):
     """Where the .ismb's bytes go (spec ism-format.md §7.4: u32 ids, f64 numbers, a u64 length
     before every array): from the model re-encoded as JSON by `ism convert`."""
@@ -650,11 +667,12 @@ def main():
         ism_err = max(fwd.max(), back_max)
         ism_bytes = os.path.getsize(path)
         ismc_bytes = compact_bytes(path)
+        ismz_bytes = compressed_bytes(path)
         total, crossed, simplices, parts = byte_parts(path)
         print(f"  .ismb {total} B: {simplices} simplices ({crossed} crossed); " + ", ".join(
             f"{k} {v} B ({100 * v / total:.0f} %)" for k, v in parts.items()), file=sys.stderr)
         print(f"{key}: ISM tol {tol:.2e}: {report['simplices']} simplices, "
-              f"{report['storedNumbers']} numbers, {ism_bytes} B (.ismc {ismc_bytes} B), true S->Z {fwd.max():.3e} "
+              f"{report['storedNumbers']} numbers, {ism_bytes} B (.ismc {ismc_bytes} B, .ismz {ismz_bytes} B), true S->Z {fwd.max():.3e} "
               f"Z->S {back.max():.3e} (report {report['shapeToTarget']:.3e} / "
               f"{report['targetToShape']:.3e}, met {report['toleranceMet']}), {cpu:.1f} CPU-s",
               file=sys.stderr)
@@ -677,7 +695,7 @@ def main():
             passing = [r for r, x in tried.items() if meets(x)]
             failing = [r for r, x in tried.items() if not meets(x)]
             if meets(e):
-                best = (res, verts, faces, mcpu, glb, e)
+                best = (res, verts, faces, mcpu, glb, e, gpath)
             if best is not None:
                 # The coarsest grid that meets it: bisect between the finest failing grid below
                 # the coarsest passing one and that one (one step down by 8 % when none failed).
@@ -693,23 +711,26 @@ def main():
         topo = f"genus {shape['genus']}" if shape.get("genus") is not None else "—"
         ism_topo = f"{report.get('components')} comp., χ {report.get('euler')}"
         if best is None:
-            mc = f"not reached by {max_res} cells | — | — | — | — | — | — |"
+            mc = f"not reached by {max_res} cells | — | — | — | — | — | — | — | — | — |"
         else:
-            r, v, f, mcpu, glb, e = best
+            r, v, f, mcpu, glb, e, gpath = best
+            glb_xz = xz_bytes(gpath)
             chi = euler(v, f)
             nums = v.size + f.size
             mc = (f"{r} | {nums:,} | {glb:,} | {max(e):.2e} ({e[0]:.1e}/{e[1]:.1e}) | "
                   f"{'χ ' + str(chi) if chi is not None else str(len(f)) + ' segments'}, "
-                  f"{mcpu:.1f} CPU-s | {glb / ism_bytes:.2f} | {glb / ismc_bytes:.2f} |")
+                  f"{mcpu:.1f} CPU-s | {glb / ism_bytes:.2f} | {glb / ismc_bytes:.2f} | {glb / ismz_bytes:.2f} | "
+                  f"{glb_xz:,} | {glb_xz / ismz_bytes:.2f} |")
         rows.append(
             f"| {shape['name']} ({topo}) | {tol:.1e} | {report['simplices']:,} | "
-            f"{report['storedNumbers']:,} | {ism_bytes:,} | {ismc_bytes:,} | {ism_err:.2e} ({fwd.max():.1e}/"
+            f"{report['storedNumbers']:,} | {ism_bytes:,} | {ismc_bytes:,} | {ismz_bytes:,} | {ism_err:.2e} ({fwd.max():.1e}/"
             f"{back.max():.1e}) | {report['maxDistance']:.2e}, met {report['toleranceMet']} | "
             f"{ism_topo}, {cpu:.1f} CPU-s | {mc}")
-    print("| shape | tolerance | ISM simplices | stored numbers | .ismb bytes | .ismc bytes | true "
+    print("| shape | tolerance | ISM simplices | stored numbers | .ismb bytes | .ismc bytes | .ismz bytes | true "
           "two-sided error (S→Z/Z→S) | report's claim | ISM topology, CPU | MC grid | MC numbers | "
-          ".glb bytes | MC true error | MC topology, CPU | .glb / .ismb | .glb / .ismc |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+          ".glb bytes | MC true error | MC topology, CPU | .glb / .ismb | .glb / .ismc | .glb / .ismz | "
+          ".glb.xz bytes | .glb.xz / .ismz |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         print(r)
 
