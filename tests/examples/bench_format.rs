@@ -1,4 +1,4 @@
-//! Read/write throughput of the four encodings on a large stratified model (issue 2 benchmark).
+//! Read/write throughput of the five encodings on a large stratified model (issue 2 benchmark).
 //! Driven by `tools/bench_format.sh`, which also runs the meshio peer and records peak memory.
 //!
 //! `bench_format make DIR [TETS] [--binary-only]`  build the model, write it in every encoding (or
