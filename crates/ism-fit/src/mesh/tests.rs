@@ -962,3 +962,86 @@ fn candidates_are_the_brute_force_set() {
         "{small} of 50 small boxes with < 10 % of the triangles"
     );
 }
+
+/// The nearest-triangle search is a linear scan's answer — the smallest `(distance², id)` over
+/// every triangle — whatever the hint: far hints, the nearest triangle itself, points on the
+/// surface (mesh vertices and edge midpoints, where several triangles tie at distance 0), off it,
+/// and far away; on a torus and on an axis-aligned cube (boxes and triangles share faces there).
+#[test]
+fn the_nearest_triangle_is_the_linear_scans_whatever_the_hint() {
+    for mesh in [torus_mesh(24, 12, 1.0, 0.35), cube(0.5, [0.1, -0.2, 0.05])] {
+        let d = MeshDistance::new(mesh).unwrap();
+        let tris: Vec<[P3; 3]> = d
+            .mesh
+            .triangles
+            .iter()
+            .map(|t| t.map(|i| d.mesh.positions[i as usize]))
+            .collect();
+        let in_tree: Vec<u32> = d.tree.iter().map(|t| t.id).collect();
+        let scan = |p: P3| -> (f64, u32) {
+            let mut best = (f64::INFINITY, u32::MAX);
+            for &t in &in_tree {
+                let e = sub(p, closest_point_on_triangle(p, tris[t as usize]));
+                let d2 = dot(e, e);
+                if d2 < best.0 || (d2 == best.0 && t < best.1) {
+                    best = (d2, t);
+                }
+            }
+            best
+        };
+        let mut queries = points(300, -1.6, 1.6, 29);
+        queries.extend(points(20, -9.0, 9.0, 31));
+        queries.extend(d.mesh.positions.iter().copied());
+        for t in &tris {
+            queries.push([0, 1, 2].map(|k| 0.5 * (t[0][k] + t[1][k])));
+        }
+        let mut ties = 0;
+        for (i, &p) in queries.iter().enumerate() {
+            let expected = scan(p);
+            if expected.0 == 0.0 {
+                ties += 1;
+            }
+            for hint in [
+                in_tree[i % in_tree.len()],
+                in_tree[(7 * i + 3) % in_tree.len()],
+                expected.1,
+            ] {
+                let got = d.nearest_triangle(p, hint);
+                assert_eq!(got.1, expected.1, "query {i} {p:?}, hint {hint}");
+                assert_eq!(got.0.to_bits(), expected.0.to_bits(), "query {i}");
+                let (q, t) = d.closest_point_near(p, hint);
+                assert_eq!(t, expected.1);
+                assert_eq!(q, closest_point_on_triangle(p, tris[t as usize]));
+            }
+        }
+        // The on-surface queries (vertices, edge midpoints) are there and tie at distance 0.
+        assert!(
+            ties >= d.mesh.positions.len(),
+            "{ties} queries on the surface"
+        );
+    }
+}
+
+/// The inlined box distance is rstar's `AABB::distance_2`, bit for bit: points inside, on a face,
+/// beyond a face, an edge and a corner of random boxes.
+#[test]
+fn the_box_distance_is_rstars() {
+    let corners = points(400, -2.0, 2.0, 41);
+    let queries = points(400, -3.0, 3.0, 43);
+    for (i, pair) in corners.chunks_exact(2).enumerate() {
+        let env = AABB::from_corners(pair[0], pair[1]);
+        let (lo, hi) = (env.lower(), env.upper());
+        let mut probes: Vec<P3> = queries[i..i + 8].to_vec();
+        probes.push(lo);
+        probes.push(hi);
+        probes.push([lo[0], 0.5 * (lo[1] + hi[1]), hi[2] + 0.3]);
+        probes.push([0.5 * (lo[0] + hi[0]); 3]);
+        for p in probes {
+            assert_eq!(
+                box_distance_2(&env, &p).to_bits(),
+                env.distance_2(&p).to_bits(),
+                "box {i}, point {p:?}"
+            );
+        }
+    }
+}
