@@ -22,7 +22,7 @@ use ism_format::{multi_index, Direction, FaceId, IndexedModel, Model, Stage, Sta
 
 use crate::error::{GeomError, Result};
 use crate::linalg;
-use crate::tables::{basis_m, pow_table, tables, Tables};
+use crate::tables::{basis_m, const_terms, const_up, pow_table, tables, ConstTerm, Tables};
 use crate::{Bary, Mat, MAX_DEGREE, MAX_VARS};
 
 /// Calls a const-generic kernel for the stage's variable count (2, 3 or 4).
@@ -32,6 +32,31 @@ macro_rules! dispatch {
             2 => $s.$f::<2>($w),
             3 => $s.$f::<3>($w),
             _ => $s.$f::<4>($w),
+        }
+    };
+}
+
+/// Calls the compile-time-table kernel `$f::<M, D, N, NL>` for the stage's variable count `M` and
+/// degree `D ≤ 4` (`N`, `NL`: the counts of degree-`D` and degree-`D − 1` indices), else the
+/// table-driven `$g` through [`dispatch!`]. Both compute the same bits (module `tables`,
+/// [`const_terms`]); the specialised ones unroll completely (most stages of the format's examples
+/// and of fitted models are of degree 1–4).
+macro_rules! dispatch_degree {
+    ($s:ident, $f:ident, $g:ident, $w:expr) => {
+        match ($s.m, $s.degree) {
+            (4, 1) => $s.$f::<4, 1, 4, 1>($w),
+            (4, 2) => $s.$f::<4, 2, 10, 4>($w),
+            (4, 3) => $s.$f::<4, 3, 20, 10>($w),
+            (4, 4) => $s.$f::<4, 4, 35, 20>($w),
+            (3, 1) => $s.$f::<3, 1, 3, 1>($w),
+            (3, 2) => $s.$f::<3, 2, 6, 3>($w),
+            (3, 3) => $s.$f::<3, 3, 10, 6>($w),
+            (3, 4) => $s.$f::<3, 4, 15, 10>($w),
+            (2, 1) => $s.$f::<2, 1, 2, 1>($w),
+            (2, 2) => $s.$f::<2, 2, 3, 2>($w),
+            (2, 3) => $s.$f::<2, 3, 4, 3>($w),
+            (2, 4) => $s.$f::<2, 4, 5, 4>($w),
+            _ => dispatch!($s, $g, $w),
         }
     };
 }
@@ -601,8 +626,8 @@ impl LocalStage {
             return *w;
         }
         match self.kind {
-            StageKind::Bezier => dispatch!(self, eval_bezier, w),
-            StageKind::Rational => dispatch!(self, eval_rational, w),
+            StageKind::Bezier => dispatch_degree!(self, eval_bezier_const, eval_bezier, w),
+            StageKind::Rational => dispatch_degree!(self, eval_rational_const, eval_rational, w),
             StageKind::Monotonic => {
                 let m = self.m;
                 let mut g = [0.0; MAX_VARS];
@@ -658,6 +683,158 @@ impl LocalStage {
             *v /= q;
         }
         p
+    }
+
+    /// [`Self::eval_bezier`] over the compile-time table of degree `D` (`N` terms; `NL` unused):
+    /// the same products in the same order, so the same bits, with every exponent known.
+    #[inline(always)]
+    fn eval_bezier_const<const M: usize, const D: usize, const N: usize, const NL: usize>(
+        &self,
+        w: &Bary,
+    ) -> Bary {
+        let terms: &[ConstTerm<M>; N] = &const { const_terms::<M, N>(D) };
+        let Ok(points) = <&[Bary; N]>::try_from(self.points.as_slice()) else {
+            return self.eval_bezier::<M>(w);
+        };
+        let pw = pow_table::<M>(D, w);
+        let mut u = [0.0; MAX_VARS];
+        for t in 0..N {
+            let (e, mult) = &terms[t];
+            let mut bi = *mult;
+            for i in 0..M {
+                bi *= pw[i][e[i]];
+            }
+            for i in 0..M {
+                u[i] += bi * points[t][i];
+            }
+        }
+        u
+    }
+
+    /// [`Self::eval_rational`] over the compile-time table (as [`Self::eval_bezier_const`]).
+    #[inline(always)]
+    fn eval_rational_const<const M: usize, const D: usize, const N: usize, const NL: usize>(
+        &self,
+        w: &Bary,
+    ) -> Bary {
+        let terms: &[ConstTerm<M>; N] = &const { const_terms::<M, N>(D) };
+        let (Ok(weighted), Ok(weights)) = (
+            <&[Bary; N]>::try_from(self.weighted.as_slice()),
+            <&[f64; N]>::try_from(self.weights.as_slice()),
+        ) else {
+            return self.eval_rational::<M>(w);
+        };
+        let pw = pow_table::<M>(D, w);
+        let mut p = [0.0; MAX_VARS];
+        let mut q = 0.0;
+        for t in 0..N {
+            let (e, mult) = &terms[t];
+            let mut bi = *mult;
+            for i in 0..M {
+                bi *= pw[i][e[i]];
+            }
+            q += weights[t] * bi;
+            for i in 0..M {
+                p[i] += bi * weighted[t][i];
+            }
+        }
+        for v in p.iter_mut().take(M) {
+            *v /= q;
+        }
+        p
+    }
+
+    /// [`Self::val_jac_bezier`] over the compile-time tables of degrees `D − 1` (`NL` terms) and
+    /// `D` (`N`, for the ranks of `K + e_j`): the same bits.
+    #[inline(always)]
+    fn val_jac_bezier_const<const M: usize, const D: usize, const N: usize, const NL: usize>(
+        &self,
+        w: &Bary,
+    ) -> (Bary, Mat) {
+        let lower: &[ConstTerm<M>; NL] = &const { const_terms::<M, NL>(D - 1) };
+        let up: &[[usize; M]; NL] =
+            &const { const_up::<M, N, NL>(&const_terms::<M, N>(D), &const_terms::<M, NL>(D - 1)) };
+        let Ok(points) = <&[Bary; N]>::try_from(self.points.as_slice()) else {
+            return self.val_jac_bezier::<M>(w);
+        };
+        let pw = pow_table::<M>(D - 1, w);
+        let mut u = [0.0; MAX_VARS];
+        let mut h = [[0.0; MAX_VARS]; MAX_VARS];
+        for r in 0..NL {
+            let (e, mult) = &lower[r];
+            let mut bk = *mult;
+            for i in 0..M {
+                bk *= pw[i][e[i]];
+            }
+            for j in 0..M {
+                let b = &points[up[r][j]];
+                let s = bk * w[j];
+                for i in 0..M {
+                    h[i][j] += bk * b[i];
+                    u[i] += s * b[i];
+                }
+            }
+        }
+        let df = D as f64;
+        for row in h.iter_mut().take(M) {
+            for v in row.iter_mut().take(M) {
+                *v *= df;
+            }
+        }
+        (u, h)
+    }
+
+    /// [`Self::val_jac_rational`] over the compile-time tables (as [`Self::val_jac_bezier_const`]).
+    #[inline(always)]
+    fn val_jac_rational_const<const M: usize, const D: usize, const N: usize, const NL: usize>(
+        &self,
+        w: &Bary,
+    ) -> (Bary, Mat) {
+        let lower: &[ConstTerm<M>; NL] = &const { const_terms::<M, NL>(D - 1) };
+        let up: &[[usize; M]; NL] =
+            &const { const_up::<M, N, NL>(&const_terms::<M, N>(D), &const_terms::<M, NL>(D - 1)) };
+        let (Ok(weighted), Ok(weights)) = (
+            <&[Bary; N]>::try_from(self.weighted.as_slice()),
+            <&[f64; N]>::try_from(self.weights.as_slice()),
+        ) else {
+            return self.val_jac_rational::<M>(w);
+        };
+        let pw = pow_table::<M>(D - 1, w);
+        let mut p = [0.0; MAX_VARS];
+        let mut q = 0.0;
+        let mut dp = [[0.0; MAX_VARS]; MAX_VARS];
+        let mut dq = [0.0; MAX_VARS];
+        for r in 0..NL {
+            let (e, mult) = &lower[r];
+            let mut bk = *mult;
+            for i in 0..M {
+                bk *= pw[i][e[i]];
+            }
+            for j in 0..M {
+                let t = up[r][j];
+                let qb = &weighted[t];
+                let wt = weights[t];
+                let s = bk * w[j];
+                q += s * wt;
+                dq[j] += bk * wt;
+                for i in 0..M {
+                    dp[i][j] += bk * qb[i];
+                    p[i] += s * qb[i];
+                }
+            }
+        }
+        let df = D as f64;
+        let mut u = [0.0; MAX_VARS];
+        for i in 0..M {
+            u[i] = p[i] / q;
+        }
+        let mut h = [[0.0; MAX_VARS]; MAX_VARS];
+        for i in 0..M {
+            for j in 0..M {
+                h[i][j] = df * (dp[i][j] - u[i] * dq[j]) / q;
+            }
+        }
+        (u, h)
     }
 
     /// Value and homogeneous Jacobian of a Bézier stage in one pass over the degree-`d − 1`
@@ -756,8 +933,10 @@ impl LocalStage {
             return (*w, h);
         }
         match self.kind {
-            StageKind::Bezier => dispatch!(self, val_jac_bezier, w),
-            StageKind::Rational => dispatch!(self, val_jac_rational, w),
+            StageKind::Bezier => dispatch_degree!(self, val_jac_bezier_const, val_jac_bezier, w),
+            StageKind::Rational => {
+                dispatch_degree!(self, val_jac_rational_const, val_jac_rational, w)
+            }
             StageKind::Monotonic => {
                 let mut g = [0.0; MAX_VARS];
                 let mut gp = [0.0; MAX_VARS];
@@ -1560,6 +1739,151 @@ mod tests {
     use super::*;
 
     const _: () = assert!((MAX_DEGREE as usize) + MAX_VARS - 2 < 24);
+
+    /// SplitMix64: a fixed, seeded stream of test inputs.
+    struct Stream(u64);
+
+    impl Stream {
+        fn next(&mut self) -> f64 {
+            self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
+            let mut z = self.0;
+            z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+            z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+            z ^= z >> 31;
+            (z >> 11) as f64 / (1u64 << 53) as f64
+        }
+    }
+
+    /// A non-identity stage of `kind` with `m` variables and degree `d` and random control points
+    /// (and weights in [½, 2]); the net need not be valid, only the arithmetic is compared.
+    fn random_stage(kind: StageKind, m: usize, d: u32, rng: &mut Stream) -> LocalStage {
+        let count = multi_index::count(m, d);
+        let mut st = LocalStage::identity(kind, d, m).expect("identity stage");
+        st.identity = false;
+        st.points = (0..count)
+            .map(|_| {
+                let mut b = [0.0; MAX_VARS];
+                for v in b.iter_mut().take(m) {
+                    *v = rng.next() * 2.0 - 0.5;
+                }
+                b
+            })
+            .collect();
+        if kind == StageKind::Rational {
+            st.weights = (0..count).map(|_| 0.5 + 1.5 * rng.next()).collect();
+            st.finish_rational();
+        }
+        st
+    }
+
+    /// A point of the simplex: random, on a random face (zero coordinates), or a vertex.
+    fn random_point(m: usize, rng: &mut Stream) -> Bary {
+        let mut w = [0.0; MAX_VARS];
+        let shape = rng.next();
+        for v in w.iter_mut().take(m) {
+            *v = rng.next();
+            if shape < 0.3 && rng.next() < 0.5 {
+                *v = 0.0;
+            }
+        }
+        if shape > 0.9 {
+            w = [0.0; MAX_VARS];
+            w[(rng.next() * m as f64) as usize % m] = 1.0;
+        }
+        let sum: f64 = w.iter().sum();
+        if sum == 0.0 {
+            w[0] = 1.0;
+        } else {
+            for v in w.iter_mut() {
+                *v /= sum;
+            }
+        }
+        w
+    }
+
+    fn same_bits(a: &[f64], b: &[f64]) -> bool {
+        a.iter().zip(b).all(|(x, y)| x.to_bits() == y.to_bits())
+    }
+
+    /// The compile-time tables list what [`tables`] lists: the same exponents in the same order,
+    /// the same multinomials and the same ranks of `K + e_j`.
+    #[test]
+    fn const_tables_equal_the_runtime_tables() {
+        fn check<const M: usize, const N: usize, const NL: usize>(d: u32) {
+            let t = tables(M, d);
+            let upper = const_terms::<M, N>(d as usize);
+            let lower = const_terms::<M, NL>(d as usize - 1);
+            let up = const_up::<M, N, NL>(&upper, &lower);
+            assert_eq!(t.exps.len(), N, "M = {M}, d = {d}");
+            assert_eq!(t.lower_exps.len(), NL, "M = {M}, d = {d}");
+            for (k, (e, mult)) in upper.iter().enumerate() {
+                for i in 0..MAX_VARS {
+                    assert_eq!(usize::from(t.exps[k][i]), if i < M { e[i] } else { 0 });
+                }
+                assert_eq!(
+                    mult.to_bits(),
+                    t.multinom[k].to_bits(),
+                    "M = {M}, d = {d}, {e:?}"
+                );
+            }
+            for (r, (e, mult)) in lower.iter().enumerate() {
+                for i in 0..M {
+                    assert_eq!(usize::from(t.lower_exps[r][i]), e[i]);
+                    assert_eq!(up[r][i], t.up[r][i] as usize);
+                }
+                assert_eq!(mult.to_bits(), t.lower_multinom[r].to_bits());
+            }
+        }
+        check::<4, 4, 1>(1);
+        check::<4, 10, 4>(2);
+        check::<4, 20, 10>(3);
+        check::<4, 35, 20>(4);
+        check::<3, 3, 1>(1);
+        check::<3, 6, 3>(2);
+        check::<3, 10, 6>(3);
+        check::<3, 15, 10>(4);
+        check::<2, 2, 1>(1);
+        check::<2, 3, 2>(2);
+        check::<2, 4, 3>(3);
+        check::<2, 5, 4>(4);
+    }
+
+    /// The specialised kernels (`dispatch_degree!`, degrees 1–4) give the table-driven kernels'
+    /// bits: values of Bézier and rational stages and their homogeneous Jacobians, at random
+    /// points, points on faces and vertices.
+    #[test]
+    fn specialised_kernels_give_the_table_kernels_bits() {
+        let mut rng = Stream(19);
+        for kind in [StageKind::Bezier, StageKind::Rational] {
+            for m in 2..=MAX_VARS {
+                for d in 1..=4 {
+                    for _ in 0..40 {
+                        let st = random_stage(kind, m, d, &mut rng);
+                        for _ in 0..25 {
+                            let w = random_point(m, &mut rng);
+                            let (value, (jv, jac)) = match kind {
+                                StageKind::Bezier => (
+                                    dispatch!(st, eval_bezier, &w),
+                                    dispatch!(st, val_jac_bezier, &w),
+                                ),
+                                _ => (
+                                    dispatch!(st, eval_rational, &w),
+                                    dispatch!(st, val_jac_rational, &w),
+                                ),
+                            };
+                            let what = format!("{kind:?} m = {m} d = {d} at {w:?}");
+                            assert!(same_bits(&st.eval_stored(&w), &value), "{what}");
+                            let (jv2, jac2) = st.homogeneous_jacobian_stored(&w);
+                            assert!(same_bits(&jv2, &jv), "{what}");
+                            for (a, b) in jac2.iter().zip(&jac) {
+                                assert!(same_bits(a, b), "{what}");
+                            }
+                        }
+                    }
+                }
+            }
+        }
+    }
 
     #[test]
     fn small_rank_is_the_canonical_rank() {

@@ -117,3 +117,102 @@ pub(crate) fn basis_m<const M: usize>(
     }
     b
 }
+
+/// One term of a compile-time table: the exponents of a multi-index and its multinomial.
+pub(crate) type ConstTerm<const M: usize> = ([usize; M], f64);
+
+/// `n!` for the small degrees of the compile-time tables.
+const fn factorial(n: usize) -> u64 {
+    let mut acc = 1u64;
+    let mut k = 2;
+    while k <= n {
+        acc *= k as u64;
+        k += 1;
+    }
+    acc
+}
+
+/// The degree-`d` multi-indices in `M` variables in canonical order (lexicographically
+/// decreasing: [`multi_index::all`]) with their multinomials, built at compile time; `N` must be
+/// their count (checked). A kernel over this table, unrolled, knows every exponent: its power
+/// lookups become registers and its factors `w⁰ = 1` and multinomials `1` fold away — a product
+/// by 1.0 is exact, so it computes the same bits as the loop over [`Tables`] with [`basis_m`].
+pub(crate) const fn const_terms<const M: usize, const N: usize>(d: usize) -> [ConstTerm<M>; N] {
+    let mut out = [([0usize; M], 0.0f64); N];
+    let base = d + 1;
+    let mut total = 1usize;
+    let mut i = 0;
+    while i < M {
+        total *= base;
+        i += 1;
+    }
+    // Counting down through the base-(d + 1) numerals of M digits, most significant first, visits
+    // the exponent vectors in lexicographically decreasing order; keep those of degree d.
+    let mut c = total;
+    let mut k = 0;
+    while c > 0 {
+        c -= 1;
+        let mut e = [0usize; M];
+        let mut x = c;
+        let mut sum = 0;
+        let mut i = M;
+        while i > 0 {
+            i -= 1;
+            e[i] = x % base;
+            sum += e[i];
+            x /= base;
+        }
+        if sum == d {
+            assert!(k < N, "const_terms: N is smaller than the count");
+            let mut denominator = 1u64;
+            let mut i = 0;
+            while i < M {
+                denominator *= factorial(e[i]);
+                i += 1;
+            }
+            // An exact integer below 2⁵³, as `multinomial` computes it.
+            out[k] = (e, (factorial(d) / denominator) as f64);
+            k += 1;
+        }
+    }
+    assert!(k == N, "const_terms: N is not the count");
+    out
+}
+
+/// For each degree-`d − 1` index `K` of `lower` ([`const_terms`]), the ranks of `K + e_j` among
+/// the degree-`d` indices `upper` (the `up` table of [`Tables`]).
+pub(crate) const fn const_up<const M: usize, const N: usize, const NL: usize>(
+    upper: &[ConstTerm<M>; N],
+    lower: &[ConstTerm<M>; NL],
+) -> [[usize; M]; NL] {
+    let mut out = [[0usize; M]; NL];
+    let mut r = 0;
+    while r < NL {
+        let mut j = 0;
+        while j < M {
+            let mut t = 0;
+            let mut found = false;
+            while t < N && !found {
+                let mut same = true;
+                let mut i = 0;
+                while i < M {
+                    let want = lower[r].0[i] + if i == j { 1 } else { 0 };
+                    if upper[t].0[i] != want {
+                        same = false;
+                    }
+                    i += 1;
+                }
+                if same {
+                    out[r][j] = t;
+                    found = true;
+                } else {
+                    t += 1;
+                }
+            }
+            assert!(found, "const_up: K + e_j is not of degree D");
+            j += 1;
+        }
+        r += 1;
+    }
+    out
+}
