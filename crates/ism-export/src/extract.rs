@@ -554,7 +554,7 @@ impl EdgeCurve {
 /// centroid: the mean of the corners' preimages plus half the mean of their first-order Taylor
 /// steps, which is exact for a quadratic `X⁻¹` (with `dᵢ = u − uᵢ` summing to 0,
 /// `w(u) = mean(wᵢ) + ½ mean(∇wᵢ·dᵢ)` there); the mean of the preimages when a `DX⁻¹` is missing.
-fn start_inside(n: usize, u: &Bary, us: &[Bary; 3], pts: &[SurfacePoint; 3]) -> Bary {
+fn start_inside(n: usize, u: &Bary, us: &[Bary; 3], pts: [&SurfacePoint; 3]) -> Bary {
     let mut w = [0.0; MAX_VARS];
     for (ui, pi) in us.iter().zip(pts) {
         let mut du = [0.0; MAX_VARS];
@@ -1262,14 +1262,16 @@ impl SurfaceBuilder<'_> {
                     return Ok(d);
                 }
                 let (ua, ub) = (w.us[pair.0 as usize], w.us[pair.1 as usize]);
-                let (pa, pb) = (w.points[pair.0 as usize], w.points[pair.1 as usize]);
                 let um = lerp(&ua, &ub, 0.5);
                 let known = self.scratch.known.remove(&pair);
+                // The ends by reference (a `SurfacePoint` is ~230 bytes; copying them was a
+                // visible part of an export's memcpy).
+                let points = &self.scratch.points;
                 let test = test_edge(
                     self.eval,
                     self.s,
-                    (&ua, &pa),
-                    (&ub, &pb),
+                    (&ua, &points[pair.0 as usize]),
+                    (&ub, &points[pair.1 as usize]),
                     &um,
                     EDGE_FRACTION * self.options.tolerance,
                     known,
@@ -1348,14 +1350,14 @@ impl SurfaceBuilder<'_> {
     fn centroid(&mut self, v: [u32; 3]) -> Result<(Bary, Bary, f64)> {
         let n = self.eval.dim();
         let us = v.map(|i| self.scratch.us[i as usize]);
-        let pts = v.map(|i| self.scratch.points[i as usize]);
+        let pts = v.map(|i| &self.scratch.points[i as usize]);
         let mut uc = [0.0; MAX_VARS];
         for k in 0..MAX_VARS {
             uc[k] = (us[0][k] + us[1][k] + us[2][k]) / 3.0;
         }
         let starts = needs_start(self.eval, self.s);
         let guess = if starts {
-            start_inside(n, &uc, &us, &pts)
+            start_inside(n, &uc, &us, pts)
         } else {
             let mut w = [0.0; MAX_VARS];
             for q in &pts {
@@ -1366,7 +1368,7 @@ impl SurfaceBuilder<'_> {
             w
         };
         let tol = EDGE_FRACTION * self.options.tolerance;
-        let mean = if starts { mean_inverse(n, &pts) } else { None };
+        let mean = if starts { mean_inverse(n, pts) } else { None };
         let (wc, pc) = probe(
             self.eval,
             self.s,
@@ -1389,11 +1391,9 @@ impl SurfaceBuilder<'_> {
     /// within `tol` of its chord (the refinement's edge test, stopping at the first miss).
     fn edge_within(&mut self, a: u32, b: u32, tol: f64) -> Result<bool> {
         let (ua, ub) = (self.scratch.us[a as usize], self.scratch.us[b as usize]);
-        let (pa, pb) = (
-            self.scratch.points[a as usize],
-            self.scratch.points[b as usize],
-        );
-        let (curve, mean) = edge_guides(self.eval, self.s, (&ua, &pa), (&ub, &pb));
+        let points = &self.scratch.points;
+        let (pa, pb) = (&points[a as usize], &points[b as usize]);
+        let (curve, mean) = edge_guides(self.eval, self.s, (&ua, pa), (&ub, pb));
         let (wm, pm) = probe(
             self.eval,
             self.s,

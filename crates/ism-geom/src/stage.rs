@@ -1365,8 +1365,37 @@ fn residual(m: usize, a: &Bary, b: &Bary) -> f64 {
 }
 
 /// `Σ_j c_j t^j (1 − t)^{d−j}` with `c_j` already scaled by `C(d, j)`.
+///
+/// Degrees 1–4 (the examples' monotonic maps) go through [`bernstein_1d_fixed`]: the same sum.
 #[inline]
 fn bernstein_1d(c: &[f64], t: f64) -> f64 {
+    match c.len() {
+        2 => bernstein_1d_fixed::<1>(c, t),
+        3 => bernstein_1d_fixed::<2>(c, t),
+        4 => bernstein_1d_fixed::<3>(c, t),
+        5 => bernstein_1d_fixed::<4>(c, t),
+        _ => bernstein_1d_any(c, t),
+    }
+}
+
+/// [`bernstein_1d`] with the degree `D` (`c.len() = D + 1`) known to the compiler: the loops
+/// unroll and the factors `t⁰ = (1 − t)⁰ = 1` fold away (exact), so the bits are those of
+/// [`bernstein_1d_any`].
+#[inline(always)]
+fn bernstein_1d_fixed<const D: usize>(c: &[f64], t: f64) -> f64 {
+    let c = &c[..=D];
+    let s = 1.0 - t;
+    let mut tp = [1.0; MAX_DEGREE as usize + 1];
+    let mut sp = [1.0; MAX_DEGREE as usize + 1];
+    for j in 1..=D {
+        tp[j] = tp[j - 1] * t;
+        sp[j] = sp[j - 1] * s;
+    }
+    (0..=D).map(|j| c[j] * tp[j] * sp[D - j]).sum()
+}
+
+/// [`bernstein_1d`] of any degree.
+fn bernstein_1d_any(c: &[f64], t: f64) -> f64 {
     let d = c.len().saturating_sub(1);
     let s = 1.0 - t;
     let mut tp = [1.0; MAX_DEGREE as usize + 1];
@@ -1846,6 +1875,21 @@ mod tests {
         check::<2, 3, 2>(2);
         check::<2, 4, 3>(3);
         check::<2, 5, 4>(4);
+    }
+
+    /// The degree-specialised 1D Bernstein sums (monotonic stages) give the general one's bits.
+    #[test]
+    fn fixed_degree_bernstein_1d_gives_the_general_bits() {
+        let mut rng = Stream(7);
+        for len in 1..=6 {
+            for _ in 0..500 {
+                let c: Vec<f64> = (0..len).map(|_| rng.next() * 4.0 - 1.0).collect();
+                for t in [0.0, 1.0, 0.5, rng.next(), rng.next()] {
+                    let (a, b) = (bernstein_1d(&c, t), bernstein_1d_any(&c, t));
+                    assert_eq!(a.to_bits(), b.to_bits(), "{c:?} at {t}");
+                }
+            }
+        }
     }
 
     /// The specialised kernels (`dispatch_degree!`, degrees 1–4) give the table-driven kernels'
