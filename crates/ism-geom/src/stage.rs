@@ -1366,10 +1366,12 @@ fn residual(m: usize, a: &Bary, b: &Bary) -> f64 {
 
 /// `Σ_j c_j t^j (1 − t)^{d−j}` with `c_j` already scaled by `C(d, j)`.
 ///
-/// Degrees 1–4 (the examples' monotonic maps) go through [`bernstein_1d_fixed`]: the same sum.
+/// Degrees 0–4 (the examples' monotonic maps and their derivatives) go through
+/// [`bernstein_1d_fixed`]: the same sum.
 #[inline]
 fn bernstein_1d(c: &[f64], t: f64) -> f64 {
     match c.len() {
+        1 => bernstein_1d_fixed::<0>(c, t),
         2 => bernstein_1d_fixed::<1>(c, t),
         3 => bernstein_1d_fixed::<2>(c, t),
         4 => bernstein_1d_fixed::<3>(c, t),
