@@ -2,26 +2,12 @@
 //! own varint encoder as a second writer, and the errors of its varints (non-minimal, truncated,
 //! bad first byte, a length the payload cannot hold), each typed and located.
 
-use ism_format::builder::{ModelBuilder, StageBuilder};
+use ism_format::builder::StageBuilder;
 use ism_format::io::{self, WriteOptions, HEADER_LEN};
 use ism_format::{Encoding, Model, Rule};
 
-/// The model of spec Appendix A.
-fn appendix_a() -> Model {
-    ModelBuilder::new(2)
-        .name("t")
-        .vertex(&[0.0, 0.0], -1.0)
-        .vertex(&[1.0, 0.0], 1.0)
-        .vertex(&[0.0, 1.0], 1.0)
-        .simplex(&[0, 1, 2])
-        .stage(
-            StageBuilder::bezier(2)
-                .face(&[1, 2], &[0.5, 0.5], &[])
-                .build(),
-        )
-        .build()
-        .unwrap()
-}
+mod common;
+use common::appendix_a;
 
 fn f64s(xs: &[f64]) -> Vec<u8> {
     xs.iter().flat_map(|x| x.to_le_bytes()).collect()

@@ -5,26 +5,11 @@
 
 use std::io::{Read, Write};
 
-use ism_format::builder::{ModelBuilder, StageBuilder};
 use ism_format::io::{self, Limits, ReadOptions, WriteOptions, HEADER_LEN};
 use ism_format::{Encoding, Model, Rule};
 
-/// The model of spec Appendix A.
-fn appendix_a() -> Model {
-    ModelBuilder::new(2)
-        .name("t")
-        .vertex(&[0.0, 0.0], -1.0)
-        .vertex(&[1.0, 0.0], 1.0)
-        .vertex(&[0.0, 1.0], 1.0)
-        .simplex(&[0, 1, 2])
-        .stage(
-            StageBuilder::bezier(2)
-                .face(&[1, 2], &[0.5, 0.5], &[])
-                .build(),
-        )
-        .build()
-        .unwrap()
-}
+mod common;
+use common::appendix_a;
 
 fn examples() -> Vec<Model> {
     let dir = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../spec/examples");

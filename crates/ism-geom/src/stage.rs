@@ -776,11 +776,7 @@ impl LocalStage {
             }
         }
         let df = D as f64;
-        for row in h.iter_mut().take(M) {
-            for v in row.iter_mut().take(M) {
-                *v *= df;
-            }
-        }
+        scale_jacobian::<M>(&mut h, df);
         (u, h)
     }
 
@@ -824,17 +820,7 @@ impl LocalStage {
             }
         }
         let df = D as f64;
-        let mut u = [0.0; MAX_VARS];
-        for i in 0..M {
-            u[i] = p[i] / q;
-        }
-        let mut h = [[0.0; MAX_VARS]; MAX_VARS];
-        for i in 0..M {
-            for j in 0..M {
-                h[i][j] = df * (dp[i][j] - u[i] * dq[j]) / q;
-            }
-        }
-        (u, h)
+        rational_quotient::<M>(&p, q, &dp, &dq, df)
     }
 
     /// Value and homogeneous Jacobian of a Bézier stage in one pass over the degree-`d − 1`
@@ -859,11 +845,7 @@ impl LocalStage {
             }
         }
         let df = f64::from(self.degree);
-        for row in h.iter_mut().take(M) {
-            for v in row.iter_mut().take(M) {
-                *v *= df;
-            }
-        }
+        scale_jacobian::<M>(&mut h, df);
         (u, h)
     }
 
@@ -893,17 +875,7 @@ impl LocalStage {
             }
         }
         let df = f64::from(self.degree);
-        let mut u = [0.0; MAX_VARS];
-        for i in 0..M {
-            u[i] = p[i] / q;
-        }
-        let mut h = [[0.0; MAX_VARS]; MAX_VARS];
-        for i in 0..M {
-            for j in 0..M {
-                h[i][j] = df * (dp[i][j] - u[i] * dq[j]) / q;
-            }
-        }
-        (u, h)
+        rational_quotient::<M>(&p, q, &dp, &dq, df)
     }
 
     /// `g_i(t)` of local vertex `i` (monotonic).
@@ -1763,6 +1735,41 @@ pub fn identity_mat(n: usize) -> Mat {
         row[i] = 1.0;
     }
     a
+}
+
+/// The quotient rule that ends a rational stage's value and homogeneous Jacobian: `u = P / Q` and
+/// `∂u/∂w_j = d (∂P/∂w_j − u ∂Q/∂w_j) / Q` from the degree-`d − 1` sums. One function for the
+/// table-driven and the compile-time kernels, so both end with the same operations in the same
+/// order (their bit equality is tested).
+#[inline(always)]
+fn rational_quotient<const M: usize>(
+    p: &Bary,
+    q: f64,
+    dp: &Mat,
+    dq: &Bary,
+    df: f64,
+) -> (Bary, Mat) {
+    let mut u = [0.0; MAX_VARS];
+    for i in 0..M {
+        u[i] = p[i] / q;
+    }
+    let mut h = [[0.0; MAX_VARS]; MAX_VARS];
+    for i in 0..M {
+        for j in 0..M {
+            h[i][j] = df * (dp[i][j] - u[i] * dq[j]) / q;
+        }
+    }
+    (u, h)
+}
+
+/// `h *= d` on the leading `M × M` block: the factor of a Bézier stage's homogeneous Jacobian.
+#[inline(always)]
+fn scale_jacobian<const M: usize>(h: &mut Mat, df: f64) {
+    for row in h.iter_mut().take(M) {
+        for v in row.iter_mut().take(M) {
+            *v *= df;
+        }
+    }
 }
 
 #[cfg(test)]
