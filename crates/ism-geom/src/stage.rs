@@ -1687,6 +1687,11 @@ impl LocalMap {
             }
         }
         let start = project(m, &start);
+        if k1 == 2 {
+            if let Some(solved) = self.inverse_on_edge(&u, support[0], support[1], &start) {
+                return Some(solved);
+            }
+        }
         let mut iterations = 0;
         if k1 <= 1 {
             let (x, j) = self.jacobian(&u);
@@ -1724,6 +1729,103 @@ impl LocalMap {
             jacobian,
             residual: r,
             iterations,
+        })
+    }
+}
+
+/// Evaluations of the map [`LocalMap::inverse_on_edge`] spends at most: the secant steps from the
+/// start take six to ten, and bisection halves the bracket at least every third one, so this
+/// only stops an invalid map (not monotonic along the edge).
+const EDGE_MAX_EVALS: u32 = 64;
+
+impl LocalMap {
+    /// `X⁻¹(u)` for `u` on the edge from vertex `a` to `b` (its only nonzero coordinates), where
+    /// `X` is a one-dimensional map: faces map to themselves and vertices stay fixed, so along
+    /// the edge `t ↦ X((1 − t) e_a + t e_b)_b` rises from 0 to 1. A bracketed secant iteration on
+    /// `t` (bisection when a secant step leaves the bracket or the bracket shrinks too slowly)
+    /// needs one evaluation of `X` per step, where Newton needs a value with Jacobian (about four
+    /// evaluations' cost) and starts from the linear isocomplex's crossing, often a tenth of the
+    /// edge off: corners of the patches cost ~10 Jacobians that way. Stops at the same point as
+    /// Newton ([`NEWTON_TARGET`]) and meets the same acceptance test; `X` and `DX` at the solution
+    /// are returned as by [`LocalMap::inverse_near`]. `None` when the map does not behave as a
+    /// valid map along the edge (the caller's Newton and the robust inverse then decide).
+    fn inverse_on_edge(&self, u: &Bary, a: usize, b: usize, start: &Bary) -> Option<Solved> {
+        let m = self.m;
+        let at = |t: f64| {
+            let mut w = [0.0; MAX_VARS];
+            w[a] = 1.0 - t;
+            w[b] = t;
+            w
+        };
+        let target = u[b];
+        // f(t) = X(at(t))_b − u_b: −u_b at t = 0 and 1 − u_b at t = 1 (the vertices are fixed).
+        let (mut lo, mut hi) = (0.0f64, 1.0f64);
+        let (mut flo, mut fhi) = (-target, 1.0 - target);
+        let sum = start[a] + start[b];
+        let mut t = if sum > 0.0 { start[b] / sum } else { target };
+        if !(t > 0.0 && t < 1.0) {
+            t = target;
+        }
+        // The previous iterate for the secant (the bracket's end on the other side at first).
+        let mut prev: Option<(f64, f64)> = None;
+        let mut width = hi - lo;
+        let mut evals = 0;
+        loop {
+            if evals == EDGE_MAX_EVALS {
+                return None;
+            }
+            evals += 1;
+            let w = at(t);
+            let x = self.eval(&w);
+            let f = x[b] - target;
+            if !f.is_finite() {
+                return None;
+            }
+            if residual(m, &x, u) <= NEWTON_TARGET || f == 0.0 {
+                return self.finish_edge(u, w, evals);
+            }
+            if f < 0.0 {
+                lo = t;
+                flo = f;
+            } else {
+                hi = t;
+                fhi = f;
+            }
+            // At the rounding level the bracket cannot shrink further: what is left is the
+            // point's rounding floor, for the acceptance test to judge.
+            if hi - lo <= 4.0 * f64::EPSILON * hi {
+                return self.finish_edge(u, w, evals);
+            }
+            let (tp, fp) = prev.unwrap_or(if f < 0.0 { (hi, fhi) } else { (lo, flo) });
+            let secant = t - f * (t - tp) / (f - fp);
+            prev = Some((t, f));
+            // Every third evaluation the bracket must have halved, or it is bisected: the secant
+            // alone can creep from one side.
+            let slow = evals % 3 == 0 && hi - lo > 0.5 * width;
+            if evals % 3 == 0 {
+                width = hi - lo;
+            }
+            t = if !slow && secant > lo && secant < hi {
+                secant
+            } else {
+                0.5 * (lo + hi)
+            };
+        }
+    }
+
+    /// [`LocalMap::inverse_on_edge`]'s result at its last iterate `w`: `X` and `DX` there and the
+    /// usual acceptance test.
+    fn finish_edge(&self, u: &Bary, w: Bary, evals: u32) -> Option<Solved> {
+        let (x, j) = self.jacobian(&w);
+        let jacobian = j?;
+        let r = residual(self.m, &x, u);
+        let finite = jacobian.iter().flatten().all(|v| v.is_finite());
+        (finite && self.accepts(&w, r)).then_some(Solved {
+            w,
+            x,
+            jacobian,
+            residual: r,
+            iterations: evals,
         })
     }
 }

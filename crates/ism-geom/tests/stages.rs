@@ -281,6 +281,45 @@ proptest! {
         }
     }
 
+    /// On an edge of the simplex `inverse_near` solves the one-dimensional problem along it
+    /// (bracketed secant, `LocalMap::inverse_on_edge`): from the crossing itself as the start
+    /// (what the exporter gives a patch corner), it lands on the known preimage of a point built
+    /// as `X(w)` with `w` on the edge, with the same acceptance and the map's value and Jacobian
+    /// there; it agrees with the robust `inverse`.
+    #[test]
+    fn inverse_near_on_an_edge_finds_the_known_preimage(seed in any::<u64>(), n in 2usize..=3) {
+        let mut rng = Rng(seed);
+        let mut model = common::kuhn(n, 1, &mut rng);
+        for (i, kind) in [Kind::Monotonic(3), Kind::NearIdentity(3), Kind::Rational(2)].into_iter().enumerate() {
+            let st = make(kind, &model, &mut rng, i == 1);
+            model.stages.push(st);
+        }
+        let m = n + 1;
+        for s in 0..model.num_simplices() {
+            let map = LocalMap::from_model(&model, s).unwrap();
+            for (a, b) in [(0, 1), (0, m - 1), (1, m - 1)] {
+                // Inside the edge, where the crossing itself is a poor start for Newton.
+                let t = 0.02 + 0.96 * rng.bary(2)[0];
+                let mut w: Bary = Default::default();
+                w[a] = 1.0 - t;
+                w[b] = t;
+                let u = map.eval(&w);
+                for i in (0..m).filter(|&i| i != a && i != b) {
+                    prop_assert_eq!(u[i], 0.0, "faces map to themselves");
+                }
+                let Some(near) = map.inverse_near(&u, &u) else {
+                    return Err(TestCaseError::fail(format!("no convergence on edge {a}-{b} at {u:?}")));
+                };
+                prop_assert!(near.residual <= INVERSE_TOLERANCE);
+                prop_assert!(max_diff(m, &near.w, &w) < ROUNDTRIP_W);
+                prop_assert!(max_diff(m, &near.w, &map.inverse(&u).w) < ROUNDTRIP_W);
+                let (x, j) = map.jacobian(&near.w);
+                prop_assert_eq!(x, near.x);
+                prop_assert_eq!(j.unwrap(), near.jacobian);
+            }
+        }
+    }
+
     /// For all-parametric maps `param_solve` is `inverse` without Newton, with `DX = DY⁻¹`.
     #[test]
     fn param_solve_agrees_with_inverse_and_jacobian(seed in any::<u64>(), n in 2usize..=3) {
