@@ -9,6 +9,8 @@
 //! lets unary minus bind tighter than `^` (`-x^2` would be `(-x)^2`) and has no exponent notation
 //! (`1e-3`).
 
+use std::collections::HashMap;
+
 use exmex::prelude::*;
 use exmex::{BinOp, FlatEx, MakeOperators, Operator};
 
@@ -475,7 +477,60 @@ impl Tape {
             uses: [false; 3],
         };
         tape.push(node, dim)?;
-        Some(tape)
+        Some(tape.shared())
+    }
+
+    /// The same code with each repeated instruction (the same operation on the same slots, or
+    /// the same constant bit for bit) computed once: every slot still gets the same operations on
+    /// the same numbers, so values and gradients are the same bits. The torus preset writes
+    /// `x^2 + y^2` twice: 21 instructions → 16, and its gradient tape was ~16 % of a torus fit at
+    /// 2e-4 (`perf`, issue 17, session 22). Sharing after compiling, not while: the constant
+    /// folding truncates the code after a subtree's first slot, which must be the subtree's own.
+    fn shared(self) -> Tape {
+        let last = self.ins.len().saturating_sub(1);
+        let mut out = Tape {
+            ins: Vec::with_capacity(self.ins.len()),
+            uses: self.uses,
+        };
+        // Old slot → new slot, and each instruction's key → its new slot.
+        let mut slot = Vec::with_capacity(self.ins.len());
+        let mut seen: HashMap<(u8, usize, usize, u64), usize> = HashMap::new();
+        for (i, ins) in self.ins.iter().enumerate() {
+            let s = |a: usize| slot[a];
+            let ins = match *ins {
+                Ins::Const(c) => Ins::Const(c),
+                Ins::Var(k) => Ins::Var(k),
+                Ins::Neg(a) => Ins::Neg(s(a)),
+                Ins::Add(a, b) => Ins::Add(s(a), s(b)),
+                Ins::Sub(a, b) => Ins::Sub(s(a), s(b)),
+                Ins::Mul(a, b) => Ins::Mul(s(a), s(b)),
+                Ins::Div(a, b) => Ins::Div(s(a), s(b)),
+                Ins::PowConst(a, c) => Ins::PowConst(s(a), c),
+                Ins::Pow(a, b) => Ins::Pow(s(a), s(b)),
+                Ins::Call(f, a) => Ins::Call(f, s(a)),
+            };
+            let key = match ins {
+                Ins::Const(c) => (0, 0, 0, c.to_bits()),
+                Ins::Var(k) => (1, k, 0, 0),
+                Ins::Neg(a) => (2, a, 0, 0),
+                Ins::Add(a, b) => (3, a, b, 0),
+                Ins::Sub(a, b) => (4, a, b, 0),
+                Ins::Mul(a, b) => (5, a, b, 0),
+                Ins::Div(a, b) => (6, a, b, 0),
+                Ins::PowConst(a, c) => (7, a, 0, c.to_bits()),
+                Ins::Pow(a, b) => (8, a, b, 0),
+                Ins::Call(f, a) => (9, a, f as usize, 0),
+            };
+            // The result is read from the last slot: the root is always emitted last.
+            match seen.get(&key) {
+                Some(&at) if i != last => slot.push(at),
+                _ => {
+                    seen.insert(key, out.ins.len());
+                    slot.push(out.emit(ins));
+                }
+            }
+        }
+        out
     }
 
     fn constant(&self, slot: usize) -> Option<f64> {
@@ -1274,6 +1329,65 @@ mod tests {
             3,
         )
         .unwrap()
+    }
+
+    /// The tape as compiled, before [`Tape::shared`].
+    fn unshared(text: &str, dim: usize) -> Tape {
+        let tree = parse_tree(text).unwrap();
+        let mut tape = Tape {
+            ins: Vec::new(),
+            uses: [false; 3],
+        };
+        tape.push(&tree, dim).unwrap();
+        tape
+    }
+
+    #[test]
+    fn shared_tapes_compute_the_same_bits_with_fewer_instructions() {
+        let cases = [
+            (
+                "(x^2 + y^2 + z^2 + 0.36 - 0.0625)^2 - 1.44*(x^2 + y^2)",
+                3,
+                21,
+                16,
+            ),
+            ("x^2 + y^2 + z^2 - 0.36", 3, 10, 10),
+            ("(x^2*(1 - x^2) - y^2)^2 + z^2 - 0.01", 3, 16, 14),
+            (
+                "sin(x*z) + sin(x*z)*2 - -0*x + 0*x - (x/y)^1.5 + 2^(x/y)",
+                3,
+                30,
+                19,
+            ),
+            // The root repeats an earlier instruction's key only through its operands.
+            ("x", 2, 1, 1),
+        ];
+        let mut rng: u64 = 0x9e37_79b9_7f4a_7c15;
+        for (text, dim, before, after) in cases {
+            let (old, new) = (
+                unshared(text, dim),
+                Tape::compile(&parse_tree(text).unwrap(), dim).unwrap(),
+            );
+            assert_eq!((old.ins.len(), new.ins.len()), (before, after), "{text}");
+            for _ in 0..1000 {
+                let mut p = [0.0; 3];
+                for x in &mut p {
+                    rng ^= rng << 13;
+                    rng ^= rng >> 7;
+                    rng ^= rng << 17;
+                    *x = (rng >> 11) as f64 / (1u64 << 53) as f64 * 4.0 - 2.0;
+                }
+                let (mut g0, mut g1) = ([0.0; 3], [0.0; 3]);
+                let (v0, v1) = (old.gradient(&p, &mut g0), new.gradient(&p, &mut g1));
+                assert_eq!(v0.to_bits(), v1.to_bits(), "{text} at {p:?}");
+                assert_eq!(old.value(&p).to_bits(), new.value(&p).to_bits());
+                assert_eq!(
+                    g0.map(f64::to_bits),
+                    g1.map(f64::to_bits),
+                    "{text} at {p:?}"
+                );
+            }
+        }
     }
 
     proptest! {

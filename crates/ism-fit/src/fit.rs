@@ -15,6 +15,7 @@
 use std::collections::{HashMap, HashSet};
 use std::time::Instant;
 
+use ism_format::indexed::simplex_faces;
 use ism_format::model::Model;
 use ism_format::progress::{Progress, Step};
 use rayon::prelude::*;
@@ -363,6 +364,169 @@ enum Param<'f> {
     Weight(&'f [u32]),
 }
 
+/// A parameter block's mapped sample points as a function of its parameter: what
+/// [`Fitter::levenberg_marquardt`] moves.
+trait BlockMap {
+    /// The mapped sample points with the parameter at `x`.
+    fn points(&mut self, x: &[f64]) -> Vec<[f64; 3]>;
+    /// `jac[j][i] = n̂ᵢ · ∂pᵢ/∂xⱼ` at `x`, where the points are `pts` and their unit normals
+    /// `normals`.
+    fn jacobian(&mut self, x: &[f64], pts: &[[f64; 3]], normals: &[[f64; 3]], jac: &mut [Vec<f64>]);
+}
+
+/// A face's point over its crossing cells, each cell's map built once with a slot for the face
+/// ([`StratifiedMap::local_with`]) and the map before the face's stratum applied to the samples
+/// (`before`): a trial moves only the slot. Writes nothing shared, so blocks run in parallel.
+struct FacePoint<'f, 'a> {
+    fitter: &'f Fitter<'a>,
+    cells: &'f [u32],
+    locals: Vec<(LocalStrata, Slot, Vec<Bary>)>,
+}
+
+impl BlockMap for FacePoint<'_, '_> {
+    fn points(&mut self, x: &[f64]) -> Vec<[f64; 3]> {
+        let mut out = Vec::new();
+        for (&c, (local, slot, before)) in self.cells.iter().zip(&mut self.locals) {
+            local.set_point(*slot, x);
+            let ids = self.fitter.complex.cell(c);
+            out.extend(
+                before
+                    .iter()
+                    .map(|v| self.fitter.point_of(ids, &local.eval_after(v, Some(*slot)))),
+            );
+        }
+        out
+    }
+
+    /// The exact derivative of the map in the face's logits.
+    fn jacobian(
+        &mut self,
+        x: &[f64],
+        _pts: &[[f64; 3]],
+        normals: &[[f64; 3]],
+        jac: &mut [Vec<f64>],
+    ) {
+        let mut i = 0;
+        let mut dw = [[0.0; 4]; 4];
+        let dd = displacement_derivative(x);
+        for (&c, (local, slot, before)) in self.cells.iter().zip(self.locals.iter_mut()) {
+            local.set_point(*slot, x);
+            let ids = self.fitter.complex.cell(c);
+            for v in before.iter() {
+                local.eval_after_jacobian(v, *slot, &dd, &mut dw);
+                for (col, d) in jac.iter_mut().zip(&dw) {
+                    let dp = self.fitter.point_of(ids, d);
+                    col[i] = (0..3).map(|e| normals[i][e] * dp[e]).sum::<f64>();
+                }
+                i += 1;
+            }
+        }
+    }
+}
+
+/// Any parameter (a weight moves the crossings too) through the whole map, set in place per trial.
+struct WholeMap<'f, 'a> {
+    fitter: &'f Fitter<'a>,
+    param: Param<'f>,
+    /// The sign-changing edges a weight acts on (their crossings are re-placed).
+    edges: &'f [EdgeKey],
+    cells: &'f [u32],
+    samples: &'f [Vec<Bary>],
+    map: &'f mut StratifiedMap,
+    weights: &'f mut RationalWeights,
+}
+
+impl BlockMap for WholeMap<'_, '_> {
+    fn points(&mut self, x: &[f64]) -> Vec<[f64; 3]> {
+        self.fitter.block_points(
+            self.param,
+            x,
+            self.edges,
+            self.cells,
+            self.samples,
+            self.map,
+            self.weights,
+        )
+    }
+
+    /// Forward differences of the whole map.
+    fn jacobian(
+        &mut self,
+        x: &[f64],
+        pts: &[[f64; 3]],
+        normals: &[[f64; 3]],
+        jac: &mut [Vec<f64>],
+    ) {
+        const H: f64 = 1e-7;
+        for (j, col) in jac.iter_mut().enumerate() {
+            let mut xh = x.to_vec();
+            xh[j] += H;
+            let ph = self.points(&xh);
+            for (i, v) in col.iter_mut().enumerate() {
+                *v = (0..3)
+                    .map(|d| normals[i][d] * (ph[i][d] - pts[i][d]))
+                    .sum::<f64>()
+                    / H;
+            }
+        }
+    }
+}
+
+/// A block's run in a parallel level of [`Fitter::fit_region`]'s sweeps, applied in serial order.
+enum Run {
+    /// Skipped: idle since its last run (checked again when applied, on the same stamps).
+    Skipped,
+    /// A face point's new logits and whether they moved.
+    Done((Vec<f64>, bool)),
+}
+
+/// A parameter block of [`Fitter::fit_region`]: the parameter, its crossing cells, their samples.
+type Block<'f> = (Param<'f>, Vec<u32>, Vec<Vec<Bary>>);
+
+/// The schedule of [`Fitter::fit_region`]'s `sweeps` passes over `blocks` ([`conflict_levels`]
+/// of the nodes `sweep × blocks.len() + block`): a weight re-places crossings on its star, so it
+/// runs alone.
+fn sweep_levels(blocks: &[Block], sweeps: usize) -> Vec<Vec<usize>> {
+    let nb = blocks.len();
+    conflict_levels((0..sweeps * nb).map(|node| {
+        let (param, cells, _) = &blocks[node % nb];
+        (&cells[..], matches!(param, Param::Weight(_)))
+    }))
+}
+
+/// A parallel schedule of steps that must seem to run in the given order, where a step reads
+/// and writes only what belongs to its cells (`(cells, alone)` per step): the step indices by
+/// level, each level in increasing order. A step's level is one more than the highest level of
+/// an earlier step sharing a cell with it, so the steps of a level share no cell and every
+/// earlier step that does is in an earlier level: running the levels in order, the steps of a
+/// level in any order (or at once), reads and writes what the serial order does. A step marked
+/// `alone` is a level of its own after everything before it, and everything after comes later.
+fn conflict_levels<'c>(steps: impl Iterator<Item = (&'c [u32], bool)>) -> Vec<Vec<usize>> {
+    let mut last: HashMap<u32, usize> = HashMap::new();
+    // The last lone step's level (levels count from 1 here).
+    let mut floor = 0;
+    let mut levels: Vec<Vec<usize>> = Vec::new();
+    for (i, (cells, alone)) in steps.enumerate() {
+        let level = if alone {
+            floor = levels.len() + 1;
+            floor
+        } else {
+            1 + cells
+                .iter()
+                .filter_map(|c| last.get(c).copied())
+                .fold(floor, usize::max)
+        };
+        for &c in cells {
+            last.insert(c, level);
+        }
+        if levels.len() < level {
+            levels.resize(level, Vec::new());
+        }
+        levels[level - 1].push(i);
+    }
+    levels
+}
+
 /// The fitter's whole map on one cell: the rational stage, then the strata.
 fn local_of(map: &StratifiedMap, weights: &RationalWeights, ids: &[u32]) -> LocalStrata {
     map.local(ids).after(weights.local(ids))
@@ -452,8 +616,13 @@ impl Fitter<'_> {
     /// The cell's error: `|g|/|∇g|` at its samples, replaced by the certified
     /// [`crate::measure::bracket_distance`] where that estimate is not small.
     fn cell_error(&self, c: u32, level: usize, tolerance: f64) -> f64 {
+        let local = local_of(&self.map, &self.weights, self.complex.cell(c));
+        self.cell_error_of(c, &local, level, tolerance)
+    }
+
+    /// [`Fitter::cell_error`] with the cell's map `local`.
+    fn cell_error_of(&self, c: u32, local: &LocalStrata, level: usize, tolerance: f64) -> f64 {
         let ids = self.complex.cell(c);
-        let local = local_of(&self.map, &self.weights, ids);
         let s: Vec<f64> = ids.iter().map(|&v| self.values[v as usize]).collect();
         let corners: Vec<Bary> = patch_corners(&s).into_iter().map(|x| x.0).collect();
         let mut worst = 0.0f64;
@@ -818,7 +987,7 @@ impl Fitter<'_> {
             weighted.extend(faces.iter().filter(|f| f.len() == 2).cloned());
         }
         // The blocks and their cells and samples: the sweeps move points only, so these stay.
-        let mut blocks: Vec<(Param, Vec<u32>, Vec<Vec<Bary>>)> = Vec::new();
+        let mut blocks: Vec<Block> = Vec::new();
         for f in &faces {
             if f.len() == 2 && self.is_crossing_edge((f[0], f[1])) {
                 continue;
@@ -850,33 +1019,70 @@ impl Fitter<'_> {
         // the map and the weights on those cells, so it would leave it there again (bit for bit).
         // A parameter acts on the crossing cells of its block only (a point on the cells with its
         // face, a weight on its star), so a change stamps exactly those.
+        //
+        // The sweeps run in the serial order above, but level by level (`sweep_levels`): blocks
+        // of one level share no cell, so each reads the same map whichever runs first, and they
+        // run in parallel; their results are applied in serial order before the next level. So
+        // the fit is bit for bit the serial Gauss–Seidel one for any number of threads.
+        let levels = sweep_levels(&blocks, FIT_SWEEPS);
+        let nb = blocks.len();
+        // The serial position (1-based: sweep × blocks + block + 1) of the last run of a block
+        // that moved a cell's parameters, and of each block's last run that did not move.
         let mut moved: HashMap<u32, usize> = HashMap::new();
-        let mut idle: Vec<Option<usize>> = vec![None; blocks.len()];
-        let mut changes = 0;
-        for _ in 0..FIT_SWEEPS {
-            for ((param, cells, samples), idle) in blocks.iter().zip(idle.iter_mut()) {
-                if let Some(since) = *idle {
-                    if cells
+        let mut idle: Vec<Option<usize>> = vec![None; nb];
+        for level in &levels {
+            let skipped = |node: usize, idle: &[Option<usize>], moved: &HashMap<u32, usize>| {
+                idle[node % nb].is_some_and(|since| {
+                    blocks[node % nb]
+                        .1
                         .iter()
-                        .all(|c| moved.get(c).is_none_or(|&at| at <= since))
-                    {
-                        // The unit tests' fits check that every skipped block is a no-op.
-                        #[cfg(test)]
-                        assert!(
-                            !self.optimize(*param, cells, samples),
-                            "a skipped block moved: {param:?}"
-                        );
-                        continue;
-                    }
+                        .all(|c| moved.get(c).is_none_or(|&at| at < since))
+                })
+            };
+            let runs: Vec<Option<Run>> = if level.len() == 1 {
+                // One block (or a weight, alone by construction): run it on the map in place.
+                vec![None]
+            } else {
+                let this = &*self;
+                level
+                    .par_iter()
+                    .map(|&node| {
+                        let (param, cells, samples) = &blocks[node % nb];
+                        match param {
+                            Param::Point(face) if !skipped(node, &idle, &moved) => {
+                                this.optimize_point(face, cells, samples).map(Run::Done)
+                            }
+                            _ => Some(Run::Skipped),
+                        }
+                    })
+                    .collect()
+            };
+            for (&node, run) in level.iter().zip(runs) {
+                let (param, cells, samples) = &blocks[node % nb];
+                let at = node + 1;
+                if skipped(node, &idle, &moved) {
+                    // The unit tests' fits check that every skipped block is a no-op.
+                    #[cfg(test)]
+                    assert!(
+                        !self.optimize(*param, cells, samples),
+                        "a skipped block moved: {param:?}"
+                    );
+                    continue;
                 }
-                if self.optimize(*param, cells, samples) {
-                    changes += 1;
-                    for &c in cells {
-                        moved.insert(c, changes);
+                let changed = match (run, param) {
+                    (Some(Run::Done((x, changed))), Param::Point(face)) => {
+                        self.map.set_logits(face, &x);
+                        changed
                     }
-                    *idle = None;
+                    _ => self.optimize(*param, cells, samples),
+                };
+                if changed {
+                    for &c in cells {
+                        moved.insert(c, at);
+                    }
+                    idle[node % nb] = None;
                 } else {
-                    *idle = Some(changes);
+                    idle[node % nb] = Some(at);
                 }
             }
         }
@@ -962,20 +1168,21 @@ impl Fitter<'_> {
     }
 
     /// Levenberg–Marquardt on one parameter block (≤ 4 unknowns) over the crossing `cells` it acts
-    /// on. Hand-written: a dense 4×4 solve is all it needs, and a general solver crate would not
-    /// know the softmax and weight clamps. The Jacobian of `r = g/|∇g|` is `n̂ · ∂p/∂θ` (exact on
-    /// the zero set, Gauss–Newton's usual approximation off it); `∂p/∂θ` exactly for a face's
-    /// point ([`LocalStrata::eval_after_jacobian`]) and by forward differences of the cheap map
-    /// for a weight, so `g` is evaluated once per trial. Only improving steps are taken, and none
-    /// once every residual is within [`Fitter::lm_done`]. Returns whether the parameter moved.
+    /// on ([`Fitter::levenberg_marquardt`]), on the map in place. Returns whether the parameter
+    /// moved.
     fn optimize(&mut self, param: Param, cells: &[u32], samples: &[Vec<Bary>]) -> bool {
         if cells.is_empty() {
             return false;
         }
-        let mut moved = false;
+        if let Param::Point(face) = param {
+            if let Some((x, moved)) = self.optimize_point(face, cells, samples) {
+                self.map.set_logits(face, &x);
+                return moved;
+            }
+        }
         let mut map = std::mem::take(&mut self.map);
         let mut weights = std::mem::take(&mut self.weights);
-        let (mut x, bound, edges) = match param {
+        let (x, bound, edges) = match param {
             Param::Point(face) => (map.logits(face), LOGIT_BOUND, Vec::new()),
             Param::Weight(face) => {
                 let mut edges: Vec<EdgeKey> = Vec::new();
@@ -997,48 +1204,73 @@ impl Fitter<'_> {
                 (vec![weights.log_weight(face)], LOG_WEIGHT_BOUND, edges)
             }
         };
+        let mut block = WholeMap {
+            fitter: self,
+            param,
+            edges: &edges,
+            cells,
+            samples,
+            map: &mut map,
+            weights: &mut weights,
+        };
+        let (x, moved) = self.levenberg_marquardt(&mut block, x, bound);
+        self.set_param(param, &x, &edges, &mut map, &mut weights);
+        self.map = map;
+        self.weights = weights;
+        moved
+    }
+
+    /// [`Fitter::optimize`] of a face's point without changing anything: the new logits and
+    /// whether they moved, or `None` where the face is not a face of every cell (then `optimize`
+    /// takes the general path). A face's point moves only its own term of each cell's map, so the
+    /// maps are built once and the part before that term's stratum is applied once per sample.
+    fn optimize_point(
+        &self,
+        face: &[u32],
+        cells: &[u32],
+        samples: &[Vec<Bary>],
+    ) -> Option<(Vec<f64>, bool)> {
+        if cells.is_empty() {
+            return None;
+        }
+        let locals = cells
+            .iter()
+            .zip(samples)
+            .map(|(&c, us)| {
+                let ids = self.complex.cell(c);
+                let (local, slot) = self.map.local_with(ids, Some(face));
+                let local = local.after(self.weights.local(ids));
+                let slot = slot?;
+                let before = us
+                    .iter()
+                    .map(|u| local.eval_before(u, Some(slot)))
+                    .collect();
+                Some((local, slot, before))
+            })
+            .collect::<Option<Vec<_>>>()?;
+        let mut block = FacePoint {
+            fitter: self,
+            cells,
+            locals,
+        };
+        Some(self.levenberg_marquardt(&mut block, self.map.logits(face), LOGIT_BOUND))
+    }
+
+    /// Levenberg–Marquardt from `x` (clamped to `±bound`) on the residuals `r = g/|∇g|` at the
+    /// block's points. Hand-written: a dense 4×4 solve is all it needs, and a general solver crate
+    /// would not know the softmax and weight clamps. The Jacobian of `r` is `n̂ · ∂p/∂θ` (exact on
+    /// the zero set, Gauss–Newton's usual approximation off it), so `g` is evaluated once per
+    /// trial. Only improving steps are taken, and none once every residual is within
+    /// [`Fitter::lm_done`]. Returns the final parameter and whether it moved.
+    fn levenberg_marquardt(
+        &self,
+        block: &mut impl BlockMap,
+        mut x: Vec<f64>,
+        bound: f64,
+    ) -> (Vec<f64>, bool) {
         let k = x.len();
-        // A face's point moves only its own term of each cell's map: build the maps once, and
-        // apply the part before that term's stratum once per sample.
-        let mut cached: Option<Vec<(LocalStrata, Slot, Vec<Bary>)>> = match param {
-            Param::Point(face) => cells
-                .iter()
-                .zip(samples)
-                .map(|(&c, us)| {
-                    let ids = self.complex.cell(c);
-                    let (local, slot) = map.local_with(ids, Some(face));
-                    let local = local.after(weights.local(ids));
-                    let slot = slot?;
-                    let before = us
-                        .iter()
-                        .map(|u| local.eval_before(u, Some(slot)))
-                        .collect();
-                    Some((local, slot, before))
-                })
-                .collect(),
-            Param::Weight(_) => None,
-        };
-        type Cached = Option<Vec<(LocalStrata, Slot, Vec<Bary>)>>;
-        let block_points = |x: &[f64],
-                            map: &mut StratifiedMap,
-                            weights: &mut RationalWeights,
-                            cached: &mut Cached| match cached.as_mut() {
-            Some(locals) => {
-                let mut out = Vec::new();
-                for (&c, (local, slot, before)) in cells.iter().zip(locals) {
-                    local.set_point(*slot, x);
-                    let ids = self.complex.cell(c);
-                    out.extend(
-                        before
-                            .iter()
-                            .map(|v| self.point_of(ids, &local.eval_after(v, Some(*slot)))),
-                    );
-                }
-                out
-            }
-            None => self.block_points(param, x, &edges, cells, samples, map, weights),
-        };
-        let mut pts = block_points(&x, &mut map, &mut weights, &mut cached);
+        let mut moved = false;
+        let mut pts = block.points(&x);
         let (mut r, mut normals) = self.residuals_at(&pts);
         let mut cost: f64 = r.iter().map(|v| v * v).sum();
         let mut lambda = 1e-3;
@@ -1048,41 +1280,7 @@ impl Fitter<'_> {
                 break;
             }
             let mut jac = vec![vec![0.0; r.len()]; k];
-            match cached.as_mut() {
-                // A face's point: the exact derivative of the map in its logits.
-                Some(locals) => {
-                    let mut i = 0;
-                    let mut dw = [[0.0; 4]; 4];
-                    let dd = displacement_derivative(&x);
-                    for (&c, (local, slot, before)) in cells.iter().zip(locals.iter_mut()) {
-                        local.set_point(*slot, &x);
-                        let ids = self.complex.cell(c);
-                        for v in before.iter() {
-                            local.eval_after_jacobian(v, *slot, &dd, &mut dw);
-                            for (col, d) in jac.iter_mut().zip(&dw) {
-                                let dp = self.point_of(ids, d);
-                                col[i] = (0..3).map(|e| normals[i][e] * dp[e]).sum::<f64>();
-                            }
-                            i += 1;
-                        }
-                    }
-                }
-                // A weight moves the crossings too: forward differences of the whole map.
-                None => {
-                    const H: f64 = 1e-7;
-                    for (j, col) in jac.iter_mut().enumerate() {
-                        let mut xh = x.clone();
-                        xh[j] += H;
-                        let ph = block_points(&xh, &mut map, &mut weights, &mut cached);
-                        for (i, v) in col.iter_mut().enumerate() {
-                            *v = (0..3)
-                                .map(|d| normals[i][d] * (ph[i][d] - pts[i][d]))
-                                .sum::<f64>()
-                                / H;
-                        }
-                    }
-                }
-            }
+            block.jacobian(&x, &pts, &normals, &mut jac);
             let mut improved = false;
             for _ in 0..4 {
                 let mut a = vec![0.0; k * k];
@@ -1104,7 +1302,7 @@ impl Fitter<'_> {
                     .zip(&step)
                     .map(|(a, s)| (a + s).clamp(-bound, bound))
                     .collect();
-                let pn = block_points(&xn, &mut map, &mut weights, &mut cached);
+                let pn = block.points(&xn);
                 let (rn, nn) = self.residuals_at(&pn);
                 let cn: f64 = rn.iter().map(|v| v * v).sum();
                 if cn < cost {
@@ -1124,10 +1322,7 @@ impl Fitter<'_> {
                 break;
             }
         }
-        self.set_param(param, &x, &edges, &mut map, &mut weights);
-        self.map = map;
-        self.weights = weights;
-        moved
+        (x, moved)
     }
 
     /// The one-sided accuracy loop: while cells' own samples are farther than the tolerance
@@ -1204,17 +1399,53 @@ impl Fitter<'_> {
             .collect();
         faces.sort_by(|a, b| a.0.total_cmp(&b.0).then_with(|| a.1.cmp(&b.1)));
         let level = rank_level(self.n);
-        for (_, f) in faces {
-            let cells = self.crossing_cells_with_face(&f);
-            let old = self.map.logits(&f);
-            self.map.remove(&f);
-            let ok = cells
-                .iter()
-                .all(|&c| self.cell_error(c, level, tolerance) <= TOLERANCE_MARGIN * tolerance);
-            if ok {
-                self.forget_face(&f);
-            } else {
-                self.map.set_logits(&f, &old);
+        // In that order, but level by level ([`conflict_levels`]): a face's test reads the points
+        // of its crossing cells' faces only, and a removal changes only the cells with the face,
+        // so faces without a common crossing cell are tested in parallel on the same numbers as
+        // one after another, and the result is the serial one for any number of threads.
+        let cells: Vec<Vec<u32>> = faces
+            .iter()
+            .map(|(_, f)| self.crossing_cells_with_face(f))
+            .collect();
+        // The stored points, kept equal to the map's as faces are removed: a cell's map without
+        // the tested face is built from them (the same lookups as the whole map's).
+        let mut stored: HashMap<Vec<u32>, Vec<f64>> = self
+            .map
+            .entries()
+            .map(|(f, l)| (f.clone(), l.clone()))
+            .collect();
+        for run in conflict_levels(cells.iter().map(|c| (&c[..], false))) {
+            let removable: Vec<bool> = {
+                let this = &*self;
+                let stored = &stored;
+                run.par_iter()
+                    .map(|&i| {
+                        let face = &faces[i].1;
+                        cells[i].iter().all(|&c| {
+                            let ids = this.complex.cell(c);
+                            let mut without = StratifiedMap::new(this.n);
+                            for f in simplex_faces(ids, 2) {
+                                let key = f.ids();
+                                if key != &face[..] {
+                                    if let Some(l) = stored.get(key) {
+                                        without.set_logits(key, l);
+                                    }
+                                }
+                            }
+                            let local = without.local(ids).after(this.weights.local(ids));
+                            this.cell_error_of(c, &local, level, tolerance)
+                                <= TOLERANCE_MARGIN * tolerance
+                        })
+                    })
+                    .collect()
+            };
+            for (&i, removable) in run.iter().zip(removable) {
+                if removable {
+                    let face = &faces[i].1;
+                    self.map.remove(face);
+                    stored.remove(face);
+                    self.forget_face(face);
+                }
             }
         }
     }
@@ -2160,6 +2391,97 @@ mod tests {
     /// `lm_done` is left where it is; with no stop, a block that moves lowers its residuals'
     /// sum of squares. Residuals from the closed form: for `g = x² + y² − r²`,
     /// `g/|∇g| = (ρ² − r²)/(2ρ)` at radius `ρ`.
+    #[test]
+    fn conflict_levels_keep_the_serial_order_of_every_shared_cell() {
+        let mut rng: u64 = 0x2545_f491_4f6c_dd1d;
+        let mut next = |m: u64| {
+            rng ^= rng << 13;
+            rng ^= rng >> 7;
+            rng ^= rng << 17;
+            rng % m
+        };
+        let steps: Vec<(Vec<u32>, bool)> = (0..400)
+            .map(|_| {
+                let k = next(5) as usize;
+                let cells = (0..k).map(|_| next(60) as u32).collect();
+                (cells, next(40) == 0)
+            })
+            .collect();
+        let levels = conflict_levels(steps.iter().map(|(c, a)| (&c[..], *a)));
+        let mut level_of = vec![usize::MAX; steps.len()];
+        for (l, run) in levels.iter().enumerate() {
+            assert!(!run.is_empty() && run.windows(2).all(|w| w[0] < w[1]));
+            let mut seen = HashSet::new();
+            for &i in run {
+                assert_eq!(level_of[i], usize::MAX, "step {i} twice");
+                level_of[i] = l;
+                // Steps that share a level share no cell (a step may repeat its own).
+                let own: HashSet<u32> = steps[i].0.iter().copied().collect();
+                assert!(
+                    own.iter().all(|c| seen.insert(*c)),
+                    "level {l} shares a cell"
+                );
+            }
+        }
+        assert!(level_of.iter().all(|&l| l != usize::MAX));
+        let mut alone = 0;
+        for i in 0..steps.len() {
+            for j in i + 1..steps.len() {
+                if steps[i].1 || steps[j].1 || steps[i].0.iter().any(|c| steps[j].0.contains(c)) {
+                    assert!(level_of[i] < level_of[j], "steps {i} and {j}");
+                }
+            }
+            if steps[i].1 {
+                alone += 1;
+                assert_eq!(levels[level_of[i]], [i]);
+            }
+        }
+        assert!(
+            alone >= 3 && levels.len() < steps.len() / 2,
+            "{alone}, {}",
+            levels.len()
+        );
+    }
+
+    #[test]
+    fn fits_are_the_same_bits_for_any_number_of_threads() {
+        let preset = Preset::find("torus").unwrap();
+        let g = preset.expression().unwrap();
+        let mut options = FitOptions::new(preset.domain);
+        options.tolerance = 4e-3;
+        let fit_on = |threads: usize| {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap();
+            pool.install(|| fit(&g, &options, &ism_format::Progress::none()).unwrap())
+        };
+        let one = fit_on(1);
+        assert!(
+            one.report.tolerance_met && one.report.simplices > 3_000,
+            "{} simplices, met {}",
+            one.report.simplices,
+            one.report.tolerance_met
+        );
+        let bits = |f: &Fitted| {
+            let mut entries: Vec<(Vec<u32>, Vec<u64>)> = f
+                .map
+                .entries()
+                .map(|(k, l)| (k.clone(), l.iter().map(|x| x.to_bits()).collect()))
+                .collect();
+            entries.sort();
+            (f.to_model("t"), entries)
+        };
+        for threads in [2, 3] {
+            let other = fit_on(threads);
+            assert!(bits(&one) == bits(&other), "{threads} threads");
+            // The same report but for the time it took.
+            let mut report = other.report.clone();
+            report.seconds = one.report.seconds;
+            assert_eq!(one.report, report, "{threads} threads");
+        }
+    }
+
     #[test]
     fn the_optimizer_stops_once_a_block_is_within_its_done_residual() {
         let preset = Preset::find("circle").unwrap();
