@@ -61,6 +61,9 @@ FIT_SAMPLES = 1_000_000
 WORST = 2000
 # Grid-line spacing of the dense points on Z, as a fraction of the domain's longest side.
 Z_SPACING = 1.0 / 400
+# Grid points per batch of the mesh target's signed distance (marching cubes' grid): about
+# 1 GB of temporaries (16 nearest centroids and their triangles per point).
+SDF_CHUNK = 1_000_000
 
 
 # ---------------------------------------------------------------------------------------------
@@ -765,11 +768,21 @@ def bunny(out):
     zpts = np.concatenate(zs)
 
     def sdf(axes):
-        x, y, z = np.meshgrid(*axes, indexing="ij")
-        q = np.stack([x.ravel(), y.ravel(), z.ravel()], axis=1)
-        d = to_mesh_distance(q, v, f)
-        inside = m.contains(q)
-        return np.where(inside, -d, d).reshape(x.shape)
+        # One x-slab of grid points at a time, at most SDF_CHUNK points each: the whole grid at
+        # once (k-nearest indices, 16 triangles' distances per point, the inside test) was
+        # OOM-killed at 23 GB in session 21; the grid itself is a float64 array.
+        shape = tuple(len(a) for a in axes)
+        vol = np.empty(shape, dtype=np.float64)
+        y, z = np.meshgrid(axes[1], axes[2], indexing="ij")
+        per = max(1, SDF_CHUNK // y.size)
+        for i0 in range(0, shape[0], per):
+            xs = axes[0][i0:i0 + per]
+            q = np.stack([np.repeat(xs, y.size), np.tile(y.ravel(), len(xs)),
+                          np.tile(z.ravel(), len(xs))], axis=1)
+            d = to_mesh_distance(q, v, f)
+            inside = m.contains(q)
+            vol[i0:i0 + len(xs)] = np.where(inside, -d, d).reshape(len(xs), *shape[1:])
+        return vol
 
     return dict(name="Stanford bunny (pymeshlab wheel, closed)", fit=["--mesh", obj],
                 domain=domain, g=None, grad=None, dist=None, genus=0, mesh=(v, f), zpts=zpts,

@@ -1982,8 +1982,11 @@ impl FitReport {
         let cover = match &m.cover {
             crate::measure::TargetCover::Boxes { count, largest } => serde_json::json!({
                 "method": "interval boxes", "count": count, "largestHalfDiagonal": largest}),
+            // `toleranceMet` judged `Z → S` on the certified bound ([`Measure::meets`]); on the
+            // estimate for the boxes.
             crate::measure::TargetCover::MeshPoints { count, radius } => serde_json::json!({
-                "method": "mesh points", "count": count, "coveringRadius": radius}),
+                "method": "mesh points", "count": count, "coveringRadius": radius,
+                "toleranceJudgedOn": "targetToShapeBound"}),
             crate::measure::TargetCover::None => serde_json::json!({"method": "none"}),
         };
         let uncertain: Vec<serde_json::Value> = self

@@ -837,6 +837,9 @@ impl ImplicitFunction for MeshDistance {
     /// A barycentric grid on every triangle, fine enough that its sub-triangles' edges are at
     /// most `spacing` (coarser if that would exceed `budget` points): every point of a triangle
     /// is within its longest edge of each of its corners, so within that of a grid point.
+    /// Triangle after triangle; at a `spacing` no shorter than every edge (`f64::INFINITY`)
+    /// one cell per triangle, its three corners in turn — how the measure's certified cover
+    /// reads the triangles (`measure::mesh_triangles`).
     fn surface_points(&self, spacing: f64, budget: usize) -> Option<(Vec<[f64; 3]>, f64)> {
         let mesh = self.mesh();
         let longest: Vec<f64> = mesh
