@@ -1227,15 +1227,23 @@ pub fn write_path(
 /// Runs `fill` on a temporary file beside `path` and renames it over `path` only if `fill` and the
 /// flush succeed. Shared by every writer of the workspace.
 ///
+/// When `path` exists and is not a regular file (`/dev/null`, `/dev/stdout`, a named pipe), a
+/// rename would *replace* it — as root, `ism export m.ism /dev/null` turned the machine's
+/// `/dev/null` into a regular file. Such a destination gets the finished temporary file (made in
+/// the system's temporary directory) copied into it instead: still nothing reaches it unless
+/// `fill` succeeded, but a failure of the copy itself can leave part of the bytes in a pipe.
+///
 /// # Errors
-/// Whatever `fill`, the temporary file or the rename report.
+/// Whatever `fill`, the temporary file, the rename or the copy report.
 pub fn write_atomic(
     path: &Path,
     fill: impl FnOnce(&mut std::io::BufWriter<&std::fs::File>) -> std::io::Result<()>,
 ) -> std::io::Result<()> {
+    let special = std::fs::metadata(path).is_ok_and(|m| !m.is_file());
     let dir = match path.parent() {
-        Some(p) if !p.as_os_str().is_empty() => p,
-        _ => Path::new("."),
+        _ if special => std::env::temp_dir(),
+        Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
+        _ => std::path::PathBuf::from("."),
     };
     let tmp = tempfile::Builder::new()
         .prefix(".ism-")
@@ -1245,6 +1253,16 @@ pub fn write_atomic(
         let mut w = std::io::BufWriter::new(tmp.as_file());
         fill(&mut w)?;
         w.flush()?;
+    }
+    if special {
+        use std::io::Seek;
+        let mut from = tmp.as_file();
+        from.seek(std::io::SeekFrom::Start(0))?;
+        // `write` without `create`/`truncate`: a device or pipe is opened as it is; a directory
+        // fails here with the system's error.
+        let mut to = std::fs::OpenOptions::new().write(true).open(path)?;
+        std::io::copy(&mut from, &mut to)?;
+        return to.flush();
     }
     // Temporary files are created owner-only; give the result the permissions of the file it
     // replaces, or the usual rw-r--r-- for a new file.
@@ -1267,6 +1285,68 @@ pub fn write_atomic(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A named pipe as the destination: the bytes arrive through it and it is still a pipe
+    /// afterwards (a rename would have replaced it with a regular file, as it did `/dev/null`).
+    #[cfg(unix)]
+    #[test]
+    fn write_atomic_into_a_named_pipe_keeps_the_pipe() {
+        use std::os::unix::fs::FileTypeExt;
+        let dir = tempfile::tempdir().unwrap();
+        let fifo = dir.path().join("pipe");
+        let made = std::process::Command::new("mkfifo")
+            .arg(&fifo)
+            .status()
+            .unwrap();
+        assert!(made.success());
+        let reader = {
+            let fifo = fifo.clone();
+            std::thread::spawn(move || std::fs::read(fifo).unwrap())
+        };
+        let payload: Vec<u8> = (0..200_000u32).map(|i| (i % 251) as u8).collect();
+        write_atomic(&fifo, |w| w.write_all(&payload)).unwrap();
+        // The type first: had the pipe been replaced, the reader would wait forever.
+        assert!(std::fs::symlink_metadata(&fifo)
+            .unwrap()
+            .file_type()
+            .is_fifo());
+        assert_eq!(reader.join().unwrap(), payload);
+        // Nothing was left beside it.
+        assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 1);
+    }
+
+    /// `write_path` into a named pipe (it seeks back for the header, which a pipe cannot): the
+    /// pipe delivers exactly the bytes of `to_vec`, and stays a pipe. (Not `/dev/null` itself: a
+    /// regression would replace the test machine's `/dev/null`.)
+    #[cfg(unix)]
+    #[test]
+    fn write_path_into_a_named_pipe_delivers_the_file() {
+        use crate::builder::ModelBuilder;
+        use std::os::unix::fs::FileTypeExt;
+        let mut b = ModelBuilder::new(2);
+        for (p, f) in [([0.0, 0.0], -1.0), ([1.0, 0.0], 1.0), ([0.0, 1.0], 1.0)] {
+            b = b.vertex(&p, f);
+        }
+        let m = b.simplex(&[0, 1, 2]).build().unwrap();
+        let dir = tempfile::tempdir().unwrap();
+        let fifo = dir.path().join("model.ismb");
+        let made = std::process::Command::new("mkfifo")
+            .arg(&fifo)
+            .status()
+            .unwrap();
+        assert!(made.success());
+        let reader = {
+            let fifo = fifo.clone();
+            std::thread::spawn(move || std::fs::read(fifo).unwrap())
+        };
+        write_path(&m, &fifo, None, WriteOptions::default()).unwrap();
+        let want = to_vec(&m, Encoding::Binary, WriteOptions::default()).unwrap();
+        assert!(std::fs::symlink_metadata(&fifo)
+            .unwrap()
+            .file_type()
+            .is_fifo());
+        assert_eq!(reader.join().unwrap(), want);
+    }
 
     /// Hands out one byte per read: no face record is ever wholly in the stream's window, so every
     /// record takes the decoder's checked path.

@@ -51,6 +51,23 @@ fn model_with(n: usize, kind: Kind, parametric: bool, seed: u64) -> (Model, Rng)
     (model, rng)
 }
 
+/// A Kuhn model of `n` dimensions with one stage of each of `kinds` in order (`make`), the
+/// `i`-th parametric when `parametric(i)`: the stage chains the `inverse_near` and Jacobian
+/// properties run on.
+fn chain_model(
+    n: usize,
+    rng: &mut Rng,
+    kinds: &[Kind],
+    parametric: impl Fn(usize) -> bool,
+) -> Model {
+    let mut model = common::kuhn(n, 1, rng);
+    for (i, kind) in kinds.iter().enumerate() {
+        let st = make(*kind, &model, rng, parametric(i));
+        model.stages.push(st);
+    }
+    model
+}
+
 fn max_diff(m: usize, a: &Bary, b: &Bary) -> f64 {
     (0..m).map(|i| (a[i] - b[i]).abs()).fold(0.0, f64::max)
 }
@@ -215,11 +232,7 @@ proptest! {
     #[test]
     fn composed_maps_round_trip_and_chain_rule_holds(seed in any::<u64>(), n in 2usize..=3) {
         let mut rng = Rng(seed);
-        let mut model = common::kuhn(n, 1, &mut rng);
-        for (i, kind) in [Kind::Monotonic(3), Kind::NearIdentity(3), Kind::Rational(2), Kind::AdjustedQuadratic].into_iter().enumerate() {
-            let st = make(kind, &model, &mut rng, i % 2 == 1);
-            model.stages.push(st);
-        }
+        let model = chain_model(n, &mut rng, &[Kind::Monotonic(3), Kind::NearIdentity(3), Kind::Rational(2), Kind::AdjustedQuadratic], |i| i % 2 == 1);
         for s in 0..model.num_simplices() {
             let map = LocalMap::from_model(&model, s).unwrap();
             prop_assert_eq!(map.stages().len(), 4);
@@ -253,11 +266,7 @@ proptest! {
     #[test]
     fn inverse_near_agrees_with_inverse_and_returns_the_jacobian(seed in any::<u64>(), n in 2usize..=3) {
         let mut rng = Rng(seed);
-        let mut model = common::kuhn(n, 1, &mut rng);
-        for (i, kind) in [Kind::Monotonic(3), Kind::NearIdentity(3), Kind::Rational(2)].into_iter().enumerate() {
-            let st = make(kind, &model, &mut rng, i == 1);
-            model.stages.push(st);
-        }
+        let model = chain_model(n, &mut rng, &[Kind::Monotonic(3), Kind::NearIdentity(3), Kind::Rational(2)], |i| i == 1);
         let m = n + 1;
         for s in 0..model.num_simplices() {
             let map = LocalMap::from_model(&model, s).unwrap();
@@ -289,11 +298,7 @@ proptest! {
     #[test]
     fn inverse_near_on_an_edge_finds_the_known_preimage(seed in any::<u64>(), n in 2usize..=3) {
         let mut rng = Rng(seed);
-        let mut model = common::kuhn(n, 1, &mut rng);
-        for (i, kind) in [Kind::Monotonic(3), Kind::NearIdentity(3), Kind::Rational(2)].into_iter().enumerate() {
-            let st = make(kind, &model, &mut rng, i == 1);
-            model.stages.push(st);
-        }
+        let model = chain_model(n, &mut rng, &[Kind::Monotonic(3), Kind::NearIdentity(3), Kind::Rational(2)], |i| i == 1);
         let m = n + 1;
         for s in 0..model.num_simplices() {
             let map = LocalMap::from_model(&model, s).unwrap();
@@ -324,11 +329,7 @@ proptest! {
     #[test]
     fn param_solve_agrees_with_inverse_and_jacobian(seed in any::<u64>(), n in 2usize..=3) {
         let mut rng = Rng(seed);
-        let mut model = common::kuhn(n, 1, &mut rng);
-        for kind in [Kind::NearIdentity(3), Kind::Rational(2), Kind::Monotonic(2)] {
-            let st = make(kind, &model, &mut rng, true);
-            model.stages.push(st);
-        }
+        let mut model = chain_model(n, &mut rng, &[Kind::NearIdentity(3), Kind::Rational(2), Kind::Monotonic(2)], |_| true);
         let m = n + 1;
         for s in 0..model.num_simplices() {
             let map = LocalMap::from_model(&model, s).unwrap();
