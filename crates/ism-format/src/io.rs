@@ -1224,14 +1224,41 @@ pub fn write_path(
     }
 }
 
+/// Where [`write_atomic`] writes for `path`, and whether it must copy rather than rename there
+/// (see there): a symbolic link resolved to its target, unless that is not a regular file or
+/// lies in `/proc` or `/dev`. A path that does not exist yet is a new regular file.
+fn destination(path: &Path) -> (std::path::PathBuf, bool) {
+    let Ok(meta) = std::fs::symlink_metadata(path) else {
+        return (path.to_path_buf(), false);
+    };
+    if meta.is_file() {
+        return (path.to_path_buf(), false);
+    }
+    if meta.file_type().is_symlink() {
+        if let Ok(target) = std::fs::canonicalize(path) {
+            let descriptor = target.starts_with("/proc") || target.starts_with("/dev");
+            if !descriptor && std::fs::metadata(&target).is_ok_and(|m| m.is_file()) {
+                return (target, false);
+            }
+        } else {
+            // A dangling link: created through it, as `open` would.
+            return (path.to_path_buf(), true);
+        }
+    }
+    (path.to_path_buf(), true)
+}
+
 /// Runs `fill` on a temporary file beside `path` and renames it over `path` only if `fill` and the
 /// flush succeed. Shared by every writer of the workspace.
 ///
-/// When `path` exists and is not a regular file (`/dev/null`, `/dev/stdout`, a named pipe), a
-/// rename would *replace* it — as root, `ism export m.ism /dev/null` turned the machine's
-/// `/dev/null` into a regular file. Such a destination gets the finished temporary file (made in
-/// the system's temporary directory) copied into it instead: still nothing reaches it unless
-/// `fill` succeeded, but a failure of the copy itself can leave part of the bytes in a pipe.
+/// A rename replaces whatever is at `path`: as root, `ism convert m.ism /dev/null` turned the
+/// machine's `/dev/null` into a regular file, and `-o /dev/stdout` its symbolic link. So a
+/// symbolic link is followed, and the temporary file renamed over the regular file it names
+/// (the link stays); a destination that is not a regular file (a device, a named pipe, or a
+/// link into `/proc` or `/dev` such as `/dev/stdout`, whose target is an open descriptor) gets
+/// the finished temporary file (made in the system's temporary directory) copied into it
+/// instead: still nothing reaches it unless `fill` succeeded, but a failure of the copy itself
+/// can leave part of the bytes there.
 ///
 /// # Errors
 /// Whatever `fill`, the temporary file, the rename or the copy report.
@@ -1239,7 +1266,8 @@ pub fn write_atomic(
     path: &Path,
     fill: impl FnOnce(&mut std::io::BufWriter<&std::fs::File>) -> std::io::Result<()>,
 ) -> std::io::Result<()> {
-    let special = std::fs::metadata(path).is_ok_and(|m| !m.is_file());
+    let (path, special) = destination(path);
+    let path = path.as_path();
     let dir = match path.parent() {
         _ if special => std::env::temp_dir(),
         Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
@@ -1258,9 +1286,14 @@ pub fn write_atomic(
         use std::io::Seek;
         let mut from = tmp.as_file();
         from.seek(std::io::SeekFrom::Start(0))?;
-        // `write` without `create`/`truncate`: a device or pipe is opened as it is; a directory
-        // fails here with the system's error.
-        let mut to = std::fs::OpenOptions::new().write(true).open(path)?;
+        // A device or pipe is opened as it is (truncation means nothing to them; a regular file
+        // behind `/proc/self/fd/1` starts afresh, as `cp x /dev/stdout` does); `create` only for
+        // a dangling link's target; a directory fails here with the system's error.
+        let mut to = std::fs::OpenOptions::new()
+            .write(true)
+            .create(true)
+            .truncate(true)
+            .open(path)?;
         std::io::copy(&mut from, &mut to)?;
         return to.flush();
     }
@@ -1313,6 +1346,25 @@ mod tests {
         assert_eq!(reader.join().unwrap(), payload);
         // Nothing was left beside it.
         assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 1);
+    }
+
+    /// Through a symbolic link to a regular file: the link stays a link, its target gets the
+    /// bytes, and a second write replaces them atomically there.
+    #[cfg(unix)]
+    #[test]
+    fn write_atomic_through_a_symlink_keeps_the_link() {
+        let dir = tempfile::tempdir().unwrap();
+        let target = dir.path().join("real.bin");
+        std::fs::write(&target, b"old contents, longer than the new").unwrap();
+        let link = dir.path().join("link.bin");
+        std::os::unix::fs::symlink(&target, &link).unwrap();
+        write_atomic(&link, |w| w.write_all(b"new")).unwrap();
+        assert!(std::fs::symlink_metadata(&link)
+            .unwrap()
+            .file_type()
+            .is_symlink());
+        assert_eq!(std::fs::read(&target).unwrap(), b"new");
+        assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 2);
     }
 
     /// `write_path` into a named pipe (it seeks back for the header, which a pipe cannot): the
