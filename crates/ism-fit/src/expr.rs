@@ -804,15 +804,14 @@ pub trait ImplicitFunction: Sync {
         crate::measure::bracket_distance(self, p, reach)
     }
 
-    /// Points on the zero set with a radius that every point of it lies within, about `spacing`
-    /// apart and at most `budget` of them, when the zero set is known explicitly (a mesh);
-    /// `None` otherwise (the zero set is then covered by interval boxes).
-    fn surface_points(&self, spacing: f64, budget: usize) -> Option<(Vec<[f64; 3]>, f64)> {
-        let _ = (spacing, budget);
+    /// The zero set's triangles, each as its three corners, when it is known explicitly (a
+    /// mesh: the measure's certified `Z → S` cover refines them); `None` otherwise (the zero set
+    /// is then covered by interval boxes).
+    fn surface_triangles(&self) -> Option<Vec<[[f64; 3]; 3]>> {
         None
     }
 
-    /// Whether [`ImplicitFunction::surface_points`] gives points (the zero set is explicit) and
+    /// Whether [`ImplicitFunction::surface_triangles`] gives triangles (the zero set is explicit) and
     /// [`ImplicitFunction::distance_bound`] is the exact distance.
     fn is_explicit(&self) -> bool {
         false

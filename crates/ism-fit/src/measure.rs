@@ -1175,7 +1175,7 @@ fn measure_with<G: ImplicitFunction + ?Sized>(
     let mut uncertified: Vec<Miss> = Vec::new();
     let (points, cover): (Vec<TargetPoint>, TargetCover) = if shape.patches.is_empty() {
         (Vec::new(), TargetCover::None)
-    } else if let Some(triangles) = mesh_triangles(g) {
+    } else if let Some(triangles) = g.surface_triangles() {
         let c = mesh_cover(&triangles, &to_shape, &project, tolerance);
         uncertified = c.uncertified;
         (c.points, c.cover)
@@ -1519,15 +1519,6 @@ fn tighten(
 /// 2.2–2.9 CPU-s per measure, against 1.5–1.6 for the uniform lattice 4× the tolerance apart
 /// that it replaces (issue 17, session 22).
 pub const MESH_LEAF_FRACTION: f64 = 1.0 / 16.0;
-
-/// The triangles of an explicit zero set (a mesh), each as its three corners: the target's
-/// [`ImplicitFunction::surface_points`] at an infinite spacing, which a mesh gives as one cell
-/// per triangle, its three corners in turn (`MeshDistance::surface_points`). `None` for a
-/// target with no explicit zero set (or points that are not whole triangles).
-fn mesh_triangles<G: ImplicitFunction + ?Sized>(g: &G) -> Option<Vec<[[f64; 3]; 3]>> {
-    let (points, _) = g.surface_points(f64::INFINITY, usize::MAX)?;
-    (points.len() % 3 == 0).then(|| points.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect())
-}
 
 /// The `Z → S` cover of a mesh ([`mesh_cover`]).
 struct MeshCover {
@@ -2384,9 +2375,26 @@ mod tests {
         let tolerance = 0.95 * lo;
         // The old cover (a lattice 4× the tolerance apart, judged at its points) is below the
         // tolerance, so this tolerance would have been "met".
-        let (sparse, _) = z
-            .surface_points(leaf_fraction(3) * tolerance, TARGET_BUDGET)
-            .unwrap();
+        // That lattice, as the old `surface_points` drew it: per triangle, sub-triangles no longer than
+        // the spacing.
+        let spacing = leaf_fraction(3) * tolerance;
+        let sparse: Vec<[f64; 3]> = z
+            .surface_triangles()
+            .unwrap()
+            .iter()
+            .flat_map(|v| {
+                let longest = distance(&v[0][..], &v[1])
+                    .max(distance(&v[1][..], &v[2]))
+                    .max(distance(&v[2][..], &v[0]));
+                let l = ((longest / spacing).ceil() as usize).max(1);
+                (0..=l).flat_map(move |i| {
+                    (0..=l - i).map(move |j| {
+                        let (a, b) = (i as f64 / l as f64, j as f64 / l as f64);
+                        [0, 1, 2].map(|k| (1.0 - a - b) * v[0][k] + a * v[1][k] + b * v[2][k])
+                    })
+                })
+            })
+            .collect();
         let sparse_max = sparse
             .iter()
             .map(|p| to_triangles(p, &s_triangles))

@@ -1319,14 +1319,13 @@ pub fn write_atomic(
 mod tests {
     use super::*;
 
-    /// A named pipe as the destination: the bytes arrive through it and it is still a pipe
-    /// afterwards (a rename would have replaced it with a regular file, as it did `/dev/null`).
+    /// A named pipe `name` in `dir` (made by `mkfifo`) and a thread reading it to the end.
     #[cfg(unix)]
-    #[test]
-    fn write_atomic_into_a_named_pipe_keeps_the_pipe() {
-        use std::os::unix::fs::FileTypeExt;
-        let dir = tempfile::tempdir().unwrap();
-        let fifo = dir.path().join("pipe");
+    fn fifo_with_reader(
+        dir: &Path,
+        name: &str,
+    ) -> (std::path::PathBuf, std::thread::JoinHandle<Vec<u8>>) {
+        let fifo = dir.join(name);
         let made = std::process::Command::new("mkfifo")
             .arg(&fifo)
             .status()
@@ -1336,6 +1335,17 @@ mod tests {
             let fifo = fifo.clone();
             std::thread::spawn(move || std::fs::read(fifo).unwrap())
         };
+        (fifo, reader)
+    }
+
+    /// A named pipe as the destination: the bytes arrive through it and it is still a pipe
+    /// afterwards (a rename would have replaced it with a regular file, as it did `/dev/null`).
+    #[cfg(unix)]
+    #[test]
+    fn write_atomic_into_a_named_pipe_keeps_the_pipe() {
+        use std::os::unix::fs::FileTypeExt;
+        let dir = tempfile::tempdir().unwrap();
+        let (fifo, reader) = fifo_with_reader(dir.path(), "pipe");
         let payload: Vec<u8> = (0..200_000u32).map(|i| (i % 251) as u8).collect();
         write_atomic(&fifo, |w| w.write_all(&payload)).unwrap();
         // The type first: had the pipe been replaced, the reader would wait forever.
@@ -1381,16 +1391,7 @@ mod tests {
         }
         let m = b.simplex(&[0, 1, 2]).build().unwrap();
         let dir = tempfile::tempdir().unwrap();
-        let fifo = dir.path().join("model.ismb");
-        let made = std::process::Command::new("mkfifo")
-            .arg(&fifo)
-            .status()
-            .unwrap();
-        assert!(made.success());
-        let reader = {
-            let fifo = fifo.clone();
-            std::thread::spawn(move || std::fs::read(fifo).unwrap())
-        };
+        let (fifo, reader) = fifo_with_reader(dir.path(), "model.ismb");
         write_path(&m, &fifo, None, WriteOptions::default()).unwrap();
         let want = to_vec(&m, Encoding::Binary, WriteOptions::default()).unwrap();
         assert!(std::fs::symlink_metadata(&fifo)

@@ -834,56 +834,15 @@ impl ImplicitFunction for MeshDistance {
         norm(sub(p, self.closest_point(p).0))
     }
 
-    /// A barycentric grid on every triangle, fine enough that its sub-triangles' edges are at
-    /// most `spacing` (coarser if that would exceed `budget` points): every point of a triangle
-    /// is within its longest edge of each of its corners, so within that of a grid point.
-    /// Triangle after triangle; at a `spacing` no shorter than every edge (`f64::INFINITY`)
-    /// one cell per triangle, its three corners in turn — how the measure's certified cover
-    /// reads the triangles (`measure::mesh_triangles`).
-    fn surface_points(&self, spacing: f64, budget: usize) -> Option<(Vec<[f64; 3]>, f64)> {
+    /// The mesh's triangles, each as its three corners.
+    fn surface_triangles(&self) -> Option<Vec<[[f64; 3]; 3]>> {
         let mesh = self.mesh();
-        let longest: Vec<f64> = mesh
-            .triangles
-            .iter()
-            .map(|t| {
-                let v = t.map(|i| mesh.positions[i as usize]);
-                norm(sub(v[0], v[1]))
-                    .max(norm(sub(v[1], v[2])))
-                    .max(norm(sub(v[2], v[0])))
-            })
-            .collect();
-        let levels = |spacing: f64| -> Vec<usize> {
-            longest
+        Some(
+            mesh.triangles
                 .iter()
-                .map(|l| ((l / spacing).ceil() as usize).clamp(1, 1 << 12))
-                .collect()
-        };
-        let mut spacing = spacing;
-        let mut ls = levels(spacing);
-        // Coarser while over the budget, down to one cell per triangle (the mesh's own vertices).
-        while ls.iter().any(|&l| l > 1)
-            && ls.iter().map(|l| (l + 1) * (l + 2) / 2).sum::<usize>() > budget
-        {
-            spacing *= 1.5;
-            ls = levels(spacing);
-        }
-        let radius = longest
-            .iter()
-            .zip(&ls)
-            .map(|(l, &k)| l / k as f64)
-            .fold(0.0, f64::max);
-        let mut points = Vec::new();
-        for (t, &l) in mesh.triangles.iter().zip(&ls) {
-            let v = t.map(|i| mesh.positions[i as usize]);
-            for i in 0..=l {
-                for j in 0..=l - i {
-                    let (a, b) = (i as f64 / l as f64, j as f64 / l as f64);
-                    let c = 1.0 - a - b;
-                    points.push([0, 1, 2].map(|k| c * v[0][k] + a * v[1][k] + b * v[2][k]));
-                }
-            }
-        }
-        Some((points, radius))
+                .map(|t| t.map(|i| mesh.positions[i as usize]))
+                .collect(),
+        )
     }
 
     fn enclose(&self, lo: &[f64], hi: &[f64]) -> Option<Enclosure> {
