@@ -817,7 +817,7 @@ fn gradient_generators_agree_only_where_the_gradients_do() {
             let hi = lo.map(|x| x + w);
             let mut gens = Vec::new();
             assert!(d.gradient_generators(lo, &hi, &mut gens), "{name}");
-            if !crate::fit::unit_vectors_agree(3, &gens) {
+            if !crate::fit::topology::unit_vectors_agree(3, &gens) {
                 continue;
             }
             agreed += 1;
