@@ -22,8 +22,8 @@ the fitter and its report:
   2,000 are re-measured as upper bounds: the smaller of a sign-change bracket on the model's F
   (along -grad F and the axes) and the distance to the nearest sample of the fit.
 
-Then scikit-image `marching_cubes` on a grid of the same function (the signed distance for the
-mesh target), the grid refined until the mesh's two-sided true error, measured the same way
+Then scikit-image `marching_cubes` on a grid of the same function (for the mesh target the signed
+distance, exact at the corners of the cells where it changes sign, clipped elsewhere: mesh_sdf), the grid refined until the mesh's two-sided true error, measured the same way
 (mesh vertices, edge midpoints and centroids to Z; Z points to the exact closest point on the
 triangles) is at most the ISM's; the mesh is written as binary glTF (.glb, trimesh). 2D shapes
 use `find_contours` and a .glb of line segments.
@@ -34,7 +34,8 @@ seconds; and the marching-cubes grid, vertices+faces numbers, .glb bytes, its er
 seconds; the ratios .glb / .ismb, .ismc, .ismz, and — for an honest comparison — the .glb compressed by
 the same codec (xz preset 6, what `ism` writes) over the .ismz.
 Needs numpy, scipy, scikit-image, trimesh (tools/requirements.txt); the mesh target needs the
-bunny that ships in the pymeshlab wheel (skipped when pymeshlab is not installed).
+bunny that ships in the pymeshlab wheel (skipped when pymeshlab is not installed); `--only bone`
+(not in the default list) fits the wheel's second scanned mesh, a bone, the same way.
 """
 import argparse
 import json
@@ -61,9 +62,15 @@ FIT_SAMPLES = 1_000_000
 WORST = 2000
 # Grid-line spacing of the dense points on Z, as a fraction of the domain's longest side.
 Z_SPACING = 1.0 / 400
-# Grid points per batch of the mesh target's signed distance (marching cubes' grid): about
-# 1 GB of temporaries (16 nearest centroids and their triangles per point).
-SDF_CHUNK = 1_000_000
+# Points per batch of the exact point-to-mesh distance: about 0.4 GB of temporaries (16 nearest
+# centroids per point and their point-triangle distances).
+MESH_CHUNK = 250_000
+# Point-triangle pairs per batch where the 16 nearest centroids do not certify the distance.
+PAIR_CHUNK = 2_000_000
+# Relative rounding bound of a 2D orientation determinant (b-a) x (p-a) evaluated in float64:
+# Shewchuk's orient2d bound is (3 + 16 eps) eps ~ 3.3e-16 of |t1| + |t2|; 1e-15 is safely above
+# it, and only the signs inside it are recomputed exactly (fractions).
+ORIENT_ERR = 1e-15
 
 
 # ---------------------------------------------------------------------------------------------
@@ -351,27 +358,174 @@ def point_triangle(p, a, b, c):
 
 
 def to_mesh_distance(points, verts, faces, k=16):
-    """Distance from points to a triangle mesh: exact point-triangle distance to the k triangles
-    with the nearest centroids, and to the triangles around the nearest vertex."""
+    """Exact distance from points to a triangle mesh: the minimum over all its triangles of the
+    exact point-triangle distance, in batches of MESH_CHUNK points.
+
+    Candidates first: the k triangles with the nearest centroids. A triangle t not among them has
+    its centroid at least d_k (the k-th nearest centroid's distance) from the point and all its
+    points within R_t (its farthest corner) of the centroid, so its distance is at least
+    d_k - max R_t; where the best candidate is not below that, every triangle whose centroid is
+    within best + max R_t is measured too (a ball query), so the minimum is over all triangles
+    that can be nearer."""
     tri = verts[faces]
     cen = tri.mean(axis=1)
-    _, ci = cKDTree(cen).query(points, k=min(k, len(faces)), workers=-1)
-    best = np.full(len(points), np.inf)
-    for j in range(ci.shape[1]):
-        t = tri[ci[:, j]]
-        best = np.minimum(best, point_triangle(points, t[:, 0], t[:, 1], t[:, 2]))
-    # Triangles around the nearest vertex (a long thin triangle's centroid can be far).
-    _, vi = cKDTree(verts).query(points, k=1, workers=-1)
-    vt = [[] for _ in range(len(verts))]
-    for f, tr in enumerate(faces):
-        for v in tr:
-            vt[v].append(f)
-    width = max(len(x) for x in vt)
-    table = np.array([x + [x[0]] * (width - len(x)) for x in vt])
-    for j in range(width):
-        t = tri[table[vi, j]]
-        best = np.minimum(best, point_triangle(points, t[:, 0], t[:, 1], t[:, 2]))
-    return best
+    reach = float(np.linalg.norm(tri - cen[:, None, :], axis=2).max())
+    tree = cKDTree(cen)
+    k = min(k, len(faces))
+    out = np.empty(len(points))
+    for c0 in range(0, len(points), MESH_CHUNK):
+        p = points[c0:c0 + MESH_CHUNK]
+        dk, ci = tree.query(p, k=k, workers=-1)
+        dk, ci = dk.reshape(len(p), -1), ci.reshape(len(p), -1)
+        best = np.full(len(p), np.inf)
+        for j in range(ci.shape[1]):
+            t = tri[ci[:, j]]
+            best = np.minimum(best, point_triangle(p, t[:, 0], t[:, 1], t[:, 2]))
+        # Uncertified: some triangle outside the k could be nearer (with a margin for rounding).
+        if k < len(faces):
+            bad = np.nonzero(best >= (dk[:, -1] - reach) * (1 - 1e-9))[0]
+        else:
+            bad = np.zeros(0, int)
+        for b0 in range(0, len(bad), 20000):
+            idx = bad[b0:b0 + 20000]
+            lists = tree.query_ball_point(p[idx], best[idx] + reach * (1 + 1e-9), workers=-1)
+            lens = np.fromiter((len(x) for x in lists), int, len(lists))
+            pi = np.repeat(idx, lens)
+            ti = np.fromiter((i for x in lists for i in x), int, int(lens.sum()))
+            for q0 in range(0, len(pi), PAIR_CHUNK):
+                a, b = pi[q0:q0 + PAIR_CHUNK], ti[q0:q0 + PAIR_CHUNK]
+                t = tri[b]
+                np.minimum.at(best, a, point_triangle(p[a], t[:, 0], t[:, 1], t[:, 2]))
+        out[c0:c0 + len(p)] = best
+    return out
+
+
+def orient_sign(a, b, p):
+    """Exact sign of the 2D orientation (b - a) x (p - a) (rows of (y, z) pairs), with the point
+    perturbed to p + (e, e^2) for an infinitesimal e > 0 (simulation of simplicity): zero only
+    where a = b. float64 with a rounding filter; the few signs inside the filter exactly."""
+    t1 = (b[:, 0] - a[:, 0]) * (p[:, 1] - a[:, 1])
+    t2 = (b[:, 1] - a[:, 1]) * (p[:, 0] - a[:, 0])
+    det = t1 - t2
+    sign = np.sign(det)
+    unsure = np.nonzero(np.abs(det) <= ORIENT_ERR * (np.abs(t1) + np.abs(t2)))[0]
+    if len(unsure):
+        from fractions import Fraction as Q
+        for i in unsure:
+            ay, az, by, bz, py, pz = (Q(float(x)) for x in (a[i, 0], a[i, 1], b[i, 0], b[i, 1],
+                                                            p[i, 0], p[i, 1]))
+            e = (by - ay) * (pz - az) - (bz - az) * (py - ay)
+            sign[i] = (e > 0) - (e < 0)
+    # Zero: the e-term is -(bz - az), the e^2-term (by - ay) (signs of float differences are exact).
+    zero = sign == 0
+    tie = np.where(b[:, 1] != a[:, 1], np.sign(a[:, 1] - b[:, 1]), np.sign(b[:, 0] - a[:, 0]))
+    return np.where(zero, tie, sign)
+
+
+def mesh_inside(verts, faces, axes):
+    """Inside (True) or outside of a closed triangle mesh at every point of the grid `axes`: the
+    parity of the mesh's crossings of the grid line along x below the point. Whether a line
+    (y, z) meets a triangle is decided by exact orientation signs with the line moved to
+    (y + e, z + e^2), e infinitesimal, so it meets no edge or vertex and every crossing is
+    counted once; a grid point whose x rounds to the crossing's is within ~1e-16 of the surface,
+    where its sign does not matter. Raises if a line crosses an odd number of times (the mesh is
+    not closed)."""
+    ax, ay, az = axes
+    nx, ny, nz = len(ax), len(ay), len(az)
+    tri = verts[faces]
+    flat, lines = [], []
+    for c0 in range(0, len(tri), 20000):
+        t = tri[c0:c0 + 20000]
+        j0 = np.searchsorted(ay, t[:, :, 1].min(1), "left")
+        j1 = np.searchsorted(ay, t[:, :, 1].max(1), "right")
+        k0 = np.searchsorted(az, t[:, :, 2].min(1), "left")
+        k1 = np.searchsorted(az, t[:, :, 2].max(1), "right")
+        nj, nk = np.maximum(j1 - j0, 0), np.maximum(k1 - k0, 0)
+        cnt = nj * nk
+        ti = np.repeat(np.arange(len(t)), cnt)
+        if len(ti) == 0:
+            continue
+        local = np.arange(len(ti)) - np.repeat(np.cumsum(cnt) - cnt, cnt)
+        j = j0[ti] + local // nk[ti]
+        k = k0[ti] + local % nk[ti]
+        p = np.stack([ay[j], az[k]], axis=1)
+        a, b, c = t[ti, 0], t[ti, 1], t[ti, 2]
+        s_a = orient_sign(b[:, 1:], c[:, 1:], p)
+        s_b = orient_sign(c[:, 1:], a[:, 1:], p)
+        s_c = orient_sign(a[:, 1:], b[:, 1:], p)
+        hit = ((s_a > 0) & (s_b > 0) & (s_c > 0)) | ((s_a < 0) & (s_b < 0) & (s_c < 0))
+        if not hit.any():
+            continue
+        a, b, c, p, j, k = a[hit], b[hit], c[hit], p[hit], j[hit], k[hit]
+        # The crossing's x: barycentric weights are the sub-triangles' projected areas.
+        def area(u, v):
+            return (v[:, 1] - u[:, 1]) * (p[:, 1] - u[:, 2]) - (v[:, 2] - u[:, 2]) * (p[:, 0] - u[:, 1])
+        w = np.stack([area(b, c), area(c, a), area(a, b)], axis=1)
+        x = (w[:, 0] * a[:, 0] + w[:, 1] * b[:, 0] + w[:, 2] * c[:, 0]) / w.sum(axis=1)
+        i0 = np.searchsorted(ax, x, "right")
+        lines.append(j * nz + k)
+        keep = i0 < nx
+        flat.append((i0[keep] * ny + j[keep]) * nz + k[keep])
+    lines = np.concatenate(lines) if lines else np.zeros(0, int)
+    _, per_line = np.unique(lines, return_counts=True)
+    if np.any(per_line % 2):
+        raise RuntimeError(f"mesh_inside: {int(np.sum(per_line % 2))} grid lines cross the mesh "
+                           "an odd number of times: the mesh is not closed")
+    flip = np.zeros(nx * ny * nz, dtype=np.uint8)
+    if flat:
+        u, n = np.unique(np.concatenate(flat), return_counts=True)
+        flip[u] = n & 1
+    return np.bitwise_xor.accumulate(flip.reshape(nx, ny, nz), axis=0).astype(bool)
+
+
+def sign_change_corners(vol):
+    """Grid points that are corners of a cell whose corners are not all on one side of the level
+    0, for either way of counting a value exactly 0 (> 0 or >= 0): the only values marching cubes
+    reads for a cell that gives triangles (a cell with one class at all corners gives none)."""
+    need = np.zeros(vol.shape, dtype=bool)
+    for cls in (vol > 0, vol >= 0):
+        some = np.zeros(tuple(n - 1 for n in vol.shape), dtype=bool)
+        every = np.ones_like(some)
+        corners = [(a, b, c) for a in (0, 1) for b in (0, 1) for c in (0, 1)]
+        for a, b, c in corners:
+            part = cls[a:a + some.shape[0], b:b + some.shape[1], c:c + some.shape[2]]
+            some |= part
+            every &= part
+        mixed = some & ~every
+        del some, every
+        for a, b, c in corners:
+            need[a:a + mixed.shape[0], b:b + mixed.shape[1], c:c + mixed.shape[2]] |= mixed
+    return need
+
+
+def mesh_sdf(verts, faces, axes):
+    """Signed distance to a closed triangle mesh on the grid `axes` (negative inside), exact
+    where marching cubes reads it and clipped elsewhere. The sign is exact everywhere
+    (mesh_inside: ray parity); every point then gets +-(one cell diagonal), and the corners of
+    the cells whose corners change sign (sign_change_corners) the exact distance
+    (to_mesh_distance), repeated until no new such corner appears (an exact distance 0 can change
+    a cell's class). Marching cubes reads values only in cells whose corners change class, so its
+    mesh is the one of the exact signed distance everywhere, while the exact distances cost
+    ~ the surface's area / h^2 points, not the grid's volume, and memory is a few grid-sized
+    arrays (the whole-grid distance with trimesh's `contains` was OOM-killed at 24 GB at 33^3
+    points in session 22: its rays' bounding boxes meet most triangles)."""
+    h = np.array([a[1] - a[0] for a in axes])
+    clip = float(np.linalg.norm(h))
+    vol = np.where(mesh_inside(verts, faces, axes), -clip, clip)
+    exact = np.zeros(vol.shape, dtype=bool)
+    while True:
+        new = sign_change_corners(vol)
+        new &= ~exact
+        idx = np.flatnonzero(new)
+        del new
+        if len(idx) == 0:
+            return vol
+        exact.flat[idx] = True
+        for c0 in range(0, len(idx), 4 * MESH_CHUNK):
+            part = idx[c0:c0 + 4 * MESH_CHUNK]
+            i, j, k = np.unravel_index(part, vol.shape)
+            q = np.stack([axes[0][i], axes[1][j], axes[2][k]], axis=1)
+            vol.flat[part] = np.sign(vol.flat[part]) * to_mesh_distance(q, verts, faces)
 
 
 def mesh_samples(verts, faces):
@@ -617,9 +771,9 @@ def main():
     print(f"ism: {ISM}; output in {out}", file=sys.stderr)
     rows = []
     for key in args.only.split(","):
-        shape = bunny(out) if key == "bunny" else SHAPES[key]()
+        shape = scanned(key, out) if key in SCANNED else SHAPES[key]()
         if shape is None:
-            print("bunny: pymeshlab not installed, skipped", file=sys.stderr)
+            print(f"{key}: pymeshlab not installed, skipped", file=sys.stderr)
             continue
         shape["key"] = key
         d = shape["domain"]
@@ -738,18 +892,27 @@ def main():
         print(r)
 
 
-def bunny(out):
-    """The Stanford bunny from the pymeshlab wheel: fitted with `ism fit --mesh`; Z is the mesh,
-    its grid function for marching cubes the signed distance (sign by winding number)."""
+# Scanned meshes in the pymeshlab wheel's tests/sample_meshes: key -> (file, row name). Both are
+# closed (watertight, consistently wound) after trimesh's merge of duplicate vertices.
+SCANNED = {"bunny": ("bunny.obj", "Stanford bunny (pymeshlab wheel, closed)"),
+           "bone": ("bone.ply", "bone (pymeshlab wheel, closed)")}
+
+
+def scanned(key, out):
+    """A scanned mesh from the pymeshlab wheel (SCANNED): fitted with `ism fit --mesh` (written
+    as OBJ, the reader `ism fit` has); Z is the mesh, its grid function for marching cubes the
+    signed distance (mesh_sdf: the sign by ray parity along grid lines, the distance exact at
+    every value marching cubes reads)."""
     try:
         import pymeshlab
     except ImportError:
         return None
     import trimesh
-    src = os.path.join(os.path.dirname(pymeshlab.__file__), "tests", "sample_meshes", "bunny.obj")
+    file, name = SCANNED[key]
+    src = os.path.join(os.path.dirname(pymeshlab.__file__), "tests", "sample_meshes", file)
     m = trimesh.load(src, process=True, force="mesh")
     v, f = np.asarray(m.vertices, float), np.asarray(m.faces)
-    obj = os.path.join(out, "bunny.obj")
+    obj = os.path.join(out, key + ".obj")
     m.export(obj)
     lo, hi = v.min(0), v.max(0)
     diag = float(np.linalg.norm(hi - lo))
@@ -768,24 +931,13 @@ def bunny(out):
     zpts = np.concatenate(zs)
 
     def sdf(axes):
-        # One x-slab of grid points at a time, at most SDF_CHUNK points each: the whole grid at
-        # once (k-nearest indices, 16 triangles' distances per point, the inside test) was
-        # OOM-killed at 23 GB in session 21; the grid itself is a float64 array.
-        shape = tuple(len(a) for a in axes)
-        vol = np.empty(shape, dtype=np.float64)
-        y, z = np.meshgrid(axes[1], axes[2], indexing="ij")
-        per = max(1, SDF_CHUNK // y.size)
-        for i0 in range(0, shape[0], per):
-            xs = axes[0][i0:i0 + per]
-            q = np.stack([np.repeat(xs, y.size), np.tile(y.ravel(), len(xs)),
-                          np.tile(z.ravel(), len(xs))], axis=1)
-            d = to_mesh_distance(q, v, f)
-            inside = m.contains(q)
-            vol[i0:i0 + len(xs)] = np.where(inside, -d, d).reshape(len(xs), *shape[1:])
-        return vol
+        # Exact only where marching cubes reads it (mesh_sdf): trimesh's `contains` ray tests on
+        # the whole grid took 17 CPU-s at 16 cells and were OOM-killed at 24 GB at 32 (session 22).
+        return mesh_sdf(v, f, axes)
 
-    return dict(name="Stanford bunny (pymeshlab wheel, closed)", fit=["--mesh", obj],
-                domain=domain, g=None, grad=None, dist=None, genus=0, mesh=(v, f), zpts=zpts,
+    return dict(name=name, fit=["--mesh", obj],
+                domain=domain, g=None, grad=None, dist=None, mesh=(v, f), zpts=zpts,
+                genus=(2 - m.euler_number) // 2 if m.body_count == 1 else None,
                 sdf=sdf)
 
 
