@@ -207,7 +207,10 @@ pub fn build(
         });
     }
     progress.report_count(phase::PREPARING, 0, 0);
-    let eval = ModelEval::from_indexed(model)?;
+    // Fused maps (the extraction inverts every point it places; a projective monotonic stage
+    // merged into the next one halves the stages it evaluates, same map up to rounding) and no
+    // spatial index (nothing is located).
+    let eval = ModelEval::for_extraction(model)?;
     progress.check()?;
     progress.report_count(phase::EXTRACTING, 0, 0);
     let extract_options = ExtractOptions {

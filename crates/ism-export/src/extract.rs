@@ -197,12 +197,17 @@ fn surface_point(
         // `w = Y(u)` and `DY(u)` through the stored stages (as `LocalMap::param_solve`), keeping
         // `DY` itself as `DX⁻¹` rather than inverting `DX = DY⁻¹` back.
         let mut w = project(n + 1, u);
-        let mut dy = identity_mat(n);
+        let mut dy: Option<Mat> = None;
         for st in stages.iter().rev() {
             let (next, j) = st.jacobian_stored(&w);
-            dy = linalg::mul(n, &j, &dy);
+            // The first stage's Jacobian is the product so far (no product with the identity).
+            dy = Some(match dy {
+                Some(d) => linalg::mul(n, &j, &d),
+                None => j,
+            });
             w = next;
         }
+        let dy = dy.unwrap_or_else(|| identity_mat(n));
         let p = eval.point(s, &w);
         if let Some(dx) = linalg::inverse(n, &dy).filter(|_| p.iter().all(|x| x.is_finite())) {
             let g = eval.gradient_from_jacobian(s, &dx);

@@ -73,7 +73,10 @@ pub struct ModelEval {
     /// barycentric `w_{1..n} = A (p − v_0)`.
     inv_edges: Vec<[f64; 9]>,
     maps: Vec<OnceLock<LocalMap>>,
-    index: SpatialIndex,
+    /// Built with the tables, or on first use ([`ModelEval::for_extraction`]).
+    index: OnceLock<SpatialIndex>,
+    /// Whether the local maps are built [`LocalMap::fused`] ([`ModelEval::for_extraction`]).
+    fused: bool,
 }
 
 impl std::fmt::Debug for ModelEval {
@@ -91,11 +94,45 @@ struct Tables {
     n: usize,
     inv_edges: Vec<[f64; 9]>,
     maps: Vec<OnceLock<LocalMap>>,
-    index: SpatialIndex,
+    index: OnceLock<SpatialIndex>,
+}
+
+/// The spatial index of `model`'s top simplices (their bounding boxes), the boxes computed in
+/// parallel or not (not: inside a `OnceLock` initialiser, where a rayon worker waiting for its
+/// jobs could steal one that waits on the same lock).
+fn spatial_index(model: &Model, n: usize, parallel: bool) -> SpatialIndex {
+    let bbox = |s: usize| {
+        let mut lo = [0.0; 3];
+        let mut hi = [0.0; 3];
+        for (k, &v) in model.simplex(s).iter().enumerate() {
+            let p = model.vertex(v as usize);
+            for x in 0..n {
+                if k == 0 || p[x] < lo[x] {
+                    lo[x] = p[x];
+                }
+                if k == 0 || p[x] > hi[x] {
+                    hi[x] = p[x];
+                }
+            }
+        }
+        SimplexBox {
+            lo,
+            hi,
+            id: s as u32,
+        }
+    };
+    let ns = model.num_simplices();
+    let boxes: Vec<SimplexBox> = if parallel {
+        (0..ns).into_par_iter().map(bbox).collect()
+    } else {
+        (0..ns).map(bbox).collect()
+    };
+    SpatialIndex::build(n, boxes)
 }
 
 impl Tables {
-    fn build(model: &Model) -> Result<Tables> {
+    /// The tables of `model`; the spatial index too when `index`, else left for first use.
+    fn build(model: &Model, index: bool) -> Result<Tables> {
         let n = model.dim();
         if !(1..=3).contains(&n) {
             return Err(GeomError::Dimension(n));
@@ -126,30 +163,11 @@ impl Tables {
                 Ok(out)
             })
             .collect::<Result<Vec<_>>>()?;
-        let boxes: Vec<SimplexBox> = (0..ns)
-            .into_par_iter()
-            .map(|s| {
-                let mut lo = [0.0; 3];
-                let mut hi = [0.0; 3];
-                for (k, &v) in model.simplex(s).iter().enumerate() {
-                    let p = model.vertex(v as usize);
-                    for x in 0..n {
-                        if k == 0 || p[x] < lo[x] {
-                            lo[x] = p[x];
-                        }
-                        if k == 0 || p[x] > hi[x] {
-                            hi[x] = p[x];
-                        }
-                    }
-                }
-                SimplexBox {
-                    lo,
-                    hi,
-                    id: s as u32,
-                }
-            })
-            .collect();
-        let index = SpatialIndex::build(n, boxes);
+        let index = if index {
+            OnceLock::from(spatial_index(model, n, true))
+        } else {
+            OnceLock::new()
+        };
         let maps = if model.stages.is_empty() {
             Vec::new()
         } else {
@@ -170,6 +188,7 @@ impl Tables {
             inv_edges: self.inv_edges,
             maps: self.maps,
             index: self.index,
+            fused: false,
         }
     }
 }
@@ -190,7 +209,7 @@ impl ModelEval {
         // The tables first, the copy after: the copy does not add to the tables' peak memory.
         // The structural error, if any, is still the one reported (an indexing error comes
         // before a degenerate simplex, as when the copy was indexed first).
-        let tables = Tables::build(model);
+        let tables = Tables::build(model, true);
         let indexed = IndexedModel::for_evaluation(model.clone()).map_err(GeomError::from)?;
         Ok(tables?.with(indexed))
     }
@@ -201,7 +220,28 @@ impl ModelEval {
     /// # Errors
     /// [`GeomError::Degenerate`] for a simplex without an inverse edge matrix.
     pub fn from_indexed(indexed: &IndexedModel) -> Result<ModelEval> {
-        Ok(Tables::build(indexed)?.with(indexed.clone()))
+        Ok(Tables::build(indexed, true)?.with(indexed.clone()))
+    }
+
+    /// [`ModelEval::from_indexed`] for a caller that inverts many points and need not reproduce
+    /// the unfused bits (the exporter): its local maps are [`LocalMap::fused`] (a projective
+    /// monotonic stage and the Bézier or rational stage after it evaluated as one rational stage:
+    /// the same maps up to rounding, cheaper to evaluate and differentiate), and the spatial index
+    /// is only built if [`ModelEval::locate`] is called (an export never locates a point; the
+    /// index was ~2 % of a small model's export).
+    ///
+    /// # Errors
+    /// As [`ModelEval::from_indexed`].
+    pub fn for_extraction(indexed: &IndexedModel) -> Result<ModelEval> {
+        let mut eval = Tables::build(indexed, false)?.with(indexed.clone());
+        eval.fused = true;
+        Ok(eval)
+    }
+
+    /// The spatial index, built now if it was left for first use.
+    fn index(&self) -> &SpatialIndex {
+        self.index
+            .get_or_init(|| spatial_index(&self.model, self.n, false))
     }
 
     /// The model evaluated.
@@ -221,7 +261,7 @@ impl ModelEval {
 
     /// The spatial index chosen: `"grid"` (uniform grid) or `"rtree"` (graded meshes).
     pub fn index_kind(&self) -> &'static str {
-        self.index.kind()
+        self.index().kind()
     }
 
     /// Number of top simplices.
@@ -258,8 +298,13 @@ impl ModelEval {
             return IDENTITY[m].get_or_init(|| LocalMap::from_stages(m, Vec::new()));
         }
         self.maps[s].get_or_init(|| {
-            LocalMap::from_indexed(&self.model, s)
-                .expect("an indexed model's stage tables are complete")
+            let map = LocalMap::from_indexed(&self.model, s)
+                .expect("an indexed model's stage tables are complete");
+            if self.fused {
+                map.fused()
+            } else {
+                map
+            }
         })
     }
 
@@ -315,7 +360,7 @@ impl ModelEval {
         let mut q = [0.0; 3];
         q[..self.n].copy_from_slice(&p[..self.n]);
         let mut best: Option<(f64, usize, Bary)> = None;
-        self.index.candidates(&q, |s| {
+        self.index().candidates(&q, |s| {
             let w = self.barycentric(s, &q);
             let min = w[..=self.n].iter().copied().fold(f64::INFINITY, f64::min);
             if min < -LOCATE_TOLERANCE {

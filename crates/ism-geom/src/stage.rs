@@ -559,6 +559,70 @@ impl LocalStage {
             .collect();
     }
 
+    /// For an implicit monotonic stage of degree 1 whose maps all vanish at 0 (`g_i(t) = a_i t`,
+    /// `a_i > 0`: the stage is the projective map `u_i = a_i w_i / Σ_j a_j w_j`) followed by the
+    /// implicit Bézier or rational stage `next` in as many variables: the one rational stage equal
+    /// to the pair. With `s = Σ a_j w_j` and `v = (a ∘ w) / s`, a degree-`d` net gives
+    /// `Σ q_I b_I B_I(v) / Σ q_I B_I(v)` and `B_I(v) = a^I B_I(w) / s^d` (the `s^d` cancels), so
+    /// the weights become `q_I a^I` and the control points stay. `None` for any other pair.
+    fn fuse_projective(&self, next: &LocalStage) -> Option<LocalStage> {
+        let projective = self.kind == StageKind::Monotonic
+            && self.direction == Direction::Implicit
+            && !self.identity
+            && self.degree == 1
+            && self.mono.len() == 2 * self.m
+            && self
+                .mono
+                .chunks_exact(2)
+                .all(|c| c[0] == 0.0 && c[1] > 0.0 && c[1].is_finite());
+        let net = matches!(next.kind, StageKind::Bezier | StageKind::Rational)
+            && next.direction == Direction::Implicit
+            && !next.identity
+            && next.m == self.m
+            && next.points.len() == next.tables.exps.len();
+        if !projective || !net {
+            return None;
+        }
+        let weights: Vec<f64> = next
+            .tables
+            .exps
+            .iter()
+            .enumerate()
+            .map(|(r, e)| {
+                let mut q = if next.kind == StageKind::Rational {
+                    next.weights[r]
+                } else {
+                    1.0
+                };
+                for i in 0..self.m {
+                    for _ in 0..e[i] {
+                        q *= self.mono[2 * i + 1];
+                    }
+                }
+                q
+            })
+            .collect();
+        if !weights.iter().all(|q| *q > 0.0 && q.is_finite()) {
+            return None;
+        }
+        let mut fused = LocalStage {
+            kind: StageKind::Rational,
+            direction: Direction::Implicit,
+            degree: next.degree,
+            m: self.m,
+            identity: false,
+            tables: next.tables,
+            points: next.points.clone(),
+            weights,
+            weighted: Vec::new(),
+            mono: Vec::new(),
+            mono_scaled: Vec::new(),
+            mono_deriv: Vec::new(),
+        };
+        fused.finish_rational();
+        Some(fused)
+    }
+
     /// Scaled coefficients and derivative coefficients of the monotonic maps in `mono`.
     fn finish_monotonic(&mut self) {
         let d = self.degree as usize;
@@ -1476,6 +1540,27 @@ impl LocalMap {
         LocalMap { m, stages }
     }
 
+    /// The same map with each implicit projective stage (monotonic of degree 1, `g_i(t) = a_i t`)
+    /// that is followed by an implicit Bézier or rational stage merged into it as one rational
+    /// stage ([`LocalStage::fuse_projective`]): the spec examples' "vertex weights, then level
+    /// crossings" pair. One evaluation instead of two and no chain-rule product per Jacobian;
+    /// equal to the original map up to rounding (not bit for bit), so callers that must
+    /// reproduce the unfused bits keep the unfused map.
+    pub fn fused(self) -> LocalMap {
+        let mut stages = Vec::with_capacity(self.stages.len());
+        let mut it = self.stages.into_iter().peekable();
+        while let Some(stage) = it.next() {
+            match it.peek().and_then(|next| stage.fuse_projective(next)) {
+                Some(f) => {
+                    stages.push(f);
+                    it.next();
+                }
+                None => stages.push(stage),
+            }
+        }
+        LocalMap { m: self.m, stages }
+    }
+
     /// The non-identity stages, in application order.
     pub fn stages(&self) -> &[LocalStage] {
         &self.stages
@@ -1501,16 +1586,21 @@ impl LocalMap {
     pub fn jacobian(&self, w: &Bary) -> (Bary, Option<Mat>) {
         let n = self.m - 1;
         let mut u = *w;
-        let mut acc = identity_mat(n);
+        let mut acc: Option<Mat> = None;
         for s in &self.stages {
             let (next, j) = s.jacobian(&u);
             let Some(j) = j else {
                 return (self.eval(w), None);
             };
-            acc = linalg::mul(n, &j, &acc);
+            // The first stage's Jacobian is the product so far (a product with the identity
+            // would only add zeros: the same values, but for the sign of a zero entry).
+            acc = Some(match acc {
+                Some(a) => linalg::mul(n, &j, &a),
+                None => j,
+            });
             u = next;
         }
-        (u, Some(acc))
+        (u, Some(acc.unwrap_or_else(|| identity_mat(n))))
     }
 
     /// `det DX(w)` (reduced).
@@ -2048,6 +2138,72 @@ mod tests {
                 for (r, index) in all.chunks(m).enumerate() {
                     assert_eq!(small_rank(index), r, "{index:?}");
                     assert_eq!(small_rank(index), multi_index::rank(index));
+                }
+            }
+        }
+    }
+
+    /// A monotonic stage of degree `d` on `m` variables with the given per-vertex coefficients
+    /// (`d + 1` each).
+    fn monotonic_stage(m: usize, d: u32, coefficients: &[f64]) -> LocalStage {
+        let mut st = LocalStage::identity(StageKind::Monotonic, d, m).expect("identity stage");
+        st.identity = false;
+        st.mono = coefficients.to_vec();
+        st.mono_scaled.clear();
+        st.mono_deriv.clear();
+        st.finish_monotonic();
+        st
+    }
+
+    /// A projective monotonic stage (`g_i(t) = a_i t`) followed by a Bézier or rational stage is
+    /// fused into one rational stage that equals the composition (compared with the unfused
+    /// map's evaluation and chain-rule Jacobian at random points of the simplex and its faces, to
+    /// rounding); other pairs are left alone.
+    #[test]
+    fn fused_projective_stage_equals_the_composition() {
+        let mut rng = Stream(0x5eed_f00d);
+        for m in 2..=4usize {
+            for d in 1..=4u32 {
+                for kind in [StageKind::Bezier, StageKind::Rational] {
+                    let a: Vec<f64> = (0..m)
+                        .flat_map(|_| [0.0, 0.25 + 1.75 * rng.next()])
+                        .collect();
+                    let mono = monotonic_stage(m, 1, &a);
+                    let net = random_stage(kind, m, d, &mut rng);
+                    let map = LocalMap::from_stages(m, vec![mono.clone(), net.clone()]);
+                    let fused = map.clone().fused();
+                    assert_eq!(fused.stages().len(), 1, "{kind:?} m = {m} d = {d}");
+                    assert_eq!(fused.stages()[0].kind(), StageKind::Rational);
+                    assert_eq!(fused.stages()[0].direction(), Direction::Implicit);
+                    for _ in 0..50 {
+                        let w = random_point(m, &mut rng);
+                        let what = format!("{kind:?} m = {m} d = {d} at {w:?}");
+                        let (x, j) = map.jacobian(&w);
+                        let (xf, jf) = fused.jacobian(&w);
+                        let (j, jf) = (j.unwrap(), jf.unwrap());
+                        let scale = 1.0 + j.iter().flatten().map(|v| v.abs()).fold(0.0, f64::max);
+                        for i in 0..m {
+                            assert!((x[i] - xf[i]).abs() <= 1e-13 * scale, "{what}");
+                            assert!((map.eval(&w)[i] - fused.eval(&w)[i]).abs() <= 1e-13 * scale);
+                        }
+                        for (r, rf) in j.iter().zip(&jf) {
+                            for (v, vf) in r.iter().zip(rf) {
+                                assert!((v - vf).abs() <= 1e-12 * scale, "{what}: {j:?} {jf:?}");
+                            }
+                        }
+                    }
+                    // Not projective (g_i(0) ≠ 0, or degree 2), or in the other order: unchanged.
+                    let mut shifted = a.clone();
+                    shifted[0] = 0.1;
+                    let degree2: Vec<f64> = (0..m).flat_map(|_| [0.0, 0.4, 1.0]).collect();
+                    for stages in [
+                        vec![monotonic_stage(m, 1, &shifted), net.clone()],
+                        vec![monotonic_stage(m, 2, &degree2), net.clone()],
+                        vec![net.clone(), mono.clone()],
+                    ] {
+                        let kept = LocalMap::from_stages(m, stages).fused();
+                        assert_eq!(kept.stages().len(), 2, "{kind:?} m = {m} d = {d}");
+                    }
                 }
             }
         }

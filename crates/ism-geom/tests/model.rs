@@ -214,6 +214,9 @@ fn both_spatial_indices_agree_with_brute_force() {
         }
         let eval = ModelEval::new(&model).unwrap();
         assert_eq!(eval.index_kind(), if graded { "rtree" } else { "grid" });
+        // The exporter's evaluator builds its index on first use (sequentially): the same index.
+        let indexed = ism_format::IndexedModel::for_evaluation(model.clone()).unwrap();
+        let lazy = ModelEval::for_extraction(&indexed).unwrap();
         let hi = if graded { 8f64.powi(8) } else { 4.0 };
         let lo = if graded { 1.0 } else { 0.0 };
         for _ in 0..400 {
@@ -225,10 +228,15 @@ fn both_spatial_indices_agree_with_brute_force() {
                         .all(|&x| x >= -LOCATE_TOLERANCE)
                 })
                 .collect();
-            match eval.locate(&p) {
+            let located = eval.locate(&p);
+            match located {
                 Some(l) => assert!(brute.contains(&l.simplex)),
                 None => assert!(brute.is_empty(), "{p:?} missed: {brute:?}"),
             }
+            assert_eq!(
+                lazy.locate(&p).map(|l| l.simplex),
+                located.map(|l| l.simplex)
+            );
         }
     }
 }
