@@ -1383,10 +1383,13 @@ pub fn project(m: usize, u: &Bary) -> Bary {
     let mut out = [0.0; MAX_VARS];
     let mut s = 0.0;
     for i in 0..m {
-        if u[i].is_finite() && u[i] > 0.0 {
-            out[i] = u[i];
-            s += u[i];
-        }
+        // `0 < x ≤ MAX` is "finite and positive" (NaN fails it), written as one select so the
+        // loop has no branch: the exporter projects every point it places (~5 % of an export
+        // went to this line). Adding the 0.0 of a dropped entry leaves `s ≥ 0` unchanged.
+        let x = u[i];
+        let kept = if x > 0.0 && x <= f64::MAX { x } else { 0.0 };
+        out[i] = kept;
+        s += kept;
     }
     if s > 0.0 && (s - 1.0).abs() > PROJECT_SLACK {
         for v in out.iter_mut() {
