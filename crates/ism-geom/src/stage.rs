@@ -564,8 +564,9 @@ impl LocalStage {
     /// implicit Bézier or rational stage `next` in as many variables: the one rational stage equal
     /// to the pair. With `s = Σ a_j w_j` and `v = (a ∘ w) / s`, a degree-`d` net gives
     /// `Σ q_I b_I B_I(v) / Σ q_I B_I(v)` and `B_I(v) = a^I B_I(w) / s^d` (the `s^d` cancels), so
-    /// the weights become `q_I a^I` and the control points stay. `None` for any other pair.
-    fn fuse_projective(&self, next: &LocalStage) -> Option<LocalStage> {
+    /// the weights become `q_I a^I` and the control points move over from `next` (which the caller
+    /// then drops). `None`, with `next` untouched, for any other pair.
+    fn fuse_projective(&self, next: &mut LocalStage) -> Option<LocalStage> {
         let projective = self.kind == StageKind::Monotonic
             && self.direction == Direction::Implicit
             && !self.identity
@@ -612,7 +613,8 @@ impl LocalStage {
             m: self.m,
             identity: false,
             tables: next.tables,
-            points: next.points.clone(),
+            // The net is consumed by the fusion: its points move.
+            points: std::mem::take(&mut next.points),
             weights,
             weighted: Vec::new(),
             mono: Vec::new(),
@@ -626,6 +628,11 @@ impl LocalStage {
     /// Scaled coefficients and derivative coefficients of the monotonic maps in `mono`.
     fn finish_monotonic(&mut self) {
         let d = self.degree as usize;
+        // Exact sizes up front: growing both vectors push by push was most of a small model's
+        // monotonic stage construction.
+        let vertices = self.mono.len() / (d + 1);
+        self.mono_scaled.reserve_exact(vertices * (d + 1));
+        self.mono_deriv.reserve_exact(vertices * d);
         for coeffs in self.mono.chunks_exact(d + 1) {
             for (j, a) in coeffs.iter().enumerate() {
                 self.mono_scaled
@@ -1553,7 +1560,7 @@ impl LocalMap {
         let mut stages = Vec::with_capacity(self.stages.len());
         let mut it = self.stages.into_iter().peekable();
         while let Some(stage) = it.next() {
-            match it.peek().and_then(|next| stage.fuse_projective(next)) {
+            match it.peek_mut().and_then(|next| stage.fuse_projective(next)) {
                 Some(f) => {
                     stages.push(f);
                     it.next();
