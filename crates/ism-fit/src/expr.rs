@@ -752,6 +752,22 @@ pub struct Enclosure {
     pub gradient: Vec<Interval>,
 }
 
+/// What [`ImplicitFunction::pv_witness`] knows cheaply about a box: the value part of its
+/// enclosure and one gradient every box containing it has among its generators.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PvWitness {
+    /// [`Enclosure::value`] of [`ImplicitFunction::enclose`] over the box, bit for bit.
+    pub value: Interval,
+    /// A unit vector (the first `n` components) that, for every box `B` containing the box,
+    /// is bit for bit one of the vectors [`ImplicitFunction::gradient_generators`]`(B)` appends
+    /// and lies within [`GENERATOR_ERROR`] per component of [`Enclosure::gradient`] of
+    /// [`ImplicitFunction::enclose`]`(B)`.
+    pub normal: [f64; 3],
+    /// Whether [`Enclosure::gradient`] of [`ImplicitFunction::enclose`] over the box is exactly
+    /// `[-1, 1]` in every component (a mesh's, wherever the value enclosure excludes 0).
+    pub unit_gradient: bool,
+}
+
 /// Component-wise error allowed in the unit vectors of
 /// [`ImplicitFunction::gradient_generators`]: computed normals (a cross product of differences over
 /// its length) are within a few ulps; 10⁻⁹ is generous, as the mesh's own normal margin.
@@ -778,6 +794,34 @@ pub trait ImplicitFunction: Sync {
     /// (bilinearity), while a box of the same vectors loses that once they spread ±35° around an
     /// axis. A mesh's distance gives its nearby triangles' normals.
     fn gradient_generators(&self, _lo: &[f64], _hi: &[f64], _out: &mut Vec<f64>) -> bool {
+        false
+    }
+
+    /// A cheap [`PvWitness`] for the box `[lo, hi]`, or `None` (the default: the function has
+    /// none; also wherever [`ImplicitFunction::enclose`] is `None`). Two witnesses of boxes inside
+    /// a cell whose normals point apart (negative dot product) show, without the enclosures'
+    /// gradients or the generators, that the Plantinga–Vegter test of the cell fails: both lie in
+    /// every gradient enclosure and every generator set those boxes are part of. A mesh's
+    /// distance gives the normal of the triangle nearest to the box's centre (one nearest-point
+    /// query, where the generators cost 64 and a range query; issue 17, session 23).
+    ///
+    /// A function that gives witnesses has enclosures wherever it gives one, with no NaN
+    /// bound in their gradients (the test skips enclosures that [`PvWitness::unit_gradient`]
+    /// already names).
+    fn pv_witness(&self, _lo: &[f64], _hi: &[f64]) -> Option<PvWitness> {
+        None
+    }
+
+    /// Appends unit vectors that hold, bit for bit, every vector
+    /// [`ImplicitFunction::gradient_generators`] appends for each of `boxes` (and maybe more),
+    /// and returns `true`; `false` (appending nothing) when the function has none to give (the
+    /// default). When these agree pairwise so do the boxes' generators: the Plantinga–Vegter
+    /// test passes on them without computing them.
+    fn gradient_generators_superset(
+        &self,
+        _boxes: &[(&[f64], &[f64])],
+        _out: &mut Vec<f64>,
+    ) -> bool {
         false
     }
 

@@ -1058,14 +1058,83 @@ fn measure_patch<G: ImplicitFunction + ?Sized>(
     r
 }
 
+/// [`measure_cached`] without the regions, keeping the points they are measured from: the
+/// fitter decides which regions to report on only after its last measure (the
+/// Plantinga–Vegter status of the final complex), so every round's measure keeps them and
+/// [`RegionPoints::regions`] gives the same numbers as [`measure_cached`] with those regions.
+///
+/// # Errors
+/// The kernel's error when the model does not evaluate.
+pub fn measure_cached_keeping_points<G: ImplicitFunction + ?Sized>(
+    g: &G,
+    model: &IndexedModel,
+    domain: &[f64],
+    tolerance: f64,
+    cache: &mut MeasureCache,
+) -> Result<(Measure, RegionPoints), ism_geom::GeomError> {
+    measure_points(g, model, domain, tolerance, true, Some(cache))
+}
+
+/// The points a measure's [`Region`]s are taken from: each patch's `S → Z` samples with their
+/// bounds, and the `Z → S` cover's points with their estimates.
+#[derive(Clone, Debug, Default)]
+pub struct RegionPoints {
+    patches: Vec<std::sync::Arc<PatchResult>>,
+    leaves: Vec<([f64; 3], f64)>,
+}
+
+impl RegionPoints {
+    /// The errors near each `(centre, radius)`: the largest `S → Z` bound at the samples and
+    /// the largest `Z → S` estimate of the cover within the ball.
+    pub fn regions(&self, regions: &[(Vec<f64>, f64)]) -> Vec<Region> {
+        regions
+            .iter()
+            .map(|(centre, radius)| {
+                let near = |p: &[f64; 3]| distance(centre, p) <= *radius;
+                Region {
+                    centre: centre.clone(),
+                    radius: *radius,
+                    shape_to_target: self
+                        .patches
+                        .iter()
+                        .flat_map(|r| &r.points)
+                        .filter(|(p, _)| near(p))
+                        .map(|x| x.1)
+                        .fold(0.0, f64::max),
+                    target_to_shape: self
+                        .leaves
+                        .iter()
+                        .filter(|(p, _)| near(p))
+                        .map(|x| x.1)
+                        .fold(0.0, f64::max),
+                }
+            })
+            .collect()
+    }
+}
+
 fn measure_with<G: ImplicitFunction + ?Sized>(
     g: &G,
     model: &IndexedModel,
     domain: &[f64],
     tolerance: f64,
     regions: &[(Vec<f64>, f64)],
-    mut cache: Option<&mut MeasureCache>,
+    cache: Option<&mut MeasureCache>,
 ) -> Result<Measure, ism_geom::GeomError> {
+    let (mut m, points) = measure_points(g, model, domain, tolerance, !regions.is_empty(), cache)?;
+    m.regions = points.regions(regions);
+    Ok(m)
+}
+
+/// The measure without its regions, and (when `want_points`) the points they are taken from.
+fn measure_points<G: ImplicitFunction + ?Sized>(
+    g: &G,
+    model: &IndexedModel,
+    domain: &[f64],
+    tolerance: f64,
+    want_points: bool,
+    mut cache: Option<&mut MeasureCache>,
+) -> Result<(Measure, RegionPoints), ism_geom::GeomError> {
     let shape = Shape::new(model)?;
     let n = shape.n;
     let reach = domain
@@ -1075,7 +1144,6 @@ fn measure_with<G: ImplicitFunction + ?Sized>(
         .sqrt();
 
     // S → Z at the report samples, per patch: from the cache where the patch is unchanged.
-    let want_points = !regions.is_empty();
     let settings: Vec<u64> = domain
         .iter()
         .chain([&tolerance])
@@ -1264,28 +1332,15 @@ fn measure_with<G: ImplicitFunction + ?Sized>(
         Vec::new()
     };
 
-    let regions = regions
-        .iter()
-        .map(|(centre, radius)| {
-            let near = |p: &[f64; 3]| distance(centre, p) <= *radius;
-            Region {
-                centre: centre.clone(),
-                radius: *radius,
-                shape_to_target: per_patch
-                    .iter()
-                    .flat_map(|r| &r.points)
-                    .filter(|(p, _)| near(p))
-                    .map(|x| x.1)
-                    .fold(0.0, f64::max),
-                target_to_shape: leaves
-                    .iter()
-                    .filter(|(p, _)| near(p))
-                    .map(|x| x.1)
-                    .fold(0.0, f64::max),
-            }
-        })
-        .collect();
-    Ok(Measure {
+    let points = if want_points {
+        RegionPoints {
+            patches: per_patch,
+            leaves,
+        }
+    } else {
+        RegionPoints::default()
+    };
+    let measure = Measure {
         shape_to_target,
         shape_to_target_mean: mean,
         shape_to_target_at,
@@ -1299,9 +1354,10 @@ fn measure_with<G: ImplicitFunction + ?Sized>(
         target_to_shape_at: target_at,
         cover,
         cells: shape.patches.len(),
-        regions,
+        regions: Vec::new(),
         misses,
-    })
+    };
+    Ok((measure, points))
 }
 
 /// An upper bound of `dist(c, S)`, from the nearest cloud points on up to
@@ -2608,6 +2664,46 @@ mod tests {
             let again = measure(&g, &indexed(&nudged), &domain, 2.0 * tolerance, &[]).unwrap();
             assert!(same(&other, &again));
         }
+    }
+
+    /// The fitter names the regions to report on after its last measure: the regions from
+    /// [`measure_cached_keeping_points`]'s points are the numbers [`measure`] gives with the
+    /// regions up front (the whole measure compared through its `Debug` text), fresh and with
+    /// every patch from the cache; and they are not empty numbers.
+    #[test]
+    fn regions_named_after_the_measure_are_those_named_before() {
+        let domain = vec![-1.0, 1.0, -1.0, 1.0];
+        let tolerance = 2e-3;
+        let g = Expression::parse("x^2/0.81 + y^2/0.09 - 1", 2).unwrap();
+        let mut options = crate::FitOptions::new(&domain);
+        options.tolerance = tolerance;
+        let fitted = crate::fit(&g, &options, &ism_format::Progress::none()).unwrap();
+        let model = IndexedModel::for_evaluation(fitted.to_model("regions")).unwrap();
+        // Around points of the ellipse, and one off it that holds no sample.
+        let regions: Vec<(Vec<f64>, f64)> = [(0.9, 0.0, 0.1), (0.0, 0.3, 0.2), (0.5, 0.2497, 0.05)]
+            .iter()
+            .map(|&(x, y, r)| (vec![x, y], r))
+            .chain([(vec![0.0, 0.0], 0.01)])
+            .collect();
+        let up_front = measure(&g, &model, &domain, tolerance, &regions).unwrap();
+        let mut cache = MeasureCache::new();
+        for pass in 0..2 {
+            let (mut m, points) =
+                measure_cached_keeping_points(&g, &model, &domain, tolerance, &mut cache).unwrap();
+            assert!(m.regions.is_empty());
+            m.regions = points.regions(&regions);
+            assert_eq!(format!("{m:?}"), format!("{up_front:?}"), "pass {pass}");
+            assert_eq!(cache.reused(), if pass == 0 { 0 } else { m.cells });
+        }
+        let r = &up_front.regions;
+        assert_eq!(r.len(), 4);
+        assert!(
+            r[..3]
+                .iter()
+                .all(|r| r.shape_to_target > 0.0 && r.target_to_shape > 0.0),
+            "{r:?}"
+        );
+        assert_eq!((r[3].shape_to_target, r[3].target_to_shape), (0.0, 0.0));
     }
 
     #[test]

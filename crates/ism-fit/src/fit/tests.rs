@@ -739,3 +739,118 @@ fn bad_options_are_errors() {
         ));
     }
 }
+
+/// A closed prism along z (length 1.2) over the triangle `(−0.7, −0.2)`, `(0.7, −0.2)`,
+/// `(0.7, 0.175)`: a 15° edge along its left side, where the two faces' outward normals are 165°
+/// apart; triangles oriented outward from the centroid.
+fn sharp_prism() -> crate::mesh::TriangleMesh {
+    let section = [[-0.7, -0.2], [0.7, -0.2], [0.7, 0.175]];
+    let mut positions = Vec::new();
+    for z in [-0.6, 0.6] {
+        positions.extend(section.iter().map(|p| [p[0], p[1], z]));
+    }
+    let mut triangles: Vec<[u32; 3]> = [[0, 1, 4, 3], [1, 2, 5, 4], [2, 0, 3, 5]]
+        .iter()
+        .flat_map(|q| [[q[0], q[1], q[2]], [q[0], q[2], q[3]]])
+        .collect();
+    triangles.extend([[0, 2, 1], [3, 4, 5]]);
+    let centre = [0.7 / 3.0, -0.075, 0.0];
+    let sub = |a: [f64; 3], b: [f64; 3]| [a[0] - b[0], a[1] - b[1], a[2] - b[2]];
+    for t in &mut triangles {
+        let [a, b, c] = t.map(|i| positions[i as usize]);
+        let (u, v, w) = (sub(b, a), sub(c, a), sub(a, centre));
+        let n = [
+            u[1] * v[2] - u[2] * v[1],
+            u[2] * v[0] - u[0] * v[2],
+            u[0] * v[1] - u[1] * v[0],
+        ];
+        if n[0] * w[0] + n[1] * w[1] + n[2] * w[2] < 0.0 {
+            t.swap(1, 2);
+        }
+    }
+    crate::mesh::TriangleMesh {
+        positions,
+        triangles,
+    }
+}
+
+/// A closed torus mesh (radii 1 and 0.4, 32 × 12 quads split in two): smooth, with saddles.
+fn torus_mesh() -> crate::mesh::TriangleMesh {
+    let (n, m) = (32u32, 12u32);
+    let tau = std::f64::consts::TAU;
+    let mut positions = Vec::new();
+    for i in 0..n {
+        for j in 0..m {
+            let (u, v) = (tau * i as f64 / n as f64, tau * j as f64 / m as f64);
+            let r = 1.0 + 0.4 * v.cos();
+            positions.push([r * u.cos(), r * u.sin(), 0.4 * v.sin()]);
+        }
+    }
+    let id = |i: u32, j: u32| (i % n) * m + (j % m);
+    let mut triangles = Vec::new();
+    for i in 0..n {
+        for j in 0..m {
+            let q = [id(i, j), id(i + 1, j), id(i + 1, j + 1), id(i, j + 1)];
+            triangles.push([q[0], q[1], q[2]]);
+            triangles.push([q[0], q[2], q[3]]);
+        }
+    }
+    crate::mesh::TriangleMesh {
+        positions,
+        triangles,
+    }
+}
+
+/// The Plantinga–Vegter test with its shortcuts for a mesh (witnesses, the generators'
+/// superset, the generators' early exit, the hull skipped where a witness shows it fails) gives
+/// the answer of the test without them ([`Fitter::pv_passes_reference`], session 22's code) on
+/// every cell of complexes (6³ grid) refined three times around the surface of a prism with a 15° edge
+/// (normals 165° apart) and of a smooth torus — and each shortcut decides some cells, so the
+/// comparison covers them.
+#[test]
+fn the_plantinga_vegter_shortcuts_give_the_reference_answer_on_every_cell() {
+    let (mut witnessed, mut hull_known, mut by_superset) = (0, 0, 0);
+    let (mut passed, mut failed) = (0, 0);
+    for (name, mesh, domain) in [
+        ("prism", sharp_prism(), [-0.9, 0.9, -0.5, 0.5, -0.8, 0.8]),
+        ("torus", torus_mesh(), [-1.6, 1.6, -1.6, 1.6, -0.6, 0.6]),
+    ] {
+        let g = crate::mesh::MeshDistance::new(mesh).unwrap();
+        let mut options = FitOptions::new(&domain);
+        options.resolution = 6;
+        let mut fitter = Fitter::new(&g, &options);
+        fitter.set_values_for_new_vertices();
+        for _ in 0..3 {
+            for c in fitter.crossing_cells() {
+                if fitter.complex.is_alive(c) {
+                    fitter.refine(c);
+                }
+            }
+        }
+        let cells = fitter.complex.live_cells();
+        assert!(cells.len() > 1000, "{name}: {} cells", cells.len());
+        for &c in &cells {
+            let expected = fitter.pv_passes_reference(c);
+            assert_eq!(fitter.pv_passes(c), expected, "{name}, cell {c}");
+            let (lo, hi) = fitter.complex.bounding_box(c);
+            match fitter.pv_witnessed(c, &lo, &hi) {
+                Witnessed::Fails => witnessed += 1,
+                Witnessed::HullFails => hull_known += 1,
+                Witnessed::Undecided => {}
+            }
+            if let Some(inside) = simplex_test(&fitter.complex, c) {
+                by_superset += usize::from(fitter.superset_agrees(&lo, &hi, &inside));
+            }
+            passed += usize::from(expected);
+            failed += usize::from(!expected);
+        }
+    }
+    assert!(
+        witnessed > 200 && hull_known > 200 && by_superset > 200,
+        "{witnessed} failed by witnesses, {hull_known} hull known, {by_superset} by the superset"
+    );
+    assert!(
+        passed > 1000 && failed > 1000,
+        "{passed} passed, {failed} failed"
+    );
+}

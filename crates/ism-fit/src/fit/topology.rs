@@ -12,7 +12,288 @@ impl Fitter<'_> {
     /// over them. Both cover `C`, so both are sound; the parts hug the simplex, which fills only
     /// `1/n!` of its box (a Kuhn cell lies along the box's diagonal), so fewer cells fail that
     /// contain no zero, and the gradient's range is taken over less.
+    ///
+    /// Where the function gives [`PvWitness`](crate::expr::PvWitness)es (a mesh) they are asked first
+    /// ([`Fitter::pv_witnessed`]): they decide most failing cells for one nearest-point query
+    /// per part; the rest goes through [`Fitter::pv_passes_by_enclosures`]. The same answer as
+    /// without them, for every cell (test
+    /// `the_plantinga_vegter_shortcuts_give_the_reference_answer_on_every_cell`).
     pub(super) fn pv_passes(&self, c: u32) -> bool {
+        let (lo, hi) = self.complex.bounding_box(c);
+        match self.pv_witnessed(c, &lo, &hi) {
+            Witnessed::Fails => false,
+            w => self.pv_passes_by_enclosures(c, &lo, &hi, w == Witnessed::HullFails),
+        }
+    }
+
+    /// What the function's [`PvWitness`](crate::expr::PvWitness)es tell about [`Fitter::pv_passes_by_enclosures`] on
+    /// cell `c` (bounding box `[lo, hi]`), from the box and the [`PV_SPLIT`]`ⁿ` parts meeting
+    /// the cell:
+    /// - [`Witnessed::Fails`] when the box's value enclosure holds 0, so does one part's, and
+    ///   the witnesses of two parts point apart (dot product ≤ −[`GENERATOR_DOT_MARGIN`]). Both
+    ///   witnesses lie in the box's gradient enclosure and in the parts' hull (each within
+    ///   [`GENERATOR_ERROR`](crate::expr::GENERATOR_ERROR) per component, which moves the dot
+    ///   product by < [`GENERATOR_DOT_MARGIN`]), so neither interval test can pass; and both are
+    ///   among the parts' generators, whose pairwise test then fails.
+    /// - [`Witnessed::HullFails`] when instead one part's value enclosure holds 0 and another
+    ///   part's gradient enclosure is the unit box: the hull test then fails (its dot product's
+    ///   lower bound is ≤ −1), only the box's and the generators' tests are left.
+    /// - [`Witnessed::Undecided`] otherwise (also when the function has no witnesses).
+    ///
+    /// For a mesh a witness is one nearest-point query, where a part's gradient enclosure or
+    /// generators cost 64 and a range query: most cells of the Stanford bunny fail the test
+    /// (issue 17, session 23).
+    pub(super) fn pv_witnessed(&self, c: u32, lo: &[f64], hi: &[f64]) -> Witnessed {
+        let Some(whole) = self.g.pv_witness(lo, hi) else {
+            return Witnessed::Undecided;
+        };
+        if !whole.value.contains(0.0) {
+            return Witnessed::Undecided;
+        }
+        let n = self.n;
+        let Some(inside) = simplex_test(&self.complex, c) else {
+            return Witnessed::Undecided;
+        };
+        let m = PV_SPLIT;
+        let (mut zero, mut unit) = (false, false);
+        let mut normals: Vec<[f64; 3]> = Vec::with_capacity(m.pow(n as u32));
+        let (mut l, mut h) = (vec![0.0; n], vec![0.0; n]);
+        let mut meeting: Vec<usize> = Vec::with_capacity(m.pow(n as u32));
+        for idx in 0..m.pow(n as u32) {
+            sub_box(lo, hi, m, idx, &mut l, &mut h);
+            if !inside(&l, &h) {
+                continue;
+            }
+            let Some(w) = self.g.pv_witness(&l, &h) else {
+                return Witnessed::Undecided;
+            };
+            zero |= w.value.contains(0.0) || w.value.lo.is_nan();
+            unit |= w.unit_gradient;
+            if !normals.contains(&w.normal) {
+                normals.push(w.normal);
+            }
+            meeting.push(idx);
+        }
+        if !zero {
+            return Witnessed::Undecided;
+        }
+        let dot = |a: &[f64; 3], b: &[f64; 3]| {
+            a[..n].iter().zip(&b[..n]).map(|(x, y)| x * y).sum::<f64>()
+        };
+        let apart_from = |normals: &[[f64; 3]], from: usize| {
+            normals.iter().enumerate().skip(from).any(|(i, b)| {
+                normals[..i]
+                    .iter()
+                    .any(|a| dot(a, b) <= -GENERATOR_DOT_MARGIN)
+            })
+        };
+        let mut apart = apart_from(&normals, 1);
+        if !apart {
+            // Then the parts' corners (points of the parts: the witness of the point
+            // `[p, p]` is a generator of every part containing it), each once.
+            let from = normals.len().max(1);
+            let mut done: HashSet<usize> = HashSet::new();
+            let mut p = vec![0.0; n];
+            for &idx in &meeting {
+                for mask in 0..1usize << n {
+                    let mut rest = idx;
+                    let mut key = 0;
+                    for k in 0..n {
+                        let i = rest % m + (mask >> k & 1);
+                        rest /= m;
+                        key = key * (m + 1) + i;
+                        let w = (hi[k] - lo[k]) / m as f64;
+                        p[k] = if i == m { hi[k] } else { lo[k] + i as f64 * w };
+                    }
+                    if !done.insert(key) {
+                        continue;
+                    }
+                    if let Some(w) = self.g.pv_witness(&p, &p) {
+                        if !normals.contains(&w.normal) {
+                            normals.push(w.normal);
+                        }
+                    }
+                }
+            }
+            apart = apart_from(&normals, from);
+        }
+        if apart {
+            Witnessed::Fails
+        } else if unit {
+            Witnessed::HullFails
+        } else {
+            Witnessed::Undecided
+        }
+    }
+
+    /// [`Fitter::pv_passes`] from the enclosures and generators alone (see there); `hull_fails`:
+    /// the parts' hull test is known to fail and one part's value enclosure to hold 0
+    /// ([`Witnessed::HullFails`]), so their enclosures are not computed.
+    pub(super) fn pv_passes_by_enclosures(
+        &self,
+        c: u32,
+        lo: &[f64],
+        hi: &[f64],
+        hull_fails: bool,
+    ) -> bool {
+        let Some(enc) = self.g.enclose(lo, hi) else {
+            return true;
+        };
+        if !enc.value.contains(0.0) || gradients_agree(&enc.gradient) {
+            return true;
+        }
+        let n = self.n;
+        let Some(inside) = simplex_test(&self.complex, c) else {
+            return false;
+        };
+        if hull_fails {
+            return self.generators_agree(lo, hi, &inside);
+        }
+        let m = PV_SPLIT;
+        let mut hull: Vec<Option<(f64, f64)>> = vec![None; n];
+        let mut zero = false;
+        let (mut l, mut h) = (vec![0.0; n], vec![0.0; n]);
+        for idx in 0..m.pow(n as u32) {
+            sub_box(lo, hi, m, idx, &mut l, &mut h);
+            if !inside(&l, &h) {
+                continue;
+            }
+            let Some(e) = self.g.enclose(&l, &h) else {
+                return false;
+            };
+            zero |= e.value.contains(0.0) || e.value.lo.is_nan();
+            for (acc, gk) in hull.iter_mut().zip(&e.gradient) {
+                let (a, b) = (gk.lo, gk.hi);
+                if a.is_nan() || b.is_nan() {
+                    return false;
+                }
+                *acc = Some(acc.map_or((a, b), |(x, y)| (x.min(a), y.max(b))));
+            }
+        }
+        if !zero {
+            return true;
+        }
+        let gradient: Vec<crate::interval::Interval> = hull
+            .iter()
+            .map(|x| {
+                x.map_or(crate::interval::Interval::ENTIRE, |(a, b)| {
+                    crate::interval::Interval::new(a, b)
+                })
+            })
+            .collect();
+        gradients_agree(&gradient) || self.generators_agree(lo, hi, &inside)
+    }
+
+    /// The cells of `cells` that fail [`Fitter::pv_passes`], in their order: cells not tested
+    /// before in parallel, the others from [`Fitter::pv`] (under `cfg(test)` re-tested and checked
+    /// to give the same answer).
+    pub(super) fn pv_failing(&mut self, cells: Vec<u32>) -> Vec<u32> {
+        let fresh: Vec<(u32, bool)> = {
+            let f = &*self;
+            cells
+                .par_iter()
+                .filter(|c| !f.pv.contains_key(c))
+                .map(|&c| (c, f.pv_passes(c)))
+                .collect()
+        };
+        #[cfg(test)]
+        {
+            let f = &*self;
+            cells.par_iter().for_each(|c| {
+                if let Some(&known) = f.pv.get(c) {
+                    assert_eq!(known, f.pv_passes(*c), "cached PV status of cell {c}");
+                }
+            });
+        }
+        self.pv.extend(fresh);
+        cells.into_iter().filter(|c| !self.pv[c]).collect()
+    }
+
+    /// The Plantinga–Vegter test from the function's gradient generators over the sub-boxes of
+    /// `[lo, hi]` that meet the cell (see [`ImplicitFunction::gradient_generators`]); `false`
+    /// when it has none. The answer of [`unit_vectors_agree`] on their distinct vectors, found
+    /// sooner where it can be: `true` when a superset of them agrees
+    /// ([`Fitter::superset_agrees`]); `false` as soon as two of those gathered so far do not
+    /// (the pairwise test over all of them then fails: the quick test in
+    /// [`unit_vectors_agree`] passes only vectors whose pairwise dot products are above ~10⁻⁸).
+    pub(super) fn generators_agree(
+        &self,
+        lo: &[f64],
+        hi: &[f64],
+        inside: &impl Fn(&[f64], &[f64]) -> bool,
+    ) -> bool {
+        let n = self.n;
+        let m = PV_SPLIT;
+        if self.superset_agrees(lo, hi, inside) {
+            return true;
+        }
+        let mut generators = Vec::new();
+        let (mut l, mut h) = (vec![0.0; n], vec![0.0; n]);
+        // The distinct vectors so far: a pair of them at or below the margin decides (the
+        // pairwise test over all of them fails), so the remaining parts are not asked.
+        let mut seen: HashSet<Vec<u64>> = HashSet::new();
+        let mut distinct: Vec<f64> = Vec::new();
+        let dot = |a: &[f64], b: &[f64]| a.iter().zip(b).map(|(x, y)| x * y).sum::<f64>();
+        for idx in 0..m.pow(n as u32) {
+            sub_box(lo, hi, m, idx, &mut l, &mut h);
+            if !inside(&l, &h) {
+                continue;
+            }
+            let from = generators.len();
+            if !self.g.gradient_generators(&l, &h, &mut generators) {
+                return false;
+            }
+            for v in generators[from..].chunks_exact(n) {
+                if !seen.insert(v.iter().map(|x| x.to_bits()).collect()) {
+                    continue;
+                }
+                if distinct.len() / n >= MAX_GENERATORS
+                    || distinct
+                        .chunks_exact(n)
+                        .any(|u| dot(u, v) <= GENERATOR_DOT_MARGIN)
+                {
+                    return false;
+                }
+                distinct.extend_from_slice(v);
+            }
+        }
+        // Neighbouring sub-boxes give mostly the same vectors: each once (bit-equal copies).
+        unit_vectors_agree(n, &distinct_vectors(n, &generators))
+    }
+
+    /// Whether the function's superset of the generators of the sub-boxes of `[lo, hi]` that
+    /// meet the cell ([`ImplicitFunction::gradient_generators_superset`]) agrees pairwise: then
+    /// so do the generators themselves (fewer vectors, the same bits, and at least one — a
+    /// sub-box meets the cell when this is asked), and [`Fitter::generators_agree`] is `true`.
+    /// `false` when undecided. For a mesh the superset costs about one sub-box's generators
+    /// where the exact set costs every sub-box's; it decided half of the bunny's passing cells
+    /// that got this far (issue 17, session 23).
+    pub(super) fn superset_agrees(
+        &self,
+        lo: &[f64],
+        hi: &[f64],
+        inside: &impl Fn(&[f64], &[f64]) -> bool,
+    ) -> bool {
+        let n = self.n;
+        let m = PV_SPLIT;
+        let (mut l, mut h) = (vec![0.0; n], vec![0.0; n]);
+        let parts: Vec<(Vec<f64>, Vec<f64>)> = (0..m.pow(n as u32))
+            .filter_map(|idx| {
+                sub_box(lo, hi, m, idx, &mut l, &mut h);
+                inside(&l, &h).then(|| (l.clone(), h.clone()))
+            })
+            .collect();
+        let boxes: Vec<(&[f64], &[f64])> = parts.iter().map(|(a, b)| (&a[..], &b[..])).collect();
+        let mut superset = Vec::new();
+        !boxes.is_empty()
+            && self.g.gradient_generators_superset(&boxes, &mut superset)
+            && unit_vectors_agree(n, &distinct_vectors(n, &superset))
+    }
+
+    /// [`Fitter::pv_passes`] as it was before the witnesses, the superset and the early exit
+    /// (session 22): the reference the tests hold the faster test to.
+    #[cfg(test)]
+    pub(super) fn pv_passes_reference(&self, c: u32) -> bool {
         let (lo, hi) = self.complex.bounding_box(c);
         let Some(enc) = self.g.enclose(&lo, &hi) else {
             return true;
@@ -56,64 +337,17 @@ impl Fitter<'_> {
                 })
             })
             .collect();
-        gradients_agree(&gradient) || self.generators_agree(&lo, &hi, &inside)
-    }
-
-    /// The cells of `cells` that fail [`Fitter::pv_passes`], in their order: cells not tested
-    /// before in parallel, the others from [`Fitter::pv`] (under `cfg(test)` re-tested and checked
-    /// to give the same answer).
-    pub(super) fn pv_failing(&mut self, cells: Vec<u32>) -> Vec<u32> {
-        let fresh: Vec<(u32, bool)> = {
-            let f = &*self;
-            cells
-                .par_iter()
-                .filter(|c| !f.pv.contains_key(c))
-                .map(|&c| (c, f.pv_passes(c)))
-                .collect()
-        };
-        #[cfg(test)]
-        {
-            let f = &*self;
-            cells.par_iter().for_each(|c| {
-                if let Some(&known) = f.pv.get(c) {
-                    assert_eq!(known, f.pv_passes(*c), "cached PV status of cell {c}");
-                }
-            });
+        if gradients_agree(&gradient) {
+            return true;
         }
-        self.pv.extend(fresh);
-        cells.into_iter().filter(|c| !self.pv[c]).collect()
-    }
-
-    /// The Plantinga–Vegter test from the function's gradient generators over the sub-boxes of
-    /// `[lo, hi]` that meet the cell (see [`ImplicitFunction::gradient_generators`]); `false`
-    /// when it has none.
-    pub(super) fn generators_agree(
-        &self,
-        lo: &[f64],
-        hi: &[f64],
-        inside: &impl Fn(&[f64], &[f64]) -> bool,
-    ) -> bool {
-        let n = self.n;
-        let m = PV_SPLIT;
         let mut generators = Vec::new();
-        let (mut l, mut h) = (vec![0.0; n], vec![0.0; n]);
         for idx in 0..m.pow(n as u32) {
-            sub_box(lo, hi, m, idx, &mut l, &mut h);
+            sub_box(&lo, &hi, m, idx, &mut l, &mut h);
             if inside(&l, &h) && !self.g.gradient_generators(&l, &h, &mut generators) {
                 return false;
             }
         }
-        // Neighbouring sub-boxes give mostly the same vectors: each once (bit-equal copies).
-        let mut unique: Vec<&[f64]> = generators.chunks_exact(n).collect();
-        unique.sort_unstable_by(|a, b| {
-            a.iter()
-                .zip(*b)
-                .map(|(x, y)| x.total_cmp(y))
-                .find(|o| o.is_ne())
-                .unwrap_or(std::cmp::Ordering::Equal)
-        });
-        unique.dedup();
-        unit_vectors_agree(n, &unique.concat())
+        unit_vectors_agree(n, &distinct_vectors(n, &generators))
     }
 
     /// Groups `cells` into clusters of cells within `2·size` of each other (a grid hash of cell
@@ -317,4 +551,29 @@ pub(super) fn simplex_test(complex: &Complex, c: u32) -> Option<impl Fn(&[f64], 
         }
         !beyond[..=n].iter().any(|&b| b)
     })
+}
+
+/// What [`Fitter::pv_witnessed`] found.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(super) enum Witnessed {
+    /// The Plantinga–Vegter test fails.
+    Fails,
+    /// The test's hull stage fails and a part meeting the cell may hold a zero.
+    HullFails,
+    /// Nothing known.
+    Undecided,
+}
+
+/// The distinct vectors of `flat` (`n` numbers each; bit-equal copies once), sorted.
+pub(super) fn distinct_vectors(n: usize, flat: &[f64]) -> Vec<f64> {
+    let mut unique: Vec<&[f64]> = flat.chunks_exact(n).collect();
+    unique.sort_unstable_by(|a, b| {
+        a.iter()
+            .zip(*b)
+            .map(|(x, y)| x.total_cmp(y))
+            .find(|o| o.is_ne())
+            .unwrap_or(std::cmp::Ordering::Equal)
+    });
+    unique.dedup();
+    unique.concat()
 }

@@ -885,6 +885,210 @@ fn enclosures_contain_point_values_and_gradients() {
     assert!(passed_near_surface > 0);
 }
 
+/// The brute-force candidate set of the box `[lo, hi]` (see `candidates_are_the_brute_force_set`):
+/// per sub-box of the 4³ split, every triangle within (distance from the centre to its closest
+/// triangle, over all triangles) + 2 × half-diagonal + margin of the centre.
+fn brute_candidates(d: &MeshDistance, tris: &[[P3; 3]], lo: &P3, hi: &P3) -> Vec<u32> {
+    let dist2 = |p: P3, v: [P3; 3]| {
+        let e = sub(p, closest_point_on_triangle(p, v));
+        dot(e, e)
+    };
+    let parts = 1usize << GRADIENT_SPLIT_LEVELS;
+    let mut ids = Vec::new();
+    for i in 0..parts * parts * parts {
+        let j = [i % parts, (i / parts) % parts, i / (parts * parts)];
+        let at = |k: usize, j: usize| {
+            if j == parts {
+                hi[k]
+            } else {
+                lo[k] + (hi[k] - lo[k]) * (j as f64 / parts as f64)
+            }
+        };
+        let sub_lo = [0, 1, 2].map(|k| at(k, j[k]));
+        let sub_hi = [0, 1, 2].map(|k| at(k, j[k] + 1));
+        let (c, half) = centre_and_half_diagonal(&sub_lo, &sub_hi);
+        let nearest = tris
+            .iter()
+            .map(|&v| dist2(c, v))
+            .fold(f64::INFINITY, f64::min)
+            .sqrt();
+        let r = nearest + 2.0 * half + 2.0 * VALUE_MARGIN_REL * d.scale;
+        ids.extend((0..tris.len() as u32).filter(|&t| dist2(c, tris[t as usize]) <= r * r));
+    }
+    ids.sort_unstable();
+    ids.dedup();
+    ids
+}
+
+/// A box's [`PvWitness`] against brute force over all triangles: its normal is that of a
+/// triangle nearest to the box's centre (linear scan), which is in the brute-force candidate set
+/// of every larger box holding the box (and so its normal among those boxes' generators, bit for
+/// bit) and inside their gradient enclosures; its value is `value_bounds`', bit for bit, and
+/// holds the signed distance at the centre (side by the brute-force winding number); the unit
+/// gradient flag is `enclose`'s. On a torus mesh and the 82° roof prism, boxes on and off the
+/// surface from 0.005 to 0.4 wide, each inside 3 larger boxes it lies anywhere in.
+#[test]
+fn pv_witnesses_are_nearest_triangles_and_generators_of_every_box_around_them() {
+    for mesh in [
+        torus_mesh(24, 12, 1.0, 0.35),
+        roof_prism(82f64.to_radians()),
+    ] {
+        let d = MeshDistance::new(mesh).unwrap();
+        let tris: Vec<[P3; 3]> = d
+            .mesh
+            .triangles
+            .iter()
+            .map(|t| t.map(|i| d.mesh.positions[i as usize]))
+            .collect();
+        let dist2 = |p: P3, v: [P3; 3]| {
+            let e = sub(p, closest_point_on_triangle(p, v));
+            dot(e, e)
+        };
+        let (mut checked, mut near_surface) = (0, 0);
+        let corners = points(120, -1.5, 1.3, 47);
+        let offsets = points(360, 0.0, 1.0, 53);
+        for (i, lo) in corners.iter().enumerate() {
+            let w = [0.005, 0.03, 0.1, 0.4][i % 4];
+            let hi = lo.map(|x| x + w);
+            let wit = d.pv_witness(lo, &hi).unwrap();
+            let (c, _) = centre_and_half_diagonal(lo, &hi);
+            let best = tris
+                .iter()
+                .map(|&v| dist2(c, v))
+                .fold(f64::INFINITY, f64::min);
+            let nearest: Vec<u32> = (0..tris.len() as u32)
+                .filter(|&t| dist2(c, tris[t as usize]) == best)
+                .collect();
+            let t = *nearest
+                .iter()
+                .find(|&&t| d.normals[t as usize] == wit.normal)
+                .unwrap_or_else(|| panic!("box {i}: {:?} is no nearest triangle's", wit.normal));
+            assert_eq!(wit.value, d.value_bounds(lo, &hi), "box {i}");
+            let inside = d.winding_number_brute_force(c) > 0.5;
+            let signed = if inside { -best.sqrt() } else { best.sqrt() };
+            assert!(
+                wit.value.contains(signed),
+                "box {i}: {signed} {:?}",
+                wit.value
+            );
+            let enc = d.enclose(lo, &hi).unwrap();
+            let unit = enc.gradient.iter().all(|g| g.lo == -1.0 && g.hi == 1.0);
+            assert_eq!(wit.unit_gradient, !wit.value.contains(0.0), "box {i}");
+            assert!(!wit.unit_gradient || unit, "box {i}");
+            near_surface += usize::from(!wit.unit_gradient);
+            for o in &offsets[3 * i..3 * i + 3] {
+                // A box 1.5–4× as wide holding [lo, hi] at offset `o` of its slack.
+                let s = w * (1.5 + 2.5 * o[0]);
+                let big_lo = [0, 1, 2].map(|k| lo[k] - (s - w) * o[k]);
+                let big_hi = big_lo.map(|x| x + s);
+                assert!(brute_candidates(&d, &tris, &big_lo, &big_hi).contains(&t));
+                let mut gens = Vec::new();
+                assert!(d.gradient_generators(&big_lo, &big_hi, &mut gens));
+                assert!(gens.chunks_exact(3).any(|g| g == wit.normal), "box {i}");
+                let enc = d.enclose(&big_lo, &big_hi).unwrap();
+                for (g, x) in enc.gradient.iter().zip(wit.normal) {
+                    let tol = crate::expr::GENERATOR_ERROR;
+                    assert!(g.lo - tol <= x && x <= g.hi + tol, "box {i}: {x} {g:?}");
+                }
+                checked += 1;
+            }
+        }
+        assert!(
+            checked == 360 && near_surface > 10,
+            "{near_surface} near the surface"
+        );
+    }
+}
+
+/// [`MeshDistance::candidates_superset`] of some of a box's 4³ parts is the brute-force set of
+/// its definition — the triangles within |g(C)| + 2H + 4 margins of each part's centre `C` —
+/// and holds every part's brute-force candidate set; it is not the whole mesh. On a torus mesh,
+/// cells from 0.02 to 0.5 wide, on and off the surface, with every part or every third.
+#[test]
+fn the_candidate_superset_holds_every_parts_brute_force_candidates() {
+    let d = MeshDistance::new(torus_mesh(24, 12, 1.0, 0.35)).unwrap();
+    let tris: Vec<[P3; 3]> = d
+        .mesh
+        .triangles
+        .iter()
+        .map(|t| t.map(|i| d.mesh.positions[i as usize]))
+        .collect();
+    let dist2 = |p: P3, v: [P3; 3]| {
+        let e = sub(p, closest_point_on_triangle(p, v));
+        dot(e, e)
+    };
+    let mut small = 0;
+    for (i, lo) in points(60, -1.5, 1.2, 59).iter().enumerate() {
+        let w = [0.02, 0.08, 0.2, 0.5][i % 4];
+        let parts: Vec<(P3, P3)> = (0..64)
+            .filter(|j| i % 2 == 0 || j % 3 == 0)
+            .map(|j| {
+                let at = [j % 4, (j / 4) % 4, j / 16];
+                let l = [0, 1, 2].map(|k| lo[k] + w * at[k] as f64 / 4.0);
+                (l, l.map(|x| x + w / 4.0))
+            })
+            .collect();
+        let boxes: Vec<(&[f64], &[f64])> = parts.iter().map(|(l, h)| (&l[..], &h[..])).collect();
+        let got = d.candidates_superset(&boxes);
+        let mut expected: Vec<u32> = Vec::new();
+        for (l, h) in &parts {
+            let (c, half) = centre_and_half_diagonal(l, h);
+            let g = tris
+                .iter()
+                .map(|&v| dist2(c, v))
+                .fold(f64::INFINITY, f64::min)
+                .sqrt();
+            let r = g + 2.0 * half + 4.0 * VALUE_MARGIN_REL * d.scale;
+            expected
+                .extend((0..tris.len() as u32).filter(|&t| dist2(c, tris[t as usize]) <= r * r));
+            for t in brute_candidates(&d, &tris, l, h) {
+                assert!(got.binary_search(&t).is_ok(), "cell {i}: {t} missing");
+            }
+        }
+        expected.sort_unstable();
+        expected.dedup();
+        assert_eq!(got, expected, "cell {i}");
+        small += usize::from(got.len() * 4 < tris.len());
+    }
+    assert!(
+        small > 20,
+        "{small} of 60 supersets under a quarter of the mesh"
+    );
+}
+
+/// `distance_bound` (branch and bound from the thread's previous triangle) is the linear scan's
+/// least distance, bit for bit, along a walk of nearby points (the measure's pattern) and at
+/// scattered ones, on a torus mesh and a cube (ties on shared edges and corners).
+#[test]
+fn the_distance_bound_is_the_linear_scans_least_distance() {
+    for mesh in [torus_mesh(24, 12, 1.0, 0.35), cube(0.5, [0.1, -0.2, 0.05])] {
+        let d = MeshDistance::new(mesh).unwrap();
+        let tris: Vec<[P3; 3]> = d
+            .mesh
+            .triangles
+            .iter()
+            .map(|t| t.map(|i| d.mesh.positions[i as usize]))
+            .collect();
+        let mut queries = points(300, -1.6, 1.6, 61);
+        let walk: Vec<P3> = (0..300)
+            .map(|i| {
+                let a = i as f64 * 0.02;
+                [1.2 * a.cos(), 1.2 * a.sin(), 0.3 * (3.0 * a).sin()]
+            })
+            .collect();
+        queries.extend(walk);
+        queries.extend(d.mesh.positions.iter().copied());
+        for (i, p) in queries.iter().enumerate() {
+            let expected = tris
+                .iter()
+                .map(|&v| norm(sub(*p, closest_point_on_triangle(*p, v))))
+                .fold(f64::INFINITY, f64::min);
+            let got = d.distance_bound(p, f64::INFINITY);
+            assert_eq!(got.to_bits(), expected.to_bits(), "query {i} {p:?}");
+        }
+    }
+}
+
 /// The candidate triangles of a box (the R-tree's nearest-point queries bounded by the previous
 /// sub-box's triangle, range queries, the per-thread memo) are exactly the brute-force set: per
 /// sub-box of the 4³ split, every triangle within (distance from the centre to its closest
@@ -900,37 +1104,7 @@ fn candidates_are_the_brute_force_set() {
         .iter()
         .map(|t| t.map(|i| d.mesh.positions[i as usize]))
         .collect();
-    let dist2 = |p: P3, v: [P3; 3]| {
-        let e = sub(p, closest_point_on_triangle(p, v));
-        dot(e, e)
-    };
-    let brute = |lo: &P3, hi: &P3| -> Vec<u32> {
-        let parts = 1usize << GRADIENT_SPLIT_LEVELS;
-        let mut ids = Vec::new();
-        for i in 0..parts * parts * parts {
-            let j = [i % parts, (i / parts) % parts, i / (parts * parts)];
-            let at = |k: usize, j: usize| {
-                if j == parts {
-                    hi[k]
-                } else {
-                    lo[k] + (hi[k] - lo[k]) * (j as f64 / parts as f64)
-                }
-            };
-            let sub_lo = [0, 1, 2].map(|k| at(k, j[k]));
-            let sub_hi = [0, 1, 2].map(|k| at(k, j[k] + 1));
-            let (c, half) = centre_and_half_diagonal(&sub_lo, &sub_hi);
-            let nearest = tris
-                .iter()
-                .map(|&v| dist2(c, v))
-                .fold(f64::INFINITY, f64::min)
-                .sqrt();
-            let r = nearest + 2.0 * half + 2.0 * VALUE_MARGIN_REL * d.scale;
-            ids.extend((0..tris.len() as u32).filter(|&t| dist2(c, tris[t as usize]) <= r * r));
-        }
-        ids.sort_unstable();
-        ids.dedup();
-        ids
-    };
+    let brute = |lo: &P3, hi: &P3| brute_candidates(&d, &tris, lo, hi);
     let boxes: Vec<(P3, P3)> = points(200, -1.5, 1.2, 17)
         .into_iter()
         .enumerate()
