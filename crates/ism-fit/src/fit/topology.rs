@@ -126,6 +126,46 @@ impl Fitter<'_> {
         }
     }
 
+    /// Over the [`PV_SPLIT`]`ⁿ` parts of `[lo, hi]` that meet the cell (`inside`): whether some
+    /// part's value enclosure holds 0 (or is NaN), and the hull of the parts' gradient
+    /// enclosures; `None` where a part has no enclosure or a NaN gradient bound (the test fails).
+    fn parts_hull(
+        &self,
+        lo: &[f64],
+        hi: &[f64],
+        inside: &impl Fn(&[f64], &[f64]) -> bool,
+    ) -> Option<(bool, Vec<crate::interval::Interval>)> {
+        let n = self.n;
+        let m = PV_SPLIT;
+        let mut hull: Vec<Option<(f64, f64)>> = vec![None; n];
+        let mut zero = false;
+        let (mut l, mut h) = (vec![0.0; n], vec![0.0; n]);
+        for idx in 0..m.pow(n as u32) {
+            sub_box(lo, hi, m, idx, &mut l, &mut h);
+            if !inside(&l, &h) {
+                continue;
+            }
+            let e = self.g.enclose(&l, &h)?;
+            zero |= e.value.contains(0.0) || e.value.lo.is_nan();
+            for (acc, gk) in hull.iter_mut().zip(&e.gradient) {
+                let (a, b) = (gk.lo, gk.hi);
+                if a.is_nan() || b.is_nan() {
+                    return None;
+                }
+                *acc = Some(acc.map_or((a, b), |(x, y)| (x.min(a), y.max(b))));
+            }
+        }
+        let gradient = hull
+            .iter()
+            .map(|x| {
+                x.map_or(crate::interval::Interval::ENTIRE, |(a, b)| {
+                    crate::interval::Interval::new(a, b)
+                })
+            })
+            .collect();
+        Some((zero, gradient))
+    }
+
     /// [`Fitter::pv_passes`] from the enclosures and generators alone (see there); `hull_fails`:
     /// the parts' hull test is known to fail and one part's value enclosure to hold 0
     /// ([`Witnessed::HullFails`]), so their enclosures are not computed.
@@ -142,45 +182,18 @@ impl Fitter<'_> {
         if !enc.value.contains(0.0) || gradients_agree(&enc.gradient) {
             return true;
         }
-        let n = self.n;
         let Some(inside) = simplex_test(&self.complex, c) else {
             return false;
         };
         if hull_fails {
             return self.generators_agree(lo, hi, &inside);
         }
-        let m = PV_SPLIT;
-        let mut hull: Vec<Option<(f64, f64)>> = vec![None; n];
-        let mut zero = false;
-        let (mut l, mut h) = (vec![0.0; n], vec![0.0; n]);
-        for idx in 0..m.pow(n as u32) {
-            sub_box(lo, hi, m, idx, &mut l, &mut h);
-            if !inside(&l, &h) {
-                continue;
-            }
-            let Some(e) = self.g.enclose(&l, &h) else {
-                return false;
-            };
-            zero |= e.value.contains(0.0) || e.value.lo.is_nan();
-            for (acc, gk) in hull.iter_mut().zip(&e.gradient) {
-                let (a, b) = (gk.lo, gk.hi);
-                if a.is_nan() || b.is_nan() {
-                    return false;
-                }
-                *acc = Some(acc.map_or((a, b), |(x, y)| (x.min(a), y.max(b))));
-            }
-        }
+        let Some((zero, gradient)) = self.parts_hull(lo, hi, &inside) else {
+            return false;
+        };
         if !zero {
             return true;
         }
-        let gradient: Vec<crate::interval::Interval> = hull
-            .iter()
-            .map(|x| {
-                x.map_or(crate::interval::Interval::ENTIRE, |(a, b)| {
-                    crate::interval::Interval::new(a, b)
-                })
-            })
-            .collect();
         gradients_agree(&gradient) || self.generators_agree(lo, hi, &inside)
     }
 
@@ -305,38 +318,14 @@ impl Fitter<'_> {
         let Some(inside) = simplex_test(&self.complex, c) else {
             return false;
         };
-        let m = PV_SPLIT;
-        let mut hull: Vec<Option<(f64, f64)>> = vec![None; n];
-        let mut zero = false;
-        let (mut l, mut h) = (vec![0.0; n], vec![0.0; n]);
-        for idx in 0..m.pow(n as u32) {
-            sub_box(&lo, &hi, m, idx, &mut l, &mut h);
-            if !inside(&l, &h) {
-                continue;
-            }
-            let Some(e) = self.g.enclose(&l, &h) else {
-                return false;
-            };
-            zero |= e.value.contains(0.0) || e.value.lo.is_nan();
-            for (acc, gk) in hull.iter_mut().zip(&e.gradient) {
-                let (a, b) = (gk.lo, gk.hi);
-                if a.is_nan() || b.is_nan() {
-                    return false;
-                }
-                *acc = Some(acc.map_or((a, b), |(x, y)| (x.min(a), y.max(b))));
-            }
-        }
+        let Some((zero, gradient)) = self.parts_hull(&lo, &hi, &inside) else {
+            return false;
+        };
         if !zero {
             return true;
         }
-        let gradient: Vec<crate::interval::Interval> = hull
-            .iter()
-            .map(|x| {
-                x.map_or(crate::interval::Interval::ENTIRE, |(a, b)| {
-                    crate::interval::Interval::new(a, b)
-                })
-            })
-            .collect();
+        let m = PV_SPLIT;
+        let (mut l, mut h) = (vec![0.0; n], vec![0.0; n]);
         if gradients_agree(&gradient) {
             return true;
         }
