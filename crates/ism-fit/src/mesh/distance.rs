@@ -699,6 +699,12 @@ impl MeshDistance {
             return Vec::new();
         };
         let centre = first.0;
+        self.within_any(balls, centre)
+    }
+
+    /// The triangles within any of `balls` (`(centre, radius)`), sorted, each once: one traversal
+    /// of the tree ([`WithinAny`]), cut off beyond the ball around `centre` that holds them all.
+    fn within_any(&self, balls: Vec<(P3, f64)>, centre: P3) -> Vec<u32> {
         let reach = balls
             .iter()
             .map(|(c, r)| norm(sub(*c, centre)) + r)
@@ -733,7 +739,7 @@ impl MeshDistance {
                 lo[k] + (hi[k] - lo[k]) * (j as f64 / parts as f64)
             }
         };
-        let mut balls: Vec<(P3, f64, f64)> = Vec::with_capacity(parts * parts * parts);
+        let mut balls: Vec<(P3, f64)> = Vec::with_capacity(parts * parts * parts);
         for i in 0..parts * parts * parts {
             let j = [i % parts, (i / parts) % parts, i / (parts * parts)];
             let sub_lo = [0, 1, 2].map(|k| edge(k, j[k]));
@@ -745,26 +751,10 @@ impl MeshDistance {
             };
             hint = Some(t);
             let radius = norm(sub(c, q)) + 2.0 * half + 2.0 * VALUE_MARGIN_REL * self.scale;
-            balls.push((c, radius, radius * radius));
+            balls.push((c, radius));
         }
         let (centre, _) = centre_and_half_diagonal(lo, hi);
-        let reach = balls
-            .iter()
-            .map(|(c, r, _)| norm(sub(*c, centre)) + r)
-            .fold(0.0, f64::max);
-        let bound = reach * (1.0 + WITHIN_ANY_MARGIN) + f64::MIN_POSITIVE;
-        let select = WithinAny {
-            balls: balls.into_iter().map(|(c, _, r2)| (c, r2)).collect(),
-            centre,
-            bound2: bound * bound,
-        };
-        let mut ids: Vec<u32> = self
-            .tree
-            .locate_with_selection_function(select)
-            .map(|t| t.id)
-            .collect();
-        ids.sort_unstable();
-        ids
+        self.within_any(balls, centre)
     }
 }
 
