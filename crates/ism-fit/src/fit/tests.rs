@@ -776,29 +776,7 @@ fn sharp_prism() -> crate::mesh::TriangleMesh {
 
 /// A closed torus mesh (radii 1 and 0.4, 32 × 12 quads split in two): smooth, with saddles.
 fn torus_mesh() -> crate::mesh::TriangleMesh {
-    let (n, m) = (32u32, 12u32);
-    let tau = std::f64::consts::TAU;
-    let mut positions = Vec::new();
-    for i in 0..n {
-        for j in 0..m {
-            let (u, v) = (tau * i as f64 / n as f64, tau * j as f64 / m as f64);
-            let r = 1.0 + 0.4 * v.cos();
-            positions.push([r * u.cos(), r * u.sin(), 0.4 * v.sin()]);
-        }
-    }
-    let id = |i: u32, j: u32| (i % n) * m + (j % m);
-    let mut triangles = Vec::new();
-    for i in 0..n {
-        for j in 0..m {
-            let q = [id(i, j), id(i + 1, j), id(i + 1, j + 1), id(i, j + 1)];
-            triangles.push([q[0], q[1], q[2]]);
-            triangles.push([q[0], q[2], q[3]]);
-        }
-    }
-    crate::mesh::TriangleMesh {
-        positions,
-        triangles,
-    }
+    crate::mesh::TriangleMesh::torus(32, 12, 1.0, 0.4)
 }
 
 /// The Plantinga–Vegter test with its shortcuts for a mesh (witnesses, the generators'

@@ -167,6 +167,35 @@ impl MeshCheck {
 }
 
 impl TriangleMesh {
+    /// A torus around the z axis (radii `big` and `small`) of `n × m` quads split in two,
+    /// triangles facing outward: a closed, consistently oriented test shape with saddle vertices
+    /// and concave edges on its inner side (for fits, benchmarks and tests, as
+    /// [`TriangleMesh::icosphere`]).
+    pub fn torus(n: u32, m: u32, big: f64, small: f64) -> TriangleMesh {
+        let tau = std::f64::consts::TAU;
+        let mut positions = Vec::new();
+        for i in 0..n {
+            for j in 0..m {
+                let (u, v) = (tau * i as f64 / n as f64, tau * j as f64 / m as f64);
+                let r = big + small * v.cos();
+                positions.push([r * u.cos(), r * u.sin(), small * v.sin()]);
+            }
+        }
+        let id = |i: u32, j: u32| (i % n) * m + (j % m);
+        let mut triangles = Vec::new();
+        for i in 0..n {
+            for j in 0..m {
+                let q = [id(i, j), id(i + 1, j), id(i + 1, j + 1), id(i, j + 1)];
+                triangles.push([q[0], q[1], q[2]]);
+                triangles.push([q[0], q[2], q[3]]);
+            }
+        }
+        TriangleMesh {
+            positions,
+            triangles,
+        }
+    }
+
     /// An icosphere: the icosahedron subdivided `level` times (`20·4^level` triangles), its
     /// vertices on the sphere of `radius` around `centre`, triangles facing outward. A closed,
     /// consistently oriented test shape for fits, benchmarks and the CLI's tests.

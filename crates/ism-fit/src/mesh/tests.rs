@@ -43,31 +43,9 @@ fn icosphere(level: usize) -> TriangleMesh {
     TriangleMesh::icosphere(level, 1.0, [0.0; 3])
 }
 
-/// A closed torus (radii `big`, `small`) of `n × m` quads split in two, outward: saddle
-/// vertices and concave edges on its inner side.
+/// [`TriangleMesh::torus`]: saddle vertices and concave edges on its inner side.
 fn torus_mesh(n: u32, m: u32, big: f64, small: f64) -> TriangleMesh {
-    let tau = std::f64::consts::TAU;
-    let mut positions = Vec::new();
-    for i in 0..n {
-        for j in 0..m {
-            let (u, v) = (tau * i as f64 / n as f64, tau * j as f64 / m as f64);
-            let r = big + small * v.cos();
-            positions.push([r * u.cos(), r * u.sin(), small * v.sin()]);
-        }
-    }
-    let id = |i: u32, j: u32| (i % n) * m + (j % m);
-    let mut triangles = Vec::new();
-    for i in 0..n {
-        for j in 0..m {
-            let q = [id(i, j), id(i + 1, j), id(i + 1, j + 1), id(i, j + 1)];
-            triangles.push([q[0], q[1], q[2]]);
-            triangles.push([q[0], q[2], q[3]]);
-        }
-    }
-    TriangleMesh {
-        positions,
-        triangles,
-    }
+    TriangleMesh::torus(n, m, big, small)
 }
 
 /// The pseudonormal sign agrees with the brute-force winding number (an independent sum of
@@ -934,12 +912,7 @@ fn pv_witnesses_are_nearest_triangles_and_generators_of_every_box_around_them() 
         roof_prism(82f64.to_radians()),
     ] {
         let d = MeshDistance::new(mesh).unwrap();
-        let tris: Vec<[P3; 3]> = d
-            .mesh
-            .triangles
-            .iter()
-            .map(|t| t.map(|i| d.mesh.positions[i as usize]))
-            .collect();
+        let tris: Vec<[P3; 3]> = d.surface_triangles().unwrap();
         let dist2 = |p: P3, v: [P3; 3]| {
             let e = sub(p, closest_point_on_triangle(p, v));
             dot(e, e)
@@ -1007,12 +980,7 @@ fn pv_witnesses_are_nearest_triangles_and_generators_of_every_box_around_them() 
 #[test]
 fn the_candidate_superset_holds_every_parts_brute_force_candidates() {
     let d = MeshDistance::new(torus_mesh(24, 12, 1.0, 0.35)).unwrap();
-    let tris: Vec<[P3; 3]> = d
-        .mesh
-        .triangles
-        .iter()
-        .map(|t| t.map(|i| d.mesh.positions[i as usize]))
-        .collect();
+    let tris: Vec<[P3; 3]> = d.surface_triangles().unwrap();
     let dist2 = |p: P3, v: [P3; 3]| {
         let e = sub(p, closest_point_on_triangle(p, v));
         dot(e, e)
@@ -1063,12 +1031,7 @@ fn the_candidate_superset_holds_every_parts_brute_force_candidates() {
 fn the_distance_bound_is_the_linear_scans_least_distance() {
     for mesh in [torus_mesh(24, 12, 1.0, 0.35), cube(0.5, [0.1, -0.2, 0.05])] {
         let d = MeshDistance::new(mesh).unwrap();
-        let tris: Vec<[P3; 3]> = d
-            .mesh
-            .triangles
-            .iter()
-            .map(|t| t.map(|i| d.mesh.positions[i as usize]))
-            .collect();
+        let tris: Vec<[P3; 3]> = d.surface_triangles().unwrap();
         let mut queries = points(300, -1.6, 1.6, 61);
         let walk: Vec<P3> = (0..300)
             .map(|i| {
@@ -1098,12 +1061,7 @@ fn the_distance_bound_is_the_linear_scans_least_distance() {
 #[test]
 fn candidates_are_the_brute_force_set() {
     let d = MeshDistance::new(torus_mesh(24, 12, 1.0, 0.35)).unwrap();
-    let tris: Vec<[P3; 3]> = d
-        .mesh
-        .triangles
-        .iter()
-        .map(|t| t.map(|i| d.mesh.positions[i as usize]))
-        .collect();
+    let tris: Vec<[P3; 3]> = d.surface_triangles().unwrap();
     let brute = |lo: &P3, hi: &P3| brute_candidates(&d, &tris, lo, hi);
     let boxes: Vec<(P3, P3)> = points(200, -1.5, 1.2, 17)
         .into_iter()
@@ -1145,12 +1103,7 @@ fn candidates_are_the_brute_force_set() {
 fn the_nearest_triangle_is_the_linear_scans_whatever_the_hint() {
     for mesh in [torus_mesh(24, 12, 1.0, 0.35), cube(0.5, [0.1, -0.2, 0.05])] {
         let d = MeshDistance::new(mesh).unwrap();
-        let tris: Vec<[P3; 3]> = d
-            .mesh
-            .triangles
-            .iter()
-            .map(|t| t.map(|i| d.mesh.positions[i as usize]))
-            .collect();
+        let tris: Vec<[P3; 3]> = d.surface_triangles().unwrap();
         let in_tree: Vec<u32> = d.tree.iter().map(|t| t.id).collect();
         let scan = |p: P3| -> (f64, u32) {
             let mut best = (f64::INFINITY, u32::MAX);
