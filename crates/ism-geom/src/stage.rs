@@ -235,6 +235,19 @@ pub struct LocalStage {
     mono_scaled: Vec<f64>,
     /// Monotonic: `d (a_{j+1} − a_j) C(d − 1, j)`, the derivative's scaled coefficients.
     mono_deriv: Vec<f64>,
+    /// Bézier, when set ([`LocalStage::sparsify`]): the terms whose control point is not the
+    /// identity net's `I/d`, evaluated instead of the dense net as the identity plus their
+    /// deviations ([`LocalStage::eval_sparse`]).
+    sparse: Option<Vec<SparseTerm>>,
+}
+
+/// A term of a Bézier net whose control point `b_I` differs from the identity net's `I/d`:
+/// `B_I`'s exponents and multinomial, and `b_I − I/d`.
+#[derive(Clone, Copy, Debug)]
+struct SparseTerm {
+    exps: [u8; MAX_VARS],
+    mult: f64,
+    delta: Bary,
 }
 
 impl LocalStage {
@@ -296,6 +309,7 @@ impl LocalStage {
             mono: Vec::new(),
             mono_scaled: Vec::new(),
             mono_deriv: Vec::new(),
+            sparse: None,
         };
         match stage.kind {
             StageKind::Monotonic => local.fill_monotonic(stage, lookup, simplex)?,
@@ -371,6 +385,7 @@ impl LocalStage {
             mono: Vec::new(),
             mono_scaled: Vec::new(),
             mono_deriv: Vec::new(),
+            sparse: None,
         };
         if stage.kind == StageKind::Monotonic {
             for &v in simplex {
@@ -620,6 +635,7 @@ impl LocalStage {
             mono: Vec::new(),
             mono_scaled: Vec::new(),
             mono_deriv: Vec::new(),
+            sparse: None,
         };
         fused.finish_rational();
         Some(fused)
@@ -697,6 +713,7 @@ impl LocalStage {
             return *w;
         }
         match self.kind {
+            StageKind::Bezier if self.sparse.is_some() => dispatch!(self, eval_sparse, w),
             StageKind::Bezier => dispatch_degree!(self, eval_bezier_const, eval_bezier, w),
             StageKind::Rational => dispatch_degree!(self, eval_rational_const, eval_rational, w),
             StageKind::Monotonic => {
@@ -713,6 +730,125 @@ impl LocalStage {
                 g
             }
         }
+    }
+
+    /// The same Bézier stage evaluated as the identity plus the deviations of the control points
+    /// that are not the identity net's `I/d` ([`SparseTerm`]), when at most half of them deviate;
+    /// otherwise unchanged. The identity net reproduces `w` (linear precision: `Σ_I (I/d) B_I(w) =
+    /// w (Σ_j w_j)^(d−1)`, the homogeneous form the dense kernels compute), so
+    /// `X(w) = w (Σ w)^(d−1) + Σ_{I deviating} (b_I − I/d) B_I(w)` with the same Jacobian: a
+    /// stratified net (a solitary point per face: spec example `stratified-3d`, degrees 4, 3 and
+    /// 2, with 1, ≤ 4 and ≤ 6 of its 35, 20 and 10 points deviating) costs a few terms instead of
+    /// the whole net. Equal to the dense evaluation up to rounding, not bit for bit (the exporter
+    /// uses it: [`LocalMap::fused`]); exact zeros stay zero as in the dense kernels (a deviation
+    /// `b_I − I/d` has coordinate `i` only where `I_i > 0`, and then `B_I` carries `w_i^{I_i}`).
+    fn sparsify(&mut self) {
+        if self.kind != StageKind::Bezier
+            || self.identity
+            || self.degree == 0
+            || self.points.len() != self.tables.exps.len()
+        {
+            return;
+        }
+        let (m, d) = (self.m, f64::from(self.degree));
+        let mut terms = Vec::new();
+        for ((e, &mult), b) in self
+            .tables
+            .exps
+            .iter()
+            .zip(&self.tables.multinom)
+            .zip(&self.points)
+        {
+            let mut delta = [0.0; MAX_VARS];
+            for i in 0..m {
+                // The identity net's point exactly as the nets are filled (`fill_net`).
+                delta[i] = b[i] - f64::from(e[i]) / d;
+            }
+            if delta[..m].iter().any(|&x| x != 0.0) {
+                terms.push(SparseTerm {
+                    exps: *e,
+                    mult,
+                    delta,
+                });
+            }
+        }
+        // Per term the sparse kernels cost about what a dense term costs; past half the net the
+        // dense kernels (unrolled, one de Casteljau pass for the Jacobian) are as fast.
+        if 4 * terms.len() <= self.points.len() {
+            self.sparse = Some(terms);
+        }
+    }
+
+    /// [`Self::sparsify`]'s evaluation: `w (Σ w)^(d−1) + Σ (b_I − I/d) B_I(w)`.
+    #[inline(always)]
+    fn eval_sparse<const M: usize>(&self, w: &Bary) -> Bary {
+        let d = self.degree as usize;
+        let pw = pow_table::<M>(d, w);
+        let mut sum = 0.0;
+        for &x in w.iter().take(M) {
+            sum += x;
+        }
+        let scale = sum.powi(d as i32 - 1);
+        let mut u = [0.0; MAX_VARS];
+        for i in 0..M {
+            u[i] = w[i] * scale;
+        }
+        for t in self.sparse.as_deref().unwrap_or(&[]) {
+            let bi = basis_m::<M>(t.mult, &t.exps, &pw);
+            for i in 0..M {
+                u[i] += bi * t.delta[i];
+            }
+        }
+        u
+    }
+
+    /// [`Self::eval_sparse`] with the homogeneous Jacobian: the identity part's
+    /// `δ_ij s^(d−1) + (d−1) w_i s^(d−2)` (`s = Σ w`), plus `(b_I − I/d) ∂B_I/∂w_j` with
+    /// `∂B_I/∂w_j = mult_I I_j w_j^(I_j−1) Π_{k≠j} w_k^{I_k}`.
+    #[inline(always)]
+    fn val_jac_sparse<const M: usize>(&self, w: &Bary) -> (Bary, Mat) {
+        let d = self.degree as usize;
+        let pw = pow_table::<M>(d, w);
+        let mut sum = 0.0;
+        for &x in w.iter().take(M) {
+            sum += x;
+        }
+        let scale = sum.powi(d as i32 - 1);
+        let slope = if d >= 2 {
+            (d - 1) as f64 * sum.powi(d as i32 - 2)
+        } else {
+            0.0
+        };
+        let mut u = [0.0; MAX_VARS];
+        let mut h = [[0.0; MAX_VARS]; MAX_VARS];
+        for i in 0..M {
+            u[i] = w[i] * scale;
+            for j in 0..M {
+                h[i][j] = w[i] * slope;
+            }
+            h[i][i] += scale;
+        }
+        for t in self.sparse.as_deref().unwrap_or(&[]) {
+            let e = &t.exps;
+            let bi = basis_m::<M>(t.mult, e, &pw);
+            for i in 0..M {
+                u[i] += bi * t.delta[i];
+            }
+            for j in 0..M {
+                if e[j] == 0 {
+                    continue;
+                }
+                let mut g = t.mult * f64::from(e[j]);
+                for k in 0..M {
+                    let p = usize::from(e[k]) - usize::from(k == j);
+                    g *= pw[k][p];
+                }
+                for i in 0..M {
+                    h[i][j] += g * t.delta[i];
+                }
+            }
+        }
+        (u, h)
     }
 
     /// `Σ b_I B_I(w)` with the variable count fixed at compile time, so the loops unroll.
@@ -976,6 +1112,7 @@ impl LocalStage {
             return (*w, h);
         }
         match self.kind {
+            StageKind::Bezier if self.sparse.is_some() => dispatch!(self, val_jac_sparse, w),
             StageKind::Bezier => dispatch_degree!(self, val_jac_bezier_const, val_jac_bezier, w),
             StageKind::Rational => {
                 dispatch_degree!(self, val_jac_rational_const, val_jac_rational, w)
@@ -1556,6 +1693,9 @@ impl LocalMap {
     /// crossings" pair. One evaluation instead of two and no chain-rule product per Jacobian;
     /// equal to the original map up to rounding (not bit for bit), so callers that must
     /// reproduce the unfused bits keep the unfused map.
+    ///
+    /// Also evaluates each Bézier stage whose net mostly is the identity's as the identity plus
+    /// its few deviating terms ([`LocalStage::sparsify`]; equal up to rounding as well).
     pub fn fused(self) -> LocalMap {
         let mut stages = Vec::with_capacity(self.stages.len());
         let mut it = self.stages.into_iter().peekable();
@@ -1567,6 +1707,9 @@ impl LocalMap {
                 }
                 None => stages.push(stage),
             }
+        }
+        for stage in &mut stages {
+            stage.sparsify();
         }
         LocalMap { m: self.m, stages }
     }
@@ -2213,6 +2356,75 @@ mod tests {
                     ] {
                         let kept = LocalMap::from_stages(m, stages).fused();
                         assert_eq!(kept.stages().len(), 2, "{kind:?} m = {m} d = {d}");
+                    }
+                }
+            }
+        }
+    }
+
+    /// A Bézier net that is the identity's but for a few points evaluates through its deviations
+    /// ([`LocalStage::sparsify`], as [`LocalMap::fused`] does) to the dense kernels' value and
+    /// homogeneous Jacobian (to rounding, also off the plane `Σ w = 1`, where both are the
+    /// homogeneous form), keeps exact zeros exact, and is left dense past a quarter of the net.
+    #[test]
+    fn sparse_bezier_stage_equals_the_dense_net() {
+        let mut rng = Stream(0x5ba_45e);
+        for m in 2..=4usize {
+            for d in 1..=MAX_DEGREE.min(6) {
+                let count = multi_index::count(m, d);
+                for deviating in [1usize, count / 4, count / 4 + 1] {
+                    let mut dense = LocalStage::identity(StageKind::Bezier, d, m).unwrap();
+                    dense.identity = false;
+                    // Deviating points on faces of two vertices or more, each moved within its
+                    // face's support (the format's records: a point of a face lies on it).
+                    let candidates: Vec<usize> = (0..count)
+                        .filter(|&r| {
+                            dense.tables.exps[r][..m].iter().filter(|&&e| e > 0).count() >= 2
+                        })
+                        .collect();
+                    let deviating = deviating.min(candidates.len());
+                    for &r in candidates.iter().rev().take(deviating) {
+                        let e = dense.tables.exps[r];
+                        let support: Vec<usize> = (0..m).filter(|&i| e[i] > 0).collect();
+                        let moves: Vec<f64> = support.iter().map(|_| rng.next() - 0.5).collect();
+                        let mean = moves.iter().sum::<f64>() / moves.len() as f64;
+                        for (&i, dx) in support.iter().zip(&moves) {
+                            dense.points[r][i] += 0.2 * (dx - mean);
+                        }
+                    }
+                    let mut sparse = dense.clone();
+                    sparse.sparsify();
+                    let what = format!("m = {m} d = {d}, {deviating} of {count} deviating");
+                    assert_eq!(sparse.sparse.is_some(), 4 * deviating <= count, "{what}");
+                    if sparse.sparse.is_none() {
+                        continue;
+                    }
+                    for trial in 0..60 {
+                        let mut w = random_point(m, &mut rng);
+                        if trial % 4 == 3 {
+                            // Off the plane: the homogeneous forms agree there too.
+                            for v in w.iter_mut() {
+                                *v *= 1.3;
+                            }
+                        }
+                        let at = format!("{what} at {w:?}");
+                        let (x, h) = dense.homogeneous_jacobian_stored(&w);
+                        let (xs, hs) = sparse.homogeneous_jacobian_stored(&w);
+                        let xe = sparse.eval_stored(&w);
+                        let scale = 1.0 + h.iter().flatten().map(|v| v.abs()).fold(0.0, f64::max);
+                        for i in 0..m {
+                            assert!((x[i] - xs[i]).abs() <= 1e-13 * scale, "{at}: {x:?} {xs:?}");
+                            assert!((xs[i] - xe[i]).abs() <= 1e-13 * scale, "{at}");
+                            if w[i] == 0.0 {
+                                assert_eq!((xs[i], xe[i]), (0.0, 0.0), "{at}: zero kept");
+                            }
+                            for j in 0..m {
+                                assert!(
+                                    (h[i][j] - hs[i][j]).abs() <= 1e-12 * scale,
+                                    "{at}: {h:?} {hs:?}"
+                                );
+                            }
+                        }
                     }
                 }
             }
