@@ -241,6 +241,23 @@ pub struct LocalStage {
     sparse: Option<Vec<SparseTerm>>,
 }
 
+/// `w_k^{e_k}` and `w_k^{e_k − 1}` (1 where `e_k = 0`) by repeated products, as the dense kernels'
+/// power tables form them, for a sparse term's few factors (a whole power table, `M` rows of
+/// [`crate::MAX_DEGREE`]` + 1` entries initialised per call, was a fifth of stratified-3d's
+/// evaluation).
+#[inline(always)]
+fn sparse_powers<const M: usize>(e: &[u8; MAX_VARS], w: &Bary) -> ([f64; M], [f64; M]) {
+    let mut powers = [1.0; M];
+    let mut lower = [1.0; M];
+    for k in 0..M {
+        for _ in 1..e[k] {
+            lower[k] *= w[k];
+        }
+        powers[k] = if e[k] == 0 { 1.0 } else { lower[k] * w[k] };
+    }
+    (powers, lower)
+}
+
 /// A term of a Bézier net whose control point `b_I` differs from the identity net's `I/d`:
 /// `B_I`'s exponents and multinomial, and `b_I − I/d`.
 #[derive(Clone, Copy, Debug)]
@@ -783,7 +800,6 @@ impl LocalStage {
     #[inline(always)]
     fn eval_sparse<const M: usize>(&self, w: &Bary) -> Bary {
         let d = self.degree as usize;
-        let pw = pow_table::<M>(d, w);
         let mut sum = 0.0;
         for &x in w.iter().take(M) {
             sum += x;
@@ -794,7 +810,11 @@ impl LocalStage {
             u[i] = w[i] * scale;
         }
         for t in self.sparse.as_deref().unwrap_or(&[]) {
-            let bi = basis_m::<M>(t.mult, &t.exps, &pw);
+            let (powers, _) = sparse_powers::<M>(&t.exps, w);
+            let mut bi = t.mult;
+            for p in powers {
+                bi *= p;
+            }
             for i in 0..M {
                 u[i] += bi * t.delta[i];
             }
@@ -808,7 +828,6 @@ impl LocalStage {
     #[inline(always)]
     fn val_jac_sparse<const M: usize>(&self, w: &Bary) -> (Bary, Mat) {
         let d = self.degree as usize;
-        let pw = pow_table::<M>(d, w);
         let mut sum = 0.0;
         for &x in w.iter().take(M) {
             sum += x;
@@ -830,7 +849,11 @@ impl LocalStage {
         }
         for t in self.sparse.as_deref().unwrap_or(&[]) {
             let e = &t.exps;
-            let bi = basis_m::<M>(t.mult, e, &pw);
+            let (powers, lower) = sparse_powers::<M>(e, w);
+            let mut bi = t.mult;
+            for p in powers {
+                bi *= p;
+            }
             for i in 0..M {
                 u[i] += bi * t.delta[i];
             }
@@ -840,8 +863,7 @@ impl LocalStage {
                 }
                 let mut g = t.mult * f64::from(e[j]);
                 for k in 0..M {
-                    let p = usize::from(e[k]) - usize::from(k == j);
-                    g *= pw[k][p];
+                    g *= if k == j { lower[k] } else { powers[k] };
                 }
                 for i in 0..M {
                     h[i][j] += g * t.delta[i];
