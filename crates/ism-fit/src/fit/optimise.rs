@@ -31,6 +31,9 @@ pub(super) const FIT_SWEEPS: usize = 4;
 /// still above the tolerance stopped early.
 pub const LM_DONE_FRACTION: f64 = 0.25;
 
+/// The most unknowns of a parameter block: the logits of a tetrahedron's interior point.
+const MAX_BLOCK: usize = 4;
+
 /// Whether the fitter moves the interior control point of each crossed top simplex (the last
 /// stratum, `G_n`). Off: the faces' points alone reach the tolerance on fewer simplices and the
 /// file carries no record per crossed top simplex (see [`Fitter::fit_region`]).
@@ -48,11 +51,11 @@ pub(super) enum Param<'f> {
 /// A parameter block's mapped sample points as a function of its parameter: what
 /// [`Fitter::levenberg_marquardt`] moves.
 pub(super) trait BlockMap {
-    /// The mapped sample points with the parameter at `x`.
-    fn points(&mut self, x: &[f64]) -> Vec<[f64; 3]>;
-    /// `jac[j][i] = n̂ᵢ · ∂pᵢ/∂xⱼ` at `x`, where the points are `pts` and their unit normals
-    /// `normals`.
-    fn jacobian(&mut self, x: &[f64], pts: &[[f64; 3]], normals: &[[f64; 3]], jac: &mut [Vec<f64>]);
+    /// The mapped sample points with the parameter at `x`, into `out` (cleared first).
+    fn points(&mut self, x: &[f64], out: &mut Vec<[f64; 3]>);
+    /// `jac[j·m + i] = n̂ᵢ · ∂pᵢ/∂xⱼ` at `x` (column `j` of `m = pts.len()` rows), where the
+    /// points are `pts` and their unit normals `normals`.
+    fn jacobian(&mut self, x: &[f64], pts: &[[f64; 3]], normals: &[[f64; 3]], jac: &mut [f64]);
 }
 
 /// A face's point over its crossing cells, each cell's map built once with a slot for the face
@@ -62,41 +65,54 @@ pub(super) struct FacePoint<'f, 'a> {
     fitter: &'f Fitter<'a>,
     cells: &'f [u32],
     locals: Vec<(LocalStrata, Slot, Vec<Bary>)>,
+    /// Each cell's vertex coordinates (`n` per vertex), read once per block.
+    corners: Vec<Vec<f64>>,
+}
+
+impl FacePoint<'_, '_> {
+    /// [`Fitter::point_of`] on the `k`-th cell from its stored coordinates (the same sums in the
+    /// same order).
+    fn point_of(&self, k: usize, w: &Bary) -> [f64; 3] {
+        let n = self.fitter.n;
+        let mut p = [0.0; 3];
+        for (i, x) in self.corners[k].chunks_exact(n).enumerate() {
+            for (pk, x) in p.iter_mut().zip(x) {
+                *pk += w[i] * x;
+            }
+        }
+        p
+    }
 }
 
 impl BlockMap for FacePoint<'_, '_> {
-    fn points(&mut self, x: &[f64]) -> Vec<[f64; 3]> {
-        let mut out = Vec::new();
-        for (&c, (local, slot, before)) in self.cells.iter().zip(&mut self.locals) {
+    fn points(&mut self, x: &[f64], out: &mut Vec<[f64; 3]>) {
+        out.clear();
+        for k in 0..self.cells.len() {
+            let (local, slot, _) = &mut self.locals[k];
             local.set_point(*slot, x);
-            let ids = self.fitter.complex.cell(c);
+            let (local, slot, before) = &self.locals[k];
             out.extend(
                 before
                     .iter()
-                    .map(|v| self.fitter.point_of(ids, &local.eval_after(v, Some(*slot)))),
+                    .map(|v| self.point_of(k, &local.eval_after(v, Some(*slot)))),
             );
         }
-        out
     }
 
     /// The exact derivative of the map in the face's logits.
-    fn jacobian(
-        &mut self,
-        x: &[f64],
-        _pts: &[[f64; 3]],
-        normals: &[[f64; 3]],
-        jac: &mut [Vec<f64>],
-    ) {
+    fn jacobian(&mut self, x: &[f64], _pts: &[[f64; 3]], normals: &[[f64; 3]], jac: &mut [f64]) {
+        let m = normals.len();
         let mut i = 0;
         let mut dw = [[0.0; 4]; 4];
         let dd = displacement_derivative(x);
-        for (&c, (local, slot, before)) in self.cells.iter().zip(self.locals.iter_mut()) {
+        for k in 0..self.cells.len() {
+            let (local, slot, _) = &mut self.locals[k];
             local.set_point(*slot, x);
-            let ids = self.fitter.complex.cell(c);
+            let (local, slot, before) = &self.locals[k];
             for v in before.iter() {
                 local.eval_after_jacobian(v, *slot, &dd, &mut dw);
-                for (col, d) in jac.iter_mut().zip(&dw) {
-                    let dp = self.fitter.point_of(ids, d);
+                for (col, d) in jac.chunks_exact_mut(m).zip(&dw) {
+                    let dp = self.point_of(k, d);
                     col[i] = (0..3).map(|e| normals[i][e] * dp[e]).sum::<f64>();
                 }
                 i += 1;
@@ -118,8 +134,8 @@ pub(super) struct WholeMap<'f, 'a> {
 }
 
 impl BlockMap for WholeMap<'_, '_> {
-    fn points(&mut self, x: &[f64]) -> Vec<[f64; 3]> {
-        self.fitter.block_points(
+    fn points(&mut self, x: &[f64], out: &mut Vec<[f64; 3]>) {
+        *out = self.fitter.block_points(
             self.param,
             x,
             self.edges,
@@ -131,18 +147,13 @@ impl BlockMap for WholeMap<'_, '_> {
     }
 
     /// Forward differences of the whole map.
-    fn jacobian(
-        &mut self,
-        x: &[f64],
-        pts: &[[f64; 3]],
-        normals: &[[f64; 3]],
-        jac: &mut [Vec<f64>],
-    ) {
+    fn jacobian(&mut self, x: &[f64], pts: &[[f64; 3]], normals: &[[f64; 3]], jac: &mut [f64]) {
         const H: f64 = 1e-7;
-        for (j, col) in jac.iter_mut().enumerate() {
+        let mut ph = Vec::new();
+        for (j, col) in jac.chunks_exact_mut(pts.len()).enumerate() {
             let mut xh = x.to_vec();
             xh[j] += H;
-            let ph = self.points(&xh);
+            self.points(&xh, &mut ph);
             for (i, v) in col.iter_mut().enumerate() {
                 *v = (0..3)
                     .map(|d| normals[i][d] * (ph[i][d] - pts[i][d]))
@@ -480,23 +491,29 @@ impl Fitter<'_> {
         out
     }
 
-    /// `g/|∇g|` and the unit normal `∇g/|∇g|` at each point.
-    pub(super) fn residuals_at(&self, points: &[[f64; 3]]) -> (Vec<f64>, Vec<[f64; 3]>) {
+    /// `g/|∇g|` and the unit normal `∇g/|∇g|` at each point into `r` and `normals` (cleared
+    /// first; `grads` is work space).
+    pub(super) fn residuals_at(
+        &self,
+        points: &[[f64; 3]],
+        grads: &mut Vec<(f64, [f64; 3])>,
+        r: &mut Vec<f64>,
+        normals: &mut Vec<[f64; 3]>,
+    ) {
         let n = self.n;
-        points
-            .iter()
-            .map(|p| {
-                let mut grad = [0.0; 3];
-                let v = self.g.gradient(&p[..n], &mut grad[..n]);
-                let norm = grad[..n]
-                    .iter()
-                    .map(|x| x * x)
-                    .sum::<f64>()
-                    .sqrt()
-                    .max(f64::MIN_POSITIVE);
-                (v / norm, [grad[0] / norm, grad[1] / norm, grad[2] / norm])
-            })
-            .unzip()
+        self.g.gradient_each(points, grads);
+        r.clear();
+        normals.clear();
+        for (v, grad) in grads.iter() {
+            let norm = grad[..n]
+                .iter()
+                .map(|x| x * x)
+                .sum::<f64>()
+                .sqrt()
+                .max(f64::MIN_POSITIVE);
+            r.push(v / norm);
+            normals.push([grad[0] / norm, grad[1] / norm, grad[2] / norm]);
+        }
     }
 
     /// Levenberg–Marquardt on one parameter block (≤ 4 unknowns) over the crossing `cells` it acts
@@ -580,10 +597,20 @@ impl Fitter<'_> {
                 Some((local, slot, before))
             })
             .collect::<Option<Vec<_>>>()?;
+        let corners = cells
+            .iter()
+            .map(|&c| {
+                let ids = self.complex.cell(c);
+                ids.iter()
+                    .flat_map(|&v| self.complex.point(v).iter().copied())
+                    .collect()
+            })
+            .collect();
         let mut block = FacePoint {
             fitter: self,
             cells,
             locals,
+            corners,
         };
         Some(self.levenberg_marquardt(&mut block, self.map.logits(face), LOGIT_BOUND))
     }
@@ -602,31 +629,43 @@ impl Fitter<'_> {
     ) -> (Vec<f64>, bool) {
         let k = x.len();
         let mut moved = false;
-        let mut pts = block.points(&x);
-        let (mut r, mut normals) = self.residuals_at(&pts);
+        // The trial's buffers, swapped with the current ones when a step is taken (no
+        // allocation per trial).
+        let mut grads = Vec::new();
+        let (mut pts, mut r, mut normals) = (Vec::new(), Vec::new(), Vec::new());
+        let (mut pn, mut rn, mut nn) = (Vec::new(), Vec::new(), Vec::new());
+        block.points(&x, &mut pts);
+        self.residuals_at(&pts, &mut grads, &mut r, &mut normals);
         let mut cost: f64 = r.iter().map(|v| v * v).sum();
         let mut lambda = 1e-3;
+        let mut jac = Vec::new();
         for _ in 0..6 {
             // NaN residuals are never done.
             if r.iter().all(|v| v.abs() <= self.lm_done) {
                 break;
             }
-            let mut jac = vec![vec![0.0; r.len()]; k];
+            let m = r.len();
+            jac.clear();
+            jac.resize(k * m, 0.0);
             block.jacobian(&x, &pts, &normals, &mut jac);
+            // The normal equations `JᵀJ` and `−Jᵀr`, the same for every trial of this iteration.
+            let mut a0 = [0.0; MAX_BLOCK * MAX_BLOCK];
+            let mut b0 = [0.0; MAX_BLOCK];
+            for i in 0..k {
+                let ji = &jac[i * m..(i + 1) * m];
+                for j in 0..k {
+                    let jj = &jac[j * m..(j + 1) * m];
+                    a0[i * k + j] = ji.iter().zip(jj).map(|(p, q)| p * q).sum();
+                }
+                b0[i] = -ji.iter().zip(&r).map(|(p, q)| p * q).sum::<f64>();
+            }
             let mut improved = false;
             for _ in 0..4 {
-                let mut a = vec![0.0; k * k];
-                let mut b = vec![0.0; k];
-                for i in 0..k {
-                    for j in 0..k {
-                        a[i * k + j] = jac[i].iter().zip(&jac[j]).map(|(p, q)| p * q).sum();
-                    }
-                    b[i] = -jac[i].iter().zip(&r).map(|(p, q)| p * q).sum::<f64>();
-                }
+                let (mut a, mut b) = (a0, b0);
                 for i in 0..k {
                     a[i * k + i] += lambda * a[i * k + i] + 1e-12;
                 }
-                let Some(step) = solve(&mut a, &mut b, k) else {
+                let Some(step) = solve(&mut a[..k * k], &mut b[..k], k) else {
                     break;
                 };
                 let xn: Vec<f64> = x
@@ -634,14 +673,14 @@ impl Fitter<'_> {
                     .zip(&step)
                     .map(|(a, s)| (a + s).clamp(-bound, bound))
                     .collect();
-                let pn = block.points(&xn);
-                let (rn, nn) = self.residuals_at(&pn);
+                block.points(&xn, &mut pn);
+                self.residuals_at(&pn, &mut grads, &mut rn, &mut nn);
                 let cn: f64 = rn.iter().map(|v| v * v).sum();
                 if cn < cost {
                     x = xn;
-                    pts = pn;
-                    r = rn;
-                    normals = nn;
+                    std::mem::swap(&mut pts, &mut pn);
+                    std::mem::swap(&mut r, &mut rn);
+                    std::mem::swap(&mut normals, &mut nn);
                     cost = cn;
                     lambda = (lambda / 3.0).max(1e-9);
                     improved = true;
