@@ -19,9 +19,28 @@ impl Threads {
 
     /// Sizes rayon's global pool (used by the libraries' parallel loops).
     pub(crate) fn install(self) -> anyhow::Result<()> {
+        self.build_global(false)
+    }
+
+    /// Sizes rayon's global pool as [`Threads::install`] does, the calling thread being one of
+    /// its threads: parallel loops then start on this thread instead of being handed to a worker
+    /// and waited for, and `-j 1` starts no thread at all. For a small model (the spec examples)
+    /// that is a measurable share of the whole process: `ism export`'s handoffs of `-j 1` through a
+    /// separate worker cost ~100 futex and ~35 `sched_yield` calls, and that worker's malloc arena
+    /// ~170 `mprotect` calls (`strace -f -c`, sphere example at 1e-3; issue 19, session 24). Only
+    /// for a command none of whose library calls uses `rayon::spawn`, which the calling thread
+    /// would not pick up unless it waits in a join.
+    pub(crate) fn install_on_calling_thread(self) -> anyhow::Result<()> {
+        self.build_global(true)
+    }
+
+    fn build_global(self, use_current_thread: bool) -> anyhow::Result<()> {
         if let Some(t) = self.threads.filter(|&t| t > 0) {
-            rayon::ThreadPoolBuilder::new()
-                .num_threads(t)
+            let mut builder = rayon::ThreadPoolBuilder::new().num_threads(t);
+            if use_current_thread {
+                builder = builder.use_current_thread();
+            }
+            builder
                 .build_global()
                 .map_err(|e| anyhow::anyhow!("cannot start {t} worker threads: {e}"))?;
         }

@@ -74,7 +74,7 @@ pub struct Args {
 }
 
 pub fn run(args: Args) -> anyhow::Result<ExitCode> {
-    install_pool(args.threads)?;
+    args.threads.install_on_calling_thread()?;
     let format = ExportFormat::from_path(&args.output).with_context(|| {
         format!(
             "cannot tell the output format of {}: use .obj, .gltf, .glb, .vtk or .vtu",
@@ -179,22 +179,4 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         println!("{}", serde_json::to_string_pretty(&summary)?);
     }
     Ok(ExitCode::SUCCESS)
-}
-
-/// Sizes rayon's global pool as `-j` asks, the calling thread being one of its threads: the
-/// export's parallel loops then start on this thread instead of being handed to a worker and
-/// waited for, and `-j 1` starts no thread at all. For the small models of the spec examples
-/// this is a measurable share of the whole process: the handoffs of `-j 1` through a separate
-/// worker cost ~100 futex and ~35 `sched_yield` calls, and that worker's malloc arena grows by
-/// ~170 `mprotect` calls (`strace -f -c`, sphere example at 1e-3). Nothing on the export's path
-/// uses `rayon::spawn` (which this thread would not pick up unless it waits in a join).
-fn install_pool(threads: crate::args::Threads) -> anyhow::Result<()> {
-    if let Some(t) = threads.threads.filter(|&t| t > 0) {
-        rayon::ThreadPoolBuilder::new()
-            .num_threads(t)
-            .use_current_thread()
-            .build_global()
-            .map_err(|e| anyhow::anyhow!("cannot start {t} worker threads: {e}"))?;
-    }
-    Ok(())
 }
