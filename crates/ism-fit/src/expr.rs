@@ -466,6 +466,17 @@ struct Tape {
 
 /// Slots kept on the stack (a short buffer, a long one); longer tapes use the heap. The
 /// torus preset's tape has 22.
+/// The longest expression text [`Expression::parse`] takes, in bytes: far beyond any formula
+/// written by hand (the tangle cube's is 60), and short enough to bound what `exmex`'s symbolic
+/// derivatives cost, which grows about quadratically with the terms of a sum: a 200-term
+/// `x^2+…` (805 bytes) takes 0.7 GB and ~3 CPU-s to fit at 0.1, a 1,000-term one (4,005 bytes)
+/// 21 GB and 112 CPU-s (session 24, `ism fit --expr`).
+pub const MAX_EXPRESSION_BYTES: usize = 1024;
+/// The stack of the thread [`Expression::parse`] runs on: `exmex`'s derivative of a sum recurses
+/// once per term at tens of kilobytes a level (a 200-term sum overflowed the main thread's
+/// 8 MiB). Address space only: pages are touched as the recursion reaches them.
+const PARSE_STACK_BYTES: usize = 256 << 20;
+
 const TAPE_SHORT: usize = 24;
 const TAPE_LONG: usize = 96;
 
@@ -1026,6 +1037,35 @@ impl Expression {
     /// [`FitError::Expression`] when the text does not parse, uses another variable, or has no
     /// symbolic derivative.
     pub fn parse(text: &str, dim: usize) -> Result<Expression, FitError> {
+        if text.len() > MAX_EXPRESSION_BYTES {
+            return Err(FitError::Expression {
+                text: text.chars().take(80).chain("…".chars()).collect(),
+                message: format!(
+                    "{} bytes, more than the {MAX_EXPRESSION_BYTES} an expression may have",
+                    text.len()
+                ),
+            });
+        }
+        // `exmex`'s symbolic derivatives recurse once per term of a sum, tens of kilobytes of
+        // stack a level: a 200-term sum overflowed the main thread's 8 MiB and aborted the
+        // process (40 terms a test thread's 2 MiB). The work runs on a thread of its own with
+        // a stack sized for the longest text taken; where no thread can be started, here.
+        std::thread::scope(|scope| {
+            match std::thread::Builder::new()
+                .name("ism-fit expression".to_string())
+                .stack_size(PARSE_STACK_BYTES)
+                .spawn_scoped(scope, || Self::parse_here(text, dim))
+            {
+                Ok(handle) => handle
+                    .join()
+                    .unwrap_or_else(|panic| std::panic::resume_unwind(panic)),
+                Err(_) => Self::parse_here(text, dim),
+            }
+        })
+    }
+
+    /// [`Expression::parse`] on the calling thread's stack.
+    fn parse_here(text: &str, dim: usize) -> Result<Expression, FitError> {
         if !(1..=3).contains(&dim) {
             return Err(FitError::Options(format!(
                 "dimension {dim} is not 1, 2 or 3"
@@ -1289,6 +1329,31 @@ mod tests {
         let e = Expression::parse("sin(x) - 0.5", 2).unwrap();
         let _ = e.gradient(&[0.3, 9.0], &mut g);
         assert!((g[0] - 0.3f64.cos()).abs() < 1e-15 && g[1] == 0.0);
+    }
+
+    /// A long sum parses on a test thread's 2 MiB stack (before session 24, `exmex`'s derivative
+    /// recursed on the caller's stack: 40 terms overflowed a test thread, 200 the main thread),
+    /// with the analytic value and gradient; a text past [`MAX_EXPRESSION_BYTES`] is refused
+    /// with a typed error, not parsed at any cost.
+    #[test]
+    fn long_sums_parse_off_the_callers_stack_and_longer_texts_are_refused() {
+        let terms = 200;
+        let text = vec!["x^2"; terms].join("+") + "+y^2-1";
+        assert!(text.len() <= MAX_EXPRESSION_BYTES);
+        let e = Expression::parse(&text, 2).unwrap();
+        let mut g = [0.0; 2];
+        let (x, y) = (0.375, -0.5);
+        let v = e.gradient(&[x, y], &mut g);
+        // Truth: 200 x² + y² − 1 and (400 x, 2 y), exact in binary at these points.
+        assert_eq!(v, terms as f64 * x * x + y * y - 1.0);
+        assert_eq!(g, [2.0 * terms as f64 * x, 2.0 * y]);
+        let long = vec!["x^2"; MAX_EXPRESSION_BYTES / 4 + 1].join("+");
+        match Expression::parse(&long, 2) {
+            Err(FitError::Expression { message, .. }) => {
+                assert!(message.contains("more than the 1024"), "{message}")
+            }
+            other => panic!("expected a refusal, got {:?}", other.map(|_| ())),
+        }
     }
 
     #[test]
