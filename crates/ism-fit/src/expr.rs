@@ -467,7 +467,7 @@ struct Tape {
 /// Slots kept on the stack (a short buffer, a long one); longer tapes use the heap. The
 /// torus preset's tape has 22.
 /// The longest expression text [`Expression::parse`] takes, in bytes: far beyond any formula
-/// written by hand (the tangle cube's is 47 bytes), and short enough to bound what `exmex`'s symbolic
+/// written by hand (the tangle cube's is 46 bytes), and short enough to bound what `exmex`'s symbolic
 /// derivatives cost, which grows about quadratically with the terms of a sum: a 200-term
 /// `x^2+…` (805 bytes) takes 0.7 GB and ~3 CPU-s to fit at 0.1, a 1,000-term one (4,005 bytes)
 /// 21 GB and 112 CPU-s (session 24, `ism fit --expr`).
