@@ -16,11 +16,14 @@ the fitter and its report:
   gradient line through the point (an upper bound of the distance; second-order exact where Z
   is smooth); for the mesh target the exact point-triangle distance to the mesh.
 - Z -> S (target to fit): dense exact points of Z (roots of g by bisection on grid lines in all
-  three axis directions, or points on the target mesh's triangles), each with its distance to
-  the sampled fit: the distance to the tangent plane of the nearest sample (the sampler gives
-  the normal); with N samples of spacing h this is off by about curvature x h^2 / 2. The worst
-  2,000 are re-measured as upper bounds: the smaller of a sign-change bracket on the model's F
-  (along -grad F and the axes) and the distance to the nearest sample of the fit.
+  three axis directions, or points on the target mesh's triangles), each with its exact distance
+  to the fit's own fine export (`ism export` at EXPORT_FRACTION of the tolerance, every triangle
+  that can be nearer measured) plus that export's chordal tolerance: an upper bound of the
+  distance to the fit within 5 % of the tolerance of the truth (the closest point may lie in any
+  direction). The worst 2,000 are re-measured by two more upper bounds, a sign-change bracket
+  on the model's F (along -grad F and the axes) and the distance to the nearest sample of the
+  fit, and the smallest is kept. (stderr also prints the older estimate: the tangent plane of
+  the nearest sample, off by about curvature x h^2 / 2 for samples of spacing h.)
 
 Then scikit-image `marching_cubes` on a grid of the same function (for the mesh target the signed
 distance, exact at the corners of the cells where it changes sign, clipped elsewhere: mesh_sdf),
@@ -61,6 +64,14 @@ BISECT = 50
 FIT_SAMPLES = 1_000_000
 # Target points whose distance to the fit is re-measured by a certified bracket on the model's F.
 WORST = 2000
+# Z -> S against the fit's own fine export: `ism export` at this fraction of the fit's tolerance.
+# dist(z, S) <= dist(z, export) + the export's chordal error, so the figure is an upper bound
+# within this fraction of the tolerance (5 %) of the truth; finer exports grow as 1/fraction (the
+# torus at 2e-4 gives ~3 M triangles at 1/20).
+EXPORT_FRACTION = 1.0 / 20
+# Edge halvings allowed in that export: enough that no patch edge stops at the depth limit (the
+# default 8 stops ~400 edges of the bone at 2e-5); a depth-limited edge is reported, not hidden.
+EXPORT_MAX_DEPTH = 16
 # Grid-line spacing of the dense points on Z, as a fraction of the domain's longest side.
 Z_SPACING = 1.0 / 400
 # Points per batch of the exact point-to-mesh distance: about 0.4 GB of temporaries (16 nearest
@@ -275,6 +286,92 @@ def to_plane_distance(points, samples, normals):
     return np.abs(((points - samples[i]) * normals[i]).sum(axis=1))
 
 
+def read_export_obj(path):
+    """Vertices and triangles (or 2D segments) of an OBJ written by `ism export` (`v x y z`, `f
+    a//a b//b c//c` or `l a b`; one-based), parsed with numpy: the writer prints shortest
+    round-trip numbers, so the coordinates are the exporter's float64 values bit for bit."""
+    with open(path, "rb") as f:
+        lines = f.read().split(b"\n")
+    v = np.array(b" ".join(x[2:] for x in lines if x.startswith(b"v ")).split(), float)
+    cells = [x[2:] for x in lines if x.startswith(b"f ") or x.startswith(b"l ")]
+    idx = np.array(b" ".join(cells).replace(b"//", b" ").split(), np.int64)
+    if cells and cells[0].count(b"//"):
+        idx = idx[::2]  # `a//a`: the vertex and its normal share the index
+    k = len(cells[0].split()) if cells else 3
+    return v.reshape(-1, 3), idx.reshape(-1, k) - 1
+
+
+def exported_distance(path, zpts, tol, out):
+    """Z -> S against the fit's own fine export: `ism export` at EXPORT_FRACTION x tol, then the
+    exact distance from every target point to that mesh (every triangle that can be nearer is
+    measured: to_mesh_distance; 2D: the nearest segments). Returns (distance to the export, the
+    export's chordal tolerance, triangles, depth-limited edges): dist(z, S) lies within the
+    chordal tolerance of the first wherever the export meets its tolerance (no depth-limited
+    edge). Unlike the tangent plane of the nearest sample or a bracket along a few directions
+    (both loose on the scanned meshes: 1.18e-3 / 1.28e-3 where this gives 7.26e-4 on the bunny
+    at 7.24e-4), the closest point of S may lie in any direction."""
+    eps = EXPORT_FRACTION * tol
+    obj = path + ".fine.obj"
+    q = subprocess.run([ISM, "export", path, obj, "--tolerance", repr(eps), "--max-depth",
+                        str(EXPORT_MAX_DEPTH), "-q", "--json"], capture_output=True, text=True)
+    if q.returncode != 0:
+        raise RuntimeError(f"ism export: {q.stderr}")
+    summary = json.loads(q.stdout)
+    v, cells = read_export_obj(obj)
+    os.remove(obj)
+    n = zpts.shape[1]
+    if cells.shape[1] == 2:
+        d, near = to_segments_distance(zpts, v[:, :n], cells), None
+    else:
+        d, near = to_mesh_distance(zpts, v, cells, closest=True)
+    return d, near, eps, len(cells), summary.get("depth_limited_edges", 0)
+
+
+def projected_distance(path, z, q, reach):
+    """An upper bound of dist(z, S) from a point q near S (the closest point of the fine export):
+    along -sign(F) grad F from q, a sign change of the model's F - c is bracketed to [a, b] by
+    `ism query` (40 bisections); S meets that segment (intermediate value theorem on F, which is
+    continuous in |K|), so dist(z, S) <= max(|z - (q + a d)|, |z - (q + b d)|). Tight to second
+    order where q is near S. Infinite where F is undefined along the way."""
+    f, sign, grad = ism_query(path, q)
+    norm = np.linalg.norm(grad, axis=1)
+    d = -(sign / np.where(norm > 0, norm, np.inf))[:, None] * grad
+    lo = np.zeros(len(q))
+    t = np.maximum(0.5 * np.abs(f) / np.where(norm > 0, norm, np.inf), 1e-12)
+    t = np.where(np.isfinite(t), t, 1e-12)
+    hi = np.full(len(q), np.inf)
+    act = (sign != 0) & np.isfinite(f) & (norm > 0)
+    while act.any():
+        fv, sg, _ = ism_query(path, q[act] + t[act, None] * d[act])
+        ai = np.nonzero(act)[0]
+        # `ism query` gives F NaN and sign 0 outside |K|: that ends the search there (no bound),
+        # it is not a sign change; F exactly 0 is a point of S.
+        inside = np.isfinite(fv)
+        hit = inside & ((sg != sign[ai]) | (fv == 0))
+        hi[ai[hit]] = t[ai[hit]]
+        lo[ai[inside & ~hit]] = t[ai[inside & ~hit]]
+        t[ai[~hit]] *= 2.0
+        act[ai[hit | ~inside]] = False
+        act &= t <= reach
+    ok = np.isfinite(hi)
+    idx = np.nonzero(ok)[0]
+    a, b = lo[idx], hi[idx]
+    for _ in range(40):
+        m = 0.5 * (a + b)
+        fv, sg, _ = ism_query(path, q[idx] + m[:, None] * d[idx])
+        same = sg == sign[idx]
+        a = np.where(same, m, a)
+        b = np.where(same, b, m)
+        # A midpoint outside |K| would bracket nothing: no bound for that point.
+        ok[idx[~np.isfinite(fv)]] = False
+    out = np.full(len(q), np.inf)
+    ends = [np.linalg.norm(z[idx] - (q[idx] + x[:, None] * d[idx]), axis=1) for x in (a, b)]
+    out[idx] = np.where(ok[idx], np.maximum(*ends), np.inf)
+    on = sign == 0
+    out[on] = np.linalg.norm(z[on] - q[on], axis=1)
+    return out
+
+
 def ism_query(path, pts):
     """F and grad F of the model at pts (`ism query`); NaN outside |K|."""
     with tempfile.TemporaryDirectory() as d:
@@ -331,8 +428,9 @@ def ism_bracket(path, pts, start, reach):
     return best
 
 
-def point_triangle(p, a, b, c):
-    """Exact distances from points p to triangles (a, b, c), row by row (Ericson, RTCD 5.1.5)."""
+def point_triangle(p, a, b, c, closest=False):
+    """Exact distances from points p to triangles (a, b, c), row by row (Ericson, RTCD 5.1.5);
+    with `closest`, also the closest points."""
     ab, ac, ap = b - a, c - a, p - a
     d1, d2 = (ab * ap).sum(1), (ac * ap).sum(1)
     bp = p - b
@@ -354,11 +452,32 @@ def point_triangle(p, a, b, c):
         return x + t[:, None] * d
     inside = (va >= 0) & (vb >= 0) & (vc >= 0) & (denom > 0)
     cands = [seg(a, b), seg(b, c), seg(c, a)]
-    dist = np.min([np.linalg.norm(p - x, axis=1) for x in cands], axis=0)
-    return np.where(inside, np.linalg.norm(p - q, axis=1), dist)
+    ds = np.array([np.linalg.norm(p - x, axis=1) for x in cands])
+    dist = np.where(inside, np.linalg.norm(p - q, axis=1), ds.min(axis=0))
+    if not closest:
+        return dist
+    edge = np.array(cands)[ds.argmin(axis=0), np.arange(len(p))]
+    return dist, np.where(inside[:, None], q, edge)
 
 
-def to_mesh_distance(points, verts, faces, k=16):
+def split_large(tri):
+    """Triangles (t, 3, 3) with those whose farthest corner from the centroid is above twice the
+    median split into four at their edge midpoints until none is: the same set of points."""
+    def radius(t):
+        return np.linalg.norm(t - t.mean(axis=1)[:, None, :], axis=2).max(axis=1)
+    limit = 2 * float(np.median(radius(tri))) if len(tri) else 0.0
+    while True:
+        big = radius(tri) > limit
+        if not big.any():
+            return tri
+        t = tri[big]
+        a, b, c = t[:, 0], t[:, 1], t[:, 2]
+        ab, bc, ca = (a + b) / 2, (b + c) / 2, (c + a) / 2
+        tri = np.concatenate([tri[~big]] + [np.stack(x, axis=1) for x in
+                                            ((a, ab, ca), (ab, b, bc), (ca, bc, c), (ab, bc, ca))])
+
+
+def to_mesh_distance(points, verts, faces, k=16, closest=False):
     """Exact distance from points to a triangle mesh: the minimum over all its triangles of the
     exact point-triangle distance, in batches of MESH_CHUNK points.
 
@@ -367,21 +486,30 @@ def to_mesh_distance(points, verts, faces, k=16):
     points within R_t (its farthest corner) of the centroid, so its distance is at least
     d_k - max R_t; where the best candidate is not below that, every triangle whose centroid is
     within best + max R_t is measured too (a ball query), so the minimum is over all triangles
-    that can be nearer."""
-    tri = verts[faces]
+    that can be nearer. With `closest`, also the closest points of the mesh.
+
+    An adaptive mesh (the fit's fine export) has a few large triangles in flat parts, and max R_t
+    would send every point to the ball query; so triangles with R_t above twice the median are
+    first split at their edge midpoints (4 each, repeatedly): the same point set, a small reach."""
+    tri = split_large(verts[faces])
     cen = tri.mean(axis=1)
     reach = float(np.linalg.norm(tri - cen[:, None, :], axis=2).max())
     tree = cKDTree(cen)
     k = min(k, len(faces))
     out = np.empty(len(points))
+    near = np.empty((len(points), 3))
     for c0 in range(0, len(points), MESH_CHUNK):
         p = points[c0:c0 + MESH_CHUNK]
         dk, ci = tree.query(p, k=k, workers=-1)
         dk, ci = dk.reshape(len(p), -1), ci.reshape(len(p), -1)
         best = np.full(len(p), np.inf)
+        best_t = ci[:, 0].copy()
         for j in range(ci.shape[1]):
             t = tri[ci[:, j]]
-            best = np.minimum(best, point_triangle(p, t[:, 0], t[:, 1], t[:, 2]))
+            d = point_triangle(p, t[:, 0], t[:, 1], t[:, 2])
+            better = d < best
+            best_t[better] = ci[better, j]
+            best = np.where(better, d, best)
         # Uncertified: some triangle outside the k could be nearer (with a margin for rounding).
         if k < len(faces):
             bad = np.nonzero(best >= (dk[:, -1] - reach) * (1 - 1e-9))[0]
@@ -396,9 +524,17 @@ def to_mesh_distance(points, verts, faces, k=16):
             for q0 in range(0, len(pi), PAIR_CHUNK):
                 a, b = pi[q0:q0 + PAIR_CHUNK], ti[q0:q0 + PAIR_CHUNK]
                 t = tri[b]
-                np.minimum.at(best, a, point_triangle(p[a], t[:, 0], t[:, 1], t[:, 2]))
+                d = point_triangle(p[a], t[:, 0], t[:, 1], t[:, 2])
+                np.minimum.at(best, a, d)
+                if closest:
+                    # The triangle that attains the minimum (ties: any of them).
+                    hit = d <= best[a]
+                    best_t[a[hit]] = b[hit]
         out[c0:c0 + len(p)] = best
-    return out
+        if closest:
+            t = tri[best_t]
+            _, near[c0:c0 + len(p)] = point_triangle(p, t[:, 0], t[:, 1], t[:, 2], closest=True)
+    return (out, near) if closest else out
 
 
 def orient_sign(a, b, p):
@@ -800,9 +936,16 @@ def main():
         else:
             zpts = surface_points(shape["g"], d, Z_SPACING * longest)
         fwd = dist_to_z(shape, pts)
-        back = to_plane_distance(zpts, pts, nrm)
-        # The worst target points again with a certified bracket on the model's own F (the
-        # tangent-plane figure is an estimate where the nearest sample is far).
+        plane = to_plane_distance(zpts, pts, nrm)
+        # Z -> S: the exact distance to the fit's fine export plus its chordal tolerance, an
+        # upper bound of dist(z, S) (up to the exporter's chordal test) for every target point.
+        near_export, near_q, eps, ntri, limited = exported_distance(path, zpts, tol, out)
+        back = near_export + eps
+        print(f"  Z->S: to the fit's export at {eps:.2e} ({ntri} cells, {limited} depth-limited "
+              f"edges) {near_export.max():.4e} (+/- {eps:.1e}); tangent planes of the nearest "
+              f"sample {plane.max():.3e}", file=sys.stderr)
+        # The worst target points again with a certified bracket on the model's own F: a second
+        # upper bound, taken where it is smaller.
         worst = np.argsort(back)[-WORST:]
         longest_side = max(d[2 * k + 1] - d[2 * k] for k in range(n))
         bracket = ism_bracket(path, zpts[worst], 0.5 * back[worst], longest_side)
@@ -825,8 +968,17 @@ def main():
         bracket = np.fmin(bracket, nearest)
         rest = np.delete(back, worst)
         back_max = max(float(np.nanmax(bracket)), float(rest.max()) if len(rest) else 0.0)
-        print(f"  Z->S: tangent planes {back.max():.3e}, bracket on the worst {len(worst)} "
-              f"{np.nanmax(bracket):.3e}", file=sys.stderr)
+        print(f"  Z->S: bracket on the worst {len(worst)} {np.nanmax(bracket):.3e}; the smaller "
+              f"upper bound {max(np.nanmax(np.fmin(bracket, back[worst])), 0):.4e}",
+              file=sys.stderr)
+        bracket = np.fmin(bracket, back[worst])
+        if near_q is not None:
+            # A third: the export's closest point carried onto S along grad F (tight).
+            proj = projected_distance(path, zpts[worst], near_q[worst], longest_side)
+            print(f"  Z->S: the export's closest points projected onto S: worst "
+                  f"{np.max(np.fmin(proj, bracket)):.4e} ({int(np.sum(~np.isfinite(proj)))} not "
+                  f"projected)", file=sys.stderr)
+            bracket = np.fmin(bracket, proj)
         back = np.append(rest, bracket)
         back = back[np.isfinite(back)]
         ism_err = max(fwd.max(), back_max)
