@@ -3,7 +3,7 @@
 (section fit, "Smaller than a mesh?").
 
 Usage: ISM_BIN=target/release/ism python tools/bench_fit_mc.py [--out DIR] [--only NAME,...]
-       [--rel 1e-3] [--timeout SECONDS] [--fit-arg=--no-topology ...]
+       [--rel 1e-3] [--timeout SECONDS] [--fit-arg=--no-topology ...] [--max-res N] [--reuse]
 
 For every shape: `ism fit` at `rel` x the domain's longest side (the CLI default is 1e-3), CPU
 time of the child process; then the fit's two-sided true error measured here, independently of
@@ -691,17 +691,30 @@ def run(cmd, timeout=None):
     return p, cpu_children() - c0, time.time() - t0
 
 
-def fit_ism(shape, tol, out, timeout, extra=(), keep_unmet=False):
+def fit_ism(shape, tol, out, timeout, extra=(), keep_unmet=False, reuse=False):
     path = os.path.join(out, shape["key"] + ".ismb")
+    saved = os.path.join(out, shape["key"] + ".fit.json")
     cmd = [ISM, "fit", *shape["fit"], *extra, "--tolerance", repr(tol), "-q", "--json", "-o", path]
     if "--preset" not in shape["fit"] and "--mesh" not in shape["fit"]:
         cmd += ["--domain=" + ",".join(repr(float(x)) for x in shape["domain"])]
-    p, cpu, wall = run(cmd, timeout)
-    # Exit 1: the model is written but the tolerance (or the topology) was not met; its true
-    # error is measured here all the same, and marching cubes is matched to that error.
-    if p.returncode != 0 and not (keep_unmet and p.returncode == 1 and p.stdout.strip()):
-        raise RuntimeError(f"{' '.join(cmd)}: exit {p.returncode}: {p.stderr[-2000:]}")
-    report = json.loads(p.stdout)
+    if reuse and os.path.exists(path) and os.path.exists(saved):
+        # --reuse: the fit written by an earlier run of this script with the same arguments (its
+        # command, report and CPU time are saved beside it); everything after the fit is redone.
+        with open(saved) as f:
+            kept = json.load(f)
+        if kept["command"][1:] != cmd[1:]:
+            raise RuntimeError(f"--reuse: {saved} is for `{' '.join(kept['command'])}`")
+        report, cpu, wall = kept["report"], kept["cpu"], kept["wall"]
+        print(f"  reusing {path} ({cpu:.1f} CPU-s when fitted)", file=sys.stderr)
+    else:
+        p, cpu, wall = run(cmd, timeout)
+        # Exit 1: the model is written but the tolerance (or the topology) was not met; its true
+        # error is measured here all the same, and marching cubes is matched to that error.
+        if p.returncode != 0 and not (keep_unmet and p.returncode == 1 and p.stdout.strip()):
+            raise RuntimeError(f"{' '.join(cmd)}: exit {p.returncode}: {p.stderr[-2000:]}")
+        report = json.loads(p.stdout)
+        with open(saved, "w") as f:
+            json.dump({"command": cmd, "report": report, "cpu": cpu, "wall": wall}, f)
     samples = os.path.join(out, shape["key"] + ".npy")
     q = subprocess.run([ISM, "sample", path, "--surface", str(FIT_SAMPLES), "-q", "-o", samples],
                        capture_output=True, text=True)
@@ -906,6 +919,9 @@ def main():
     ap.add_argument("--max-res", type=int, default=640, help="largest 3D grid (cells per side)")
     ap.add_argument("--fit-arg", action="append", default=[],
                     help="extra `ism fit` argument (repeatable), e.g. --fit-arg=--no-topology")
+    ap.add_argument("--reuse", action="store_true",
+                    help="take the fit from an earlier run's --out DIR (KEY.ismb and KEY.fit.json, "
+                    "same fit command) instead of fitting again; the measures are redone")
     ap.add_argument("--keep-unmet", action="store_true",
                     help="measure a fit that exits 1 (model written, tolerance or topology not "
                     "met) instead of giving a failed row; its row says `met False`")
@@ -926,7 +942,7 @@ def main():
         tol = args.rel * longest
         try:
             path, report, cpu, wall, pts, nrm = fit_ism(shape, tol, out, args.timeout,
-                                                        args.fit_arg, args.keep_unmet)
+                                                        args.fit_arg, args.keep_unmet, args.reuse)
         except (RuntimeError, subprocess.TimeoutExpired) as e:
             print(f"{key}: fit failed: {e}", file=sys.stderr)
             rows.append(f"| {shape['name']} | {tol:.1e} | fit failed: {str(e)[:120]} |")
