@@ -606,6 +606,32 @@ fn plane_error(a: [f64; 3], b: [f64; 3], c: [f64; 3], p: [f64; 3]) -> f64 {
 /// midpoint.
 type Probed = (Bary, [f64; 3]);
 
+/// Makes a point placed by simplex `owner` on a face it shares with simplex `s` (a facet edge's
+/// point, or a patch corner on a shared K-edge) a start for `s`'s inversions: its preimage moved
+/// into `s`'s local coordinates (a point of the shared face, whose preimage lies on it: faces map
+/// to themselves) and `DX⁻¹` taken from `s`'s map (the owner's differs across the face). Its
+/// position and normal, which the mesh keeps from the owner anyway, are untouched. Only maps with
+/// an implicit stage use the preimage data.
+fn adopt(eval: &ModelEval, s: usize, owner: usize, point: &mut SurfacePoint) {
+    if !needs_start(eval, s) {
+        return;
+    }
+    let map = eval.local_map(s);
+    let model = eval.model();
+    let (from, to) = (model.simplex(owner), model.simplex(s));
+    let mut w = [0.0; MAX_VARS];
+    for (i, g) in from.iter().enumerate() {
+        if let Some(j) = to.iter().position(|x| x == g) {
+            w[j] = point.w[i];
+        }
+    }
+    point.w = w;
+    point.dx_inverse = map
+        .jacobian(&w)
+        .1
+        .and_then(|j| linalg::inverse(eval.dim(), &j));
+}
+
 /// What [`test_edge`] decided.
 struct EdgeTest {
     /// The midpoint, placed exactly, when the edge is split.
@@ -1209,31 +1235,6 @@ impl SurfaceBuilder<'_> {
         self.vertex(key, u, point)
     }
 
-    /// Makes a facet point placed by the facet's owner `owner` a start for this simplex's
-    /// inversions: its preimage moved into this simplex's local coordinates (a point of the shared
-    /// facet, whose preimage lies on it) and `DX⁻¹` taken from this simplex's map (the owner's
-    /// differs across the facet). Its position and normal, which the mesh keeps, are untouched.
-    /// Only maps with an implicit stage use the preimage data.
-    fn adopt(&self, owner: usize, point: &mut SurfacePoint) {
-        if !needs_start(self.eval, self.s) {
-            return;
-        }
-        let map = self.eval.local_map(self.s);
-        let model = self.eval.model();
-        let (from, to) = (model.simplex(owner), model.simplex(self.s));
-        let mut w = [0.0; MAX_VARS];
-        for (i, g) in from.iter().enumerate() {
-            if let Some(j) = to.iter().position(|x| x == g) {
-                w[j] = point.w[i];
-            }
-        }
-        point.w = w;
-        point.dx_inverse = map
-            .jacobian(&w)
-            .1
-            .and_then(|j| linalg::inverse(self.eval.dim(), &j));
-    }
-
     /// The midpoint vertex of an edge if the edge is split, else `None`.
     fn split(&mut self, a: u32, b: u32, edge: EdgeRef) -> Result<Option<u32>> {
         match edge {
@@ -1248,7 +1249,7 @@ impl SurfaceBuilder<'_> {
                     return Ok(None);
                 };
                 if fe.owner as usize != self.s {
-                    self.adopt(fe.owner as usize, &mut point);
+                    adopt(self.eval, self.s, fe.owner as usize, &mut point);
                 }
                 let (ua, ub) = self
                     .scratch
@@ -1701,28 +1702,85 @@ fn extract_surface(
         i = j;
     }
 
-    // Each patch's corners, placed once (in the patch's own coordinates) for both the facet
-    // owners and the patch itself: they were placed twice over, a third of all exact placements
-    // on a fitted model at 1e-3.
-    let corner_results: Vec<Result<([SurfacePoint; 4], Counters)>> = patches
+    // Each crossed K-edge's point is placed once, exactly, by the first patch that has it (the
+    // lowest simplex: the one whose vertex `merge` keeps), and used by the facet owners and the
+    // patches. A patch whose map has an implicit stage adopts the other corners (preimage moved
+    // into its coordinates, its own `DX⁻¹`: one Jacobian instead of an inversion); the others
+    // evaluate their corners directly (no Newton there). Each crossing is shared by the ~5
+    // simplices around its edge: placing it in each had been a fifth of a small export's
+    // instructions (the sphere example at 1e-3: 1,126 exact placements for 240 crossings).
+    // Only maps with an implicit stage gain (a parametric corner costs no inversion): without
+    // one, no crossing is shared and there is nothing to hash (a fitted torus at 1e-3 spent 0.4 %
+    // more instructions on the table than it saved).
+    let share = patches.par_iter().any(|(s, _)| needs_start(eval, *s));
+    // K-edge → (patch, corner, index into `owned`) of its first patch.
+    let mut first_patch: HashMap<(u32, u32), (u32, u8, u32)> = HashMap::default();
+    let mut owned: Vec<(u32, u8)> = Vec::new();
+    for (pi, (s, patch)) in patches.iter().enumerate().filter(|_| share) {
+        let ids = model.simplex(*s);
+        for (j, corner) in patch.corners.iter().enumerate() {
+            first_patch
+                .entry(corner_edge(ids, corner.edge))
+                .or_insert_with(|| {
+                    owned.push((pi as u32, j as u8));
+                    (pi as u32, j as u8, owned.len() as u32 - 1)
+                });
+        }
+    }
+    let placed: Vec<Result<(SurfacePoint, Counters)>> = owned
         .par_iter()
-        .map(|(s, patch)| {
+        .map(|&(pi, j)| {
             progress.check()?;
+            let (s, patch) = &patches[pi as usize];
+            let u = &patch.corners[j as usize].u;
             let mut c = Counters::default();
-            let mut out = [finish_point([0.0; MAX_VARS], [0.0; 3], [0.0; 3], None); 4];
-            for (o, corner) in out.iter_mut().zip(&patch.corners) {
-                *o = surface_point(eval, *s, &corner.u, Some(&corner.u), &mut c)?;
-            }
-            Ok((out, c))
+            Ok((surface_point(eval, *s, u, Some(u), &mut c)?, c))
         })
         .collect();
     progress.check()?;
     let mut counters = Counters::default();
-    let mut corner_points = Vec::with_capacity(patches.len());
-    for r in corner_results {
-        let (points, c) = r?;
+    let mut placed_points = Vec::with_capacity(placed.len());
+    for r in placed {
+        let (point, c) = r?;
         counters = counters.merge(c);
-        corner_points.push(points);
+        placed_points.push(point);
+    }
+    // Written in place (one array, touched once: a patch's four corners are ~900 bytes, and a
+    // collected array of results copied into a second one had been ~150 page faults of the
+    // sphere example's 750).
+    let unset = finish_point([0.0; MAX_VARS], [0.0; 3], [0.0; 3], None);
+    let mut corner_points = vec![[unset; 4]; patches.len()];
+    let corner_counters: Vec<Result<Counters>> = corner_points
+        .par_iter_mut()
+        .zip(patches)
+        .enumerate()
+        .map(|(pi, (out, (s, patch)))| {
+            progress.check()?;
+            let s = *s;
+            let ids = model.simplex(s);
+            let starts = needs_start(eval, s);
+            let mut c = Counters::default();
+            for (j, (o, corner)) in out.iter_mut().zip(&patch.corners).enumerate() {
+                let first = share.then(|| first_patch[&corner_edge(ids, corner.edge)]);
+                *o = match first {
+                    Some((opi, oj, i)) if (opi, oj) == (pi as u32, j as u8) => {
+                        placed_points[i as usize]
+                    }
+                    Some((opi, _, i)) if starts => {
+                        let mut point = placed_points[i as usize];
+                        adopt(eval, s, patches[opi as usize].0, &mut point);
+                        point
+                    }
+                    _ => surface_point(eval, s, &corner.u, Some(&corner.u), &mut c)?,
+                };
+            }
+            Ok(c)
+        })
+        .collect();
+    progress.check()?;
+    // In patch order: the first failure is reported whatever the thread count.
+    for c in corner_counters {
+        counters = counters.merge(c?);
     }
 
     // 2. The owner of each facet decides its patch edge's refinement.
@@ -1931,4 +1989,76 @@ fn extract_surface(
         first.counters = first.counters.merge(counters);
     }
     Ok(finish(patches, &chunks, 3, Primitive::Triangles))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use ism_format::IndexedModel;
+
+    /// A patch corner on a K-edge shared with an earlier simplex is adopted from that simplex's
+    /// exact point instead of being inverted again: its preimage, moved into this simplex's
+    /// coordinates, must be the one this simplex's own inversion finds (faces map to themselves),
+    /// and its `DX⁻¹` this simplex's (not the owner's: the maps differ across the face). Ground
+    /// truth: `surface_point` in each simplex itself (the route used before the sharing), on every
+    /// example with an implicit stage. Fails if `adopt` misplaces a coordinate or keeps the
+    /// owner's matrix.
+    #[test]
+    fn adopted_corners_equal_each_simplexs_own_inversion() {
+        let mut compared = 0;
+        for (name, model) in ism_examples::named::all_examples() {
+            if model.dim() != 3 {
+                continue;
+            }
+            let indexed = IndexedModel::new(model).unwrap();
+            let eval = ModelEval::for_extraction(&indexed).unwrap();
+            let ids = |s: usize| eval.model().simplex(s).to_vec();
+            let mut first: HashMap<(u32, u32), (usize, SurfacePoint)> = HashMap::default();
+            for s in 0..eval.num_simplices() {
+                let Some(patch) = eval.patch(s) else { continue };
+                for corner in &patch.corners {
+                    let key = corner_edge(&ids(s), corner.edge);
+                    let mut c = Counters::default();
+                    let own = surface_point(&eval, s, &corner.u, Some(&corner.u), &mut c).unwrap();
+                    let Some(&(owner, placed)) = first.get(&key) else {
+                        first.insert(key, (s, own));
+                        continue;
+                    };
+                    if !needs_start(&eval, s) {
+                        continue;
+                    }
+                    let mut adopted = placed;
+                    adopt(&eval, s, owner, &mut adopted);
+                    for k in 0..MAX_VARS {
+                        assert!(
+                            (adopted.w[k] - own.w[k]).abs() <= 1e-12,
+                            "{name}: simplex {s} (owner {owner}) w[{k}]: {:?} vs {:?}",
+                            adopted.w,
+                            own.w
+                        );
+                    }
+                    let (a, b) = (adopted.dx_inverse.unwrap(), own.dx_inverse.unwrap());
+                    let scale = b.iter().flatten().fold(0.0f64, |m, x| m.max(x.abs()));
+                    for (ra, rb) in a.iter().zip(&b) {
+                        for (x, y) in ra.iter().zip(rb) {
+                            assert!(
+                                (x - y).abs() <= 1e-9 * scale,
+                                "{name}: simplex {s} DX⁻¹ {a:?} vs {b:?}"
+                            );
+                        }
+                    }
+                    // The position the mesh keeps (the owner's) is this simplex's too.
+                    assert!(
+                        (0..3).all(|k| (placed.p[k] - own.p[k]).abs() <= 1e-12),
+                        "{name}: simplex {s}: {:?} vs {:?}",
+                        placed.p,
+                        own.p
+                    );
+                    compared += 1;
+                }
+            }
+        }
+        // The sphere, torus and stratified examples share hundreds of crossings.
+        assert!(compared > 1000, "{compared}");
+    }
 }
