@@ -753,7 +753,7 @@ impl Fitter<'_> {
                             }
                             let local = without.local(ids).after(this.weights.local(ids));
                             this.cell_error_of(c, &local, level, tolerance)
-                                <= TOLERANCE_MARGIN * tolerance
+                                <= TOLERANCE_MARGIN * tolerance * this.goal(c)
                         })
                     })
                     .collect()

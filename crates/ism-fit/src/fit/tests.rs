@@ -832,3 +832,136 @@ fn the_plantinga_vegter_shortcuts_give_the_reference_answer_on_every_cell() {
         "{passed} passed, {failed} failed"
     );
 }
+
+/// Exact distance from `p` to the triangle `t` (Ericson, Real-Time Collision Detection §5.1.5:
+/// the closest point by the Voronoi regions of the vertices, edges and face).
+fn point_triangle_distance(p: [f64; 3], t: [[f64; 3]; 3]) -> f64 {
+    let sub = |a: [f64; 3], b: [f64; 3]| [a[0] - b[0], a[1] - b[1], a[2] - b[2]];
+    let dot = |a: [f64; 3], b: [f64; 3]| a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
+    let at = |o: [f64; 3], d: [f64; 3], s: f64| [o[0] + s * d[0], o[1] + s * d[1], o[2] + s * d[2]];
+    let [a, b, c] = t;
+    let (ab, ac, ap) = (sub(b, a), sub(c, a), sub(p, a));
+    let (d1, d2) = (dot(ab, ap), dot(ac, ap));
+    let q = if d1 <= 0.0 && d2 <= 0.0 {
+        a
+    } else {
+        let bp = sub(p, b);
+        let (d3, d4) = (dot(ab, bp), dot(ac, bp));
+        let cp = sub(p, c);
+        let (d5, d6) = (dot(ab, cp), dot(ac, cp));
+        let (va, vb, vc) = (d3 * d6 - d5 * d4, d5 * d2 - d1 * d6, d1 * d4 - d3 * d2);
+        if d3 >= 0.0 && d4 <= d3 {
+            b
+        } else if vc <= 0.0 && d1 >= 0.0 && d3 <= 0.0 {
+            at(a, ab, d1 / (d1 - d3))
+        } else if d6 >= 0.0 && d5 <= d6 {
+            c
+        } else if vb <= 0.0 && d2 >= 0.0 && d6 <= 0.0 {
+            at(a, ac, d2 / (d2 - d6))
+        } else if va <= 0.0 && d4 - d3 >= 0.0 && d5 - d6 >= 0.0 {
+            at(b, sub(c, b), (d4 - d3) / ((d4 - d3) + (d5 - d6)))
+        } else {
+            let den = va + vb + vc;
+            at(at(a, ab, vb / den), ac, vc / den)
+        }
+    };
+    let d = sub(p, q);
+    dot(d, d).sqrt()
+}
+
+/// Issue 17, session 25: a mesh whose every edge is a crease (the icosahedron: faces 41.8° apart,
+/// vertices where five meet) is fitted as `ism fit --mesh` does (its plan), and the two-sided
+/// distance is checked against exact point–triangle distances, not the fitter's measure: the
+/// fit's export at 1 % of the tolerance (within that of the fit) against the icosahedron's
+/// triangles, both ways — lattice points of every face (its vertices and edges, where a fit that
+/// rounds the creases is farthest) to the export's triangles, the export's vertices to the faces.
+/// The fit must meet the tolerance by both the report and the truth, and its certified
+/// target → fit bound must not undercut the truth. The rounds: the one-sided goal lowered where
+/// the creases missed settles them in one round (the code before took two at this tolerance, 3,165
+/// simplices against 2,886; at 2e-2 four rounds against two).
+#[test]
+fn a_fit_of_a_mesh_with_creases_meets_its_tolerance_by_exact_distances() {
+    let mesh = crate::mesh::TriangleMesh::icosphere(0, 1.0, [0.0; 3]);
+    let faces: Vec<[[f64; 3]; 3]> = mesh
+        .triangles
+        .iter()
+        .map(|t| t.map(|v| mesh.positions[v as usize]))
+        .collect();
+    let g = crate::mesh::MeshDistance::new(mesh).unwrap();
+    let plan = g.plan(None, 0.05, true).unwrap();
+    let mut options = FitOptions::new(&plan.domain);
+    options.tolerance = 3e-2;
+    plan.apply(&mut options);
+    let fitted = fit(&g, &options, &ism_format::Progress::none()).unwrap();
+    let r = &fitted.report;
+    let t = options.tolerance;
+    assert!(r.tolerance_met, "{:?}", r.measure);
+    assert!(r.two_sided_rounds <= 1, "{} rounds", r.two_sided_rounds);
+    // The export: every point of it within `e` of the fit, and of the fit within `e` of it.
+    let e = 0.01 * t;
+    let model = fitted.to_model("ico");
+    let eval = ism_geom::ModelEval::new(&model).unwrap();
+    let extract = ism_export::extract::ExtractOptions {
+        tolerance: e,
+        ..Default::default()
+    };
+    let (export, _) = ism_export::extract::extract(&eval, &extract).unwrap();
+    let triangles: Vec<[[f64; 3]; 3]> = export
+        .cells
+        .chunks_exact(3)
+        .map(|c| [0, 1, 2].map(|k| export.positions[c[k] as usize]))
+        .collect();
+    assert!(triangles.len() > 1000, "{} triangles", triangles.len());
+    // Fit → target: every export vertex to the icosahedron.
+    let fit_to_target = export
+        .positions
+        .iter()
+        .map(|&p| {
+            faces
+                .iter()
+                .map(|&f| point_triangle_distance(p, f))
+                .fold(f64::INFINITY, f64::min)
+        })
+        .fold(0.0, f64::max);
+    assert!(
+        fit_to_target <= t + e,
+        "fit → target {fit_to_target} > {t} + {e}"
+    );
+    // Target → fit: a level-12 lattice on every face (its corners and edges included).
+    let level = 12;
+    let points: Vec<[f64; 3]> = faces
+        .iter()
+        .flat_map(|f| {
+            (0..=level).flat_map(move |i| {
+                (0..=level - i).map(move |j| {
+                    let (a, b) = (i as f64 / level as f64, j as f64 / level as f64);
+                    [0, 1, 2].map(|k| (1.0 - a - b) * f[0][k] + a * f[1][k] + b * f[2][k])
+                })
+            })
+        })
+        .collect();
+    let target_to_fit = points
+        .par_iter()
+        .map(|&p| {
+            triangles
+                .iter()
+                .map(|&f| point_triangle_distance(p, f))
+                .fold(f64::INFINITY, f64::min)
+        })
+        .reduce(|| 0.0, f64::max);
+    assert!(
+        target_to_fit <= t + e,
+        "target → fit {target_to_fit} > {t} + {e}"
+    );
+    // The certificate is an upper bound of the truth (up to the export's own error).
+    assert!(
+        r.measure.target_to_shape_bound >= target_to_fit - e,
+        "certified {} below the truth {target_to_fit}",
+        r.measure.target_to_shape_bound
+    );
+    // Ground-truth check of the distance function itself: a point above a face's centre.
+    let f = faces[0];
+    let c = [0, 1, 2].map(|k| (f[0][k] + f[1][k] + f[2][k]) / 3.0);
+    assert!(point_triangle_distance(c, f) < 1e-15);
+    assert!((point_triangle_distance(f[0].map(|x| 2.0 * x), f) - 1.0).abs() < 1e-12);
+}
