@@ -16,6 +16,7 @@
 //! kernel (`ism-geom`) evaluates the written model, and the tests check the two agree.
 
 use std::collections::HashMap;
+use std::hash::{BuildHasherDefault, Hash, Hasher};
 
 use ism_format::indexed::simplex_faces;
 use ism_format::model::{Direction, FaceRecord, Stage, StageKind};
@@ -73,38 +74,141 @@ pub fn edge_logits(alpha: f64) -> [f64; 2] {
     [0.0, (a / (1.0 - a)).ln().clamp(-LOGIT_BOUND, LOGIT_BOUND)]
 }
 
+/// A face's sorted vertex ids as a fixed array (the rest `u32::MAX`) with their number: a key
+/// compared and hashed without a heap pointer. Issue 17: with `Vec<u32>` keys and the default
+/// SipHash, [`StratifiedMap::local_with`]'s eleven lookups per tetrahedron and their `memcmp`
+/// were ~12 % of a torus fit at 3e-4.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+struct FaceKey {
+    ids: [u32; M],
+    len: u8,
+}
+
+impl FaceKey {
+    fn of(face: &[u32]) -> FaceKey {
+        assert!(
+            (1..=M).contains(&face.len()),
+            "a face has 1 to {M} vertices, not {}",
+            face.len()
+        );
+        let mut ids = [u32::MAX; M];
+        ids[..face.len()].copy_from_slice(face);
+        FaceKey {
+            ids,
+            len: face.len() as u8,
+        }
+    }
+
+    fn ids(&self) -> &[u32] {
+        &self.ids[..usize::from(self.len)]
+    }
+}
+
+impl Hash for FaceKey {
+    fn hash<H: Hasher>(&self, state: &mut H) {
+        // The unused ids are u32::MAX, so the length need not be hashed (equality checks it).
+        state.write_u64(u64::from(self.ids[0]) | u64::from(self.ids[1]) << 32);
+        state.write_u64(u64::from(self.ids[2]) | u64::from(self.ids[3]) << 32);
+    }
+}
+
+/// A multiply–rotate hash of [`FaceKey`]'s two words (the Fx hash of rustc, with a final
+/// rotation so that the table's bucket index, taken from the low bits, depends on every id).
+/// Keys are vertex ids of the fitter's own complex, not untrusted input, so no protection
+/// against chosen collisions is needed.
+#[derive(Clone, Copy, Debug, Default)]
+struct FaceHasher(u64);
+
+impl Hasher for FaceHasher {
+    fn write(&mut self, bytes: &[u8]) {
+        for &b in bytes {
+            self.write_u64(u64::from(b));
+        }
+    }
+
+    fn write_u64(&mut self, x: u64) {
+        const K: u64 = 0xf135_7aea_2e62_a9c5;
+        self.0 = (self.0 ^ x).wrapping_mul(K);
+    }
+
+    fn finish(&self) -> u64 {
+        self.0.rotate_left(26)
+    }
+}
+
+/// A stored point: its (clamped) logits and the displacement [`Term::set`] computes from them,
+/// computed once when the point is set instead of at every [`StratifiedMap::local_with`].
+#[derive(Clone, Copy, Debug)]
+struct Stored {
+    logits: [f64; M],
+    delta: [f64; M],
+}
+
 /// Solitary points of every stratum, as logits keyed by the sorted global vertex ids of the face.
 /// A face without an entry has its fixed centre (all logits 0).
 #[derive(Clone, Debug, Default)]
 pub struct StratifiedMap {
     dim: usize,
-    logits: HashMap<Vec<u32>, Vec<f64>>,
+    logits: HashMap<FaceKey, Stored, BuildHasherDefault<FaceHasher>>,
 }
 
 #[derive(Clone, Copy, Debug)]
 struct Term {
-    positions: [usize; M],
-    len: usize,
+    positions: [u8; M],
+    len: u8,
     /// `(b_τ − 𝟙_τ/|τ|) · |τ|!`, per position in `positions`.
     delta: [f64; M],
+}
+
+/// A term that moves nothing (the padding of [`LocalStrata::terms`]).
+const NO_TERM: Term = Term {
+    positions: [0; M],
+    len: 0,
+    delta: [0.0; M],
+};
+
+/// `(σ − 1/len)·len!` for `σ` the softmax of the `len` logits (clamped), as [`softmax`] computes it:
+/// a face term's displacement, what [`LocalStrata::set_displacement`] takes.
+pub fn displacement(logits: &[f64]) -> [f64; M] {
+    let len = logits.len();
+    let mut e = [0.0; M];
+    for (x, l) in e.iter_mut().zip(logits) {
+        *x = l.clamp(-LOGIT_BOUND, LOGIT_BOUND).exp();
+    }
+    let s: f64 = e[..len].iter().sum();
+    let factorial: f64 = (1..=len).map(|x| x as f64).product();
+    let mut delta = [0.0; M];
+    for (d, x) in delta.iter_mut().zip(&e[..len]) {
+        *d = (x / s - 1.0 / len as f64) * factorial;
+    }
+    delta
 }
 
 impl Term {
     /// Sets the displacement from the face's logits (sorted ids, the order of `positions`):
     /// the same numbers as [`softmax`] then `(b − 1/len)·len!`.
     fn set(&mut self, logits: &[f64]) {
-        let len = self.len;
-        let mut e = [0.0; M];
-        for (x, l) in e.iter_mut().zip(&logits[..len]) {
-            *x = l.clamp(-LOGIT_BOUND, LOGIT_BOUND).exp();
-        }
-        let s: f64 = e[..len].iter().sum();
-        let factorial: f64 = (1..=len).map(|x| x as f64).product();
-        for (d, x) in self.delta.iter_mut().zip(&e[..len]) {
-            *d = (x / s - 1.0 / len as f64) * factorial;
-        }
+        self.delta = displacement(&logits[..usize::from(self.len)]);
+    }
+
+    fn positions(&self) -> &[u8] {
+        &self.positions[..usize::from(self.len)]
     }
 }
+
+/// A term's position as an index of a point's coordinates: below [`M`] by construction, and
+/// taken modulo [`M`] so that the compiler drops the bounds checks of the optimizer's innermost
+/// loops ([`LocalStrata::apply`] and its derivative).
+fn at(p: u8) -> usize {
+    usize::from(p) % M
+}
+
+/// Where stratum `j`'s terms start in [`LocalStrata::terms`] (index `j − 1`): a tetrahedron has
+/// six edges, four triangles and one interior.
+const STRATUM_START: [usize; M - 1] = [0, 6, 10];
+
+/// Room for the terms of all strata of a tetrahedron.
+const MAX_TERMS: usize = 11;
 
 /// Where a face's term is in a [`LocalStrata`] ([`StratifiedMap::local_with`]).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -118,8 +222,11 @@ pub struct Slot {
 #[derive(Clone, Debug)]
 pub struct LocalStrata {
     m: usize,
-    /// `strata[j − 1]`: the terms of stratum `j`.
-    strata: Vec<Vec<Term>>,
+    /// The terms of stratum `j` are `terms[STRATUM_START[j − 1]..][..count[j − 1]]`, in the
+    /// order of [`simplex_faces`] (fixed arrays: the optimizer builds a map per cell and block
+    /// run, and three growing vectors each were a good part of its allocations).
+    terms: [Term; MAX_TERMS],
+    count: [u8; M - 1],
     /// Applied to `u` before the strata.
     pre: Option<LocalRational>,
 }
@@ -134,7 +241,24 @@ impl LocalStrata {
     /// Moves the point of the face at `slot` to the one with these logits (clamped, as
     /// [`StratifiedMap::set_logits`] stores them).
     pub fn set_point(&mut self, slot: Slot, logits: &[f64]) {
-        self.strata[slot.stratum][slot.term].set(logits);
+        self.terms[STRATUM_START[slot.stratum] + slot.term].set(logits);
+    }
+
+    /// [`LocalStrata::set_point`] with the point's [`displacement`] computed by the caller: the
+    /// same for every cell with the face, so the optimizer computes it once per trial, not once
+    /// per cell (its exponentials).
+    pub fn set_displacement(&mut self, slot: Slot, delta: &[f64; M]) {
+        self.terms[STRATUM_START[slot.stratum] + slot.term].delta = *delta;
+    }
+
+    /// Number of strata (`m − 1`, stratum `j` at index `j − 1`).
+    fn strata(&self) -> usize {
+        self.m.saturating_sub(1)
+    }
+
+    /// The terms of the stratum at index `j` (stratum `j + 1`).
+    fn stratum(&self, j: usize) -> &[Term] {
+        &self.terms[STRATUM_START[j]..][..usize::from(self.count[j])]
     }
 
     /// `w = Y(u)`: the rational stage if any, then strata `n, n−1, …, 1` in turn.
@@ -151,20 +275,18 @@ impl LocalStrata {
             None => *u,
         };
         let from = slot.map_or(0, |s| s.stratum + 1);
-        self.strata[from.min(self.strata.len())..]
-            .iter()
+        (from.min(self.strata())..self.strata())
             .rev()
-            .fold(v, |v, terms| self.apply(terms, v))
+            .fold(v, |v, j| self.apply(self.stratum(j), v))
     }
 
     /// The rest of [`LocalStrata::eval`] after [`LocalStrata::eval_before`] with the same
     /// `slot`: `eval(u) = eval_after(eval_before(u, slot), slot)`, bit for bit.
     pub fn eval_after(&self, v: &[f64; M], slot: Option<Slot>) -> [f64; M] {
-        let to = slot.map_or(0, |s| s.stratum + 1).min(self.strata.len());
-        self.strata[..to]
-            .iter()
+        let to = slot.map_or(0, |s| s.stratum + 1).min(self.strata());
+        (0..to)
             .rev()
-            .fold(*v, |v, terms| self.apply(terms, v))
+            .fold(*v, |v, j| self.apply(self.stratum(j), v))
     }
 
     /// [`LocalStrata::eval_after`] at `v` for the slot's point set to logits `θ` (call
@@ -184,24 +306,25 @@ impl LocalStrata {
         delta_derivative: &[[f64; M]; M],
         dw: &mut [[f64; M]; M],
     ) -> [f64; M] {
-        let t = &self.strata[slot.stratum][slot.term];
-        let len = t.len;
+        let t = &self.terms[STRATUM_START[slot.stratum] + slot.term];
+        let len = usize::from(t.len);
         let mut b = 1.0;
-        for &p in &t.positions[..len] {
-            b *= v[p];
+        for &p in t.positions() {
+            b *= v[at(p)];
         }
-        let mut w = self.apply(&self.strata[slot.stratum], *v);
+        let mut w = self.apply(self.stratum(slot.stratum), *v);
         let mut tangents = [[0.0; M]; M];
         for (tangent, dd) in tangents.iter_mut().zip(delta_derivative).take(len) {
-            for (i, &p) in t.positions[..len].iter().enumerate() {
+            for (i, &p) in t.positions().iter().enumerate() {
+                let p = at(p);
                 // A coordinate that `apply` clamped at 0 stays there.
                 if w[p] > 0.0 {
                     tangent[p] = b * dd[i];
                 }
             }
         }
-        for terms in self.strata[..slot.stratum].iter().rev() {
-            w = self.apply_tangents(terms, w, &mut tangents[..len]);
+        for j in (0..slot.stratum).rev() {
+            w = self.apply_tangents(self.stratum(j), w, &mut tangents[..len]);
         }
         dw[..len].copy_from_slice(&tangents[..len]);
         w
@@ -213,29 +336,29 @@ impl LocalStrata {
         let mut inputs = [[0.0; M]; M];
         inputs[..tangents.len()].copy_from_slice(tangents);
         for t in terms {
-            let positions = &t.positions[..t.len];
+            let positions = t.positions();
             let mut b = 1.0;
             for &p in positions {
-                b *= v[p];
+                b *= v[at(p)];
             }
             for (tangent, dv) in tangents.iter_mut().zip(&inputs) {
                 // d(Π v_p) = Σ_i dv_{p_i} Π_{l≠i} v_{p_l}.
                 let mut db = 0.0;
                 for (i, &p) in positions.iter().enumerate() {
-                    let mut rest = dv[p];
+                    let mut rest = dv[at(p)];
                     for (l, &q) in positions.iter().enumerate() {
                         if l != i {
-                            rest *= v[q];
+                            rest *= v[at(q)];
                         }
                     }
                     db += rest;
                 }
-                for (d, &p) in t.delta[..t.len].iter().zip(positions) {
-                    tangent[p] += d * db;
+                for (d, &p) in t.delta.iter().zip(positions) {
+                    tangent[at(p)] += d * db;
                 }
             }
             for (k, &p) in positions.iter().enumerate() {
-                out[p] += t.delta[k] * b;
+                out[at(p)] += t.delta[k] * b;
             }
         }
         for (x, p) in out.iter_mut().take(self.m).zip(0..) {
@@ -254,11 +377,11 @@ impl LocalStrata {
         let mut out = v;
         for t in terms {
             let mut b = 1.0;
-            for &p in &t.positions[..t.len] {
-                b *= v[p];
+            for &p in t.positions() {
+                b *= v[at(p)];
             }
-            for (k, &p) in t.positions[..t.len].iter().enumerate() {
-                out[p] += t.delta[k] * b;
+            for (k, &p) in t.positions().iter().enumerate() {
+                out[at(p)] += t.delta[k] * b;
             }
         }
         // Keep exact zeros exact (a point on a face stays on it) and the sum at 1.
@@ -276,7 +399,7 @@ impl StratifiedMap {
     pub fn new(dim: usize) -> StratifiedMap {
         StratifiedMap {
             dim,
-            logits: HashMap::new(),
+            logits: HashMap::default(),
         }
     }
 
@@ -287,29 +410,33 @@ impl StratifiedMap {
 
     /// The logits of `face` (sorted ids), zeros if unset.
     pub fn logits(&self, face: &[u32]) -> Vec<f64> {
-        self.logits
-            .get(face)
-            .cloned()
-            .unwrap_or_else(|| vec![0.0; face.len()])
+        match self.logits.get(&FaceKey::of(face)) {
+            Some(stored) => stored.logits[..face.len()].to_vec(),
+            None => vec![0.0; face.len()],
+        }
     }
 
-    /// Sets the logits of `face` (sorted ids), clamped to `±LOGIT_BOUND`.
+    /// Sets the logits of `face` (sorted ids, 1 to 4 of them, as many logits), clamped to
+    /// `±LOGIT_BOUND`.
     pub fn set_logits(&mut self, face: &[u32], logits: &[f64]) {
-        let l: Vec<f64> = logits
-            .iter()
-            .map(|x| x.clamp(-LOGIT_BOUND, LOGIT_BOUND))
-            .collect();
-        self.logits.insert(face.to_vec(), l);
+        assert_eq!(face.len(), logits.len(), "one logit per vertex of the face");
+        let key = FaceKey::of(face);
+        let mut l = [0.0; M];
+        for (s, x) in l.iter_mut().zip(logits) {
+            *s = x.clamp(-LOGIT_BOUND, LOGIT_BOUND);
+        }
+        let delta = displacement(&l[..face.len()]);
+        self.logits.insert(key, Stored { logits: l, delta });
     }
 
     /// Forgets the point of `face` (back to the fixed centre).
     pub fn remove(&mut self, face: &[u32]) {
-        self.logits.remove(face);
+        self.logits.remove(&FaceKey::of(face));
     }
 
     /// Keeps only the faces for which `keep` is true.
     pub fn retain(&mut self, mut keep: impl FnMut(&[u32]) -> bool) {
-        self.logits.retain(|f, _| keep(f));
+        self.logits.retain(|f, _| keep(f.ids()));
     }
 
     /// The control point of `face` (coordinates w.r.t. the sorted ids).
@@ -318,8 +445,10 @@ impl StratifiedMap {
     }
 
     /// The faces with a stored point and their logits, in no particular order.
-    pub fn entries(&self) -> impl Iterator<Item = (&Vec<u32>, &Vec<f64>)> {
-        self.logits.iter()
+    pub fn entries(&self) -> impl Iterator<Item = (&[u32], &[f64])> {
+        self.logits
+            .iter()
+            .map(|(f, s)| (f.ids(), &s.logits[..usize::from(f.len)]))
     }
 
     /// Number of faces with a stored point.
@@ -339,7 +468,9 @@ impl StratifiedMap {
     /// map per trial, with its hash lookups, was ~20 % of a torus fit).
     pub fn local_with(&self, cell: &[u32], face: Option<&[u32]>) -> (LocalStrata, Option<Slot>) {
         let m = cell.len();
-        let mut strata = vec![Vec::new(); m.saturating_sub(1)];
+        assert!(m <= M, "a cell has at most {M} vertices, not {m}");
+        let mut terms = [NO_TERM; MAX_TERMS];
+        let mut count = [0u8; M - 1];
         let mut slot = None;
         // Every face of ≥ 2 vertices (the cells of the fitter's working complex: not an indexed
         // model, so the faces come from the vertex list).
@@ -347,34 +478,35 @@ impl StratifiedMap {
             let len = local.len();
             let key = local.ids();
             let wanted = face == Some(key);
-            let logits = self.logits.get(key);
-            if logits.is_none() && !wanted {
+            let stored = self.logits.get(&FaceKey::of(key));
+            if stored.is_none() && !wanted {
                 continue;
             }
             let mut term = Term {
                 positions: [0; M],
-                len,
+                len: len as u8,
                 delta: [0.0; M],
             };
-            for (k, &p) in local.positions().iter().enumerate() {
-                term.positions[k] = usize::from(p);
-            }
-            match logits {
-                Some(l) => term.set(l),
+            term.positions[..len].copy_from_slice(local.positions());
+            match stored {
+                Some(s) => term.delta = s.delta,
                 None => term.set(&[0.0; M][..len]),
             }
+            let j = len - 2;
             if wanted {
                 slot = Some(Slot {
-                    stratum: len - 2,
-                    term: strata[len - 2].len(),
+                    stratum: j,
+                    term: usize::from(count[j]),
                 });
             }
-            strata[len - 2].push(term);
+            terms[STRATUM_START[j] + usize::from(count[j])] = term;
+            count[j] += 1;
         }
         (
             LocalStrata {
                 m,
-                strata,
+                terms,
+                count,
                 pre: None,
             },
             slot,
@@ -388,11 +520,10 @@ impl StratifiedMap {
         (1..=self.dim)
             .map(|j| {
                 let mut faces: Vec<FaceRecord> = self
-                    .logits
-                    .iter()
+                    .entries()
                     .filter(|(f, l)| f.len() == j + 1 && l.iter().any(|&x| x != 0.0) && exists(f))
                     .map(|(f, l)| FaceRecord {
-                        face: f.clone(),
+                        face: f.to_vec(),
                         points: softmax(l),
                         weights: Vec::new(),
                     })
@@ -458,6 +589,11 @@ mod tests {
                     // In two parts around the slot's stratum.
                     let split = local.eval_after(&local.eval_before(u, slot), slot);
                     assert_eq!(split.map(f64::to_bits), b.map(f64::to_bits));
+                    // With the displacement computed once for all cells.
+                    let mut shared = local.clone();
+                    shared.set_point(slot.unwrap(), &[0.0; M][..face.len()]);
+                    shared.set_displacement(slot.unwrap(), &displacement(l));
+                    assert_eq!(shared.eval(u).map(f64::to_bits), b.map(f64::to_bits));
                 }
             }
         }
@@ -645,6 +781,81 @@ mod tests {
                 }
             }
         }
+    }
+
+    #[test]
+    fn faces_sharing_ids_are_kept_apart_as_a_sorted_map_keeps_them() {
+        // Truth: a BTreeMap keyed by the ids as a vector, written alongside. The faces share
+        // prefixes ([1, 2] in [1, 2, 3] in [1, 2, 3, 4]) and hold ids up to u32::MAX − 1, the
+        // cases a fixed-array key with padding could confuse.
+        let big = u32::MAX - 1;
+        let faces: Vec<Vec<u32>> = vec![
+            vec![1, 2],
+            vec![1, 2, 3],
+            vec![1, 2, 3, 4],
+            vec![2, 3],
+            vec![1, 3],
+            vec![0, big],
+            vec![0, 1, big],
+            vec![0, 1, 2, big],
+            vec![big - 1, big],
+        ];
+        let mut map = StratifiedMap::new(3);
+        let mut truth: std::collections::BTreeMap<Vec<u32>, Vec<f64>> = Default::default();
+        let mut seed = 12345u64;
+        let mut next = || {
+            seed = seed
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (seed >> 11) as f64 / (1u64 << 53) as f64
+        };
+        for round in 0..200 {
+            let f = &faces[(next() * faces.len() as f64) as usize];
+            if round % 7 == 3 {
+                map.remove(f);
+                truth.remove(f);
+            } else {
+                // Some beyond the bound: stored clamped.
+                let l: Vec<f64> = f.iter().map(|_| 16.0 * next() - 8.0).collect();
+                map.set_logits(f, &l);
+                truth.insert(
+                    f.clone(),
+                    l.iter()
+                        .map(|x| x.clamp(-LOGIT_BOUND, LOGIT_BOUND))
+                        .collect(),
+                );
+            }
+            for f in &faces {
+                let expect = truth.get(f).cloned().unwrap_or(vec![0.0; f.len()]);
+                assert_eq!(map.logits(f), expect, "{f:?} after {round} changes");
+            }
+            let mut entries: Vec<(Vec<u32>, Vec<f64>)> = map
+                .entries()
+                .map(|(f, l)| (f.to_vec(), l.to_vec()))
+                .collect();
+            entries.sort_by(|a, b| a.0.cmp(&b.0));
+            let expect: Vec<(Vec<u32>, Vec<f64>)> = truth.clone().into_iter().collect();
+            assert_eq!(entries, expect);
+            assert_eq!(map.num_faces(), truth.len());
+        }
+        // The map on a cell is the closed form of the stored points.
+        let cell = [3u32, 1, 4, 2];
+        let stored: Vec<(Vec<u32>, Vec<f64>)> = truth
+            .iter()
+            .filter(|(f, _)| f.iter().all(|v| cell.contains(v)))
+            .map(|(f, l)| (f.clone(), l.clone()))
+            .collect();
+        let u = [0.1, 0.2, 0.3, 0.4];
+        let peer = closed_form(&stored, &cell, &u, None);
+        let w = map.local(&cell).eval(&u);
+        for c in 0..M {
+            assert!((peer[c].0 - w[c]).abs() < 1e-14, "{stored:?}");
+        }
+        map.retain(|f| f.len() == 2);
+        truth.retain(|f, _| f.len() == 2);
+        let mut kept: Vec<Vec<u32>> = map.entries().map(|(f, _)| f.to_vec()).collect();
+        kept.sort();
+        assert_eq!(kept, truth.keys().cloned().collect::<Vec<_>>());
     }
 
     #[test]

@@ -35,7 +35,8 @@ use crate::isocontour::{patch_corners, patch_samples, topology, Bary, Topology};
 use crate::measure::{measure_cached_keeping_points, Measure, MeasureCache, Miss};
 use crate::rational::{RationalWeights, LOG_WEIGHT_BOUND};
 use crate::strata::{
-    displacement_derivative, edge_logits, LocalStrata, Slot, StratifiedMap, LOGIT_BOUND,
+    displacement, displacement_derivative, edge_logits, LocalStrata, Slot, StratifiedMap,
+    LOGIT_BOUND,
 };
 use crate::FitError;
 

@@ -67,6 +67,8 @@ pub(super) struct FacePoint<'f, 'a> {
     locals: Vec<(LocalStrata, Slot, Vec<Bary>)>,
     /// Each cell's vertex coordinates (`n` per vertex), read once per block.
     corners: Vec<Vec<f64>>,
+    /// The number of samples over all cells (the points' vector is reserved at once).
+    samples: usize,
 }
 
 impl FacePoint<'_, '_> {
@@ -87,9 +89,11 @@ impl FacePoint<'_, '_> {
 impl BlockMap for FacePoint<'_, '_> {
     fn points(&mut self, x: &[f64], out: &mut Vec<[f64; 3]>) {
         out.clear();
+        out.reserve(self.samples);
+        let delta = displacement(x);
         for k in 0..self.cells.len() {
             let (local, slot, _) = &mut self.locals[k];
-            local.set_point(*slot, x);
+            local.set_displacement(*slot, &delta);
             let (local, slot, before) = &self.locals[k];
             out.extend(
                 before
@@ -105,9 +109,10 @@ impl BlockMap for FacePoint<'_, '_> {
         let mut i = 0;
         let mut dw = [[0.0; 4]; 4];
         let dd = displacement_derivative(x);
+        let delta = displacement(x);
         for k in 0..self.cells.len() {
             let (local, slot, _) = &mut self.locals[k];
-            local.set_point(*slot, x);
+            local.set_displacement(*slot, &delta);
             let (local, slot, before) = &self.locals[k];
             for v in before.iter() {
                 local.eval_after_jacobian(v, *slot, &dd, &mut dw);
@@ -504,6 +509,8 @@ impl Fitter<'_> {
         self.g.gradient_each(points, grads);
         r.clear();
         normals.clear();
+        r.reserve(points.len());
+        normals.reserve(points.len());
         for (v, grad) in grads.iter() {
             let norm = grad[..n]
                 .iter()
@@ -606,11 +613,13 @@ impl Fitter<'_> {
                     .collect()
             })
             .collect();
+        let samples = samples.iter().map(Vec::len).sum();
         let mut block = FacePoint {
             fitter: self,
             cells,
             locals,
             corners,
+            samples,
         };
         Some(self.levenberg_marquardt(&mut block, self.map.logits(face), LOGIT_BOUND))
     }
@@ -634,6 +643,7 @@ impl Fitter<'_> {
         let mut grads = Vec::new();
         let (mut pts, mut r, mut normals) = (Vec::new(), Vec::new(), Vec::new());
         let (mut pn, mut rn, mut nn) = (Vec::new(), Vec::new(), Vec::new());
+        let mut xn = Vec::with_capacity(k);
         block.points(&x, &mut pts);
         self.residuals_at(&pts, &mut grads, &mut r, &mut normals);
         let mut cost: f64 = r.iter().map(|v| v * v).sum();
@@ -668,16 +678,17 @@ impl Fitter<'_> {
                 let Some(step) = solve(&mut a[..k * k], &mut b[..k], k) else {
                     break;
                 };
-                let xn: Vec<f64> = x
-                    .iter()
-                    .zip(&step)
-                    .map(|(a, s)| (a + s).clamp(-bound, bound))
-                    .collect();
+                xn.clear();
+                xn.extend(
+                    x.iter()
+                        .zip(&step)
+                        .map(|(a, s)| (a + s).clamp(-bound, bound)),
+                );
                 block.points(&xn, &mut pn);
                 self.residuals_at(&pn, &mut grads, &mut rn, &mut nn);
                 let cn: f64 = rn.iter().map(|v| v * v).sum();
                 if cn < cost {
-                    x = xn;
+                    std::mem::swap(&mut x, &mut xn);
                     std::mem::swap(&mut pts, &mut pn);
                     std::mem::swap(&mut r, &mut rn);
                     std::mem::swap(&mut normals, &mut nn);
@@ -714,7 +725,7 @@ impl Fitter<'_> {
         let mut faces: Vec<(f64, Vec<u32>)> = self
             .map
             .entries()
-            .map(|(f, l)| (centre_gap(l), f.clone()))
+            .map(|(f, l)| (centre_gap(l), f.to_vec()))
             .collect();
         faces.sort_by(|a, b| a.0.total_cmp(&b.0).then_with(|| a.1.cmp(&b.1)));
         let level = rank_level(self.n);
@@ -731,7 +742,7 @@ impl Fitter<'_> {
         let mut stored: HashMap<Vec<u32>, Vec<f64>> = self
             .map
             .entries()
-            .map(|(f, l)| (f.clone(), l.clone()))
+            .map(|(f, l)| (f.to_vec(), l.to_vec()))
             .collect();
         for run in conflict_levels(cells.iter().map(|c| (&c[..], false))) {
             let removable: Vec<bool> = {

@@ -118,7 +118,7 @@ fn fits_are_the_same_bits_for_any_number_of_threads() {
         let mut entries: Vec<(Vec<u32>, Vec<u64>)> = f
             .map
             .entries()
-            .map(|(k, l)| (k.clone(), l.iter().map(|x| x.to_bits()).collect()))
+            .map(|(k, l)| (k.to_vec(), l.iter().map(|x| x.to_bits()).collect()))
             .collect();
         entries.sort();
         (f.to_model("t"), entries)
