@@ -327,6 +327,21 @@ def exported_distance(path, zpts, tol, out):
     return d, near, eps, len(cells), summary.get("depth_limited_edges", 0)
 
 
+def narrow_sign_change(path, p, d, sign, a, b, steps):
+    """Bisects [a, b] along p + t d, where the model's F - c has sign `sign` at t = a and not at
+    t = b, `steps` times by `ism query`; returns the narrowed (a, b) and whether every midpoint
+    was inside |K| (where one was not, F is undefined there and [a, b] brackets nothing)."""
+    ok = np.ones(len(p), bool)
+    for _ in range(steps):
+        m = 0.5 * (a + b)
+        fv, sg, _ = ism_query(path, p + m[:, None] * d)
+        same = sg == sign
+        a = np.where(same, m, a)
+        b = np.where(same, b, m)
+        ok &= np.isfinite(fv)
+    return a, b, ok
+
+
 def projected_distance(path, z, q, reach):
     """An upper bound of dist(z, S) from a point q near S (the closest point of the fine export):
     along -sign(F) grad F from q, a sign change of the model's F - c is bracketed to [a, b] by
@@ -353,20 +368,11 @@ def projected_distance(path, z, q, reach):
         t[ai[~hit]] *= 2.0
         act[ai[hit | ~inside]] = False
         act &= t <= reach
-    ok = np.isfinite(hi)
-    idx = np.nonzero(ok)[0]
-    a, b = lo[idx], hi[idx]
-    for _ in range(40):
-        m = 0.5 * (a + b)
-        fv, sg, _ = ism_query(path, q[idx] + m[:, None] * d[idx])
-        same = sg == sign[idx]
-        a = np.where(same, m, a)
-        b = np.where(same, b, m)
-        # A midpoint outside |K| would bracket nothing: no bound for that point.
-        ok[idx[~np.isfinite(fv)]] = False
+    idx = np.nonzero(np.isfinite(hi))[0]
+    a, b, ok = narrow_sign_change(path, q[idx], d[idx], sign[idx], lo[idx], hi[idx], 40)
     out = np.full(len(q), np.inf)
     ends = [np.linalg.norm(z[idx] - (q[idx] + x[:, None] * d[idx]), axis=1) for x in (a, b)]
-    out[idx] = np.where(ok[idx], np.maximum(*ends), np.inf)
+    out[idx] = np.where(ok, np.maximum(*ends), np.inf)
     on = sign == 0
     out[on] = np.linalg.norm(z[on] - q[on], axis=1)
     return out
@@ -412,16 +418,9 @@ def ism_bracket(path, pts, start, reach):
             t[ai[~hit]] *= 1.5
             act[ai[hit]] = False
             act &= (t <= min(reach, 1.0)) & (t < best)
-        ok = np.isfinite(hi)
-        a, b = lo[ok], hi[ok]
-        idx = np.nonzero(ok)[0]
-        for _ in range(24):
-            m = 0.5 * (a + b)
-            _, sg, _ = ism_query(path, pts[idx] + m[:, None] * d[idx])
-            same = sg == sign[idx]
-            a = np.where(same, m, a)
-            b = np.where(same, b, m)
-        best[idx] = np.minimum(best[idx], b)
+        idx = np.nonzero(np.isfinite(hi))[0]
+        _, b, ok = narrow_sign_change(path, pts[idx], d[idx], sign[idx], lo[idx], hi[idx], 24)
+        best[idx] = np.minimum(best[idx], np.where(ok, b, np.inf))
         if np.all(best <= 2 * start):
             break
     best[sign == 0] = np.nan

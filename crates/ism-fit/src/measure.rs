@@ -2234,7 +2234,7 @@ fn box_tree<G: ImplicitFunction + ?Sized>(
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use crate::Expression;
     use ism_format::model::Model;
@@ -2502,8 +2502,9 @@ mod tests {
         }
     }
 
-    /// The exact Euclidean distance from `p` to triangle `abc`.
-    fn triangle_distance(p: &[f64; 3], a: &[f64; 3], b: &[f64; 3], c: &[f64; 3]) -> f64 {
+    /// The exact Euclidean distance from `p` to triangle `abc`: the crate's test oracle (also
+    /// `fit::tests`), independent of the library's mesh distance.
+    pub(crate) fn triangle_distance(p: &[f64; 3], a: &[f64; 3], b: &[f64; 3], c: &[f64; 3]) -> f64 {
         distance(&triangle_closest(p, a, b, c)[..], p)
     }
 

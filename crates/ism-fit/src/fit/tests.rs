@@ -833,40 +833,10 @@ fn the_plantinga_vegter_shortcuts_give_the_reference_answer_on_every_cell() {
     );
 }
 
-/// Exact distance from `p` to the triangle `t` (Ericson, Real-Time Collision Detection §5.1.5:
-/// the closest point by the Voronoi regions of the vertices, edges and face).
+/// Exact distance from `p` to the triangle `t`: the crate's oracle (`measure::tests`, Ericson's
+/// closest point by the Voronoi regions of the vertices, edges and face).
 fn point_triangle_distance(p: [f64; 3], t: [[f64; 3]; 3]) -> f64 {
-    let sub = |a: [f64; 3], b: [f64; 3]| [a[0] - b[0], a[1] - b[1], a[2] - b[2]];
-    let dot = |a: [f64; 3], b: [f64; 3]| a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
-    let at = |o: [f64; 3], d: [f64; 3], s: f64| [o[0] + s * d[0], o[1] + s * d[1], o[2] + s * d[2]];
-    let [a, b, c] = t;
-    let (ab, ac, ap) = (sub(b, a), sub(c, a), sub(p, a));
-    let (d1, d2) = (dot(ab, ap), dot(ac, ap));
-    let q = if d1 <= 0.0 && d2 <= 0.0 {
-        a
-    } else {
-        let bp = sub(p, b);
-        let (d3, d4) = (dot(ab, bp), dot(ac, bp));
-        let cp = sub(p, c);
-        let (d5, d6) = (dot(ab, cp), dot(ac, cp));
-        let (va, vb, vc) = (d3 * d6 - d5 * d4, d5 * d2 - d1 * d6, d1 * d4 - d3 * d2);
-        if d3 >= 0.0 && d4 <= d3 {
-            b
-        } else if vc <= 0.0 && d1 >= 0.0 && d3 <= 0.0 {
-            at(a, ab, d1 / (d1 - d3))
-        } else if d6 >= 0.0 && d5 <= d6 {
-            c
-        } else if vb <= 0.0 && d2 >= 0.0 && d6 <= 0.0 {
-            at(a, ac, d2 / (d2 - d6))
-        } else if va <= 0.0 && d4 - d3 >= 0.0 && d5 - d6 >= 0.0 {
-            at(b, sub(c, b), (d4 - d3) / ((d4 - d3) + (d5 - d6)))
-        } else {
-            let den = va + vb + vc;
-            at(at(a, ab, vb / den), ac, vc / den)
-        }
-    };
-    let d = sub(p, q);
-    dot(d, d).sqrt()
+    crate::measure::tests::triangle_distance(&p, &t[0], &t[1], &t[2])
 }
 
 /// Issue 17, session 25: a mesh whose every edge is a crease (the icosahedron: faces 41.8° apart,
