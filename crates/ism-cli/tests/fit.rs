@@ -328,11 +328,16 @@ fn obj_and_glb_meshes_fit_validate_and_keep_the_sphere_topology() {
         (sa - sb).abs() <= 0.12 * sa.max(sb),
         "{sa} vs {sb} simplices"
     );
+    // The errors: both within the tolerance (above) and close. Since the two-sided rounds lower
+    // the one-sided goal where they miss (issue 17, session 25), which cells miss — and so how
+    // far below the tolerance the fit ends — follows those rounding-level decisions too: 2.77e-2
+    // vs 2.91e-2 here (were within 1e-3 before). A tenth of the tolerance still catches a
+    // translation that changed the fit itself.
     let (ea, eb) = (
         a["maxDistance"].as_f64().unwrap(),
         b["maxDistance"].as_f64().unwrap(),
     );
-    assert!((ea - eb).abs() < 1e-3, "{ea} vs {eb}");
+    assert!((ea - eb).abs() < 0.1 * 3e-2, "{ea} vs {eb}");
 }
 
 #[test]
