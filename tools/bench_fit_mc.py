@@ -982,7 +982,6 @@ def main():
             bracket[undef] = again + 1e-7
         bracket = np.fmin(bracket, nearest)
         rest = np.delete(back, worst)
-        back_max = max(float(np.nanmax(bracket)), float(rest.max()) if len(rest) else 0.0)
         print(f"  Z->S: bracket on the worst {len(worst)} {np.nanmax(bracket):.3e}; the smaller "
               f"upper bound {max(np.nanmax(np.fmin(bracket, back[worst])), 0):.4e}",
               file=sys.stderr)
@@ -995,6 +994,9 @@ def main():
                   f"projected)", file=sys.stderr)
             bracket = np.fmin(bracket, proj)
         back = np.append(rest, bracket)
+        # The largest of the final upper bounds (after all three re-measures of the worst; an
+        # infinite one stays infinite: it is not dropped).
+        back_max = float(np.nanmax(back)) if len(back) else 0.0
         back = back[np.isfinite(back)]
         ism_err = max(fwd.max(), back_max)
         ism_bytes = os.path.getsize(path)
