@@ -2502,6 +2502,20 @@ pub(crate) mod tests {
         }
     }
 
+    /// The points `(1 − a − b)·t₀ + a·t₁ + b·t₂` with `a, b` multiples of `1/level`: a barycentric
+    /// lattice of triangle `t`, its corners and edges included.
+    pub(crate) fn triangle_lattice(
+        t: [[f64; 3]; 3],
+        level: usize,
+    ) -> impl Iterator<Item = [f64; 3]> {
+        (0..=level).flat_map(move |i| {
+            (0..=level - i).map(move |j| {
+                let (a, b) = (i as f64 / level as f64, j as f64 / level as f64);
+                [0, 1, 2].map(|k| (1.0 - a - b) * t[0][k] + a * t[1][k] + b * t[2][k])
+            })
+        })
+    }
+
     /// The exact Euclidean distance from `p` to triangle `abc`: the crate's test oracle (also
     /// `fit::tests`), independent of the library's mesh distance.
     pub(crate) fn triangle_distance(p: &[f64; 3], a: &[f64; 3], b: &[f64; 3], c: &[f64; 3]) -> f64 {
@@ -2750,13 +2764,7 @@ pub(crate) mod tests {
                 let longest = distance(&v[0][..], &v[1])
                     .max(distance(&v[1][..], &v[2]))
                     .max(distance(&v[2][..], &v[0]));
-                let l = ((longest / spacing).ceil() as usize).max(1);
-                (0..=l).flat_map(move |i| {
-                    (0..=l - i).map(move |j| {
-                        let (a, b) = (i as f64 / l as f64, j as f64 / l as f64);
-                        [0, 1, 2].map(|k| (1.0 - a - b) * v[0][k] + a * v[1][k] + b * v[2][k])
-                    })
-                })
+                triangle_lattice(*v, ((longest / spacing).ceil() as usize).max(1))
             })
             .collect();
         let sparse_max = sparse

@@ -882,17 +882,19 @@ fn a_fit_of_a_mesh_with_creases_meets_its_tolerance_by_exact_distances() {
         .map(|c| [0, 1, 2].map(|k| export.positions[c[k] as usize]))
         .collect();
     assert!(triangles.len() > 1000, "{} triangles", triangles.len());
+    // The largest distance from `points` to the nearest of `tris`, exactly (brute force).
+    let farthest = |points: &[[f64; 3]], tris: &[[[f64; 3]; 3]]| {
+        points
+            .par_iter()
+            .map(|&p| {
+                tris.iter()
+                    .map(|&f| point_triangle_distance(p, f))
+                    .fold(f64::INFINITY, f64::min)
+            })
+            .reduce(|| 0.0, f64::max)
+    };
     // Fit → target: every export vertex to the icosahedron.
-    let fit_to_target = export
-        .positions
-        .iter()
-        .map(|&p| {
-            faces
-                .iter()
-                .map(|&f| point_triangle_distance(p, f))
-                .fold(f64::INFINITY, f64::min)
-        })
-        .fold(0.0, f64::max);
+    let fit_to_target = farthest(&export.positions, &faces);
     assert!(
         fit_to_target <= t + e,
         "fit → target {fit_to_target} > {t} + {e}"
@@ -901,24 +903,9 @@ fn a_fit_of_a_mesh_with_creases_meets_its_tolerance_by_exact_distances() {
     let level = 12;
     let points: Vec<[f64; 3]> = faces
         .iter()
-        .flat_map(|f| {
-            (0..=level).flat_map(move |i| {
-                (0..=level - i).map(move |j| {
-                    let (a, b) = (i as f64 / level as f64, j as f64 / level as f64);
-                    [0, 1, 2].map(|k| (1.0 - a - b) * f[0][k] + a * f[1][k] + b * f[2][k])
-                })
-            })
-        })
+        .flat_map(|&f| crate::measure::tests::triangle_lattice(f, level))
         .collect();
-    let target_to_fit = points
-        .par_iter()
-        .map(|&p| {
-            triangles
-                .iter()
-                .map(|&f| point_triangle_distance(p, f))
-                .fold(f64::INFINITY, f64::min)
-        })
-        .reduce(|| 0.0, f64::max);
+    let target_to_fit = farthest(&points, &triangles);
     assert!(
         target_to_fit <= t + e,
         "target → fit {target_to_fit} > {t} + {e}"
