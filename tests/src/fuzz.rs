@@ -47,7 +47,8 @@ fn written_model_reads_back(model: &Model, what: &str) {
 ///   same face ids;
 /// - the indexed read ([`io::from_slice_indexed`]: the check that builds the face tables instead
 ///   of scanning the records), and the lazy index ([`IndexedModel::new_lazy_or_model`], the
-///   validator's), whose tables once built are the eager index's.
+///   validator's and the exporter's), whose records found by face ids
+///   ([`IndexedModel::simplex_records`]) and tables once built are the eager index's.
 pub fn readers_agree(bytes: &[u8]) {
     let checked = ReadOptions::default();
     let slice = io::from_slice_with(bytes, &checked);
@@ -96,6 +97,20 @@ pub fn readers_agree(bytes: &[u8]) {
             match IndexedModel::new_lazy_or_model(d.model.clone()) {
                 Ok(lazy) => {
                     assert_eq!(lazy.diagnostics(), i.model.diagnostics(), "lazy index");
+                    // Before its tables are built, the lazy index finds each simplex's face
+                    // records by their ids (an export's route): the eager index's records.
+                    for (k, stage) in d.model.stages.iter().enumerate() {
+                        if stage.kind == ism_format::StageKind::Monotonic {
+                            continue;
+                        }
+                        for s in 0..d.model.num_simplices() {
+                            assert_eq!(
+                                lazy.simplex_records(k, s),
+                                i.model.simplex_records(k, s),
+                                "lazy index: records of stage {k} on simplex {s}"
+                            );
+                        }
+                    }
                     assert_eq!(lazy.topology(), i.model.topology(), "lazy index");
                 }
                 Err((_, e)) => panic!("the lazy index refuses a checked model: {e}"),

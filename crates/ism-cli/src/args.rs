@@ -131,9 +131,11 @@ impl ReadLimits {
             .map_err(|e| cannot_read_model(path, e))
     }
 
-    /// [`ReadLimits::read_indexed`] for a caller that may never look a face record up (`ism
-    /// export --linear`): the same check and errors, but only the vertex incidence is kept
-    /// ([`ism_format::IndexedModel::new_lazy_or_model`]); the face tables are built on first use.
+    /// [`ReadLimits::read_indexed`] for a caller that looks up few face records or none (`ism
+    /// export`: the crossed simplices' records, through
+    /// [`ism_format::IndexedModel::simplex_records`]): the same check and errors, but only the
+    /// vertex incidence is kept ([`ism_format::IndexedModel::new_lazy_or_model`]); the face
+    /// tables are built on first use.
     pub(crate) fn read_indexed_lazily(
         self,
         path: &Path,

@@ -1298,6 +1298,9 @@ impl StageRows {
     fn build(stage: &Stage, topology: &Topology, faces: &[u32]) -> StageRows {
         let d = stage.degree;
         let n = topology.dim();
+        if stage.kind == StageKind::Monotonic {
+            return StageRows::monotonic(stage, topology.num_vertices());
+        }
         let mut rows = StageRows {
             record: Vec::new(),
             identity: Vec::new(),
@@ -1307,19 +1310,7 @@ impl StageRows {
             dense: OnceLock::new(),
         };
         match stage.kind {
-            StageKind::Monotonic => {
-                let nv = topology.num_vertices();
-                let per = d as usize + 1;
-                rows.vertex_record = vec![NONE; nv];
-                rows.coefficients = (0..nv * per)
-                    .map(|i| (i % per) as f64 / f64::from(d))
-                    .collect();
-                for (r, map) in stage.vertex_maps.iter().enumerate() {
-                    let v = map.vertex as usize;
-                    rows.vertex_record[v] = r as u32;
-                    rows.coefficients[v * per..(v + 1) * per].copy_from_slice(&map.coefficients);
-                }
-            }
+            StageKind::Monotonic => unreachable!("returned above"),
             StageKind::Bezier | StageKind::Rational => {
                 for k in 0..=n {
                     rows.record.push(vec![NONE; topology.face_slots(k)]);
@@ -1343,6 +1334,70 @@ impl StageRows {
             }
         }
         rows
+    }
+
+    /// A monotonic stage's rows: indexed by vertex, so no face table is needed (a lazy index
+    /// stays lazy).
+    fn monotonic(stage: &Stage, nv: usize) -> StageRows {
+        let d = stage.degree;
+        let per = d as usize + 1;
+        let mut rows = StageRows {
+            record: Vec::new(),
+            identity: Vec::new(),
+            ones: Vec::new(),
+            vertex_record: vec![NONE; nv],
+            coefficients: (0..nv * per)
+                .map(|i| (i % per) as f64 / f64::from(d))
+                .collect(),
+            dense: OnceLock::new(),
+        };
+        for (r, map) in stage.vertex_maps.iter().enumerate() {
+            let v = map.vertex as usize;
+            rows.vertex_record[v] = r as u32;
+            rows.coefficients[v * per..(v + 1) * per].copy_from_slice(&map.coefficients);
+        }
+        rows
+    }
+}
+
+/// One stage's face records grouped by their face's first (smallest) vertex id: what finds the
+/// records of one simplex's faces without the complex's face tables (the lazy index,
+/// [`IndexedModel::simplex_records`]). The structural check has made sure that every record names
+/// a face of the complex, none twice, with its ids ascending.
+#[derive(Debug)]
+struct RecordIndex {
+    /// Per record, grouped by first id: the record and its face's ids after the first (`len`
+    /// of them, the rest [`NONE`]): a simplex's faces among a vertex's records are found by
+    /// comparing integers, without reading the face table's rows.
+    entries: Vec<(u32, u8, [u32; 3])>,
+    /// `nv + 1` offsets into `entries`: the records whose face starts with vertex `v` are
+    /// `entries[start[v] .. start[v + 1]]`.
+    start: Vec<u32>,
+}
+
+impl RecordIndex {
+    fn build(table: &FaceTable, nv: usize) -> RecordIndex {
+        let mut start = vec![0u32; nv + 1];
+        for r in 0..table.len() {
+            start[table.face(r)[0] as usize + 1] += 1;
+        }
+        for v in 0..nv {
+            start[v + 1] += start[v];
+        }
+        let mut next = start.clone();
+        let mut entries = vec![(NONE, 0u8, [NONE; 3]); table.len()];
+        for r in 0..table.len() {
+            let face = table.face(r);
+            let slot = &mut next[face[0] as usize];
+            let mut rest = [NONE; 3];
+            // At most 4 ids (n ≤ 3): the check refused longer records.
+            for (x, &id) in rest.iter_mut().zip(&face[1..]) {
+                *x = id;
+            }
+            entries[*slot as usize] = (r as u32, (face.len() - 1) as u8, rest);
+            *slot += 1;
+        }
+        RecordIndex { entries, start }
     }
 }
 
@@ -1482,6 +1537,9 @@ struct Inner {
     checked: Option<Topology>,
     /// Per stage, built on first use.
     stages: Vec<OnceLock<StageRows>>,
+    /// Per stage, the records ordered by face, built on first use of
+    /// [`IndexedModel::simplex_records`] while `full` is not built.
+    record_index: Vec<OnceLock<RecordIndex>>,
     /// Found by the check, or on first use for an evaluator's index of a model without stages
     /// whose arrays are sound ([`IndexedModel::for_evaluation`]).
     diagnostics: OnceLock<Vec<crate::rules::Diagnostic>>,
@@ -1610,6 +1668,7 @@ impl IndexedModel {
                         full: OnceLock::new(),
                         checked: None,
                         stages: Vec::new(),
+                        record_index: Vec::new(),
                         diagnostics: OnceLock::new(),
                     }),
                 });
@@ -1646,12 +1705,14 @@ impl IndexedModel {
             }
             _ => return Err((model, Error::Structure(errors))),
         };
-        let stages = (0..model.stages.len()).map(|_| OnceLock::new()).collect();
+        let stages: Vec<OnceLock<StageRows>> =
+            (0..model.stages.len()).map(|_| OnceLock::new()).collect();
         Ok(IndexedModel {
             inner: Arc::new(Inner {
                 model,
                 full: OnceLock::from((topology, record_faces)),
                 checked: None,
+                record_index: stages.iter().map(|_| OnceLock::new()).collect(),
                 stages,
                 diagnostics: OnceLock::from(diagnostics),
             }),
@@ -1697,12 +1758,14 @@ impl IndexedModel {
             Some((t, _)) if errors.is_empty() => t,
             _ => return Err((model, Error::Structure(errors))),
         };
-        let stages = (0..model.stages.len()).map(|_| OnceLock::new()).collect();
+        let stages: Vec<OnceLock<StageRows>> =
+            (0..model.stages.len()).map(|_| OnceLock::new()).collect();
         Ok(IndexedModel {
             inner: Arc::new(Inner {
                 model,
                 full: OnceLock::new(),
                 checked: Some(checked),
+                record_index: stages.iter().map(|_| OnceLock::new()).collect(),
                 stages,
                 diagnostics: OnceLock::from(diagnostics),
             }),
@@ -1736,10 +1799,71 @@ impl IndexedModel {
     pub fn stage(&self, i: usize) -> StageTable<'_> {
         let inner = &*self.inner;
         let stage = &inner.model.stages[i];
-        let (topology, record_faces) = inner.full();
-        let rows =
-            inner.stages[i].get_or_init(|| StageRows::build(stage, topology, &record_faces[i]));
+        let rows = if stage.kind == StageKind::Monotonic {
+            // Indexed by vertex: a lazy index does not build its face tables for it.
+            inner.stages[i].get_or_init(|| StageRows::monotonic(stage, inner.model.num_vertices()))
+        } else {
+            let (topology, record_faces) = inner.full();
+            inner.stages[i].get_or_init(|| StageRows::build(stage, topology, &record_faces[i]))
+        };
         StageTable { stage, rows }
+    }
+
+    /// The record of stage `i` (a Bézier or rational stage) naming each face of simplex `s`, by
+    /// the bit mask of the face's local positions (bit `j`: local vertex `j`; entry 0 and masks
+    /// past `2^(n+1)` unused), [`NONE`] where the file has none: what a caller filling one
+    /// simplex's control net wants ([`IndexedModel::stage`]'s
+    /// [`StageTable::record_of`] of [`Topology::faces_by_mask`], the same records).
+    ///
+    /// A lazily indexed model ([`IndexedModel::new_lazy_or_model`]) whose face tables are not
+    /// built yet finds the records by their faces' vertex ids instead (a per-stage order of the
+    /// records, built on first use without a thread pool, so a parallel loop may call this
+    /// first): a caller that only reads some simplices' records — an export reads the simplices
+    /// the level set crosses — never pays for the complex's face tables. The check has refused a
+    /// record that names no face of the complex or repeats one, so both routes agree.
+    ///
+    /// # Panics
+    /// If `i` or `s` is out of range, or stage `i` is monotonic (indexed by vertex).
+    pub fn simplex_records(&self, i: usize, s: usize) -> [u32; 16] {
+        let inner = &*self.inner;
+        let model = &inner.model;
+        let stage = &model.stages[i];
+        assert!(
+            stage.kind != StageKind::Monotonic,
+            "stage {i} is monotonic: its records are per vertex"
+        );
+        let simplex = model.simplex(s);
+        let m = simplex.len().min(4);
+        let mut out = [NONE; 16];
+        if let Some((topology, _)) = inner.full.get() {
+            let table = self.stage(i);
+            let faces = topology.faces_by_mask(model, s);
+            for (record, face) in out.iter_mut().zip(&faces).take(1 << m).skip(1) {
+                *record = table.records(usize::from(face.dim))[face.index as usize];
+            }
+            return out;
+        }
+        let index = inner.record_index[i]
+            .get_or_init(|| RecordIndex::build(&stage.faces, model.num_vertices()));
+        // Each face's record is among its first vertex's: a pass over the simplex's vertices'
+        // records keeps those whose other ids are all in the simplex, at the mask of their
+        // positions (a simplex's ids are distinct: the check refused repeats).
+        let position = |id: u32| simplex[..m].iter().position(|&x| x == id);
+        for (p, &v) in simplex[..m].iter().enumerate() {
+            let run = &index.entries
+                [index.start[v as usize] as usize..index.start[v as usize + 1] as usize];
+            'records: for &(r, len, rest) in run {
+                let mut mask = 1usize << p;
+                for &id in &rest[..usize::from(len)] {
+                    match position(id) {
+                        Some(q) => mask |= 1 << q,
+                        None => continue 'records,
+                    }
+                }
+                out[mask] = r;
+            }
+        }
+        out
     }
 
     /// The flat tables of every stage, in application order.
@@ -2423,6 +2547,82 @@ mod tests {
                     assert_eq!(a.vertex_records(), b.vertex_records());
                 }
             }
+        }
+    }
+
+    #[test]
+    fn a_lazy_index_finds_each_simplexs_records_as_a_search_of_the_records_does() {
+        // Truth: a linear search of the stage's records for each face's ids (neither the face
+        // tables nor the lazy index's grouping).
+        for (n, g) in [(2, 4), (3, 3)] {
+            let mut model = kuhn(n, g);
+            let plain = IndexedModel::new(model.clone()).expect("valid");
+            let d = 4;
+            let mut bezier = Stage::identity(StageKind::Bezier, d);
+            let mut rational = Stage::identity(StageKind::Rational, d);
+            let mut faces_of: Vec<Vec<u32>> = Vec::new();
+            for k in 1..n {
+                faces_of.extend(
+                    plain
+                        .topology()
+                        .face_vertices(k)
+                        .chunks(k + 1)
+                        .map(<[u32]>::to_vec),
+                );
+            }
+            // Top faces too (degree 4 owns interior points of a triangle and a tetrahedron).
+            faces_of.extend((0..model.num_simplices()).map(|s| {
+                let mut ids = model.simplex(s).to_vec();
+                ids.sort_unstable();
+                ids
+            }));
+            for (i, face) in faces_of.iter().enumerate() {
+                let owned = owned_count(face.len(), d);
+                if owned == 0 {
+                    continue;
+                }
+                let points = vec![1.0 / face.len() as f64; owned * face.len()];
+                if i % 3 == 0 {
+                    bezier.faces.push(face, &points, &[]);
+                }
+                if i % 4 == 1 {
+                    rational.faces.push(face, &points, &vec![2.0; owned]);
+                }
+            }
+            let mut mono = Stage::identity(StageKind::Monotonic, 2);
+            mono.vertex_maps.push(VertexMap {
+                vertex: 3,
+                coefficients: vec![0.0, 0.4, 1.0],
+            });
+            model.stages = vec![bezier, mono, rational];
+            let eager = IndexedModel::new(model.clone()).expect("valid");
+            let lazy = IndexedModel::new_lazy_or_model(model.clone()).expect("valid");
+            let m = n + 1;
+            for i in [0, 2] {
+                let table = &model.stages[i].faces;
+                assert!(!table.is_empty(), "n={n} stage {i}");
+                let mut found = 0;
+                for s in 0..model.num_simplices() {
+                    let mut truth = [NONE; 16];
+                    for (mask, t) in truth.iter_mut().enumerate().take(1 << m).skip(1) {
+                        let face = LocalFace::of_mask(model.simplex(s), mask as u8);
+                        if let Some(r) = (0..table.len()).find(|&r| table.face(r) == face.ids()) {
+                            *t = r as u32;
+                            found += 1;
+                        }
+                    }
+                    assert_eq!(lazy.simplex_records(i, s), truth, "n={n} stage {i} s={s}");
+                    assert_eq!(eager.simplex_records(i, s), truth, "n={n} stage {i} s={s}");
+                }
+                assert!(found > 0, "n={n} stage {i}");
+            }
+            // Neither the lookups nor a monotonic stage's rows built the lazy index's tables.
+            assert_eq!(
+                lazy.stage(1).vertex_records(),
+                eager.stage(1).vertex_records()
+            );
+            assert_eq!(lazy.stage(1).coefficients(), eager.stage(1).coefficients());
+            assert!(lazy.inner.full.get().is_none());
         }
     }
 

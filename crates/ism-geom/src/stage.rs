@@ -18,7 +18,7 @@
 use std::collections::HashMap;
 
 use ism_format::indexed::{simplex_faces, LocalFace, NONE};
-use ism_format::{multi_index, Direction, FaceId, IndexedModel, Model, Stage, StageKind};
+use ism_format::{multi_index, Direction, IndexedModel, Model, Stage, StageKind};
 
 use crate::error::{GeomError, Result};
 use crate::linalg;
@@ -360,30 +360,27 @@ impl LocalStage {
         if s >= count {
             return Err(GeomError::NoSimplex { index: s, count });
         }
-        let table = model.stage(stage_index);
         let simplex = model.simplex(s);
         let m = simplex.len();
-        let d = table.degree();
+        let d = stage.degree;
         if !(2..=MAX_VARS).contains(&m) {
             return Err(GeomError::Dimension(m.saturating_sub(1)));
         }
         let per_vertex = d as usize + 1;
-        // Per support mask (a subset of the local positions): the face it names and its record
-        // (NONE without one), looked up once per face of the simplex.
-        let mut faces = [FaceId { dim: 0, index: 0 }; 1 << MAX_VARS];
+        // Per support mask (a subset of the local positions): the record of the face it names
+        // (NONE without one), looked up once per face of the simplex — by face ids on a lazily
+        // indexed model, whose face tables are then never built.
         let mut records = [NONE; 1 << MAX_VARS];
         let identity = match stage.kind {
-            StageKind::Monotonic => simplex
-                .iter()
-                .all(|&v| table.vertex_records()[v as usize] == NONE),
+            StageKind::Monotonic => {
+                let table = model.stage(stage_index);
+                simplex
+                    .iter()
+                    .all(|&v| table.vertex_records()[v as usize] == NONE)
+            }
             _ => {
-                faces = model.topology().faces_by_mask(model, s);
-                let mut identity = true;
-                for (record, face) in records.iter_mut().zip(&faces).take(1 << m).skip(1) {
-                    *record = table.records(usize::from(face.dim))[face.index as usize];
-                    identity &= *record == NONE;
-                }
-                identity
+                records = model.simplex_records(stage_index, s);
+                records[1..1 << m].iter().all(|&r| r == NONE)
             }
         };
         if identity && skip_identity {
@@ -405,6 +402,7 @@ impl LocalStage {
             sparse: None,
         };
         if stage.kind == StageKind::Monotonic {
+            let table = model.stage(stage_index);
             for &v in simplex {
                 let v = v as usize;
                 local
@@ -442,7 +440,7 @@ impl LocalStage {
                 }
                 if records[mask] != NONE {
                     let (points, weights, pos, len) = *supports[mask].get_or_insert_with(|| {
-                        let face = faces[mask];
+                        let record = stage.faces.record(records[mask] as usize);
                         // Positions ordered by global id → the face's own vertex order
                         // t_0 < … < t_k.
                         let local = LocalFace::of_mask(simplex, mask as u8);
@@ -451,7 +449,7 @@ impl LocalStage {
                             *slot = usize::from(p);
                         }
                         let len = local.len();
-                        (table.face_points(face), table.face_weights(face), pos, len)
+                        (record.points, record.weights, pos, len)
                     });
                     let mut shifted = [0u32; MAX_VARS];
                     for (x, &p) in shifted.iter_mut().zip(&pos[..len]) {
@@ -462,7 +460,8 @@ impl LocalStage {
                     for (jj, &p) in pos[..len].iter().enumerate() {
                         b[p] = points[r * len + jj];
                     }
-                    if rational {
+                    // A rational record without weights has unit weights.
+                    if rational && !weights.is_empty() {
                         q = weights[r];
                     }
                 }
