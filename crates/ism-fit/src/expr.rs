@@ -1,17 +1,18 @@
 //! Implicit functions `g: Rⁿ → R`: the [`ImplicitFunction`] trait and user expressions.
 //!
-//! An [`Expression`] is parsed by `exmex` (variables `x`, `y`, `z`), evaluated in `f64`, its
-//! gradient comes from `exmex`'s exact symbolic partial derivatives, and both the value and the
-//! gradient are also compiled over [`Interval`] for the Plantinga–Vegter test.
-//!
-//! The text is read by this module's own parser with the conventional precedence of mathematics,
-//! Python and Julia (see [`GRAMMAR`]), then handed to `exmex` fully parenthesized: `exmex` alone
-//! lets unary minus bind tighter than `^` (`-x^2` would be `(-x)^2`) and has no exponent notation
-//! (`1e-3`).
+//! An [`Expression`] (variables `x`, `y`, `z`) is read by this module's own parser with the
+//! conventional precedence of mathematics, Python and Julia (see [`GRAMMAR`]) and compiled to
+//! straight-line code: `g` and its exact gradient (forward mode) in `f64` (`Tape`), and `g`
+//! with its symbolic first and second partial derivatives over [`Interval`] for the
+//! Plantinga–Vegter test (`IntervalForms`). `exmex` checks the text once more, handed to it
+//! fully parenthesized: `exmex` alone lets unary minus bind tighter than `^` (`-x^2` would be
+//! `(-x)^2`) and has no exponent notation (`1e-3`); the tests hold the code to `exmex`'s own
+//! evaluation and derivatives.
 
 use std::collections::HashMap;
 
 use exmex::prelude::*;
+#[cfg(test)]
 use exmex::{BinOp, FlatEx, MakeOperators, Operator};
 
 use crate::interval::Interval;
@@ -43,7 +44,8 @@ const CONSTANTS: &[&str] = &["PI", "π", "E", "e", "TAU", "τ"];
 /// A parsed expression tree.
 #[derive(Clone, Debug, PartialEq)]
 enum Node {
-    Number(f64),
+    /// A literal and whether it is exactly that double ([`literal_is_exact`]).
+    Number(f64, bool),
     /// A variable or a named constant.
     Name(String),
     Negate(Box<Node>),
@@ -57,7 +59,7 @@ impl Node {
     /// reads back to the same double, never in exponent notation (which `exmex` lacks).
     fn to_exmex(&self, out: &mut String) {
         match self {
-            Node::Number(v) => out.push_str(&format!("{v}")),
+            Node::Number(v, _) => out.push_str(&format!("{v}")),
             Node::Name(n) => out.push_str(n),
             Node::Negate(a) => {
                 out.push_str("(-(");
@@ -85,7 +87,8 @@ impl Node {
 
 #[derive(Clone, Debug, PartialEq)]
 enum Token {
-    Number(f64),
+    /// A literal and whether it is exactly that double ([`literal_is_exact`]).
+    Number(f64, bool),
     Name(String),
     /// One of `+ - * / ^` (`**` is read as `^`).
     Op(char),
@@ -96,7 +99,7 @@ enum Token {
 impl Token {
     fn describe(&self) -> String {
         match self {
-            Token::Number(v) => format!("the number {v}"),
+            Token::Number(v, _) => format!("the number {v}"),
             Token::Name(n) => format!("`{n}`"),
             Token::Op(c) => format!("`{c}`"),
             Token::Open => "`(`".to_string(),
@@ -152,7 +155,7 @@ fn tokenize(text: &str) -> Result<Vec<(Token, usize)>, String> {
                     start + 1
                 ));
             }
-            tokens.push((Token::Number(value), start + 1));
+            tokens.push((Token::Number(value, literal_is_exact(&literal)), start + 1));
         } else if is_name_start(c) {
             while i < chars.len() && (is_name_start(chars[i]) || chars[i].is_ascii_digit()) {
                 i += 1;
@@ -179,6 +182,31 @@ fn tokenize(text: &str) -> Result<Vec<(Token, usize)>, String> {
         }
     }
     Ok(tokens)
+}
+
+/// Whether the decimal `literal` (digits, an optional fraction and exponent, as [`tokenize`]
+/// reads them) is exactly the double it reads as. Only integers below 10¹⁵ (< 2⁵³, all doubles)
+/// are said to be; other literals, even exact ones such as `0.5`, are widened by one rounding in
+/// the interval forms ([`Interval::around`]), which only costs width.
+fn literal_is_exact(literal: &str) -> bool {
+    let (mantissa, exponent) = match literal.find(['e', 'E']) {
+        Some(i) => (&literal[..i], literal[i + 1..].parse::<i64>()),
+        None => (literal, Ok(0)),
+    };
+    let Ok(exponent) = exponent else {
+        return false;
+    };
+    let (int, frac) = mantissa.split_once('.').unwrap_or((mantissa, ""));
+    let frac = frac.trim_end_matches('0');
+    let digits = format!("{int}{frac}");
+    let digits = digits.trim_start_matches('0');
+    let significant = digits.trim_end_matches('0');
+    if significant.is_empty() {
+        return true;
+    }
+    // The value is `significant · 10^scale`.
+    let scale = exponent - frac.len() as i64 + (digits.len() - significant.len()) as i64;
+    scale >= 0 && significant.len() as i64 + scale <= 15
 }
 
 /// Recursive descent over [`GRAMMAR`].
@@ -257,9 +285,9 @@ impl Parser {
             return Err(format!("{expected}{after}, found {}", self.position()));
         };
         match token {
-            Token::Number(v) => {
+            Token::Number(v, exact) => {
                 self.at += 1;
-                Ok(Node::Number(v))
+                Ok(Node::Number(v, exact))
             }
             Token::Open => {
                 self.at += 1;
@@ -470,7 +498,8 @@ struct Tape {
 /// written by hand (the tangle cube's is 46 bytes), and short enough to bound what `exmex`'s symbolic
 /// derivatives cost, which grows about quadratically with the terms of a sum: a 200-term
 /// `x^2+…` (805 bytes) takes 0.7 GB and ~3 CPU-s to fit at 0.1, a 1,000-term one (4,005 bytes)
-/// 21 GB and 112 CPU-s (session 24, `ism fit --expr`).
+/// 21 GB and 112 CPU-s (session 24, `ism fit --expr`). Since session 26 no symbolic derivative
+/// comes from `exmex`; the limit stays as the bound on the parser's and the builders' recursion.
 pub const MAX_EXPRESSION_BYTES: usize = 1024;
 /// The stack of the thread [`Expression::parse`] runs on: `exmex`'s derivative of a sum recurses
 /// once per term at tens of kilobytes a level (a 200-term sum overflowed the main thread's
@@ -479,6 +508,18 @@ const PARSE_STACK_BYTES: usize = 256 << 20;
 
 const TAPE_SHORT: usize = 24;
 const TAPE_LONG: usize = 96;
+
+/// Points [`Tape::gradient_each`] runs through the tape together: enough to pay an instruction's
+/// dispatch once for several points, few enough that a torus tape's work space (16 slots of
+/// 256 bytes) stays in the first-level cache.
+const LANES: usize = 8;
+
+/// One slot of [`Tape::run_lanes`]: the value and gradient of [`LANES`] points.
+#[derive(Clone, Copy, Debug)]
+struct Slot {
+    v: [f64; LANES],
+    d: [[f64; LANES]; 3],
+}
 
 impl Tape {
     /// Compiles `node`; `None` for a name that is neither a coordinate of `dim` nor a constant.
@@ -560,7 +601,7 @@ impl Tape {
     fn push(&mut self, node: &Node, dim: usize) -> Option<usize> {
         use std::f64::consts::{E, PI, TAU};
         Some(match node {
-            Node::Number(v) => self.emit(Ins::Const(*v)),
+            Node::Number(v, _) => self.emit(Ins::Const(*v)),
             Node::Name(n) => {
                 if let Some(k) = VARIABLES[..dim].iter().position(|v| v == n) {
                     self.uses[k] = true;
@@ -670,15 +711,22 @@ impl Tape {
         }
     }
 
-    /// [`Tape::gradient`] at each point's first `dim` coordinates into `out`, through one work
-    /// space: every slot is written before it is read, so it needs no clearing between points.
+    /// [`Tape::gradient`] at each point's first `dim` coordinates into `out`, bit for bit, run
+    /// [`LANES`] points at a time instruction by instruction ([`Tape::run_lanes`]): the dispatch on
+    /// each instruction and its operand look-ups are paid once per group instead of once per
+    /// point, and the per-lane loops compile to packed arithmetic. Issue 17, session 26: the
+    /// point-by-point loop was 11 % of a torus fit at 1e-4 (`perf`), the largest item of this file.
     fn gradient_each(&self, dim: usize, points: &[[f64; 3]], out: &mut Vec<(f64, [f64; 3])>) {
-        const ZERO: (f64, [f64; 3]) = (0.0, [0.0; 3]);
+        const ZERO: Slot = Slot {
+            v: [0.0; LANES],
+            d: [[0.0; LANES]; 3],
+        };
         let n = self.ins.len();
         // On the stack for the short tapes, as in [`Tape::gradient`]: the optimizer calls this
-        // once per trial step (5.6 M times in a torus fit at 1e-4).
+        // once per trial step (5.6 M times in a torus fit at 1e-4). Every slot is written before
+        // it is read, so the work space needs no clearing between groups.
         let (mut short, mut long);
-        let r: &mut [(f64, [f64; 3])] = if n <= TAPE_SHORT {
+        let r: &mut [Slot] = if n <= TAPE_SHORT {
             short = [ZERO; TAPE_SHORT];
             &mut short[..n]
         } else {
@@ -686,11 +734,160 @@ impl Tape {
             &mut long
         };
         out.clear();
-        out.extend(points.iter().map(|p| {
-            let mut grad = [0.0; 3];
-            let v = self.run_gradient(&p[..dim], &mut grad[..dim], r);
-            (v, grad)
-        }));
+        out.reserve(points.len());
+        for group in points.chunks(LANES) {
+            let mut x = [[0.0; LANES]; 3];
+            // Lanes past the group's end repeat its last point; their results are dropped.
+            for (l, lane) in (0..LANES).zip(
+                group
+                    .iter()
+                    .chain(std::iter::repeat(&group[group.len() - 1])),
+            ) {
+                for k in 0..dim {
+                    x[k][l] = lane[k];
+                }
+            }
+            self.run_lanes(&x, r);
+            let last = &r[n - 1];
+            out.extend((0..group.len()).map(|l| {
+                let mut grad = [0.0; 3];
+                for (k, g) in grad.iter_mut().enumerate().take(dim) {
+                    // A coordinate that does not occur has derivative 0 exactly (not 0·∞ = NaN).
+                    *g = if self.uses[k] { last.d[k][l] } else { 0.0 };
+                }
+                (last.v[l], grad)
+            }));
+        }
+    }
+
+    /// [`Tape::run_gradient`] on [`LANES`] points at once (coordinate `k` of lane `l` in
+    /// `x[k][l]`): each lane gets the same operations on the same numbers in the same order as
+    /// [`Tape::run_gradient`] gives its point, so the same bits. Lanes indexed in plain loops (the
+    /// form the compiler packs), and `· −1` as in [`Tape::run_gradient`] (`-x` would flip a NaN's
+    /// sign bit where the product keeps it).
+    #[allow(clippy::needless_range_loop, clippy::neg_multiply)]
+    fn run_lanes(&self, x: &[[f64; LANES]; 3], r: &mut [Slot]) {
+        for (i, ins) in self.ins.iter().enumerate() {
+            let (done, rest) = r.split_at_mut(i);
+            let o = &mut rest[0];
+            match *ins {
+                Ins::Const(c) => {
+                    o.v = [c; LANES];
+                    o.d = [[0.0; LANES]; 3];
+                }
+                Ins::Var(k) => {
+                    o.v = x[k];
+                    o.d = [[0.0; LANES]; 3];
+                    o.d[k] = [1.0; LANES];
+                }
+                Ins::Neg(a) => {
+                    let a = &done[a];
+                    for l in 0..LANES {
+                        o.v[l] = -a.v[l];
+                    }
+                    for k in 0..3 {
+                        for l in 0..LANES {
+                            o.d[k][l] = a.d[k][l] * -1.0;
+                        }
+                    }
+                }
+                Ins::Add(a, b) => {
+                    let (a, b) = (&done[a], &done[b]);
+                    for l in 0..LANES {
+                        o.v[l] = a.v[l] + b.v[l];
+                    }
+                    for k in 0..3 {
+                        for l in 0..LANES {
+                            o.d[k][l] = a.d[k][l] + b.d[k][l];
+                        }
+                    }
+                }
+                Ins::Sub(a, b) => {
+                    let (a, b) = (&done[a], &done[b]);
+                    for l in 0..LANES {
+                        o.v[l] = a.v[l] - b.v[l];
+                    }
+                    for k in 0..3 {
+                        for l in 0..LANES {
+                            o.d[k][l] = a.d[k][l] - b.d[k][l];
+                        }
+                    }
+                }
+                Ins::Mul(a, b) => {
+                    let (a, b) = (&done[a], &done[b]);
+                    for l in 0..LANES {
+                        o.v[l] = a.v[l] * b.v[l];
+                    }
+                    for k in 0..3 {
+                        for l in 0..LANES {
+                            o.d[k][l] = a.d[k][l] * b.v[l] + a.v[l] * b.d[k][l];
+                        }
+                    }
+                }
+                Ins::Div(a, b) => {
+                    let (a, b) = (&done[a], &done[b]);
+                    for l in 0..LANES {
+                        o.v[l] = a.v[l] / b.v[l];
+                    }
+                    for k in 0..3 {
+                        for l in 0..LANES {
+                            o.d[k][l] = (a.d[k][l] - o.v[l] * b.d[k][l]) / b.v[l];
+                        }
+                    }
+                }
+                Ins::PowConst(a, c) => {
+                    let a = &done[a];
+                    let mut s = [0.0; LANES];
+                    if c == 2.0 {
+                        for l in 0..LANES {
+                            o.v[l] = a.v[l] * a.v[l];
+                            s[l] = 2.0 * a.v[l];
+                        }
+                    } else if c == 1.0 {
+                        for l in 0..LANES {
+                            o.v[l] = power(a.v[l], c);
+                            s[l] = 1.0;
+                        }
+                    } else {
+                        for l in 0..LANES {
+                            o.v[l] = power(a.v[l], c);
+                            s[l] = c * power(a.v[l], c - 1.0);
+                        }
+                    }
+                    for k in 0..3 {
+                        for l in 0..LANES {
+                            o.d[k][l] = a.d[k][l] * s[l];
+                        }
+                    }
+                }
+                Ins::Pow(a, b) => {
+                    let (a, b) = (&done[a], &done[b]);
+                    for l in 0..LANES {
+                        let (x, y) = (a.v[l], b.v[l]);
+                        let v = power(x, y);
+                        // d(x^y) = x^y (y' ln x + y x'/x).
+                        let (ln, q) = (x.ln(), y / x);
+                        o.v[l] = v;
+                        for k in 0..3 {
+                            o.d[k][l] = v * (b.d[k][l] * ln + q * a.d[k][l]);
+                        }
+                    }
+                }
+                Ins::Call(f, a) => {
+                    let a = &done[a];
+                    let mut s = [0.0; LANES];
+                    for l in 0..LANES {
+                        o.v[l] = f.apply(a.v[l]);
+                        s[l] = f.derivative(a.v[l], o.v[l]);
+                    }
+                    for k in 0..3 {
+                        for l in 0..LANES {
+                            o.d[k][l] = a.d[k][l] * s[l];
+                        }
+                    }
+                }
+            }
+        }
     }
 
     fn run_gradient(&self, p: &[f64], gradient: &mut [f64], r: &mut [(f64, [f64; 3])]) -> f64 {
@@ -774,6 +971,542 @@ impl Tape {
             *g = if self.uses[k] { d[k] } else { 0.0 };
         }
         v
+    }
+}
+
+/// Functions of one argument with an interval extension in [`crate::interval`]; an expression
+/// using any other ([`Fun`]) has no interval forms and fits without the Plantinga–Vegter test.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+enum IntervalFun {
+    Sqrt,
+    Exp,
+    Ln,
+    Sin,
+    Cos,
+    Tan,
+}
+
+impl IntervalFun {
+    fn of(f: Fun) -> Option<IntervalFun> {
+        Some(match f {
+            Fun::Sqrt => IntervalFun::Sqrt,
+            Fun::Exp => IntervalFun::Exp,
+            Fun::Ln => IntervalFun::Ln,
+            Fun::Sin => IntervalFun::Sin,
+            Fun::Cos => IntervalFun::Cos,
+            Fun::Tan => IntervalFun::Tan,
+            _ => return None,
+        })
+    }
+
+    fn apply(self, a: Interval) -> Interval {
+        match self {
+            IntervalFun::Sqrt => a.sqrt(),
+            IntervalFun::Exp => a.exp(),
+            IntervalFun::Ln => a.ln(),
+            IntervalFun::Sin => a.sin(),
+            IntervalFun::Cos => a.cos(),
+            IntervalFun::Tan => a.tan(),
+        }
+    }
+}
+
+/// One instruction of an [`IntervalTape`]; operands are earlier slots.
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum IntervalIns {
+    Const(Interval),
+    Var(usize),
+    Neg(usize),
+    Add(usize, usize),
+    Sub(usize, usize),
+    Mul(usize, usize),
+    /// `a·a`, as [`Interval::sqr`]: never below 0, unlike the product of two independent factors.
+    Sqr(usize),
+    Div(usize, usize),
+    /// [`Interval::pow`]: repeated products for an exact integer exponent, `exp(b·ln a)` otherwise.
+    Pow(usize, usize),
+    Call(IntervalFun, usize),
+}
+
+impl IntervalIns {
+    /// The instruction's identity for sharing: constants by their bits, operations by operands.
+    fn key(self) -> (u8, usize, usize, u64, u64) {
+        match self {
+            IntervalIns::Const(c) => (0, 0, 0, c.lo.to_bits(), c.hi.to_bits()),
+            IntervalIns::Var(k) => (1, k, 0, 0, 0),
+            IntervalIns::Neg(a) => (2, a, 0, 0, 0),
+            IntervalIns::Add(a, b) => (3, a, b, 0, 0),
+            IntervalIns::Sub(a, b) => (4, a, b, 0, 0),
+            IntervalIns::Mul(a, b) => (5, a, b, 0, 0),
+            IntervalIns::Sqr(a) => (6, a, 0, 0, 0),
+            IntervalIns::Div(a, b) => (7, a, b, 0, 0),
+            IntervalIns::Pow(a, b) => (8, a, b, 0, 0),
+            IntervalIns::Call(f, a) => (9, a, f as usize, 0, 0),
+        }
+    }
+
+    /// The same instruction reading `map[a]` for each operand `a`.
+    fn renumbered(self, map: &[usize]) -> IntervalIns {
+        let m = |a: usize| map[a];
+        match self {
+            IntervalIns::Const(c) => IntervalIns::Const(c),
+            IntervalIns::Var(k) => IntervalIns::Var(k),
+            IntervalIns::Neg(a) => IntervalIns::Neg(m(a)),
+            IntervalIns::Add(a, b) => IntervalIns::Add(m(a), m(b)),
+            IntervalIns::Sub(a, b) => IntervalIns::Sub(m(a), m(b)),
+            IntervalIns::Mul(a, b) => IntervalIns::Mul(m(a), m(b)),
+            IntervalIns::Sqr(a) => IntervalIns::Sqr(m(a)),
+            IntervalIns::Div(a, b) => IntervalIns::Div(m(a), m(b)),
+            IntervalIns::Pow(a, b) => IntervalIns::Pow(m(a), m(b)),
+            IntervalIns::Call(f, a) => IntervalIns::Call(f, m(a)),
+        }
+    }
+
+    /// The operand slots.
+    fn operands(self) -> [Option<usize>; 2] {
+        match self {
+            IntervalIns::Const(_) | IntervalIns::Var(_) => [None, None],
+            IntervalIns::Neg(a) | IntervalIns::Sqr(a) | IntervalIns::Call(_, a) => [Some(a), None],
+            IntervalIns::Add(a, b)
+            | IntervalIns::Sub(a, b)
+            | IntervalIns::Mul(a, b)
+            | IntervalIns::Div(a, b)
+            | IntervalIns::Pow(a, b) => [Some(a), Some(b)],
+        }
+    }
+
+    /// The enclosure of the instruction's result from enclosures `r` of the earlier slots.
+    fn eval(self, x: &[Interval], r: &[Interval]) -> Interval {
+        match self {
+            IntervalIns::Const(c) => c,
+            IntervalIns::Var(k) => x[k],
+            IntervalIns::Neg(a) => -r[a],
+            IntervalIns::Add(a, b) => r[a] + r[b],
+            IntervalIns::Sub(a, b) => r[a] - r[b],
+            IntervalIns::Mul(a, b) => r[a] * r[b],
+            IntervalIns::Sqr(a) => r[a].sqr(),
+            IntervalIns::Div(a, b) => r[a] / r[b],
+            IntervalIns::Pow(a, b) => r[a].pow(r[b]),
+            IntervalIns::Call(f, a) => f.apply(r[a]),
+        }
+    }
+}
+
+/// Straight-line interval code with several results: the interval forms of an [`Expression`]
+/// (its value, symbolic first and second partial derivatives), evaluated with the conservative
+/// arithmetic of [`crate::interval`] in one pass without allocation. Issue 17, session 26: the
+/// same forms through `exmex` (one `FlatEx<Interval>` evaluation per form, 16 per box for a 3-D
+/// expression, each collecting its operands in `SmallVec`s) were ~30 % of the instructions of a
+/// torus fit at 3e-3.
+#[derive(Clone, Debug, PartialEq)]
+struct IntervalTape {
+    ins: Vec<IntervalIns>,
+    /// The slot of each result; `None` for a result that is exactly 0 (a derivative by a
+    /// coordinate the expression does not read).
+    outputs: Vec<Option<usize>>,
+}
+
+/// Slots of an [`IntervalTape`] kept on the stack; longer tapes use the heap. The torus preset's
+/// second-order tape has 38.
+const INTERVAL_TAPE_SHORT: usize = 64;
+
+impl IntervalTape {
+    /// Each result over the box `x` (one interval per coordinate) into `out`.
+    fn eval(&self, x: &[Interval], out: &mut [Interval]) {
+        let n = self.ins.len();
+        if n <= INTERVAL_TAPE_SHORT {
+            self.run(x, &mut [Interval::default(); INTERVAL_TAPE_SHORT][..n], out);
+        } else {
+            self.run(x, &mut vec![Interval::default(); n], out);
+        }
+    }
+
+    fn run(&self, x: &[Interval], r: &mut [Interval], out: &mut [Interval]) {
+        for (i, ins) in self.ins.iter().enumerate() {
+            r[i] = ins.eval(x, r);
+        }
+        for (o, slot) in out.iter_mut().zip(&self.outputs) {
+            *o = slot.map_or(Interval::point(0.0), |s| r[s]);
+        }
+    }
+}
+
+/// Builds interval code from an expression tree and differentiates it symbolically: every
+/// instruction is entered once (shared), operations on constants are folded in interval
+/// arithmetic, and the structural zeros and ones of derivatives are left out.
+#[derive(Default)]
+struct IntervalBuilder {
+    ins: Vec<IntervalIns>,
+    seen: HashMap<(u8, usize, usize, u64, u64), usize>,
+}
+
+/// Integers whose sums, differences and products the builder folds exactly: below 2⁵², a
+/// rounded result of integers is the exact one.
+const EXACT_INTEGER: f64 = 4_503_599_627_370_496.0;
+
+impl IntervalBuilder {
+    fn constant(&self, slot: usize) -> Option<Interval> {
+        match self.ins[slot] {
+            IntervalIns::Const(c) => Some(c),
+            _ => None,
+        }
+    }
+
+    /// Whether `slot` is the exact constant `v`.
+    fn is(&self, slot: usize, v: f64) -> bool {
+        self.constant(slot) == Some(Interval::point(v))
+    }
+
+    fn point(&mut self, v: f64) -> usize {
+        self.emit(IntervalIns::Const(Interval::point(v)))
+    }
+
+    /// The slot computing `ins`, simplified and shared.
+    fn emit(&mut self, ins: IntervalIns) -> usize {
+        use IntervalIns as I;
+        if let I::Mul(a, b) = ins {
+            if let Some(s) = self
+                .scaled_square(a, b)
+                .or_else(|| self.scaled_square(b, a))
+            {
+                return s;
+            }
+        }
+        // Identities that hold wherever the operands are defined (`0·a = 0` also where an
+        // enclosure of `a` is unbounded: the factor 0 is a structural zero of a derivative, the
+        // true product is 0 wherever `a` is finite, and where it is not the function is not
+        // defined either).
+        let ins = match ins {
+            I::Add(a, b) if self.is(a, 0.0) => return b,
+            I::Add(a, b) | I::Sub(a, b) if self.is(b, 0.0) => return a,
+            I::Sub(a, b) if self.is(a, 0.0) => I::Neg(b),
+            I::Mul(a, _) | I::Div(a, _) if self.is(a, 0.0) => return a,
+            I::Mul(_, b) if self.is(b, 0.0) => return b,
+            I::Mul(a, b) if self.is(a, 1.0) => return b,
+            I::Mul(a, b) | I::Div(a, b) if self.is(b, 1.0) => return a,
+            I::Mul(a, b) if a == b => I::Sqr(a),
+            I::Neg(a) => match self.ins[a] {
+                I::Neg(b) => return b,
+                _ => ins,
+            },
+            I::Pow(a, b) if self.is(b, 1.0) => return a,
+            I::Pow(a, b) if self.is(b, 2.0) => I::Sqr(a),
+            // Commutative: one order, so `a·b` and `b·a` are shared.
+            I::Add(a, b) if a > b => I::Add(b, a),
+            I::Mul(a, b) if a > b => I::Mul(b, a),
+            _ => ins,
+        };
+        let ins = match self.fold(ins) {
+            Some(c) => I::Const(c),
+            None => ins,
+        };
+        let key = ins.key();
+        if let Some(&at) = self.seen.get(&key) {
+            return at;
+        }
+        self.ins.push(ins);
+        self.seen.insert(key, self.ins.len() - 1);
+        self.ins.len() - 1
+    }
+
+    /// `(c·q)·q` as `c·q²` (`p` = `c·q`, `c` a constant): the second derivative of `a²` by one
+    /// coordinate twice is `(2a')·a'`, whose product of independent factors goes below 0 where
+    /// `a'` may change sign.
+    fn scaled_square(&mut self, p: usize, q: usize) -> Option<usize> {
+        let IntervalIns::Mul(x, y) = self.ins[p] else {
+            return None;
+        };
+        let c = match (x == q, y == q) {
+            (true, _) => y,
+            (_, true) => x,
+            _ => return None,
+        };
+        self.constant(c)?;
+        let s = self.emit(IntervalIns::Sqr(q));
+        Some(self.emit(IntervalIns::Mul(c, s)))
+    }
+
+    /// `ins` over constant operands: exact for sums, differences and products of integers below
+    /// [`EXACT_INTEGER`] (so `x^(3-1)` keeps the exact exponent 2 and its repeated products),
+    /// otherwise the enclosure of the interval operation.
+    fn fold(&self, ins: IntervalIns) -> Option<Interval> {
+        let c = |a: usize| self.constant(a);
+        let operands = ins.operands();
+        let mut values = [Interval::default(); 2];
+        for (v, a) in values.iter_mut().zip(operands) {
+            if let Some(a) = a {
+                *v = c(a)?;
+            }
+        }
+        // Not for a constant or a coordinate.
+        operands[0]?;
+        let exact_integer = |v: Interval| v.lo == v.hi && v.lo.fract() == 0.0;
+        let [a, b] = values;
+        let exact = match ins {
+            IntervalIns::Neg(_) => Some(-a.lo),
+            IntervalIns::Add(..) => Some(a.lo + b.lo),
+            IntervalIns::Sub(..) => Some(a.lo - b.lo),
+            IntervalIns::Mul(..) => Some(a.lo * b.lo),
+            _ => None,
+        };
+        if let Some(v) = exact {
+            let operands_exact = exact_integer(a) && (operands[1].is_none() || exact_integer(b));
+            if operands_exact && v.abs() < EXACT_INTEGER {
+                return Some(Interval::point(v));
+            }
+        }
+        Some(match ins {
+            IntervalIns::Neg(_) => -a,
+            IntervalIns::Add(..) => a + b,
+            IntervalIns::Sub(..) => a - b,
+            IntervalIns::Mul(..) => a * b,
+            IntervalIns::Sqr(_) => a.sqr(),
+            IntervalIns::Div(..) => a / b,
+            IntervalIns::Pow(..) => a.pow(b),
+            IntervalIns::Call(f, _) => f.apply(a),
+            IntervalIns::Const(_) | IntervalIns::Var(_) => return None,
+        })
+    }
+
+    /// Appends `node`'s code and returns its slot; `None` for a name that is neither a
+    /// coordinate of `dim` nor a constant, or a function without an interval extension.
+    fn push(&mut self, node: &Node, dim: usize) -> Option<usize> {
+        use std::f64::consts::{E, PI, TAU};
+        Some(match node {
+            // A literal that is not exactly its double lies within half an ulp of it.
+            Node::Number(v, true) => self.point(*v),
+            Node::Number(v, false) => self.emit(IntervalIns::Const(Interval::around(*v))),
+            Node::Name(n) => match VARIABLES[..dim].iter().position(|v| v == n) {
+                Some(k) => self.emit(IntervalIns::Var(k)),
+                None => {
+                    let c = match n.as_str() {
+                        "PI" | "π" => PI,
+                        "E" | "e" => E,
+                        "TAU" | "τ" => TAU,
+                        _ => return None,
+                    };
+                    self.emit(IntervalIns::Const(Interval::around(c)))
+                }
+            },
+            Node::Negate(a) => {
+                let a = self.push(a, dim)?;
+                self.emit(IntervalIns::Neg(a))
+            }
+            Node::Call(f, a) => {
+                let f = IntervalFun::of(Fun::of(f)?)?;
+                let a = self.push(a, dim)?;
+                self.emit(IntervalIns::Call(f, a))
+            }
+            Node::Binary(op, a, b) => {
+                let a = self.push(a, dim)?;
+                let b = self.push(b, dim)?;
+                self.emit(match op {
+                    '+' => IntervalIns::Add(a, b),
+                    '-' => IntervalIns::Sub(a, b),
+                    '*' => IntervalIns::Mul(a, b),
+                    '/' => IntervalIns::Div(a, b),
+                    _ => IntervalIns::Pow(a, b),
+                })
+            }
+        })
+    }
+
+    /// `a + b` of derivatives (`None`: exactly 0).
+    fn add(&mut self, a: Option<usize>, b: Option<usize>) -> Option<usize> {
+        match (a, b) {
+            (Some(a), Some(b)) => Some(self.emit(IntervalIns::Add(a, b))),
+            (a, None) => a,
+            (None, b) => b,
+        }
+    }
+
+    /// `a · b` with `b` a derivative (`None`: exactly 0).
+    fn times(&mut self, a: usize, b: Option<usize>) -> Option<usize> {
+        b.map(|b| self.emit(IntervalIns::Mul(a, b)))
+    }
+
+    /// The derivative by coordinate `k` of every slot below `upto` (`None`: exactly 0), by the
+    /// rules of calculus on the code itself; the new code is appended (and shared).
+    fn derivatives(&mut self, upto: usize, k: usize) -> Vec<Option<usize>> {
+        use IntervalIns as I;
+        let mut d: Vec<Option<usize>> = Vec::with_capacity(upto);
+        for i in 0..upto {
+            let ins = self.ins[i];
+            let di = match ins {
+                I::Const(_) => None,
+                I::Var(j) => (j == k).then(|| self.point(1.0)),
+                I::Neg(a) => d[a].map(|da| self.emit(I::Neg(da))),
+                I::Add(a, b) => self.add(d[a], d[b]),
+                I::Sub(a, b) => match (d[a], d[b]) {
+                    (da, None) => da,
+                    (None, Some(db)) => Some(self.emit(I::Neg(db))),
+                    (Some(da), Some(db)) => Some(self.emit(I::Sub(da, db))),
+                },
+                // (ab)' = a'b + ab'.
+                I::Mul(a, b) => {
+                    let l = d[a].map(|da| self.emit(I::Mul(da, b)));
+                    let r = self.times(a, d[b]);
+                    self.add(l, r)
+                }
+                // (a²)' = (2a)·a'.
+                I::Sqr(a) => d[a].map(|da| {
+                    let two = self.point(2.0);
+                    let f = self.emit(I::Mul(two, a));
+                    self.emit(I::Mul(f, da))
+                }),
+                // (a/b)' = (a' − (a/b)·b')/b.
+                I::Div(a, b) => {
+                    let q = self.times(i, d[b]);
+                    let top = match (d[a], q) {
+                        (da, None) => da,
+                        (None, Some(q)) => Some(self.emit(I::Neg(q))),
+                        (Some(da), Some(q)) => Some(self.emit(I::Sub(da, q))),
+                    };
+                    top.map(|t| self.emit(I::Div(t, b)))
+                }
+                I::Pow(a, b) => match self.constant(b) {
+                    // (a^c)' = (c·a^(c−1))·a'; for an exact integer c the exponent c − 1 is exact.
+                    Some(c) => match d[a] {
+                        None => None,
+                        Some(da) => {
+                            let lower = if c.lo == c.hi && c.lo.fract() == 0.0 {
+                                self.point(c.lo - 1.0)
+                            } else {
+                                self.emit(I::Const(c - Interval::point(1.0)))
+                            };
+                            let p = self.emit(I::Pow(a, lower));
+                            let f = self.emit(I::Mul(b, p));
+                            Some(self.emit(I::Mul(f, da)))
+                        }
+                    },
+                    // (a^b)' = (a^b·ln a)·b' + (b·a^(b−1))·a': the power rule's factor, not
+                    // a^b·b/a, whose a^b and a vary together (up to 25× wider over the tests'
+                    // boxes for `(2 + y)^(1 + 0.5*x)`).
+                    None => {
+                        let l = match d[b] {
+                            None => None,
+                            Some(db) => {
+                                let ln = self.emit(I::Call(IntervalFun::Ln, a));
+                                let f = self.emit(I::Mul(i, ln));
+                                Some(self.emit(I::Mul(f, db)))
+                            }
+                        };
+                        let r = match d[a] {
+                            None => None,
+                            Some(da) => {
+                                let one = self.point(1.0);
+                                let lower = self.emit(I::Sub(b, one));
+                                let p = self.emit(I::Pow(a, lower));
+                                let f = self.emit(I::Mul(b, p));
+                                Some(self.emit(I::Mul(f, da)))
+                            }
+                        };
+                        self.add(l, r)
+                    }
+                },
+                I::Call(f, a) => match d[a] {
+                    None => None,
+                    Some(da) => {
+                        let f = match f {
+                            // √a' = 0.5/√a.
+                            IntervalFun::Sqrt => {
+                                let half = self.point(0.5);
+                                self.emit(I::Div(half, i))
+                            }
+                            IntervalFun::Exp => i,
+                            IntervalFun::Ln => {
+                                let one = self.point(1.0);
+                                self.emit(I::Div(one, a))
+                            }
+                            IntervalFun::Sin => self.emit(I::Call(IntervalFun::Cos, a)),
+                            IntervalFun::Cos => {
+                                let s = self.emit(I::Call(IntervalFun::Sin, a));
+                                self.emit(I::Neg(s))
+                            }
+                            // tan' = 1 + tan².
+                            IntervalFun::Tan => {
+                                let one = self.point(1.0);
+                                let t2 = self.emit(I::Sqr(i));
+                                self.emit(I::Add(one, t2))
+                            }
+                        };
+                        Some(self.emit(I::Mul(f, da)))
+                    }
+                },
+            };
+            d.push(di);
+        }
+        d
+    }
+
+    /// The code that computes `outputs`, without the instructions none of them reads.
+    fn tape(&self, outputs: &[Option<usize>]) -> IntervalTape {
+        let mut live = vec![false; self.ins.len()];
+        for &o in outputs.iter().flatten() {
+            live[o] = true;
+        }
+        for i in (0..self.ins.len()).rev() {
+            if live[i] {
+                for a in self.ins[i].operands().into_iter().flatten() {
+                    live[a] = true;
+                }
+            }
+        }
+        let mut map = vec![usize::MAX; self.ins.len()];
+        let mut ins = Vec::new();
+        for (i, x) in self.ins.iter().enumerate() {
+            if live[i] {
+                map[i] = ins.len();
+                ins.push(x.renumbered(&map));
+            }
+        }
+        IntervalTape {
+            ins,
+            outputs: outputs.iter().map(|o| o.map(|s| map[s])).collect(),
+        }
+    }
+}
+
+/// The interval forms of an [`Expression`] in `dim` coordinates.
+#[derive(Clone, Debug, PartialEq)]
+struct IntervalForms {
+    /// `g` and `∂g/∂x_k` (`k < dim`), for the box centre.
+    first: IntervalTape,
+    /// `g`, `∂g/∂x_k` and `∂²g/∂x_k∂x_l` (`k ≤ l`, row by row), for the box.
+    second: IntervalTape,
+}
+
+/// Index of `∂²g/∂x_k∂x_l` among [`IntervalForms::second`]'s results.
+fn hessian_index(dim: usize, k: usize, l: usize) -> usize {
+    let (k, l) = (k.min(l), k.max(l));
+    1 + dim + k * dim - k * (k + 1) / 2 + l
+}
+
+impl IntervalForms {
+    /// `None` when `tree` uses a function without an interval extension.
+    fn compile(tree: &Node, dim: usize) -> Option<IntervalForms> {
+        let mut b = IntervalBuilder::default();
+        let root = b.push(tree, dim)?;
+        let n0 = b.ins.len();
+        let gradient: Vec<Option<usize>> = (0..dim).map(|k| b.derivatives(n0, k)[root]).collect();
+        let n1 = b.ins.len();
+        let second: Vec<Vec<Option<usize>>> = (0..dim).map(|l| b.derivatives(n1, l)).collect();
+        let mut first_outputs = vec![Some(root)];
+        first_outputs.extend(&gradient);
+        let mut second_outputs = first_outputs.clone();
+        for k in 0..dim {
+            for row in &second[k..] {
+                second_outputs.push(gradient[k].and_then(|g| row[g]));
+            }
+        }
+        debug_assert_eq!(
+            second_outputs.len(),
+            hessian_index(dim, dim - 1, dim - 1) + 1
+        );
+        Some(IntervalForms {
+            first: b.tape(&first_outputs),
+            second: b.tape(&second_outputs),
+        })
     }
 }
 
@@ -911,10 +1644,13 @@ pub trait ImplicitFunction: Sync {
 }
 
 /// `exmex` operators over [`Interval`], with the priorities of `exmex`'s float operators so a text
-/// parses to the same tree in both number types.
+/// parses to the same tree in both number types: until session 26 the interval forms, now the
+/// tests' reference for the widths of [`IntervalForms`].
+#[cfg(test)]
 #[derive(Clone, Debug)]
-pub struct IntervalOps;
+struct IntervalOps;
 
+#[cfg(test)]
 impl MakeOperators<Interval> for IntervalOps {
     fn make<'a>() -> Vec<Operator<'a, Interval>> {
         use std::f64::consts::{E, PI, TAU};
@@ -983,6 +1719,7 @@ impl MakeOperators<Interval> for IntervalOps {
 }
 
 /// Decimal literals with an optional exponent, for the interval re-parse.
+#[cfg(test)]
 mod literal {
     use exmex::MatchLiteral;
     // `exmex`'s default `NumberMatcher` takes digits and dots only, but its `unparse` writes the
@@ -997,10 +1734,12 @@ mod literal {
     );
 }
 
+#[cfg(test)]
 type IntervalEx = FlatEx<Interval, IntervalOps, literal::DecimalMatcher>;
 
 /// One compiled expression and, for each of its variables (in `exmex`'s order), the coordinate it
 /// reads.
+#[cfg(test)]
 #[derive(Clone, Debug)]
 struct Compiled<E> {
     ex: E,
@@ -1032,12 +1771,10 @@ fn slots_of(names: &[String], dim: usize, text: &str) -> Result<Vec<usize>, FitE
 pub struct Expression {
     text: String,
     dim: usize,
-    interval_value: Option<Compiled<IntervalEx>>,
-    interval_partials: Option<Vec<Option<Compiled<IntervalEx>>>>,
-    /// Second partials `[i][j]` over intervals, for the mean-value form of the gradient.
-    interval_hessian: Option<Vec<Vec<Option<Compiled<IntervalEx>>>>>,
-    /// `g` and `∇g` as evaluated ([`Tape`]); the `exmex` forms above give the symbolic
-    /// derivatives and the interval extensions.
+    /// `g`, `∇g` and the second partials over intervals (for the mean-value forms), or `None`
+    /// when a function has no interval extension.
+    interval: Option<IntervalForms>,
+    /// `g` and `∇g` as evaluated ([`Tape`]).
     tape: Tape,
 }
 
@@ -1089,63 +1826,19 @@ impl Expression {
         let tree = parse_tree(text).map_err(err)?;
         let mut exmex_text = String::new();
         tree.to_exmex(&mut exmex_text);
+        // `exmex` reads the text once more only to check it (its messages on names are kept).
         let ex = exmex::parse::<f64>(&exmex_text).map_err(|e| err(e.to_string()))?;
-        let slots = slots_of(ex.var_names(), dim, text)?;
-        let mut partials = vec![None; dim];
-        for (var_index, &coord) in slots.iter().enumerate() {
-            let d = ex
-                .clone()
-                .partial(var_index)
-                .map_err(|e| err(format!("no derivative: {e}")))?;
-            let d_slots = slots_of(d.var_names(), dim, text)?;
-            partials[coord] = Some(Compiled {
-                ex: d,
-                slots: d_slots,
-            });
-        }
-        // The interval versions re-parse the same texts; a function without an interval extension
-        // (e.g. `atan`) still fits, only without the Plantinga–Vegter test.
-        let to_interval = |f: &FlatEx<f64>| -> Option<Compiled<IntervalEx>> {
-            let t = f.unparse();
-            let t: &str = t;
-            let ex = IntervalEx::parse(t).ok()?;
-            let slots = slots_of(ex.var_names(), dim, text).ok()?;
-            Some(Compiled { ex, slots })
-        };
-        let interval_value = to_interval(&ex);
-        let interval_partials: Option<Vec<Option<Compiled<IntervalEx>>>> = partials
-            .iter()
-            .map(|p| match p {
-                None => Some(None),
-                Some(c) => to_interval(&c.ex).map(Some),
-            })
-            .collect();
-        let interval_hessian: Option<Vec<Vec<Option<Compiled<IntervalEx>>>>> = partials
-            .iter()
-            .map(|p| -> Option<Vec<Option<Compiled<IntervalEx>>>> {
-                let mut row = vec![None; dim];
-                if let Some(c) = p {
-                    for (var_index, &coord) in c.slots.iter().enumerate() {
-                        let d2 = c.ex.clone().partial(var_index).ok()?;
-                        row[coord] = Some(to_interval(&d2)?);
-                    }
-                }
-                Some(row)
-            })
-            .collect();
-        let (interval_value, interval_partials) = match (interval_value, interval_partials) {
-            (Some(v), Some(p)) => (Some(v), Some(p)),
-            _ => (None, None),
-        };
+        slots_of(ex.var_names(), dim, text)?;
+        // A function without an interval extension (e.g. `atan`) still fits, only without the
+        // Plantinga–Vegter test.
+        let interval = IntervalForms::compile(&tree, dim);
         let tape = Tape::compile(&tree, dim)
             .ok_or_else(|| err("a name that is neither a coordinate nor a constant".to_string()))?;
         Ok(Expression {
             text: text.to_string(),
             dim,
             tape,
-            interval_value,
-            interval_partials,
-            interval_hessian,
+            interval,
         })
     }
 
@@ -1156,10 +1849,11 @@ impl Expression {
 
     /// Whether interval enclosures are available (every function used has an interval version).
     pub fn has_interval_extension(&self) -> bool {
-        self.interval_value.is_some()
+        self.interval.is_some()
     }
 }
 
+#[cfg(test)]
 fn eval_interval(c: &Compiled<IntervalEx>, b: &[Interval]) -> Interval {
     let mut args = [Interval::default(); 3];
     for (a, &s) in args.iter_mut().zip(&c.slots) {
@@ -1194,43 +1888,41 @@ impl ImplicitFunction for Expression {
     /// form overestimates only to second order in the box size. Both enclose, so their
     /// intersection does.
     fn enclose(&self, lo: &[f64], hi: &[f64]) -> Option<Enclosure> {
-        let value = self.interval_value.as_ref()?;
-        let partials = self.interval_partials.as_ref()?;
-        let boxes: Vec<Interval> = lo
-            .iter()
-            .zip(hi)
-            .map(|(&a, &b)| Interval::new(a, b))
-            .collect();
-        let centre: Vec<Interval> = lo
-            .iter()
-            .zip(hi)
-            .map(|(&a, &b)| Interval::point(0.5 * (a + b)))
-            .collect();
-        let offsets: Vec<Interval> = boxes.iter().zip(&centre).map(|(b, c)| *b - *c).collect();
-        let partial_over = |d: &Option<Compiled<IntervalEx>>, over: &[Interval]| {
-            d.as_ref()
-                .map_or(Interval::point(0.0), |d| eval_interval(d, over))
-        };
-        let natural: Vec<Interval> = partials.iter().map(|d| partial_over(d, &boxes)).collect();
-        let mut v = eval_interval(value, &centre);
+        let forms = self.interval.as_ref()?;
+        let n = self.dim;
+        let (mut boxes, mut centre, mut offsets) =
+            ([Interval::default(); 3], [0.0; 3], [Interval::default(); 3]);
+        for k in 0..n {
+            boxes[k] = Interval::new(lo[k], hi[k]);
+            centre[k] = 0.5 * (lo[k] + hi[k]);
+            offsets[k] = boxes[k] - Interval::point(centre[k]);
+        }
+        let centre = centre.map(Interval::point);
+        // Over the box: g, ∇g, then the second partials (at most 1 + 3 + 6).
+        let mut over = [Interval::default(); 10];
+        forms.second.eval(&boxes[..n], &mut over);
+        // At the centre: g and ∇g.
+        let mut at = [Interval::default(); 4];
+        forms.first.eval(&centre[..n], &mut at);
+        let natural = &over[1..=n];
+        let mut v = at[0];
         for (g, o) in natural.iter().zip(&offsets) {
             v = v + *g * *o;
         }
-        let value = eval_interval(value, &boxes).intersect(v);
-        let gradient = match &self.interval_hessian {
-            Some(h) => natural
-                .iter()
-                .zip(partials.iter().zip(h))
-                .map(|(nat, (d, row))| {
-                    let mut g = partial_over(d, &centre);
-                    for (hd, o) in row.iter().zip(&offsets) {
-                        g = g + partial_over(hd, &boxes) * *o;
+        let value = over[0].intersect(v);
+        let gradient = (0..n)
+            .map(|k| {
+                let mut g = at[1 + k];
+                for (l, o) in offsets[..n].iter().enumerate() {
+                    let h = hessian_index(n, k, l);
+                    // A second partial that is exactly 0 adds nothing (not even a rounding).
+                    if forms.second.outputs[h].is_some() {
+                        g = g + over[h] * *o;
                     }
-                    nat.intersect(g)
-                })
-                .collect(),
-            None => natural,
-        };
+                }
+                natural[k].intersect(g)
+            })
+            .collect();
         Some(Enclosure { value, gradient })
     }
 }
@@ -1565,6 +2257,7 @@ mod tests {
             ("x^2 + z^2 - 0.25", 3),
             ("(x^2+y^2-1)^3-x^2*y^3", 2),
             ("x/y + sqrt(x) - ln(y)", 2),
+            ("(2 + y)^(1 + 0.5*x) + tan(0.3*y) - -x + exp(x)/cos(y)", 2),
             (&long[..], 3),
         ];
         let mut rng: u64 = 0x2545_f491_4f6c_dd1d;
@@ -1585,6 +2278,17 @@ mod tests {
                 points.push(p);
             }
             let mut out = vec![(7.0, [7.0; 3])];
+            // Batches shorter than, as long as and just longer than a group of lanes, then all.
+            for m in [1, 2, LANES - 1, LANES, LANES + 1] {
+                e.gradient_each(&points[..m], &mut out);
+                assert_eq!(out.len(), m, "{text}");
+                for (p, (v, g)) in points.iter().zip(&out) {
+                    let mut g0 = [0.0; 3];
+                    let v0 = e.gradient(&p[..dim], &mut g0[..dim]);
+                    assert_eq!(v.to_bits(), v0.to_bits(), "{text} at {p:?}");
+                    assert_eq!(g.map(f64::to_bits), g0.map(f64::to_bits), "{text} at {p:?}");
+                }
+            }
             e.gradient_each(&points, &mut out);
             assert_eq!(out.len(), points.len(), "{text}");
             for (p, (v, g)) in points.iter().zip(&out) {
@@ -1593,6 +2297,373 @@ mod tests {
                 assert_eq!(v.to_bits(), v0.to_bits(), "{text} at {p:?}");
                 assert_eq!(g.map(f64::to_bits), g0.map(f64::to_bits), "{text} at {p:?}");
             }
+        }
+    }
+
+    /// A closed form for the interval tests: `g`, `∇g` and the Hessian at a point, written by
+    /// hand from the text (not by the code under test).
+    type ClosedForm = fn(&[f64; 3]) -> (f64, [f64; 3], [[f64; 3]; 3]);
+
+    /// Expressions with their closed forms: products and powers (the torus), quotients by small
+    /// constants, integer and real powers of sums, quotients of variables, every function with an
+    /// interval extension, a variable exponent and a constant base.
+    fn closed_forms() -> Vec<(&'static str, ClosedForm)> {
+        vec![
+            (
+                "(x^2 + y^2 + z^2 + 0.36 - 0.0625)^2 - 1.44*(x^2 + y^2)",
+                |p| {
+                    let [x, y, z] = *p;
+                    let u = x * x + y * y + z * z + 0.36 - 0.0625;
+                    let g = u * u - 1.44 * (x * x + y * y);
+                    let grad = [4.0 * u * x - 2.88 * x, 4.0 * u * y - 2.88 * y, 4.0 * u * z];
+                    let h =
+                        |a: f64, b: f64, same: bool| 8.0 * a * b + if same { 4.0 * u } else { 0.0 };
+                    let hess = [
+                        [h(x, x, true) - 2.88, h(x, y, false), h(x, z, false)],
+                        [h(y, x, false), h(y, y, true) - 2.88, h(y, z, false)],
+                        [h(z, x, false), h(z, y, false), h(z, z, true)],
+                    ];
+                    (g, grad, hess)
+                },
+            ),
+            ("x^2/0.81 + y^2/0.09 + z^2/0.0036 - 1", |p| {
+                let [x, y, z] = *p;
+                let g = x * x / 0.81 + y * y / 0.09 + z * z / 0.0036 - 1.0;
+                let grad = [2.0 * x / 0.81, 2.0 * y / 0.09, 2.0 * z / 0.0036];
+                let hess = [
+                    [2.0 / 0.81, 0.0, 0.0],
+                    [0.0, 2.0 / 0.09, 0.0],
+                    [0.0, 0.0, 2.0 / 0.0036],
+                ];
+                (g, grad, hess)
+            }),
+            ("(x - 0.3)^3/(1 + y^2) - z^4 + x/(2 + z)", |p| {
+                let [x, y, z] = *p;
+                let (a, q, w) = (x - 0.3, 1.0 + y * y, 2.0 + z);
+                let g = a.powi(3) / q - z.powi(4) + x / w;
+                let grad = [
+                    3.0 * a * a / q + 1.0 / w,
+                    -2.0 * y * a.powi(3) / (q * q),
+                    -4.0 * z.powi(3) - x / (w * w),
+                ];
+                let hxy = -6.0 * y * a * a / (q * q);
+                let hxz = -1.0 / (w * w);
+                let hyy = a.powi(3) * (8.0 * y * y / q.powi(3) - 2.0 / (q * q));
+                let hess = [
+                    [6.0 * a / q, hxy, hxz],
+                    [hxy, hyy, 0.0],
+                    [hxz, 0.0, -12.0 * z * z + 2.0 * x / w.powi(3)],
+                ];
+                (g, grad, hess)
+            }),
+            (
+                "sqrt(1.5 + x*y) + exp(-x)*cos(y) - ln(2 + z^2) + sin(x*z) + tan(0.3*y)",
+                |p| {
+                    let [x, y, z] = *p;
+                    let s = (1.5 + x * y).sqrt();
+                    let (e, c, sn) = ((-x).exp(), y.cos(), y.sin());
+                    let l = 2.0 + z * z;
+                    let (sxz, cxz) = ((x * z).sin(), (x * z).cos());
+                    let t = (0.3 * y).tan();
+                    let g = s + e * c - l.ln() + sxz + t;
+                    let grad = [
+                        y / (2.0 * s) - e * c + z * cxz,
+                        x / (2.0 * s) - e * sn + 0.3 * (1.0 + t * t),
+                        -2.0 * z / l + x * cxz,
+                    ];
+                    let s3 = 4.0 * s * s * s;
+                    let hxy = 1.0 / (2.0 * s) - x * y / s3 + e * sn;
+                    let hxz = cxz - x * z * sxz;
+                    let hess = [
+                        [-y * y / s3 + e * c - z * z * sxz, hxy, hxz],
+                        [hxy, -x * x / s3 - e * c + 0.18 * t * (1.0 + t * t), 0.0],
+                        [hxz, 0.0, (2.0 * z * z - 4.0) / (l * l) - x * x * sxz],
+                    ];
+                    (g, grad, hess)
+                },
+            ),
+            ("(2 + y)^(1 + 0.5*x) - 2^-z", |p| {
+                let [x, y, z] = *p;
+                let (b, e) = (2.0 + y, 1.0 + 0.5 * x);
+                let v = b.powf(e);
+                let l = b.ln();
+                let w = 2f64.powf(-z);
+                let l2 = std::f64::consts::LN_2;
+                let g = v - w;
+                let grad = [0.5 * l * v, e * v / b, l2 * w];
+                let hxy = 0.5 * v / b + 0.5 * l * e * v / b;
+                let hess = [
+                    [0.25 * l * l * v, hxy, 0.0],
+                    [hxy, e * (e - 1.0) * v / (b * b), 0.0],
+                    [0.0, 0.0, -l2 * l2 * w],
+                ];
+                (g, grad, hess)
+            }),
+        ]
+    }
+
+    /// Random boxes inside `[-0.9, 0.9]³` of sides up to 0.3 (some degenerate), from `seed`.
+    fn random_box(rng: &mut u64) -> ([f64; 3], [f64; 3]) {
+        let mut next = || {
+            *rng ^= *rng << 13;
+            *rng ^= *rng >> 7;
+            *rng ^= *rng << 17;
+            (*rng >> 11) as f64 / (1u64 << 53) as f64
+        };
+        let (mut lo, mut hi) = ([0.0; 3], [0.0; 3]);
+        for k in 0..3 {
+            let side = if next() < 0.1 {
+                0.0
+            } else {
+                0.3 * next().powi(2)
+            };
+            lo[k] = -0.9 + (1.8 - side) * next();
+            hi[k] = lo[k] + side;
+        }
+        (lo, hi)
+    }
+
+    /// The enclosures of `g`, `∇g` (natural ∩ mean-value) and of each second partial (the
+    /// tape's own) hold the closed forms at points of random boxes: corners, centre and random
+    /// points. Ground truth is the hand-written closed form in `f64`, allowed a relative slack of
+    /// 10⁻¹² for its own rounding.
+    #[test]
+    fn interval_forms_enclose_closed_forms_over_random_boxes() {
+        let slack = |v: f64| 1e-12 * (1.0 + v.abs());
+        let holds = |iv: Interval, v: f64| iv.lo - slack(v) <= v && v <= iv.hi + slack(v);
+        let mut rng: u64 = 0x9e37_79b9_7f4a_7c15;
+        for (text, truth) in closed_forms() {
+            let e = Expression::parse(text, 3).unwrap();
+            let forms = e.interval.as_ref().expect(text);
+            let mut finite = 0;
+            for _ in 0..400 {
+                let (lo, hi) = random_box(&mut rng);
+                let en = e.enclose(&lo, &hi).unwrap();
+                let boxes: Vec<Interval> = (0..3).map(|k| Interval::new(lo[k], hi[k])).collect();
+                let mut over = [Interval::default(); 10];
+                forms.second.eval(&boxes, &mut over);
+                if en.value.width().is_finite() && en.gradient.iter().all(|g| g.width().is_finite())
+                {
+                    finite += 1;
+                }
+                for s in 0..20 {
+                    let t: [f64; 3] = match s {
+                        0..=7 => [0, 1, 2].map(|k| ((s >> k) & 1) as f64),
+                        8 => [0.5; 3],
+                        _ => [(); 3].map(|_| random_box(&mut rng).0[0] / 1.8 + 0.5),
+                    };
+                    let p = [0, 1, 2].map(|k| (lo[k] + t[k] * (hi[k] - lo[k])).min(hi[k]));
+                    let (g, grad, hess) = truth(&p);
+                    assert!(holds(en.value, g), "{text} g={g} {:?} at {p:?}", en.value);
+                    for k in 0..3 {
+                        let iv = en.gradient[k];
+                        assert!(
+                            holds(iv, grad[k]),
+                            "{text} d{k}={} {iv:?} at {p:?}",
+                            grad[k]
+                        );
+                        for l in 0..3 {
+                            let iv = over[hessian_index(3, k, l)];
+                            let h = hess[k][l];
+                            assert!(holds(iv, h), "{text} d{k}d{l}={h} {iv:?} at {p:?}");
+                        }
+                    }
+                }
+            }
+            // Not vacuous: the enclosures are finite on most boxes.
+            assert!(finite > 300, "{text}: {finite}");
+        }
+    }
+
+    /// Where an operation is undefined or overflows, the enclosure is the whole line (or
+    /// unbounded on that side), never narrower; and where the value is bounded, tight enough to
+    /// exclude 0 away from the zero set.
+    #[test]
+    fn undefined_and_overflowing_enclosures_are_unbounded() {
+        let whole = |text: &str, lo: &[f64], hi: &[f64]| {
+            let e = Expression::parse(text, lo.len()).unwrap();
+            e.enclose(lo, hi).unwrap()
+        };
+        for (text, lo, hi) in [
+            ("sqrt(x) + y", [-1.0, 0.0], [1.0, 1.0]),
+            ("ln(x) + y", [-1.0, 0.0], [1.0, 1.0]),
+            ("1/x + y", [-1.0, 0.0], [1.0, 1.0]),
+            ("x^0.5 + y", [-1.0, 0.0], [1.0, 1.0]),
+            ("tan(x) + y", [1.0, 0.0], [2.0, 1.0]),
+        ] {
+            let en = whole(text, &lo, &hi);
+            assert_eq!(en.value, Interval::ENTIRE, "{text}");
+            // tan' = 1 + tan² ≥ 1 holds wherever tan is defined: [1, ∞) is an enclosure.
+            let g = en.gradient[0];
+            assert!(g.hi == f64::INFINITY && g.lo <= 1.0, "{text}: {g:?}");
+        }
+        let en = whole("exp(x) - y", &[700.0, 0.0], &[720.0, 1.0]);
+        assert_eq!(en.value.hi, f64::INFINITY);
+        assert_eq!(en.gradient[0].hi, f64::INFINITY);
+        assert!(en.gradient[1].contains(-1.0));
+        let en = whole("x^2 + y^2 - 1", &[2.0, 2.0], &[2.5, 2.5]);
+        assert!(en.value.lo > 6.9 && en.value.hi < 11.6, "{:?}", en.value);
+    }
+
+    /// Literals are exact in the interval forms only when they are integers (every double below
+    /// 10¹⁵ is); an exact exponent keeps `Interval::pow`'s repeated products.
+    #[test]
+    fn only_integer_literals_are_exact() {
+        for (text, exact) in [
+            ("2", true),
+            ("2.000", true),
+            ("1e3", true),
+            ("1.5e1", true),
+            ("0", true),
+            ("0.000e7", true),
+            ("999999999999999", true),
+            ("1e15", false),
+            ("0.5", false),
+            ("1e-3", false),
+            ("12e-1", false),
+            ("2.0000000000000001", false),
+            ("1e99999999999999999999", false),
+        ] {
+            assert_eq!(literal_is_exact(text), exact, "{text}");
+        }
+        // `2.0000000000000001` reads as the double 2 but is not 2: its square's enclosure must
+        // hold the real square of the literal, above 4.
+        let e = Expression::parse("x*2.0000000000000001", 1).unwrap();
+        let v = e.enclose(&[2.0], &[2.0]).unwrap().value;
+        assert!(v.lo < 4.0 && v.hi > 4.0, "{v:?}");
+        // An exponent folded from integers stays exact: x^(3-1) ≥ 0 over a box around 0, where
+        // exp(2·ln x) would be the whole line.
+        let e = Expression::parse("x^(3-1) - y", 2).unwrap();
+        let en = e.enclose(&[-0.5, 0.0], &[0.5, 0.0]).unwrap();
+        assert!(
+            en.value.lo >= -1e-300 && en.value.hi <= 0.26,
+            "{:?}",
+            en.value
+        );
+    }
+
+    /// The compiled interval forms are never wider than the `exmex` forms they replace (session
+    /// 26) but for the rounding of constants: widths of `g` and `∇g` over random boxes.
+    #[test]
+    fn interval_forms_are_as_tight_as_the_exmex_forms() {
+        let mut rng: u64 = 0x2545_f491_4f6c_dd1d;
+        for (text, _) in closed_forms() {
+            let e = Expression::parse(text, 3).unwrap();
+            let reference = ExmexForms::parse(text);
+            let (mut worst, mut sum, mut count) = (0.0f64, 0.0, 0);
+            for _ in 0..400 {
+                let (lo, hi) = random_box(&mut rng);
+                let new = e.enclose(&lo, &hi).unwrap();
+                let old = reference.enclose(&lo, &hi);
+                let pairs = std::iter::once((new.value, old.value)).chain(
+                    new.gradient
+                        .iter()
+                        .copied()
+                        .zip(old.gradient.iter().copied()),
+                );
+                for (a, b) in pairs {
+                    // Constants are rounded differently (`exmex` folds `ln 2` in `f64` and
+                    // widens the double by one rounding, the tape folds it in interval
+                    // arithmetic): up to 64 ulps of the magnitude either way.
+                    let rounding = 64.0 * f64::EPSILON * b.lo.abs().max(b.hi.abs()).max(1.0);
+                    assert!(
+                        !b.width().is_finite() || a.width() <= b.width() * (1.0 + 1e-9) + rounding,
+                        "{text} over {lo:?}..{hi:?}: {a:?} wider than {b:?}"
+                    );
+                    if b.width().is_finite() && b.width() > 1e6 * rounding {
+                        let ratio = a.width() / b.width();
+                        worst = worst.max(ratio);
+                        sum += ratio;
+                        count += 1;
+                    }
+                }
+            }
+            eprintln!(
+                "{text}: width new/old worst {worst:.4}, mean {:.4}",
+                sum / count as f64
+            );
+            assert!(
+                count > 400 && worst <= 1.0 + 1e-9,
+                "{text}: {worst} of {count}"
+            );
+        }
+    }
+
+    /// The interval forms as they were until session 26: `exmex`'s symbolic derivatives, each
+    /// re-parsed over [`Interval`] and evaluated by `exmex`.
+    struct ExmexForms {
+        value: Compiled<IntervalEx>,
+        partials: Vec<Option<Compiled<IntervalEx>>>,
+        hessian: Vec<Vec<Option<Compiled<IntervalEx>>>>,
+    }
+
+    impl ExmexForms {
+        fn parse(text: &str) -> ExmexForms {
+            let mut t = String::new();
+            parse_tree(text).unwrap().to_exmex(&mut t);
+            let ex = exmex::parse::<f64>(&t).unwrap();
+            let to_interval = |f: &FlatEx<f64>| {
+                let ex = IntervalEx::parse(f.unparse()).unwrap();
+                let slots = slots_of(ex.var_names(), 3, text).unwrap();
+                Compiled { ex, slots }
+            };
+            let slots = slots_of(ex.var_names(), 3, text).unwrap();
+            let mut partials = vec![None; 3];
+            let mut hessian = vec![vec![None; 3]; 3];
+            for (i, &k) in slots.iter().enumerate() {
+                let d = ex.clone().partial(i).unwrap();
+                let d_slots = slots_of(d.var_names(), 3, text).unwrap();
+                for (j, &l) in d_slots.iter().enumerate() {
+                    hessian[k][l] = Some(to_interval(&d.clone().partial(j).unwrap()));
+                }
+                partials[k] = Some(to_interval(&d));
+            }
+            ExmexForms {
+                value: to_interval(&ex),
+                partials,
+                hessian,
+            }
+        }
+
+        /// Session 25's `Expression::enclose`, verbatim but for the names.
+        fn enclose(&self, lo: &[f64], hi: &[f64]) -> Enclosure {
+            let boxes: Vec<Interval> = lo
+                .iter()
+                .zip(hi)
+                .map(|(&a, &b)| Interval::new(a, b))
+                .collect();
+            let centre: Vec<Interval> = lo
+                .iter()
+                .zip(hi)
+                .map(|(&a, &b)| Interval::point(0.5 * (a + b)))
+                .collect();
+            let offsets: Vec<Interval> = boxes.iter().zip(&centre).map(|(b, c)| *b - *c).collect();
+            let partial_over = |d: &Option<Compiled<IntervalEx>>, over: &[Interval]| {
+                d.as_ref()
+                    .map_or(Interval::point(0.0), |d| eval_interval(d, over))
+            };
+            let natural: Vec<Interval> = self
+                .partials
+                .iter()
+                .map(|d| partial_over(d, &boxes))
+                .collect();
+            let mut v = eval_interval(&self.value, &centre);
+            for (g, o) in natural.iter().zip(&offsets) {
+                v = v + *g * *o;
+            }
+            let value = eval_interval(&self.value, &boxes).intersect(v);
+            let gradient = natural
+                .iter()
+                .zip(self.partials.iter().zip(&self.hessian))
+                .map(|(nat, (d, row))| {
+                    let mut g = partial_over(d, &centre);
+                    for (hd, o) in row.iter().zip(&offsets) {
+                        g = g + partial_over(hd, &boxes) * *o;
+                    }
+                    nat.intersect(g)
+                })
+                .collect();
+            Enclosure { value, gradient }
         }
     }
 
