@@ -298,13 +298,12 @@ impl ModelEval {
             return IDENTITY[m].get_or_init(|| LocalMap::from_stages(m, Vec::new()));
         }
         self.maps[s].get_or_init(|| {
-            let map = LocalMap::from_indexed(&self.model, s)
-                .expect("an indexed model's stage tables are complete");
-            if self.fused {
-                map.fused()
+            let map = if self.fused {
+                LocalMap::from_indexed_fused(&self.model, s)
             } else {
-                map
-            }
+                LocalMap::from_indexed(&self.model, s)
+            };
+            map.expect("an indexed model's stage tables are complete")
         })
     }
 
