@@ -394,6 +394,82 @@ impl LocalStrata {
     }
 }
 
+/// The terms of every face of ≥ 2 vertices of one cell, stored point or not, in the order of
+/// [`simplex_faces`]: [`StratifiedMap::local_with`] without its hash lookups. The optimizer
+/// builds a cell's map once per block run, about 28 times per cell and region fit (7 blocks
+/// per tetrahedron, 4 sweeps); each build looked up all eleven faces in the whole fit's map,
+/// a cache miss each (issue 17, session 26: `local_with` ~10 % of the torus at 1e-4). Kept
+/// equal to the map by [`CellTerms::set_logits`] for every face set while it is used.
+#[derive(Clone, Debug)]
+pub struct CellTerms {
+    m: usize,
+    terms: [Term; MAX_TERMS],
+    keys: [FaceKey; MAX_TERMS],
+    /// The stored (clamped) logits of each face, zeros where none is stored.
+    logits: [[f64; M]; MAX_TERMS],
+    count: u8,
+    /// Bit `i` set: face `i` has a stored point (else its term is the centre's zero).
+    stored: u16,
+}
+
+impl CellTerms {
+    /// The index of `face` (sorted ids) among the cell's faces, if it is one of them.
+    pub fn face_index(&self, face: &[u32]) -> Option<usize> {
+        self.keys[..usize::from(self.count)]
+            .iter()
+            .position(|k| k.ids() == face)
+    }
+
+    /// Stores the point of face `i` as [`StratifiedMap::set_logits`] stores it (clamped).
+    pub fn set_logits(&mut self, i: usize, logits: &[f64]) {
+        let mut l = [0.0; M];
+        for (s, x) in l.iter_mut().zip(logits) {
+            *s = x.clamp(-LOGIT_BOUND, LOGIT_BOUND);
+        }
+        let t = &mut self.terms[i];
+        t.set(&l[..usize::from(t.len)]);
+        self.logits[i] = l;
+        self.stored |= 1 << i;
+    }
+
+    /// The logits of face `i`: [`StratifiedMap::logits`] of that face.
+    pub fn logits(&self, i: usize) -> &[f64] {
+        &self.logits[i][..usize::from(self.terms[i].len)]
+    }
+
+    /// [`StratifiedMap::local_with`] on this cell with the face at index `wanted`: the same
+    /// terms in the same order, so the same numbers bit for bit.
+    pub fn local_with(&self, wanted: Option<usize>) -> (LocalStrata, Option<Slot>) {
+        let mut terms = [NO_TERM; MAX_TERMS];
+        let mut count = [0u8; M - 1];
+        let mut slot = None;
+        for (i, term) in self.terms[..usize::from(self.count)].iter().enumerate() {
+            let is_wanted = wanted == Some(i);
+            if self.stored >> i & 1 == 0 && !is_wanted {
+                continue;
+            }
+            let j = usize::from(term.len) - 2;
+            if is_wanted {
+                slot = Some(Slot {
+                    stratum: j,
+                    term: usize::from(count[j]),
+                });
+            }
+            terms[STRATUM_START[j] + usize::from(count[j])] = *term;
+            count[j] += 1;
+        }
+        (
+            LocalStrata {
+                m: self.m,
+                terms,
+                count,
+                pre: None,
+            },
+            slot,
+        )
+    }
+}
+
 impl StratifiedMap {
     /// The identity map in dimension `n`.
     pub fn new(dim: usize) -> StratifiedMap {
@@ -513,6 +589,46 @@ impl StratifiedMap {
         )
     }
 
+    /// Every face term of `cell` (see [`CellTerms`]): the lookups of
+    /// [`StratifiedMap::local_with`] done once.
+    pub fn cell_terms(&self, cell: &[u32]) -> CellTerms {
+        let m = cell.len();
+        assert!(m <= M, "a cell has at most {M} vertices, not {m}");
+        let mut out = CellTerms {
+            m,
+            terms: [NO_TERM; MAX_TERMS],
+            keys: [FaceKey {
+                ids: [u32::MAX; M],
+                len: 0,
+            }; MAX_TERMS],
+            logits: [[0.0; M]; MAX_TERMS],
+            count: 0,
+            stored: 0,
+        };
+        for (i, local) in simplex_faces(cell, 2).enumerate() {
+            let len = local.len();
+            let key = FaceKey::of(local.ids());
+            let mut term = Term {
+                positions: [0; M],
+                len: len as u8,
+                delta: [0.0; M],
+            };
+            term.positions[..len].copy_from_slice(local.positions());
+            match self.logits.get(&key) {
+                Some(s) => {
+                    term.delta = s.delta;
+                    out.logits[i] = s.logits;
+                    out.stored |= 1 << i;
+                }
+                None => term.set(&[0.0; M][..len]),
+            }
+            out.terms[i] = term;
+            out.keys[i] = key;
+            out.count += 1;
+        }
+        out
+    }
+
     /// The stages of a model: stratum `j` as a parametric Bézier stage of degree `j + 1`, edges
     /// first (see the module doc for the order). Only faces for which `exists` is true are
     /// written; records are sorted by face.
@@ -596,6 +712,68 @@ mod tests {
                     assert_eq!(shared.eval(u).map(f64::to_bits), b.map(f64::to_bits));
                 }
             }
+        }
+    }
+
+    /// The optimizer's per-cell cache against the whole map it mirrors: after each of a run of
+    /// sets (logits beyond the clamp, back to the centre, faces of other cells too), the
+    /// cache's map with a slot for every face, and without one, evaluates bit for bit as the
+    /// map's own [`StratifiedMap::local_with`], and the logits are the map's.
+    #[test]
+    fn a_cell_s_cached_terms_evaluate_as_the_whole_map_bit_for_bit() {
+        for cell in [vec![7u32, 2, 9, 4], vec![5u32, 1, 3]] {
+            let mut map = StratifiedMap::new(cell.len() - 1);
+            map.set_logits(&[2, 7], &[0.0, 1.0]);
+            map.set_logits(&[1, 5], &[0.2, -0.4]);
+            let mut cached = map.cell_terms(&cell);
+            let faces: Vec<Vec<u32>> = simplex_faces(&cell, 2).map(|f| f.ids().to_vec()).collect();
+            let us = [
+                [0.1, 0.2, 0.3, 0.4],
+                [0.0, 0.5, 0.25, 0.25],
+                [0.7, 0.0, 0.0, 0.3],
+                [0.2, 0.3, 0.5, 0.0],
+            ];
+            // A fixed pseudo-random sequence of faces and logits (a linear congruence).
+            let mut state = 12345u64;
+            let mut next = || {
+                state = state
+                    .wrapping_mul(6364136223846793005)
+                    .wrapping_add(1442695040888963407);
+                (state >> 33) as f64 / (1u64 << 31) as f64
+            };
+            for step in 0..60 {
+                let face = &faces[(next() * faces.len() as f64) as usize % faces.len()];
+                let logits: Vec<f64> = face.iter().map(|_| 16.0 * next() - 8.0).collect();
+                let logits = if step % 7 == 0 {
+                    vec![0.0; face.len()]
+                } else {
+                    logits
+                };
+                map.set_logits(face, &logits);
+                cached.set_logits(cached.face_index(face).unwrap(), &logits);
+                // A face of another cell: nothing of this cell changes.
+                map.set_logits(&[100, 101], &[0.5, -0.5]);
+                for (i, f) in faces.iter().enumerate() {
+                    assert_eq!(cached.face_index(f), Some(i));
+                    assert_eq!(cached.logits(i), &map.logits(f)[..], "{f:?}");
+                    let (a, slot_a) = cached.local_with(Some(i));
+                    let (b, slot_b) = map.local_with(&cell, Some(f));
+                    assert_eq!(slot_a, slot_b);
+                    let (c, _) = cached.local_with(None);
+                    let d = map.local(&cell);
+                    for u in &us {
+                        let u = if cell.len() == 3 {
+                            let s = u[0] + u[1] + u[2];
+                            [u[0] / s, u[1] / s, u[2] / s, 0.0]
+                        } else {
+                            *u
+                        };
+                        assert_eq!(a.eval(&u).map(f64::to_bits), b.eval(&u).map(f64::to_bits));
+                        assert_eq!(c.eval(&u).map(f64::to_bits), d.eval(&u).map(f64::to_bits));
+                    }
+                }
+            }
+            assert_eq!(cached.face_index(&[100, 101]), None);
         }
     }
 

@@ -3,6 +3,8 @@
 //! pruning of records the tolerance does not need (Mello & Velho 2009, §9.2 step 3).
 
 use super::*;
+use crate::rational::LocalRational;
+use crate::strata::CellTerms;
 
 /// Sample level of a patch while optimizing and ranking cells (segment points − 1 in 2D, grid
 /// level per fan triangle in 3D): enough to see a cubic-like deviation, cheap enough for LM.
@@ -65,8 +67,9 @@ pub(super) struct FacePoint<'f, 'a> {
     fitter: &'f Fitter<'a>,
     cells: &'f [u32],
     locals: Vec<(LocalStrata, Slot, Vec<Bary>)>,
-    /// Each cell's vertex coordinates (`n` per vertex), read once per block.
-    corners: Vec<Vec<f64>>,
+    /// Each cell's vertex coordinates (`n` per vertex, the first `(n + 1)·n`), read once per
+    /// block or taken from the [`CellCache`].
+    corners: Vec<[f64; CORNERS]>,
     /// The number of samples over all cells (the points' vector is reserved at once).
     samples: usize,
 }
@@ -77,7 +80,7 @@ impl FacePoint<'_, '_> {
     fn point_of(&self, k: usize, w: &Bary) -> [f64; 3] {
         let n = self.fitter.n;
         let mut p = [0.0; 3];
-        for (i, x) in self.corners[k].chunks_exact(n).enumerate() {
+        for (i, x) in self.corners[k][..(n + 1) * n].chunks_exact(n).enumerate() {
             for (pk, x) in p.iter_mut().zip(x) {
                 *pk += w[i] * x;
             }
@@ -165,6 +168,92 @@ impl BlockMap for WholeMap<'_, '_> {
                     .sum::<f64>()
                     / H;
             }
+        }
+    }
+}
+
+/// Room for a cell's vertex coordinates (4 vertices of 3 coordinates).
+const CORNERS: usize = 12;
+
+/// A cell's vertex coordinates, `n` per vertex, padded with zeros.
+fn cell_corners(complex: &Complex, ids: &[u32]) -> [f64; CORNERS] {
+    let mut out = [0.0; CORNERS];
+    for (o, x) in out
+        .iter_mut()
+        .zip(ids.iter().flat_map(|&v| complex.point(v).iter()))
+    {
+        *o = *x;
+    }
+    out
+}
+
+/// What [`Fitter::optimize_point`] reads of each crossing cell of a region fit, kept for all
+/// its sweeps: the face terms ([`CellTerms`], updated as the sweeps set points), the rational
+/// stage and the vertex coordinates. Only for fits without rational weights: a weight block
+/// re-places crossings and changes the rational stage of its star.
+pub(super) struct CellCache {
+    cells: Vec<(CellTerms, LocalRational, [f64; CORNERS])>,
+    /// Per block (the order of the region's blocks): each cell's index in `cells` and the
+    /// block's face's index among its faces; empty for a block not taken from the cache.
+    places: Vec<Vec<(usize, usize)>>,
+}
+
+impl CellCache {
+    /// The cache of the point blocks of `blocks` (weight blocks get no places).
+    fn new(fitter: &Fitter, blocks: &[Block]) -> CellCache {
+        let mut index: HashMap<u32, usize> = HashMap::new();
+        let mut cells = Vec::new();
+        let places = blocks
+            .iter()
+            .map(|(param, block_cells, _)| {
+                let Param::Point(face) = param else {
+                    return Vec::new();
+                };
+                let places: Option<Vec<(usize, usize)>> = block_cells
+                    .iter()
+                    .map(|&c| {
+                        let at = *index.entry(c).or_insert_with(|| {
+                            let ids = fitter.complex.cell(c);
+                            cells.push((
+                                fitter.map.cell_terms(ids),
+                                fitter.weights.local(ids),
+                                cell_corners(&fitter.complex, ids),
+                            ));
+                            cells.len() - 1
+                        });
+                        Some((at, cells[at].0.face_index(face)?))
+                    })
+                    .collect();
+                places.unwrap_or_default()
+            })
+            .collect();
+        CellCache { cells, places }
+    }
+
+    /// Whether block `block` is taken from the cache.
+    fn has(&self, block: usize) -> bool {
+        !self.places[block].is_empty()
+    }
+
+    /// The map of the `k`-th cell of block `block` with a slot for its face, as
+    /// [`Fitter::optimize_point`] builds it from the whole map, and the cell's corners.
+    fn local(&self, block: usize, k: usize) -> (LocalStrata, Option<Slot>, [f64; CORNERS]) {
+        let (at, face) = self.places[block][k];
+        let (terms, pre, corners) = &self.cells[at];
+        let (local, slot) = terms.local_with(Some(face));
+        (local.after(*pre), slot, *corners)
+    }
+
+    /// The logits of block `block`'s face: [`StratifiedMap::logits`].
+    fn logits(&self, block: usize) -> Vec<f64> {
+        let (at, face) = self.places[block][0];
+        self.cells[at].0.logits(face).to_vec()
+    }
+
+    /// Records that block `block`'s face now has the point with `logits`.
+    fn set(&mut self, block: usize, logits: &[f64]) {
+        for &(at, face) in &self.places[block] {
+            self.cells[at].0.set_logits(face, logits);
         }
     }
 }
@@ -374,6 +463,7 @@ impl Fitter<'_> {
         // the fit is bit for bit the serial Gauss–Seidel one for any number of threads.
         let levels = sweep_levels(&blocks, FIT_SWEEPS);
         let nb = blocks.len();
+        let mut cache = (!self.rational).then(|| CellCache::new(self, &blocks));
         // The serial position (1-based: sweep × blocks + block + 1) of the last run of a block
         // that moved a cell's parameters, and of each block's last run that did not move.
         let mut moved: HashMap<u32, usize> = HashMap::new();
@@ -392,14 +482,15 @@ impl Fitter<'_> {
                 vec![None]
             } else {
                 let this = &*self;
+                let cache = cache.as_ref();
                 level
                     .par_iter()
                     .map(|&node| {
                         let (param, cells, samples) = &blocks[node % nb];
                         match param {
-                            Param::Point(face) if !skipped(node, &idle, &moved) => {
-                                this.optimize_point(face, cells, samples).map(Run::Done)
-                            }
+                            Param::Point(face) if !skipped(node, &idle, &moved) => this
+                                .optimize_point(face, cells, samples, cache, node % nb)
+                                .map(Run::Done),
                             _ => Some(Run::Skipped),
                         }
                     })
@@ -417,9 +508,18 @@ impl Fitter<'_> {
                     );
                     continue;
                 }
+                let run = match (run, param) {
+                    (None, Param::Point(face)) => self
+                        .optimize_point(face, cells, samples, cache.as_ref(), node % nb)
+                        .map(Run::Done),
+                    (run, _) => run,
+                };
                 let changed = match (run, param) {
                     (Some(Run::Done((x, changed))), Param::Point(face)) => {
                         self.map.set_logits(face, &x);
+                        if let Some(cache) = &mut cache {
+                            cache.set(node % nb, &x);
+                        }
                         changed
                     }
                     _ => self.optimize(*param, cells, samples),
@@ -531,7 +631,7 @@ impl Fitter<'_> {
             return false;
         }
         if let Param::Point(face) = param {
-            if let Some((x, moved)) = self.optimize_point(face, cells, samples) {
+            if let Some((x, moved)) = self.optimize_point(face, cells, samples, None, 0) {
                 self.map.set_logits(face, &x);
                 return moved;
             }
@@ -580,48 +680,52 @@ impl Fitter<'_> {
     /// whether they moved, or `None` where the face is not a face of every cell (then `optimize`
     /// takes the general path). A face's point moves only its own term of each cell's map, so the
     /// maps are built once and the part before that term's stratum is applied once per sample.
+    /// With a `cache` that has places for block `block` (this face's), the maps come from it.
     pub(super) fn optimize_point(
         &self,
         face: &[u32],
         cells: &[u32],
         samples: &[Vec<Bary>],
+        cache: Option<&CellCache>,
+        block: usize,
     ) -> Option<(Vec<f64>, bool)> {
         if cells.is_empty() {
             return None;
         }
-        let locals = cells
-            .iter()
-            .zip(samples)
-            .map(|(&c, us)| {
-                let ids = self.complex.cell(c);
-                let (local, slot) = self.map.local_with(ids, Some(face));
-                let local = local.after(self.weights.local(ids));
-                let slot = slot?;
-                let before = us
-                    .iter()
-                    .map(|u| local.eval_before(u, Some(slot)))
-                    .collect();
-                Some((local, slot, before))
-            })
-            .collect::<Option<Vec<_>>>()?;
-        let corners = cells
-            .iter()
-            .map(|&c| {
-                let ids = self.complex.cell(c);
-                ids.iter()
-                    .flat_map(|&v| self.complex.point(v).iter().copied())
-                    .collect()
-            })
-            .collect();
+        let cache = cache.filter(|c| c.has(block));
+        let mut locals = Vec::with_capacity(cells.len());
+        let mut corners = Vec::with_capacity(cells.len());
+        for (k, (&c, us)) in cells.iter().zip(samples).enumerate() {
+            let (local, slot, at) = match cache {
+                Some(cache) => cache.local(block, k),
+                None => {
+                    let ids = self.complex.cell(c);
+                    let (local, slot) = self.map.local_with(ids, Some(face));
+                    let local = local.after(self.weights.local(ids));
+                    (local, slot, cell_corners(&self.complex, ids))
+                }
+            };
+            let slot = slot?;
+            let before = us
+                .iter()
+                .map(|u| local.eval_before(u, Some(slot)))
+                .collect();
+            locals.push((local, slot, before));
+            corners.push(at);
+        }
+        let x = match cache {
+            Some(cache) => cache.logits(block),
+            None => self.map.logits(face),
+        };
         let samples = samples.iter().map(Vec::len).sum();
-        let mut block = FacePoint {
+        let mut points = FacePoint {
             fitter: self,
             cells,
             locals,
             corners,
             samples,
         };
-        Some(self.levenberg_marquardt(&mut block, self.map.logits(face), LOGIT_BOUND))
+        Some(self.levenberg_marquardt(&mut points, x, LOGIT_BOUND))
     }
 
     /// Levenberg–Marquardt from `x` (clamped to `±bound`) on the residuals `r = g/|∇g|` at the
