@@ -390,13 +390,10 @@ mod tests {
         ] {
             let mut c = Complex::kuhn(&domain, &res);
             // Deterministic pseudo-random choice of cells to refine.
-            let mut state = 12345u64;
+            let mut rng = crate::test_rng::Lcg::new(12345);
             for _ in 0..60 {
-                state = state
-                    .wrapping_mul(6364136223846793005)
-                    .wrapping_add(1442695040888963407);
                 let live = c.live_cells();
-                let pick = live[(state >> 33) as usize % live.len()];
+                let pick = live[(rng.next_u64() >> 33) as usize % live.len()];
                 let before = c.num_vertices();
                 let added = c.refine(pick);
                 assert!(!added.is_empty());

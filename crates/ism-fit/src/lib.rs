@@ -59,6 +59,9 @@ pub mod strata;
 pub mod svg;
 pub mod verdict;
 
+#[cfg(test)]
+mod test_rng;
+
 pub use expr::{Expression, ImplicitFunction};
 pub use fit::{fit, FitOptions, FitReport, Fitted};
 pub use ism_format::progress::{Cancelled, Progress, Step};

@@ -2245,13 +2245,8 @@ pub(crate) mod tests {
         // estimate). A projection may stop early at any value in [t_i, enough] once it is
         // within `enough`. The maximum must be max t_i, and the misses (projected, above the
         // threshold) exactly the points with t_i above it, at t_i.
-        let mut state = 0x9e37_79b9_7f4a_7c15u64;
-        let mut rand = || {
-            state = state
-                .wrapping_mul(6_364_136_223_846_793_005)
-                .wrapping_add(1_442_695_040_888_963_407);
-            (state >> 11) as f64 / (1u64 << 53) as f64
-        };
+        let mut rng = crate::test_rng::Lcg::new(0x9e37_79b9_7f4a_7c15);
+        let mut rand = || rng.unit();
         let count = 5000;
         let (mut points, mut truth) = (Vec::new(), Vec::new());
         for i in 0..count {
@@ -3053,13 +3048,8 @@ pub(crate) mod tests {
         // is below the true one, which is below `lo + spacing`: the function is 1-Lipschitz).
         // Points above, below and in the triangle's plane, 1 to 9 of them, as the leaf bounds
         // use (three per patch, up to three patches).
-        let mut state = 0x2545_f491_4f6c_dd1du64;
-        let mut rand = || {
-            state = state
-                .wrapping_mul(6_364_136_223_846_793_005)
-                .wrapping_add(1_442_695_040_888_963_407);
-            (state >> 11) as f64 / (1u64 << 53) as f64
-        };
+        let mut rng = crate::test_rng::Lcg::new(0x2545_f491_4f6c_dd1d);
+        let mut rand = || rng.unit();
         let level = 300;
         for case in 0..60 {
             let t: [[f64; 3]; 3] = [0, 1, 2].map(|_| [0, 1, 2].map(|_| 2.0 * rand() - 1.0));

@@ -734,13 +734,8 @@ mod tests {
                 [0.2, 0.3, 0.5, 0.0],
             ];
             // A fixed pseudo-random sequence of faces and logits (a linear congruence).
-            let mut state = 12345u64;
-            let mut next = || {
-                state = state
-                    .wrapping_mul(6364136223846793005)
-                    .wrapping_add(1442695040888963407);
-                (state >> 33) as f64 / (1u64 << 31) as f64
-            };
+            let mut rng = crate::test_rng::Lcg::new(12345);
+            let mut next = || (rng.next_u64() >> 33) as f64 / (1u64 << 31) as f64;
             for step in 0..60 {
                 let face = &faces[(next() * faces.len() as f64) as usize % faces.len()];
                 let logits: Vec<f64> = face.iter().map(|_| 16.0 * next() - 8.0).collect();
@@ -980,13 +975,8 @@ mod tests {
         ];
         let mut map = StratifiedMap::new(3);
         let mut truth: std::collections::BTreeMap<Vec<u32>, Vec<f64>> = Default::default();
-        let mut seed = 12345u64;
-        let mut next = || {
-            seed = seed
-                .wrapping_mul(6364136223846793005)
-                .wrapping_add(1442695040888963407);
-            (seed >> 11) as f64 / (1u64 << 53) as f64
-        };
+        let mut rng = crate::test_rng::Lcg::new(12345);
+        let mut next = || rng.unit();
         for round in 0..200 {
             let f = &faces[(next() * faces.len() as f64) as usize];
             if round % 7 == 3 {

@@ -468,13 +468,8 @@ fn the_box_test_of_the_plantinga_vegter_split_never_drops_a_box_that_meets_the_s
     // Points of a simplex drawn as convex combinations of its corners (ground truth: they
     // are in it by construction); every box around one must be kept, in 2D and 3D, for
     // thin and skewed simplices. And boxes far beyond a facet are dropped.
-    let mut seed = 7u64;
-    let mut rnd = move || {
-        seed = seed
-            .wrapping_mul(6364136223846793005)
-            .wrapping_add(1442695040888963407);
-        (seed >> 11) as f64 / (1u64 << 53) as f64
-    };
+    let mut rng = crate::test_rng::Lcg::new(7);
+    let mut rnd = move || rng.unit();
     for n in [2usize, 3] {
         for _ in 0..200 {
             let pts: Vec<f64> = (0..(n + 1) * n).map(|_| rnd() * 2.0 - 1.0).collect();

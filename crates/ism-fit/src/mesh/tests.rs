@@ -101,13 +101,8 @@ fn pseudonormal_sign_agrees_with_the_winding_number() {
 
 /// Deterministic points in a box (a fixed LCG: the tests need no RNG crate for this).
 fn points(n: usize, lo: f64, hi: f64, seed: u64) -> Vec<P3> {
-    let mut s = seed;
-    let mut next = move || {
-        s = s
-            .wrapping_mul(6364136223846793005)
-            .wrapping_add(1442695040888963407);
-        lo + (hi - lo) * ((s >> 11) as f64 / (1u64 << 53) as f64)
-    };
+    let mut rng = crate::test_rng::Lcg::new(seed);
+    let mut next = move || lo + (hi - lo) * rng.unit();
     (0..n).map(|_| [next(), next(), next()]).collect()
 }
 
@@ -702,13 +697,8 @@ fn mutated_files_are_errors_or_meshes_never_panics() {
     // unchecked accessor index, now checked before its validation runs.
     let glb = glb_bytes(&icosphere(1), [0.25, -0.5, 1.0]);
     let obj = obj_text(&cube(0.5, [0.0; 3])).into_bytes();
-    let mut s: u64 = 1;
-    let mut next = move || {
-        s = s
-            .wrapping_mul(6364136223846793005)
-            .wrapping_add(1442695040888963407);
-        (s >> 33) as usize
-    };
+    let mut rng = crate::test_rng::Lcg::new(1);
+    let mut next = move || (rng.next_u64() >> 33) as usize;
     for i in 0..4000 {
         let mut b = if i % 2 == 0 { glb.clone() } else { obj.clone() };
         for _ in 0..1 + next() % 4 {
