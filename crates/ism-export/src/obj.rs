@@ -83,6 +83,8 @@ pub fn write_obj<W: Write>(mesh: &Mesh, name: Option<&str>, mut out: W) -> Resul
         writeln!(out, "o {clean}")?;
     }
     let mut text = Text::default();
+    // A block's room up front: grown push by push, the buffer was copied a dozen times.
+    text.line.reserve(Text::BLOCK + Text::LINE);
     for p in &mesh.positions {
         text.vector(&mut out, b"v", p)?;
     }
@@ -137,6 +139,10 @@ struct Text {
 
 impl Text {
     const BLOCK: usize = 1 << 16;
+    /// Room for one more line past [`Text::BLOCK`]: the longest line the writer makes is a `vn`
+    /// line (2 + 3 × (1 + 24) bytes for three shortest round-trip `f64`s) or an `f` line of three
+    /// `i//i` (2 + 3 × (1 + 22) bytes for ten-digit `u32`s), plus the newline.
+    const LINE: usize = 128;
 
     fn index(&mut self, i: u32) {
         self.line.extend_from_slice(self.int.format(i).as_bytes());

@@ -170,10 +170,32 @@ impl<'a> JsonTokens<'a> {
         }
     }
 
+    #[inline]
     fn ws(&mut self) {
-        while let Some(b' ' | b'\t' | b'\n' | b'\r') = self.b.get(self.at) {
-            self.at += 1;
+        // A local index: kept in a register, not stored per byte.
+        let (b, mut at) = (self.b, self.at);
+        loop {
+            match b.get(at) {
+                Some(b' ' | b'\t' | b'\r') => at += 1,
+                Some(b'\n') => {
+                    at += 1;
+                    // The indentation after a line break (a pretty-printed model puts each number
+                    // on its own line), eight spaces per step: the spaces are the bytes before the
+                    // first one that differs from b' ' (little-endian: the lowest set byte).
+                    while let Some(chunk) = b.get(at..at + 8) {
+                        let word = u64::from_le_bytes(chunk.try_into().expect("eight bytes"));
+                        let differ = word ^ u64::from_le_bytes([b' '; 8]);
+                        if differ != 0 {
+                            at += differ.trailing_zeros() as usize / 8;
+                            break;
+                        }
+                        at += 8;
+                    }
+                }
+                _ => break,
+            }
         }
+        self.at = at;
     }
 
     /// A string, borrowed from the text when it holds no escape (keys, most values).
@@ -1414,6 +1436,60 @@ mod tests {
             Ok(n) => Ok((n.value.to_bits(), n.int, n.integer, t.at)),
             Err(f) => Err((f.offset, f.message)),
         }
+    }
+
+    /// The whitespace skip (eight spaces per step after a line break) stops where a byte-by-byte
+    /// scan stops, from every start in short strings over whitespace and near-whitespace bytes,
+    /// and after indentation runs of every length modulo 8.
+    #[test]
+    fn whitespace_is_skipped_as_a_byte_by_byte_scan_skips_it() {
+        // Truth: the byte-by-byte loop over JSON's four whitespace bytes.
+        let reference = |b: &[u8], mut at: usize| {
+            while matches!(b.get(at), Some(b' ' | b'\t' | b'\n' | b'\r')) {
+                at += 1;
+            }
+            at
+        };
+        // Every string of up to 6 bytes over whitespace, a value byte and a space-like
+        // non-whitespace byte (`!` is 0x21: one bit from a space), then up to 5 spaces, from
+        // every start.
+        const ALPHABET: &[u8] = b" \n\t\r1!";
+        let mut text = Vec::new();
+        let mut checked = 0;
+        for len in 0..=11u32 {
+            let count = ALPHABET.len().pow(len.min(6));
+            for mut code in 0..count {
+                text.clear();
+                for i in 0..len {
+                    // Past 6 bytes, runs of spaces: the eight-byte steps and their ends.
+                    if i < 6 {
+                        text.push(ALPHABET[code % ALPHABET.len()]);
+                        code /= ALPHABET.len();
+                    } else {
+                        text.push(b' ');
+                    }
+                }
+                for start in 0..=text.len() {
+                    let mut t = JsonTokens::new(&text, 0);
+                    t.at = start;
+                    t.ws();
+                    assert_eq!(t.at, reference(&text, start), "{text:?} from {start}");
+                    checked += 1;
+                }
+            }
+        }
+        // Long indentation runs with every following byte and length modulo 8.
+        for run in 0..40 {
+            for last in [b'1', b'!', b'\t', b'\0', 0xa0] {
+                let mut text = b"\n".to_vec();
+                text.extend(std::iter::repeat_n(b' ', run));
+                text.push(last);
+                let mut t = JsonTokens::new(&text, 0);
+                t.ws();
+                assert_eq!(t.at, reference(&text, 0), "{run} spaces then {last}");
+            }
+        }
+        assert!(checked > 100_000);
     }
 
     /// The fast reading agrees with the byte-by-byte one (the reader before issue 13's session

@@ -22,6 +22,12 @@ pub(crate) struct Tables {
     pub lower_multinom: Vec<f64>,
     /// `up[r][j]` = rank of `K_r + e_j` among the degree-`d` indices.
     pub up: Vec<[u32; MAX_VARS]>,
+    /// The identity net's control point `I / d` of every degree-`d` index (coordinates past `m`
+    /// zero), as a stage's net is filled where no record gives the point.
+    pub identity: Vec<[f64; MAX_VARS]>,
+    /// The support of every degree-`d` index: bit `i` set where `I_i > 0` (the local positions of
+    /// the face owning the control point).
+    pub support: Vec<u8>,
 }
 
 static TABLES: [[OnceLock<Tables>; MAX_DEGREE as usize + 1]; MAX_VARS + 1] =
@@ -78,12 +84,32 @@ pub(crate) fn tables(m: usize, d: u32) -> &'static Tables {
             }
             up.push(row);
         }
+        let identity = exps
+            .iter()
+            .map(|e| {
+                let mut b = [0.0; MAX_VARS];
+                for (x, &ei) in b.iter_mut().zip(e).take(m) {
+                    *x = f64::from(ei) / f64::from(d);
+                }
+                b
+            })
+            .collect();
+        let support = exps
+            .iter()
+            .map(|e| {
+                (0..m)
+                    .filter(|&i| e[i] > 0)
+                    .fold(0u8, |mask, i| mask | 1 << i)
+            })
+            .collect();
         Tables {
             exps,
             multinom,
             lower_exps,
             lower_multinom,
             up,
+            identity,
+            support,
         }
     })
 }
