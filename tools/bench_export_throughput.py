@@ -11,7 +11,8 @@ two ways in one run, on each MODEL:TOLERANCE:
 The two must agree on the triangle count (checked). Prints a Markdown table and the load average
 before and after (the machine is shared: quote the load with the figures).
 
-    cargo build --release -p ism-cli -p ism-export --example export_throughput
+    cargo build --release -p ism-cli          # the `ism` binary (an `--example` flag would skip it)
+    cargo build --release -p ism-export --example export_throughput
     python3 tools/bench_export_throughput.py [--reps 21] [--inner 200] [MODEL:T ...]
 
 Default cases: the three implicit examples (sphere, torus, stratified-3d) at 1e-3 and 1e-4.
@@ -59,9 +60,13 @@ def main():
     args = ap.parse_args()
     for exe in (args.ism, args.example):
         if not os.access(exe, os.X_OK):
-            sys.exit(f"missing {exe}: cargo build --release -p ism-cli -p ism-export --example export_throughput")
+            sys.exit(f"missing {exe}: cargo build --release -p ism-cli; "
+                     "cargo build --release -p ism-export --example export_throughput")
     cases = args.cases or DEFAULT_CASES
-    print(f"load {os.getloadavg()} at {time.strftime('%H:%M:%S', time.gmtime())} UTC; ism {args.ism}")
+    # The two binaries are built by two commands: say how old each is, so a stale one shows.
+    ages = ", ".join(f"{os.path.basename(e)} built {time.strftime('%Y-%m-%d %H:%M', time.gmtime(os.path.getmtime(e)))} UTC"
+                     for e in (args.ism, args.example))
+    print(f"load {os.getloadavg()} at {time.strftime('%H:%M:%S', time.gmtime())} UTC; ism {args.ism} ({ages})")
     floor = min(child_cpu([args.ism, "--version"]) for _ in range(args.reps))
     print(f"`ism --version` (the process floor): {floor * 1e3:.2f} ms CPU, best of {args.reps}\n")
     print("| model | T | triangles | whole process: CPU ms (triangles/CPU-s) | in process: CPU ms per export (triangles/CPU-s) | best wall ms in process: read + index / extract / write |")
