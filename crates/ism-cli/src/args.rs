@@ -132,28 +132,14 @@ impl ReadLimits {
     }
 
     /// [`ReadLimits::read_indexed`] for a caller that looks up few face records or none (`ism
-    /// export`: the crossed simplices' records, through
-    /// [`ism_format::IndexedModel::simplex_records`]): the same check and errors, but only the
-    /// vertex incidence is kept ([`ism_format::IndexedModel::new_lazy_or_model`]); the face
-    /// tables are built on first use.
+    /// export`): the same check and errors, the face tables built on first use
+    /// ([`ism_format::io::read_path_indexed_lazily_with`]).
     pub(crate) fn read_indexed_lazily(
         self,
         path: &Path,
     ) -> anyhow::Result<ism_format::io::IndexedDocument> {
-        let options = ism_format::io::ReadOptions {
-            check_structure: false,
-            ..self.options()
-        };
-        let doc = ism_format::io::read_path_with(path, &options)
-            .map_err(|e| cannot_read_model(path, e))?;
-        let model = ism_format::IndexedModel::new_lazy_or_model(doc.model)
-            .map_err(|(_, e)| cannot_read_model(path, e))?;
-        Ok(ism_format::io::IndexedDocument {
-            model,
-            encoding: doc.encoding,
-            container: doc.container,
-            byte_len: doc.byte_len,
-        })
+        ism_format::io::read_path_indexed_lazily_with(path, &self.options())
+            .map_err(|e| cannot_read_model(path, e))
     }
 }
 

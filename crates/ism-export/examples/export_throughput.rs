@@ -14,9 +14,8 @@ use std::time::Instant;
 
 use ism_export::export::{build, ExportOptions, Exported};
 use ism_export::format::ExportFormat;
-use ism_format::io::{read_path_with, ReadOptions};
+use ism_format::io::{read_path_indexed_lazily_with, ReadOptions};
 use ism_format::progress::Progress;
-use ism_format::IndexedModel;
 
 /// The clock ticks per second of `/proc/self/stat`'s CPU fields (`USER_HZ`): 100 on every Linux
 /// architecture the kernel's ABI defines for user space.
@@ -48,11 +47,8 @@ fn main() {
         .use_current_thread()
         .build()
         .expect("thread pool");
-    // As the CLI's `export` reads: the structural check is the lazy index's own.
-    let read_options = ReadOptions {
-        check_structure: false,
-        ..ReadOptions::default()
-    };
+    // As the CLI's `export` reads: the lazy index (face tables built on first use).
+    let read_options = ReadOptions::default();
     let options = ExportOptions {
         tolerance,
         ..ExportOptions::default()
@@ -64,10 +60,9 @@ fn main() {
     pool.install(|| {
         for _ in 0..reps {
             let t0 = Instant::now();
-            let doc = read_path_with(path, &read_options).expect("a readable model");
-            let model = IndexedModel::new_lazy_or_model(doc.model)
-                .map_err(|(_, e)| e)
-                .expect("a structurally valid model");
+            let model = read_path_indexed_lazily_with(path, &read_options)
+                .expect("a readable, structurally valid model")
+                .model;
             let t1 = Instant::now();
             let built = build(&model, &options, &Progress::none()).expect("an exportable model");
             let t2 = Instant::now();

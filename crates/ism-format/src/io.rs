@@ -543,6 +543,30 @@ pub fn read_path_indexed_with(
     })
 }
 
+/// [`read_path_indexed_with`] for a caller that looks up few face records or none (`ism export`:
+/// the crossed simplices' records, through [`crate::IndexedModel::simplex_records`]): the same
+/// structural check and errors, but only the vertex incidence is kept and the face tables are built
+/// on first use ([`crate::IndexedModel::new_lazy_or_model`]).
+///
+/// # Errors
+/// As [`read_path_indexed_with`].
+pub fn read_path_indexed_lazily_with(
+    path: impl AsRef<Path>,
+    options: &ReadOptions,
+) -> Result<IndexedDocument> {
+    let unchecked = ReadOptions {
+        check_structure: false,
+        ..*options
+    };
+    let doc = read_path_with(path, &unchecked)?;
+    Ok(IndexedDocument {
+        model: crate::IndexedModel::new_lazy_or_model(doc.model).map_err(|(_, e)| e)?,
+        encoding: doc.encoding,
+        container: doc.container,
+        byte_len: doc.byte_len,
+    })
+}
+
 fn check_extensions(model: &Model, options: &ReadOptions) -> Result<()> {
     for (i, name) in model.extensions_required.iter().enumerate() {
         if !options.supported_extensions.contains(&name.as_str()) {
