@@ -11,6 +11,13 @@ two ways in one run, on each MODEL:TOLERANCE:
 The two must agree on the triangle count (checked). Prints a Markdown table and the load average
 before and after (the machine is shared: quote the load with the figures).
 
+`--floors` also prints what starting any process costs here, below which no `ism export` can go:
+`/bin/true` and an empty C program (`int main(void){return 0;}`) built by `cc` dynamically and
+statically and, when `musl-gcc` is installed (Debian `musl-tools`), statically against musl. On the
+2-core VM of BENCHMARKS.md most of an empty glibc program's CPU is glibc's start-up reading the CPU's
+cache sizes with `cpuid` (`init_cacheinfo`: `intel_check_word`, `handle_intel`, … in `perf record`),
+an instruction the hypervisor traps; musl does not ask.
+
     cargo build --release -p ism-cli          # the `ism` binary (an `--example` flag would skip it)
     cargo build --release -p ism-export --example export_throughput
     python3 tools/bench_export_throughput.py [--reps 21] [--inner 200] [MODEL:T ...]
@@ -44,6 +51,26 @@ def child_cpu(cmd):
     return (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
 
 
+def start_up_floors(reps, tmp):
+    """`(name, best CPU seconds)` of processes that do nothing: `/bin/true` and an empty C program
+    built each way the installed compilers allow (a missing compiler is said, not skipped silently)."""
+    src = os.path.join(tmp, "empty.c")
+    with open(src, "w", encoding="utf-8") as f:
+        f.write("int main(void) { return 0; }\n")
+    builds = [("cc, glibc, dynamic", ["cc", "-O2"]), ("cc, glibc, static-pie", ["cc", "-O2", "-static-pie"]),
+              ("musl-gcc, musl, static", ["musl-gcc", "-O2", "-static"])]
+    rows = [("/bin/true", min(child_cpu(["/bin/true"]) for _ in range(reps)))]
+    for i, (name, cc) in enumerate(builds):
+        exe = os.path.join(tmp, f"empty{i}")
+        try:
+            subprocess.run(cc + [src, "-o", exe], check=True, capture_output=True)
+        except (OSError, subprocess.CalledProcessError) as e:
+            rows.append((f"{name}: not built ({cc[0]}: {e})", None))
+            continue
+        rows.append((f"empty C program ({name})", min(child_cpu([exe]) for _ in range(reps))))
+    return rows
+
+
 def obj_faces(path):
     with open(path, encoding="utf-8") as f:
         return sum(1 for line in f if line.startswith("f "))
@@ -56,6 +83,8 @@ def main():
     ap.add_argument("--inner", type=int, default=200,
                     help="in-process exports at 1e-3 (a tenth of them at smaller tolerances)")
     ap.add_argument("--ism", default=os.environ.get("ISM_BIN", os.path.join(ROOT, "target", "release", "ism")))
+    ap.add_argument("--floors", action="store_true",
+                    help="also print the CPU of processes that do nothing (/bin/true, empty C programs)")
     ap.add_argument("--example", default=os.path.join(ROOT, "target", "release", "examples", "export_throughput"))
     args = ap.parse_args()
     for exe in (args.ism, args.example):
@@ -69,6 +98,11 @@ def main():
     print(f"load {os.getloadavg()} at {time.strftime('%H:%M:%S', time.gmtime())} UTC; ism {args.ism} ({ages})")
     floor = min(child_cpu([args.ism, "--version"]) for _ in range(args.reps))
     print(f"`ism --version` (the process floor): {floor * 1e3:.2f} ms CPU, best of {args.reps}\n")
+    if args.floors:
+        with tempfile.TemporaryDirectory() as tmp:
+            for name, cpu in start_up_floors(args.reps, tmp):
+                print(f"- {name}" + ("" if cpu is None else f": {cpu * 1e3:.3f} ms CPU, best of {args.reps}"))
+        print()
     print("| model | T | triangles | whole process: CPU ms (triangles/CPU-s) | in process: CPU ms per export (triangles/CPU-s) | best wall ms in process: read + index / extract / write |")
     print("| --- | --- | --- | --- | --- | --- |")
     with tempfile.TemporaryDirectory() as tmp:
