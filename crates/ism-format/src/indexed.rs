@@ -520,6 +520,10 @@ impl Build<'_> {
                     // v is the simplex's largest vertex: no face has it as smallest.
                     continue;
                 }
+                if near_edges && BITS[higher as usize] == 1 {
+                    // v is the second largest: its one face here is an edge, already collected.
+                    continue;
+                }
                 for p in 0..M {
                     for q in p + 1..M {
                         if ids[p] > ids[q] {
@@ -2353,9 +2357,28 @@ mod tests {
         }
     }
 
+    /// A cone of `r` tetrahedra around the axis from the apex 0 to the centre 1 of a ring of `r`
+    /// vertices: the apex has `r + 1` higher neighbours, more than any vertex of a Kuhn grid.
+    fn cone(r: usize) -> Model {
+        let mut model = Model::new(3);
+        model.vertices.extend([0.0, 0.0, 1.0, 0.0, 0.0, 0.0]);
+        for i in 0..r {
+            let a = std::f64::consts::TAU * i as f64 / r as f64;
+            model.vertices.extend([a.cos(), a.sin(), 0.0]);
+        }
+        model.values = (0..r + 2)
+            .map(|i| if i == 0 { -1.0 } else { 1.0 })
+            .collect();
+        for i in 0..r {
+            let (a, b) = (2 + i as u32, 2 + ((i + 1) % r) as u32);
+            model.simplices.extend([0, 1, a, b]);
+        }
+        model
+    }
+
     fn scan_matches_brute_force() {
-        for (n, g) in [(2, 4), (3, 3)] {
-            let model = kuhn(n, g);
+        for model in [kuhn(2, 4), kuhn(3, 3), cone(40)] {
+            let n = model.dim();
             let skip = vec![false; model.num_simplices()];
             let records = records_to_scan(&model);
             // Two tables: all records, and every other one (another numbering of repeats).
