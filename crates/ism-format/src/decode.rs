@@ -1104,6 +1104,18 @@ impl<'a, T: Tokens<'a>> Decoder<'a, T> {
         self.array_of::<true>(what, element)
     }
 
+    /// Opens an array for [`Decoder::array_of`] and [`Decoder::number_array`]: reads its head (an
+    /// error naming `what` if it is not an array) and goes one level deeper; the caller walks the
+    /// elements with the returned [`Seq`] and then leaves the level (`self.depth -= 1`).
+    fn open_array(&mut self, what: &str) -> Result<Seq> {
+        let (head, offset) = self.head()?;
+        let Head::Array(count) = head else {
+            return Err(self.wrong(offset, what, &head));
+        };
+        self.enter(offset)?;
+        Ok(Seq::new(count))
+    }
+
     /// The array walk of [`Decoder::array`] (`FLAT = false`: each index pushed on the path) and
     /// [`Decoder::flat_array`] (`FLAT = true`: noted in [`Decoder::element`]); a const parameter so
     /// each keeps its own loop with no branch per element.
@@ -1112,12 +1124,7 @@ impl<'a, T: Tokens<'a>> Decoder<'a, T> {
         what: &str,
         mut element: impl FnMut(&mut Self) -> Result<()>,
     ) -> Result<()> {
-        let (head, offset) = self.head()?;
-        let Head::Array(count) = head else {
-            return Err(self.wrong(offset, what, &head));
-        };
-        self.enter(offset)?;
-        let mut seq = Seq::new(count);
+        let mut seq = self.open_array(what)?;
         let mut i = 0;
         while self.tok.next_element(&mut seq).map_err(|f| self.err(f))? {
             if FLAT {
@@ -1230,12 +1237,7 @@ impl<'a, T: Tokens<'a>> Decoder<'a, T> {
         mut run: impl FnMut(&mut T, &mut Seq, &mut Vec<X>) -> usize,
         mut element: impl FnMut(&mut Self) -> Result<X>,
     ) -> Result<()> {
-        let (head, offset) = self.head()?;
-        let Head::Array(count) = head else {
-            return Err(self.wrong(offset, what, &head));
-        };
-        self.enter(offset)?;
-        let mut seq = Seq::new(count);
+        let mut seq = self.open_array(what)?;
         let mut i = 0;
         loop {
             i += run(&mut self.tok, &mut seq, out);
