@@ -530,17 +530,7 @@ pub fn read_path_indexed_with(
     path: impl AsRef<Path>,
     options: &ReadOptions,
 ) -> Result<IndexedDocument> {
-    let unchecked = ReadOptions {
-        check_structure: false,
-        ..*options
-    };
-    let doc = read_path_with(path, &unchecked)?;
-    Ok(IndexedDocument {
-        model: crate::IndexedModel::new(doc.model)?,
-        encoding: doc.encoding,
-        container: doc.container,
-        byte_len: doc.byte_len,
-    })
+    read_path_indexed_by(path, options, crate::IndexedModel::new)
 }
 
 /// [`read_path_indexed_with`] for a caller that looks up few face records or none (`ism export`:
@@ -554,13 +544,26 @@ pub fn read_path_indexed_lazily_with(
     path: impl AsRef<Path>,
     options: &ReadOptions,
 ) -> Result<IndexedDocument> {
+    read_path_indexed_by(path, options, |model| {
+        crate::IndexedModel::new_lazy_or_model(model).map_err(|(_, e)| e)
+    })
+}
+
+/// Reads a file within `options` without the reader's own structural check (`index` makes it:
+/// indexing checks the structure) and indexes the model with `index`: the one body of
+/// [`read_path_indexed_with`] and [`read_path_indexed_lazily_with`].
+fn read_path_indexed_by(
+    path: impl AsRef<Path>,
+    options: &ReadOptions,
+    index: impl FnOnce(Model) -> Result<crate::IndexedModel>,
+) -> Result<IndexedDocument> {
     let unchecked = ReadOptions {
         check_structure: false,
         ..*options
     };
     let doc = read_path_with(path, &unchecked)?;
     Ok(IndexedDocument {
-        model: crate::IndexedModel::new_lazy_or_model(doc.model).map_err(|(_, e)| e)?,
+        model: index(doc.model)?,
         encoding: doc.encoding,
         container: doc.container,
         byte_len: doc.byte_len,
