@@ -138,8 +138,10 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     progress.finish();
     match &built {
         Exported::Volume { grid, report } => {
-            eprintln!(
-                "{} -> {}: {} cells, {} control points; {}; field tolerance {:.3e} {}",
+            // Formatted first, printed with one write (stderr is unbuffered: `eprintln!` with the
+            // pieces made ~20 write calls).
+            let line = format!(
+                "{} -> {}: {} cells, {} control points; {}; field tolerance {:.3e} {}\n",
                 args.input.display(),
                 args.output.display(),
                 grid.num_cells(),
@@ -152,6 +154,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
                     "NOT met (best bound found is written)"
                 },
             );
+            eprint!("{line}");
             summary["seconds"] = start.elapsed().as_secs_f64().into();
         }
         Exported::Surface { mesh, .. } => {
@@ -160,8 +163,8 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             } else {
                 "segments"
             };
-            eprintln!(
-                "{} -> {}: {} vertices, {} {what}, {} components, Euler characteristic {}, {} ({:.3} s extraction)",
+            let line = format!(
+                "{} -> {}: {} vertices, {} {what}, {} components, Euler characteristic {}, {} ({:.3} s extraction)\n",
                 args.input.display(),
                 args.output.display(),
                 mesh.num_vertices(),
@@ -171,11 +174,15 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
                 if summary["boundary_edges"] == 0 { "closed" } else { "with boundary" },
                 extract_seconds
             );
+            eprint!("{line}");
             summary["extract_seconds"] = extract_seconds.into();
         }
     }
     if args.json {
-        println!("{}", serde_json::to_string_pretty(&summary)?);
+        // With its line end: stdout's line buffer then passes it on in one write, not two.
+        let mut text = serde_json::to_string_pretty(&summary)?;
+        text.push('\n');
+        print!("{text}");
     }
     Ok(ExitCode::SUCCESS)
 }

@@ -1029,7 +1029,15 @@ fn merge(chunks: &[Chunk], dimension: usize, primitive: Primitive) -> Mesh {
     mesh.vertex_simplex.reserve(nv);
     mesh.cells.reserve(nc);
     mesh.cell_simplex.reserve(nc / arity);
+    // Sized for every shared key up front (counted: a pass over the keys is cheaper than the
+    // table's rehashes as it grows).
+    let shared = chunks
+        .iter()
+        .flat_map(|ch| &ch.keys)
+        .filter(|k| !matches!(k, VertexKey::Interior(..)))
+        .count();
     let mut index: HashMap<VertexKey, u32> = HashMap::default();
+    index.reserve(shared);
     let mut map: Vec<u32> = Vec::new();
     for chunk in chunks {
         let (mut v0, mut c0) = (0usize, 0usize);
@@ -1349,9 +1357,14 @@ impl SurfaceBuilder<'_> {
     }
 
     fn interior_vertex(&mut self, u: Bary, point: SurfacePoint) -> u32 {
-        let i = self.scratch.keys.len() as u32;
-        let key = VertexKey::Interior(self.s as u32, i);
-        self.vertex(key, u, point)
+        // Its key is new (this simplex's next index) and never looked up (an interior vertex is
+        // met by its id only): pushed without the welding map's look-up and insertion.
+        let w = &mut self.scratch;
+        let i = w.keys.len() as u32;
+        w.keys.push(VertexKey::Interior(self.s as u32, i));
+        w.points.push(point);
+        w.us.push(u);
+        i
     }
 
     /// The midpoint vertex of an edge if the edge is split, else `None`.
@@ -1833,18 +1846,33 @@ fn extract_surface(
     // one, no crossing is shared and there is nothing to hash (a fitted torus at 1e-3 spent 0.4 %
     // more instructions on the table than it saved).
     let share = patches.par_iter().any(|(s, _)| needs_start(eval, *s));
-    // K-edge → (patch, corner, index into `owned`) of its first patch.
+    // Patch `pi`'s corners at `corner_start[pi]..corner_start[pi + 1]` of the flat per-corner
+    // arrays below (three or four each: a fixed four per patch left a quarter of the corner
+    // points' array unused on the triangle patches).
+    let mut corner_start = Vec::with_capacity(patches.len() + 1);
+    corner_start.push(0usize);
+    for (_, patch) in patches {
+        corner_start.push(corner_start[corner_start.len() - 1] + patch.corners.len());
+    }
+    // K-edge → (patch, corner, index into `owned`) of its first patch; per corner, its K-edge's
+    // entry (kept as the map gives it, so the corners below need no second look-up).
     let mut first_patch: HashMap<(u32, u32), (u32, u8, u32)> = HashMap::default();
     let mut owned: Vec<(u32, u8)> = Vec::new();
+    let mut corner_first = Vec::with_capacity(if share {
+        corner_start[patches.len()]
+    } else {
+        0
+    });
     for (pi, (s, patch)) in patches.iter().enumerate().filter(|_| share) {
         let ids = model.simplex(*s);
         for (j, corner) in patch.corners.iter().enumerate() {
-            first_patch
+            let first = *first_patch
                 .entry(corner_edge(ids, corner.edge))
                 .or_insert_with(|| {
                     owned.push((pi as u32, j as u8));
                     (pi as u32, j as u8, owned.len() as u32 - 1)
                 });
+            corner_first.push(first);
         }
     }
     let placed: Vec<Result<(SurfacePoint, Counters)>> = owned
@@ -1869,19 +1897,25 @@ fn extract_surface(
     // collected array of results copied into a second one had been ~150 page faults of the
     // sphere example's 750).
     let unset = finish_point([0.0; MAX_VARS], [0.0; 3], [0.0; 3], None);
-    let mut corner_points = vec![[unset; 4]; patches.len()];
-    let corner_counters: Vec<Result<Counters>> = corner_points
-        .par_iter_mut()
+    let mut corner_points = vec![unset; corner_start[patches.len()]];
+    let mut corner_slots: Vec<&mut [SurfacePoint]> = Vec::with_capacity(patches.len());
+    let mut rest = corner_points.as_mut_slice();
+    for (_, patch) in patches {
+        let (head, tail) = std::mem::take(&mut rest).split_at_mut(patch.corners.len());
+        corner_slots.push(head);
+        rest = tail;
+    }
+    let corner_counters: Vec<Result<Counters>> = corner_slots
+        .into_par_iter()
         .zip(patches)
         .enumerate()
         .map(|(pi, (out, (s, patch)))| {
             progress.check()?;
             let s = *s;
-            let ids = model.simplex(s);
             let starts = needs_start(eval, s);
             let mut c = Counters::default();
             for (j, (o, corner)) in out.iter_mut().zip(&patch.corners).enumerate() {
-                let first = share.then(|| first_patch[&corner_edge(ids, corner.edge)]);
+                let first = share.then(|| corner_first[corner_start[pi] + j]);
                 *o = match first {
                     Some((opi, oj, i)) if (opi, oj) == (pi as u32, j as u8) => {
                         placed_points[i as usize]
@@ -1919,7 +1953,8 @@ fn extract_surface(
             let k = patch.corners.len();
             let (ja, jb) = (j as usize, (j as usize + 1) % k);
             let (mut ca, mut cb) = (patch.corners[ja], patch.corners[jb]);
-            let (mut pa, mut pb) = (corner_points[pi][ja], corner_points[pi][jb]);
+            let corners = &corner_points[corner_start[pi]..];
+            let (mut pa, mut pb) = (corners[ja], corners[jb]);
             if corner_edge(ids, ca.edge) > corner_edge(ids, cb.edge) {
                 std::mem::swap(&mut ca, &mut cb);
                 std::mem::swap(&mut pa, &mut pb);
@@ -2030,11 +2065,10 @@ fn extract_surface(
     let counter = progress.phase(phase::PATCHES, patches.len() as u64);
     let results: Vec<Result<Chunk>> = patches
         .par_iter()
-        .zip(&corner_points)
         .enumerate()
         .try_fold(
             || (Chunk::default(), Scratch::default()),
-            |(mut chunk, mut scratch), (pi, ((s, patch), corner_points))| {
+            |(mut chunk, mut scratch), (pi, (s, patch))| {
                 if counter.is_cancelled() {
                     return Err(Error::Cancelled(Cancelled));
                 }
@@ -2051,13 +2085,15 @@ fn extract_surface(
                     scratch,
                     counters: Counters::default(),
                 };
-                let mut corner_ids = Vec::with_capacity(k);
-                for (c, p) in patch.corners.iter().zip(corner_points) {
+                // A patch has three or four corners: fixed arrays, not two vectors per patch.
+                let mut corner_ids = [0u32; 4];
+                let points = &corner_points[corner_start[pi]..corner_start[pi + 1]];
+                for ((slot, c), p) in corner_ids.iter_mut().zip(&patch.corners).zip(points) {
                     let (a, bb) = corner_edge(ids, c.edge);
-                    corner_ids.push(b.vertex(VertexKey::Edge(a, bb), c.u, *p));
+                    *slot = b.vertex(VertexKey::Edge(a, bb), c.u, *p);
                 }
-                let mut edges = Vec::with_capacity(k);
-                for j in 0..k {
+                let mut edges = [EdgeRef::Interior { level: 0 }; 4];
+                for (j, edge) in edges.iter_mut().enumerate().take(k) {
                     let (ca, cb) = (patch.corners[j], patch.corners[(j + 1) % k]);
                     let facet = facet_index[4 * pi + j] as usize;
                     let forward = corner_edge(ids, ca.edge) < corner_edge(ids, cb.edge);
@@ -2068,7 +2104,7 @@ fn extract_surface(
                     } else {
                         (Dyadic::ONE, Dyadic::ZERO)
                     };
-                    edges.push(EdgeRef::Boundary { facet, start, end });
+                    *edge = EdgeRef::Boundary { facet, start, end };
                 }
                 if k == 3 {
                     b.refine(

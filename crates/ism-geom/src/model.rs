@@ -498,12 +498,15 @@ impl ModelEval {
                 }
                 g
             };
-            let p: Vec<[f64; 3]> = corners.iter().map(|k| self.point(s, &k.u)).collect();
-            let d1 = sub(&p[1], &p[0]);
+            // Only the first two or three corners' points orient the patch: mapped on demand,
+            // not collected into a vector (an allocation per crossed simplex).
+            let p = |i: usize| self.point(s, &corners[i].u);
+            let p0 = p(0);
+            let d1 = sub(&p(1), &p0);
             let normal = if n == 2 {
                 [d1[1], -d1[0], 0.0]
             } else {
-                let d2 = sub(&p[2], &p[0]);
+                let d2 = sub(&p(2), &p0);
                 [
                     d1[1] * d2[2] - d1[2] * d2[1],
                     d1[2] * d2[0] - d1[0] * d2[2],
