@@ -570,9 +570,10 @@ const COVERAGE: f64 = 0.75;
 
 /// Test points aimed at the spatial middle of an edge or triangle whose first test point landed
 /// off it ([`COVERAGE`]). Each aim inverts the parameter-to-space map piecewise linearly through
-/// the points known so far; two reach [`COVERAGE`] wherever the map is smooth at the element's
-/// scale, and the element is split where one of them is out of tolerance, so refinement resolves
-/// the rest.
+/// the points known so far (exact for a piecewise-linear map); the element is split where one of
+/// them is out of tolerance, so refinement goes on from there. At most two per element, which
+/// bounds the extra work: an element whose second aimed point still lands off the middle is
+/// accepted on what was measured (how often that happens has not been counted).
 const AIMED_PROBES: usize = 2;
 
 /// Whether a test point at `p` lands central enough on the chord from `a` to `b` to vouch for its
