@@ -14,7 +14,7 @@
 //! always agree and no T-junction can appear. The split criterion is the chordal distance: how far
 //! the mapped edge (a curve on `O`) departs from the straight line between its mapped ends,
 //! perpendicular to that line, at ¼, ½ and ¾ of it (on surfaces the quarter points only where the
-//! midpoint and their prediction leave doubt: [`QUARTER_PREDICTED_FRACTION`]), compared with ¾ of
+//! midpoint and their prediction leave doubt: `QUARTER_PREDICTED_FRACTION`), compared with ¾ of
 //! `tolerance` (so the
 //! triangles' interiors and the curve between the measured points meet `tolerance` too:
 //! [`EDGE_FRACTION`]), until `max_depth` halvings. The component along the chord is not counted:
@@ -34,8 +34,8 @@
 //! (rational weights far apart, steep monotonic stages) carries them far from the middle of their
 //! chord or triangle in space, where they say little about it: on a fitted rational ellipsoid the
 //! surface bulged 1.5–2 × the tolerance from triangles whose test points had bunched near one
-//! corner. So a point that lands off the middle ([`COVERAGE`]) is followed by points aimed at the
-//! middle in space ([`AIMED_PROBES`]), measured the same way. (Test points are samples, not a
+//! corner. So a point that lands off the middle (`COVERAGE`) is followed by points aimed at the
+//! middle in space (`AIMED_PROBES`), measured the same way. (Test points are samples, not a
 //! bound: a stage that bends the shape between all of them still goes unseen.)
 //!
 //! **Coarsening** ([`extract_coarsened`]). Halving an edge whose error is just over the threshold
