@@ -13,9 +13,10 @@ The output format follows the extension: .obj, .gltf, .glb, .vtk (legacy ASCII),
 3D models give triangle meshes, 2D models polylines (OBJ `l`, glTF LINES, VTK lines). Each
 patch of the linear isocomplex is refined until the chordal error is below --tolerance (model
 units) or --max-depth halvings are reached, then mapped through the stage inverses. The error is
-measured at test points (edge midpoints and quarters, triangle centroids, and points aimed at the
-middle where those land off it), not bounded: a stage that bends the shape between them (seen on
---rational fits whose weights reach the fitter's limits) can leave the mesh farther away. --volume
+measured at test points (edge midpoints and quarters, triangle centroids, points aimed at the
+middle where those land off it, and points in stretches of an edge that the parameter crosses
+fast), not bounded: a stage that bends the shape between them (seen on --rational fits whose
+weights reach the fitter's limits) can leave the mesh farther away. --volume
 (.vtk/.vtu) writes the complex itself with F as a Bézier field instead of the surface: degree
 and red refinement are raised until max |F_vtk − F| is below --field-tolerance (default: the
 surface tolerance times the median |∇F| of the linear interpolant on the crossed simplices, so

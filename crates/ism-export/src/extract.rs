@@ -35,8 +35,15 @@
 //! chord or triangle in space, where they say little about it: on a fitted rational ellipsoid the
 //! surface bulged 1.5–2 × the tolerance from triangles whose test points had bunched near one
 //! corner. So a point that lands off the middle (`COVERAGE`) is followed by points aimed at the
-//! middle in space (`AIMED_PROBES`), measured the same way. (Test points are samples, not a
-//! bound: a stage that bends the shape between all of them still goes unseen.)
+//! middle in space (`AIMED_PROBES`), measured the same way; and a stretch of an edge's chord that
+//! no test point lies in, crossed faster than the edge's mean parameter speed (`GAP`), is probed
+//! too. (Test points are samples, not a bound: a stage that bends the shape between all of them
+//! still goes unseen.)
+//!
+//! **Levels.** `max_depth` bounds the halvings of every edge: a facet edge's by its dyadic level,
+//! an interior edge's by a level that follows its size (one more than the shortest edge of the
+//! triangle it was made in, or than its parent's), with a floor that grows with the depth so
+//! that refinement ends by depth `2 · max_depth`.
 //!
 //! **Coarsening** ([`extract_coarsened`]). Halving an edge whose error is just over the threshold
 //! leaves halves about a quarter of it (the error goes like the square of the length), and keeping
@@ -688,6 +695,111 @@ fn edge_off_centre_error(
     Ok(worst)
 }
 
+/// A stretch of an edge's chord between neighbouring test points (or a test point and an end)
+/// longer than this fraction of the chord, and longer than [`GAP_SPEED`] times its share of the
+/// edge's parameter, has no test point inside it: a stage with uneven parameter speed can hide the
+/// shape there. On a fitted rational ellipsoid (weights 0.05–20) the first quarter of an edge's
+/// parameter covered 61 % of its chord, and the curve inside that stretch bulged 2.8 × the
+/// tolerance from the chord while the points at ¼, ½ and ¾ were within 0.4 × it. Such a stretch is
+/// bisected in parameter ([`gap_error`]). With an even speed the stretches are ¼ or ½ of the chord
+/// and their parameter shares alike, so nothing is added there.
+const GAP: f64 = 0.5;
+
+/// How much faster than the edge's mean speed a stretch must run to count as a gap ([`GAP`]): a
+/// stretch of at most ½ the parameter covering more than ½ of the chord runs ≥ 1× the mean; the
+/// margin keeps nearly even maps (examples, non-rational fits) from paying for probes.
+const GAP_SPEED: f64 = 1.25;
+
+/// Test points placed into the gaps of one edge ([`GAP`]) before it is accepted on what was
+/// measured; it is split as soon as one of them is beyond the threshold.
+const GAP_PROBES: usize = 3;
+
+/// The stretch `pts[i]..pts[i + 1]` of points `(t, position)` sorted by `t` (the ends included)
+/// that counts as a gap of a chord whose squared length is `chord2` ([`GAP`]), the longest if
+/// several; `None` if none. (Squared lengths: no square root on the common path.)
+fn widest_gap(pts: &[(f64, [f64; 3])], chord2: f64) -> Option<usize> {
+    let mut gap = None;
+    let mut longest = 0.0;
+    for (i, pair) in pts.windows(2).enumerate() {
+        let stretch2 = dist2(pair[1].1, pair[0].1) / chord2;
+        let share = GAP_SPEED * (pair[1].0 - pair[0].0);
+        if stretch2 > GAP * GAP && stretch2 > share * share && stretch2 > longest {
+            gap = Some(i);
+            longest = stretch2;
+        }
+    }
+    gap
+}
+
+/// Whether the known test points `known` (sorted by `t`, the ends excluded) of the edge from `a`
+/// to `b` leave a gap ([`GAP`]): [`widest_gap`] without building its array, so that the common
+/// case, no gap, costs a few squared distances and no call.
+#[inline(always)]
+fn has_gap(a: [f64; 3], b: [f64; 3], known: &[(f64, [f64; 3])]) -> bool {
+    let chord2 = dist2(b, a);
+    let gap = |t0: f64, p0: [f64; 3], t1: f64, p1: [f64; 3]| {
+        let stretch2 = dist2(p1, p0);
+        let share = GAP_SPEED * (t1 - t0);
+        stretch2 > GAP * GAP * chord2 && stretch2 > share * share * chord2
+    };
+    let (mut t0, mut p0) = (0.0, a);
+    for &(t, p) in known {
+        if gap(t0, p0, t, p) {
+            return true;
+        }
+        (t0, p0) = (t, p);
+    }
+    gap(t0, p0, 1.0, b)
+}
+
+/// The largest distance from the chord of the points placed into the gaps ([`GAP`]) between the
+/// known test points `known` (`(t, position)`, sorted by `t`, the ends excluded) of the edge from `a`
+/// (at `ua`) to `b` (at `ub`), which passed its tests: each bisects, in parameter, the longest
+/// stretch of the chord that counts as a gap, stopping at the first point beyond `tol` or after
+/// [`GAP_PROBES`]. `guides` are the edge's start curve, its middle as the curve predicts it and as
+/// solved, and the mean `DX⁻¹` ([`edge_guides`]). Kept out of line: gaps are uncommon.
+#[allow(clippy::too_many_arguments)]
+#[inline(never)]
+fn gap_error(
+    eval: &ModelEval,
+    s: usize,
+    (ua, a): (&Bary, &SurfacePoint),
+    (ub, b): (&Bary, &SurfacePoint),
+    (curve, half, wm, mean): (&EdgeCurve, &Bary, &Bary, Option<&Mat>),
+    known: &[(f64, [f64; 3])],
+    tol: f64,
+    counters: &mut Counters,
+) -> Result<f64> {
+    let chord2 = dist2(b.p, a.p);
+    if !(chord2 > 0.0 && chord2.is_finite()) {
+        return Ok(0.0);
+    }
+    // The ends, the known points and the gap probes, sorted by parameter.
+    debug_assert!(known.windows(2).all(|w| w[0].0 < w[1].0));
+    let mut pts = [(0.0, [0.0; 3]); 5 + GAP_PROBES];
+    let first = known.len().min(3) + 2;
+    pts[0] = (0.0, a.p);
+    pts[1..first - 1].copy_from_slice(&known[..first - 2]);
+    pts[first - 1] = (1.0, b.p);
+    let mut worst = 0.0_f64;
+    // `len` points placed: the ends, the known ones and the probes so far.
+    for len in first..first + GAP_PROBES {
+        let Some(i) = widest_gap(&pts[..len], chord2) else {
+            break;
+        };
+        let t = 0.5 * (pts[i].0 + pts[i + 1].0);
+        let guess = curve.at_with_middle(t, wm, half);
+        let (_, q) = probe(eval, s, &lerp(ua, ub, t), &guess, mean, tol, counters)?;
+        worst = worst.max(chord_error(a.p, b.p, q));
+        if worst > tol {
+            break;
+        }
+        pts.copy_within(i + 1..len, i + 2);
+        pts[i + 1] = (t, q);
+    }
+    Ok(worst)
+}
+
 /// First-order change `DX⁻¹ · Δu` of the preimage at `point` for the parameter change `du`
 /// (full barycentric, summing to 0 like `du`). `None` without a usable `DX⁻¹`.
 fn preimage_step(n: usize, point: &SurfacePoint, du: &Bary) -> Option<Bary> {
@@ -962,11 +1074,30 @@ fn test_edge(
         )
     {
         // The quarter points could only decide a split through a deviation the ends' tangents
-        // and the midpoint do not show ([`QUARTER_PREDICTED_FRACTION`]).
-        return Ok(EdgeTest {
-            split: None,
-            quarters: None,
-        });
+        // and the midpoint do not show ([`QUARTER_PREDICTED_FRACTION`]); a gap the midpoint
+        // leaves ([`GAP`]) is still probed, and if that fails the quarter points are placed
+        // below (the split needs them).
+        let known = [(0.5, pm)];
+        let gap = if has_gap(pa, pb, &known) {
+            gap_error(
+                eval,
+                s,
+                (ua, a),
+                (ub, b),
+                (&curve, &half, &wm, mean.as_ref()),
+                &known,
+                tol,
+                counters,
+            )?
+        } else {
+            0.0
+        };
+        if gap <= tol {
+            return Ok(EdgeTest {
+                split: None,
+                quarters: None,
+            });
+        }
     }
     let mut split = middle > tol || off_centre;
     let mut quarters = [([0.0; MAX_VARS], [0.0; 3]); 2];
@@ -976,10 +1107,28 @@ fn test_edge(
         quarters[k] = probe(eval, s, &u, &guess, mean.as_ref(), tol, counters)?;
         split = split || chord_error(pa, pb, quarters[k].1) > tol;
         if !split && k == 1 {
-            return Ok(EdgeTest {
-                split: None,
-                quarters: None,
-            });
+            let known = [(0.25, quarters[0].1), (0.5, pm), (0.75, quarters[1].1)];
+            let gap = if has_gap(pa, pb, &known) {
+                gap_error(
+                    eval,
+                    s,
+                    (ua, a),
+                    (ub, b),
+                    (&curve, &half, &wm, mean.as_ref()),
+                    &known,
+                    tol,
+                    counters,
+                )?
+            } else {
+                0.0
+            };
+            if gap <= tol {
+                return Ok(EdgeTest {
+                    split: None,
+                    quarters: None,
+                });
+            }
+            split = true;
         }
     }
     // Only a midpoint that becomes a vertex is placed exactly, from the test point's preimage.
@@ -1353,8 +1502,19 @@ enum EdgeRef {
         start: Dyadic,
         end: Dyadic,
     },
-    /// Inside σ, created at refinement depth `level`.
+    /// Inside σ, `level` halvings deep ([`SurfaceBuilder::interior_level`]).
     Interior { level: u32 },
+}
+
+impl EdgeRef {
+    /// How many halvings deep the edge is: its level inside σ; on a facet edge, the finer of its
+    /// ends' dyadic levels (`[¼, ½]` is two halvings of the whole facet edge).
+    fn halvings(&self) -> u32 {
+        match *self {
+            EdgeRef::Boundary { start, end, .. } => start.level.max(end.level),
+            EdgeRef::Interior { level } => level,
+        }
+    }
 }
 
 struct SurfaceBuilder<'a> {
@@ -1589,7 +1749,22 @@ impl SurfaceBuilder<'_> {
         }
     }
 
-    fn halves(edge: EdgeRef, depth: u32) -> (EdgeRef, EdgeRef) {
+    /// The level of an interior edge made in a triangle at refinement depth `depth`: `halvings`
+    /// (one more than the triangle's shortest edge's for a new edge, one more than the parent's for
+    /// a half), but at least `depth + 1 − max_depth`. Levels stop refinement at `max_depth`, so they
+    /// follow the edge's size: a new edge is about as long as the triangle's edges, however deep
+    /// the triangle is. (They were `depth + 1`, and then a fan of centroid splits beside a long
+    /// facet edge made interior edges reach `max_depth` while still long: on a fitted rational
+    /// ellipsoid at 1e-4 an interior edge 0.013 long, 2.8 × the tolerance from its curve, was
+    /// accepted at level 8 in a triangle of depth 12.) The floor bounds the depth: past
+    /// `2 · max_depth − 1` no new interior edge can be split.
+    fn interior_level(&self, halvings: u32, depth: u32) -> u32 {
+        halvings.max((depth + 1).saturating_sub(self.options.max_depth))
+    }
+
+    /// The halves of `edge`, split in a triangle at refinement depth `depth`: a facet edge's
+    /// dyadic halves; an interior edge's halves one level deeper ([`Self::interior_level`]).
+    fn halves(&self, edge: EdgeRef, depth: u32) -> (EdgeRef, EdgeRef) {
         match edge {
             EdgeRef::Boundary { facet, start, end } => {
                 let mid = Dyadic::midpoint(start, end);
@@ -1607,7 +1782,7 @@ impl SurfaceBuilder<'_> {
                 )
             }
             EdgeRef::Interior { level } => {
-                let l = level.max(depth) + 1;
+                let l = self.interior_level(level + 1, depth);
                 (
                     EdgeRef::Interior { level: l },
                     EdgeRef::Interior { level: l },
@@ -1719,8 +1894,9 @@ impl SurfaceBuilder<'_> {
         Ok(self.centroid(v)?.2 <= EDGE_FRACTION * self.options.tolerance)
     }
 
-    /// Whether the mapped points at ½, ¼ and ¾ of the edge between local vertices `a` and `b` lie
-    /// within `tol` of its chord (the refinement's edge test, stopping at the first miss).
+    /// Whether the mapped points at ½, ¼ and ¾ of the edge between local vertices `a` and `b`, and
+    /// those placed into its gaps ([`GAP`]), lie within `tol` of its chord (the refinement's edge
+    /// test, stopping at the first miss).
     fn edge_within(&mut self, a: u32, b: u32, tol: f64) -> Result<bool> {
         let (ua, ub) = (self.scratch.us[a as usize], self.scratch.us[b as usize]);
         let points = &self.scratch.points;
@@ -1751,7 +1927,8 @@ impl SurfaceBuilder<'_> {
         {
             return Ok(false);
         }
-        for t in [0.25, 0.75] {
+        let mut quarters = [[0.0; 3]; 2];
+        for (k, t) in [0.25, 0.75].into_iter().enumerate() {
             let guess = curve.at_with_middle(t, &wm, &half);
             let (_, q) = probe(
                 self.eval,
@@ -1765,8 +1942,23 @@ impl SurfaceBuilder<'_> {
             if chord_error(pa.p, pb.p, q) > tol {
                 return Ok(false);
             }
+            quarters[k] = q;
         }
-        Ok(true)
+        let known = [(0.25, quarters[0]), (0.5, pm), (0.75, quarters[1])];
+        if !has_gap(pa.p, pb.p, &known) {
+            return Ok(true);
+        }
+        let gap = gap_error(
+            self.eval,
+            self.s,
+            (&ua, pa),
+            (&ub, pb),
+            (&curve, &half, &wm, mean.as_ref()),
+            &known,
+            tol,
+            &mut self.counters,
+        )?;
+        Ok(gap <= tol)
     }
 
     /// Coarsens the refined patch (module doc, **Coarsening**): each vertex inside the patch, the
@@ -1933,7 +2125,12 @@ impl SurfaceBuilder<'_> {
         for k in 0..3 {
             mids[k] = self.split(v[k], v[(k + 1) % 3], e[k])?;
         }
-        let new = EdgeRef::Interior { level: depth + 1 };
+        let new = EdgeRef::Interior {
+            level: self.interior_level(
+                e.iter().map(EdgeRef::halvings).min().unwrap_or(0) + 1,
+                depth,
+            ),
+        };
         let count = mids.iter().filter(|m| m.is_some()).count();
         match count {
             0 => match self.interior_split(v, depth)? {
@@ -1951,9 +2148,9 @@ impl SurfaceBuilder<'_> {
             },
             3 => {
                 let [m0, m1, m2] = [mids[0].unwrap(), mids[1].unwrap(), mids[2].unwrap()];
-                let (e0a, e0b) = Self::halves(e[0], depth);
-                let (e1a, e1b) = Self::halves(e[1], depth);
-                let (e2a, e2b) = Self::halves(e[2], depth);
+                let (e0a, e0b) = self.halves(e[0], depth);
+                let (e1a, e1b) = self.halves(e[1], depth);
+                let (e2a, e2b) = self.halves(e[2], depth);
                 self.refine([v[0], m0, m2], [e0a, new, e2b], depth + 1)?;
                 self.refine([m0, v[1], m1], [e0b, e1a, new], depth + 1)?;
                 self.refine([m2, m1, v[2]], [new, e1b, e2a], depth + 1)?;
@@ -1963,7 +2160,7 @@ impl SurfaceBuilder<'_> {
                 let k = (0..3).find(|&k| mids[k].is_some()).unwrap();
                 let m = mids[k].unwrap();
                 let (a, b, c) = (v[k], v[(k + 1) % 3], v[(k + 2) % 3]);
-                let (ha, hb) = Self::halves(e[k], depth);
+                let (ha, hb) = self.halves(e[k], depth);
                 self.refine([a, m, c], [ha, new, e[(k + 2) % 3]], depth + 1)?;
                 self.refine([m, b, c], [hb, e[(k + 1) % 3], new], depth + 1)
             }
@@ -1974,8 +2171,8 @@ impl SurfaceBuilder<'_> {
                     .unwrap();
                 let (a, b, c) = (v[k], v[(k + 1) % 3], v[(k + 2) % 3]);
                 let (mk, mk1) = (mids[k].unwrap(), mids[(k + 1) % 3].unwrap());
-                let (ka, kb) = Self::halves(e[k], depth);
-                let (k1a, k1b) = Self::halves(e[(k + 1) % 3], depth);
+                let (ka, kb) = self.halves(e[k], depth);
+                let (k1a, k1b) = self.halves(e[(k + 1) % 3], depth);
                 let ec = e[(k + 2) % 3];
                 self.refine([mk, b, mk1], [kb, k1a, new], depth + 1)?;
                 // The quad a, mk, mk1, c: cut along the shorter diagonal.
@@ -2431,6 +2628,73 @@ mod tests {
         assert_eq!((weight, corners), (1.0 / 3.0, [0.0, 1.0 / 3.0, 1.0 / 3.0]));
         // No bracket, or an aim at an end: nothing to aim at.
         assert_eq!(aim_at_half(&[(0.0, 0.6), (1.0, 1.0)]), None);
+    }
+
+    /// The gap rule on point sets whose answer is known by construction: an even map (points at
+    /// their parameter's share of a straight chord, or bent off it by much less than the chord)
+    /// has no gap; the fitted ellipsoid's edge (¼ of the parameter covering 61 % of the chord) has
+    /// one before its first quarter point, and a midpoint at 0.805 of the chord leaves one before
+    /// it; of two gaps the longer is named.
+    #[test]
+    fn gaps_are_the_long_fast_stretches() {
+        let on_chord = |ts: &[(f64, f64)]| -> Vec<(f64, [f64; 3])> {
+            ts.iter().map(|&(t, s)| (t, [2.0 * s, 0.0, 0.0])).collect()
+        };
+        let even = on_chord(&[
+            (0.0, 0.0),
+            (0.25, 0.25),
+            (0.5, 0.5),
+            (0.75, 0.75),
+            (1.0, 1.0),
+        ]);
+        assert_eq!(widest_gap(&even, 4.0), None);
+        assert_eq!(
+            widest_gap(&on_chord(&[(0.0, 0.0), (0.5, 0.5), (1.0, 1.0)]), 4.0),
+            None
+        );
+        // Nearly even (a midpoint at 0.55 of the chord): within GAP_SPEED.
+        assert_eq!(
+            widest_gap(&on_chord(&[(0.0, 0.0), (0.5, 0.55), (1.0, 1.0)]), 4.0),
+            None
+        );
+        let ellipsoid = on_chord(&[
+            (0.0, 0.0),
+            (0.25, 0.612),
+            (0.5, 0.805),
+            (0.75, 0.921),
+            (1.0, 1.0),
+        ]);
+        assert_eq!(widest_gap(&ellipsoid, 4.0), Some(0));
+        assert_eq!(
+            widest_gap(&on_chord(&[(0.0, 0.0), (0.5, 0.805), (1.0, 1.0)]), 4.0),
+            Some(0)
+        );
+        let two = on_chord(&[
+            (0.0, 0.0),
+            (0.1, 0.52),
+            (0.2, 0.53),
+            (0.3, 0.55),
+            (1.0, 1.0),
+        ]);
+        assert_eq!(widest_gap(&two, 4.0), Some(0));
+        let later = on_chord(&[(0.0, 0.0), (0.5, 0.1), (0.6, 0.8), (1.0, 1.0)]);
+        assert_eq!(widest_gap(&later, 4.0), Some(1));
+        // A stretch is measured in space, not along the chord: a bulge counts.
+        let bent = vec![
+            (0.0, [0.0; 3]),
+            (0.1, [0.5, 1.2, 0.0]),
+            (1.0, [2.0, 0.0, 0.0]),
+        ];
+        assert_eq!(widest_gap(&bent, 4.0), Some(0));
+        // `has_gap` (the inline pre-check) agrees with `widest_gap` on all of these.
+        for pts in [&even, &ellipsoid, &two, &later, &bent] {
+            let (a, b) = (pts[0].1, pts[pts.len() - 1].1);
+            let chord2 = dist2(a, b);
+            assert_eq!(
+                has_gap(a, b, &pts[1..pts.len() - 1]),
+                widest_gap(pts, chord2).is_some()
+            );
+        }
     }
 
     #[test]
