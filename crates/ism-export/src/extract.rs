@@ -711,8 +711,11 @@ const GAP: f64 = 0.5;
 const GAP_SPEED: f64 = 1.25;
 
 /// Test points placed into the gaps of one edge ([`GAP`]) before it is accepted on what was
-/// measured; it is split as soon as one of them is beyond the threshold.
-const GAP_PROBES: usize = 3;
+/// measured; it is split as soon as one of them is beyond the threshold. Each halves a gap's
+/// parameter, so a stretch crossed very fast takes several: on a fitted rational torus an edge
+/// crossed 90 % of its chord in the last 3 % of its parameter, and with 3 points its export at
+/// 1e-4 kept a bulge 2.3 × the tolerance (1.4 × with 8). Edges without gaps place none.
+const GAP_PROBES: usize = 8;
 
 /// The stretch `pts[i]..pts[i + 1]` of points `(t, position)` sorted by `t` (the ends included)
 /// that counts as a gap of a chord whose squared length is `chord2` ([`GAP`]), the longest if
