@@ -755,6 +755,25 @@ fn has_gap(a: [f64; 3], b: [f64; 3], known: &[(f64, [f64; 3])]) -> bool {
     gap(t0, p0, 1.0, b)
 }
 
+/// Whether the gaps ([`GAP`]) that the known test points `known` (sorted by `t`, the ends
+/// excluded) leave on the edge from `a` (at `ua`) to `b` (at `ub`) are within `tol`: none
+/// ([`has_gap`], inline), or every point [`gap_error`] places in them within it.
+#[allow(clippy::too_many_arguments)]
+#[inline(always)]
+fn gaps_within(
+    eval: &ModelEval,
+    s: usize,
+    (ua, a): (&Bary, &SurfacePoint),
+    (ub, b): (&Bary, &SurfacePoint),
+    guides: (&EdgeCurve, &Bary, &Bary, Option<&Mat>),
+    known: &[(f64, [f64; 3])],
+    tol: f64,
+    counters: &mut Counters,
+) -> Result<bool> {
+    Ok(!has_gap(a.p, b.p, known)
+        || gap_error(eval, s, (ua, a), (ub, b), guides, known, tol, counters)? <= tol)
+}
+
 /// The largest distance from the chord of the points placed into the gaps ([`GAP`]) between the
 /// known test points `known` (`(t, position)`, sorted by `t`, the ends excluded) of the edge from `a`
 /// (at `ua`) to `b` (at `ub`), which passed its tests: each bisects, in parameter, the longest
@@ -1080,22 +1099,16 @@ fn test_edge(
         // and the midpoint do not show ([`QUARTER_PREDICTED_FRACTION`]); a gap the midpoint
         // leaves ([`GAP`]) is still probed, and if that fails the quarter points are placed
         // below (the split needs them).
-        let known = [(0.5, pm)];
-        let gap = if has_gap(pa, pb, &known) {
-            gap_error(
-                eval,
-                s,
-                (ua, a),
-                (ub, b),
-                (&curve, &half, &wm, mean.as_ref()),
-                &known,
-                tol,
-                counters,
-            )?
-        } else {
-            0.0
-        };
-        if gap <= tol {
+        if gaps_within(
+            eval,
+            s,
+            (ua, a),
+            (ub, b),
+            (&curve, &half, &wm, mean.as_ref()),
+            &[(0.5, pm)],
+            tol,
+            counters,
+        )? {
             return Ok(EdgeTest {
                 split: None,
                 quarters: None,
@@ -1110,22 +1123,16 @@ fn test_edge(
         quarters[k] = probe(eval, s, &u, &guess, mean.as_ref(), tol, counters)?;
         split = split || chord_error(pa, pb, quarters[k].1) > tol;
         if !split && k == 1 {
-            let known = [(0.25, quarters[0].1), (0.5, pm), (0.75, quarters[1].1)];
-            let gap = if has_gap(pa, pb, &known) {
-                gap_error(
-                    eval,
-                    s,
-                    (ua, a),
-                    (ub, b),
-                    (&curve, &half, &wm, mean.as_ref()),
-                    &known,
-                    tol,
-                    counters,
-                )?
-            } else {
-                0.0
-            };
-            if gap <= tol {
+            if gaps_within(
+                eval,
+                s,
+                (ua, a),
+                (ub, b),
+                (&curve, &half, &wm, mean.as_ref()),
+                &[(0.25, quarters[0].1), (0.5, pm), (0.75, quarters[1].1)],
+                tol,
+                counters,
+            )? {
                 return Ok(EdgeTest {
                     split: None,
                     quarters: None,
@@ -1947,21 +1954,16 @@ impl SurfaceBuilder<'_> {
             }
             quarters[k] = q;
         }
-        let known = [(0.25, quarters[0]), (0.5, pm), (0.75, quarters[1])];
-        if !has_gap(pa.p, pb.p, &known) {
-            return Ok(true);
-        }
-        let gap = gap_error(
+        gaps_within(
             self.eval,
             self.s,
             (&ua, pa),
             (&ub, pb),
             (&curve, &half, &wm, mean.as_ref()),
-            &known,
+            &[(0.25, quarters[0]), (0.5, pm), (0.75, quarters[1])],
             tol,
             &mut self.counters,
-        )?;
-        Ok(gap <= tol)
+        )
     }
 
     /// Coarsens the refined patch (module doc, **Coarsening**): each vertex inside the patch, the
