@@ -10,8 +10,9 @@ the exporter:
   points, centroids, points halfway between the centroid and each corner and each edge midpoint;
   2D: vertices and eighths of every segment) are moved onto O = {F = c} by Newton steps along ∇F
   (`p ← p − α (F − c) ∇F / |∇F|²`, α halved from 1 until |F − c| decreases; F and ∇F from `ism
-  query`, a direct evaluation of F: no inversion, no refinement) until |F − c| / |∇F| < 1e-12 of the model's size; the displacement is the distance
-  to a point of O, hence an upper bound of the distance to O. Probes whose iteration leaves the
+  query`, a direct evaluation of F: no inversion, no refinement) until |F − c| / |∇F| < 1e-12 of
+  the model's size; the displacement is the distance to a point of O, hence an upper bound of the
+  distance to O. Probes whose iteration leaves the
   complex or does not converge are counted and reported (never silently dropped).
 * **O → mesh**: `ism sample --surface N --seed 1` draws N points uniform by curved area, each on O to
   1e-12 (the sampler's contract, tested by its own suite); the distance from each to the mesh is the
