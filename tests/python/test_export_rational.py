@@ -9,16 +9,19 @@ The model, `tests/data/rational-ellipsoid.ismb`, was written by
 (four parametric stages, the last rational with weights 0.05-20: the fitter's limits). Its stages
 carry the exporter's fixed-parameter test points far from the middle of their edges in space; before
 the gap probes and size-based interior levels (session 30) its export at 1e-3 lay 3.3 x the
-tolerance from its own shape, after them 1.30 x (what is left: "ear" triangles whose three corners
-lie on one patch edge's curve in a facet plane, degenerate in the patch's parameters, so their
-interior tests land on that curve; BENCHMARKS.md, issue 19, session 30).
+tolerance from its own shape, after them 1.30 x. At 1e-4, 228 edges stopped at the depth limit
+(`--max-depth`, 8 halvings of the parameter) while still long in space: 1.87 x; since long edges
+go on halving past it (session 31), 1.52 x. What is left are edges along a facet that the surface
+runs almost in, whose curve bows from the chord within a parameter stretch too short to reach
+(BENCHMARKS.md, issue 19, sessions 30 and 31).
 
 Ground truth comes from elsewhere than the exporter: the two-sided distance between the OBJ and
 O = {F = 0}, with F and its gradient from `ism query` (a direct evaluation of F), by the functions
 of `tools/bench_export_error.py` (damped Newton from mesh points onto O, an upper bound of their
 distance; exact point-to-triangle distances from points that `ism sample --surface` puts on O).
 The exporter checks its tolerance at test points and does not bound it, so the assertion is a
-regression guard with a stated margin, not the contract: 1.4 x the tolerance (1.30 x measured).
+regression guard with a stated margin, not the contract: 1.4 x the tolerance at 1e-3 (1.28 x
+measured), 1.65 x at 1e-4 (1.52 x; 1.87 x before session 31).
 """
 
 from __future__ import annotations
@@ -29,12 +32,10 @@ import subprocess
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
 MODEL = ROOT / "tests" / "data" / "rational-ellipsoid.ismb"
-TOLERANCE = 1e-3
-# Measured 1.30 x (mesh -> O) and 0.76-0.85 x (O -> mesh) at session 30; before it: 3.29 x.
-MARGIN = 1.4
 SAMPLES = 50_000
 
 
@@ -51,11 +52,20 @@ def bench():
     return mod
 
 
-def test_rational_fit_exports_near_its_tolerance(tmp_path):
+@pytest.mark.parametrize(
+    ("tolerance", "margin"),
+    [
+        # Measured 1.28 x (mesh -> O) and 0.85 x (O -> mesh) at session 31; 3.29 x before session 30.
+        (1e-3, 1.4),
+        # Measured 1.52 x and 0.76 x at session 31; 1.87 x before (the depth limit on long edges).
+        (1e-4, 1.65),
+    ],
+)
+def test_rational_fit_exports_near_its_tolerance(tmp_path, tolerance, margin):
     b = bench()
     out = tmp_path / "ell.obj"
     subprocess.run(
-        [ism_bin(), "export", str(MODEL), str(out), "--tolerance", str(TOLERANCE), "-q"],
+        [ism_bin(), "export", str(MODEL), str(out), "--tolerance", str(tolerance), "-q"],
         check=True,
     )
     v, c = b.read_obj(out)
@@ -80,6 +90,6 @@ def test_rational_fit_exports_near_its_tolerance(tmp_path):
     s = np.stack([sa[n] for n in ("x", "y", "z")], axis=1)
     o_to_mesh = float(b.surface_to_mesh(s, v, c, 16).max())
 
-    msg = f"mesh -> O {mesh_to_o / TOLERANCE:.3f} T, O -> mesh {o_to_mesh / TOLERANCE:.3f} T ({failed} of {probes} probes unmeasured)"
-    assert mesh_to_o <= MARGIN * TOLERANCE, msg
-    assert o_to_mesh <= MARGIN * TOLERANCE, msg
+    msg = f"mesh -> O {mesh_to_o / tolerance:.3f} T, O -> mesh {o_to_mesh / tolerance:.3f} T ({failed} of {probes} probes unmeasured)"
+    assert mesh_to_o <= margin * tolerance, msg
+    assert o_to_mesh <= margin * tolerance, msg

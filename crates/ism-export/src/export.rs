@@ -61,7 +61,8 @@ use crate::{Error, Result};
 pub struct ExportOptions {
     /// Chordal tolerance of the curved surface, in model units ([`ExtractOptions::tolerance`]).
     pub tolerance: f64,
-    /// Most halvings of a patch edge ([`ExtractOptions::max_depth`]).
+    /// Halvings of a patch edge past which only long edges are halved
+    /// ([`ExtractOptions::max_depth`]).
     pub max_depth: u32,
     /// The linear isocomplex (marching simplices, stages ignored) instead of the curved shape.
     pub linear: bool,

@@ -40,10 +40,11 @@
 //! too. (Test points are samples, not a bound: a stage that bends the shape between all of them
 //! still goes unseen.)
 //!
-//! **Levels.** `max_depth` bounds the halvings of every edge: a facet edge's by its dyadic level,
-//! an interior edge's by a level that follows its size (one more than the shortest edge of the
-//! triangle it was made in, or than its parent's), with a floor that grows with the depth so
-//! that refinement ends by depth `2 · max_depth`.
+//! **Levels.** `max_depth` bounds the halvings of every edge whose chord is within
+//! [`DEPTH_ESCAPE`] tolerances (longer ones go on to [`MAX_DEPTH_LIMIT`]): a facet edge's by its
+//! dyadic level, an interior edge's by a level that follows its size (one more than the shortest
+//! edge of the triangle it was made in, or than its parent's), with a floor that grows with the
+//! depth so that refinement ends.
 //!
 //! **Coarsening** ([`extract_coarsened`]). Halving an edge whose error is just over the threshold
 //! leaves halves about a quarter of it (the error goes like the square of the length), and keeping
@@ -78,6 +79,27 @@ use crate::{Error, Result};
 /// beyond any useful tolerance, and keeps dyadic parameters exact in `u64`).
 pub const MAX_DEPTH_LIMIT: u32 = 30;
 
+/// Length of an edge's chord, in tolerances, above which an edge still over the threshold is
+/// halved past `max_depth` (up to [`MAX_DEPTH_LIMIT`] levels): levels count halvings of the
+/// *parameter*, and a rational stage near its weight limits maps a parameter stretch 2⁻⁸ long
+/// onto a large part of a patch. On a fitted rational ellipsoid an interior edge 0.029 long
+/// (29 × the tolerance) stopped at level 8 with its curve 1.46 × the tolerance away, and at 1e-4
+/// 228 edges stopped at the limit (the export 1.87 × the tolerance from the shape; 1.52 × with this
+/// rule, 5 edges left). An edge over the threshold with a chord within twice the tolerance bends
+/// more tightly than the tolerance can describe: there the limit holds (and counts the edge).
+/// Refinement still ends: the levels stop at [`MAX_DEPTH_LIMIT`].
+pub const DEPTH_ESCAPE: f64 = 2.0;
+
+/// Whether an edge over the threshold, halved `level` times, whose mapped ends are `a` and `b`,
+/// may be split: below `max_depth`, or past it while its chord is longer than [`DEPTH_ESCAPE`]
+/// tolerances (never with `max_depth` 0: the linear patches' corners only).
+fn may_split(level: u32, a: [f64; 3], b: [f64; 3], options: &ExtractOptions) -> bool {
+    level < options.max_depth
+        || options.max_depth > 0
+            && level < MAX_DEPTH_LIMIT
+            && dist2(a, b) > (DEPTH_ESCAPE * options.tolerance).powi(2)
+}
+
 /// Options of [`extract`].
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct ExtractOptions {
@@ -85,7 +107,9 @@ pub struct ExtractOptions {
     /// farther than ¾ of this from the straight line between its mapped ends, so that the mesh
     /// meets this (module doc).
     pub tolerance: f64,
-    /// Most halvings of a patch edge (0 = the linear patches' corners only, mapped).
+    /// Halvings of a patch edge past which it is halved further only while its chord is longer
+    /// than [`DEPTH_ESCAPE`] tolerances, up to [`MAX_DEPTH_LIMIT`] (0 = the linear patches'
+    /// corners only, mapped).
     pub max_depth: u32,
 }
 
@@ -108,7 +132,8 @@ pub struct ExtractReport {
     /// Largest inversion residual `|X(w) − u|∞` of the points placed exactly (the vertices; test
     /// points are only placed to a hundredth of the distance they are compared with).
     pub max_residual: f64,
-    /// Patch edges (or interior edges) that reached `max_depth` while still over tolerance.
+    /// Patch edges (or interior edges) over tolerance that were not split: past `max_depth` with
+    /// a chord within [`DEPTH_ESCAPE`] tolerances, or at [`MAX_DEPTH_LIMIT`].
     pub depth_limited_edges: u64,
 }
 
@@ -1435,7 +1460,7 @@ fn extract_curve(
                     c,
                 )?;
                 match (split.split, split.quarters) {
-                    (Some(pm), Some([q0, q1])) if depth < options.max_depth => {
+                    (Some(pm), Some([q0, q1])) if may_split(depth, a.1.p, b.1.p, options) => {
                         go(eval, s, a, (um, pm), Some(q0), depth + 1, options, piece, c)?;
                         let k = piece.keys.len() as u32;
                         piece.keys.push(VertexKey::Interior(s as u32, k));
@@ -1739,8 +1764,14 @@ impl SurfaceBuilder<'_> {
                     known,
                     &mut self.counters,
                 )?;
+                let limited = !may_split(
+                    level,
+                    points[pair.0 as usize].p,
+                    points[pair.1 as usize].p,
+                    self.options,
+                );
                 let decision = match (test.split, test.quarters) {
-                    (Some(pm), Some([q0, q1])) if level < self.options.max_depth => {
+                    (Some(pm), Some([q0, q1])) if !limited => {
                         let m = self.interior_vertex(um, pm);
                         self.scratch.known.insert((pair.0, m), q0);
                         self.scratch
@@ -1767,7 +1798,8 @@ impl SurfaceBuilder<'_> {
     /// facet edge made interior edges reach `max_depth` while still long: on a fitted rational
     /// ellipsoid at 1e-4 an interior edge 0.013 long, 2.8 × the tolerance from its curve, was
     /// accepted at level 8 in a triangle of depth 12.) The floor bounds the depth: past
-    /// `2 · max_depth − 1` no new interior edge can be split.
+    /// `max_depth + MAX_DEPTH_LIMIT − 1` no new interior edge can be split ([`may_split`]), far
+    /// below [`SAFETY_DEPTH`].
     fn interior_level(&self, halvings: u32, depth: u32) -> u32 {
         halvings.max((depth + 1).saturating_sub(self.options.max_depth))
     }
@@ -2402,7 +2434,7 @@ fn extract_surface(
                 let (Some(pm), Some([q0, q1])) = (split.split, split.quarters) else {
                     return Ok(());
                 };
-                if depth >= options.max_depth {
+                if !may_split(depth, pa.p, pb.p, options) {
                     c.depth_limited += 1;
                     return Ok(());
                 }
@@ -2640,6 +2672,30 @@ mod tests {
     /// has no gap; the fitted ellipsoid's edge (¼ of the parameter covering 61 % of the chord) has
     /// one before its first quarter point, and a midpoint at 0.805 of the chord leaves one before
     /// it; a bulge off the chord counts; of two gaps the longer is named.
+    #[test]
+    fn long_edges_split_past_the_depth() {
+        let options = ExtractOptions {
+            tolerance: 1e-3,
+            max_depth: 8,
+        };
+        let (a, near, far) = ([0.0; 3], [1.9e-3, 0.0, 0.0], [0.0, 0.0, 2.1e-3]);
+        // Below max_depth any edge over the threshold splits, however short.
+        assert!(may_split(7, a, near, &options));
+        // Past it only one whose chord exceeds DEPTH_ESCAPE tolerances, up to MAX_DEPTH_LIMIT.
+        assert!(!may_split(8, a, near, &options));
+        assert!(may_split(8, a, far, &options));
+        assert!(may_split(MAX_DEPTH_LIMIT - 1, a, far, &options));
+        assert!(!may_split(MAX_DEPTH_LIMIT, a, far, &options));
+        // max_depth 0 means the corners only, long or not.
+        let corners = ExtractOptions {
+            max_depth: 0,
+            ..options
+        };
+        assert!(!may_split(0, a, [1.0, 0.0, 0.0], &corners));
+        // Not finite: never split (the comparison fails).
+        assert!(!may_split(8, a, [f64::NAN, 0.0, 0.0], &options));
+    }
+
     #[test]
     fn gaps_are_the_long_fast_stretches() {
         let on_chord = |ts: &[(f64, f64)]| -> Vec<(f64, [f64; 3])> {
