@@ -1764,14 +1764,9 @@ impl SurfaceBuilder<'_> {
                     known,
                     &mut self.counters,
                 )?;
-                let limited = !may_split(
-                    level,
-                    points[pair.0 as usize].p,
-                    points[pair.1 as usize].p,
-                    self.options,
-                );
+                let (pa, pb) = (points[pair.0 as usize].p, points[pair.1 as usize].p);
                 let decision = match (test.split, test.quarters) {
-                    (Some(pm), Some([q0, q1])) if !limited => {
+                    (Some(pm), Some([q0, q1])) if may_split(level, pa, pb, self.options) => {
                         let m = self.interior_vertex(um, pm);
                         self.scratch.known.insert((pair.0, m), q0);
                         self.scratch
