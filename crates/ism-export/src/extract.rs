@@ -85,7 +85,8 @@ pub const MAX_DEPTH_LIMIT: u32 = 30;
 /// onto a large part of a patch. On a fitted rational ellipsoid an interior edge 0.029 long
 /// (29 × the tolerance) stopped at level 8 with its curve 1.46 × the tolerance away, and at 1e-4
 /// 228 edges stopped at the limit (the export 1.87 × the tolerance from the shape; 1.52 × with this
-/// rule, 5 edges left). An edge over the threshold with a chord within twice the tolerance bends
+/// rule and [`ESCAPE_SEPARATION`], 5 edges left). An edge over the threshold with a chord within
+/// twice the tolerance bends
 /// more tightly than the tolerance can describe: there the limit holds (and counts the edge).
 /// Refinement still ends: the levels stop at [`MAX_DEPTH_LIMIT`].
 pub const DEPTH_ESCAPE: f64 = 2.0;
@@ -98,6 +99,21 @@ fn may_split(level: u32, a: [f64; 3], b: [f64; 3], options: &ExtractOptions) -> 
         || options.max_depth > 0
             && level < MAX_DEPTH_LIMIT
             && dist2(a, b) > (DEPTH_ESCAPE * options.tolerance).powi(2)
+}
+
+/// Distance, in tolerances, that a vertex made past `max_depth` ([`DEPTH_ESCAPE`]) must keep from
+/// every vertex the patch already has. Inside a patch whose parameter polygon is a needle along a
+/// facet edge (the linear level set nearly in the facet; seen on the fitted rational ellipsoid,
+/// vertices 10⁻⁶ to 10⁻¹³ off the facet in barycentrics), halving an interior edge returns to
+/// points of the curve on the facet that earlier vertices already hold, ever closer to them:
+/// such splits only added vertices within 10⁻⁷ of others and triangles of no area (311 pairs and
+/// 16 triangles at 1e-3 before this check).
+pub const ESCAPE_SEPARATION: f64 = 0.125;
+
+/// Whether `p` lies farther than [`ESCAPE_SEPARATION`] tolerances from each of `points`.
+fn apart(points: &[SurfacePoint], p: [f64; 3], tolerance: f64) -> bool {
+    let min2 = (ESCAPE_SEPARATION * tolerance).powi(2);
+    points.iter().all(|q| dist2(q.p, p) > min2)
 }
 
 /// Options of [`extract`].
@@ -1766,7 +1782,11 @@ impl SurfaceBuilder<'_> {
                 )?;
                 let (pa, pb) = (points[pair.0 as usize].p, points[pair.1 as usize].p);
                 let decision = match (test.split, test.quarters) {
-                    (Some(pm), Some([q0, q1])) if may_split(level, pa, pb, self.options) => {
+                    (Some(pm), Some([q0, q1]))
+                        if level < self.options.max_depth
+                            || may_split(level, pa, pb, self.options)
+                                && apart(points, pm.p, self.options.tolerance) =>
+                    {
                         let m = self.interior_vertex(um, pm);
                         self.scratch.known.insert((pair.0, m), q0);
                         self.scratch
@@ -2689,6 +2709,13 @@ mod tests {
         assert!(!may_split(0, a, [1.0, 0.0, 0.0], &corners));
         // Not finite: never split (the comparison fails).
         assert!(!may_split(8, a, [f64::NAN, 0.0, 0.0], &options));
+        // A vertex made past max_depth keeps ESCAPE_SEPARATION tolerances from the others.
+        let at = |p: [f64; 3]| finish_point([0.0; MAX_VARS], p, [1.0, 0.0, 0.0], None);
+        let points = [at([0.0; 3]), at([1.0, 0.0, 0.0])];
+        assert!(apart(&points, [0.5, 0.0, 0.0], 1e-3));
+        assert!(apart(&points, [1.0, 0.0, 0.126e-3], 1e-3));
+        assert!(!apart(&points, [1.0, 0.0, 0.124e-3], 1e-3));
+        assert!(!apart(&points, [f64::NAN, 0.0, 0.0], 1e-3));
     }
 
     #[test]
