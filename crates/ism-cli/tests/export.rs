@@ -220,3 +220,33 @@ fn certified_valid_rational_models_export() {
         assert_eq!(summary["boundary_edges"], 0, "{summary}");
     }
 }
+
+/// Edges the refinement leaves over the tolerance at the depth limit are named on the summary line,
+/// with the count `--json` gives; an export without any says nothing of it.
+#[test]
+fn edges_left_at_the_depth_limit_are_reported() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("e.obj");
+    // A fitted rational ellipsoid whose stages run at very uneven parameter speed
+    // (tests/python/test_export_rational.py): at 1e-3 a few edges along a facet stay over.
+    let rational =
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("../../tests/data/rational-ellipsoid.ismb");
+    let o = export(&rational, &out, &["--tolerance", "1e-3", "--json", "-q"]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let summary: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    let n = summary["depth_limited_edges"].as_u64().unwrap();
+    assert!(n > 0, "{summary}");
+    let line = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        line.contains(&format!(
+            ", {n} edge{} over the tolerance left at the depth limit (--max-depth)",
+            if n == 1 { "" } else { "s" }
+        )),
+        "{line}"
+    );
+    let o = export(&example("sphere.ism.json"), &out, &["--json", "-q"]);
+    assert!(o.status.success());
+    let summary: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(summary["depth_limited_edges"], 0);
+    assert!(!String::from_utf8_lossy(&o.stderr).contains("depth limit"));
+}
