@@ -82,13 +82,12 @@ pub const MAX_DEPTH_LIMIT: u32 = 30;
 /// Length of an edge's chord, in tolerances, above which an edge still over the threshold is
 /// halved past `max_depth` (up to [`MAX_DEPTH_LIMIT`] levels): levels count halvings of the
 /// *parameter*, and a rational stage near its weight limits maps a parameter stretch 2⁻⁸ long
-/// onto a large part of a patch. On a fitted rational ellipsoid an interior edge 0.029 long
-/// (29 × the tolerance) stopped at level 8 with its curve 1.46 × the tolerance away, and at 1e-4
-/// 228 edges stopped at the limit (the export 1.87 × the tolerance from the shape; 1.52 × with this
-/// rule and [`ESCAPE_SEPARATION`], 5 edges left). An edge over the threshold with a chord within
-/// twice the tolerance bends
-/// more tightly than the tolerance can describe: there the limit holds (and counts the edge).
-/// Refinement still ends: the levels stop at [`MAX_DEPTH_LIMIT`].
+/// onto a large part of a patch. On a fitted rational ellipsoid at 1e-4, 228 edges stopped at
+/// level 8 while over the threshold, and the export lay 1.87 × the tolerance from the shape; with
+/// this rule and [`ESCAPE_SEPARATION`] 5 edges stop, at 1.52 ×. An edge over the threshold whose
+/// chord is within twice the tolerance bends more tightly than the tolerance can describe: there
+/// the limit holds (and the edge is counted). Refinement still ends: levels stop at
+/// [`MAX_DEPTH_LIMIT`].
 pub const DEPTH_ESCAPE: f64 = 2.0;
 
 /// Whether an edge over the threshold, halved `level` times, whose mapped ends are `a` and `b`,
@@ -2682,11 +2681,9 @@ mod tests {
         assert_eq!(aim_at_half(&[(0.0, 0.6), (1.0, 1.0)]), None);
     }
 
-    /// The gap rule on point sets whose answer is known by construction: an even map (points at
-    /// their parameter's share of a straight chord, or bent off it by much less than the chord)
-    /// has no gap; the fitted ellipsoid's edge (¼ of the parameter covering 61 % of the chord) has
-    /// one before its first quarter point, and a midpoint at 0.805 of the chord leaves one before
-    /// it; a bulge off the chord counts; of two gaps the longer is named.
+    /// Past `max_depth` only edges longer than DEPTH_ESCAPE tolerances split, never at
+    /// MAX_DEPTH_LIMIT or with `max_depth` 0, and their new vertices keep ESCAPE_SEPARATION from
+    /// the patch's others (distances chosen on either side of each threshold).
     #[test]
     fn long_edges_split_past_the_depth() {
         let options = ExtractOptions {
@@ -2718,6 +2715,11 @@ mod tests {
         assert!(!apart(&points, [f64::NAN, 0.0, 0.0], 1e-3));
     }
 
+    /// The gap rule on point sets whose answer is known by construction: an even map (points at
+    /// their parameter's share of a straight chord, or bent off it by much less than the chord)
+    /// has no gap; the fitted ellipsoid's edge (¼ of the parameter covering 61 % of the chord) has
+    /// one before its first quarter point, and a midpoint at 0.805 of the chord leaves one before
+    /// it; a bulge off the chord counts; of two gaps the longer is named.
     #[test]
     fn gaps_are_the_long_fast_stretches() {
         let on_chord = |ts: &[(f64, f64)]| -> Vec<(f64, [f64; 3])> {
