@@ -52,7 +52,10 @@ class ISM_OT_import(bpy.types.Operator, ImportHelper):
     )
     max_depth: IntProperty(  # type: ignore[valid-type]
         name="Max Depth",
-        description="Most subdivision levels per simplex the extraction may use to meet the tolerance",
+        description=(
+            "Subdivision levels after which an edge is subdivided further only while it is longer "
+            "than twice the tolerance (0: the linear patches' corners only)"
+        ),
         default=8,
         min=0,
         max=16,
