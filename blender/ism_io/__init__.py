@@ -53,8 +53,8 @@ class ISM_OT_import(bpy.types.Operator, ImportHelper):
     max_depth: IntProperty(  # type: ignore[valid-type]
         name="Max Depth",
         description=(
-            "Subdivision levels after which an edge is subdivided further only while it is longer "
-            "than twice the tolerance (0: the linear patches' corners only)"
+            "Subdivision levels after which an edge is subdivided further only while it is still "
+            "long in space (ism export --max-depth; 0: the linear patches' corners only)"
         ),
         default=8,
         min=0,

@@ -305,7 +305,7 @@ impl Model {
     /// (Nv, n), cells (Nc, 3) triangles or, in 2D, (Nc, 2) segments, cell_simplex,
     /// vertex_simplex, gradient_norm; and a ``report`` dict), as ``ism export`` extracts it:
     /// patches refined until the chordal error is below ``tolerance`` or an edge is halved
-    /// ``max_depth`` times with its chord within twice the tolerance (30 halvings at most).
+    /// ``max_depth`` times and is short in space (``ism export --max-depth``; 30 halvings at most).
     /// ``linear`` gives the linear isocomplex (marching simplices, stages ignored); ``coarsen``
     /// merges vertices inside patches wherever the coarser mesh still passes the refinement's
     /// tests (``ism export --coarsen``: fewer triangles at the same error, more CPU).

@@ -12,9 +12,10 @@ const AFTER_HELP: &str = "\
 The output format follows the extension: .obj, .gltf, .glb, .vtk (legacy ASCII), .vtu (XML).
 3D models give triangle meshes, 2D models polylines (OBJ `l`, glTF LINES, VTK lines). Each
 patch of the linear isocomplex is refined until the chordal error is below --tolerance (model
-units) or an edge is halved --max-depth times and its chord is within twice the tolerance (30
-halvings at most; edges left over the tolerance are counted on the summary line and in --json),
-then mapped through the stage inverses. The error is
+units) or an edge is halved --max-depth times and its chord is within twice the tolerance or
+twice its patch's size halved --max-depth times (30 halvings at most; edges left over the
+tolerance are counted on the summary line and in --json), then mapped through the stage
+inverses. The error is
 measured at test points (edge midpoints and quarters, triangle centroids, points aimed at the
 middle where those land off it, and points in stretches of an edge that the parameter crosses
 fast), not bounded: a stage that bends the shape between them (seen on --rational fits whose
@@ -51,7 +52,8 @@ pub struct Args {
     #[arg(long, default_value_t = 1e-3, value_parser = crate::args::positive, allow_hyphen_values = true)]
     tolerance: f64,
     /// Halvings of a patch edge after which it is halved further only while its chord is longer
-    /// than twice the tolerance (30 at most; 0: the linear patches' corners only).
+    /// than twice the tolerance and than twice its patch's size halved as often (30 at most; 0:
+    /// the linear patches' corners only).
     #[arg(long, default_value_t = 8)]
     max_depth: u32,
     /// Write the linear isocomplex (marching triangles/tetrahedra), ignoring the stages.

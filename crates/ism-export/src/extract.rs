@@ -40,8 +40,8 @@
 //! too. (Test points are samples, not a bound: a stage that bends the shape between all of them
 //! still goes unseen.)
 //!
-//! **Levels.** `max_depth` bounds the halvings of every edge whose chord is within
-//! [`DEPTH_ESCAPE`] tolerances (longer ones go on to [`MAX_DEPTH_LIMIT`]): a facet edge's by its
+//! **Levels.** `max_depth` bounds the halvings of every edge but those still long in space
+//! ([`DEPTH_ESCAPE`]; they go on to [`MAX_DEPTH_LIMIT`]): a facet edge's by its
 //! dyadic level, an interior edge's by a level that follows its size (one more than the shortest
 //! edge of the triangle it was made in, or than its parent's), with a floor that grows with the
 //! depth so that refinement ends.
@@ -79,25 +79,30 @@ use crate::{Error, Result};
 /// beyond any useful tolerance, and keeps dyadic parameters exact in `u64`).
 pub const MAX_DEPTH_LIMIT: u32 = 30;
 
-/// Length of an edge's chord, in tolerances, above which an edge still over the threshold is
-/// halved past `max_depth` (up to [`MAX_DEPTH_LIMIT`] levels): levels count halvings of the
-/// *parameter*, and a rational stage near its weight limits maps a parameter stretch 2⁻⁸ long
-/// onto a large part of a patch. On a fitted rational ellipsoid at 1e-4, 228 edges stopped at
-/// level 8 while over the threshold, and the export lay 1.87 × the tolerance from the shape; with
-/// this rule and [`ESCAPE_SEPARATION`] 5 edges stop, at 1.52 ×. An edge over the threshold whose
-/// chord is within twice the tolerance bends more tightly than the tolerance can describe: there
-/// the limit holds (and the edge is counted). Refinement still ends: levels stop at
-/// [`MAX_DEPTH_LIMIT`].
+/// How much longer than the tolerance, and than its patch's size halved `max_depth` times, an
+/// edge's chord must be for an edge still over the threshold to be halved past `max_depth` (up to
+/// [`MAX_DEPTH_LIMIT`] levels). Levels count halvings of the *parameter*, and a rational stage
+/// near its weight limits maps a parameter stretch 2⁻⁸ long onto a large part of a patch: on a
+/// fitted rational ellipsoid at 1e-4, 228 edges stopped at level 8 while over the threshold, and
+/// the export lay 1.87 × the tolerance from the shape; with this rule and [`ESCAPE_SEPARATION`]
+/// 5 edges stop, at 1.52 ×. An edge over the threshold within twice the tolerance bends more
+/// tightly than the tolerance can describe; one within twice what `max_depth` halvings of its
+/// patch give at an even speed is as fine as `max_depth` asks. The second bound keeps the work
+/// bounded by `max_depth` when the tolerance is far below what it resolves: without it the
+/// sphere example at 1e-7 ran over 300 CPU-s instead of 25 (the map's speed is nearly even there:
+/// with it 25 CPU-s and 20.6 M triangles, within 0.2 % of the old count).
 pub const DEPTH_ESCAPE: f64 = 2.0;
 
-/// Whether an edge over the threshold, halved `level` times, whose mapped ends are `a` and `b`,
-/// may be split: below `max_depth`, or past it while its chord is longer than [`DEPTH_ESCAPE`]
-/// tolerances (never with `max_depth` 0: the linear patches' corners only).
-fn may_split(level: u32, a: [f64; 3], b: [f64; 3], options: &ExtractOptions) -> bool {
+/// Whether an edge over the threshold at `level`, whose mapped ends are `a` and `b`, in a patch
+/// (or patch edge) whose corners lie up to `size` apart, may be split: below `max_depth`, or past
+/// it while its chord is longer than [`DEPTH_ESCAPE`] times both the tolerance and
+/// `size · 2^−max_depth` (never with `max_depth` 0: the linear patches' corners only).
+fn may_split(level: u32, a: [f64; 3], b: [f64; 3], size: f64, options: &ExtractOptions) -> bool {
+    let resolved = size * 0.5f64.powi(options.max_depth as i32);
     level < options.max_depth
         || options.max_depth > 0
             && level < MAX_DEPTH_LIMIT
-            && dist2(a, b) > (DEPTH_ESCAPE * options.tolerance).powi(2)
+            && dist2(a, b) > (DEPTH_ESCAPE * options.tolerance.max(resolved)).powi(2)
 }
 
 /// Distance, in tolerances, that a vertex made past `max_depth` ([`DEPTH_ESCAPE`]) must keep from
@@ -123,8 +128,8 @@ pub struct ExtractOptions {
     /// meets this (module doc).
     pub tolerance: f64,
     /// Halvings of a patch edge past which it is halved further only while its chord is longer
-    /// than [`DEPTH_ESCAPE`] tolerances, up to [`MAX_DEPTH_LIMIT`] (0 = the linear patches'
-    /// corners only, mapped).
+    /// than [`DEPTH_ESCAPE`] times the tolerance and its patch's size halved this many times, up
+    /// to [`MAX_DEPTH_LIMIT`] (0 = the linear patches' corners only, mapped).
     pub max_depth: u32,
 }
 
@@ -147,8 +152,8 @@ pub struct ExtractReport {
     /// Largest inversion residual `|X(w) − u|∞` of the points placed exactly (the vertices; test
     /// points are only placed to a hundredth of the distance they are compared with).
     pub max_residual: f64,
-    /// Patch edges (or interior edges) over tolerance that were not split: past `max_depth` with
-    /// a chord within [`DEPTH_ESCAPE`] tolerances, or at [`MAX_DEPTH_LIMIT`].
+    /// Patch edges (or interior edges) over tolerance that were not split: past `max_depth` and
+    /// too short to go on ([`DEPTH_ESCAPE`]), or at [`MAX_DEPTH_LIMIT`].
     pub depth_limited_edges: u64,
 }
 
@@ -1456,6 +1461,7 @@ fn extract_curve(
                 b: (Bary, SurfacePoint),
                 known: Option<Probed>,
                 depth: u32,
+                size: f64,
                 options: &ExtractOptions,
                 piece: &mut CurvePiece,
                 c: &mut Counters,
@@ -1475,12 +1481,34 @@ fn extract_curve(
                     c,
                 )?;
                 match (split.split, split.quarters) {
-                    (Some(pm), Some([q0, q1])) if may_split(depth, a.1.p, b.1.p, options) => {
-                        go(eval, s, a, (um, pm), Some(q0), depth + 1, options, piece, c)?;
+                    (Some(pm), Some([q0, q1])) if may_split(depth, a.1.p, b.1.p, size, options) => {
+                        go(
+                            eval,
+                            s,
+                            a,
+                            (um, pm),
+                            Some(q0),
+                            depth + 1,
+                            size,
+                            options,
+                            piece,
+                            c,
+                        )?;
                         let k = piece.keys.len() as u32;
                         piece.keys.push(VertexKey::Interior(s as u32, k));
                         piece.points.push(pm);
-                        go(eval, s, (um, pm), b, Some(q1), depth + 1, options, piece, c)
+                        go(
+                            eval,
+                            s,
+                            (um, pm),
+                            b,
+                            Some(q1),
+                            depth + 1,
+                            size,
+                            options,
+                            piece,
+                            c,
+                        )
                     }
                     // At the depth limit the edge is still tested, to count what the limit left.
                     (Some(_), _) => {
@@ -1497,6 +1525,7 @@ fn extract_curve(
                 (c1.u, p1),
                 None,
                 0,
+                dist2(p0.p, p1.p).sqrt(),
                 options,
                 &mut piece,
                 &mut c,
@@ -1572,6 +1601,8 @@ struct SurfaceBuilder<'a> {
     options: &'a ExtractOptions,
     facets: &'a [FacetEdge],
     s: usize,
+    /// The largest distance between the patch's mapped corners ([`may_split`]).
+    size: f64,
     scratch: Scratch,
     counters: Counters,
 }
@@ -1783,7 +1814,7 @@ impl SurfaceBuilder<'_> {
                 let decision = match (test.split, test.quarters) {
                     (Some(pm), Some([q0, q1]))
                         if level < self.options.max_depth
-                            || may_split(level, pa, pb, self.options)
+                            || may_split(level, pa, pb, self.size, self.options)
                                 && apart(points, pm.p, self.options.tolerance) =>
                     {
                         let m = self.interior_vertex(um, pm);
@@ -2424,6 +2455,7 @@ fn extract_surface(
                 (db, pb): (Dyadic, &SurfacePoint),
                 known: Option<Probed>,
                 depth: u32,
+                size: f64,
                 options: &ExtractOptions,
                 params: &mut Vec<(Dyadic, SurfacePoint)>,
                 c: &mut Counters,
@@ -2448,7 +2480,7 @@ fn extract_surface(
                 let (Some(pm), Some([q0, q1])) = (split.split, split.quarters) else {
                     return Ok(());
                 };
-                if !may_split(depth, pa.p, pb.p, options) {
+                if !may_split(depth, pa.p, pb.p, size, options) {
                     c.depth_limited += 1;
                     return Ok(());
                 }
@@ -2460,6 +2492,7 @@ fn extract_surface(
                     (dm, &pm),
                     Some(q0),
                     depth + 1,
+                    size,
                     options,
                     params,
                     c,
@@ -2473,6 +2506,7 @@ fn extract_surface(
                     (db, pb),
                     Some(q1),
                     depth + 1,
+                    size,
                     options,
                     params,
                     c,
@@ -2486,6 +2520,7 @@ fn extract_surface(
                 (Dyadic::ONE, &pb),
                 None,
                 0,
+                dist2(pa.p, pb.p).sqrt(),
                 options,
                 &mut params,
                 &mut c,
@@ -2536,6 +2571,7 @@ fn extract_surface(
                     options,
                     facets: &facets,
                     s,
+                    size: 0.0,
                     scratch,
                     counters: Counters::default(),
                 };
@@ -2545,6 +2581,11 @@ fn extract_surface(
                 for ((slot, c), p) in corner_ids.iter_mut().zip(&patch.corners).zip(points) {
                     let (a, bb) = corner_edge(ids, c.edge);
                     *slot = b.vertex(VertexKey::Edge(a, bb), c.u, *p);
+                }
+                for (i, p) in points.iter().enumerate() {
+                    for q in &points[i + 1..] {
+                        b.size = b.size.max(dist2(p.p, q.p).sqrt());
+                    }
                 }
                 let mut edges = [EdgeRef::Interior { level: 0 }; 4];
                 for (j, edge) in edges.iter_mut().enumerate().take(k) {
@@ -2681,9 +2722,10 @@ mod tests {
         assert_eq!(aim_at_half(&[(0.0, 0.6), (1.0, 1.0)]), None);
     }
 
-    /// Past `max_depth` only edges longer than DEPTH_ESCAPE tolerances split, never at
-    /// MAX_DEPTH_LIMIT or with `max_depth` 0, and their new vertices keep ESCAPE_SEPARATION from
-    /// the patch's others (distances chosen on either side of each threshold).
+    /// Past `max_depth` only edges longer than DEPTH_ESCAPE times the tolerance and the patch's
+    /// size halved `max_depth` times split, never at MAX_DEPTH_LIMIT or with `max_depth` 0, and
+    /// their new vertices keep ESCAPE_SEPARATION from the patch's others (distances chosen on
+    /// either side of each threshold).
     #[test]
     fn long_edges_split_past_the_depth() {
         let options = ExtractOptions {
@@ -2691,21 +2733,28 @@ mod tests {
             max_depth: 8,
         };
         let (a, near, far) = ([0.0; 3], [1.9e-3, 0.0, 0.0], [0.0, 0.0, 2.1e-3]);
+        // A patch small enough that 2^-8 of it is below the tolerance: the tolerance decides.
+        let size = 0.1;
         // Below max_depth any edge over the threshold splits, however short.
-        assert!(may_split(7, a, near, &options));
+        assert!(may_split(7, a, near, size, &options));
         // Past it only one whose chord exceeds DEPTH_ESCAPE tolerances, up to MAX_DEPTH_LIMIT.
-        assert!(!may_split(8, a, near, &options));
-        assert!(may_split(8, a, far, &options));
-        assert!(may_split(MAX_DEPTH_LIMIT - 1, a, far, &options));
-        assert!(!may_split(MAX_DEPTH_LIMIT, a, far, &options));
+        assert!(!may_split(8, a, near, size, &options));
+        assert!(may_split(8, a, far, size, &options));
+        assert!(may_split(MAX_DEPTH_LIMIT - 1, a, far, size, &options));
+        assert!(!may_split(MAX_DEPTH_LIMIT, a, far, size, &options));
+        // A patch 1.28 across: 2^-8 of it is 5e-3, so past max_depth only chords over 1e-2 split
+        // (a tolerance far below what max_depth resolves does not refine further).
+        assert!(!may_split(8, a, [9.9e-3, 0.0, 0.0], 1.28, &options));
+        assert!(may_split(8, a, [1.01e-2, 0.0, 0.0], 1.28, &options));
+        assert!(may_split(7, a, near, 1.28, &options));
         // max_depth 0 means the corners only, long or not.
         let corners = ExtractOptions {
             max_depth: 0,
             ..options
         };
-        assert!(!may_split(0, a, [1.0, 0.0, 0.0], &corners));
+        assert!(!may_split(0, a, [1.0, 0.0, 0.0], size, &corners));
         // Not finite: never split (the comparison fails).
-        assert!(!may_split(8, a, [f64::NAN, 0.0, 0.0], &options));
+        assert!(!may_split(8, a, [f64::NAN, 0.0, 0.0], size, &options));
         // A vertex made past max_depth keeps ESCAPE_SEPARATION tolerances from the others.
         let at = |p: [f64; 3]| finish_point([0.0; MAX_VARS], p, [1.0, 0.0, 0.0], None);
         let points = [at([0.0; 3]), at([1.0, 0.0, 0.0])];
