@@ -13,9 +13,9 @@ The output format follows the extension: .obj, .gltf, .glb, .vtk (legacy ASCII),
 3D models give triangle meshes, 2D models polylines (OBJ `l`, glTF LINES, VTK lines). Each
 patch of the linear isocomplex is refined until the chordal error is below --tolerance (model
 units) or an edge is halved --max-depth times and its chord is within twice the tolerance or
-twice its patch's size halved --max-depth times (30 halvings at most; edges left over the
-tolerance are counted on the summary line and in --json), then mapped through the stage
-inverses. The error is
+twice its patch's size halved --max-depth times (30 halvings at most; edges left failing the
+test are counted on the summary line and in --json), then mapped through the stage inverses.
+The error is
 measured at test points (edge midpoints and quarters, triangle centroids, points aimed at the
 middle where those land off it, and points in stretches of an edge that the parameter crosses
 fast), not bounded: a stage that bends the shape between them (seen on --rational fits whose
@@ -172,11 +172,12 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             } else {
                 "segments"
             };
-            // Edges the refinement had to leave over the tolerance (`--max-depth`): the export may
-            // be farther from the shape than asked there, so say so.
+            // Edges the refinement had to leave while their chordal test (¾ of the tolerance)
+            // failed (`--max-depth`): the export may be farther from the shape than asked there,
+            // so say so.
             let limited = match summary["depth_limited_edges"].as_u64() {
                 Some(n) if n > 0 => format!(
-                    ", {n} edge{} over the tolerance left at the depth limit (--max-depth)",
+                    ", {n} edge{} at the depth limit (--max-depth) still failing the chordal test",
                     if n == 1 { "" } else { "s" }
                 ),
                 _ => String::new(),

@@ -221,8 +221,8 @@ fn certified_valid_rational_models_export() {
     }
 }
 
-/// Edges the refinement leaves over the tolerance at the depth limit are named on the summary line,
-/// with the count `--json` gives; an export without any says nothing of it.
+/// Edges the refinement leaves at the depth limit while their chordal test fails are named on the
+/// summary line, with the count `--json` gives; an export without any says nothing of it.
 #[test]
 fn edges_left_at_the_depth_limit_are_reported() {
     let dir = tempfile::tempdir().unwrap();
@@ -239,7 +239,7 @@ fn edges_left_at_the_depth_limit_are_reported() {
     let line = String::from_utf8_lossy(&o.stderr);
     assert!(
         line.contains(&format!(
-            ", {n} edge{} over the tolerance left at the depth limit (--max-depth)",
+            ", {n} edge{} at the depth limit (--max-depth) still failing the chordal test",
             if n == 1 { "" } else { "s" }
         )),
         "{line}"

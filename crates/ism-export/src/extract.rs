@@ -152,8 +152,8 @@ pub struct ExtractReport {
     /// Largest inversion residual `|X(w) − u|∞` of the points placed exactly (the vertices; test
     /// points are only placed to a hundredth of the distance they are compared with).
     pub max_residual: f64,
-    /// Patch edges (or interior edges) over tolerance that were not split: past `max_depth` and
-    /// too short to go on ([`DEPTH_ESCAPE`]), or at [`MAX_DEPTH_LIMIT`].
+    /// Patch edges (or interior edges) whose chordal test failed but that were not split: past
+    /// `max_depth` and too short to go on ([`DEPTH_ESCAPE`]), or at [`MAX_DEPTH_LIMIT`].
     pub depth_limited_edges: u64,
 }
 
