@@ -17,8 +17,9 @@ twice its patch's size halved --max-depth times (30 halvings at most; edges left
 test are counted on the summary line and in --json), then mapped through the stage inverses.
 The error is
 measured at test points (edge midpoints and quarters, triangle centroids, points aimed at the
-middle where those land off it, and points in stretches of an edge that the parameter crosses
-fast), not bounded: a stage that bends the shape between them (seen on --rational fits whose
+middle where those land off it, points in stretches of an edge that the parameter crosses
+fast, and points near the ends of patch edges on facets where the ends' tangents predict a
+bend), not bounded: a stage that bends the shape between them (seen on --rational fits whose
 weights reach the fitter's limits) can leave the mesh farther away. --volume
 (.vtk/.vtu) writes the complex itself with F as a Bézier field instead of the surface: degree
 and red refinement are raised until max |F_vtk − F| is below --field-tolerance (default: the
