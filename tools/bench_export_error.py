@@ -13,7 +13,10 @@ the exporter:
   query`, a direct evaluation of F: no inversion, no refinement) until |F − c| / |∇F| < 1e-12 of
   the model's size; the displacement is the distance to a point of O, hence an upper bound of the
   distance to O. Probes whose iteration leaves the
-  complex or does not converge are counted and reported (never silently dropped).
+  complex or does not converge are counted and reported (never silently dropped). The largest
+  distances are then tightened (`tighten`): a sign change of F − c on a grid around the probe,
+  bisected to a point of O, can be nearer than where Newton went; the table gives the tightened
+  maximum and, in brackets, Newton's alone.
 * **O → mesh**: `ism sample --surface N --seed 1` draws N points uniform by curved area, each on O to
   1e-12 (the sampler's contract, tested by its own suite); the distance from each to the mesh is the
   minimum over the cells nearest it (k-d tree of cell centroids, `--candidates` nearest), computed
@@ -145,6 +148,68 @@ class Model:
         return d, failed
 
 
+def tighten(model: Model, pts: np.ndarray, d: np.ndarray, top: int = 64, side: int = 17, rounds: int = 8) -> int:
+    """Lowers the largest of the damped-Newton distances `d` (in place) where a nearer point of O
+    exists: the damped iteration still follows ∇F to a far part of O where |∇F| varies fast (a probe
+    of a fitted rational ellipsoid's 1e-4 export read 1.5e-4 where a sign change of F lay 4.6e-5
+    away). For the `top` largest not yet tightened, F is evaluated on a grid of `side`ⁿ points filling
+    the box of half-width d around the probe; each grid segment whose ends have opposite signs of
+    F − c (both finite, so both in |K|) is bisected 40 times (a NaN midpoint, outside |K|, drops it),
+    and the farther end of its final bracket from the probe bounds the distance to O from above: F
+    is continuous on |K|, so a zero lies in every bracket that stayed in |K|. Repeated until the
+    largest distance is one already tightened (at most `rounds` times). Returns how many probes were
+    lowered. Still an upper bound of the true distance, only a tighter one."""
+    done = np.zeros(len(d), dtype=bool)
+    lowered = 0
+    n = model.dim
+    g = np.linspace(-1.0, 1.0, side)
+    grid = np.stack(np.meshgrid(*[g] * n, indexing="ij"), axis=-1).reshape(-1, n)
+    grid = np.hstack([grid, np.zeros((len(grid), 3 - n))])  # 2D: the plane z = 0
+    # Grid segments along each axis, as index pairs into `grid`.
+    idx = np.arange(side**n).reshape((side,) * n)
+    pairs = np.concatenate(
+        [
+            np.stack([np.take(idx, range(side - 1), axis=a).ravel(), np.take(idx, range(1, side), axis=a).ravel()], axis=1)
+            for a in range(n)
+        ]
+    )
+    for _ in range(rounds):
+        dd = np.where(np.isfinite(d), d, -np.inf)
+        order = np.argsort(-dd)
+        if done[order[0]] or not np.isfinite(d[order[0]]):
+            break
+        who = order[:top][~done[order[:top]]]
+        done[who] = True
+        q = pts[who, None, :] + d[who, None, None] * grid[None, :, :]
+        f, _ = model.query(q.reshape(-1, 3))
+        f = f.reshape(len(who), -1)
+        fa, fb = f[:, pairs[:, 0]], f[:, pairs[:, 1]]
+        cross = np.isfinite(fa) & np.isfinite(fb) & (np.sign(fa) != np.sign(fb))
+        pi, si = np.nonzero(cross)
+        if len(pi) == 0:
+            continue
+        a = q[pi, pairs[si, 0]]
+        b = q[pi, pairs[si, 1]]
+        fa = fa[pi, si]
+        alive = np.ones(len(pi), dtype=bool)
+        for _ in range(40):
+            mid = 0.5 * (a + b)
+            fm, _ = model.query(mid)
+            alive &= np.isfinite(fm)
+            left = np.sign(fm) == np.sign(fa)
+            a = np.where(left[:, None], mid, a)
+            fa = np.where(left, fm, fa)
+            b = np.where(left[:, None], b, mid)
+        bound = np.maximum(np.linalg.norm(a - pts[who[pi]], axis=1), np.linalg.norm(b - pts[who[pi]], axis=1))
+        bound[~alive] = np.inf
+        best = np.full(len(who), np.inf)
+        np.minimum.at(best, pi, bound)
+        better = best < d[who]
+        d[who[better]] = best[better]
+        lowered += int(better.sum())
+    return lowered
+
+
 def point_triangle(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
     """Exact distance from p[i] to triangle (a[i], b[i], c[i]) (Ericson, vectorised)."""
     ab, ac, ap = b - a, c - a, p - a
@@ -259,7 +324,7 @@ def main() -> None:
     cases = args.case or [f"{p.name[: -len('.ism.json')]}:{p}" for p in sorted((ROOT / "spec" / "examples").glob("*.ism.json"))]
     tolerances = args.tolerance or [1e-3]
     print(f"binaries: {bins}; load average {os.getloadavg()}", flush=True)
-    print("| model | tolerance | binary | cells | CPU s | mesh→O max | O→mesh max | two-sided / T | not converged | mesh→shape max |")
+    print("| model | tolerance | binary | cells | CPU s | mesh→O max (damped Newton alone; probes tightened lower) | O→mesh max | two-sided / T | not converged | mesh→shape max |")
     print("|---|---|---|---|---|---|---|---|---|---|")
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
@@ -290,12 +355,14 @@ def main() -> None:
                     v, c = read_obj(out)
                     pr = probes(v, c)
                     d, failed = ref.distance(pr)
+                    newton = float(np.nanmax(d))
+                    lowered = tighten(ref, pr, d)
                     m2o = float(np.nanmax(d))
                     o2m = float(surface_to_mesh(s, v, c, args.candidates).max())
                     two = max(m2o, o2m)
                     extra = f"{analytic_distance(shape, pr).max():.3e}" if shape else "–"
                     print(
-                        f"| {name} | {tol:g} | {label} | {len(c):,} | {best:.3f} | {m2o:.3e} | {o2m:.3e} | {two / tol:.2f} | {failed} of {len(pr):,} | {extra} |",
+                        f"| {name} | {tol:g} | {label} | {len(c):,} | {best:.3f} | {m2o:.3e} ({newton:.3e}; {lowered} lowered) | {o2m:.3e} | {two / tol:.2f} | {failed} of {len(pr):,} | {extra} |",
                         flush=True,
                     )
 
