@@ -12,8 +12,9 @@ the gap probes and size-based interior levels (session 30) its export at 1e-3 la
 tolerance from its own shape, after them 1.30 x, and since facet edges are also checked near
 their ends (a bend inside their first eighth, session 31) 0.99 x. At 1e-4, 228 edges stopped at
 the depth limit (`--max-depth`, 8 halvings of the parameter) while still long in space: 1.87 x;
-since long edges go on halving past it (session 31), 1.52 x; what is left there was not traced
-(BENCHMARKS.md, issue 19, sessions 30 and 31).
+since long edges go on halving past it (session 31), 1.52 x by this test's damped Newton, 0.86 x
+once the benchmark tightens its largest distances by sign changes of F nearby (BENCHMARKS.md,
+issue 19, sessions 30 and 31).
 
 Ground truth comes from elsewhere than the exporter: the two-sided distance between the OBJ and
 O = {F = 0}, with F and its gradient from `ism query` (a direct evaluation of F), by the functions
