@@ -802,23 +802,27 @@ fn has_gap(a: [f64; 3], b: [f64; 3], known: &[(f64, [f64; 3])]) -> bool {
     gap(t0, p0, 1.0, b)
 }
 
-/// Whether the gaps ([`GAP`]) that the known test points `known` (sorted by `t`, the ends
-/// excluded) leave on the edge from `a` (at `ua`) to `b` (at `ub`) are within `tol`: none
-/// ([`has_gap`], inline), or every point [`gap_error`] places in them within it.
+/// Whether the edge from `a` (at `ua`) to `b` (at `ub`), whose known test points `known` (sorted
+/// by `t`, the ends excluded) passed, is within `tol` where those points do not look: in the gaps
+/// they leave ([`GAP`]: none, [`has_gap`] inline, or every point [`gap_error`] places in them
+/// within it) and, with `ends` (facet edges, 2D segments), near its ends ([`ends_within`]).
 #[allow(clippy::too_many_arguments)]
 #[inline(always)]
-fn gaps_within(
+fn stretches_within(
     eval: &ModelEval,
     s: usize,
     (ua, a): (&Bary, &SurfacePoint),
     (ub, b): (&Bary, &SurfacePoint),
     guides: (&EdgeCurve, &Bary, &Bary, Option<&Mat>),
     known: &[(f64, [f64; 3])],
+    ends: bool,
     tol: f64,
     counters: &mut Counters,
 ) -> Result<bool> {
-    Ok(!has_gap(a.p, b.p, known)
+    let (curve, _, wm, mean) = guides;
+    Ok((!has_gap(a.p, b.p, known)
         || gap_error(eval, s, (ua, a), (ub, b), guides, known, tol, counters)? <= tol)
+        && (!ends || ends_within(eval, s, (ua, a), (ub, b), (curve, wm, mean), tol, counters)?))
 }
 
 /// The largest distance from the chord of the points placed into the gaps ([`GAP`]) between the
@@ -1200,26 +1204,17 @@ fn test_edge(
         // and the midpoint do not show ([`QUARTER_PREDICTED_FRACTION`]); a gap the midpoint
         // leaves ([`GAP`]) is still probed, and if that fails the quarter points are placed
         // below (the split needs them).
-        if gaps_within(
+        if stretches_within(
             eval,
             s,
             (ua, a),
             (ub, b),
             (&curve, &half, &wm, mean.as_ref()),
             &[(0.5, pm)],
+            ends,
             tol,
             counters,
-        )? && (!ends
-            || ends_within(
-                eval,
-                s,
-                (ua, a),
-                (ub, b),
-                (&curve, &wm, mean.as_ref()),
-                tol,
-                counters,
-            )?)
-        {
+        )? {
             return Ok(EdgeTest {
                 split: None,
                 quarters: None,
@@ -1234,26 +1229,17 @@ fn test_edge(
         quarters[k] = probe(eval, s, &u, &guess, mean.as_ref(), tol, counters)?;
         split = split || chord_error(pa, pb, quarters[k].1) > tol;
         if !split && k == 1 {
-            if gaps_within(
+            if stretches_within(
                 eval,
                 s,
                 (ua, a),
                 (ub, b),
                 (&curve, &half, &wm, mean.as_ref()),
                 &[(0.25, quarters[0].1), (0.5, pm), (0.75, quarters[1].1)],
+                ends,
                 tol,
                 counters,
-            )? && (!ends
-                || ends_within(
-                    eval,
-                    s,
-                    (ua, a),
-                    (ub, b),
-                    (&curve, &wm, mean.as_ref()),
-                    tol,
-                    counters,
-                )?)
-            {
+            )? {
                 return Ok(EdgeTest {
                     split: None,
                     quarters: None,
@@ -2109,13 +2095,15 @@ impl SurfaceBuilder<'_> {
             }
             quarters[k] = q;
         }
-        gaps_within(
+        // A new edge of a collapse lies inside the patch: no end check (as in refinement).
+        stretches_within(
             self.eval,
             self.s,
             (&ua, pa),
             (&ub, pb),
             (&curve, &half, &wm, mean.as_ref()),
             &[(0.25, quarters[0]), (0.5, pm), (0.75, quarters[1])],
+            false,
             tol,
             &mut self.counters,
         )
