@@ -31,6 +31,44 @@ pub const LOGIT_BOUND: f64 = 6.0;
 /// Largest number of barycentric coordinates (`n ≤ 3`).
 const M: usize = 4;
 
+/// The lattice the fitter's control points lie on: every coordinate a multiple of
+/// `1 / POINT_LATTICE` = 2⁻²⁴, the coordinates of a point summing to 1 exactly. The structured
+/// encoding (spec `ism-format.md` §7.4.3) then stores a point in 3 bytes per free coordinate
+/// instead of 8 per coordinate (issue 17: files smaller than a mesh). Rounding moves a coordinate
+/// by at most 2⁻²⁵ ≈ 3·10⁻⁸ of its face — far below any tolerance the fitter is asked for — and
+/// the optimizer, the measurement and the written model all use the rounded point, so what is
+/// measured is what is written. `LOGIT_BOUND` keeps every softmax coordinate above
+/// `1.5·10⁻⁶ ≈ 25 · 2⁻²⁴`, so a rounded coordinate is never 0.
+pub const POINT_LATTICE: f64 = 16_777_216.0;
+
+/// Rounds the point `sigma` (positive coordinates summing to 1 within rounding) onto the
+/// [`POINT_LATTICE`]: coordinates 1… to the nearest multiple (at least one step), coordinate 0
+/// takes the rest, so the sum is 1 exactly (the spec's lattice form keeps `c₀ = 1 − Σ c_j`).
+fn onto_lattice(sigma: &mut [f64]) {
+    let Some((first, rest)) = sigma.split_first_mut() else {
+        return;
+    };
+    let steps = POINT_LATTICE as i64;
+    let mut taken = 0i64;
+    for x in rest.iter_mut() {
+        let n = (*x * POINT_LATTICE).round().clamp(1.0, POINT_LATTICE - 1.0) as i64;
+        taken += n;
+        *x = n as f64 / POINT_LATTICE;
+    }
+    // Never reached with bounded logits (coordinate 0 is ≥ 25 steps); kept so a point is
+    // always inside its face: the excess comes off the largest other coordinate.
+    while taken > steps - 1 {
+        let largest = rest
+            .iter_mut()
+            .max_by(|a, b| a.total_cmp(b))
+            .expect("taken > 0 needs a coordinate");
+        let excess = (taken - (steps - 1)).min((*largest * POINT_LATTICE) as i64 - 1);
+        *largest -= excess as f64 / POINT_LATTICE;
+        taken -= excess;
+    }
+    *first = (steps - taken) as f64 / POINT_LATTICE;
+}
+
 /// Softmax of `logits` (clamped to `±LOGIT_BOUND`).
 pub fn softmax(logits: &[f64]) -> Vec<f64> {
     let e: Vec<f64> = logits
@@ -39,6 +77,14 @@ pub fn softmax(logits: &[f64]) -> Vec<f64> {
         .collect();
     let s: f64 = e.iter().sum();
     e.iter().map(|x| x / s).collect()
+}
+
+/// [`softmax`] rounded onto the [`POINT_LATTICE`] (the point a map with
+/// [`StratifiedMap::set_lattice`] stores).
+pub fn softmax_on_lattice(logits: &[f64]) -> Vec<f64> {
+    let mut sigma = softmax(logits);
+    onto_lattice(&mut sigma);
+    sigma
 }
 
 /// The derivative of a face term's displacement `δ_i = (σ_i − 1/k)·k!` (`σ` the softmax of the
@@ -150,6 +196,9 @@ struct Stored {
 pub struct StratifiedMap {
     dim: usize,
     logits: HashMap<FaceKey, Stored, BuildHasherDefault<FaceHasher>>,
+    /// Whether the stored points are rounded onto the [`POINT_LATTICE`]
+    /// ([`StratifiedMap::set_lattice`]).
+    lattice: bool,
 }
 
 #[derive(Clone, Copy, Debug)]
@@ -170,16 +219,27 @@ const NO_TERM: Term = Term {
 /// `(σ − 1/len)·len!` for `σ` the softmax of the `len` logits (clamped), as [`softmax`] computes it:
 /// a face term's displacement, what [`LocalStrata::set_displacement`] takes.
 pub fn displacement(logits: &[f64]) -> [f64; M] {
+    displacement_of(logits, false)
+}
+
+/// [`displacement`] of the point rounded onto the [`POINT_LATTICE`] (`lattice` true) or of the
+/// smooth softmax, whose derivative [`displacement_derivative`] is (a difference quotient of the
+/// rounded one would see its 2⁻²⁴ steps, so the optimizer's trials use the smooth one).
+pub fn displacement_of(logits: &[f64], lattice: bool) -> [f64; M] {
     let len = logits.len();
     let mut e = [0.0; M];
     for (x, l) in e.iter_mut().zip(logits) {
         *x = l.clamp(-LOGIT_BOUND, LOGIT_BOUND).exp();
     }
     let s: f64 = e[..len].iter().sum();
+    let mut sigma = e.map(|x| x / s);
+    if lattice {
+        onto_lattice(&mut sigma[..len]);
+    }
     let factorial: f64 = (1..=len).map(|x| x as f64).product();
     let mut delta = [0.0; M];
-    for (d, x) in delta.iter_mut().zip(&e[..len]) {
-        *d = (x / s - 1.0 / len as f64) * factorial;
+    for (d, x) in delta.iter_mut().zip(&sigma[..len]) {
+        *d = (x - 1.0 / len as f64) * factorial;
     }
     delta
 }
@@ -410,6 +470,8 @@ pub struct CellTerms {
     count: u8,
     /// Bit `i` set: face `i` has a stored point (else its term is the centre's zero).
     stored: u16,
+    /// The map's [`StratifiedMap::set_lattice`], which points set later follow too.
+    lattice: bool,
 }
 
 impl CellTerms {
@@ -427,7 +489,7 @@ impl CellTerms {
             *s = x.clamp(-LOGIT_BOUND, LOGIT_BOUND);
         }
         let t = &mut self.terms[i];
-        t.set(&l[..usize::from(t.len)]);
+        t.delta = displacement_of(&l[..usize::from(t.len)], self.lattice);
         self.logits[i] = l;
         self.stored |= 1 << i;
     }
@@ -476,7 +538,27 @@ impl StratifiedMap {
         StratifiedMap {
             dim,
             logits: HashMap::default(),
+            lattice: false,
         }
+    }
+
+    /// Rounds every point the map stores — now and when set later — onto the
+    /// [`POINT_LATTICE`] (`on`), or keeps the softmax as it is. The local maps, [`Self::point`]
+    /// and [`Self::to_stages`] all read the rounded point, so what a fit measures is what it
+    /// writes; the optimizer's trials ([`displacement`]) stay smooth. Off by default: rounding
+    /// moves a point by up to 2⁻²⁵ of its face, which the exact edge crossings of `ism smooth`'s
+    /// handles and of rational fits would lose.
+    pub fn set_lattice(&mut self, on: bool) {
+        self.lattice = on;
+        for (key, stored) in self.logits.iter_mut() {
+            let len = key.ids().len();
+            stored.delta = displacement_of(&stored.logits[..len], on);
+        }
+    }
+
+    /// Whether the map rounds its points onto the lattice ([`Self::set_lattice`]).
+    pub fn on_lattice(&self) -> bool {
+        self.lattice
     }
 
     /// Space dimension.
@@ -501,7 +583,7 @@ impl StratifiedMap {
         for (s, x) in l.iter_mut().zip(logits) {
             *s = x.clamp(-LOGIT_BOUND, LOGIT_BOUND);
         }
-        let delta = displacement(&l[..face.len()]);
+        let delta = displacement_of(&l[..face.len()], self.lattice);
         self.logits.insert(key, Stored { logits: l, delta });
     }
 
@@ -517,7 +599,16 @@ impl StratifiedMap {
 
     /// The control point of `face` (coordinates w.r.t. the sorted ids).
     pub fn point(&self, face: &[u32]) -> Vec<f64> {
-        softmax(&self.logits(face))
+        self.softmax(&self.logits(face))
+    }
+
+    /// The stored point of `logits`: on the lattice when the map is.
+    fn softmax(&self, logits: &[f64]) -> Vec<f64> {
+        if self.lattice {
+            softmax_on_lattice(logits)
+        } else {
+            softmax(logits)
+        }
     }
 
     /// The faces with a stored point and their logits, in no particular order.
@@ -604,6 +695,7 @@ impl StratifiedMap {
             logits: [[0.0; M]; MAX_TERMS],
             count: 0,
             stored: 0,
+            lattice: self.lattice,
         };
         for (i, local) in simplex_faces(cell, 2).enumerate() {
             let len = local.len();
@@ -640,7 +732,7 @@ impl StratifiedMap {
                     .filter(|(f, l)| f.len() == j + 1 && l.iter().any(|&x| x != 0.0) && exists(f))
                     .map(|(f, l)| FaceRecord {
                         face: f.to_vec(),
-                        points: softmax(l),
+                        points: self.softmax(l),
                         weights: Vec::new(),
                     })
                     .collect();
@@ -658,6 +750,91 @@ impl StratifiedMap {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn softmax_points_lie_on_the_lattice_and_sum_to_one_exactly() {
+        // Ground truth: exact integer arithmetic on the lattice numerators, and the unrounded
+        // softmax within half a step per coordinate.
+        let mut state = 0x2545_f491_4f6c_dd1du64;
+        let mut next = || {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            (state >> 11) as f64 / (1u64 << 53) as f64
+        };
+        for len in 1..=4 {
+            for _ in 0..2000 {
+                let logits: Vec<f64> = (0..len).map(|_| (next() - 0.5) * 16.0).collect();
+                let p = softmax_on_lattice(&logits);
+                let e: Vec<f64> = logits
+                    .iter()
+                    .map(|l| l.clamp(-LOGIT_BOUND, LOGIT_BOUND).exp())
+                    .collect();
+                let s: f64 = e.iter().sum();
+                let mut numerators = 0i64;
+                for (x, ex) in p.iter().zip(&e) {
+                    let n = x * POINT_LATTICE;
+                    assert_eq!(n, n.trunc(), "{p:?} off the lattice");
+                    assert!(n >= 1.0, "{p:?} has a coordinate on the face's boundary");
+                    numerators += n as i64;
+                    // Coordinate 0 absorbs the others' rounding: up to 1.5 steps for 4 coordinates.
+                    assert!(
+                        (x - ex / s).abs() <= 2.0 / POINT_LATTICE,
+                        "{p:?} vs {}",
+                        ex / s
+                    );
+                }
+                assert_eq!(numerators, POINT_LATTICE as i64, "{p:?}");
+                assert_eq!(p.iter().sum::<f64>(), 1.0);
+                // A map on the lattice reads the same rounded point as its displacement.
+                let factorial: f64 = (1..=len).map(|x| x as f64).product();
+                let d = displacement_of(&logits, true);
+                for i in 0..len {
+                    assert_eq!(d[i], (p[i] - 1.0 / len as f64) * factorial);
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn a_map_on_the_lattice_writes_and_evaluates_the_rounded_points() {
+        // A point set before the switch and one after are both rounded, in the written stages,
+        // in the map's local maps and in a cell cache's; the kernel's agreement with the
+        // written file on a whole fit is in fit/tests.rs.
+        let cell = [7u32, 2, 9, 4];
+        let u = [0.1, 0.2, 0.3, 0.4];
+        let (edge, triangle) = ([2u32, 7], [2u32, 4, 9]);
+        let mut map = StratifiedMap::new(3);
+        map.set_logits(&edge, &[0.0, 1.0]);
+        map.set_logits(&triangle, &[0.3, -0.2, 0.5]);
+        let smooth = map.local(&cell).eval(&u);
+        let mut cache = map.cell_terms(&cell);
+        map.set_lattice(true);
+        map.set_logits(&triangle, &[0.3, -0.2, 0.6]);
+        let mut written = 0;
+        for stage in map.to_stages(|_| true) {
+            for r in stage.faces.iter() {
+                assert_eq!(r.points, softmax_on_lattice(&map.logits(r.face)));
+                assert_eq!(r.points.iter().sum::<f64>(), 1.0);
+                written += 1;
+            }
+        }
+        assert_eq!(written, 2);
+        let rounded = map.local(&cell).eval(&u);
+        assert_ne!(rounded, smooth);
+        // A cache taken from the map on the lattice follows it for the points set later; one
+        // taken before keeps the smooth points (the fitter sets the lattice before any cache).
+        let mut on = map.cell_terms(&cell);
+        for c in [&mut on, &mut cache] {
+            let i = c.face_index(&triangle).unwrap();
+            c.set_logits(i, &[0.3, -0.2, 0.6]);
+        }
+        assert_eq!(on.local_with(None).0.eval(&u), rounded);
+        assert_ne!(cache.local_with(None).0.eval(&u), rounded);
+        // Off again: the smooth softmax.
+        map.set_lattice(false);
+        assert_eq!(map.point(&edge), softmax(&map.logits(&edge)));
+    }
 
     #[test]
     fn identity_until_set_and_faces_stay_put() {

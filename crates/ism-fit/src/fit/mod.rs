@@ -83,6 +83,12 @@ pub struct FitOptions {
     /// fraction of the tolerance ([`LM_DONE_FRACTION`] by default); 0: every block runs its
     /// iterations to the end (a fixed complex optimized as far as it goes, whatever the tolerance).
     pub lm_done_fraction: f64,
+    /// Store every control point on the 2⁻²⁴ lattice ([`StratifiedMap::set_lattice`]), so that
+    /// the structured encoding (spec §7.4.3, `.isms`) writes it in 3 bytes per free coordinate
+    /// instead of 8 per coordinate. The fit measures the rounded points it writes. Off by
+    /// default: rounding moves a point by up to 2⁻²⁵ of its face, so edge crossings are no
+    /// longer exactly at the roots of `g` (within ~10⁻⁹ of the edge).
+    pub lattice: bool,
 }
 
 impl FitOptions {
@@ -100,6 +106,7 @@ impl FitOptions {
             pv_min_edge: 0.0,
             prune: true,
             lm_done_fraction: LM_DONE_FRACTION,
+            lattice: false,
         }
     }
 }
@@ -376,7 +383,11 @@ impl<'a> Fitter<'a> {
             n,
             complex,
             values: Vec::new(),
-            map: StratifiedMap::new(n),
+            map: {
+                let mut map = StratifiedMap::new(n);
+                map.set_lattice(options.lattice);
+                map
+            },
             weights: RationalWeights::new(n),
             roots: HashMap::new(),
             rational: options.rational,

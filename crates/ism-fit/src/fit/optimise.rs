@@ -858,6 +858,7 @@ impl Fitter<'_> {
                         cells[i].iter().all(|&c| {
                             let ids = this.complex.cell(c);
                             let mut without = StratifiedMap::new(this.n);
+                            without.set_lattice(this.map.on_lattice());
                             for f in simplex_faces(ids, 2) {
                                 let key = f.ids();
                                 if key != &face[..] {

@@ -203,6 +203,18 @@ fn the_optimizer_stops_once_a_block_is_within_its_done_residual() {
 
 #[test]
 fn fitter_map_agrees_with_the_kernel() {
+    fitter_map_agrees_with_the_kernel_on(false);
+}
+
+#[test]
+fn fitter_map_on_the_lattice_agrees_with_the_kernel() {
+    // The written points are the rounded ones the fitter measured: the kernel evaluates the
+    // file, the closed form the fitter's own map, and they agree as they do without rounding
+    // (a map that measured the smooth points and wrote rounded ones would differ by ~1e-8).
+    fitter_map_agrees_with_the_kernel_on(true);
+}
+
+fn fitter_map_agrees_with_the_kernel_on(lattice: bool) {
     // Two independent evaluations of the same parametric map: the closed-form strata here and
     // ism-geom's general Bézier stages on the written model.
     let preset = Preset::find("sphere").unwrap();
@@ -211,7 +223,34 @@ fn fitter_map_agrees_with_the_kernel() {
     options.resolution = 3;
     options.tolerance = 1e-2;
     options.rational = true;
+    options.lattice = lattice;
     let fitted = fit(&g, &options, &ism_format::Progress::none()).unwrap();
+    // Every written point on the lattice (exact integer arithmetic on its numerators), or, off
+    // it, at least one that is not (so the two runs test different files).
+    let model = fitted.to_model("sphere");
+    let mut off = 0;
+    for stage in model
+        .stages
+        .iter()
+        .filter(|s| s.kind == ism_format::model::StageKind::Bezier)
+    {
+        for r in stage.faces.iter() {
+            for point in r.points.chunks(r.face.len()) {
+                let n: Vec<f64> = point
+                    .iter()
+                    .map(|x| x * crate::strata::POINT_LATTICE)
+                    .collect();
+                let on = n.iter().all(|x| x.fract() == 0.0 && *x >= 1.0)
+                    && n.iter().map(|&x| x as i64).sum::<i64>() == 1 << 24;
+                off += usize::from(!on);
+            }
+        }
+    }
+    if lattice {
+        assert_eq!(off, 0);
+    } else {
+        assert!(off > 0);
+    }
     assert!(fitted.map.num_faces() > 0);
     assert!(fitted.weights.num_faces() > 0);
     // The whole complex: simplex `s` of this model is live cell `s`.
