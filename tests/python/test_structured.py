@@ -10,7 +10,9 @@ written from the spec alone:
 (d) every reader error of §7.4.3, with the rule, pointer and file offset its error paragraph gives, and no
     allocation for what the bytes present cannot hold;
 (e) differential: the Rust `ism` binary writes exactly ismpy's bytes for every example and each reads the other's
-    files (skipped, saying why, when the binary is absent: set ISM_BIN or build target/debug/ism).
+    files (skipped, saying why, when the binary is absent: set ISM_BIN or build target/debug/ism); and the
+    reference's conformance adapter reports the same rule and location as ismpy for every file of (d) (skipped
+    when absent: set ISM_CONFORMANCE_ADAPTER or build target/debug/ism-conformance-adapter).
 """
 
 from __future__ import annotations
@@ -786,3 +788,83 @@ def test_rust_and_ismpy_write_the_same_structured_bytes_and_read_each_other(name
     done = subprocess.run([binary, "convert", str(mine), str(back)], capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr
     assert back.read_bytes() == ismpy.write(model, "binary")
+
+
+def adapter() -> str:
+    path = os.environ.get("ISM_CONFORMANCE_ADAPTER") or str(ROOT / "target" / "debug" / "ism-conformance-adapter")
+    if not Path(path).is_file():
+        pytest.skip(f"the reference's conformance adapter is absent ({path}): build it with `cargo build -p ism-conformance` or set ISM_CONFORMANCE_ADAPTER")
+    return path
+
+
+def reader_cases() -> dict:
+    """Files of every reader error above (and a few that decode), by name."""
+    a = APPENDIX_A_AT
+    cases = {
+        "complex-form-1": appendix_a_with(a["complexForm 0"], 1),
+        "record-form-2": appendix_a_with(a["recordForm 1"], 2),
+        "dims-bit-3": appendix_a_with(a["dims"], 0b1010),
+        "dims-bit-7": appendix_a_with(a["dims"], 0x82),
+        "mask-padding": appendix_a_with(a["mask_1"], 0b1100),
+        "width-5": appendix_a_with(a["width 1"], 5),
+        "appendix-a": APPENDIX_A_BYTES,
+    }
+    strip = strip_model(20)
+    p = stage_head(head(strip), name=PAD).add("recordForm", b"\x01").add("dims", b"\x02").add("mask", mask_of(strip, 1, [0]))
+    cases["truncated-mask"] = p.file(p.at["mask"] + 2)
+    four = strip_model(4)
+    for width in (0, 3):
+        p = tail(stage_head(head(four), degree=3, name=PAD).add("recordForm", b"\x01").add("dims", b"\x02").add("mask", mask_of(four, 1, [0, 2, 4, 8])).add("width", bytes([width])).add("points", bytes(4 * 2 * (16 if width == 0 else width))))
+        cases[f"width-{width}"] = p.file()
+        cases[f"truncated-points-width-{width}"] = p.file(p.at["points"] + 1)
+    p = tail(stage_head(head(four), kind=1, name=PAD).add("recordForm", b"\x01").add("dims", b"\x02").add("mask", mask_of(four, 1, [0, 1, 2])).add("width", b"\x03").add("points", bytes.fromhex("000080" * 3)).add("weights", struct.pack("<3d", 1.0, 2.0, 3.0)))
+    cases["rational"] = p.file()
+    cases["truncated-weights"] = p.file(p.at["weights"] + 8)
+    model = parse_model(APPENDIX_A_MODEL)
+    p = tail(stage_head(head(model), kind=2).add("recordForm", b"\x01").add("dims", b"\x02").add("mask", b"\x00").add("width", b"\x01"))
+    cases["monotonic-dims"] = p.file()
+    p = tail(stage_head(head(model), kind=1, degree=0xFFFFFFFF).add("recordForm", b"\x01").add("dims", b"\x04").add("mask", b"\x01").add("width", b"\x01").add("points", bytes(64)))
+    cases["huge-degree"] = p.file()
+    p = tail(stage_head(head(model), degree=0xFFFFFFFF).add("recordForm", b"\x01").add("dims", b"\x01").add("mask", b"\x07").add("width", b"\x04"))
+    cases["huge-degree-vertices"] = p.file()
+    p = tail(stage_head(head(model), degree=1).add("recordForm", b"\x01").add("dims", b"\x02").add("mask", b"\x01").add("width", b"\x01"))
+    cases["owns-nothing"] = p.file()
+    p = tail(stage_head(head(strip_model(2)), degree=3).add("recordForm", b"\x01").add("dims", b"\x04").add("mask", b"\x01").add("width", b"\x01").add("points", b"\xc0\xc0"))
+    cases["negative-c0"] = p.file()
+    bad = ismpy.new_model()
+    bad.update(dimension=2, vertices=[0.0, 0, 1, 0, 0, 1], simplices=[0, 0, 7], values=[-1.0, 1, 1])
+    p = tail(stage_head(head(bad)).add("recordForm", b"\x01").add("dims", b"\x03").add("mask0", b"\x02").add("mask1", b"\x01").add("width", b"\x01").add("points", b"\x40"))
+    cases["repeated-and-out-of-range-ids"] = p.file()
+    wide = ismpy.new_model()
+    wide.update(dimension=15, vertices=[], simplices=list(range(16)), values=[])
+    cases["mask-beyond-payload"] = stage_head(head(wide)).add("recordForm", b"\x01").add("dims", b"\x80").add("mask", bytes(20)).file()
+    p = tail(stage_head(head(model)).add("recordForm", b"\x00").add("count", b"\x01").add("face", b"\x02\x01").add("id", b"\xfb\x02\x00"))
+    cases["record-form-0-varint"] = p.file()
+    p = tail(stage_head(head(model), name=PAD).add("recordForm", b"\x01").add("dims", b"\x02").add("mask", b"\x04").add("width", b"\x01").add("points", b"\x80"))
+    for part in ("complexForm", "recordForm", "dims", "mask", "width"):
+        cases[f"missing-{part}"] = p.file(p.at[part])
+    return cases
+
+
+def test_reader_cases_are_what_the_reference_reports(tmp_path):
+    binary = adapter()
+    cases = reader_cases()
+    files = []
+    for name, data in cases.items():
+        (tmp_path / f"{name}.isms").write_bytes(data)
+        files.append(tmp_path / f"{name}.isms")
+    done = subprocess.run([binary, "read", *map(str, files)], capture_output=True, text=True, timeout=300)
+    lines = done.stdout.splitlines()
+    assert len(lines) == len(files), done.stderr[-2000:]
+    differ = []
+    for (name, data), line in zip(cases.items(), lines):
+        reference = json.loads(line)
+        reference.pop("message", None)
+        try:
+            ismpy.read(data)
+            ours = {"ok": True}
+        except ismpy.IsmError as e:
+            ours = {"rule": e.rule, "location": e.location}
+        if reference != ours:
+            differ.append(f"{name}: reference {reference}, ismpy {ours}")
+    assert not differ, "\n".join(differ)
