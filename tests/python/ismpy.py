@@ -1,24 +1,26 @@
 #!/usr/bin/env python3
 """ismpy: an independent ISM reader and writer, written from spec/ism-format.md alone.
 
-It reads and writes all five encodings (JSON, MessagePack, binary, compact binary, compressed) and the container, and
-reports every
-reader rule of spec §9 (ISM-0xx, ISM-1xx) with the location of spec §7.8 and §9. No Rust and no JSON or
-MessagePack library is used for reading (the compressed encoding's xz stream is decompressed by the standard
-`lzma` module) (the standard `json` module is too lenient: it accepts NaN,
-duplicate keys and big integers), so the spec, not a library, decides every byte.
+It reads and writes all six encodings (JSON, MessagePack, binary, compact binary, compressed, structured) and the
+container, and reports every reader rule of spec §9 (ISM-0xx, ISM-1xx) with the location of spec §7.8 and §9. No
+Rust and no JSON or MessagePack library is used for reading (the compressed encoding's xz stream is decompressed by
+the standard `lzma` module) (the standard `json` module is too lenient: it accepts NaN, duplicate keys and big
+integers), so the spec, not a library, decides every byte. The structured encoding (spec §7.4.3, tag 6, `.isms`)
+is the compact grammar with face records given by masks over the k-faces of the complex and control points on a
+2^(-8w) lattice when they lie on one; `complex_faces` computes those k-face lists exactly as §7.4.3 defines them.
 
 Command line (the protocol of tools/conformance):
 
     ismpy.py read FILE                 prints {"ok": true} (exit 0) or {"rule": ..., "location": {...}}
                                        (exit 1): the first error a reader reports
     ismpy.py convert IN OUT ENCODING   reads IN and writes OUT in ENCODING: json, json-pretty, msgpack,
-                                       binary, compact, compressed (exit 0), or prints the error as `read` does
-                                       (exit 1)
+                                       binary, compact, compressed, structured (exit 0), or prints the error as
+                                       `read` does (exit 1)
 """
 
 from __future__ import annotations
 
+import itertools
 import json
 import lzma
 import math
@@ -644,21 +646,109 @@ def probe_version(tok):
     return None
 
 
+# ------------------------------------------------------------------------------------------ the complex's faces (§7.4.3)
+
+
+def complex_faces(simplices, n: int, k: int, limit=None):
+    """The k-faces of the complex (spec §7.4.3): the sorted tuples of k + 1 distinct ids taken from one top
+    simplex of `simplices` as decoded (n + 1 ids each; a trailing incomplete group is no top simplex), each
+    tuple once, in increasing lexicographic order. Computed before any structural check, so ids out of range or
+    repeated in a simplex still give a well-defined list (a repeated id counts once).
+
+    With `limit`, returns None as soon as the list is known to hold more than `limit` faces, having held at
+    most about 2 * limit of them (a reader's bound on memory: a mask of more faces than the payload's bytes
+    can hold is an error whatever its exact length)."""
+    m = n + 1
+    out = set()
+    seen = set()
+    for s in range(len(simplices) // m):
+        ids = tuple(sorted(set(simplices[s * m : s * m + m])))
+        if len(ids) <= k or ids in seen:
+            continue
+        seen.add(ids)
+        if limit is not None and math.comb(len(ids), k + 1) > limit:
+            return None
+        out.update(itertools.combinations(ids, k + 1))
+        if limit is not None and len(out) > limit:
+            return None
+    return sorted(out)
+
+
+class ComplexFaces:
+    """The k-face lists of one complex, computed once per k: `faces(k)` the list, `index(k)` face -> position."""
+
+    def __init__(self, simplices, n: int):
+        self.simplices = simplices
+        self.n = n
+        self.lists = {}
+        self.indices = {}
+
+    def faces(self, k: int, limit=None):
+        if k not in self.lists:
+            faces = complex_faces(self.simplices, self.n, k, limit)
+            if faces is None:
+                return None
+            self.lists[k] = faces
+        return self.lists[k]
+
+    def index(self, k: int) -> dict:
+        if k not in self.indices:
+            self.indices[k] = {face: i for i, face in enumerate(self.faces(k))}
+        return self.indices[k]
+
+
+def owned_count(degree: int, k: int) -> int:
+    """C(d - 1, k): the multi-indices a k-face owns at degree d (spec §2.5, §4.4); none when d <= k. Exact for
+    every u32 degree (Python integers do not overflow, so no count saturates)."""
+    return math.comb(degree - 1, k) if degree > k else 0
+
+
+LATTICE_MAX_WIDTH = 4
+
+
+def point_lattice_width(coords) -> int:
+    """The smallest w >= 1 at which the point `coords` = (c0, ..., ck) is exactly n_j * 2^(-8w) (j >= 1) with
+    integers 0 <= n_j < 2^(8w) and c0 = (2^(8w) - n_1 - ... - n_k) * 2^(-8w), compared bit for bit (a -0.0
+    coordinate is on no lattice), or 0 when no w <= 4 does (spec §7.4.3)."""
+    top = 1 << (8 * LATTICE_MAX_WIDTH)
+    total = 0
+    exponent = 0
+    for c in coords[1:]:
+        if not (0.0 <= c < 1.0) or (c == 0.0 and math.copysign(1.0, c) < 0):
+            return 0
+        p, q = c.as_integer_ratio()
+        if q > top:
+            return 0
+        e = q.bit_length() - 1
+        exponent = max(exponent, e)
+        total += p << (8 * LATTICE_MAX_WIDTH - e)
+    c0 = coords[0]
+    if not math.isfinite(c0) or (c0 == 0.0 and math.copysign(1.0, c0) < 0):
+        return 0
+    p0, q0 = c0.as_integer_ratio()
+    if q0 > top or p0 * (top // q0) != top - total:
+        return 0
+    return max(1, (exponent + 7) // 8)
+
+
 # ------------------------------------------------------------------------------------------ binary
 
 
 class BinaryDecoder:
     """The binary grammar of spec §7.4; with `compact`, the compact binary encoding of §7.4.1 (every
-    length, u32 and enumeration index a minimal varint)."""
+    length, u32 and enumeration index a minimal varint); with `structured` (and `compact`), the structured
+    encoding of §7.4.3 (`complexForm`, and a stage's records by `recordForm`)."""
 
-    def __init__(self, data: bytes, base: int, compact: bool = False):
+    def __init__(self, data: bytes, base: int, compact: bool = False, structured: bool = False):
         self.b = data
         self.at = 0
         self.base = base
         self.path = []
-        self.compact = compact
-        # Smallest element sizes (§7.4, §7.4.1).
-        if compact:
+        self.compact = compact or structured
+        self.structured = structured
+        self.complex = None
+        # Smallest element sizes (§7.4, §7.4.1; §7.4.3 keeps the compact ones: "Errors are those of §7.4.1").
+        if self.compact:
             self.MIN = {"f64": 8, "u32": 1, "string": 1, "stage": 7, "record": 3, "vmap": 2, "ext": 2}
         else:
             self.MIN = {"f64": 8, "u32": 4, "string": 8, "stage": 37, "record": 24, "vmap": 12, "ext": 16}
@@ -791,10 +881,87 @@ class BinaryDecoder:
         def vmap():
             return {"vertex": self.member("vertex", self.u32), "coefficients": self.member("coefficients", self.f64s)}
 
-        s["faces"] = self.member("faces", lambda: self.seq(self.MIN["record"], record))
+        if self.structured:
+            s["faces"] = self.member("faces", lambda: self.records(s, record))
+        else:
+            s["faces"] = self.member("faces", lambda: self.seq(self.MIN["record"], record))
         s["vertexMaps"] = self.member("vertexMaps", lambda: self.seq(self.MIN["vmap"], vmap))
         s["extras"] = self.member("extras", lambda: self.data(3))
         return s
+
+    def records(self, stage: dict, record) -> list:
+        """A stage's records in the structured encoding (§7.4.3), at pointer /stages/s/faces: `recordForm` 0, the
+        compact sequence; 1, masks over the complex's k-faces, `width`, the points, the weights."""
+        start = self.at
+        form = self.u8()
+        if form == 0:
+            return self.seq(self.MIN["record"], record)
+        if form != 1:
+            raise self.fail(start, f"recordForm {form}")
+        dims_at = self.at
+        dims = self.u8()
+        n = self.dimension
+        if dims >> (n + 1):
+            raise self.fail(dims_at, f"dims 0x{dims:02x} has bits above the dimension {n}")
+        if dims and stage["kind"] == "monotonic":
+            raise self.fail(dims_at, "a monotonic stage's dims is not 0")
+        chosen = []  # (k, face) in record order
+        for k in range(8):
+            if not dims >> k & 1:
+                continue
+            mask_at = self.at
+            left = len(self.b) - self.at
+            faces = self.complex.faces(k, limit=8 * left)
+            if faces is None or (len(faces) + 7) // 8 > left:
+                raise self.fail(mask_at, f"the mask of the {k}-faces runs past the payload")
+            size = (len(faces) + 7) // 8
+            mask = self.take(size)
+            if len(faces) % 8 and mask[-1] >> (len(faces) % 8):
+                raise self.fail(mask_at + size - 1, f"mask bits beyond the {len(faces)} {k}-faces are set")
+            for j, byte in enumerate(mask):
+                while byte:
+                    low = byte & -byte
+                    chosen.append((k, faces[8 * j + low.bit_length() - 1]))
+                    byte ^= low
+        width_at = self.at
+        width = self.u8()
+        if width > LATTICE_MAX_WIDTH:
+            raise self.fail(width_at, f"width {width}")
+        rational = stage["kind"] == "rational"
+        counts = {}
+        for k, _ in chosen:
+            counts[k] = counts.get(k, 0) + 1
+        owned = {k: owned_count(stage["degree"], k) for k in counts}
+        needed = 0
+        for k, count in counts.items():
+            point_bytes = 8 * (k + 1) if width == 0 else k * width
+            needed += count * owned[k] * (point_bytes + (8 if rational else 0))
+        if needed > len(self.b) - self.at:
+            raise self.fail(width_at, f"the records need {needed} bytes; {len(self.b) - self.at} remain")
+        out = []
+        b = self.b
+        if width:
+            scale = 2.0 ** (-8 * width)
+            top = 1 << (8 * width)
+        for k, face in chosen:
+            count = owned[k]
+            if width == 0:
+                points = list(struct.unpack_from(f"<{count * (k + 1)}d", b, self.at))
+                self.at += 8 * count * (k + 1)
+            else:
+                points = []
+                for _ in range(count):
+                    ns = [int.from_bytes(b[self.at + width * j : self.at + width * j + width], "little") for j in range(k)]
+                    self.at += width * k
+                    points.append((top - sum(ns)) * scale)
+                    points.extend(x * scale for x in ns)
+            out.append({"face": list(face), "points": points, "weights": []})
+        if rational:
+            for r, (k, _) in enumerate(chosen):
+                count = owned[k]
+                out[r]["weights"] = list(struct.unpack_from(f"<{count}d", b, self.at))
+                self.at += 8 * count
+        return out
 
     def extensions(self) -> dict:
         n = self.length(self.MIN["ext"])
@@ -825,8 +992,17 @@ class BinaryDecoder:
             return meta
 
         m["metadata"] = self.member("metadata", metadata)
+        if self.structured:
+            self.path.append("vertices")
+            start = self.at
+            form = self.u8()
+            if form != 0:
+                raise self.fail(start, f"complexForm {form}")
+            self.path.pop()
         m["vertices"] = self.member("vertices", self.f64s)
         m["simplices"] = self.member("simplices", self.u32s)
+        self.dimension = m["dimension"]
+        self.complex = ComplexFaces(m["simplices"], m["dimension"])
         m["values"] = self.member("values", self.f64s)
         m["level"] = self.member("level", self.f64)
         m["stages"] = self.member("stages", lambda: self.seq(self.MIN["stage"], self.stage))
@@ -913,7 +1089,7 @@ def decode(data: bytes, payload_limit: int = DEFAULT_PAYLOAD_LIMIT):
         major, minor, tag = struct.unpack_from("<HHB", data, 8)
         if major != MAJOR:
             raise IsmError("ISM-002", f"major version {major}", offset=8)
-        if tag not in (1, 2, 3, 4, 5):
+        if tag not in (1, 2, 3, 4, 5, 6):
             raise IsmError("ISM-005", f"encoding tag {tag}", offset=12)
         if data[13:16] != b"\0\0\0":
             raise IsmError("ISM-006", "reserved bytes", offset=13)
@@ -935,11 +1111,11 @@ def decode(data: bytes, payload_limit: int = DEFAULT_PAYLOAD_LIMIT):
             compact = decompress(payload, payload_limit)
             model = BinaryDecoder(compact, HEADER_LEN, compact=True).model(allow_trailing=minor > MINOR)
         else:
-            model = BinaryDecoder(payload, HEADER_LEN, compact=tag == 4).model(allow_trailing=minor > MINOR)
+            model = BinaryDecoder(payload, HEADER_LEN, compact=tag == 4, structured=tag == 6).model(allow_trailing=minor > MINOR)
         version = check_version(model["version"])
         if version != (major, minor):
             raise IsmError("ISM-009", "header and payload versions differ", pointer="/version")
-        return model, {1: "json", 2: "msgpack", 3: "binary", 4: "compact", 5: "compressed"}[tag]
+        return model, {1: "json", 2: "msgpack", 3: "binary", 4: "compact", 5: "compressed", 6: "structured"}[tag]
     stripped = data.lstrip(b" \t\n\r")
     if stripped[:1] != b"{":
         raise IsmError("ISM-001", "not an ISM file", offset=0)
@@ -1077,7 +1253,7 @@ def structural_errors(model: dict) -> list:
     for name in sorted(model["extensions"], key=lambda k: k.encode("utf-8")):
         if name not in used:
             out.append(IsmError("ISM-152", "not listed", pointer=f"/extensions/{escape_token(name)}"))
-    vertex_sets = [set(ids) for ids in simplices]
+    complex_ = ComplexFaces(sims, n)  # a face of K: its ids, sorted, all in one top simplex
     for k, stage in enumerate(model["stages"]):
         base = f"/stages/{k}"
         d = stage["degree"]
@@ -1114,7 +1290,7 @@ def structural_errors(model: dict) -> list:
             if any(a >= b for a, b in zip(face, face[1:])):
                 out.append(IsmError("ISM-121", "not sorted", pointer=f"{where}/face", **loc))
                 continue
-            if any(v >= nv for v in face) or not any(set(face) <= vs for vs in vertex_sets):
+            if any(v >= nv for v in face) or tuple(face) not in complex_.index(size - 1):
                 out.append(IsmError("ISM-122", "not a face", pointer=f"{where}/face", **loc))
                 continue
             key = tuple(face)
@@ -1334,11 +1510,13 @@ def header(n: int, fix: int, fix_limit: int, markers, out: bytearray, allow8=Fal
 
 class BinaryWriter:
     """The binary grammar of §7.4; with `compact`, §7.4.1 (lengths, u32s and enumeration indices as
-    minimal varints)."""
+    minimal varints); with `structured`, §7.4.3 in its canonical form (`recordForm` 1 whenever the records
+    allow it, the smallest lattice `width`)."""
 
-    def __init__(self, compact: bool = False):
+    def __init__(self, compact: bool = False, structured: bool = False):
         self.out = bytearray()
-        self.compact = compact
+        self.compact = compact or structured
+        self.structured = structured
 
     def put(self, fmt, *values):
         self.out += struct.pack(fmt, *values)
@@ -1386,11 +1564,46 @@ class BinaryWriter:
         for x in xs:
             self.u32(x)
 
+    def records_by_complex(self, stage: dict, n: int, complex_: ComplexFaces) -> bool:
+        """Writes the stage's records in `recordForm` 1 when they allow it (§7.4.3); False when they do not."""
+        masks = stage_record_masks(stage, n, complex_)
+        if masks is None:
+            return False
+        width = stage_lattice_width(stage)
+        self.put("<BB", 1, sum(1 << k for k in masks))  # recordForm 1, dims
+        for k in sorted(masks):
+            mask = bytearray((len(complex_.faces(k)) + 7) // 8)
+            for i in masks[k]:
+                mask[i >> 3] |= 1 << (i & 7)
+            self.out += mask
+        self.put("<B", width)
+        records = stage.get("faces", [])
+        if width == 0:
+            for r in records:
+                self.put(f"<{len(r.get('points', []))}d", *r.get("points", []))
+        else:
+            shift = 8 * width
+            for r in records:
+                size = len(r["face"])
+                points = r["points"]
+                for at in range(0, len(points), size):
+                    for c in points[at + 1 : at + size]:
+                        p, q = c.as_integer_ratio()
+                        self.out += (p << (shift - (q.bit_length() - 1))).to_bytes(width, "little")
+        for r in records:
+            weights = r.get("weights", [])
+            self.put(f"<{len(weights)}d", *weights)
+        return True
+
     def model(self, m: dict) -> bytes:
         self.string(f"{MAJOR}.{MINOR}")
         self.put("<B", m["dimension"])
         for key in ("name", "generator", "units", "description"):
             self.optional(m["metadata"].get(key))
+        complex_ = None
+        if self.structured:
+            self.put("<B", 0)  # complexForm 0
+            complex_ = ComplexFaces(m["simplices"], m["dimension"])
         self.f64s(m["vertices"])
         self.u32s(m["simplices"])
         self.f64s(m["values"])
@@ -1400,11 +1613,16 @@ class BinaryWriter:
             for x in (KINDS.index(s["kind"]), s["degree"], DIRECTIONS.index(s.get("direction", "implicit"))):
                 self.u32(x)
             self.optional(s.get("name"))
-            self.length(len(s.get("faces", [])))
-            for r in s.get("faces", []):
-                self.u32s(r["face"])
-                self.f64s(r.get("points", []))
-                self.f64s(r.get("weights", []))
+            if self.structured and self.records_by_complex(s, m["dimension"], complex_):
+                pass
+            else:
+                if self.structured:
+                    self.put("<B", 0)  # recordForm 0
+                self.length(len(s.get("faces", [])))
+                for r in s.get("faces", []):
+                    self.u32s(r["face"])
+                    self.f64s(r.get("points", []))
+                    self.f64s(r.get("weights", []))
             self.length(len(s.get("vertexMaps", [])))
             for v in s.get("vertexMaps", []):
                 self.u32(v["vertex"])
@@ -1423,14 +1641,67 @@ class BinaryWriter:
         return bytes(self.out)
 
 
+def stage_record_masks(stage: dict, n: int, complex_: ComplexFaces):
+    """The canonical `recordForm` 1 of a stage (§7.4.3): {k: [face positions]} when its records are exactly, in
+    order, the records of some masks over the k-faces of the complex (k ascending, face order within a k, no face
+    twice), each with C(d - 1, k) points of k + 1 coordinates and, in a rational stage, as many weights (none in
+    other kinds), and a monotonic stage has none; else None (`recordForm` 0)."""
+    records = stage.get("faces", [])
+    if stage["kind"] == "monotonic":
+        return {} if not records else None
+    rational = stage["kind"] == "rational"
+    masks = {}
+    previous = (-1, -1)
+    for r in records:
+        face = tuple(r["face"])
+        k = len(face) - 1
+        if not 0 <= k <= min(n, 7):
+            return None
+        position = complex_.index(k).get(face)
+        if position is None or (k, position) <= previous:
+            return None
+        owned = owned_count(stage["degree"], k)
+        if len(r.get("points", [])) != owned * (k + 1) or len(r.get("weights", [])) != (owned if rational else 0):
+            return None
+        previous = (k, position)
+        masks.setdefault(k, []).append(position)
+    return masks
+
+
+def stage_lattice_width(stage: dict) -> int:
+    """The canonical `width` of a `recordForm` 1 stage (§7.4.3): the smallest w >= 1 at which every point of the
+    stage lies on the 2^(-8w) lattice (1 when it has no points), else 0."""
+    width = 1
+    for r in stage.get("faces", []):
+        size = len(r["face"])
+        points = r.get("points", [])
+        for at in range(0, len(points), size):
+            w = point_lattice_width(points[at : at + size])
+            if w == 0:
+                return 0
+            width = max(width, w)
+    return width
+
+
+def structured_choices(model: dict) -> list:
+    """Per stage, the canonical structured form (§7.4.3): (1, dims, width) for `recordForm` 1, (0, None, None)
+    for `recordForm` 0."""
+    complex_ = ComplexFaces(model["simplices"], model["dimension"])
+    out = []
+    for stage in model["stages"]:
+        masks = stage_record_masks(stage, model["dimension"], complex_)
+        out.append((0, None, None) if masks is None else (1, sum(1 << k for k in masks), stage_lattice_width(stage)))
+    return out
+
+
 def container(payload: bytes, tag: int, major: int = MAJOR, minor: int = MINOR) -> bytes:
     head = MAGIC + struct.pack("<HHB3xQI", major, minor, tag, len(payload), zlib.crc32(payload))
     return head + struct.pack("<I", zlib.crc32(head)) + payload
 
 
 def write(model: dict, encoding: str) -> bytes:
-    """The canonical file of `model` in `encoding`: json, json-pretty, msgpack, binary, compact or compressed (whose
-    compressed bytes depend on the xz encoder: preset 6, CRC64, like the reference writer)."""
+    """The canonical file of `model` in `encoding`: json, json-pretty, msgpack, binary, compact, structured or
+    compressed (whose compressed bytes depend on the xz encoder: preset 6, CRC64, like the reference writer)."""
     check_writable(model)
     if encoding in ("json", "json-pretty"):
         return to_json(canonical_members(model), indent=2 if encoding == "json-pretty" else None).encode("utf-8")
@@ -1442,6 +1713,8 @@ def write(model: dict, encoding: str) -> bytes:
         return container(BinaryWriter().model(model), 3)
     if encoding == "compact":
         return container(BinaryWriter(compact=True).model(model), 4)
+    if encoding == "structured":
+        return container(BinaryWriter(structured=True).model(model), 6)
     if encoding == "compressed":
         compact = BinaryWriter(compact=True).model(model)
         xz = lzma.compress(compact, format=lzma.FORMAT_XZ, check=lzma.CHECK_CRC64, preset=6)
