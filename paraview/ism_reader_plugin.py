@@ -1,4 +1,4 @@
-"""ParaView plugin: a reader of Iso-Simplicial Models (``.ism.json``, ``.ismb``, ``.ismc``, ``.ismz``, ``.ism.msgpack``).
+"""ParaView plugin: a reader of Iso-Simplicial Models (``.ism.json``, ``.ismb``, ``.ismc``, ``.ismz``, ``.isms``, ``.ism.msgpack``).
 
 Load it in ParaView (Tools > Manage Plugins > Load New, or ``LoadPlugin(path, ns=globals())`` in
 ``pvpython``); the ``ism`` Python package must be importable by ParaView's Python (see
@@ -18,7 +18,7 @@ from paraview.util.vtkAlgorithm import smdomain, smhint, smproperty, smproxy  # 
 from ism.vtk_reader import DEFAULT_TOLERANCE  # noqa: E402
 from ism.vtk_reader import ISMReader as _ISMReader  # noqa: E402
 
-_EXTENSIONS = "ism.json ismb ismc ismz ism.msgpack"
+_EXTENSIONS = "ism.json ismb ismc ismz isms ism.msgpack"
 _DESCRIPTION = "Iso-Simplicial Model files"
 
 

@@ -33,10 +33,14 @@ most the ISM's; the mesh is written as binary glTF (.glb, trimesh). 2D shapes us
 `find_contours` and a .glb of line segments.
 
 Prints one Markdown row per shape: tolerance, simplices, stored numbers, .ismb, .ismc (compact
-binary) and .ismz (compressed: the compact payload in xz, spec §7.4.2) bytes, ISM two-sided true error (both directions), the report's own claim, topology, CPU
+binary), .ismz (compressed: the compact payload in xz, spec §7.4.2) and .isms (structured: face
+records by the complex, control points on the 2^-24 lattice, spec §7.4.3) bytes, ISM two-sided true error (both directions), the report's own claim, topology, CPU
 seconds; and the marching-cubes grid, vertices+faces numbers, .glb bytes, its error, topology, CPU
-seconds; the ratios .glb / .ismb, .ismc, .ismz, and — for an honest comparison — the .glb compressed by
-the same codec (xz preset 6, what `ism` writes) over the .ismz.
+seconds; the ratios .glb / .ismb, .ismc, .ismz, .isms, and — for an honest comparison — the .glb
+compressed by the same codec (xz preset 6, what `ism` writes) over the .ismz. Every fit is run with
+`--lattice` (the control points on the lattice the structured encoding stores in 3 bytes per free
+coordinate; each moves by at most 2^-25 of its face, and the error measured here is the written
+model's, so every column describes the same model).
 Needs numpy, scipy, scikit-image, trimesh (tools/requirements.txt); the mesh target needs the
 bunny that ships in the pymeshlab wheel (skipped when pymeshlab is not installed); `--only bone`
 (not in the default list) fits the wheel's second scanned mesh, a bone, the same way.
@@ -693,7 +697,7 @@ def run(cmd, timeout=None):
 def fit_ism(shape, tol, out, timeout, extra=(), keep_unmet=False, reuse=False):
     path = os.path.join(out, shape["key"] + ".ismb")
     saved = os.path.join(out, shape["key"] + ".fit.json")
-    cmd = [ISM, "fit", *shape["fit"], *extra, "--tolerance", repr(tol), "-q", "--json", "-o", path]
+    cmd = [ISM, "fit", *shape["fit"], "--lattice", *extra, "--tolerance", repr(tol), "-q", "--json", "-o", path]
     if "--preset" not in shape["fit"] and "--mesh" not in shape["fit"]:
         cmd += ["--domain=" + ",".join(repr(float(x)) for x in shape["domain"])]
     if reuse and os.path.exists(path) and os.path.exists(saved):
@@ -741,6 +745,14 @@ def compressed_bytes(path):
     z = path[: -len(".ismb")] + ".ismz"
     subprocess.run([ISM, "convert", path, z, "-q"], check=True)
     return os.path.getsize(z)
+
+
+def structured_bytes(path):
+    """Bytes of the same model in the structured encoding (spec ism-format.md §7.4.3: face records
+    by the complex, points on a lattice when they lie on one), written by `ism convert`."""
+    s = path[: -len(".ismb")] + ".isms"
+    subprocess.run([ISM, "convert", path, s, "-q"], check=True)
+    return os.path.getsize(s)
 
 
 def xz_bytes(path):
@@ -1002,11 +1014,12 @@ def main():
         ism_bytes = os.path.getsize(path)
         ismc_bytes = compact_bytes(path)
         ismz_bytes = compressed_bytes(path)
+        isms_bytes = structured_bytes(path)
         total, crossed, simplices, parts = byte_parts(path)
         print(f"  .ismb {total} B: {simplices} simplices ({crossed} crossed); " + ", ".join(
             f"{k} {v} B ({100 * v / total:.0f} %)" for k, v in parts.items()), file=sys.stderr)
         print(f"{key}: ISM tol {tol:.2e}: {report['simplices']} simplices, "
-              f"{report['storedNumbers']} numbers, {ism_bytes} B (.ismc {ismc_bytes} B, .ismz {ismz_bytes} B), true S->Z {fwd.max():.3e} "
+              f"{report['storedNumbers']} numbers, {ism_bytes} B (.ismc {ismc_bytes} B, .ismz {ismz_bytes} B, .isms {isms_bytes} B), true S->Z {fwd.max():.3e} "
               f"Z->S {back.max():.3e} (report {report['shapeToTarget']:.3e} / "
               f"{report['targetToShape']:.3e}, met {report['toleranceMet']}), {cpu:.1f} CPU-s",
               file=sys.stderr)
@@ -1045,7 +1058,7 @@ def main():
         topo = f"genus {shape['genus']}" if shape.get("genus") is not None else "—"
         ism_topo = f"{report.get('components')} comp., χ {report.get('euler')}"
         if best is None:
-            mc = f"not reached by {max_res} cells | — | — | — | — | — | — | — | — | — |"
+            mc = f"not reached by {max_res} cells | — | — | — | — | — | — | — | — | — | — |"
         else:
             r, v, f, mcpu, glb, e, gpath = best
             glb_xz = xz_bytes(gpath)
@@ -1054,17 +1067,17 @@ def main():
             mc = (f"{r} | {nums:,} | {glb:,} | {max(e):.2e} ({e[0]:.1e}/{e[1]:.1e}) | "
                   f"{'χ ' + str(chi) if chi is not None else str(len(f)) + ' segments'}, "
                   f"{mcpu:.1f} CPU-s | {glb / ism_bytes:.2f} | {glb / ismc_bytes:.2f} | {glb / ismz_bytes:.2f} | "
-                  f"{glb_xz:,} | {glb_xz / ismz_bytes:.2f} |")
+                  f"{glb / isms_bytes:.2f} | {glb_xz:,} | {glb_xz / ismz_bytes:.2f} |")
         rows.append(
             f"| {shape['name']} ({topo}) | {tol:.1e} | {report['simplices']:,} | "
-            f"{report['storedNumbers']:,} | {ism_bytes:,} | {ismc_bytes:,} | {ismz_bytes:,} | {ism_err:.2e} ({fwd.max():.1e}/"
+            f"{report['storedNumbers']:,} | {ism_bytes:,} | {ismc_bytes:,} | {ismz_bytes:,} | {isms_bytes:,} | {ism_err:.2e} ({fwd.max():.1e}/"
             f"{back.max():.1e}) | {report['maxDistance']:.2e}, met {report['toleranceMet']} | "
             f"{ism_topo}, {cpu:.1f} CPU-s | {mc}")
-    print("| shape | tolerance | ISM simplices | stored numbers | .ismb bytes | .ismc bytes | .ismz bytes | true "
+    print("| shape | tolerance | ISM simplices | stored numbers | .ismb bytes | .ismc bytes | .ismz bytes | .isms bytes | true "
           "two-sided error (S→Z/Z→S) | report's claim | ISM topology, CPU | MC grid | MC numbers | "
-          ".glb bytes | MC true error | MC topology, CPU | .glb / .ismb | .glb / .ismc | .glb / .ismz | "
+          ".glb bytes | MC true error | MC topology, CPU | .glb / .ismb | .glb / .ismc | .glb / .ismz | .glb / .isms | "
           ".glb.xz bytes | .glb.xz / .ismz |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         print(r)
 

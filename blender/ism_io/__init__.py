@@ -1,4 +1,4 @@
-"""Blender extension: File > Import / Export > Iso-Simplicial Model (.ism.json, .ismb, .ismc, .ismz, .ism.msgpack).
+"""Blender extension: File > Import / Export > Iso-Simplicial Model (.ism.json, .ismb, .ismc, .ismz, .isms, .ism.msgpack).
 
 A thin layer over the ``ism`` Python package (bundled as a wheel in the extension zip): reading,
 validation, surface extraction and fitting are the package's; this add-on turns its arrays into
@@ -14,12 +14,13 @@ from bpy_extras.io_utils import ExportHelper, ImportHelper
 
 from . import exporter, importer
 
-EXTENSIONS = (".ism.json", ".ismb", ".ismc", ".ismz", ".ism.msgpack")
+EXTENSIONS = (".ism.json", ".ismb", ".ismc", ".ismz", ".isms", ".ism.msgpack")
 FILTER_GLOB = ";".join("*" + e for e in EXTENSIONS)
 ENCODING_EXT = {
     "binary": ".ismb",
     "compact": ".ismc",
     "compressed": ".ismz",
+    "structured": ".isms",
     "json": ".ism.json",
     "msgpack": ".ism.msgpack",
 }
@@ -115,6 +116,7 @@ class ISM_OT_export(bpy.types.Operator, ExportHelper):
             ("binary", "Binary (.ismb)", "Binary encoding, fixed-width integers"),
             ("compact", "Compact binary (.ismc)", "Binary encoding with variable-length integers"),
             ("compressed", "Compressed (.ismz)", "Compact binary compressed with xz: the smallest file, slower to write"),
+            ("structured", "Structured (.isms)", "Compact binary with face records given by the complex: the smallest uncompressed file"),
             ("json", "JSON (.ism.json)", "Human-readable JSON encoding"),
             ("msgpack", "MessagePack (.ism.msgpack)", "MessagePack encoding"),
         ),
@@ -209,7 +211,7 @@ class ISM_OT_export(bpy.types.Operator, ExportHelper):
 
 
 class ISM_FH_import(bpy.types.FileHandler):
-    """Drag and drop of .ism.json / .ismb / .ismc / .ismz / .ism.msgpack files onto the viewport."""
+    """Drag and drop of .ism.json / .ismb / .ismc / .ismz / .isms / .ism.msgpack files onto the viewport."""
 
     bl_idname = "ISM_FH_import"
     bl_label = "Iso-Simplicial Model"
@@ -223,11 +225,11 @@ class ISM_FH_import(bpy.types.FileHandler):
 
 
 def _menu_import(self, context):
-    self.layout.operator(ISM_OT_import.bl_idname, text="Iso-Simplicial Model (.ism.json, .ismb, .ismc, .ismz, .ism.msgpack)")
+    self.layout.operator(ISM_OT_import.bl_idname, text="Iso-Simplicial Model (.ism.json, .ismb, .ismc, .ismz, .isms, .ism.msgpack)")
 
 
 def _menu_export(self, context):
-    self.layout.operator(ISM_OT_export.bl_idname, text="Iso-Simplicial Model (.ism.json, .ismb, .ismc, .ismz, .ism.msgpack)")
+    self.layout.operator(ISM_OT_export.bl_idname, text="Iso-Simplicial Model (.ism.json, .ismb, .ismc, .ismz, .isms, .ism.msgpack)")
 
 
 _CLASSES = (ISM_OT_import, ISM_OT_export, ISM_FH_import)

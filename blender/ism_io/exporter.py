@@ -33,6 +33,13 @@ class ExportOptions:
     encoding: Optional[str] = None  # None: from the file name
 
 
+def _encoding_of(path: str, encoding: Optional[str]) -> Optional[str]:
+    """The encoding ``model.write(path, encoding)`` writes: ``encoding``, or the file name's."""
+    if encoding:
+        return encoding
+    return "structured" if path.lower().endswith(".isms") else None
+
+
 def closed_triangles(obj: Any, depsgraph: Any) -> Tuple[np.ndarray, np.ndarray]:
     """World-space vertices (N, 3) and triangles (M, 3) of ``obj`` as evaluated (modifiers applied).
 
@@ -113,6 +120,9 @@ def export_objects(objects: List[Any], depsgraph: Any, path: str, opts: ExportOp
         optimize=opts.optimize,
         rational=opts.rational,
         topology=opts.topology,
+        # The structured encoding stores lattice points in 3 bytes per free coordinate (as
+        # `ism fit -o X.isms` does).
+        lattice=_encoding_of(path, opts.encoding) == "structured",
         name=name,
     )
     verdict = model.validate()

@@ -47,7 +47,7 @@ def _model_name(model: Any, path: str) -> str:
     if name:
         return str(name)
     base = os.path.basename(path)
-    for ext in (".ism.json", ".ism.msgpack", ".ismb", ".ismc", ".ismz"):
+    for ext in (".ism.json", ".ism.msgpack", ".ismb", ".ismc", ".ismz", ".isms"):
         if base.lower().endswith(ext):
             return base[: -len(ext)]
     return os.path.splitext(base)[0]

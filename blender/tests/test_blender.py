@@ -37,7 +37,7 @@ IMPORT_TOL = 1e-3
 EXAMPLES_3D = [
     os.path.join(EXAMPLES, f"{name}{ext}")
     for name in ("sphere", "stratified-3d", "torus")
-    for ext in (".ismb", ".ismc", ".ismz", ".ism.json", ".ism.msgpack")
+    for ext in (".ismb", ".ismc", ".ismz", ".isms", ".ism.json", ".ism.msgpack")
 ]
 
 
@@ -464,6 +464,41 @@ def test_export_compressed_encoding(scene, tmp_path):
     # What Python's own xz decoder gives is the compact encoding's payload of the model read.
     assert payload == model.to_bytes("compact")[32:]
     assert model.dimension == 3
+    assert ism.validate(written).verdict == "valid"
+
+
+def test_export_structured_encoding(scene, tmp_path):
+    """The structured encoding (spec §7.4.3): the container with tag 6, fitted with the control
+    points on the 2^-24 lattice (every coordinate an integer multiple, the numerators of a point
+    summing to 2^24 exactly), smaller than the compact encoding of the same model, and valid."""
+    import struct
+
+    import ism
+
+    bpy.ops.mesh.primitive_ico_sphere_add(subdivisions=2, radius=1.0)
+    _select_only([bpy.context.active_object])
+    path = str(tmp_path / "s.ismb")
+    assert bpy.ops.export_scene.ism(filepath=path, tolerance=0.05, resolution=4, encoding="structured") == {"FINISHED"}
+    written = str(tmp_path / "s.isms")
+    assert os.path.exists(written) and not os.path.exists(path)
+    data = open(written, "rb").read()
+    assert data[:8] == b"\x89ISM\r\n\x1a\n" and data[12] == 6
+    (length,) = struct.unpack_from("<Q", data, 16)
+    assert length == len(data) - 32
+    model = ism.read(written)
+    assert model.dimension == 3
+    points = 0
+    for stage in model.stages:
+        po, pts = np.asarray(stage.point_offsets), np.asarray(stage.points)
+        fo = np.asarray(stage.face_offsets)
+        for r in range(len(po) - 1):
+            k = fo[r + 1] - fo[r]
+            for p in pts[po[r]:po[r + 1]].reshape(-1, k):
+                n = p * 2.0**24
+                assert np.all(n == np.round(n)) and np.all(n >= 1) and int(n.sum()) == 1 << 24, p
+                points += 1
+    assert points > 0
+    assert len(data) < len(model.to_bytes("compact", container=True))
     assert ism.validate(written).verdict == "valid"
 
 

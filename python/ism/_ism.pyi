@@ -136,7 +136,7 @@ class Model:
     def extensions_required(self) -> List[str]: ...
     @property
     def extensions(self) -> Dict[str, Any]: ...
-    def to_bytes(self, encoding: str = "binary", *, pretty: bool = False, container: bool = False) -> bytes: ...  # json | msgpack | binary | compact
+    def to_bytes(self, encoding: str = "binary", *, pretty: bool = False, container: bool = False) -> bytes: ...  # json | msgpack | binary | compact | compressed | structured
     def write_path(self, path: _Path, encoding: Optional[str] = None, *, pretty: bool = False, container: bool = False) -> None: ...
     def write(self, dest: Any, encoding: Optional[str] = None, *, pretty: bool = False, container: bool = False) -> None: ...
     def validate(
@@ -200,6 +200,7 @@ def fit(
     optimize: bool = True,
     rational: bool = False,
     topology: bool = True,
+    lattice: bool = False,
     progress: Optional[Callable[[str, int, float], Any]] = None,
 ) -> Tuple[Model, Dict[str, Any]]: ...
 def fit_mesh(
@@ -214,6 +215,7 @@ def fit_mesh(
     optimize: bool = True,
     rational: bool = False,
     topology: bool = True,
+    lattice: bool = False,
     name: str = "mesh",
     progress: Optional[Callable[[str, int, float], Any]] = None,
 ) -> Tuple[Model, Dict[str, Any]]: ...

@@ -898,6 +898,9 @@ class BinaryDecoder:
             return self.seq(self.MIN["record"], record)
         if form != 1:
             raise self.fail(start, f"recordForm {form}")
+        if self.dimension not in (2, 3):
+            # §7.4.3: recordForm 1 only in 2D and 3D, so no reader lists the faces of an impossible complex.
+            raise self.fail(start, f"recordForm 1 in dimension {self.dimension} (only 2 or 3)")
         dims_at = self.at
         dims = self.u8()
         n = self.dimension
@@ -1647,6 +1650,8 @@ def stage_record_masks(stage: dict, n: int, complex_: ComplexFaces):
     twice), each with C(d - 1, k) points of k + 1 coordinates and, in a rational stage, as many weights (none in
     other kinds), and a monotonic stage has none; else None (`recordForm` 0)."""
     records = stage.get("faces", [])
+    if n not in (2, 3):
+        return None
     if stage["kind"] == "monotonic":
         return {} if not records else None
     rational = stage["kind"] == "rational"

@@ -688,19 +688,28 @@ def test_vertex_records_of_a_huge_degree_take_no_bytes():
     assert (error.value.rule, error.value.location["pointer"]) == ("ISM-120", "/stages/0/degree")
 
 
-def test_a_mask_the_payload_cannot_hold_is_refused_without_listing_the_faces():
-    # Dimension 15, one top simplex of 16 ids: C(16, 8) = 12 870 7-faces, a mask of 1 609 bytes; the payload holds
-    # a few. Refused at the mask, without building a list larger than the bytes justify.
+def test_record_form_1_outside_2d_and_3d_is_refused_without_listing_the_faces():
+    # Dimension 15, one top simplex of 16 ids: C(16, 8) = 12 870 7-faces. §7.4.3 allows recordForm 1 only in 2D
+    # and 3D, so the byte itself is refused, before any face is listed.
     model = ismpy.new_model()
     model.update(dimension=15, vertices=[], simplices=list(range(16)), values=[])
     p = stage_head(head(model)).add("recordForm", b"\x01").add("dims", b"\x80").add("mask", bytes(20))
     tracemalloc.start()
     try:
-        expect(p.file(), "/stages/0/faces", p.at["mask"])
+        expect(p.file(), "/stages/0/faces", p.at["recordForm"])
         _, peak = tracemalloc.get_traced_memory()
     finally:
         tracemalloc.stop()
     assert peak < 1 << 20, peak
+
+
+def test_a_mask_the_payload_cannot_hold_is_refused_at_its_first_byte():
+    # Three tetrahedra around the triangle (0, 1, 2): 12 edges, a two-byte mask; the payload ends one byte into it
+    # (the stage still has the 7 bytes a stage takes at least, so the stage count is not what is refused).
+    model = ismpy.new_model()
+    model.update(dimension=3, vertices=[0.0] * 18, simplices=[0, 1, 2, 3, 0, 1, 2, 4, 0, 1, 2, 5], values=[-1.0] + [1.0] * 5)
+    p = stage_head(head(model)).add("recordForm", b"\x01").add("dims", b"\x02").add("mask", b"\x00")
+    expect(p.file(), "/stages/0/faces", p.at["mask"])
 
 
 def test_records_of_an_invalid_complex_decode_then_fail_the_structural_checks():
@@ -837,7 +846,10 @@ def reader_cases() -> dict:
     cases["repeated-and-out-of-range-ids"] = p.file()
     wide = ismpy.new_model()
     wide.update(dimension=15, vertices=[], simplices=list(range(16)), values=[])
-    cases["mask-beyond-payload"] = stage_head(head(wide)).add("recordForm", b"\x01").add("dims", b"\x80").add("mask", bytes(20)).file()
+    cases["record-form-1-in-dimension-15"] = stage_head(head(wide)).add("recordForm", b"\x01").add("dims", b"\x80").add("mask", bytes(20)).file()
+    tets = ismpy.new_model()
+    tets.update(dimension=3, vertices=[0.0] * 18, simplices=[0, 1, 2, 3, 0, 1, 2, 4, 0, 1, 2, 5], values=[-1.0] + [1.0] * 5)
+    cases["mask-beyond-payload"] = stage_head(head(tets)).add("recordForm", b"\x01").add("dims", b"\x02").add("mask", b"\x00").file()
     p = tail(stage_head(head(model)).add("recordForm", b"\x00").add("count", b"\x01").add("face", b"\x02\x01").add("id", b"\xfb\x02\x00"))
     cases["record-form-0-varint"] = p.file()
     p = tail(stage_head(head(model), name=PAD).add("recordForm", b"\x01").add("dims", b"\x02").add("mask", b"\x04").add("width", b"\x01").add("points", b"\x80"))

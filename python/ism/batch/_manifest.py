@@ -39,7 +39,7 @@ OPTION_TYPES: Dict[str, type] = {
 }
 
 #: File endings of models and meshes (a directory manifest takes these).
-MODEL_SUFFIXES = (".ism.json", ".ism.msgpack", ".ismb", ".ismc", ".ismz")
+MODEL_SUFFIXES = (".ism.json", ".ism.msgpack", ".ismb", ".ismc", ".ismz", ".isms")
 MESH_SUFFIXES = (".obj",)
 KNOWN_SUFFIXES = MODEL_SUFFIXES + MESH_SUFFIXES + (".json", ".msgpack")
 
