@@ -15,7 +15,7 @@ VECTORS = ROOT / "spec" / "vectors"
 SCHEMA = ROOT / "spec" / "schema"
 
 EXAMPLE_NAMES = sorted({p.name.split(".")[0] for p in EXAMPLES.glob("*.ism.json")})
-ENCODINGS = {"json": ".ism.json", "msgpack": ".ism.msgpack", "binary": ".ismb", "compact": ".ismc"}
+ENCODINGS = {"json": ".ism.json", "msgpack": ".ism.msgpack", "binary": ".ismb", "compact": ".ismc", "structured": ".isms"}
 
 
 def ism_bin() -> str:

@@ -41,7 +41,7 @@ from vtkmodules.vtkFiltersCore import vtkContourFilter, vtkExtractCells, vtkImpl
 from vtkmodules.vtkFiltersGeneral import vtkTessellatorFilter  # noqa: E402
 
 
-ENCODINGS = [".ismb", ".ismc", ".ism.json", ".ism.msgpack"]
+ENCODINGS = [".ismb", ".ismc", ".isms", ".ism.json", ".ism.msgpack"]
 
 #: Examples whose stage composition is one (rational) Bézier map per simplex: written exactly.
 EXACT = ["circle-linear", "quadratic-edges", "cubic-face-point", "rational-degree5", "circle-curved", "sphere", "torus"]
