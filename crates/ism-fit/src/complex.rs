@@ -28,6 +28,18 @@ pub struct Complex {
     alive: Vec<bool>,
     /// Live cells around each edge.
     edges: HashMap<EdgeKey, Vec<u32>>,
+    /// How the complex was built, when it was built from a Kuhn grid by [`Complex::split_edge`]
+    /// alone: the grid and every split, in order — what the structured encoding stores instead
+    /// of the coordinates and ids ([`Complex::refinement`]).
+    history: Option<History>,
+}
+
+/// A Kuhn grid and the edges split since, in order (see [`Complex::refinement`]).
+#[derive(Clone, Debug)]
+struct History {
+    domain: Vec<f64>,
+    cells: Vec<u32>,
+    splits: Vec<[u32; 2]>,
 }
 
 impl Complex {
@@ -66,6 +78,16 @@ impl Complex {
             cells: Vec::new(),
             alive: Vec::new(),
             edges: HashMap::new(),
+            // A grid too large for u32 counts has no description (no fit gets near it).
+            history: cells
+                .iter()
+                .map(|&c| u32::try_from(c).ok())
+                .collect::<Option<Vec<u32>>>()
+                .map(|cells| History {
+                    domain: domain.to_vec(),
+                    cells,
+                    splits: Vec::new(),
+                }),
         };
         // Grid points are numbered axis 0 fastest, as the builder numbers its corners.
         for s in ism_format::builder::kuhn_simplices(cells) {
@@ -82,6 +104,7 @@ impl Complex {
             cells: Vec::new(),
             alive: Vec::new(),
             edges: HashMap::new(),
+            history: None,
         };
         for c in cells.chunks_exact(dim + 1) {
             complex.add_cell(c);
@@ -151,6 +174,22 @@ impl Complex {
             .iter()
             .flat_map(|&c| self.cell(c).to_vec())
             .collect()
+    }
+
+    /// The complex as a Kuhn grid and its edge splits (spec `ism-format.md` §7.4.3,
+    /// `complexForm` 1), with `kept[i]` for its `i`-th live cell; `None` when it was not built
+    /// from a grid by splits alone ([`Complex::from_parts`]). Its live cells in order are
+    /// [`Complex::compact_cells`]'s: the construction the spec fixes is this type's own —
+    /// children of a split appended in the order of the cells around the edge, each list kept in
+    /// increasing slot order — which the writer checks by rebuilding before it uses it.
+    pub fn refinement(&self, kept: Vec<bool>) -> Option<ism_format::refine::KuhnRefinement> {
+        let h = self.history.as_ref()?;
+        Some(ism_format::refine::KuhnRefinement {
+            domain: h.domain.clone(),
+            cells: h.cells.clone(),
+            splits: h.splits.clone(),
+            kept,
+        })
     }
 
     /// The axis-aligned bounding box of cell `c`: `(lo, hi)`.
@@ -253,6 +292,9 @@ impl Complex {
             .collect();
         let m = self.num_vertices() as u32;
         self.points.extend_from_slice(&mid);
+        if let Some(h) = &mut self.history {
+            h.splits.push([e.0, e.1]);
+        }
         let around = self.cells_around(e.0, e.1).to_vec();
         let mut new_cells = Vec::with_capacity(2 * around.len());
         for c in around {

@@ -27,16 +27,31 @@ use ism_format::faces::FaceTable;
 use ism_format::indexed::simplex_faces;
 use ism_format::model::Model;
 
+/// How many vertices of each simplex are inside (`f < c`): [`shell`] keeps those with at least
+/// one, unless none has (then it keeps every simplex).
+fn inside_counts(model: &Model) -> Vec<usize> {
+    let c = model.level;
+    let inside = |v: u32| model.values.get(v as usize).is_some_and(|&f| f < c);
+    model
+        .simplex_iter()
+        .map(|s| s.iter().filter(|&&v| inside(v)).count())
+        .collect()
+}
+
+/// Which simplices of `model` [`shell`] keeps, in order.
+pub fn kept_simplices(model: &Model) -> Vec<bool> {
+    let counts = inside_counts(model);
+    let any = counts.iter().any(|&k| k > 0);
+    counts.iter().map(|&k| k > 0 || !any).collect()
+}
+
 /// The model restricted to the simplices with at least one inside vertex (see the module doc).
 /// Returns the model unchanged when no simplex has an inside vertex (nothing to keep).
 pub fn shell(model: &Model) -> Model {
     let m = model.dim() + 1;
-    let c = model.level;
-    let inside = |v: u32| model.values.get(v as usize).is_some_and(|&f| f < c);
     let mut kept: Vec<u32> = Vec::with_capacity(model.simplices.len());
     let mut crossed_faces: HashSet<Vec<u32>> = HashSet::new();
-    for s in model.simplex_iter() {
-        let ins = s.iter().filter(|&&v| inside(v)).count();
+    for (s, ins) in model.simplex_iter().zip(inside_counts(model)) {
         if ins == 0 {
             continue;
         }

@@ -42,6 +42,7 @@ pub mod io;
 pub mod model;
 pub mod multi_index;
 pub mod progress;
+pub mod refine;
 pub mod rules;
 pub mod structure;
 

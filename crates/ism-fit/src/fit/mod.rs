@@ -1398,6 +1398,14 @@ impl Fitted {
         crate::shell::shell(&self.full_model(name))
     }
 
+    /// [`Fitted::to_model`]'s complex as the Kuhn grid the fit started from and the edges it split
+    /// (spec `ism-format.md` §7.4.3, `complexForm` 1): what `ism fit` writes into a `.isms`
+    /// instead of the coordinates and ids. `None` for a complex not refined from a grid.
+    pub fn refinement(&self) -> Option<ism_format::refine::KuhnRefinement> {
+        let kept = crate::shell::kept_simplices(&self.full_model(""));
+        self.complex.refinement(kept)
+    }
+
     /// The model on the whole complex the fitter refined: simplex `i` is the `i`-th of
     /// `complex.live_cells()` (the same shape as [`Fitted::to_model`]).
     pub fn full_model(&self, name: &str) -> Model {

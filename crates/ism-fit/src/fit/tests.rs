@@ -956,3 +956,41 @@ fn a_fit_of_a_mesh_with_creases_meets_its_tolerance_by_exact_distances() {
     assert!(point_triangle_distance(c, f) < 1e-15);
     assert!((point_triangle_distance(f[0].map(|x| 2.0 * x), f) - 1.0).abs() < 1e-12);
 }
+
+#[test]
+fn the_refinement_of_a_fit_rebuilds_its_written_complex_bit_for_bit() {
+    // The structured encoding's complexForm 1 (spec §7.4.3) stores a fit's complex as its Kuhn
+    // grid and splits. Its construction (ism_format::refine, written from the spec) must give
+    // the written model's vertices and simplices exactly — the fitter's own complex is a second,
+    // independent implementation of the same rule.
+    for (name, tolerance) in [("circle", 2e-3), ("sphere", 1e-2), ("torus", 2e-2)] {
+        let preset = Preset::find(name).unwrap();
+        let g = preset.expression().unwrap();
+        let mut options = FitOptions::new(preset.domain);
+        options.resolution = 4;
+        options.tolerance = tolerance;
+        let fitted = fit(&g, &options, &ism_format::Progress::none()).unwrap();
+        let model = fitted.to_model(name);
+        let refinement = fitted.refinement().expect("a fit refines a Kuhn grid");
+        assert!(
+            !refinement.splits.is_empty(),
+            "{name}: the fit split no edge"
+        );
+        assert!(
+            refinement.kept.iter().any(|&k| !k),
+            "{name}: the shell dropped nothing"
+        );
+        let (vertices, simplices) = refinement.model_arrays().unwrap();
+        assert_eq!(simplices, model.simplices, "{name}");
+        assert_eq!(
+            vertices.iter().map(|x| x.to_bits()).collect::<Vec<_>>(),
+            model
+                .vertices
+                .iter()
+                .map(|x| x.to_bits())
+                .collect::<Vec<_>>(),
+            "{name}"
+        );
+        assert!(refinement.describes(&model.vertices, &model.simplices));
+    }
+}
