@@ -298,9 +298,11 @@ fn check_grid(domain: &[f64], cells: &[u32]) -> Result<(), RefineError> {
     }
     for (k, pair) in domain.chunks_exact(2).enumerate() {
         let (lo, hi) = (pair[0], pair[1]);
-        if !(lo.is_finite() && hi.is_finite() && lo < hi && (hi - lo).is_finite()) {
+        // Finite sums too: every coordinate lies in [lo, hi], so no midpoint's sum overflows.
+        let finite = [lo, hi, hi - lo, lo + lo, hi + hi];
+        if !(finite.iter().all(|x| x.is_finite()) && lo < hi) {
             return Err(RefineError::Domain(format!(
-                "axis {k}: expected finite lo < hi with a finite extent, got [{lo}, {hi}]"
+                "axis {k}: expected lo < hi with hi - lo, 2 lo and 2 hi finite, got [{lo}, {hi}]"
             )));
         }
     }
@@ -472,6 +474,11 @@ mod tests {
         ));
         assert!(matches!(
             ok(vec![-f64::MAX, f64::MAX, 0.0, 1.0], vec![1, 1]),
+            Err(RefineError::Domain(_))
+        ));
+        // A finite extent whose midpoints' sums would overflow.
+        assert!(matches!(
+            ok(vec![0.9 * f64::MAX, f64::MAX, 0.0, 1.0], vec![1, 1]),
             Err(RefineError::Domain(_))
         ));
         assert!(matches!(
