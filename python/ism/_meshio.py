@@ -11,7 +11,7 @@ from typing import Any
 
 import meshio
 
-EXTENSIONS = [".ismb", ".ismc", ".ismz", ".ism.json", ".ism.msgpack"]
+EXTENSIONS = [".ismb", ".ismc", ".ismz", ".isms", ".ism.json", ".ism.msgpack"]
 
 
 def read(filename: Any) -> "meshio.Mesh":

@@ -5,7 +5,7 @@ the decorated subclass in ``paraview/ism_reader_plugin.py``, as a ParaView reade
 
     from ism.vtk_reader import ISMReader
     r = ISMReader()
-    r.SetFileName("spec/examples/sphere.ismb")      # .ism.json, .ismb, .ismc, .ismz or .ism.msgpack
+    r.SetFileName("spec/examples/sphere.ismb")      # .ism.json, .ismb, .ismc, .ismz, .isms or .ism.msgpack
     r.SetTolerance(1e-3)
     r.Update()
     mb = r.GetOutputDataObject(0)                   # vtkMultiBlockDataSet
@@ -417,7 +417,7 @@ def read_multiblock(path: str, tolerance: float = DEFAULT_TOLERANCE, *, surface:
 
 
 class ISMReader(VTKPythonAlgorithmBase):
-    """VTK source reading an ``.ism.json`` / ``.ismb`` / ``.ismc`` / ``.ismz`` / ``.ism.msgpack`` file (see the module
+    """VTK source reading an ``.ism.json`` / ``.ismb`` / ``.ismc`` / ``.ismz`` / ``.isms`` / ``.ism.msgpack`` file (see the module
     docstring for the output). Properties: ``FileName``, ``Tolerance`` (surface tolerance, model
     units), ``ReadSurface`` and ``ReadVolume`` (both on by default)."""
 

@@ -120,7 +120,7 @@ pub struct Args {
     /// Skip the Plantinga–Vegter refinement (topology not guaranteed).
     #[arg(long)]
     no_topology: bool,
-    /// Output model (.ism.json, .ism.msgpack, .ismb, .ismc: compact binary, or .ismz: compressed, the smallest).
+    /// Output model (.ism.json, .ism.msgpack, .ismb, .ismc: compact binary, .isms: structured, or .ismz: compressed, the smallest).
     #[arg(short, long, required_unless_present = "list_presets")]
     output: Option<PathBuf>,
     /// Also draw the result as SVG (2D only).

@@ -30,7 +30,7 @@ SAMPLE_KINDS = (
     ("volume", "sample-volume", "sample_volume"),
     ("near_surface", "sample-near-surface", "sample_near_surface"),
 )
-ENCODING_SUFFIX = {"binary": ".ismb", "compact": ".ismc", "compressed": ".ismz", "json": ".ism.json", "msgpack": ".ism.msgpack"}
+ENCODING_SUFFIX = {"binary": ".ismb", "compact": ".ismc", "compressed": ".ismz", "structured": ".isms", "json": ".ism.json", "msgpack": ".ism.msgpack"}
 EXPORT_FORMATS = ("glb", "gltf", "obj", "vtk", "vtu")
 
 #: Run defaults (every one can be overridden per row of a table manifest).
