@@ -470,6 +470,7 @@ fn model() -> impl Strategy<Value = Model> {
                 prop::collection::vec((0usize..8, any::<u64>(), any::<bool>()), 0..6),
                 prop::collection::vec(coordinate(), 0..64),
                 any::<bool>(),
+                (0u8..6, prop::collection::vec(any::<u32>(), 0..64)),
             ),
             0..3,
         ),
@@ -495,7 +496,7 @@ fn model() -> impl Strategy<Value = Model> {
             }
             faces.sort_by(|a, b| a.len().cmp(&b.len()).then(a.cmp(b)));
             faces.dedup();
-            for (kind, degree, picks, mut numbers, tidy) in stages {
+            for (kind, degree, picks, mut numbers, tidy, (mode, mut ints)) in stages {
                 let kind = [StageKind::Bezier, StageKind::Rational, StageKind::Monotonic]
                     [usize::from(kind)];
                 let mut records: Vec<FaceRecord> = Vec::new();
@@ -517,8 +518,33 @@ fn model() -> impl Strategy<Value = Model> {
                     } as usize;
                     let count = if exact { owned } else { which % 3 };
                     let mut points = Vec::new();
-                    for _ in 0..count * (k + 1) {
-                        points.push(numbers.pop().unwrap_or(0.5));
+                    for _ in 0..count {
+                        if !(1..=5).contains(&mode) {
+                            for _ in 0..=k {
+                                points.push(numbers.pop().unwrap_or(0.5));
+                            }
+                            continue;
+                        }
+                        // A point of the 2^(-8w) lattice (mode 5: w = 1 with a -0.0), its
+                        // integers below 2^(8w), their sum mostly below it too.
+                        let w = u32::from(mode.min(4));
+                        let scale = 1u64 << (8 * w);
+                        let step = f64::powi(2.0, -8 * w as i32);
+                        let share = if ints.len() % 5 == 0 {
+                            scale
+                        } else {
+                            scale / (k as u64 + 1)
+                        };
+                        let n: Vec<u64> = (0..k)
+                            .map(|_| u64::from(ints.pop().unwrap_or(7)) % share)
+                            .collect();
+                        let sum: u64 = n.iter().sum();
+                        points.push((scale as i64 - sum as i64) as f64 * step);
+                        points.extend(n.iter().map(|&x| x as f64 * step));
+                        if mode == 5 && k >= 1 && n[0] == 0 {
+                            let last = points.len() - k;
+                            points[last] = -0.0;
+                        }
                     }
                     let weights = if kind == StageKind::Rational {
                         (0..count).map(|i| 1.0 + i as f64).collect()
@@ -595,6 +621,94 @@ proptest! {
                 }
             }
             Err(e) => prop_assert!(e.rule().is_some(), "{e}"),
+        }
+    }
+}
+
+/// Structured payloads to mutate: Appendix A's, the writer vector that makes every choice of the
+/// writer, and the small examples.
+fn seeds() -> Vec<Vec<u8>> {
+    let spec = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../spec");
+    let mut out = vec![payload_with(&APPENDIX_A_RECORDS)];
+    for name in [
+        "vectors/writer/structured.isms",
+        "vectors/writer/stages.isms",
+        "examples/circle-curved.isms",
+        "examples/rational-degree5.isms",
+        "examples/cubic-face-point.isms",
+        "examples/stratified-3d.isms",
+    ] {
+        let bytes = std::fs::read(spec.join(name)).unwrap();
+        out.push(bytes[HEADER_LEN..].to_vec());
+    }
+    out
+}
+
+/// One edit of a payload: a byte set, inserted or removed, or the payload cut.
+#[derive(Clone, Debug)]
+enum Edit {
+    Set(usize, u8),
+    Insert(usize, u8),
+    Remove(usize),
+    Cut(usize),
+}
+
+fn edit() -> impl Strategy<Value = Edit> {
+    prop_oneof![
+        4 => (any::<usize>(), any::<u8>()).prop_map(|(i, b)| Edit::Set(i, b)),
+        1 => (any::<usize>(), any::<u8>()).prop_map(|(i, b)| Edit::Insert(i, b)),
+        1 => any::<usize>().prop_map(Edit::Remove),
+        1 => any::<usize>().prop_map(Edit::Cut),
+    ]
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 2000, ..ProptestConfig::default() })]
+
+    /// A fuzzer's view (cargo-fuzz's target `read_structured` checks the same on its own inputs):
+    /// valid payloads with a few bytes edited are read or refused with a typed, located error,
+    /// never a panic; what reads writes back canonically to the same model.
+    #[test]
+    fn edited_payloads_are_read_or_refused(
+        seed in 0usize..7,
+        edits in prop::collection::vec(edit(), 1..4),
+    ) {
+        let mut p = seeds().swap_remove(seed);
+        for e in edits {
+            let n = p.len().max(1);
+            match e {
+                Edit::Set(i, b) if !p.is_empty() => p[i % n] = b,
+                Edit::Insert(i, b) => p.insert(i % (p.len() + 1), b),
+                Edit::Remove(i) if !p.is_empty() => {
+                    p.remove(i % n);
+                }
+                Edit::Cut(i) => p.truncate(i % n),
+                _ => {}
+            }
+        }
+        match io::from_slice_with(&file_of(&p), &unchecked()) {
+            Ok(doc) => {
+                if let Ok(again) = io::to_vec(&doc.model, Encoding::Structured, WriteOptions::default()) {
+                    let back = io::from_slice_with(&again, &unchecked()).unwrap().model;
+                    prop_assert_eq!(
+                        io::encode_payload(&back, Encoding::Binary, false).unwrap(),
+                        io::encode_payload(&doc.model, Encoding::Binary, false).unwrap()
+                    );
+                    prop_assert_eq!(
+                        io::to_vec(&back, Encoding::Structured, WriteOptions::default()).unwrap(),
+                        again
+                    );
+                }
+            }
+            Err(e) => {
+                // Every decoding error has its offset, within the file; the version's form is
+                // checked after decoding, without one (spec §7.8).
+                let d = &e.diagnostics()[0];
+                match d.location.offset {
+                    Some(offset) => prop_assert!(offset <= (HEADER_LEN + p.len()) as u64, "{e}"),
+                    None => prop_assert_eq!(d.location.pointer.as_deref(), Some("/version"), "{}", e),
+                }
+            }
         }
     }
 }
