@@ -28,9 +28,8 @@ const RECORDS_BY_COMPLEX: u8 = 1;
 const MAX_WIDTH: u8 = 4;
 /// `dims` is one byte: face dimensions `k` from 0 to 7.
 const DIMS: usize = 8;
-/// The writer refuses a complex one of whose simplices alone has more `k`-faces than this (a
-/// mask of 2^37 bytes or more, for a `dimension` far above 3): no file could hold it, and listing
-/// them would not end.
+/// The writer refuses a complex with more `k`-faces than this (a mask of 2^37 bytes or more, for
+/// a `dimension` far above 3): no file could hold it, and listing them would not end.
 const WRITER_FACE_BOUND: u64 = 1 << 40;
 
 /// The sorted `k`-faces of a complex for one `k` (spec §7.4.3): `F_k` tuples of `k + 1` ids, flat,
@@ -89,51 +88,56 @@ impl<'s> ComplexFaces<'s> {
         }
     }
 
-    /// Each simplex's distinct ids, sorted, one simplex at a time.
-    fn distinct_ids(&self) -> impl Iterator<Item = Vec<u32>> + '_ {
-        self.simplices
-            .chunks_exact(usize::from(self.dimension) + 1)
-            .map(|ids| {
-                let mut ids = ids.to_vec();
-                ids.sort_unstable();
-                ids.dedup();
-                ids
-            })
+    /// Calls `f` with each simplex's distinct ids, sorted (one buffer for all).
+    fn each_simplex(&self, mut f: impl FnMut(&[u32])) {
+        let arity = usize::from(self.dimension) + 1;
+        let mut ids = Vec::with_capacity(arity);
+        for simplex in self.simplices.chunks_exact(arity) {
+            ids.clear();
+            ids.extend_from_slice(simplex);
+            ids.sort_unstable();
+            ids.dedup();
+            f(&ids);
+        }
     }
 
-    /// The most `k`-faces one simplex has: a lower bound of `F_k`, known without listing them.
-    fn largest_simplex_share(&self, k: usize) -> u64 {
-        self.distinct_ids()
-            .map(|ids| binomial(ids.len() as u64, k as u64 + 1))
-            .max()
-            .unwrap_or(0)
-    }
-
-    /// The sorted `k`-faces (`k < 8`), listed on the first call.
-    fn faces(&mut self, k: usize) -> &KFaces {
+    /// The sorted `k`-faces (`k < 8`), listed on the first call; `None` when there are more than
+    /// `limit` of them (what a mask of the bytes left could cover), found without holding more
+    /// than about twice `limit` of them: a `dimension` far above 3 gives a simplex thousands of
+    /// faces, which a hostile file must not turn into unbounded memory.
+    fn faces(&mut self, k: usize, limit: u64) -> Option<&KFaces> {
         if self.lists[k].is_none() {
             let list = if k < 4 {
-                self.list::<4>(k)
+                self.list::<4>(k, limit)
             } else {
-                self.list::<DIMS>(k)
+                self.list::<DIMS>(k, limit)
             };
-            self.lists[k] = Some(list);
+            self.lists[k] = Some(list?);
         }
-        self.lists[k].as_ref().expect("listed above")
+        self.lists[k].as_ref()
     }
 
     /// Lists the `k`-faces as tuples of `W ≥ k + 1` ids (the unused tail equal in all, so it does
-    /// not change their order), sorts and dedups them.
-    fn list<const W: usize>(&self, k: usize) -> KFaces {
+    /// not change their order), sorted and each once; `None` past `limit` of them.
+    fn list<const W: usize>(&self, k: usize, limit: u64) -> Option<KFaces> {
         let len = k + 1;
+        let limit = usize::try_from(limit).unwrap_or(usize::MAX);
+        // Sorted and deduplicated whenever the list reaches this length, so that it never holds
+        // much more than twice the limit.
+        let mut compact_at = limit.saturating_mul(2).max(1 << 16);
         let mut tuples: Vec<[u32; W]> = Vec::new();
-        for ids in self.distinct_ids() {
+        let mut over = false;
+        let mut add = |ids: &[u32]| {
             let m = ids.len();
-            if m < len {
-                continue;
+            if over || m < len {
+                return;
             }
-            // The combinations of `len` of the `m` positions, increasing: `at` walks them in
-            // lexicographic order.
+            if binomial(m as u64, len as u64) > limit as u64 {
+                // This simplex alone has more faces than the limit.
+                over = true;
+                return;
+            }
+            // The combinations of `len` of the `m` positions, in lexicographic order.
             let mut at: Vec<usize> = (0..len).collect();
             loop {
                 let mut tuple = [0u32; W];
@@ -149,16 +153,39 @@ impl<'s> ComplexFaces<'s> {
                     at[i] = at[i - 1] + 1;
                 }
             }
+            if tuples.len() >= compact_at {
+                tuples.sort_unstable();
+                tuples.dedup();
+                over = tuples.len() > limit;
+                compact_at = compact_at.max(tuples.len().saturating_mul(2));
+            }
+        };
+        if usize::from(self.dimension) + 1 > 4 {
+            // No valid model has more than 4 ids per simplex; those that do may repeat a set of
+            // ids many times, whose faces are then listed once.
+            let mut sets: Vec<Vec<u32>> = Vec::new();
+            self.each_simplex(|ids| sets.push(ids.to_vec()));
+            sets.sort_unstable();
+            sets.dedup();
+            sets.iter().for_each(|ids| add(ids));
+        } else {
+            self.each_simplex(&mut add);
+        }
+        if over {
+            return None;
         }
         tuples.sort_unstable();
         tuples.dedup();
-        KFaces {
+        if tuples.len() > limit {
+            return None;
+        }
+        Some(KFaces {
             len,
             ids: tuples
                 .iter()
                 .flat_map(|t| t[..len].iter().copied())
                 .collect(),
-        }
+        })
     }
 }
 
@@ -229,14 +256,13 @@ fn by_complex(stage: &Stage, complex: &mut ComplexFaces, s: usize) -> Result<Opt
         if last.is_some_and(|(lk, _)| k < lk) {
             return Ok(None);
         }
-        if complex.lists[k].is_none() && complex.largest_simplex_share(k) > WRITER_FACE_BOUND {
+        let Some(list) = complex.faces(k, WRITER_FACE_BOUND) else {
             return Err(Error::format(
                 Rule::LimitExceeded,
                 Location::pointer(format!("/stages/{s}/faces")),
-                format!("a simplex of this complex has more than {WRITER_FACE_BOUND} faces of dimension {k}; their mask cannot be written"),
+                format!("the complex has more than {WRITER_FACE_BOUND} faces of dimension {k}; their mask cannot be written"),
             ));
-        }
-        let list = complex.faces(k);
+        };
         let Some(i) = list.index_of(record.face) else {
             return Ok(None);
         };
@@ -436,18 +462,18 @@ impl<const VARINT: bool> BinaryDecoder<'_, '_, VARINT> {
         let mut masks: Vec<(usize, Vec<u8>, u64)> = Vec::new();
         for k in (0..DIMS).filter(|k| dims >> k & 1 == 1) {
             let mask_at = self.at;
-            // A single simplex's faces already need more bits than remain: the mask cannot be
-            // there, and listing the faces could take unbounded time (a large `dimension`).
+            // More faces than the bits that remain: the mask cannot be there (found without
+            // listing them all, see `ComplexFaces::faces`).
             let room = (self.remaining() as u64).saturating_mul(8);
-            if complex.lists[k].is_none() && complex.largest_simplex_share(k) > room {
+            let Some(faces) = complex.faces(k, room) else {
                 return Err(self.fail(
                     mask_at,
                     format!(
                         "the mask of the {k}-faces needs more than the {room} bits that remain"
                     ),
                 ));
-            }
-            let count = complex.faces(k).count();
+            };
+            let count = faces.count();
             let bytes = self.take(count.div_ceil(8), "a mask")?.to_vec();
             if count % 8 != 0 {
                 let last = bytes.len() - 1;
@@ -507,7 +533,7 @@ impl<const VARINT: bool> BinaryDecoder<'_, '_, VARINT> {
         let mut full = None;
         'masks: for (k, mask, _) in &masks {
             let k = *k;
-            let faces = complex.faces(k);
+            let faces = complex.lists[k].as_ref().expect("listed with its mask");
             // Bounded by the bytes checked above, or 0 when no record of this `k` was set.
             let per = owned(degree, k) as usize;
             let per_weights = weight_of(k) as usize;

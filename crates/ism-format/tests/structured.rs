@@ -415,6 +415,55 @@ fn a_huge_dimension_does_not_list_its_faces() {
 }
 
 #[test]
+fn more_faces_than_the_mask_could_cover_are_refused_at_the_mask() {
+    // dimension 15: 300 simplices of 16 ids among 64 (120 edges each, hundreds in all); the bytes
+    // after the mask's start could cover 8 bits each, fewer than the edges: at the mask.
+    let mut p = Vec::new();
+    p.extend([3, b'1', b'.', b'0', 15, 0, 0, 0, 0, 0, 0]);
+    p.extend([251]);
+    p.extend(((300 * 16) as u16).to_le_bytes());
+    for s in 0..300u32 {
+        p.extend((0..16u32).map(|j| ((s * 7 + 3 * j) % 64) as u8));
+    }
+    p.push(0);
+    p.extend(f64s(&[0.0]));
+    p.extend([1, 0, 2, 0, 0]);
+    let mask = p.len() + 2;
+    p.extend([1, 0b10]);
+    // A stage extras of 40 bytes: 50 bytes, 400 bits, after the mask's start.
+    p.push(40);
+    p.extend(format!("\"{}\"", "x".repeat(38)).bytes());
+    p.extend([0, 0, 0, 0, 4, b'n', b'u', b'l', b'l']);
+    assert_eq!(
+        error_of(&p),
+        (Rule::Malformed, Some("/stages/0/faces".into()), at(mask))
+    );
+    // With a mask of F_1 bits all clear, the same complex reads (F_1 counted naively).
+    let mut edges = std::collections::BTreeSet::new();
+    for s in 0..300u32 {
+        for i in 0..16u32 {
+            for j in 0..16u32 {
+                let (a, b) = ((s * 7 + 3 * i) % 64, (s * 7 + 3 * j) % 64);
+                if a < b {
+                    edges.insert((a, b));
+                }
+            }
+        }
+    }
+    assert!(edges.len() > 8 * (p.len() - mask), "the test's premise");
+    let mut q = p[..mask].to_vec();
+    q.extend(vec![0u8; edges.len().div_ceil(8)]);
+    q.push(1);
+    q.extend([
+        0, 4, b'n', b'u', b'l', b'l', 0, 0, 0, 4, b'n', b'u', b'l', b'l',
+    ]);
+    let m = io::from_slice_with(&file_of(&q), &unchecked())
+        .unwrap()
+        .model;
+    assert!(m.stages[0].faces.is_empty());
+}
+
+#[test]
 fn every_example_round_trips_bit_exactly() {
     let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../spec/examples");
     let mut seen = 0;
