@@ -528,15 +528,54 @@ impl<const VARINT: bool> BinaryDecoder<'_, '_, VARINT> {
         let (points_len, needed) = (points_len as usize, needed as usize);
         let section_at = self.at;
         let section = self.take(needed, "points and weights")?;
-        let (mut points, mut weights) = section.split_at(points_len);
+        let layout = Layout {
+            degree,
+            kind,
+            width,
+        };
+        layout
+            .records(complex, &masks, section.split_at(points_len))
+            .map_err(|(r, full)| {
+                Error::format(
+                    Rule::LimitExceeded,
+                    Location {
+                        pointer: Some(format!("{}/{r}", crate::decode::pointer_of(&self.path))),
+                        offset: Some(self.base + section_at as u64),
+                        ..Location::default()
+                    },
+                    full.to_string(),
+                )
+            })
+    }
+}
+
+/// What a `recordForm` 1 section's records hold, besides their faces.
+struct Layout {
+    degree: u32,
+    kind: StageKind,
+    width: u8,
+}
+
+impl Layout {
+    /// The records of the set bits of `masks` (`(k, mask, _)`, `k` ascending), their points read
+    /// from `points` and weights from `weights`, which hold exactly what they need (checked by the
+    /// caller). Past the table's capacity: the record's position and why.
+    fn records(
+        &self,
+        complex: &ComplexFaces,
+        masks: &[(usize, Vec<u8>, u64)],
+        (mut points, mut weights): (&[u8], &[u8]),
+    ) -> std::result::Result<FaceTable, (usize, crate::faces::TableFull)> {
         let mut table = FaceTable::new();
-        let mut full = None;
-        'masks: for (k, mask, _) in &masks {
+        for (k, mask, _) in masks {
             let k = *k;
             let faces = complex.lists[k].as_ref().expect("listed with its mask");
-            // Bounded by the bytes checked above, or 0 when no record of this `k` was set.
-            let per = owned(degree, k) as usize;
-            let per_weights = weight_of(k) as usize;
+            // Bounded by the bytes checked, or unused when no bit of this `k` is set.
+            let per = owned(self.degree, k) as usize;
+            let per_weights = match self.kind {
+                StageKind::Rational => per,
+                _ => 0,
+            };
             let set = mask.iter().enumerate().flat_map(|(b, &byte)| {
                 (0..8)
                     .filter(move |j| byte >> j & 1 == 1)
@@ -546,55 +585,43 @@ impl<const VARINT: bool> BinaryDecoder<'_, '_, VARINT> {
                 let (ids, ps, ws) = table.parts_mut();
                 ids.extend_from_slice(faces.face(i));
                 for _ in 0..per {
-                    if width == 0 {
-                        let (point, rest) = points.split_at((k + 1) * 8);
-                        ps.extend(
-                            point
-                                .chunks_exact(8)
-                                .map(|c| f64::from_le_bytes(c.try_into().expect("8 bytes"))),
-                        );
-                        points = rest;
-                        continue;
-                    }
-                    let w = usize::from(width);
-                    let (point, rest) = points.split_at(k * w);
-                    let mut le = [0u8; 8];
-                    let first = ps.len();
-                    ps.push(0.0);
-                    let mut sum = 0u64;
-                    for c in point.chunks_exact(w) {
-                        le[..w].copy_from_slice(c);
-                        let n = u64::from_le_bytes(le);
-                        sum += n;
-                        ps.push(n as f64 * step(width));
-                    }
-                    ps[first] = lattice_first(sum, width);
-                    points = rest;
+                    points = self.point(k, points, ps);
                 }
                 let (record_weights, rest) = weights.split_at(per_weights * 8);
-                ws.extend(
-                    record_weights
-                        .chunks_exact(8)
-                        .map(|c| f64::from_le_bytes(c.try_into().expect("8 bytes"))),
-                );
+                ws.extend(record_weights.chunks_exact(8).map(f64_le));
                 weights = rest;
-                if let Err(e) = table.close_record() {
-                    full = Some((table.len(), e));
-                    break 'masks;
-                }
+                table.close_record().map_err(|full| (table.len(), full))?;
             }
-        }
-        if let Some((r, e)) = full {
-            return Err(Error::format(
-                Rule::LimitExceeded,
-                Location {
-                    pointer: Some(format!("{}/{r}", crate::decode::pointer_of(&self.path))),
-                    offset: Some(self.base + section_at as u64),
-                    ..Location::default()
-                },
-                e.to_string(),
-            ));
         }
         Ok(table)
     }
+
+    /// Appends the `k + 1` coordinates of the point at the start of `bytes` to `out`; the bytes
+    /// after it.
+    fn point<'b>(&self, k: usize, bytes: &'b [u8], out: &mut Vec<f64>) -> &'b [u8] {
+        if self.width == 0 {
+            let (point, rest) = bytes.split_at((k + 1) * 8);
+            out.extend(point.chunks_exact(8).map(f64_le));
+            return rest;
+        }
+        let w = usize::from(self.width);
+        let (point, rest) = bytes.split_at(k * w);
+        let first = out.len();
+        out.push(0.0);
+        let mut sum = 0u64;
+        for c in point.chunks_exact(w) {
+            let mut le = [0u8; 8];
+            le[..w].copy_from_slice(c);
+            let n = u64::from_le_bytes(le);
+            sum += n;
+            out.push(n as f64 * step(self.width));
+        }
+        out[first] = lattice_first(sum, self.width);
+        rest
+    }
+}
+
+/// A little-endian `f64` of 8 bytes.
+fn f64_le(bytes: &[u8]) -> f64 {
+    f64::from_le_bytes(bytes.try_into().expect("8 bytes"))
 }
