@@ -139,8 +139,9 @@ pub(crate) fn encoding_from_str(text: &str) -> PyResult<Encoding> {
         "binary" => Ok(Encoding::Binary),
         "compact" => Ok(Encoding::Compact),
         "compressed" => Ok(Encoding::Compressed),
+        "structured" => Ok(Encoding::Structured),
         _ => Err(PyValueError::new_err(format!(
-            "encoding {text:?}: expected 'json', 'msgpack', 'binary', 'compact' or 'compressed'"
+            "encoding {text:?}: expected 'json', 'msgpack', 'binary', 'compact', 'compressed' or 'structured'"
         ))),
     }
 }
@@ -871,7 +872,7 @@ impl Model {
     }
 
     /// The encoding the model was read from (``"json"``, ``"msgpack"``, ``"binary"``,
-    /// ``"compact"``, ``"compressed"``), or ``None``
+    /// ``"compact"``, ``"compressed"``, ``"structured"``), or ``None``
     /// for a model built in memory.
     #[getter]
     fn encoding(&self) -> Option<&'static str> {
@@ -1080,8 +1081,9 @@ impl Model {
     }
 
     /// The file's bytes in ``encoding`` (``"json"``, ``"msgpack"``, ``"binary"``, ``"compact"``:
-    /// the binary encoding with variable-length integers, or ``"compressed"``: the compact payload
-    /// compressed by xz, the smallest); ``pretty``
+    /// the binary encoding with variable-length integers, ``"compressed"``: the compact payload
+    /// compressed by xz, the smallest, or ``"structured"``: the compact encoding with face records
+    /// given by the complex and control points on a lattice, the smallest uncompressed); ``pretty``
     /// indents JSON; ``container`` wraps JSON in the checksummed container.
     #[pyo3(signature = (encoding = "binary", *, pretty = false, container = false))]
     fn to_bytes<'py>(

@@ -300,26 +300,38 @@ def test_limits_keys_and_values_are_checked():
     assert ism.read(path, limits={}) == ism.read(path, limits=None) == ism.read(path)
 
 
+def reads_and_writes_like_the_cli(name, tmp_path, encoding, suffix):
+    """The example's NAME.SUFFIX reads as the .ismb's model, and the bytes the package writes in `encoding` are
+    `ism convert`'s, by name and by extension; returns them."""
+    m = ism.read(EXAMPLES / (name + ".ismb"))
+    example = EXAMPLES / (name + suffix)
+    assert ism.read(example) == m
+    assert ism.read(example).encoding == encoding
+    out = tmp_path / ("cli" + suffix)
+    cli("convert", EXAMPLES / (name + ".ismb"), out, "--quiet")
+    assert m.to_bytes(encoding) == out.read_bytes()
+    mine = tmp_path / ("py" + suffix)
+    m.write(mine)
+    assert mine.read_bytes() == out.read_bytes()
+    return out.read_bytes()
+
+
 @pytest.mark.parametrize("name", EXAMPLE_NAMES)
 def test_compressed_encoding_reads_and_writes_like_the_cli(name, tmp_path):
-    # The compressed encoding (spec §7.4.2): the example's .ismz reads as the .ismb's model; the bytes the
-    # package writes are `ism convert`'s, by name and by extension; the payload is the compact payload in xz,
-    # which Python's own lzma module decompresses to exactly the .ismc's payload.
+    # The compressed encoding (spec §7.4.2); the payload is the compact payload in xz, which Python's own lzma
+    # module decompresses to exactly the .ismc's payload.
     import lzma
     import struct
 
-    m = ism.read(EXAMPLES / (name + ".ismb"))
-    z = EXAMPLES / (name + ".ismz")
-    assert ism.read(z) == m
-    assert ism.read(z).encoding == "compressed"
-    out = tmp_path / "cli.ismz"
-    cli("convert", EXAMPLES / (name + ".ismb"), out, "--quiet")
-    assert m.to_bytes("compressed") == out.read_bytes()
-    mine = tmp_path / "py.ismz"
-    m.write(mine)
-    assert mine.read_bytes() == out.read_bytes()
-    payload = out.read_bytes()[32:]
+    payload = reads_and_writes_like_the_cli(name, tmp_path, "compressed", ".ismz")[32:]
     (length,) = struct.unpack_from("<Q", payload)
     inner = lzma.decompress(payload[8:], format=lzma.FORMAT_XZ)
     assert len(inner) == length
-    assert inner == m.to_bytes("compact")[32:]
+    assert inner == ism.read(EXAMPLES / (name + ".ismb")).to_bytes("compact")[32:]
+
+
+@pytest.mark.parametrize("name", EXAMPLE_NAMES)
+def test_structured_encoding_reads_and_writes_like_the_cli(name, tmp_path):
+    # The structured encoding (spec §7.4.3): what the package and the CLI write is the example file itself.
+    written = reads_and_writes_like_the_cli(name, tmp_path, "structured", ".isms")
+    assert written == (EXAMPLES / (name + ".isms")).read_bytes()

@@ -173,6 +173,43 @@ pub fn read_compressed(data: &[u8]) {
     }
 }
 
+/// Target `read_structured` (spec §7.4.3): a structured payload behind a valid container. The
+/// readers agree ([`readers_agree`]); a model that reads is written back structured and reads to
+/// itself, and the writer's bytes are canonical (written again from what they read, the same
+/// bytes). A payload that reads need not be the writer's own: readers accept `recordForm` 0 where
+/// the writer would choose 1, and any lattice width that holds the points.
+pub fn read_structured(payload: &[u8]) {
+    readers_agree_on_payload(Encoding::Structured, payload);
+    let mut bytes = io::header(Encoding::Structured, ism_format::FORMAT_VERSION, payload).to_vec();
+    bytes.extend_from_slice(payload);
+    let unchecked = ReadOptions {
+        check_structure: false,
+        ..ReadOptions::default()
+    };
+    let Ok(doc) = io::from_slice_with(&bytes, &unchecked) else {
+        return;
+    };
+    let Ok(again) = io::to_vec(&doc.model, Encoding::Structured, WriteOptions::default()) else {
+        // Only a number no writer writes (NaN, infinity) stops the writer.
+        assert!(io::check_writable(&doc.model).is_err());
+        return;
+    };
+    let back = io::from_slice_with(&again, &unchecked)
+        .expect("a written structured file reads")
+        .model;
+    let binary = |m: &Model| io::encode_payload(m, Encoding::Binary, false).expect("binary");
+    assert_eq!(
+        binary(&back),
+        binary(&as_written(&doc.model)),
+        "structured round trip"
+    );
+    assert_eq!(
+        io::to_vec(&back, Encoding::Structured, WriteOptions::default()).expect("re-encode"),
+        again,
+        "the structured writer is not canonical"
+    );
+}
+
 /// Target `import_mesh`: the bytes as `.vtu`, legacy `.vtk` and `.msh` (`ism import`'s parsers).
 /// Each parse gives a mesh or a typed error; a mesh converts to a model or a typed error (with the
 /// first field and with a named one at another level); a converted model is one `ism` reads back.

@@ -1,5 +1,5 @@
-//! Conformance: every example in `spec/examples/` reads in each of its five encodings, passes the
-//! reader's structural checks, and the five encodings carry bit-identical models. One test per
+//! Conformance: every example in `spec/examples/` reads in each of its six encodings, passes the
+//! reader's structural checks, and the six encodings carry bit-identical models. One test per
 //! example.
 
 use std::collections::BTreeMap;
@@ -30,7 +30,7 @@ fn check(name: &str, files: &[PathBuf]) -> Result<(), Failed> {
     }
     encodings.sort_by_key(|e| e.tag());
     if encodings != Encoding::ALL {
-        return Err(format!("{name}: expected all five encodings, found {encodings:?}").into());
+        return Err(format!("{name}: expected all six encodings, found {encodings:?}").into());
     }
     Ok(())
 }
@@ -46,9 +46,16 @@ fn main() {
             .and_then(|n| n.to_str())
             .unwrap_or("")
             .to_string();
-        let stem = [".ism.json", ".ism.msgpack", ".ismb", ".ismc", ".ismz"]
-            .iter()
-            .find_map(|ext| name.strip_suffix(ext));
+        let stem = [
+            ".ism.json",
+            ".ism.msgpack",
+            ".ismb",
+            ".ismc",
+            ".ismz",
+            ".isms",
+        ]
+        .iter()
+        .find_map(|ext| name.strip_suffix(ext));
         if let Some(stem) = stem {
             groups.entry(stem.to_string()).or_default().push(path);
         }

@@ -23,6 +23,7 @@ const TARGETS: &[(&str, Property)] = &[
         fuzz::readers_agree_on_payload(Encoding::Compact, b)
     }),
     ("read_compressed", fuzz::read_compressed),
+    ("read_structured", fuzz::read_structured),
     ("read_msgpack", |b| {
         fuzz::readers_agree_on_payload(Encoding::MessagePack, b)
     }),

@@ -10,12 +10,13 @@ use ism_format::Encoding;
 use libtest_mimic::{Arguments, Failed, Trial};
 
 /// Output file suffix, encoding, pretty JSON.
-const OUTPUTS: [(&str, Encoding, bool); 5] = [
+const OUTPUTS: [(&str, Encoding, bool); 6] = [
     ("ism.json", Encoding::Json, false),
     ("pretty.ism.json", Encoding::Json, true),
     ("ism.msgpack", Encoding::MessagePack, false),
     ("ismb", Encoding::Binary, false),
     ("ismc", Encoding::Compact, false),
+    ("isms", Encoding::Structured, false),
 ];
 
 fn check(dir: &Path, stem: &str) -> Result<(), Failed> {

@@ -8,9 +8,11 @@ use ism_format::{io, Encoding};
 
 const AFTER_HELP: &str = "\
 The output encoding follows --to, else the output extension (.ism.json, .ism.msgpack, .ismb,
-.ismc, .ismz). Compact binary (.ismc) is the binary encoding with variable-length integers;
+.ismc, .ismz, .isms). Compact binary (.ismc) is the binary encoding with variable-length integers;
 compressed (.ismz) is the compact payload compressed by xz, the smallest (any xz decoder reads it,
-e.g. Python's lzma module; writing is slower, several MB/s).
+e.g. Python's lzma module; writing is slower, several MB/s); structured (.isms) is the compact
+encoding with face records given by the complex and control points on a lattice when they lie on
+one, the smallest uncompressed.
 The input encoding is detected from its content, whatever its name. The output is written to a
 temporary file and renamed, so a failure leaves no partial file.
 
@@ -20,6 +22,7 @@ Examples:
   ism convert in.dat out.dat --to msgpack
   ism convert sphere.ismb sphere.ismc
   ism convert sphere.ismb sphere.ismz
+  ism convert sphere.ismb sphere.isms
 
 Exit status: 0 on success, 2 when the input is unreadable or the output cannot be written.";
 
@@ -31,7 +34,7 @@ pub struct Args {
     input: PathBuf,
     /// Output file.
     output: PathBuf,
-    /// Output encoding: json, msgpack, binary, compact or compressed.
+    /// Output encoding: json, msgpack, binary, compact, compressed or structured.
     #[arg(long)]
     to: Option<Encoding>,
     /// Indent JSON output.
@@ -72,7 +75,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         .or_else(|| Encoding::from_path(&args.output))
         .with_context(|| {
             format!(
-                "cannot tell the encoding of {}: use --to json|msgpack|binary|compact|compressed",
+                "cannot tell the encoding of {}: use --to json|msgpack|binary|compact|compressed|structured",
                 args.output.display()
             )
         })?;

@@ -126,7 +126,7 @@ pub struct Args {
     /// crossings are then within ~1e-9 of the edge of the roots of g, not exactly on them.
     #[arg(long)]
     lattice: bool,
-    /// Output model (.ism.json, .ism.msgpack, .ismb, .ismc: compact binary, or .ismz: compressed, the smallest).
+    /// Output model (.ism.json, .ism.msgpack, .ismb, .ismc: compact binary, .isms: structured, or .ismz: compressed, the smallest).
     #[arg(short, long, required_unless_present = "list_presets")]
     output: Option<PathBuf>,
     /// Also draw the result as SVG (2D only).
@@ -264,11 +264,8 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     // The structured encoding stores lattice points in 3 bytes per free coordinate, f64 ones in
     // 8 per coordinate: a fit written as `.isms` is meant to be small.
     options.lattice = args.lattice
-        || args
-            .output
-            .as_deref()
-            .and_then(io::Encoding::from_path)
-            .is_some_and(|e| e.name() == "structured");
+        || args.output.as_deref().and_then(io::Encoding::from_path)
+            == Some(io::Encoding::Structured);
     if let Some(plan) = mesh_plan {
         plan.apply(&mut options);
     }

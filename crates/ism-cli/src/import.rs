@@ -28,7 +28,7 @@ written.";
 pub struct Args {
     /// Input mesh: .vtu, .vtk or .msh.
     input: PathBuf,
-    /// Output model (.ism.json, .ism.msgpack, .ismb, .ismc or .ismz).
+    /// Output model (.ism.json, .ism.msgpack, .ismb, .ismc, .ismz or .isms).
     output: PathBuf,
     /// Name of the point field giving the vertex values.
     #[arg(long)]
@@ -64,7 +64,7 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         .map(|s| s.to_string_lossy().into_owned());
     let encoding = Encoding::from_path(&args.output).with_context(|| {
         format!(
-            "cannot tell the encoding of {}: use .ism.json, .ism.msgpack, .ismb, .ismc or .ismz",
+            "cannot tell the encoding of {}: use .ism.json, .ism.msgpack, .ismb, .ismc, .ismz or .isms",
             args.output.display()
         )
     })?;

@@ -49,7 +49,7 @@ arguments, an input --rational refuses (other stages, moved control points) or a
 #[derive(clap::Args)]
 #[command(after_help = AFTER_HELP)]
 pub struct Args {
-    /// Input model (.ism.json, .ism.msgpack, .ismb, .ismc or .ismz).
+    /// Input model (.ism.json, .ism.msgpack, .ismb, .ismc, .ismz or .isms).
     model: PathBuf,
     /// Output model.
     #[arg(short, long)]

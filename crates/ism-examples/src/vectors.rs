@@ -439,6 +439,99 @@ pub fn reader_vectors() -> Vec<ReaderVector> {
         Rule::CoefficientCount,
     );
     v.extend(strictness_vectors());
+    v.extend(structured_vectors());
+    v
+}
+
+/// The triangle with a quadratic stage whose one record, on the edge [1, 2] with the point
+/// (0.5, 0.5), the structured encoding writes by the complex: `recordForm` 1, `dims` 0b10, the
+/// mask 0b100 over the edges [0,1] [0,2] [1,2], `width` 1, the integer 128 (spec §7.4.3). Its
+/// structured file and the file offset of `recordForm`; `name` names the stage.
+fn structured_triangle(name: Option<&str>) -> (Vec<u8>, usize) {
+    let mut m = triangle();
+    let mut stage = StageBuilder::bezier(2)
+        .face(&[1, 2], &[0.5, 0.5], &[])
+        .build();
+    stage.name = name.map(str::to_string);
+    m.stages.push(stage);
+    let bytes = encode(&m, Encoding::Structured);
+    let records = [1, 0b10, 0b100, 1, 128];
+    let at = bytes
+        .windows(records.len())
+        .position(|w| w == records)
+        .expect("the records of the stage by the complex");
+    (bytes, at)
+}
+
+/// The structured encoding's own errors (spec §7.4.3), each at its pointer and offset.
+fn structured_vectors() -> Vec<ReaderVector> {
+    let s = Encoding::Structured;
+    let mut v = Vec::new();
+    let mut push = |name, bytes, rule| {
+        v.push(ReaderVector {
+            name,
+            encoding: s,
+            bytes,
+            rule,
+        })
+    };
+    // `at + i` of the records set to `byte`, the checksums made valid.
+    let patched = |i: usize, byte: u8| {
+        let (mut bytes, at) = structured_triangle(None);
+        bytes[at + i] = byte;
+        reseal_payload(&mut bytes);
+        bytes
+    };
+    let (dims, mask, width) = (1, 2, 3);
+    // complexForm: the byte before the vertices' length (version, dimension, four absent
+    // metadata members before it).
+    let (mut form, _) = structured_triangle(None);
+    let at = HEADER_LEN + 1 + 3 + 1 + 4;
+    assert_eq!(form[at], 0, "structured layout changed: update the offset");
+    form[at] = 1;
+    reseal_payload(&mut form);
+    push("structured-complex-form", form, Rule::Malformed);
+    push("structured-record-form", patched(0, 2), Rule::Malformed);
+    push(
+        "structured-dims-above-dimension",
+        patched(dims, 0b1010),
+        Rule::Malformed,
+    );
+    push(
+        "structured-mask-padding",
+        patched(mask, 0b1100),
+        Rule::Malformed,
+    );
+    push("structured-width", patched(width, 5), Rule::Malformed);
+    // Width 0: the point's two f64 need 16 bytes; 15 follow the width.
+    push(
+        "structured-short-points",
+        patched(width, 0),
+        Rule::Malformed,
+    );
+    // The kind (three bytes before `recordForm`: kind, degree, direction, name) made monotonic.
+    push(
+        "structured-monotonic-dims",
+        {
+            let (mut bytes, at) = structured_triangle(None);
+            assert_eq!(bytes[at - 4..at], [0, 2, 0, 0], "stage header");
+            bytes[at - 4] = 2;
+            reseal_payload(&mut bytes);
+            bytes
+        },
+        Rule::Malformed,
+    );
+    // Degree 2³² − 1: C(d − 1, 1) points per edge record, refused at `width` before allocating.
+    let (mut huge, at) = structured_triangle(None);
+    huge.splice(at - 3..at - 2, [0xFC, 0xFF, 0xFF, 0xFF, 0xFF]);
+    reseal_payload(&mut huge);
+    push("structured-huge-degree", huge, Rule::Malformed);
+    // The payload ends inside the mask (the stage named so that the payload still holds the
+    // smallest stage, 7 bytes, and the stage count passes).
+    let (mut cut, at) = structured_triangle(Some("a stage."));
+    cut.truncate(at + mask);
+    reseal_payload(&mut cut);
+    push("structured-truncated-mask", cut, Rule::Malformed);
     v
 }
 

@@ -1,6 +1,7 @@
 //! Writer test vectors for `spec/vectors/writer/`: a model given as JSON text in any spelling
 //! (`NAME.input.json`), and the exact bytes a conforming writer produces for it in every encoding
-//! (spec §7.7): `NAME.ism.json` (compact), `NAME.pretty.ism.json`, `NAME.ism.msgpack`, `NAME.ismb`.
+//! (spec §7.7): `NAME.ism.json` (compact), `NAME.pretty.ism.json`, `NAME.ism.msgpack`, `NAME.ismb`,
+//! `NAME.ismc`, `NAME.isms`.
 //!
 //! The bytes come from the reference writer; `tests/python` rebuilds every one of them with a writer
 //! written from the spec alone, so neither implementation is its own ground truth.
@@ -20,12 +21,13 @@ pub struct WriterVector {
 }
 
 /// The output forms of a writer vector: file suffix, encoding, and whether JSON is pretty.
-pub const OUTPUTS: [(&str, Encoding, bool); 5] = [
+pub const OUTPUTS: [(&str, Encoding, bool); 6] = [
     ("ism.json", Encoding::Json, false),
     ("pretty.ism.json", Encoding::Json, true),
     ("ism.msgpack", Encoding::MessagePack, false),
     ("ismb", Encoding::Binary, false),
     ("ismc", Encoding::Compact, false),
+    ("isms", Encoding::Structured, false),
 ];
 
 /// `levels` nested arrays around `0`, as JSON text with spaces.
@@ -104,6 +106,28 @@ pub fn writer_vectors() -> Vec<WriterVector> {
                 nested(ism_format::MAX_DEPTH - 3),
                 nested(ism_format::MAX_DEPTH - 1)
             ),
+        },
+        WriterVector {
+            name: "structured",
+            // The structured encoding's choices (spec §7.4.3): records by the complex at the
+            // smallest lattice width (1; a vertex record and a triangle record; 2 for 2^-16),
+            // f64 for a -0.0 coordinate, listed records when they are out of mask order, and a
+            // monotonic stage by the complex with no records.
+            input: r#"{"version": "1.0", "dimension": 2,
+  "vertices": [0, 0, 1, 0, 1, 1, 0, 1, 2, 0], "simplices": [0, 1, 2, 0, 2, 3, 1, 4, 2],
+  "values": [-1, 1, 2, 0.5, 1],
+  "stages": [
+    {"kind": "bezier", "degree": 3, "faces": [{"face": [0, 2], "points": [0.75, 0.25, 0.25, 0.75]},
+      {"face": [1, 2], "points": [0.5, 0.5, 0.25, 0.75]}, {"face": [0, 1, 2], "points": [0.25, 0.5, 0.25]}]},
+    {"kind": "rational", "degree": 2, "faces": [{"face": [2], "points": [1], "weights": [2]},
+      {"face": [1, 4], "points": [0.5, 0.5], "weights": [0.75]}]},
+    {"kind": "bezier", "degree": 2, "faces": [{"face": [0, 1], "points": [0.9999847412109375, 1.52587890625e-5]}]},
+    {"kind": "bezier", "degree": 2, "faces": [{"face": [0, 3], "points": [1, -0.0]}]},
+    {"kind": "bezier", "degree": 2, "faces": [{"face": [2, 3], "points": [0.5, 0.5]}, {"face": [0, 1], "points": [0.5, 0.5]}]},
+    {"kind": "monotonic", "degree": 2, "vertexMaps": [{"vertex": 1, "coefficients": [0, 0.5, 1]}]}
+  ]
+}"#
+            .into(),
         },
         WriterVector {
             name: "appendix-a",

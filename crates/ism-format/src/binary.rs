@@ -16,6 +16,7 @@ use crate::error::{Error, Result};
 use crate::faces::FaceTable;
 use crate::model::{Direction, JsonValue, Metadata, Model, Stage, StageKind, VertexMap};
 use crate::rules::{Location, Rule};
+use crate::structured::ComplexFaces;
 
 /// Smallest encoded size of one element, per sequence type (spec §7.4, §7.4.1): what a declared
 /// length is checked against.
@@ -271,14 +272,27 @@ enum Source<'a, 'r> {
 pub(crate) struct BinaryDecoder<'a, 'r, const VARINT: bool> {
     src: Source<'a, 'r>,
     /// Payload bytes consumed.
-    at: usize,
+    pub(crate) at: usize,
     /// Declared payload length.
     end: usize,
-    base: u64,
-    path: Vec<Seg>,
+    pub(crate) base: u64,
+    pub(crate) path: Vec<Seg>,
     /// Keep face records' control points and weights (false: count them and test them finite,
     /// [`crate::io::ReadOptions::keep_record_numbers`]).
     keep_numbers: bool,
+    /// The structured encoding (spec §7.4.3): the compact grammar with `complexForm` before
+    /// `vertices` and a stage's records as `Records` (read by `crate::structured`).
+    structured: bool,
+}
+
+impl<'a> BinaryDecoder<'a, '_, true> {
+    /// A decoder of a structured payload (spec §7.4.3: the compact grammar, so varints) held whole
+    /// in memory, whose first byte is at file offset `base`.
+    pub(crate) fn structured(payload: &'a [u8], base: u64) -> Self {
+        let mut d = Self::new(payload, base);
+        d.structured = true;
+        d
+    }
 }
 
 /// Whether every little-endian `f64` in `bytes` is finite, without stopping early (so the loop
@@ -303,6 +317,7 @@ impl<'a, 'r, const VARINT: bool> BinaryDecoder<'a, 'r, VARINT> {
             base,
             path: Vec::new(),
             keep_numbers: true,
+            structured: false,
         }
     }
 
@@ -316,6 +331,7 @@ impl<'a, 'r, const VARINT: bool> BinaryDecoder<'a, 'r, VARINT> {
             base,
             path: Vec::new(),
             keep_numbers: true,
+            structured: false,
         }
     }
 
@@ -326,7 +342,7 @@ impl<'a, 'r, const VARINT: bool> BinaryDecoder<'a, 'r, VARINT> {
         self
     }
 
-    fn fail(&self, at: usize, message: impl Into<String>) -> Error {
+    pub(crate) fn fail(&self, at: usize, message: impl Into<String>) -> Error {
         Error::format(
             Rule::Malformed,
             Location {
@@ -338,7 +354,7 @@ impl<'a, 'r, const VARINT: bool> BinaryDecoder<'a, 'r, VARINT> {
         )
     }
 
-    fn remaining(&self) -> usize {
+    pub(crate) fn remaining(&self) -> usize {
         self.end - self.at
     }
 
@@ -351,7 +367,7 @@ impl<'a, 'r, const VARINT: bool> BinaryDecoder<'a, 'r, VARINT> {
         }
     }
 
-    fn take(&mut self, n: usize, what: &str) -> Result<&[u8]> {
+    pub(crate) fn take(&mut self, n: usize, what: &str) -> Result<&[u8]> {
         self.take_with(n, || what.to_string())
     }
 
@@ -409,7 +425,7 @@ impl<'a, 'r, const VARINT: bool> BinaryDecoder<'a, 'r, VARINT> {
         Ok(())
     }
 
-    fn u8(&mut self, what: &str) -> Result<u8> {
+    pub(crate) fn u8(&mut self, what: &str) -> Result<u8> {
         Ok(self.take(1, what)?[0])
     }
 
@@ -514,7 +530,7 @@ impl<'a, 'r, const VARINT: bool> BinaryDecoder<'a, 'r, VARINT> {
         }
     }
 
-    fn member<T>(
+    pub(crate) fn member<T>(
         &mut self,
         name: &'static str,
         read: impl FnOnce(&mut Self) -> Result<T>,
@@ -784,7 +800,7 @@ impl<'a, 'r, const VARINT: bool> BinaryDecoder<'a, 'r, VARINT> {
     }
 
     /// A stage's `faces`: straight into the flat table, one pass, nothing allocated per record.
-    fn face_table(&mut self) -> Result<FaceTable> {
+    pub(crate) fn face_table(&mut self) -> Result<FaceTable> {
         let n = self.length(Self::MIN.face_record, "faces")?;
         let mut table = FaceTable::new();
         if !self.keep_numbers {
@@ -897,7 +913,9 @@ impl<'a, 'r, const VARINT: bool> BinaryDecoder<'a, 'r, VARINT> {
         Ok(JsonValue(value))
     }
 
-    fn stage(&mut self) -> Result<Stage> {
+    /// A stage; `complex` is the complex's faces in the structured encoding (`None` in the
+    /// others), whose records are then given by it (spec §7.4.3).
+    fn stage(&mut self, complex: Option<&mut ComplexFaces>) -> Result<Stage> {
         let kind_at = self.at;
         let kind = match self.member("kind", |d| d.u32("kind"))? {
             0 => StageKind::Bezier,
@@ -925,7 +943,10 @@ impl<'a, 'r, const VARINT: bool> BinaryDecoder<'a, 'r, VARINT> {
             }
         };
         let name = self.member("name", |d| d.optional_string("name"))?;
-        let faces = self.member("faces", |d| d.face_table())?;
+        let faces = self.member("faces", |d| match complex {
+            Some(complex) => d.records(complex, kind, degree),
+            None => d.face_table(),
+        })?;
         let vertex_maps = self.member("vertexMaps", |d| {
             d.seq(Self::MIN.vertex_map, "vertexMaps", |d| {
                 Ok(VertexMap {
@@ -989,12 +1010,22 @@ impl<'a, 'r, const VARINT: bool> BinaryDecoder<'a, 'r, VARINT> {
                 description: d.member("description", |d| d.optional_string("description"))?,
             })
         })?;
-        let vertices = self.member("vertices", |d| d.f64s("vertices"))?;
+        let vertices = self.member("vertices", |d| {
+            if d.structured {
+                d.complex_form()?;
+            }
+            d.f64s("vertices")
+        })?;
         let simplices = self.member("simplices", |d| d.u32s("simplices"))?;
         let values = self.member("values", |d| d.f64s("values"))?;
         let level = self.member("level", |d| d.f64("level"))?;
+        // The structured encoding's records refer to the complex's faces, computed when a stage
+        // first needs them.
+        let mut complex = self
+            .structured
+            .then(|| ComplexFaces::new(dimension, &simplices));
         let stages = self.member("stages", |d| {
-            d.seq(Self::MIN.stage, "stages", |d| d.stage())
+            d.seq(Self::MIN.stage, "stages", |d| d.stage(complex.as_mut()))
         })?;
         let extensions_used = self.member("extensionsUsed", |d| {
             d.seq(Self::MIN.string, "extensionsUsed", |d| {

@@ -1,4 +1,4 @@
-//! Reading and writing the five encodings and the container (spec §7).
+//! Reading and writing the six encodings and the container (spec §7).
 
 use std::io::{Read, Write};
 use std::path::Path;
@@ -14,7 +14,7 @@ pub const MAGIC: [u8; 8] = [0x89, b'I', b'S', b'M', 0x0D, 0x0A, 0x1A, 0x0A];
 /// Container header length in bytes.
 pub const HEADER_LEN: usize = 32;
 
-/// How the model is encoded (spec §7.2–7.4.1).
+/// How the model is encoded (spec §7.2–7.4.3).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, serde::Serialize)]
 #[serde(rename_all = "lowercase")]
 pub enum Encoding {
@@ -32,16 +32,21 @@ pub enum Encoding {
     /// uncompressed length (spec §7.4.2), in a container. The smallest file; a second
     /// implementation needs only an xz decoder (Python: the standard `lzma` module).
     Compressed,
+    /// Structured (`.isms`): the compact grammar with a stage's face records given by masks over
+    /// the complex's faces and control points on a `2^(−8w)` lattice when they lie on one (spec
+    /// §7.4.3), in a container. The smallest uncompressed encoding.
+    Structured,
 }
 
 impl Encoding {
     /// Every encoding.
-    pub const ALL: [Encoding; 5] = [
+    pub const ALL: [Encoding; 6] = [
         Encoding::Json,
         Encoding::MessagePack,
         Encoding::Binary,
         Encoding::Compact,
         Encoding::Compressed,
+        Encoding::Structured,
     ];
 
     /// The container's encoding tag.
@@ -52,6 +57,7 @@ impl Encoding {
             Encoding::Binary => 3,
             Encoding::Compact => 4,
             Encoding::Compressed => 5,
+            Encoding::Structured => 6,
         }
     }
 
@@ -68,6 +74,7 @@ impl Encoding {
             Encoding::Binary => "ismb",
             Encoding::Compact => "ismc",
             Encoding::Compressed => "ismz",
+            Encoding::Structured => "isms",
         }
     }
 
@@ -84,6 +91,8 @@ impl Encoding {
             Some(Encoding::Compact)
         } else if name.ends_with(".ismz") {
             Some(Encoding::Compressed)
+        } else if name.ends_with(".isms") {
+            Some(Encoding::Structured)
         } else {
             None
         }
@@ -97,6 +106,7 @@ impl Encoding {
             Encoding::Binary => "binary",
             Encoding::Compact => "compact",
             Encoding::Compressed => "compressed",
+            Encoding::Structured => "structured",
         }
     }
 }
@@ -110,8 +120,9 @@ impl std::str::FromStr for Encoding {
             "binary" | "bincode" | "ismb" => Ok(Encoding::Binary),
             "compact" | "ismc" => Ok(Encoding::Compact),
             "compressed" | "ismz" | "xz" => Ok(Encoding::Compressed),
+            "structured" | "isms" => Ok(Encoding::Structured),
             other => Err(format!(
-                "unknown encoding {other:?}; expected json, msgpack, binary, compact or compressed"
+                "unknown encoding {other:?}; expected json, msgpack, binary, compact, compressed or structured"
             )),
         }
     }
@@ -626,7 +637,7 @@ pub fn parse_header(bytes: &[u8]) -> Result<(Encoding, ContainerInfo)> {
             Rule::UnknownEncoding,
             Location::offset(12),
             format!(
-                "encoding tag {}; expected 1 (JSON), 2 (MessagePack), 3 (binary), 4 (compact) or 5 (compressed)",
+                "encoding tag {}; expected 1 (JSON), 2 (MessagePack), 3 (binary), 4 (compact), 5 (compressed) or 6 (structured)",
                 bytes[12]
             ),
         )
@@ -710,6 +721,9 @@ fn decode(bytes: &[u8], options: &ReadOptions) -> Result<Document> {
                 options.limits.max_payload_bytes,
                 reader_minor_is_older,
             )?,
+            Encoding::Structured => {
+                crate::structured::decode(payload, HEADER_LEN as u64, reader_minor_is_older)?
+            }
         };
         return container_document(model, encoding, info, bytes.len() as u64);
     }
@@ -960,6 +974,10 @@ fn encode_into<W: Write>(model: &Model, encoding: Encoding, pretty: bool, out: W
         Encoding::Compressed => {
             crate::compressed::encode(model, &mut w).map_err(|e| fail("compressed", e.to_string()))
         }
+        Encoding::Structured => crate::structured::encode(model).and_then(|payload| {
+            w.write_all(&payload)
+                .map_err(|e| fail("structured", e.to_string()))
+        }),
     };
     match (result, w.error) {
         (Ok(()), _) => Ok(()),

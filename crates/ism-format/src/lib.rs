@@ -2,8 +2,8 @@
 //!
 //! An *Iso-Simplicial Model* is a simplicial complex with a nonzero value per vertex and a sequence
 //! of simplicial diffeomorphism stages; its shape is the level set `F = c` of the deformed
-//! piecewise-linear function. This crate reads and writes the five encodings of
-//! `spec/ism-format.md` (JSON, MessagePack, binary, compact binary, compressed), detects them by content, and
+//! piecewise-linear function. This crate reads and writes the six encodings of
+//! `spec/ism-format.md` (JSON, MessagePack, binary, compact binary, compressed, structured), detects them by content, and
 //! enforces the structural requirements a reader must. It does no geometry beyond orientation signs.
 //!
 //! ```
@@ -45,6 +45,7 @@ pub mod progress;
 pub mod refine;
 pub mod rules;
 pub mod structure;
+mod structured;
 
 pub use decode::MAX_DEPTH;
 pub use error::{Error, ErrorChain, Result};

@@ -106,6 +106,7 @@ fn fuzz_corpus_and_crashes_are_handled() {
             ("read_any", None),
             ("read_binary", Some(Encoding::Binary)),
             ("read_compact", Some(Encoding::Compact)),
+            ("read_structured", Some(Encoding::Structured)),
             ("read_msgpack", Some(Encoding::MessagePack)),
             ("read_json", Some(Encoding::Json)),
             ("cross_encoding", None),

@@ -42,7 +42,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     p.add_argument("-o", "--out", required=True, help="output folder (reruns resume in it)")
     g = p.add_argument_group("pipeline (defaults for every item; table columns override per row)")
     g.add_argument("--steps", default=DEFAULTS["steps"], help=f"comma list of {','.join(STEPS)} (default: all); read/fit always runs")
-    g.add_argument("--encoding", default=DEFAULTS["encoding"], choices=["binary", "compact", "compressed", "structured", "json", "msgpack"], help="convert: output encoding")
+    g.add_argument("--encoding", default=DEFAULTS["encoding"], choices=["binary", "compact", "compressed", "json", "msgpack", "structured"], help="convert: output encoding")
     g.add_argument("--export", default=DEFAULTS["export"], choices=EXPORT_FORMATS, help="export: format")
     g.add_argument("--export-tolerance", type=float, default=DEFAULTS["export_tolerance"], help="export: chordal tolerance")
     g.add_argument("--surface", type=int, default=DEFAULTS["surface"], help="sample: points on the shape (0: none)")

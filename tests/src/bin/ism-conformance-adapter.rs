@@ -55,9 +55,10 @@ fn main() -> ExitCode {
                 "binary" => (Encoding::Binary, false),
                 "compact" => (Encoding::Compact, false),
                 "compressed" => (Encoding::Compressed, false),
+                "structured" => (Encoding::Structured, false),
                 other => {
                     eprintln!(
-                        "unknown encoding {other:?}; expected json, json-pretty, msgpack, binary, compact or compressed"
+                        "unknown encoding {other:?}; expected json, json-pretty, msgpack, binary, compact, compressed or structured"
                     );
                     return ExitCode::from(2);
                 }
@@ -74,7 +75,7 @@ fn main() -> ExitCode {
             }
         }
         _ => {
-            eprintln!("usage: ism-conformance-adapter read FILE | convert IN OUT json|json-pretty|msgpack|binary|compact");
+            eprintln!("usage: ism-conformance-adapter read FILE | convert IN OUT json|json-pretty|msgpack|binary|compact|compressed|structured");
             ExitCode::from(2)
         }
     }

@@ -1,0 +1,763 @@
+//! The structured encoding (spec §7.4.3): Appendix A's payload written out byte by byte from the
+//! spec, the canonical writer's choices (record form, dims, lattice width) checked against bytes
+//! assembled by hand, every reader error of the `Records` section typed and located, and round
+//! trips of the spec's examples and of generated models.
+
+use ism_format::builder::StageBuilder;
+use ism_format::io::{self, ReadOptions, WriteOptions, HEADER_LEN};
+use ism_format::{Encoding, FaceRecord, FaceTable, Model, Rule, Stage, StageKind, VertexMap};
+use proptest::prelude::*;
+
+mod common;
+use common::appendix_a;
+
+fn f64s(xs: &[f64]) -> Vec<u8> {
+    xs.iter().flat_map(|x| x.to_le_bytes()).collect()
+}
+
+/// Appendix A's payload up to its stage's `Records` section, in the structured encoding.
+fn head() -> Vec<u8> {
+    let mut p = Vec::new();
+    p.extend([3, b'1', b'.', b'0']); // version "1.0"
+    p.push(2); // dimension
+    p.extend([1, 1, b't', 0, 0, 0]); // metadata: name "t", generator/units/description absent
+    p.push(0); // complexForm 0
+    p.push(6); // vertices: 6
+    p.extend(f64s(&[0.0, 0.0, 1.0, 0.0, 0.0, 1.0]));
+    p.extend([3, 0, 1, 2]); // simplices: 3 ids, the triangle 0 1 2
+    p.push(3); // values: 3
+    p.extend(f64s(&[-1.0, 1.0, 1.0]));
+    p.extend(f64s(&[0.0])); // level
+    p.push(1); // stages: 1
+    p.extend([0, 2, 0, 0]); // kind bezier, degree 2, direction implicit, name absent
+    p
+}
+
+/// What follows the `Records` section: the stage's vertexMaps and extras, the model's tail.
+fn tail() -> Vec<u8> {
+    let mut p = Vec::new();
+    p.push(0); // vertexMaps: 0
+    p.extend([4, b'n', b'u', b'l', b'l']); // stage extras "null"
+    p.extend([0, 0, 0]); // extensionsUsed, extensionsRequired, extensions
+    p.extend([4, b'n', b'u', b'l', b'l']); // extras "null"
+    p
+}
+
+/// Appendix A's `Records` section. The complex's 1-faces (edges) are, sorted, [0,1] [0,2] [1,2]:
+/// the record on [1,2] is bit 2 of a one-byte mask. Its one point (0.5, 0.5) is on the 2^-8
+/// lattice: n1 = 0.5 · 256 = 128, and c0 = (256 − 128) / 256 = 0.5.
+const APPENDIX_A_RECORDS: [u8; 5] = [
+    1,     // recordForm 1: by the complex
+    0b10,  // dims: records of 1-faces only
+    0b100, // mask_1: edge 2 of [0,1] [0,2] [1,2]
+    1,     // width 1
+    128,   // the point's n1
+];
+
+/// Payload offsets in Appendix A's structured payload.
+const COMPLEX_FORM: usize = 11;
+const RECORDS: usize = 11 + 1 + 1 + 48 + 4 + 1 + 24 + 8 + 1 + 4;
+
+fn payload_with(records: &[u8]) -> Vec<u8> {
+    let mut p = head();
+    p.extend(records);
+    p.extend(tail());
+    p
+}
+
+fn file_of(payload: &[u8]) -> Vec<u8> {
+    let mut file = io::header(Encoding::Structured, ism_format::FORMAT_VERSION, payload).to_vec();
+    file.extend(payload);
+    file
+}
+
+fn at(payload_offset: usize) -> Option<u64> {
+    Some((HEADER_LEN + payload_offset) as u64)
+}
+
+fn unchecked() -> ReadOptions {
+    ReadOptions {
+        check_structure: false,
+        ..ReadOptions::default()
+    }
+}
+
+fn error_of(payload: &[u8]) -> (Rule, Option<String>, Option<u64>) {
+    let e = io::from_slice_with(&file_of(payload), &unchecked()).expect_err("malformed file read");
+    let d = e.diagnostics()[0].clone();
+    (e.rule().unwrap(), d.location.pointer, d.location.offset)
+}
+
+/// The `Records` section the writer gives a stage of Appendix A's complex.
+fn written_records(stage: Stage) -> Vec<u8> {
+    let mut m = appendix_a();
+    m.stages = vec![stage];
+    let payload = io::encode_payload(&m, Encoding::Structured, false).unwrap();
+    // The head is the same up to the stage's name; the tail after the records is fixed length
+    // unless the stage has vertex maps (none here).
+    let h = head();
+    let h = &h[..h.len() - 4];
+    assert_eq!(&payload[..h.len()], h);
+    let rest = &payload[h.len() + 4..];
+    assert!(rest.ends_with(&tail()));
+    let read = io::from_slice_with(
+        &io::to_vec(&m, Encoding::Structured, WriteOptions::default()).unwrap(),
+        &unchecked(),
+    )
+    .unwrap()
+    .model;
+    assert_eq!(
+        io::encode_payload(&read, Encoding::Binary, false).unwrap(),
+        io::encode_payload(&m, Encoding::Binary, false).unwrap()
+    );
+    rest[..rest.len() - tail().len()].to_vec()
+}
+
+#[test]
+fn appendix_a_in_the_structured_encoding_is_the_bytes_of_the_spec() {
+    let payload = payload_with(&APPENDIX_A_RECORDS);
+    // The compact payload (138 bytes) without its record (22 bytes: count, face, points, weights),
+    // with complexForm and the 5 bytes of the section.
+    assert_eq!(payload.len(), 138 - 22 + 1 + 5);
+    let written = io::to_vec(&appendix_a(), Encoding::Structured, WriteOptions::default()).unwrap();
+    assert_eq!(written[12], 6, "encoding tag");
+    assert_eq!(&written[HEADER_LEN..], &payload[..]);
+    let doc = io::from_slice(&written).unwrap();
+    assert_eq!(doc.encoding, Encoding::Structured);
+    assert_eq!(doc.model, appendix_a());
+    assert_eq!(
+        Encoding::from_path(std::path::Path::new("a.isms")),
+        Some(Encoding::Structured)
+    );
+    assert_eq!("structured".parse::<Encoding>(), Ok(Encoding::Structured));
+}
+
+#[test]
+fn records_listed_as_in_the_compact_encoding_read_alike() {
+    // recordForm 0, then `faces` exactly as §7.4.1 writes them.
+    let mut records = vec![0, 1, 2, 1, 2, 2];
+    records.extend(f64s(&[0.5, 0.5]));
+    records.push(0); // weights
+    let doc = io::from_slice(&file_of(&payload_with(&records))).unwrap();
+    assert_eq!(doc.model, appendix_a());
+}
+
+fn bezier(face: &[u32], points: &[f64]) -> Stage {
+    StageBuilder::bezier(2).face(face, points, &[]).build()
+}
+
+#[test]
+fn the_writer_picks_the_smallest_lattice_width() {
+    // A −0.0 coordinate is on no lattice: its integer 0 would read back as +0.0.
+    let mut expected = vec![1, 0b10, 0b100, 0];
+    expected.extend(f64s(&[1.0, -0.0]));
+    assert_eq!(written_records(bezier(&[1, 2], &[1.0, -0.0])), expected);
+    // +0.0 is: n1 = 0, c0 = 256/256.
+    assert_eq!(
+        written_records(bezier(&[1, 2], &[1.0, 0.0])),
+        [1, 0b10, 0b100, 1, 0]
+    );
+    // 2^-16 needs two bytes: n1 = 1 at w = 2, little-endian.
+    let tiny = 1.0 / 65536.0;
+    assert_eq!(
+        written_records(bezier(&[1, 2], &[1.0 - tiny, tiny])),
+        [1, 0b10, 0b100, 2, 1, 0]
+    );
+    // 2^-32 needs four: n1 = 1 at w = 4.
+    let tinier = 1.0 / 4294967296.0;
+    assert_eq!(
+        written_records(bezier(&[1, 2], &[1.0 - tinier, tinier])),
+        [1, 0b10, 0b100, 4, 1, 0, 0, 0]
+    );
+    // 2^-40 needs more than four: f64.
+    let off = f64::powi(2.0, -40);
+    let mut expected = vec![1, 0b10, 0b100, 0];
+    expected.extend(f64s(&[1.0 - off, off]));
+    assert_eq!(
+        written_records(bezier(&[1, 2], &[1.0 - off, off])),
+        expected
+    );
+    // A point whose coordinates do not sum to 1 is not as the lattice stores it.
+    let mut expected = vec![1, 0b10, 0b100, 0];
+    expected.extend(f64s(&[0.25, 0.5]));
+    assert_eq!(written_records(bezier(&[1, 2], &[0.25, 0.5])), expected);
+    // A negative c0 is carried: on a triangle (degree 3, one point) n1 = n2 = 192 sum to 384 > 256,
+    // c0 = (256 − 384) / 256 = −0.5.
+    let s = StageBuilder::bezier(3)
+        .face(&[0, 1, 2], &[-0.5, 0.75, 0.75], &[])
+        .build();
+    assert_eq!(written_records(s), [1, 0b100, 0b1, 1, 192, 192]);
+    // A coordinate of 1 is not below 2^(8w) · 2^(-8w): no lattice holds (0, 1).
+    let mut expected = vec![1, 0b10, 0b100, 0];
+    expected.extend(f64s(&[0.0, 1.0]));
+    assert_eq!(written_records(bezier(&[1, 2], &[0.0, 1.0])), expected);
+}
+
+#[test]
+fn the_writer_lists_records_the_masks_cannot_give() {
+    // Out of mask order: [1,2] (edge 2) before [0,1] (edge 0).
+    let s = StageBuilder::bezier(2)
+        .face(&[1, 2], &[0.5, 0.5], &[])
+        .face(&[0, 1], &[0.5, 0.5], &[])
+        .build();
+    let records = written_records(s);
+    assert_eq!(&records[..2], [0, 2], "recordForm 0, two records");
+    // A record on a face the complex does not have.
+    let records = written_records(bezier(&[0, 3], &[0.5, 0.5]));
+    assert_eq!(&records[..5], [0, 1, 2, 0, 3]);
+    // The wrong number of points (two points on an edge of a degree-2 stage, which owns one).
+    let records = written_records(bezier(&[1, 2], &[0.5, 0.5, 0.5, 0.5]));
+    assert_eq!(&records[..5], [0, 1, 2, 1, 2]);
+    // Weights in a Bézier stage.
+    let s = StageBuilder::bezier(2)
+        .face(&[1, 2], &[0.5, 0.5], &[2.0])
+        .build();
+    assert_eq!(&written_records(s)[..5], [0, 1, 2, 1, 2]);
+    // Unsorted ids: [2,1] is not the face [1,2]. (The builder would sort them.)
+    let mut s = bezier(&[1, 2], &[0.5, 0.5]);
+    s.faces = FaceTable::from(vec![FaceRecord {
+        face: vec![2, 1],
+        points: vec![0.5, 0.5],
+        weights: vec![],
+    }]);
+    assert_eq!(&written_records(s)[..5], [0, 1, 2, 2, 1]);
+    // The same face twice.
+    let s = StageBuilder::bezier(2)
+        .face(&[1, 2], &[0.5, 0.5], &[])
+        .face(&[1, 2], &[0.5, 0.5], &[])
+        .build();
+    assert_eq!(&written_records(s)[..2], [0, 2]);
+}
+
+#[test]
+fn the_writer_gives_records_by_the_complex_whenever_it_can() {
+    // A monotonic stage: no records, dims 0, and width 1 (every point of none is on the lattice).
+    let s = StageBuilder::monotonic(2).build();
+    assert_eq!(written_records(s), [1, 0, 1]);
+    // A rational stage with a vertex record and an edge record: dims 0b11; the vertex (k = 0)
+    // point takes no bytes; the weights follow the points, in record order.
+    let s = Stage {
+        kind: StageKind::Rational,
+        degree: 2,
+        direction: Default::default(),
+        name: None,
+        faces: FaceTable::from(vec![
+            FaceRecord {
+                face: vec![1],
+                points: vec![1.0],
+                weights: vec![3.0],
+            },
+            FaceRecord {
+                face: vec![0, 2],
+                points: vec![0.25, 0.75],
+                weights: vec![2.0],
+            },
+        ]),
+        vertex_maps: vec![],
+        extras: Default::default(),
+    };
+    let mut expected = vec![1, 0b11, 0b010, 0b010, 1, 192];
+    expected.extend(f64s(&[3.0, 2.0]));
+    assert_eq!(written_records(s), expected);
+    // A triangle record at degree 3 (one owned point, three coordinates: two integers).
+    let s = StageBuilder::bezier(3)
+        .face(&[0, 1, 2], &[0.5, 0.25, 0.25], &[])
+        .build();
+    assert_eq!(written_records(s), [1, 0b100, 0b1, 1, 64, 64]);
+    // Degree 1: an edge record owns no point, and still has its bit.
+    let s = StageBuilder::bezier(1).face(&[0, 1], &[], &[]).build();
+    assert_eq!(written_records(s), [1, 0b10, 0b1, 1]);
+}
+
+#[test]
+fn vertex_records_read_as_the_point_1() {
+    // dims 0b1: the 0-faces [0] [1] [2], all three set; width 1: no bytes per point.
+    let m = io::from_slice_with(&file_of(&payload_with(&[1, 0b1, 0b111, 1])), &unchecked())
+        .unwrap()
+        .model;
+    let records = m.stages[0].faces.to_records();
+    assert_eq!(records.len(), 3);
+    for (v, r) in records.iter().enumerate() {
+        assert_eq!(r.face, [v as u32]);
+        assert_eq!(r.points, [1.0]);
+        assert!(r.weights.is_empty());
+    }
+}
+
+#[test]
+fn faces_come_from_the_simplices_as_decoded() {
+    // Simplices [5 5 3] and [3 5 9]: repeated ids count once, ids out of range are ids; the
+    // 1-faces are [3,5] [3,9] [5,9]. The mask picks [3,9] (bit 1).
+    let mut p = Vec::new();
+    p.extend([3, b'1', b'.', b'0', 2, 0, 0, 0, 0]); // version, dimension, no metadata
+    p.push(0); // complexForm
+    p.push(0); // vertices: none
+    p.extend([6, 5, 5, 3, 3, 5, 9]); // simplices
+    p.push(0); // values: none
+    p.extend(f64s(&[0.0])); // level
+    p.extend([1, 0, 2, 0, 0]); // one stage: bezier, degree 2, implicit, no name
+    p.extend([1, 0b10, 0b010, 1, 64]); // records: [3,9] with (0.75, 0.25)
+    p.extend(tail());
+    let m = io::from_slice_with(&file_of(&p), &unchecked())
+        .unwrap()
+        .model;
+    let records = m.stages[0].faces.to_records();
+    assert_eq!(records.len(), 1);
+    assert_eq!(records[0].face, [3, 9]);
+    assert_eq!(records[0].points, [0.75, 0.25]);
+    // The writer finds the same face: the same bytes back.
+    assert_eq!(
+        io::encode_payload(&m, Encoding::Structured, false).unwrap(),
+        p
+    );
+}
+
+#[test]
+fn reader_errors_are_typed_and_located() {
+    let m = Rule::Malformed;
+    let faces = Some("/stages/0/faces".to_string());
+    let dims = RECORDS + 1;
+    let mask = RECORDS + 2;
+    let width = RECORDS + 3;
+    let with = |at: usize, byte: u8| {
+        let mut p = payload_with(&APPENDIX_A_RECORDS);
+        p[at] = byte;
+        p
+    };
+    // complexForm other than 0.
+    assert_eq!(
+        error_of(&with(COMPLEX_FORM, 1)),
+        (m, Some("/vertices".into()), at(COMPLEX_FORM))
+    );
+    // recordForm above 1.
+    assert_eq!(error_of(&with(RECORDS, 2)), (m, faces.clone(), at(RECORDS)));
+    // dims with a bit above the dimension (k = 3 in dimension 2).
+    assert_eq!(error_of(&with(dims, 0b1010)), (m, faces.clone(), at(dims)));
+    // A mask bit past the 3 edges.
+    assert_eq!(error_of(&with(mask, 0b1100)), (m, faces.clone(), at(mask)));
+    // width above 4.
+    assert_eq!(error_of(&with(width, 5)), (m, faces.clone(), at(width)));
+    // A monotonic stage (kind 2) with dims ≠ 0.
+    assert_eq!(
+        error_of(&with(RECORDS - 4, 2)),
+        (m, faces.clone(), at(dims))
+    );
+    // Points that the payload cannot hold: width 0 needs 16 bytes, 15 remain.
+    assert_eq!(error_of(&with(width, 0)), (m, faces.clone(), at(width)));
+    // Truncated: the payload ends at the mask, at the point, at the weights. (The stage is named
+    // so that the payload still holds the 7 bytes a stage takes at least, spec §7.4.1.)
+    let named = {
+        let mut p = head();
+        p.pop();
+        p.extend([1, 8]);
+        p.extend(b"a stage.");
+        p.extend(APPENDIX_A_RECORDS);
+        p.extend(tail());
+        p
+    };
+    let shift = 9;
+    let cut = |n: usize| named[..n + shift].to_vec();
+    let at_shifted = |n: usize| at(n + shift);
+    assert_eq!(error_of(&cut(mask)), (m, faces.clone(), at_shifted(mask)));
+    assert_eq!(error_of(&cut(width)), (m, faces.clone(), at_shifted(width)));
+    assert_eq!(
+        error_of(&cut(width + 1)),
+        (m, faces.clone(), at_shifted(width))
+    );
+    let mut rational = cut(width + 2);
+    rational[RECORDS - 4] = 1; // kind rational: one weight, 8 bytes, after the point
+    rational.extend([0; 7]);
+    assert_eq!(error_of(&rational), (m, faces.clone(), at_shifted(width)));
+    // A degree of 2^32 − 1: C(d − 1, 1) points per edge record, not allocated; at width.
+    let mut p = head();
+    p.truncate(p.len() - 3);
+    p.extend([0xFC, 0xFF, 0xFF, 0xFF, 0xFF, 0, 0]); // degree u32::MAX, implicit, no name
+    let shift = 4; // the degree takes 5 bytes instead of 1
+    p.extend(APPENDIX_A_RECORDS);
+    p.extend(tail());
+    assert_eq!(error_of(&p), (m, faces.clone(), at(width + shift)));
+    // Weights the payload cannot hold: a rational stage of three vertex records (k = 0: no
+    // point bytes at width 1, one weight each, 24 bytes), with 14 bytes left.
+    let mut p = head();
+    p.truncate(p.len() - 4);
+    p.extend([1, 0xFC, 0xFF, 0xFF, 0xFF, 0xFF, 0, 0]);
+    p.extend([1, 0b1, 0b111, 1]);
+    p.extend(tail());
+    assert_eq!(error_of(&p), (m, faces.clone(), at(width + shift)));
+}
+
+#[test]
+fn a_huge_dimension_does_not_list_its_faces() {
+    // dimension 255: one simplex of 256 distinct ids has C(256, 8) 7-faces; dims bit 7 asks for
+    // their mask, which cannot be there: at the mask, without listing them.
+    let mut p = Vec::new();
+    p.extend([3, b'1', b'.', b'0', 255, 0, 0, 0, 0, 0, 0]);
+    p.extend([251, 0, 1]); // simplices: 256
+    for id in 0u32..256 {
+        if id < 251 {
+            p.push(id as u8);
+        } else {
+            p.extend([251, id as u8, 0]);
+        }
+    }
+    p.push(0);
+    p.extend(f64s(&[0.0]));
+    p.extend([1, 0, 2, 0, 0]);
+    let mask = p.len() + 2;
+    p.extend([1, 0x80]);
+    p.extend(tail());
+    let start = std::time::Instant::now();
+    assert_eq!(
+        error_of(&p),
+        (Rule::Malformed, Some("/stages/0/faces".into()), at(mask))
+    );
+    assert!(start.elapsed().as_secs() < 5);
+}
+
+#[test]
+fn more_faces_than_the_mask_could_cover_are_refused_at_the_mask() {
+    // dimension 15: 300 simplices of 16 ids among 64 (120 edges each, hundreds in all); the bytes
+    // after the mask's start could cover 8 bits each, fewer than the edges: at the mask.
+    let mut p = Vec::new();
+    p.extend([3, b'1', b'.', b'0', 15, 0, 0, 0, 0, 0, 0]);
+    p.extend([251]);
+    p.extend(((300 * 16) as u16).to_le_bytes());
+    for s in 0..300u32 {
+        p.extend((0..16u32).map(|j| ((s * 7 + 3 * j) % 64) as u8));
+    }
+    p.push(0);
+    p.extend(f64s(&[0.0]));
+    p.extend([1, 0, 2, 0, 0]);
+    let mask = p.len() + 2;
+    p.extend([1, 0b10]);
+    // A stage extras of 40 bytes: 50 bytes, 400 bits, after the mask's start.
+    p.push(40);
+    p.extend(format!("\"{}\"", "x".repeat(38)).bytes());
+    p.extend([0, 0, 0, 0, 4, b'n', b'u', b'l', b'l']);
+    assert_eq!(
+        error_of(&p),
+        (Rule::Malformed, Some("/stages/0/faces".into()), at(mask))
+    );
+    // With a mask of F_1 bits all clear, the same complex reads (F_1 counted naively).
+    let mut edges = std::collections::BTreeSet::new();
+    for s in 0..300u32 {
+        for i in 0..16u32 {
+            for j in 0..16u32 {
+                let (a, b) = ((s * 7 + 3 * i) % 64, (s * 7 + 3 * j) % 64);
+                if a < b {
+                    edges.insert((a, b));
+                }
+            }
+        }
+    }
+    assert!(edges.len() > 8 * (p.len() - mask), "the test's premise");
+    let mut q = p[..mask].to_vec();
+    q.extend(vec![0u8; edges.len().div_ceil(8)]);
+    q.push(1);
+    q.extend([
+        0, 4, b'n', b'u', b'l', b'l', 0, 0, 0, 4, b'n', b'u', b'l', b'l',
+    ]);
+    let m = io::from_slice_with(&file_of(&q), &unchecked())
+        .unwrap()
+        .model;
+    assert!(m.stages[0].faces.is_empty());
+}
+
+#[test]
+fn every_example_round_trips_bit_exactly() {
+    let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../spec/examples");
+    let mut seen = 0;
+    for entry in std::fs::read_dir(dir).unwrap() {
+        let path = entry.unwrap().path();
+        if !path.to_string_lossy().ends_with(".ism.json") {
+            continue;
+        }
+        let model = io::read_path(&path).unwrap().model;
+        let bytes = io::to_vec(&model, Encoding::Structured, WriteOptions::default()).unwrap();
+        let read = io::from_slice(&bytes).unwrap().model;
+        assert_eq!(
+            io::encode_payload(&read, Encoding::Binary, false).unwrap(),
+            io::encode_payload(&model, Encoding::Binary, false).unwrap(),
+            "{}",
+            path.display()
+        );
+        // Canonical: what was read writes the same bytes.
+        assert_eq!(
+            io::to_vec(&read, Encoding::Structured, WriteOptions::default()).unwrap(),
+            bytes
+        );
+        seen += 1;
+    }
+    assert!(seen > 0);
+}
+
+/// A coordinate: on a lattice of some width, or any finite number (±0 and subnormals included).
+fn coordinate() -> impl Strategy<Value = f64> {
+    prop_oneof![
+        (1u32..=4, any::<u32>()).prop_map(|(w, n)| {
+            let bits = 8 * w;
+            let n = if bits == 32 { n } else { n % (1 << bits) };
+            f64::from(n) * f64::powi(2.0, -(bits as i32))
+        }),
+        any::<u64>()
+            .prop_map(f64::from_bits)
+            .prop_filter("finite", |x| x.is_finite()),
+        Just(-0.0),
+    ]
+}
+
+/// Models whose records lie on their complex's faces (with the counts of their degree, or not),
+/// their points on a lattice or not: every choice of the writer.
+fn model() -> impl Strategy<Value = Model> {
+    (
+        2u8..=3,
+        prop::collection::vec(0u32..8, 0..16),
+        prop::collection::vec(
+            (
+                0u8..3,
+                1u32..5,
+                prop::collection::vec((0usize..8, any::<u64>(), any::<bool>()), 0..6),
+                prop::collection::vec(coordinate(), 0..64),
+                any::<bool>(),
+                (0u8..6, prop::collection::vec(any::<u32>(), 0..64)),
+            ),
+            0..3,
+        ),
+    )
+        .prop_map(|(dimension, simplices, stages)| {
+            let mut m = Model::new(dimension);
+            m.simplices = simplices;
+            let arity = usize::from(dimension) + 1;
+            // The complex's faces, as the spec defines them, written out naively.
+            let mut faces: Vec<Vec<u32>> = Vec::new();
+            for s in m.simplices.chunks_exact(arity) {
+                let mut ids = s.to_vec();
+                ids.sort();
+                ids.dedup();
+                for bits in 1u32..(1 << ids.len()) {
+                    faces.push(
+                        (0..ids.len())
+                            .filter(|i| bits >> i & 1 == 1)
+                            .map(|i| ids[i])
+                            .collect(),
+                    );
+                }
+            }
+            faces.sort_by(|a, b| a.len().cmp(&b.len()).then(a.cmp(b)));
+            faces.dedup();
+            for (kind, degree, picks, mut numbers, tidy, (mode, mut ints)) in stages {
+                let kind = [StageKind::Bezier, StageKind::Rational, StageKind::Monotonic]
+                    [usize::from(kind)];
+                let mut records: Vec<FaceRecord> = Vec::new();
+                let mut chosen: Vec<usize> = Vec::new();
+                for (which, seed, exact) in picks {
+                    let face = if faces.is_empty() || seed % 7 == 0 {
+                        // Sometimes no face of the complex.
+                        vec![which as u32, 100]
+                    } else {
+                        faces[seed as usize % faces.len()].clone()
+                    };
+                    chosen.push(which);
+                    let k = face.len() - 1;
+                    let owned = if degree as usize > k {
+                        (1..=k as u64)
+                            .fold(1u64, |c, i| c * (u64::from(degree) - 1 - k as u64 + i) / i)
+                    } else {
+                        0
+                    } as usize;
+                    let count = if exact { owned } else { which % 3 };
+                    let mut points = Vec::new();
+                    for _ in 0..count {
+                        if !(1..=5).contains(&mode) {
+                            for _ in 0..=k {
+                                points.push(numbers.pop().unwrap_or(0.5));
+                            }
+                            continue;
+                        }
+                        // A point of the 2^(-8w) lattice (mode 5: w = 1 with a -0.0), its
+                        // integers below 2^(8w), their sum mostly below it too.
+                        let w = u32::from(mode.min(4));
+                        let scale = 1u64 << (8 * w);
+                        let step = f64::powi(2.0, -8 * w as i32);
+                        let share = if ints.len() % 5 == 0 {
+                            scale
+                        } else {
+                            scale / (k as u64 + 1)
+                        };
+                        let n: Vec<u64> = (0..k)
+                            .map(|_| u64::from(ints.pop().unwrap_or(7)) % share)
+                            .collect();
+                        let sum: u64 = n.iter().sum();
+                        points.push((scale as i64 - sum as i64) as f64 * step);
+                        points.extend(n.iter().map(|&x| x as f64 * step));
+                        if mode == 5 && k >= 1 && n[0] == 0 {
+                            let last = points.len() - k;
+                            points[last] = -0.0;
+                        }
+                    }
+                    let weights = if kind == StageKind::Rational {
+                        (0..count).map(|i| 1.0 + i as f64).collect()
+                    } else {
+                        vec![]
+                    };
+                    records.push(FaceRecord {
+                        face,
+                        points,
+                        weights,
+                    });
+                }
+                if tidy {
+                    // The canonical order of the masks (usually the writer's form 1).
+                    records
+                        .sort_by(|a, b| a.face.len().cmp(&b.face.len()).then(a.face.cmp(&b.face)));
+                    records.dedup_by(|a, b| a.face == b.face);
+                }
+                let vertex_maps = if kind == StageKind::Monotonic && chosen.len() % 2 == 0 {
+                    records.clear();
+                    vec![VertexMap {
+                        vertex: 0,
+                        coefficients: vec![0.0, 1.0],
+                    }]
+                } else {
+                    vec![]
+                };
+                m.stages.push(Stage {
+                    kind,
+                    degree,
+                    direction: Default::default(),
+                    name: None,
+                    faces: FaceTable::from(records),
+                    vertex_maps,
+                    extras: Default::default(),
+                });
+            }
+            m
+        })
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 500, ..ProptestConfig::default() })]
+
+    /// Bit-exact round trips through `.isms`; canonical (the model read back writes the same
+    /// bytes); and the same model in every other encoding.
+    #[test]
+    fn generated_models_round_trip_bit_exactly(m in model()) {
+        let bytes = io::to_vec(&m, Encoding::Structured, WriteOptions::default()).unwrap();
+        let read = io::from_slice_with(&bytes, &unchecked()).unwrap().model;
+        prop_assert_eq!(
+            io::encode_payload(&read, Encoding::Binary, false).unwrap(),
+            io::encode_payload(&m, Encoding::Binary, false).unwrap()
+        );
+        prop_assert_eq!(io::to_vec(&read, Encoding::Structured, WriteOptions::default()).unwrap(), bytes);
+    }
+
+    /// Whatever bytes follow a valid head, the reader returns a typed error or a model, never
+    /// panics; a model it returns writes back to a file it reads as the same model.
+    #[test]
+    fn any_records_section_is_read_or_refused(records in prop::collection::vec(any::<u8>(), 0..40)) {
+        let mut p = head();
+        p.extend(&records);
+        p.extend(tail());
+        match io::from_slice_with(&file_of(&p), &unchecked()) {
+            Ok(doc) => {
+                let again = io::to_vec(&doc.model, Encoding::Structured, WriteOptions::default());
+                if let Ok(again) = again {
+                    let back = io::from_slice_with(&again, &unchecked()).unwrap().model;
+                    prop_assert_eq!(
+                        io::encode_payload(&back, Encoding::Binary, false).unwrap(),
+                        io::encode_payload(&doc.model, Encoding::Binary, false).unwrap()
+                    );
+                }
+            }
+            Err(e) => prop_assert!(e.rule().is_some(), "{e}"),
+        }
+    }
+}
+
+/// Structured payloads to mutate: Appendix A's, the writer vector that makes every choice of the
+/// writer, and the small examples.
+fn seeds() -> Vec<Vec<u8>> {
+    let spec = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../spec");
+    let mut out = vec![payload_with(&APPENDIX_A_RECORDS)];
+    for name in [
+        "vectors/writer/structured.isms",
+        "vectors/writer/stages.isms",
+        "examples/circle-curved.isms",
+        "examples/rational-degree5.isms",
+        "examples/cubic-face-point.isms",
+        "examples/stratified-3d.isms",
+    ] {
+        let bytes = std::fs::read(spec.join(name)).unwrap();
+        out.push(bytes[HEADER_LEN..].to_vec());
+    }
+    out
+}
+
+/// One edit of a payload: a byte set, inserted or removed, or the payload cut.
+#[derive(Clone, Debug)]
+enum Edit {
+    Set(usize, u8),
+    Insert(usize, u8),
+    Remove(usize),
+    Cut(usize),
+}
+
+fn edit() -> impl Strategy<Value = Edit> {
+    prop_oneof![
+        4 => (any::<usize>(), any::<u8>()).prop_map(|(i, b)| Edit::Set(i, b)),
+        1 => (any::<usize>(), any::<u8>()).prop_map(|(i, b)| Edit::Insert(i, b)),
+        1 => any::<usize>().prop_map(Edit::Remove),
+        1 => any::<usize>().prop_map(Edit::Cut),
+    ]
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 2000, ..ProptestConfig::default() })]
+
+    /// A fuzzer's view (cargo-fuzz's target `read_structured` checks the same on its own inputs):
+    /// valid payloads with a few bytes edited are read or refused with a typed, located error,
+    /// never a panic; what reads writes back canonically to the same model.
+    #[test]
+    fn edited_payloads_are_read_or_refused(
+        seed in 0usize..7,
+        edits in prop::collection::vec(edit(), 1..4),
+    ) {
+        let mut p = seeds().swap_remove(seed);
+        for e in edits {
+            let n = p.len().max(1);
+            match e {
+                Edit::Set(i, b) if !p.is_empty() => p[i % n] = b,
+                Edit::Insert(i, b) => p.insert(i % (p.len() + 1), b),
+                Edit::Remove(i) if !p.is_empty() => {
+                    p.remove(i % n);
+                }
+                Edit::Cut(i) => p.truncate(i % n),
+                _ => {}
+            }
+        }
+        match io::from_slice_with(&file_of(&p), &unchecked()) {
+            Ok(doc) => {
+                if let Ok(again) = io::to_vec(&doc.model, Encoding::Structured, WriteOptions::default()) {
+                    let back = io::from_slice_with(&again, &unchecked()).unwrap().model;
+                    prop_assert_eq!(
+                        io::encode_payload(&back, Encoding::Binary, false).unwrap(),
+                        io::encode_payload(&doc.model, Encoding::Binary, false).unwrap()
+                    );
+                    prop_assert_eq!(
+                        io::to_vec(&back, Encoding::Structured, WriteOptions::default()).unwrap(),
+                        again
+                    );
+                }
+            }
+            Err(e) => {
+                // Every decoding error has its offset, within the file; the version's form is
+                // checked after decoding, without one (spec §7.8).
+                let d = &e.diagnostics()[0];
+                match d.location.offset {
+                    Some(offset) => prop_assert!(offset <= (HEADER_LEN + p.len()) as u64, "{e}"),
+                    None => prop_assert_eq!(d.location.pointer.as_deref(), Some("/version"), "{}", e),
+                }
+            }
+        }
+    }
+}
