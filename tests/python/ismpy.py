@@ -8,6 +8,9 @@ the standard `lzma` module) (the standard `json` module is too lenient: it accep
 integers), so the spec, not a library, decides every byte. The structured encoding (spec §7.4.3, tag 6, `.isms`)
 is the compact grammar with face records given by masks over the k-faces of the complex and control points on a
 2^(-8w) lattice when they lie on one; `complex_faces` computes those k-face lists exactly as §7.4.3 defines them.
+Its `complexForm` 1 (the complex as a Kuhn grid refined by edge bisections) is read by `KuhnRefinement`; the
+canonical writer writes `complexForm` 0, and `write(model, "structured", refinement=...)` writes 1 for a refinement
+(`refinement_of(data)` returns a form-1 file's) after checking that it rebuilds the model's complex bit for bit.
 
 Command line (the protocol of tools/conformance):
 

@@ -174,6 +174,10 @@ def test_the_2d_example_decodes_to_the_hand_computed_complex():
     (0b0001, [0, 0, 1, 0, 0.5, 0.5], [0, 1, 2]),
     # Slots 4 and 2 kept (bits 2 and 0), listed in slot order: [0,1,4], [0,4,2] -> vertices 0, 1, 2, 4.
     (0b0101, [0, 0, 1, 0, 0, 1, 0.5, 0.5], [0, 1, 3, 0, 3, 2]),
+    # Slots 2, 4, 5: [0,1,4], [0,4,2], [4,3,2]; all five vertices.
+    (0b1101, [0, 0, 1, 0, 0, 1, 1, 1, 0.5, 0.5], [0, 1, 4, 0, 4, 2, 4, 3, 2]),
+    # Slots 4, 5: [0,4,2], [4,3,2]; vertices 0, 2, 3, 4 -> 0, 1, 2, 3.
+    (0b1100, [0, 0, 0, 1, 1, 1, 0.5, 0.5], [0, 3, 1, 3, 2, 1]),
     # Nothing kept: an empty complex.
     (0b0000, [], []),
 ])
