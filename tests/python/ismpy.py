@@ -1173,6 +1173,8 @@ class BinaryDecoder:
         after `splits`, so the slots stay below 16 per byte of input."""
         self.path.append("vertices")
         box_at = self.at
+        # Each array is decoded (its grammar's errors at their bytes) and then checked (at its first byte); box
+        # before cells is decoded, so a bad box is reported before a bad varint in cells (front to back, §7.8).
         box = self.f64s()
         problem = box_problem(n, box)
         if problem is not None:
@@ -1192,6 +1194,9 @@ class BinaryDecoder:
             at = self.at
             a = self.u32()
             pairs.append((at, a, self.u32()))
+        # The spec does not order the two checks at `cells` (the kept mask's bytes, ISM-006, and the grid's vertex
+        # count, ISM-007): the bytes come first, as a declared length the payload cannot hold is ISM-006 whatever
+        # the limits (§7.6), so ISM-007 needs a payload holding the grid's whole mask (2D: 512 MiB at least).
         after = len(self.b) - self.at
         grid_cells = kuhn_slot_count(n, cells)
         if (grid_cells + 7) // 8 > after:
