@@ -8,6 +8,9 @@ the standard `lzma` module) (the standard `json` module is too lenient: it accep
 integers), so the spec, not a library, decides every byte. The structured encoding (spec §7.4.3, tag 6, `.isms`)
 is the compact grammar with face records given by masks over the k-faces of the complex and control points on a
 2^(-8w) lattice when they lie on one; `complex_faces` computes those k-face lists exactly as §7.4.3 defines them.
+Its `complexForm` 1 (the complex as a Kuhn grid refined by edge bisections) is read by `KuhnRefinement`; the
+canonical writer writes `complexForm` 0, and `write(model, "structured", refinement=...)` writes 1 for a refinement
+(`refinement_of(data)` returns a form-1 file's) after checking that it rebuilds the model's complex bit for bit.
 
 Command line (the protocol of tools/conformance):
 
@@ -731,6 +734,202 @@ def point_lattice_width(coords) -> int:
     return max(1, (exponent + 7) // 8)
 
 
+# ------------------------------------------------------------------------------------------ the complex by its refinement (§7.4.3)
+
+
+class RefinementRefused(Exception):
+    """A rule of `complexForm` 1 broken while building (§7.4.3): `what` is "pair" (a pair that is not a < b of
+    existing ids on a common live slot) or "bound" (⌈C/8⌉ past the bytes after `splits`); `index` the pair."""
+
+    def __init__(self, what: str, index: int, message: str):
+        super().__init__(message)
+        self.what = what
+        self.index = index
+
+
+class KuhnRefinement:
+    """The complex of `complexForm` 1 (spec §7.4.3): the Kuhn grid of `box` and `cells`, refined by edge
+    bisections, computed in binary64 (Python floats: round-to-nearest-even, no fused multiply-add).
+
+    Slots are kept in a list in slot order (a retired slot is None); `edges` maps each edge (a, b), a < b, of a
+    live slot to the live slots containing it, as an insertion-ordered dict: a slot enters its edges' dicts when
+    it is created, with the largest slot id so far, so each dict lists its slots in increasing slot order. A
+    split costs the slots it retires, never a scan of the list."""
+
+    def __init__(self, n: int, box, cells):
+        self.n = n
+        self.box = list(box)
+        self.cells = list(cells)
+        self.strides = []
+        stride = 1
+        for c in self.cells:
+            self.strides.append(stride)
+            stride *= c + 1
+        self.grid_count = stride
+        self.steps = [(self.box[2 * k + 1] - self.box[2 * k]) / self.cells[k] for k in range(n)]
+        self.mids = []  # coordinates of the midpoints, ids grid_count, grid_count + 1, ...
+        self.slots = []
+        self.edges = {}
+        self.live = 0
+        pairs = list(itertools.combinations(range(n + 1), 2))
+        self.pairs = pairs
+        # Per permutation of the axes in lexicographic order: the offsets of the monotone path's vertices from
+        # the cube's lowest corner, the last two swapped when the permutation is odd.
+        paths = []
+        for perm in itertools.permutations(range(n)):
+            offsets = [0]
+            for axis in perm:
+                offsets.append(offsets[-1] + self.strides[axis])
+            inversions = sum(1 for i in range(n) for j in range(i + 1, n) if perm[i] > perm[j])
+            if inversions % 2:
+                offsets[-1], offsets[-2] = offsets[-2], offsets[-1]
+            paths.append(offsets)
+        # Cubes by their lowest corner's id (axis 0 fastest).
+        for corner in itertools.product(*[range(c) for c in reversed(self.cells)]):
+            base = sum(i * s for i, s in zip(reversed(corner), self.strides))
+            for offsets in paths:
+                self.add(tuple(base + o for o in offsets))
+
+    def add(self, simplex: tuple):
+        s = len(self.slots)
+        self.slots.append(simplex)
+        self.live += 1
+        edges = self.edges
+        for i, j in self.pairs:
+            a, b = simplex[i], simplex[j]
+            key = (a, b) if a < b else (b, a)
+            group = edges.get(key)
+            if group is None:
+                edges[key] = {s: None}
+            else:
+                group[s] = None
+
+    def coordinates(self, v: int) -> list:
+        if v < self.grid_count:
+            out = []
+            for k in range(self.n):
+                size = self.cells[k] + 1
+                i = v % size
+                v //= size
+                # The quotient, then the product, then the sum; hi exactly at i = c.
+                out.append(self.box[2 * k + 1] if i == self.cells[k] else self.box[2 * k] + i * self.steps[k])
+            return out
+        return self.mids[v - self.grid_count]
+
+    def split(self, index: int, a: int, b: int, byte_limit=None):
+        """Applies the split (a, b), the `index`-th pair; with `byte_limit`, refuses it when ⌈C/8⌉ after it
+        would exceed that many bytes (checked before anything is allocated)."""
+        group = self.edges.get((a, b)) if a < b else None
+        if not group:
+            why = "a >= b" if a >= b else "no live slot contains both"
+            raise RefinementRefused("pair", index, f"split {index} ({a}, {b}): {why}")
+        k = len(group)
+        if byte_limit is not None and (self.live + k + 7) // 8 > byte_limit:
+            raise RefinementRefused("bound", index, f"split {index} ({a}, {b}): {self.live + k} live slots need more than the {byte_limit} bytes after splits")
+        m = self.grid_count + len(self.mids)
+        self.mids.append([(xa + xb) * 0.5 for xa, xb in zip(self.coordinates(a), self.coordinates(b))])
+        edges = self.edges
+        for s in list(group):
+            simplex = self.slots[s]
+            self.slots[s] = None
+            self.live -= 1
+            for i, j in self.pairs:
+                u, v = simplex[i], simplex[j]
+                key = (u, v) if u < v else (v, u)
+                g = edges[key]
+                del g[s]
+                if not g:
+                    del edges[key]
+            self.add(tuple(m if x == b else x for x in simplex))
+            self.add(tuple(m if x == a else x for x in simplex))
+
+    def live_slots(self) -> list:
+        return [s for s, simplex in enumerate(self.slots) if simplex is not None]
+
+    def complex(self, kept_slots) -> tuple:
+        """(vertices, simplices) of the model: the constructed vertices some kept simplex uses, in increasing
+        id, and the kept simplices in slot order, renumbered to those positions."""
+        simplices = [self.slots[s] for s in kept_slots]
+        used = sorted({v for simplex in simplices for v in simplex})
+        position = {v: i for i, v in enumerate(used)}
+        vertices = []
+        for v in used:
+            vertices.extend(self.coordinates(v))
+        return vertices, [position[v] for simplex in simplices for v in simplex]
+
+
+def box_problem(n: int, box):
+    """Why `box` is not that of §7.4.3 step 1 in dimension n (a message), or None."""
+    if len(box) != 2 * n:
+        return f"box holds {len(box)} numbers, not {2 * n}"
+    for k in range(n):
+        lo, hi = box[2 * k], box[2 * k + 1]
+        if not (math.isfinite(lo) and math.isfinite(hi)):
+            return f"box axis {k} is not finite"
+        if not lo < hi:
+            return f"box axis {k}: lo {lo!r} is not below hi {hi!r}"
+        if not math.isfinite(hi - lo):
+            return f"box axis {k}: hi - lo is not finite"
+    return None
+
+
+def cells_problem(n: int, cells):
+    """Why `cells` is not that of §7.4.3 step 1 in dimension n (a message), or None."""
+    if len(cells) != n:
+        return f"cells holds {len(cells)} numbers, not {n}"
+    if any(c < 1 for c in cells):
+        return "a cell count is 0"
+    return None
+
+
+def kuhn_slot_count(n: int, cells) -> int:
+    """C₀ = n! · Π c_k, the grid cells of §7.4.3."""
+    return math.factorial(n) * math.prod(cells)
+
+
+def build_refinement(n: int, refinement: dict):
+    """The model's (vertices, simplices) given by a refinement {"box", "cells", "splits", "kept"} (§7.4.3),
+    with `kept` one bool per live slot; ValueError when it is not one a writer may write."""
+    if n not in (2, 3):
+        raise ValueError(f"complexForm 1 is only for dimension 2 or 3, not {n}")
+    box = [float(x) for x in refinement["box"]]
+    cells = [int(c) for c in refinement["cells"]]
+    problem = box_problem(n, box) or cells_problem(n, cells)
+    if problem is None and any(c >= 1 << 32 for c in cells):
+        problem = "a cell count is not a u32"
+    if problem:
+        raise ValueError(problem)
+    if math.prod(c + 1 for c in cells) >= 1 << 32:
+        raise ValueError("the grid has 2^32 vertices or more")
+    grid = KuhnRefinement(n, box, cells)
+    for index, pair in enumerate(refinement["splits"]):
+        a, b = (int(x) for x in pair)
+        if not (0 <= a and b < 1 << 32):
+            raise ValueError(f"split {index} ({a}, {b}): ids are u32")
+        try:
+            grid.split(index, a, b)
+        except RefinementRefused as e:
+            raise ValueError(str(e)) from None
+    kept = list(refinement["kept"])
+    live = grid.live_slots()
+    if len(kept) != len(live):
+        raise ValueError(f"kept has {len(kept)} entries for {len(live)} live slots")
+    return grid.complex([s for s, keep in zip(live, kept) if keep]), len(live)
+
+
+def write_refinement(w, n: int, refinement: dict, live: int):
+    """complexForm 1 and its members (§7.4.3) into BinaryWriter `w` (structured)."""
+    w.put("<B", 1)
+    w.f64s([float(x) for x in refinement["box"]])
+    w.u32s([int(c) for c in refinement["cells"]])
+    w.u32s([int(x) for pair in refinement["splits"] for x in pair])
+    mask = bytearray((live + 7) // 8)
+    for i, keep in enumerate(refinement["kept"]):
+        if keep:
+            mask[i >> 3] |= 1 << (i & 7)
+    w.out += mask
+
+
 # ------------------------------------------------------------------------------------------ binary
 
 
@@ -747,6 +946,7 @@ class BinaryDecoder:
         self.compact = compact or structured
         self.structured = structured
         self.complex = None
+        self.refinement = None  # {"box", "cells", "splits", "kept"} of a complexForm 1 payload
         # Smallest element sizes (§7.4, §7.4.1; §7.4.3 keeps the compact ones: "Errors are those of §7.4.1").
         if self.compact:
             self.MIN = {"f64": 8, "u32": 1, "string": 1, "stage": 7, "record": 3, "vmap": 2, "ext": 2}
@@ -966,6 +1166,66 @@ class BinaryDecoder:
                 self.at += 8 * count
         return out
 
+    def refined_complex(self, n: int):
+        """`complexForm` 1 (§7.4.3), after its byte: `box`, `cells` (at /vertices), `splits`, `kept` (at
+        /simplices); the model's vertices and simplices by the construction. The grid is built only once the
+        payload is known to hold its kept mask, and each split only while the mask after it fits the bytes left
+        after `splits`, so the slots stay below 16 per byte of input."""
+        self.path.append("vertices")
+        box_at = self.at
+        # Each array is decoded (its grammar's errors at their bytes) and then checked (at its first byte); box
+        # before cells is decoded, so a bad box is reported before a bad varint in cells (front to back, §7.8).
+        box = self.f64s()
+        problem = box_problem(n, box)
+        if problem is not None:
+            raise self.fail(box_at, problem)
+        cells_at = self.at
+        cells = self.u32s()
+        problem = cells_problem(n, cells)
+        if problem is not None:
+            raise self.fail(cells_at, problem)
+        self.path[-1] = "simplices"
+        splits_at = self.at
+        count = self.length(self.MIN["u32"])
+        if count % 2:
+            raise self.fail(splits_at, f"splits holds {count} ids, an odd number")
+        pairs = []
+        for _ in range(count // 2):
+            at = self.at
+            a = self.u32()
+            pairs.append((at, a, self.u32()))
+        # The spec does not order the two checks at `cells` (the kept mask's bytes, ISM-006, and the grid's vertex
+        # count, ISM-007): the bytes come first, as a declared length the payload cannot hold is ISM-006 whatever
+        # the limits (§7.6), so ISM-007 needs a payload holding the grid's whole mask (2D: 512 MiB at least).
+        after = len(self.b) - self.at
+        grid_cells = kuhn_slot_count(n, cells)
+        if (grid_cells + 7) // 8 > after:
+            self.path[-1] = "vertices"
+            raise self.fail(cells_at, f"the {grid_cells} grid cells need a kept mask of {(grid_cells + 7) // 8} bytes; {after} follow splits")
+        if math.prod(c + 1 for c in cells) >= 1 << 32:
+            raise IsmError("ISM-007", "the grid has 2^32 vertices or more", pointer="/vertices", offset=self.base + cells_at)
+        grid = KuhnRefinement(n, box, cells)
+        for index, (at, a, b) in enumerate(pairs):
+            try:
+                grid.split(index, a, b, byte_limit=after)
+            except RefinementRefused as e:
+                raise self.fail(at, str(e)) from None
+        live = grid.live_slots()
+        kept_at = self.at
+        size = (len(live) + 7) // 8
+        mask = self.take(size)
+        if len(live) % 8 and mask[-1] >> (len(live) % 8):
+            raise self.fail(kept_at + size - 1, f"kept bits beyond the {len(live)} live slots are set")
+        kept = [s for i, s in enumerate(live) if mask[i >> 3] >> (i & 7) & 1]
+        self.path.pop()
+        self.refinement = {
+            "box": box,
+            "cells": cells,
+            "splits": [[a, b] for _, a, b in pairs],
+            "kept": [bool(mask[i >> 3] >> (i & 7) & 1) for i in range(len(live))],
+        }
+        return grid.complex(kept)
+
     def extensions(self) -> dict:
         n = self.length(self.MIN["ext"])
         out = {}
@@ -995,15 +1255,21 @@ class BinaryDecoder:
             return meta
 
         m["metadata"] = self.member("metadata", metadata)
+        form = 0
         if self.structured:
             self.path.append("vertices")
             start = self.at
             form = self.u8()
-            if form != 0:
+            if form == 1 and m["dimension"] not in (2, 3):
+                raise self.fail(start, f"complexForm 1 in dimension {m['dimension']} (only 2 or 3)")
+            if form not in (0, 1):
                 raise self.fail(start, f"complexForm {form}")
             self.path.pop()
-        m["vertices"] = self.member("vertices", self.f64s)
-        m["simplices"] = self.member("simplices", self.u32s)
+        if form == 1:
+            m["vertices"], m["simplices"] = self.refined_complex(m["dimension"])
+        else:
+            m["vertices"] = self.member("vertices", self.f64s)
+            m["simplices"] = self.member("simplices", self.u32s)
         self.dimension = m["dimension"]
         self.complex = ComplexFaces(m["simplices"], m["dimension"])
         m["values"] = self.member("values", self.f64s)
@@ -1082,7 +1348,7 @@ def decompress(payload: bytes, payload_limit: int) -> bytes:
     return out
 
 
-def decode(data: bytes, payload_limit: int = DEFAULT_PAYLOAD_LIMIT):
+def decode(data: bytes, payload_limit: int = DEFAULT_PAYLOAD_LIMIT, refinement_out: dict | None = None):
     """Container, encoding and version (spec §7.1, §7.5): returns (model, encoding)."""
     if data[:8] == MAGIC:
         if len(data) < HEADER_LEN:
@@ -1114,7 +1380,10 @@ def decode(data: bytes, payload_limit: int = DEFAULT_PAYLOAD_LIMIT):
             compact = decompress(payload, payload_limit)
             model = BinaryDecoder(compact, HEADER_LEN, compact=True).model(allow_trailing=minor > MINOR)
         else:
-            model = BinaryDecoder(payload, HEADER_LEN, compact=tag == 4, structured=tag == 6).model(allow_trailing=minor > MINOR)
+            decoder = BinaryDecoder(payload, HEADER_LEN, compact=tag == 4, structured=tag == 6)
+            model = decoder.model(allow_trailing=minor > MINOR)
+            if refinement_out is not None and decoder.refinement is not None:
+                refinement_out["refinement"] = decoder.refinement
         version = check_version(model["version"])
         if version != (major, minor):
             raise IsmError("ISM-009", "header and payload versions differ", pointer="/version")
@@ -1125,6 +1394,15 @@ def decode(data: bytes, payload_limit: int = DEFAULT_PAYLOAD_LIMIT):
     model = decode_map_encoding(JsonTokens, data, 0)
     check_version(model["version"])
     return model, "json"
+
+
+def refinement_of(data: bytes):
+    """The refinement a structured file's `complexForm` 1 holds ({"box", "cells", "splits": [[a, b], ...],
+    "kept": [bool per live slot]}, what `write(..., refinement=)` takes), or None for any other file. Raises
+    IsmError as `decode` does."""
+    found = {}
+    decode(data, refinement_out=found)
+    return found.get("refinement")
 
 
 def read(data: bytes, supported_extensions=()) -> dict:
@@ -1516,10 +1794,13 @@ class BinaryWriter:
     minimal varints); with `structured`, §7.4.3 in its canonical form (`recordForm` 1 whenever the records
     allow it, the smallest lattice `width`)."""
 
-    def __init__(self, compact: bool = False, structured: bool = False):
+    def __init__(self, compact: bool = False, structured: bool = False, refinement=None, live: int = 0):
         self.out = bytearray()
         self.compact = compact or structured
         self.structured = structured
+        # complexForm 1 (§7.4.3): a refinement already checked to give the model's complex, and its live slots.
+        self.refinement = refinement
+        self.live = live
 
     def put(self, fmt, *values):
         self.out += struct.pack(fmt, *values)
@@ -1605,10 +1886,14 @@ class BinaryWriter:
             self.optional(m["metadata"].get(key))
         complex_ = None
         if self.structured:
-            self.put("<B", 0)  # complexForm 0
             complex_ = ComplexFaces(m["simplices"], m["dimension"])
-        self.f64s(m["vertices"])
-        self.u32s(m["simplices"])
+        if self.structured and self.refinement is not None:
+            write_refinement(self, m["dimension"], self.refinement, self.live)
+        else:
+            if self.structured:
+                self.put("<B", 0)  # complexForm 0
+            self.f64s(m["vertices"])
+            self.u32s(m["simplices"])
         self.f64s(m["values"])
         self.put("<d", m["level"])
         self.length(len(m["stages"]))
@@ -1704,10 +1989,24 @@ def container(payload: bytes, tag: int, major: int = MAJOR, minor: int = MINOR) 
     return head + struct.pack("<I", zlib.crc32(head)) + payload
 
 
-def write(model: dict, encoding: str) -> bytes:
+def write(model: dict, encoding: str, refinement: dict | None = None) -> bytes:
     """The canonical file of `model` in `encoding`: json, json-pretty, msgpack, binary, compact, structured or
-    compressed (whose compressed bytes depend on the xz encoder: preset 6, CRC64, like the reference writer)."""
+    compressed (whose compressed bytes depend on the xz encoder: preset 6, CRC64, like the reference writer).
+
+    With `refinement` ({"box": [lo0, hi0, ...], "cells": [c0, ...], "splits": [[a, b], ...], "kept": [bool per
+    live slot]}, as `refinement_of` returns it), only in the structured encoding: the complex as `complexForm` 1
+    (§7.4.3) instead of the canonical 0, after rebuilding it; ValueError unless it gives exactly the model's
+    `vertices` (every bit, in order) and `simplices`."""
     check_writable(model)
+    if refinement is not None:
+        if encoding != "structured":
+            raise ValueError("a refinement is written only in the structured encoding (complexForm 1)")
+        (vertices, simplices), live = build_refinement(model["dimension"], refinement)
+        if len(vertices) != len(model["vertices"]) or struct.pack(f"<{len(vertices)}d", *vertices) != struct.pack(f"<{len(vertices)}d", *model["vertices"]):
+            raise ValueError("the refinement does not give the model's vertices bit for bit")
+        if simplices != list(model["simplices"]):
+            raise ValueError("the refinement does not give the model's simplices")
+        return container(BinaryWriter(structured=True, refinement=refinement, live=live).model(model), 6)
     if encoding in ("json", "json-pretty"):
         return to_json(canonical_members(model), indent=2 if encoding == "json-pretty" else None).encode("utf-8")
     if encoding == "msgpack":

@@ -536,9 +536,14 @@ def test_the_hand_assembled_payloads_are_right():
     assert APPENDIX_A_AT["complexForm 0"] == p.at["complexForm"]
 
 
-@pytest.mark.parametrize("value", [1, 2, 255])
-def test_complex_form_other_than_zero(value):
+@pytest.mark.parametrize("value", [2, 3, 255])
+def test_complex_form_other_than_zero_or_one(value):
     expect(appendix_a_with(APPENDIX_A_AT["complexForm 0"], value), "/vertices", 0x2B)
+
+
+def test_complex_form_one_reads_the_vertices_as_a_box():
+    # complexForm 1 in 2D: the vertex count 6 is box's length, not the 4 of lo0 hi0 lo1 hi1: at box's first byte.
+    expect(appendix_a_with(APPENDIX_A_AT["complexForm 0"], 1), "/vertices", 0x2C)
 
 
 @pytest.mark.parametrize("value", [2, 3, 255])
@@ -811,6 +816,7 @@ def reader_cases() -> dict:
     a = APPENDIX_A_AT
     cases = {
         "complex-form-1": appendix_a_with(a["complexForm 0"], 1),
+        "complex-form-2": appendix_a_with(a["complexForm 0"], 2),
         "record-form-2": appendix_a_with(a["recordForm 1"], 2),
         "dims-bit-3": appendix_a_with(a["dims"], 0b1010),
         "dims-bit-7": appendix_a_with(a["dims"], 0x82),
