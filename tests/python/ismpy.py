@@ -739,7 +739,8 @@ def point_lattice_width(coords) -> int:
 
 class RefinementRefused(Exception):
     """A rule of `complexForm` 1 broken while building (§7.4.3): `what` is "pair" (a pair that is not a < b of
-    existing ids on a common live slot) or "bound" (⌈C/8⌉ past the bytes after `splits`); `index` the pair."""
+    existing ids on a common live slot), "ids" (a midpoint id of 2^32 - 1 or more: ISM-007) or "bound" (⌈C/8⌉
+    past the bytes after `splits`); `index` the pair."""
 
     def __init__(self, what: str, index: int, message: str):
         super().__init__(message)
@@ -824,6 +825,8 @@ class KuhnRefinement:
             why = "a >= b" if a >= b else "no live slot contains both"
             raise RefinementRefused("pair", index, f"split {index} ({a}, {b}): {why}")
         k = len(group)
+        if self.grid_count + len(self.mids) >= (1 << 32) - 1:
+            raise RefinementRefused("ids", index, f"split {index} ({a}, {b}): the midpoint's id would be 2^32 - 1 or more")
         if byte_limit is not None and (self.live + k + 7) // 8 > byte_limit:
             raise RefinementRefused("bound", index, f"split {index} ({a}, {b}): {self.live + k} live slots need more than the {byte_limit} bytes after splits")
         m = self.grid_count + len(self.mids)
@@ -870,6 +873,8 @@ def box_problem(n: int, box):
             return f"box axis {k}: lo {lo!r} is not below hi {hi!r}"
         if not math.isfinite(hi - lo):
             return f"box axis {k}: hi - lo is not finite"
+        if not (math.isfinite(lo + lo) and math.isfinite(hi + hi)):
+            return f"box axis {k}: 2 lo or 2 hi is not finite (a midpoint's sum could overflow)"
     return None
 
 
@@ -1184,31 +1189,33 @@ class BinaryDecoder:
         problem = cells_problem(n, cells)
         if problem is not None:
             raise self.fail(cells_at, problem)
+        # Right after `cells` (§7.4.3, front to back): the kept mask of the grid's cells must fit the bytes left
+        # (ISM-006; splits only add slots), then the grid's vertex count must fit u32 (ISM-007), both at `cells`.
+        grid_cells = kuhn_slot_count(n, cells)
+        left = len(self.b) - self.at
+        if (grid_cells + 7) // 8 > left:
+            raise self.fail(cells_at, f"the {grid_cells} grid cells need a kept mask of {(grid_cells + 7) // 8} bytes; {left} follow cells")
+        if math.prod(c + 1 for c in cells) >= 1 << 32:
+            raise IsmError("ISM-007", "the grid has 2^32 vertices or more", pointer="/vertices", offset=self.base + cells_at)
         self.path[-1] = "simplices"
         splits_at = self.at
         count = self.length(self.MIN["u32"])
-        if count % 2:
-            raise self.fail(splits_at, f"splits holds {count} ids, an odd number")
         pairs = []
         for _ in range(count // 2):
             at = self.at
             a = self.u32()
             pairs.append((at, a, self.u32()))
-        # The spec does not order the two checks at `cells` (the kept mask's bytes, ISM-006, and the grid's vertex
-        # count, ISM-007): the bytes come first, as a declared length the payload cannot hold is ISM-006 whatever
-        # the limits (§7.6), so ISM-007 needs a payload holding the grid's whole mask (2D: 512 MiB at least).
+        if count % 2:
+            self.u32()
+            raise self.fail(splits_at, f"splits holds {count} ids, an odd number")
         after = len(self.b) - self.at
-        grid_cells = kuhn_slot_count(n, cells)
-        if (grid_cells + 7) // 8 > after:
-            self.path[-1] = "vertices"
-            raise self.fail(cells_at, f"the {grid_cells} grid cells need a kept mask of {(grid_cells + 7) // 8} bytes; {after} follow splits")
-        if math.prod(c + 1 for c in cells) >= 1 << 32:
-            raise IsmError("ISM-007", "the grid has 2^32 vertices or more", pointer="/vertices", offset=self.base + cells_at)
         grid = KuhnRefinement(n, box, cells)
         for index, (at, a, b) in enumerate(pairs):
             try:
                 grid.split(index, a, b, byte_limit=after)
             except RefinementRefused as e:
+                if e.what == "ids":
+                    raise IsmError("ISM-007", str(e), pointer="/simplices", offset=self.base + at) from None
                 raise self.fail(at, str(e)) from None
         live = grid.live_slots()
         kept_at = self.at

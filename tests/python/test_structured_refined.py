@@ -19,6 +19,7 @@ the reader and writer written from the spec alone:
 
 from __future__ import annotations
 
+import math
 import itertools
 import json
 import os
@@ -504,11 +505,14 @@ def test_a_cell_count_not_minimal_at_its_byte():
 
 
 def test_the_grid_cells_need_their_kept_bytes_before_the_grid_is_built():
-    # cells [100, 100]: C0 = 2 * 10000, kept needs 2500 bytes after splits.
-    for after, fails in ((2499, True), (2500, False)):
+    # cells [100, 100]: C0 = 2 * 10000, kept needs 2500 bytes. Right after cells the payload must hold them
+    # (here: splits' one-byte length, then `after` bytes); the mask itself then needs them after splits.
+    for after, where in ((2498, "cells"), (2499, "kept"), (2500, None)):
         p = refined(2, [0.0, 1.0, 0.0, 1.0], [100, 100], [], bytes(after), tail=False)
-        if fails:
+        if where == "cells":
             expect(p.file(), "/vertices", p.at["cells"])
+        elif where == "kept":
+            expect(p.file(), "/simplices", p.at["kept"])
         else:
             # The mask is there (all zero): the model ends at values, missing.
             expect(p.file(), "/values", HEADER_LEN + len(p.b))
@@ -522,9 +526,10 @@ def test_the_grid_cells_need_their_kept_bytes_before_the_grid_is_built():
 
 
 def test_the_kept_bytes_are_counted_after_splits():
-    # Two splits take 6 bytes: the 1 byte of kept must follow them (here it does not: nothing follows).
+    # Two splits take 5 bytes after cells, enough for the grid's 1-byte mask; but after the first split the 4 live
+    # slots need 1 byte after splits, and nothing follows: refused at that pair (its first byte, after the length).
     p = refined(2, [0.0, 1.0, 0.0, 1.0], [1, 1], [0, 3, 0, 4], b"", tail=False)
-    expect(p.file(), "/vertices", p.at["cells"])
+    expect(p.file(), "/simplices", p.at["splits"] + 1)
 
 
 def test_a_grid_of_2_to_the_32_vertices_is_ism_007():
@@ -837,15 +842,15 @@ def test_mutated_form_1_files_read_or_fail_with_a_rule():
     assert rules.get("ISM-006", 0) > 100 and rules.get("ok", 0) > 10, rules
 
 
-def test_midpoints_past_the_largest_float_are_infinite_and_ism_102():
-    # (x_a + x_b) * 0.5 overflows when both coordinates are near the largest float: the construction gives an
-    # infinite coordinate (as binary64 arithmetic does), which the structural check ISM-102 reports.
+def test_a_box_whose_midpoints_could_overflow_is_refused_at_box():
+    # (x_a + x_b) * 0.5 would overflow when both coordinates are near the largest float although hi - lo is
+    # finite: §7.4.3 asks 2 lo and 2 hi finite, so such a box is ISM-006 at `box` and no coordinate is infinite.
     p = refined(2, [1e308, 1.7e308, 0.0, 1.0], [1, 1], [1, 3], b"\x07", [1.0] * 5)
+    expect(p.file(), "/vertices", p.at["box"])
+    # Just inside: 2 hi finite.
+    p = refined(2, [0.8e308, 0.85e308, 0.0, 1.0], [1, 1], [1, 3], b"\x07", [1.0] * 5)
     model, _ = ismpy.decode(p.file())
-    assert model["vertices"][8] == float("inf")
-    with pytest.raises(ismpy.IsmError) as error:
-        ismpy.read(p.file())
-    assert error.value.rule == "ISM-102"
+    assert all(math.isfinite(x) for x in model["vertices"])
 
 
 def test_mutated_form_1_files_read_alike(tmp_path):

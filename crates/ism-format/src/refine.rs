@@ -37,7 +37,8 @@ pub enum RefineError {
     Domain(String),
     /// `cells` is not `n` numbers ≥ 1.
     Cells(String),
-    /// The grid has `2³²` vertices or more (ids are `u32`).
+    /// The grid has `2³²` vertices or more, or a split's midpoint would get the id `2³² − 1` or
+    /// more (ids are `u32`): ISM-007 where a decoder meets it.
     TooManyVertices(u128),
     /// Split `index` names no edge of a live slot (or `a ≥ b`, or an id that does not exist).
     Split {
@@ -61,7 +62,7 @@ impl fmt::Display for RefineError {
             RefineError::Domain(why) => write!(f, "box: {why}"),
             RefineError::Cells(why) => write!(f, "cells: {why}"),
             RefineError::TooManyVertices(n) => {
-                write!(f, "cells: the grid has {n} vertices, ids are below 2^32")
+                write!(f, "{n} vertices: ids are below 2^32 - 1")
             }
             RefineError::Split { index, reason } => write!(f, "split {index}: {reason}"),
             RefineError::Kept { expected, got } => write!(
@@ -197,7 +198,8 @@ impl Refinement {
     /// containing it, in increasing slot order. Returns the midpoint's id.
     ///
     /// # Errors
-    /// [`RefineError::Split`] when `a ≥ b`, an id does not exist, or no live slot has the edge.
+    /// [`RefineError::Split`] when `a ≥ b`, an id does not exist, or no live slot has the edge;
+    /// then [`RefineError::TooManyVertices`] when the midpoint's id would be `2³² − 1` or more.
     pub fn split(&mut self, index: usize, a: u32, b: u32) -> Result<u32, RefineError> {
         let fail = |reason: String| RefineError::Split { index, reason };
         let nv = self.num_vertices();
@@ -209,12 +211,13 @@ impl Refinement {
                 "vertex {b} does not exist yet ({nv} vertices)"
             )));
         }
-        if nv >= u32::MAX as usize {
-            return Err(fail("a new vertex id would pass 2^32 - 1".into()));
-        }
         let Some(around) = self.around.get(&(a, b)).cloned() else {
             return Err(fail(format!("no live simplex has the edge ({a}, {b})")));
         };
+        // After the edge checks, as the spec orders them (this one is ISM-007, they are ISM-006).
+        if nv >= u32::MAX as usize {
+            return Err(RefineError::TooManyVertices(nv as u128 + 1));
+        }
         let n = self.n;
         for k in 0..n {
             let x = (self.points[a as usize * n + k] + self.points[b as usize * n + k]) * 0.5;
