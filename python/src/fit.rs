@@ -101,10 +101,12 @@ fn run_fit<'py>(
         verdict.add_to_json(&mut report);
         report.insert("mesh".to_string(), mesh.into());
         let report = serde_json::Value::Object(report);
-        Ok::<_, String>((model, report))
+        Ok::<_, String>((model, report, fitted.refinement()))
     })?;
-    let (model, report) = result.map_err(|m| raise(py, "FitError", &m, &[]))?;
-    Ok((Model::new(model, None), crate::value_to_py(py, &report)?))
+    let (model, report, refinement) = result.map_err(|m| raise(py, "FitError", &m, &[]))?;
+    // Written as `.isms`, the model's complex is its grid and splits, as `ism fit -o X.isms` writes.
+    let model = Model::new(model, None).with_refinement(refinement);
+    Ok((model, crate::value_to_py(py, &report)?))
 }
 
 /// Fits an ISM to the zero set of ``expr`` (variables x, y[, z]) over ``domain``

@@ -47,6 +47,9 @@ pub struct Model {
     index: OnceLock<Result<IndexedModel, ism_format::Error>>,
     /// The evaluator and surface table, built on first use by sampling and queries and kept.
     pub(crate) sampler: Mutex<Option<ism_sample::Sampler>>,
+    /// The complex as a Kuhn grid and its edge splits, for a model a fit returned: the structured
+    /// encoding writes it (`complexForm` 1, spec §7.4.3) instead of the coordinates and ids.
+    refinement: Option<Arc<ism_format::refine::KuhnRefinement>>,
 }
 
 /// The model as the binding holds it: shared with worker threads without a copy. A checked read
@@ -79,7 +82,17 @@ impl Model {
             stages: OnceLock::new(),
             index: OnceLock::new(),
             sampler: Mutex::new(None),
+            refinement: None,
         }
+    }
+
+    /// This model with the refinement its complex came from (see [`Model::refinement`]'s field).
+    pub(crate) fn with_refinement(
+        mut self,
+        refinement: Option<ism_format::refine::KuhnRefinement>,
+    ) -> Model {
+        self.refinement = refinement.map(Arc::new);
+        self
     }
 
     /// The index, built on first use when the model was not read checked.
@@ -1083,8 +1096,10 @@ impl Model {
     /// The file's bytes in ``encoding`` (``"json"``, ``"msgpack"``, ``"binary"``, ``"compact"``:
     /// the binary encoding with variable-length integers, ``"compressed"``: the compact payload
     /// compressed by xz, the smallest, or ``"structured"``: the compact encoding with face records
-    /// given by the complex and control points on a lattice, the smallest uncompressed); ``pretty``
-    /// indents JSON; ``container`` wraps JSON in the checksummed container.
+    /// given by the complex and control points on a lattice, the smallest uncompressed; a model
+    /// :func:`fit` returned writes its complex there as the Kuhn grid and edge splits it came from,
+    /// as ``ism fit -o X.isms`` does); ``pretty`` indents JSON; ``container`` wraps JSON in the
+    /// checksummed container.
     #[pyo3(signature = (encoding = "binary", *, pretty = false, container = false))]
     fn to_bytes<'py>(
         &self,
@@ -1099,7 +1114,11 @@ impl Model {
             json_in_container: container,
         };
         let model = &self.inner;
-        match py.allow_threads(|| io::to_vec(model, encoding, options)) {
+        let refinement = self.refinement.as_deref();
+        match py.allow_threads(|| match (encoding, refinement) {
+            (Encoding::Structured, Some(r)) => io::to_vec_refined(model, r).map(|(b, _)| b),
+            _ => io::to_vec(model, encoding, options),
+        }) {
             Ok(bytes) => Ok(PyBytes::new(py, &bytes)),
             Err(e) => Err(format_error(py, &e)),
         }
@@ -1123,8 +1142,13 @@ impl Model {
             json_in_container: container,
         };
         let model = &self.inner;
-        py.allow_threads(|| io::write_path(model, &path, encoding, options))
-            .map_err(|e| format_error(py, &e))
+        let structured = encoding.or_else(|| Encoding::from_path(&path)) == Some(Encoding::Structured);
+        let refinement = self.refinement.as_deref().filter(|_| structured);
+        py.allow_threads(|| match refinement {
+            Some(r) => io::write_path_refined(model, &path, r).map(|_| ()),
+            None => io::write_path(model, &path, encoding, options),
+        })
+        .map_err(|e| format_error(py, &e))
     }
 
     /// Writes the model to a path (see :meth:`write_path`) or a binary file object (``encoding``

@@ -293,8 +293,15 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let verdict = Verdict::judge(&fitted, &model, fitted_tolerance, expected, |phase| {
         progress.phase(phase)
     });
-    io::write_path(&model, &output, None, io::WriteOptions::default())
-        .map_err(|e| crate::args::cannot_write_model(&output, e))?;
+    // A `.isms` gets the complex as the fit's Kuhn grid and edge splits (complexForm 1), which
+    // the writer rebuilds and checks against the model first (complexForm 0 otherwise).
+    let written = match (io::Encoding::from_path(&output), fitted.refinement()) {
+        (Some(io::Encoding::Structured), Some(refinement)) => {
+            io::write_path_refined(&model, &output, &refinement).map(|_| ())
+        }
+        _ => io::write_path(&model, &output, None, io::WriteOptions::default()),
+    };
+    written.map_err(|e| crate::args::cannot_write_model(&output, e))?;
     progress.finish();
     if let Some(svg) = &args.svg {
         let title = format!(
