@@ -249,6 +249,12 @@ def test_fit_on_the_lattice_matches_the_cli_and_writes_the_smaller_structured_fi
                 points += 1
     assert points > 0
     assert len(m.to_bytes("structured", container=True)) < 0.8 * len(m.to_bytes("compact", container=True))
+    # The fit's file gives its complex by the Kuhn grid and splits (complexForm 1); `ism convert` writes the
+    # canonical complexForm 0 — the same model in a larger file.
+    canonical = tmp_path / "canonical.isms"
+    cli("convert", out, canonical, "--quiet")
+    assert ism.read(canonical) == m
+    assert len(out.read_bytes()) < 0.8 * len(canonical.read_bytes())
     # Without the option the points are the softmax as it is: off the lattice, and the same fit otherwise.
     plain, plain_report = ism.fit(preset="sphere", resolution=4, tolerance=2e-2)
     assert plain.to_bytes("binary") != m.to_bytes("binary")
