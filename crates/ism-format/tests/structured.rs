@@ -387,9 +387,9 @@ fn reader_errors_are_typed_and_located() {
 }
 
 #[test]
-fn a_huge_dimension_does_not_list_its_faces() {
-    // dimension 255: one simplex of 256 distinct ids has C(256, 8) 7-faces; dims bit 7 asks for
-    // their mask, which cannot be there: at the mask, without listing them.
+fn records_by_the_complex_are_refused_outside_dimensions_2_and_3() {
+    // dimension 255: one simplex of 256 distinct ids, whose 7-faces no reader lists: recordForm 1
+    // is refused at its byte (spec §7.4.3 as amended), before dims.
     let mut p = Vec::new();
     p.extend([3, b'1', b'.', b'0', 255, 0, 0, 0, 0, 0, 0]);
     p.extend([251, 0, 1]); // simplices: 256
@@ -403,64 +403,103 @@ fn a_huge_dimension_does_not_list_its_faces() {
     p.push(0);
     p.extend(f64s(&[0.0]));
     p.extend([1, 0, 2, 0, 0]);
-    let mask = p.len() + 2;
+    let record_form = p.len();
     p.extend([1, 0x80]);
     p.extend(tail());
     let start = std::time::Instant::now();
     assert_eq!(
         error_of(&p),
-        (Rule::Malformed, Some("/stages/0/faces".into()), at(mask))
+        (
+            Rule::Malformed,
+            Some("/stages/0/faces".into()),
+            at(record_form)
+        )
     );
     assert!(start.elapsed().as_secs() < 5);
+    // Dimensions 0, 1 and 4 (an empty complex, a stage without records): at recordForm too, and
+    // recordForm 0 reads there.
+    for dimension in [0u8, 1, 4] {
+        let mut p = vec![3, b'1', b'.', b'0', dimension, 0, 0, 0, 0, 0, 0, 0];
+        p.push(0); // values
+        p.extend(f64s(&[0.0])); // level
+        p.extend([1, 0, 2, 0, 0]); // one stage
+        let record_form = p.len();
+        let mut q = p.clone();
+        p.extend([1, 0, 1]);
+        p.extend(tail());
+        assert_eq!(
+            error_of(&p),
+            (
+                Rule::Malformed,
+                Some("/stages/0/faces".into()),
+                at(record_form)
+            ),
+            "dimension {dimension}"
+        );
+        q.extend([0, 0]);
+        q.extend(tail());
+        let m = io::from_slice_with(&file_of(&q), &unchecked())
+            .unwrap()
+            .model;
+        assert_eq!(m.dimension, dimension);
+    }
 }
 
 #[test]
-fn more_faces_than_the_mask_could_cover_are_refused_at_the_mask() {
-    // dimension 15: 300 simplices of 16 ids among 64 (120 edges each, hundreds in all); the bytes
-    // after the mask's start could cover 8 bits each, fewer than the edges: at the mask.
-    let mut p = Vec::new();
-    p.extend([3, b'1', b'.', b'0', 15, 0, 0, 0, 0, 0, 0]);
-    p.extend([251]);
-    p.extend(((300 * 16) as u16).to_le_bytes());
-    for s in 0..300u32 {
-        p.extend((0..16u32).map(|j| ((s * 7 + 3 * j) % 64) as u8));
-    }
-    p.push(0);
-    p.extend(f64s(&[0.0]));
-    p.extend([1, 0, 2, 0, 0]);
+fn a_mask_past_the_payload_in_3d_is_refused_at_its_first_byte() {
+    // dimension 3: the tetrahedron 0 1 2 3 has 6 edges, one mask byte; the payload ends there.
+    let mut p = vec![3, b'1', b'.', b'0', 3, 0, 0, 0, 0, 0, 0];
+    p.extend([4, 0, 1, 2, 3]); // simplices
+    p.push(0); // values
+    p.extend(f64s(&[0.0])); // level
+    p.extend([1, 0, 2, 0, 1, 2, b'a', b'b']); // one stage, named "ab" (7 bytes at least)
     let mask = p.len() + 2;
     p.extend([1, 0b10]);
-    // A stage extras of 40 bytes: 50 bytes, 400 bits, after the mask's start.
-    p.push(40);
-    p.extend(format!("\"{}\"", "x".repeat(38)).bytes());
-    p.extend([0, 0, 0, 0, 4, b'n', b'u', b'l', b'l']);
     assert_eq!(
         error_of(&p),
         (Rule::Malformed, Some("/stages/0/faces".into()), at(mask))
     );
-    // With a mask of F_1 bits all clear, the same complex reads (F_1 counted naively).
-    let mut edges = std::collections::BTreeSet::new();
-    for s in 0..300u32 {
-        for i in 0..16u32 {
-            for j in 0..16u32 {
-                let (a, b) = ((s * 7 + 3 * i) % 64, (s * 7 + 3 * j) % 64);
-                if a < b {
-                    edges.insert((a, b));
-                }
-            }
-        }
-    }
-    assert!(edges.len() > 8 * (p.len() - mask), "the test's premise");
-    let mut q = p[..mask].to_vec();
-    q.extend(vec![0u8; edges.len().div_ceil(8)]);
-    q.push(1);
-    q.extend([
-        0, 4, b'n', b'u', b'l', b'l', 0, 0, 0, 4, b'n', b'u', b'l', b'l',
-    ]);
-    let m = io::from_slice_with(&file_of(&q), &unchecked())
+    // With the mask, edge [2,3] (the last of 6, bit 5) and its lattice point, it reads.
+    p.extend([0b10_0000, 1, 64]);
+    p.extend(tail());
+    let m = io::from_slice_with(&file_of(&p), &unchecked())
         .unwrap()
         .model;
-    assert!(m.stages[0].faces.is_empty());
+    let records = m.stages[0].faces.to_records();
+    assert_eq!(records[0].face, [2, 3]);
+    assert_eq!(records[0].points, [0.75, 0.25]);
+}
+
+#[test]
+fn the_writer_lists_records_outside_dimensions_2_and_3() {
+    // An edge record on the complex's own edge, with the counts of its degree: recordForm 1 in
+    // 2D, recordForm 0 (listed) in 1D and 4D, and a stage without records too.
+    for (dimension, simplex) in [(1u8, vec![0u32, 1]), (4, vec![0, 1, 2, 3, 4])] {
+        let mut m = Model::new(dimension);
+        m.simplices = simplex;
+        m.stages = vec![
+            bezier(&[0, 1], &[0.5, 0.5]),
+            StageBuilder::monotonic(2).build(),
+        ];
+        let payload = io::encode_payload(&m, Encoding::Structured, false).unwrap();
+        let stage = 4 + 1 + 4 + 1 + 1 + 1 + m.simplices.len() + 1 + 8 + 1;
+        assert_eq!(
+            &payload[stage..stage + 4],
+            [0, 2, 0, 0],
+            "dimension {dimension}"
+        );
+        // recordForm 0, one record [0,1] with two f64, no weights.
+        assert_eq!(&payload[stage + 4..stage + 8], [0, 1, 2, 0]);
+        let second = stage + 4 + 5 + 1 + 16 + 1 + 1 + 5;
+        assert_eq!(&payload[second..second + 5], [2, 2, 0, 0, 0], "{payload:?}");
+        let read = io::from_slice_with(
+            &io::to_vec(&m, Encoding::Structured, WriteOptions::default()).unwrap(),
+            &unchecked(),
+        )
+        .unwrap()
+        .model;
+        assert_eq!(read, m);
+    }
 }
 
 #[test]
