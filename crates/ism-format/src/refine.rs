@@ -46,6 +46,12 @@ pub enum RefineError {
         /// What is wrong.
         reason: String,
     },
+    /// Split `index` is an edge of a live slot, but its midpoint would get the id `2³² − 1` or
+    /// more (ids are `u32`; ISM-007 in a file).
+    IdsExhausted {
+        /// Position of the pair in `splits`.
+        index: usize,
+    },
     /// `kept` does not have one entry per live slot.
     Kept {
         /// Live slots after the splits.
@@ -64,6 +70,10 @@ impl fmt::Display for RefineError {
                 write!(f, "cells: the grid has {n} vertices, ids are below 2^32")
             }
             RefineError::Split { index, reason } => write!(f, "split {index}: {reason}"),
+            RefineError::IdsExhausted { index } => write!(
+                f,
+                "split {index}: its midpoint would get the id 2^32 - 1 or more (ids are u32)"
+            ),
             RefineError::Kept { expected, got } => write!(
                 f,
                 "kept: {got} entries for {expected} live simplices after the splits"
@@ -209,12 +219,14 @@ impl Refinement {
                 "vertex {b} does not exist yet ({nv} vertices)"
             )));
         }
-        if nv >= u32::MAX as usize {
-            return Err(fail("a new vertex id would pass 2^32 - 1".into()));
-        }
         let Some(around) = self.around.get(&(a, b)).cloned() else {
             return Err(fail(format!("no live simplex has the edge ({a}, {b})")));
         };
+        // Checked after the edge (the order of spec §7.4.3: not a split of a live edge, then the
+        // midpoint's id).
+        if nv >= u32::MAX as usize {
+            return Err(RefineError::IdsExhausted { index });
+        }
         let n = self.n;
         for k in 0..n {
             let x = (self.points[a as usize * n + k] + self.points[b as usize * n + k]) * 0.5;
@@ -289,6 +301,21 @@ fn check_grid(domain: &[f64], cells: &[u32]) -> Result<(), RefineError> {
     if !(2..=3).contains(&n) {
         return Err(RefineError::Cells(format!("expected 2 or 3 axes, got {n}")));
     }
+    check_domain(domain, n)?;
+    check_cells(cells, n)?;
+    let vertices = grid_vertices(cells);
+    if vertices >= 1u128 << 32 {
+        return Err(RefineError::TooManyVertices(vertices));
+    }
+    Ok(())
+}
+
+/// Step 1's check of `box` for `n` axes (spec §7.4.3): `2n` finite numbers, `lo < hi` per axis
+/// with `hi − lo`, `lo + lo` and `hi + hi` finite. What a decoder checks before it reads `cells`.
+///
+/// # Errors
+/// [`RefineError::Domain`].
+pub fn check_domain(domain: &[f64], n: usize) -> Result<(), RefineError> {
     if domain.len() != 2 * n {
         return Err(RefineError::Domain(format!(
             "expected {} numbers (lo, hi per axis), got {}",
@@ -306,16 +333,32 @@ fn check_grid(domain: &[f64], cells: &[u32]) -> Result<(), RefineError> {
             )));
         }
     }
+    Ok(())
+}
+
+/// Step 1's check of `cells` for `n` axes: `n` numbers, each at least 1 (the vertex count is
+/// checked apart, [`grid_vertices`]).
+///
+/// # Errors
+/// [`RefineError::Cells`].
+pub fn check_cells(cells: &[u32], n: usize) -> Result<(), RefineError> {
+    if cells.len() != n {
+        return Err(RefineError::Cells(format!(
+            "expected {n} numbers (one per axis), got {}",
+            cells.len()
+        )));
+    }
     if let Some(k) = cells.iter().position(|&c| c == 0) {
         return Err(RefineError::Cells(format!(
             "axis {k}: expected at least 1 cube, got 0"
         )));
     }
-    let vertices: u128 = cells.iter().map(|&c| u128::from(c) + 1).product();
-    if vertices >= 1u128 << 32 {
-        return Err(RefineError::TooManyVertices(vertices));
-    }
     Ok(())
+}
+
+/// The grid's vertex count `Π (c_k + 1)` (ids are `u32`: below `2³²` for a grid to be built).
+pub fn grid_vertices(cells: &[u32]) -> u128 {
+    cells.iter().map(|&c| u128::from(c) + 1).product()
 }
 
 impl KuhnRefinement {

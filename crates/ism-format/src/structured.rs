@@ -4,7 +4,7 @@
 //! dimension over the complex's sorted `k`-faces, then the control points (as `f64`, or on the
 //! `2^(−8w)` lattice as `w`-byte integers), then the weights.
 //!
-//! The decoder is the compact one (`crate::binary`), which calls [`BinaryDecoder::complex_form`]
+//! The decoder is the compact one (`crate::binary`), which calls [`BinaryDecoder::complex`]
 //! and [`BinaryDecoder::records`] at the two members that differ; the encoder writes the shared
 //! members with bincode's compact configuration, exactly as the compact writer does, and the
 //! `Records` sections by hand.
@@ -12,14 +12,18 @@
 use bincode::Encode;
 
 use crate::binary::BinaryDecoder;
+use crate::decode::Seg;
 use crate::error::{Error, Result};
 use crate::faces::FaceTable;
 use crate::model::{Model, Stage, StageKind};
 use crate::multi_index::binomial;
+use crate::refine::{self, RefineError, Refinement};
 use crate::rules::{Location, Rule};
 
-/// The only `complexForm` of this version: `vertices` and `simplices` follow as in §7.4.1.
-const COMPLEX_FORM: u8 = 0;
+/// `complexForm` 0: `vertices` and `simplices` follow as in §7.4.1.
+const COMPLEX_LISTED: u8 = 0;
+/// `complexForm` 1: the complex by a Kuhn grid and edge bisections.
+const COMPLEX_REFINED: u8 = 1;
 /// `recordForm` 0: `faces` as in the compact encoding.
 const RECORDS_LISTED: u8 = 0;
 /// `recordForm` 1: records by masks over the complex's faces.
@@ -313,7 +317,7 @@ pub(crate) fn encode(model: &Model) -> Result<Vec<u8>> {
     put(&mut out, &model.version)?;
     put(&mut out, &model.dimension)?;
     put(&mut out, &model.metadata)?;
-    out.push(COMPLEX_FORM);
+    out.push(COMPLEX_LISTED);
     put(&mut out, &model.vertices)?;
     put(&mut out, &model.simplices)?;
     put(&mut out, &model.values)?;
@@ -346,16 +350,133 @@ pub(crate) fn decode(payload: &[u8], base: u64, allow_trailing: bool) -> Result<
 }
 
 impl<const VARINT: bool> BinaryDecoder<'_, '_, VARINT> {
-    /// `complexForm`, read inside `vertices` (its pointer): 0 is the only form.
-    pub(crate) fn complex_form(&mut self) -> Result<()> {
+    /// The `Complex` of spec §7.4.3: `complexForm` (at `/vertices`), then `vertices` and
+    /// `simplices` as listed (form 0) or the refinement that gives them (form 1, in dimension 2
+    /// or 3 only).
+    pub(crate) fn complex(&mut self, dimension: u8) -> Result<(Vec<f64>, Vec<u32>)> {
         let at = self.at;
-        match self.u8("complexForm")? {
-            COMPLEX_FORM => Ok(()),
-            form => Err(self.fail(
-                at,
-                format!("complexForm {form}; expected 0 (vertices and simplices as listed)"),
+        let form = self.member("vertices", |d| d.u8("complexForm"))?;
+        match form {
+            COMPLEX_LISTED => Ok((
+                self.member("vertices", |d| d.f64s("vertices"))?,
+                self.member("simplices", |d| d.u32s("simplices"))?,
             )),
+            COMPLEX_REFINED if (2..=3).contains(&dimension) => {
+                self.refined_complex(usize::from(dimension))
+            }
+            _ => {
+                self.path.push(Seg::Key("vertices".into()));
+                Err(self.fail(
+                    at,
+                    if form == COMPLEX_REFINED {
+                        format!("complexForm 1 in dimension {dimension}; a refinement gives the complex only in dimension 2 or 3")
+                    } else {
+                        format!("complexForm {form}; expected 0 (vertices and simplices listed) or 1 (a refined Kuhn grid)")
+                    },
+                ))
+            }
         }
+    }
+
+    /// An ISM-007 at payload offset `at` and the current pointer.
+    fn limit(&self, at: usize, message: impl Into<String>) -> Error {
+        Error::format(
+            Rule::LimitExceeded,
+            Location {
+                pointer: Some(crate::decode::pointer_of(&self.path)),
+                offset: Some(self.base + at as u64),
+                ..Location::default()
+            },
+            message,
+        )
+    }
+
+    /// `complexForm` 1 after its byte (spec §7.4.3), checked front to back: `box` decoded then
+    /// checked, `cells` decoded then checked, the `⌈C₀ / 8⌉` bytes of the grid's `kept` bits
+    /// after `cells`, the grid's vertex count below `2³²` (ISM-007) — all at `/vertices` — then
+    /// `splits` decoded whole and its length even, each pair applied (an edge of a live slot,
+    /// the midpoint's id below `2³² − 1` (ISM-007), `⌈C / 8⌉` within the bytes after `splits`),
+    /// and `kept` — at `/simplices`. The work is bounded by the input: fewer than 8 live slots per
+    /// byte left, 16 slots in all.
+    fn refined_complex(&mut self, n: usize) -> Result<(Vec<f64>, Vec<u32>)> {
+        let mut grid = self.member("vertices", |d| {
+            let box_at = d.at;
+            let domain = d.f64s("box")?;
+            refine::check_domain(&domain, n).map_err(|e| d.fail(box_at, e.to_string()))?;
+            let cells_at = d.at;
+            let cells = d.u32s("cells")?;
+            refine::check_cells(&cells, n).map_err(|e| d.fail(cells_at, e.to_string()))?;
+            let slots = Refinement::grid_slots(&cells);
+            let kept_bytes = slots.map(|c| c.div_ceil(8));
+            if kept_bytes.is_none_or(|b| b > d.remaining() as u64) {
+                return Err(d.fail(
+                    cells_at,
+                    format!(
+                        "the grid's {} simplices need {} bytes of kept bits; only {} bytes remain",
+                        slots.map_or("more than 2^64".into(), |c| c.to_string()),
+                        kept_bytes.map_or("more than 2^61".into(), |b| b.to_string()),
+                        d.remaining()
+                    ),
+                ));
+            }
+            let vertices = refine::grid_vertices(&cells);
+            if vertices >= 1u128 << 32 {
+                return Err(d.limit(
+                    cells_at,
+                    format!("the grid has {vertices} vertices; ids are below 2^32"),
+                ));
+            }
+            Refinement::kuhn(&domain, &cells).map_err(|e| d.fail(box_at, e.to_string()))
+        })?;
+        self.member("simplices", |d| {
+            let splits_at = d.at;
+            let len = d.length(1, "splits")?;
+            let mut ids = Vec::with_capacity(len);
+            let mut pairs_at = Vec::with_capacity(len.div_ceil(2));
+            for i in 0..len {
+                if i % 2 == 0 {
+                    pairs_at.push(d.at);
+                }
+                ids.push(d.u32("splits")?);
+            }
+            if len % 2 != 0 {
+                return Err(d.fail(
+                    splits_at,
+                    format!("splits holds {len} ids; expected pairs (an even number)"),
+                ));
+            }
+            // `kept` needs ⌈C / 8⌉ of the bytes after `splits`, and C never falls.
+            let room = d.remaining() as u64;
+            for (i, (pair, &at)) in ids.chunks_exact(2).zip(&pairs_at).enumerate() {
+                grid.split(i, pair[0], pair[1]).map_err(|e| match e {
+                    RefineError::IdsExhausted { .. } => d.limit(at, e.to_string()),
+                    e => d.fail(at, e.to_string()),
+                })?;
+                if (grid.live() as u64).div_ceil(8) > room {
+                    return Err(d.fail(
+                        at,
+                        format!(
+                            "after split {i} the {} live simplices need {} bytes of kept bits; only {room} bytes follow splits",
+                            grid.live(),
+                            grid.live().div_ceil(8)
+                        ),
+                    ));
+                }
+            }
+            let kept_at = d.at;
+            let live = grid.live();
+            let bytes = d.take(live.div_ceil(8), "kept")?;
+            if live % 8 != 0 && bytes[bytes.len() - 1] >> (live % 8) != 0 {
+                let last = bytes.len() - 1;
+                return Err(d.fail(
+                    kept_at + last,
+                    format!("kept bits past the {live} live simplices are set"),
+                ));
+            }
+            let kept: Vec<bool> = (0..live).map(|i| bytes[i / 8] >> (i % 8) & 1 == 1).collect();
+            grid.model_arrays(&kept)
+                .map_err(|e| d.fail(kept_at, e.to_string()))
+        })
     }
 
     /// A stage's `Records` section, read inside `faces` (its pointer), as the stage's face table.

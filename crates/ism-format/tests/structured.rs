@@ -5,6 +5,7 @@
 
 use ism_format::builder::StageBuilder;
 use ism_format::io::{self, ReadOptions, WriteOptions, HEADER_LEN};
+use ism_format::refine::KuhnRefinement;
 use ism_format::{Encoding, FaceRecord, FaceTable, Model, Rule, Stage, StageKind, VertexMap};
 use proptest::prelude::*;
 
@@ -324,9 +325,9 @@ fn reader_errors_are_typed_and_located() {
         p[at] = byte;
         p
     };
-    // complexForm other than 0.
+    // complexForm other than 0 and 1.
     assert_eq!(
-        error_of(&with(COMPLEX_FORM, 1)),
+        error_of(&with(COMPLEX_FORM, 2)),
         (m, Some("/vertices".into()), at(COMPLEX_FORM))
     );
     // recordForm above 1.
@@ -799,4 +800,200 @@ proptest! {
             }
         }
     }
+}
+
+/// The unit square with one cube, split on its diagonal, three of its four halves kept (the
+/// example of `refine.rs`'s test `the_unit_square_split_on_its_diagonal_by_hand`), in
+/// `complexForm` 1, byte by byte. Grid ids 0 (0,0), 1 (1,0), 2 (0,1), 3 (1,1); slots: permutation
+/// 01 → (0, 1, 3), permutation 10 (odd) → (0, 2, 3) with its last two swapped → (0, 3, 2).
+/// Splitting (0, 3) at m = 4 = (0.5, 0.5) retires both and appends (0, 1, 4), (4, 1, 3) and
+/// (0, 4, 2), (4, 3, 2); kept 1011 keeps all but (4, 1, 3): vertex 1 is still used, so no vertex
+/// is dropped and the ids stay.
+fn refined_square() -> Vec<u8> {
+    let mut p = Vec::new();
+    p.extend([3, b'1', b'.', b'0']); // 0: version "1.0"
+    p.push(2); // 4: dimension
+    p.extend([0, 0, 0, 0]); // 5: metadata, all absent
+    p.push(1); // 9: complexForm 1
+    p.push(4); // 10: box: 4 numbers
+    p.extend(f64s(&[0.0, 1.0, 0.0, 1.0])); // 11: lo0 hi0 lo1 hi1
+    p.extend([2, 1, 1]); // 43: cells: 2 numbers, 1 and 1
+    p.extend([2, 0, 3]); // 46: splits: 2 ids, the pair (0, 3)
+    p.push(0b1101); // 49: kept: live slots 0, 2, 3 (bit 1, slot (4, 1, 3), clear)
+    p.push(5); // 50: values: 5
+    p.extend(f64s(&[-1.0, 1.0, 1.0, 1.0, -0.5]));
+    p.extend(f64s(&[0.0])); // level
+    p.push(0); // stages: none
+    p.extend([0, 0, 0]); // extensionsUsed, extensionsRequired, extensions
+    p.extend([4, b'n', b'u', b'l', b'l']); // extras "null"
+    p
+}
+
+/// Payload offsets in [`refined_square`].
+const BOX: usize = 10;
+const CELLS: usize = 43;
+const SPLITS: usize = 46;
+const KEPT: usize = 49;
+
+/// The model [`refined_square`] gives, written out by hand.
+fn square_model() -> Model {
+    let mut m = Model::new(2);
+    m.vertices = vec![0.0, 0.0, 1.0, 0.0, 0.0, 1.0, 1.0, 1.0, 0.5, 0.5];
+    m.simplices = vec![0, 1, 4, 0, 4, 2, 4, 3, 2];
+    m.values = vec![-1.0, 1.0, 1.0, 1.0, -0.5];
+    m
+}
+
+fn square_refinement() -> KuhnRefinement {
+    KuhnRefinement {
+        domain: vec![0.0, 1.0, 0.0, 1.0],
+        cells: vec![1, 1],
+        splits: vec![[0, 3]],
+        kept: vec![true, false, true, true],
+    }
+}
+
+#[test]
+fn a_refined_complex_reads_as_the_construction_by_hand() {
+    let doc = io::from_slice(&file_of(&refined_square())).unwrap();
+    assert_eq!(doc.encoding, Encoding::Structured);
+    assert_eq!(doc.model, square_model());
+    // All four kept: vertex 1 used by (4, 1, 3) as well; all halves in slot order.
+    let mut p = refined_square();
+    p[KEPT] = 0b1111;
+    let m = io::from_slice_with(&file_of(&p), &unchecked())
+        .unwrap()
+        .model;
+    assert_eq!(m.simplices, [0, 1, 4, 4, 1, 3, 0, 4, 2, 4, 3, 2]);
+    // Only the last two: vertex 1 unused, the ids after it renumbered (3 → 2, 4 → 3).
+    p[KEPT] = 0b1100;
+    let m = io::from_slice_with(&file_of(&p), &unchecked())
+        .unwrap()
+        .model;
+    assert_eq!(m.vertices, [0.0, 0.0, 0.0, 1.0, 1.0, 1.0, 0.5, 0.5]);
+    assert_eq!(m.simplices, [0, 3, 1, 3, 2, 1]);
+    // None kept: an empty complex.
+    p[KEPT] = 0;
+    let m = io::from_slice_with(&file_of(&p), &unchecked())
+        .unwrap()
+        .model;
+    assert!(m.vertices.is_empty() && m.simplices.is_empty());
+}
+
+#[test]
+fn refined_complex_errors_are_typed_and_located() {
+    let m = Rule::Malformed;
+    let vertices = Some("/vertices".to_string());
+    let simplices = Some("/simplices".to_string());
+    let square = refined_square();
+    let with = |at: usize, bytes: &[u8]| {
+        let mut p = square.clone();
+        p.splice(at..at + bytes.len(), bytes.iter().copied());
+        p
+    };
+    // complexForm 1 outside dimensions 2 and 3: at the byte.
+    for dimension in [0, 1, 4] {
+        assert_eq!(
+            error_of(&with(4, &[dimension])),
+            (m, vertices.clone(), at(COMPLEX_FORM - 2))
+        );
+    }
+    // box: the wrong count, lo ≥ hi, an extent that overflows, a sum that would (2 hi is
+    // infinite), a NaN — each at the box's first byte, the checks after it is decoded whole.
+    let mut three = square[..BOX].to_vec();
+    three.push(3);
+    three.extend(f64s(&[0.0, 1.0, 0.0]));
+    three.extend(&square[CELLS..]);
+    assert_eq!(error_of(&three), (m, vertices.clone(), at(BOX)));
+    for (k, x) in [(1, 0.0), (0, -f64::MAX), (3, f64::MAX), (2, f64::NAN)] {
+        let mut p = square.clone();
+        let o = BOX + 1 + 8 * k;
+        p[o..o + 8].copy_from_slice(&x.to_le_bytes());
+        if k == 0 {
+            p[o + 8..o + 16].copy_from_slice(&f64::MAX.to_le_bytes());
+        }
+        assert_eq!(error_of(&p), (m, vertices.clone(), at(BOX)), "{k} {x}");
+    }
+    // A box that is wrong and cells that are wrong too: the box first.
+    let mut p = three.clone();
+    p[BOX + 1 + 24 + 1] = 0;
+    assert_eq!(error_of(&p), (m, vertices.clone(), at(BOX)));
+    // A box length past the payload: at its length (decoding errors before the checks).
+    assert_eq!(error_of(&with(BOX, &[250])), (m, vertices.clone(), at(BOX)));
+    // cells: one number for two axes, a zero — at the cells' first byte.
+    let mut one = square[..CELLS].to_vec();
+    one.extend([1, 1]);
+    one.extend(&square[SPLITS..]);
+    assert_eq!(error_of(&one), (m, vertices.clone(), at(CELLS)));
+    assert_eq!(
+        error_of(&with(CELLS, &[2, 0, 1])),
+        (m, vertices.clone(), at(CELLS))
+    );
+    // A cell count as a varint that is not minimal (FB 05 00 for 5): at that varint.
+    assert_eq!(
+        error_of(&with(CELLS, &[2, 0xFB, 0x05, 0x00])),
+        (m, vertices.clone(), at(CELLS + 1))
+    );
+    // The grid's kept bits: 1000 × 1000 cubes are 2 000 000 simplices, 250 000 bytes of kept
+    // bits after cells, which the payload does not hold: at cells, before any grid is built.
+    let mut big = square[..CELLS].to_vec();
+    big.extend([2, 0xFB, 0xE8, 0x03, 0xFB, 0xE8, 0x03]);
+    big.extend(&square[SPLITS..]);
+    let start = std::time::Instant::now();
+    assert_eq!(error_of(&big), (m, vertices.clone(), at(CELLS)));
+    // 2^32 − 1 cubes on both axes: a slot count past u64's kept bytes, the same error (the
+    // vertex count, 2^64, would be ISM-007, but the kept bytes come first).
+    let mut huge = square[..CELLS].to_vec();
+    huge.extend([
+        2, 0xFC, 0xFF, 0xFF, 0xFF, 0xFF, 0xFC, 0xFF, 0xFF, 0xFF, 0xFF,
+    ]);
+    huge.extend(&square[SPLITS..]);
+    assert_eq!(error_of(&huge), (m, vertices.clone(), at(CELLS)));
+    assert!(start.elapsed().as_secs() < 5);
+    // splits: an odd count, at its length — after its varints are decoded (a bad third varint
+    // is reported at that varint).
+    let mut odd = square[..SPLITS].to_vec();
+    odd.extend([3, 0, 3, 1]);
+    odd.extend(&square[KEPT..]);
+    assert_eq!(error_of(&odd), (m, simplices.clone(), at(SPLITS)));
+    odd[SPLITS + 3] = 0xFE;
+    assert_eq!(error_of(&odd), (m, simplices.clone(), at(SPLITS + 3)));
+    // A pair that is not a split of a live edge: (1, 2) is no edge of the grid, (3, 0) has
+    // a > b, (0, 9) names a vertex that does not exist — at the pair's first byte; and after a
+    // valid first pair, (0, 3) again (retired) at the second pair.
+    for pair in [[1, 2], [3, 0], [0, 9], [0, 0]] {
+        assert_eq!(
+            error_of(&with(SPLITS + 1, &pair)),
+            (m, simplices.clone(), at(SPLITS + 1)),
+            "{pair:?}"
+        );
+    }
+    let mut again = square[..SPLITS].to_vec();
+    again.extend([4, 0, 3, 0, 3]);
+    again.extend(&square[KEPT..]);
+    assert_eq!(error_of(&again), (m, simplices.clone(), at(SPLITS + 3)));
+    // The per-split bound: splits (0,3) (0,4) (0,5) (0,6) take the live slots from 2 to 4, 6,
+    // 8, 10; with one byte after splits, the fourth pair needs two: at that pair.
+    let mut fan = square[..SPLITS].to_vec();
+    fan.extend([8, 0, 3, 0, 4, 0, 5, 0, 6]);
+    fan.push(0xFF);
+    assert_eq!(error_of(&fan), (m, simplices.clone(), at(SPLITS + 7)));
+    // kept: the payload ends where it starts (no splits: the one byte after cells is the
+    // splits' length), at its first byte; a set padding bit (bit 4 of 4 live slots), at its byte.
+    let mut short = square[..SPLITS].to_vec();
+    short.push(0);
+    assert_eq!(error_of(&short), (m, simplices.clone(), at(SPLITS + 1)));
+    assert_eq!(
+        error_of(&with(KEPT, &[0b1_1101])),
+        (m, simplices.clone(), at(KEPT))
+    );
+    // Two kept bytes (10 live slots after the fan), padding in the second: at the second byte.
+    let mut fan = square[..SPLITS].to_vec();
+    fan.extend([8, 0, 3, 0, 4, 0, 5, 0, 6]);
+    let kept = fan.len();
+    fan.extend([0xFF, 0b111]);
+    fan.extend(&square[KEPT + 1..]);
+    assert_eq!(error_of(&fan), (m, simplices.clone(), at(kept + 1)));
+    fan[kept + 1] = 0b11;
+    assert!(io::from_slice_with(&file_of(&fan), &unchecked()).is_ok());
 }
