@@ -17,7 +17,7 @@ use crate::error::{Error, Result};
 use crate::faces::FaceTable;
 use crate::model::{Model, Stage, StageKind};
 use crate::multi_index::binomial;
-use crate::refine::{self, RefineError, Refinement};
+use crate::refine::{self, KuhnRefinement, RefineError, Refinement};
 use crate::rules::{Location, Rule};
 
 /// `complexForm` 0: `vertices` and `simplices` follow as in §7.4.1.
@@ -311,15 +311,49 @@ fn encode_records(out: &mut Vec<u8>, stage: &Stage, complex: &mut ComplexFaces) 
 /// the model can be written (finite numbers, depth) and that its records keep their numbers.
 ///
 /// # Errors
-/// ISM-007 for a complex whose masks could not be written (a `dimension` far above 3).
+/// None but an encoder's own (the shared members are written by bincode).
 pub(crate) fn encode(model: &Model) -> Result<Vec<u8>> {
+    encode_refined(model, None).map(|(payload, _)| payload)
+}
+
+/// [`encode`], with the complex as `complexForm` 1 when `refinement` gives exactly the model's
+/// `vertices` and `simplices` (every bit, in order: [`KuhnRefinement::describes`] rebuilds them),
+/// else as `complexForm` 0. Also returns whether `complexForm` 1 was written.
+///
+/// # Errors
+/// As [`encode`].
+pub(crate) fn encode_refined(
+    model: &Model,
+    refinement: Option<&KuhnRefinement>,
+) -> Result<(Vec<u8>, bool)> {
+    let refinement = refinement.filter(|r| {
+        (2..=3).contains(&model.dimension)
+            && r.domain.len() == 2 * usize::from(model.dimension)
+            && r.describes(&model.vertices, &model.simplices)
+    });
     let mut out = Vec::new();
     put(&mut out, &model.version)?;
     put(&mut out, &model.dimension)?;
     put(&mut out, &model.metadata)?;
-    out.push(COMPLEX_LISTED);
-    put(&mut out, &model.vertices)?;
-    put(&mut out, &model.simplices)?;
+    match refinement {
+        Some(r) => {
+            out.push(COMPLEX_REFINED);
+            put(&mut out, &r.domain)?;
+            put(&mut out, &r.cells)?;
+            let splits: Vec<u32> = r.splits.iter().flatten().copied().collect();
+            put(&mut out, &splits)?;
+            let mut kept = vec![0u8; r.kept.len().div_ceil(8)];
+            for (i, _) in r.kept.iter().enumerate().filter(|(_, &k)| k) {
+                kept[i / 8] |= 1 << (i % 8);
+            }
+            out.extend(kept);
+        }
+        None => {
+            out.push(COMPLEX_LISTED);
+            put(&mut out, &model.vertices)?;
+            put(&mut out, &model.simplices)?;
+        }
+    }
     put(&mut out, &model.values)?;
     put(&mut out, &model.level)?;
     let mut complex = ComplexFaces::new(model.dimension, &model.simplices);
@@ -337,7 +371,7 @@ pub(crate) fn encode(model: &Model) -> Result<Vec<u8>> {
     put(&mut out, &model.extensions_required)?;
     put(&mut out, &model.extensions)?;
     put(&mut out, &model.extras)?;
-    Ok(out)
+    Ok((out, refinement.is_some()))
 }
 
 /// Decodes a structured payload whose first byte is at file offset `base`. Bytes after the model

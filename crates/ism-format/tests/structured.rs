@@ -715,7 +715,7 @@ proptest! {
 }
 
 /// Structured payloads to mutate: Appendix A's, the writer vector that makes every choice of the
-/// writer, and the small examples.
+/// writer, the small examples, and files whose complex is `complexForm` 1.
 fn seeds() -> Vec<Vec<u8>> {
     let spec = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../spec");
     let mut out = vec![payload_with(&APPENDIX_A_RECORDS)];
@@ -728,6 +728,14 @@ fn seeds() -> Vec<Vec<u8>> {
         "examples/stratified-3d.isms",
     ] {
         let bytes = std::fs::read(spec.join(name)).unwrap();
+        out.push(bytes[HEADER_LEN..].to_vec());
+    }
+    // complexForm 1: the unit square by hand, and two random refinements with a stage.
+    out.push(refined_square());
+    for seed in [3, 8] {
+        let r = random_refinement(seed);
+        let (bytes, refined) = io::to_vec_refined(&refined_model(&r), &r).unwrap();
+        assert!(refined);
         out.push(bytes[HEADER_LEN..].to_vec());
     }
     out
@@ -759,7 +767,7 @@ proptest! {
     /// never a panic; what reads writes back canonically to the same model.
     #[test]
     fn edited_payloads_are_read_or_refused(
-        seed in 0usize..7,
+        seed in 0usize..10,
         edits in prop::collection::vec(edit(), 1..4),
     ) {
         let mut p = seeds().swap_remove(seed);
@@ -996,4 +1004,168 @@ fn refined_complex_errors_are_typed_and_located() {
     assert_eq!(error_of(&fan), (m, simplices.clone(), at(kept + 1)));
     fan[kept + 1] = 0b11;
     assert!(io::from_slice_with(&file_of(&fan), &unchecked()).is_ok());
+}
+
+#[test]
+fn the_refined_writer_writes_the_bytes_by_hand_and_falls_back_to_form_0() {
+    let model = square_model();
+    let (bytes, refined) = io::to_vec_refined(&model, &square_refinement()).unwrap();
+    assert!(refined);
+    assert_eq!(bytes[12], 6, "encoding tag");
+    assert_eq!(&bytes[HEADER_LEN..], &refined_square()[..]);
+    assert_eq!(io::from_slice(&bytes).unwrap().model, model);
+    // The canonical writer writes complexForm 0, and reads back the same model.
+    let canonical = io::to_vec(&model, Encoding::Structured, WriteOptions::default()).unwrap();
+    assert_eq!(canonical[HEADER_LEN + COMPLEX_FORM - 2], 0);
+    assert_eq!(io::from_slice(&canonical).unwrap().model, model);
+    // A refinement of another complex (another kept mask, a split more, another box, a 3D
+    // grid), or a model whose vertices differ in one bit: complexForm 0, the canonical file.
+    let other = |f: &dyn Fn(&mut KuhnRefinement)| {
+        let mut r = square_refinement();
+        f(&mut r);
+        r
+    };
+    for r in [
+        other(&|r| r.kept = vec![true; 4]),
+        other(&|r| {
+            r.splits.push([0, 4]);
+            r.kept = vec![true; 6];
+        }),
+        other(&|r| r.domain[1] = 2.0),
+        other(&|r| {
+            r.domain.extend([0.0, 1.0]);
+            r.cells.push(1);
+        }),
+        other(&|r| r.splits = vec![[1, 2]]),
+    ] {
+        let (bytes, refined) = io::to_vec_refined(&model, &r).unwrap();
+        assert!(!refined, "{r:?}");
+        assert_eq!(bytes, canonical);
+    }
+    let mut moved = model.clone();
+    moved.vertices[9] = f64::from_bits(0.5f64.to_bits() + 1);
+    let (bytes, refined) = io::to_vec_refined(&moved, &square_refinement()).unwrap();
+    assert!(!refined);
+    assert_eq!(io::from_slice(&bytes).unwrap().model, moved);
+    // -0.0 is not 0.0: the refinement gives +0.0.
+    let mut signed = model.clone();
+    signed.vertices[0] = -0.0;
+    assert!(!io::to_vec_refined(&signed, &square_refinement()).unwrap().1);
+    // The atomic file writer: the same bytes, whatever the extension.
+    let dir = std::env::temp_dir().join(format!("ism-refined-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let path = dir.join("square.ismc");
+    assert!(io::write_path_refined(&model, &path, &square_refinement()).unwrap());
+    assert_eq!(
+        std::fs::read(&path).unwrap(),
+        io::to_vec_refined(&model, &square_refinement()).unwrap().0
+    );
+    assert_eq!(io::read_path(&path).unwrap().model, model);
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// A refinement of a small random grid in 2D or 3D: splits of live edges found by trying pairs
+/// (the construction refuses the others), and a random kept mask.
+fn random_refinement(seed: u64) -> KuhnRefinement {
+    use ism_format::refine::Refinement;
+    let mut state = seed.wrapping_mul(0x9e37_79b9_7f4a_7c15) | 1;
+    let mut next = |m: u64| {
+        state ^= state << 13;
+        state ^= state >> 7;
+        state ^= state << 17;
+        state % m
+    };
+    let n = 2 + next(2) as usize;
+    let cells: Vec<u32> = (0..n).map(|_| 1 + next(3) as u32).collect();
+    let domain: Vec<f64> = (0..n)
+        .flat_map(|k| [-0.3 * k as f64 - 1.0, 0.7 + k as f64 / 3.0])
+        .collect();
+    let mut r = Refinement::kuhn(&domain, &cells).unwrap();
+    let mut splits = Vec::new();
+    for _ in 0..300 {
+        let nv = r.num_vertices() as u64;
+        let a = next(nv) as u32;
+        let b = a + 1 + next(6) as u32;
+        if r.split(splits.len(), a, b).is_ok() {
+            splits.push([a, b]);
+        }
+        if splits.len() == 25 {
+            break;
+        }
+    }
+    let kept = (0..r.live()).map(|_| next(4) != 0).collect();
+    KuhnRefinement {
+        domain,
+        cells,
+        splits,
+        kept,
+    }
+}
+
+/// A model on `refinement`'s complex with a value per vertex and a stage with records by the
+/// complex.
+fn refined_model(refinement: &KuhnRefinement) -> Model {
+    let (vertices, simplices) = refinement.model_arrays().unwrap();
+    let n = refinement.cells.len();
+    let mut m = Model::new(n as u8);
+    m.values = (0..vertices.len() / n)
+        .map(|v| if v % 2 == 0 { -1.0 } else { 1.0 })
+        .collect();
+    m.vertices = vertices;
+    if let [a, b, ..] = simplices[..] {
+        let (a, b) = (a.min(b), a.max(b));
+        m.stages = vec![bezier(&[a, b], &[0.75, 0.25])];
+    }
+    m.simplices = simplices;
+    m
+}
+
+#[test]
+fn refined_files_read_as_the_model_written() {
+    let mut splits = 0;
+    for seed in 0..40 {
+        let r = random_refinement(seed);
+        splits += r.splits.len();
+        let m = refined_model(&r);
+        let (bytes, refined) = io::to_vec_refined(&m, &r).unwrap();
+        assert!(refined, "seed {seed}");
+        let read = io::from_slice(&bytes).unwrap().model;
+        assert_eq!(
+            io::encode_payload(&read, Encoding::Binary, false).unwrap(),
+            io::encode_payload(&m, Encoding::Binary, false).unwrap(),
+            "seed {seed}"
+        );
+        // Smaller than the listed complex; the canonical writer lists it.
+        let canonical = io::to_vec(&read, Encoding::Structured, WriteOptions::default()).unwrap();
+        assert!(bytes.len() < canonical.len(), "seed {seed}");
+        assert_eq!(io::from_slice(&canonical).unwrap().model, read);
+    }
+    assert!(splits > 100, "the test's premise: {splits} splits");
+}
+
+#[test]
+fn the_mutated_seeds_include_refined_complexes() {
+    // The edit-based proptest draws from all seeds; three of them are complexForm 1 files (the
+    // byte after version, dimension and an empty metadata), in 2D and 3D.
+    let seeds = seeds();
+    assert_eq!(seeds.len(), 10);
+    let refined: Vec<u8> = seeds[7..].iter().map(|p| p[4]).collect();
+    assert!(seeds[7..].iter().all(|p| p[9] == 1), "complexForm 1");
+    assert!(refined.contains(&2) && refined.contains(&3), "{refined:?}");
+}
+
+/// Writes the `complexForm` 1 seeds into the fuzz corpus of `read_structured` (named by their
+/// SHA-1 as cargo-fuzz names its inputs) when `ISM_WRITE_FUZZ_SEEDS` is set.
+#[test]
+fn refined_seeds_for_the_fuzz_corpus() {
+    let Some(dir) = std::env::var_os("ISM_WRITE_FUZZ_SEEDS") else {
+        return;
+    };
+    for (i, payload) in seeds()[7..].iter().enumerate() {
+        std::fs::write(
+            std::path::Path::new(&dir).join(format!("refined-{i}")),
+            payload,
+        )
+        .unwrap();
+    }
 }
