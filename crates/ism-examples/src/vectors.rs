@@ -463,6 +463,26 @@ fn structured_triangle(name: Option<&str>) -> (Vec<u8>, usize) {
     (bytes, at)
 }
 
+/// The unit square, one cube split on its diagonal, three of the four halves kept, as a structured
+/// file with `complexForm` 1 (spec §7.4.3; `crates/ism-format/tests/structured.rs` writes its
+/// payload byte by byte): payload offsets 10 `box`, 43 `cells`, 46 `splits`, 49 `kept`.
+fn refined_square() -> Vec<u8> {
+    let mut m = Model::new(2);
+    m.vertices = vec![0.0, 0.0, 1.0, 0.0, 0.0, 1.0, 1.0, 1.0, 0.5, 0.5];
+    m.simplices = vec![0, 1, 4, 0, 4, 2, 4, 3, 2];
+    m.values = vec![-1.0, 1.0, 1.0, 1.0, -0.5];
+    let refinement = ism_format::refine::KuhnRefinement {
+        domain: vec![0.0, 1.0, 0.0, 1.0],
+        cells: vec![1, 1],
+        splits: vec![[0, 3]],
+        kept: vec![true, false, true, true],
+    };
+    let (bytes, refined) = io::to_vec_refined(&m, &refinement).expect("the square encodes");
+    assert!(refined, "the refinement gives the square");
+    assert_eq!(bytes[HEADER_LEN + 9], 1, "complexForm 1");
+    bytes
+}
+
 /// The structured encoding's own errors (spec §7.4.3), each at its pointer and offset.
 fn structured_vectors() -> Vec<ReaderVector> {
     let s = Encoding::Structured;
@@ -488,9 +508,47 @@ fn structured_vectors() -> Vec<ReaderVector> {
     let (mut form, _) = structured_triangle(None);
     let at = HEADER_LEN + 1 + 3 + 1 + 4;
     assert_eq!(form[at], 0, "structured layout changed: update the offset");
-    form[at] = 1;
+    form[at] = 2;
     reseal_payload(&mut form);
     push("structured-complex-form", form, Rule::Malformed);
+    // complexForm 1 (the complex by a refined Kuhn grid) in dimension 4: at the byte.
+    let (mut form, _) = structured_triangle(None);
+    form[HEADER_LEN + 4] = 4;
+    form[at] = 1;
+    reseal_payload(&mut form);
+    push("structured-refined-dimension", form, Rule::Malformed);
+    // The unit square split on its diagonal (`refined_square`), one error each: a box with
+    // lo = hi on axis 0 (at the box), 1000 × 1000 cubes whose kept bits the payload cannot hold
+    // (at cells, before the grid is built), a pair that is no edge of a live simplex (at the
+    // pair), a kept padding bit (at its byte).
+    let (payload, bx, cells, splits, kept) = (HEADER_LEN, 10, 43, 46, 49);
+    let square = refined_square();
+    let with = |at: usize, bytes: &[u8], removed: usize| {
+        let mut out = square.clone();
+        out.splice(payload + at..payload + at + removed, bytes.iter().copied());
+        reseal_payload(&mut out);
+        out
+    };
+    push(
+        "structured-refined-box",
+        with(bx + 9, &0.0f64.to_le_bytes()[..], 8),
+        Rule::Malformed,
+    );
+    push(
+        "structured-refined-kept-bytes",
+        with(cells, &[2, 0xFB, 0xE8, 0x03, 0xFB, 0xE8, 0x03], 3),
+        Rule::Malformed,
+    );
+    push(
+        "structured-refined-split",
+        with(splits + 1, &[1, 2], 2),
+        Rule::Malformed,
+    );
+    push(
+        "structured-refined-kept-padding",
+        with(kept, &[0b1_1101], 1),
+        Rule::Malformed,
+    );
     push("structured-record-form", patched(0, 2), Rule::Malformed);
     push(
         "structured-dims-above-dimension",

@@ -280,8 +280,9 @@ pub(crate) struct BinaryDecoder<'a, 'r, const VARINT: bool> {
     /// Keep face records' control points and weights (false: count them and test them finite,
     /// [`crate::io::ReadOptions::keep_record_numbers`]).
     keep_numbers: bool,
-    /// The structured encoding (spec §7.4.3): the compact grammar with `complexForm` before
-    /// `vertices` and a stage's records as `Records` (read by `crate::structured`).
+    /// The structured encoding (spec §7.4.3): the compact grammar with the complex as `Complex`
+    /// (`complexForm` then the listed arrays or a refinement) and a stage's records as `Records`
+    /// (both read by `crate::structured`).
     structured: bool,
 }
 
@@ -429,7 +430,7 @@ impl<'a, 'r, const VARINT: bool> BinaryDecoder<'a, 'r, VARINT> {
         Ok(self.take(1, what)?[0])
     }
 
-    fn u32(&mut self, what: &str) -> Result<u32> {
+    pub(crate) fn u32(&mut self, what: &str) -> Result<u32> {
         if VARINT {
             // `wide` false: a value above u32::MAX cannot be read.
             return Ok(self.varint_checked(false, || what.to_string())? as u32);
@@ -482,7 +483,7 @@ impl<'a, 'r, const VARINT: bool> BinaryDecoder<'a, 'r, VARINT> {
 
     /// A length prefix (`u64`, or a varint), checked against the bytes left: `min` is the smallest size of one
     /// element, so nothing is allocated for elements the payload cannot hold.
-    fn length(&mut self, min: usize, what: &str) -> Result<usize> {
+    pub(crate) fn length(&mut self, min: usize, what: &str) -> Result<usize> {
         let start = self.at;
         let n = if VARINT {
             self.varint_checked(true, || format!("the length of {what}"))?
@@ -543,7 +544,7 @@ impl<'a, 'r, const VARINT: bool> BinaryDecoder<'a, 'r, VARINT> {
 
     /// A length-prefixed array of `f64` in a vector of exactly its length (reserved once: see
     /// [`Self::reserve_exact`]).
-    fn f64s(&mut self, what: &str) -> Result<Vec<f64>> {
+    pub(crate) fn f64s(&mut self, what: &str) -> Result<Vec<f64>> {
         let n = self.length(Self::MIN.f64, what)?;
         let mut out = Vec::new();
         Self::reserve_exact(&mut out, n);
@@ -554,7 +555,7 @@ impl<'a, 'r, const VARINT: bool> BinaryDecoder<'a, 'r, VARINT> {
     }
 
     /// A length-prefixed array of `u32`, as [`Self::f64s`].
-    fn u32s(&mut self, what: &str) -> Result<Vec<u32>> {
+    pub(crate) fn u32s(&mut self, what: &str) -> Result<Vec<u32>> {
         let n = self.length(Self::MIN.u32, what)?;
         let mut out = Vec::new();
         Self::reserve_exact(&mut out, n);
@@ -1010,13 +1011,15 @@ impl<'a, 'r, const VARINT: bool> BinaryDecoder<'a, 'r, VARINT> {
                 description: d.member("description", |d| d.optional_string("description"))?,
             })
         })?;
-        let vertices = self.member("vertices", |d| {
-            if d.structured {
-                d.complex_form()?;
-            }
-            d.f64s("vertices")
-        })?;
-        let simplices = self.member("simplices", |d| d.u32s("simplices"))?;
+        let (vertices, simplices) = if self.structured {
+            // `complexForm`, then `vertices` and `simplices` as listed or by a refinement.
+            self.complex(dimension)?
+        } else {
+            (
+                self.member("vertices", |d| d.f64s("vertices"))?,
+                self.member("simplices", |d| d.u32s("simplices"))?,
+            )
+        };
         let values = self.member("values", |d| d.f64s("values"))?;
         let level = self.member("level", |d| d.f64("level"))?;
         // The structured encoding's records refer to the complex's faces, computed when a stage

@@ -6,6 +6,7 @@ use std::path::Path;
 use crate::decode::MAX_DEPTH;
 use crate::error::{Error, Result};
 use crate::model::{JsonValue, Model, Version, FORMAT_VERSION};
+use crate::refine::KuhnRefinement;
 use crate::rules::{Location, Rule, Severity};
 
 /// The eight magic bytes that open a container: `\x89 I S M \r \n \x1a \n` (spec §7.1).
@@ -1201,6 +1202,46 @@ pub fn write<W: Write>(
     let bytes = to_vec(model, encoding, options)?;
     writer.write_all(&bytes).map_err(|e| Error::io(None, e))?;
     writer.flush().map_err(|e| Error::io(None, e))
+}
+
+/// Encodes a whole structured file (`.isms`, spec §7.4.3) whose complex is written as
+/// `complexForm` 1 — the Kuhn grid and edge bisections of `refinement` — when
+/// [`KuhnRefinement::describes`] the model's `vertices` and `simplices` exactly (every bit, in
+/// order; it rebuilds them to check), and as the canonical `complexForm` 0 otherwise (a
+/// refinement of another model, or a `dimension` other than 2 or 3). The rest of the file is the
+/// canonical structured encoding. Returns the file and whether `complexForm` 1 was written.
+///
+/// Form 1 is a writer's option, not the canonical form: [`to_vec`], [`write_path`] and
+/// `ism convert` always write `complexForm` 0. A reader gives the same model either way.
+///
+/// # Errors
+/// As [`to_vec`].
+pub fn to_vec_refined(model: &Model, refinement: &KuhnRefinement) -> Result<(Vec<u8>, bool)> {
+    check_writable(model)?;
+    let model = own_version(model);
+    let (payload, refined) = crate::structured::encode_refined(&model, Some(refinement))?;
+    let mut out = Vec::with_capacity(HEADER_LEN + payload.len());
+    out.extend(header(Encoding::Structured, FORMAT_VERSION, &payload));
+    out.extend(payload);
+    Ok((out, refined))
+}
+
+/// Writes [`to_vec_refined`]'s file to `path` atomically, as [`write_path`] does (a temporary
+/// file beside it, renamed over it: a failure never leaves a partial file), whatever the path's
+/// extension. Returns whether `complexForm` 1 was written.
+///
+/// # Errors
+/// As [`to_vec_refined`], plus [`Error::Io`] naming the path.
+pub fn write_path_refined(
+    model: &Model,
+    path: impl AsRef<Path>,
+    refinement: &KuhnRefinement,
+) -> Result<bool> {
+    let path = path.as_ref();
+    let (bytes, refined) = to_vec_refined(model, refinement)?;
+    write_atomic(path, |w| w.write_all(&bytes))
+        .map_err(|e| Error::io(Some(path.to_path_buf()), e))?;
+    Ok(refined)
 }
 
 /// A writer that counts the bytes it passes on and their CRC-32 (the container's payload checksum,

@@ -37,8 +37,7 @@ pub enum RefineError {
     Domain(String),
     /// `cells` is not `n` numbers ≥ 1.
     Cells(String),
-    /// The grid has `2³²` vertices or more, or a split's midpoint would get the id `2³² − 1` or
-    /// more (ids are `u32`): ISM-007 where a decoder meets it.
+    /// The grid has `2³²` vertices or more (ids are `u32`).
     TooManyVertices(u128),
     /// Split `index` names no edge of a live slot (or `a ≥ b`, or an id that does not exist).
     Split {
@@ -46,6 +45,12 @@ pub enum RefineError {
         index: usize,
         /// What is wrong.
         reason: String,
+    },
+    /// Split `index` is an edge of a live slot, but its midpoint would get the id `2³² − 1` or
+    /// more (ids are `u32`; ISM-007 in a file).
+    IdsExhausted {
+        /// Position of the pair in `splits`.
+        index: usize,
     },
     /// `kept` does not have one entry per live slot.
     Kept {
@@ -62,9 +67,13 @@ impl fmt::Display for RefineError {
             RefineError::Domain(why) => write!(f, "box: {why}"),
             RefineError::Cells(why) => write!(f, "cells: {why}"),
             RefineError::TooManyVertices(n) => {
-                write!(f, "{n} vertices: ids are below 2^32 - 1")
+                write!(f, "cells: the grid has {n} vertices, ids are below 2^32")
             }
             RefineError::Split { index, reason } => write!(f, "split {index}: {reason}"),
+            RefineError::IdsExhausted { index } => write!(
+                f,
+                "split {index}: its midpoint would get the id 2^32 - 1 or more (ids are u32)"
+            ),
             RefineError::Kept { expected, got } => write!(
                 f,
                 "kept: {got} entries for {expected} live simplices after the splits"
@@ -198,8 +207,7 @@ impl Refinement {
     /// containing it, in increasing slot order. Returns the midpoint's id.
     ///
     /// # Errors
-    /// [`RefineError::Split`] when `a ≥ b`, an id does not exist, or no live slot has the edge;
-    /// then [`RefineError::TooManyVertices`] when the midpoint's id would be `2³² − 1` or more.
+    /// [`RefineError::Split`] when `a ≥ b`, an id does not exist, or no live slot has the edge.
     pub fn split(&mut self, index: usize, a: u32, b: u32) -> Result<u32, RefineError> {
         let fail = |reason: String| RefineError::Split { index, reason };
         let nv = self.num_vertices();
@@ -214,9 +222,10 @@ impl Refinement {
         let Some(around) = self.around.get(&(a, b)).cloned() else {
             return Err(fail(format!("no live simplex has the edge ({a}, {b})")));
         };
-        // After the edge checks, as the spec orders them (this one is ISM-007, they are ISM-006).
+        // Checked after the edge (the order of spec §7.4.3: not a split of a live edge, then the
+        // midpoint's id).
         if nv >= u32::MAX as usize {
-            return Err(RefineError::TooManyVertices(nv as u128 + 1));
+            return Err(RefineError::IdsExhausted { index });
         }
         let n = self.n;
         for k in 0..n {
@@ -292,6 +301,21 @@ fn check_grid(domain: &[f64], cells: &[u32]) -> Result<(), RefineError> {
     if !(2..=3).contains(&n) {
         return Err(RefineError::Cells(format!("expected 2 or 3 axes, got {n}")));
     }
+    check_domain(domain, n)?;
+    check_cells(cells, n)?;
+    let vertices = grid_vertices(cells);
+    if vertices >= 1u128 << 32 {
+        return Err(RefineError::TooManyVertices(vertices));
+    }
+    Ok(())
+}
+
+/// Step 1's check of `box` for `n` axes (spec §7.4.3): `2n` finite numbers, `lo < hi` per axis
+/// with `hi − lo`, `lo + lo` and `hi + hi` finite. What a decoder checks before it reads `cells`.
+///
+/// # Errors
+/// [`RefineError::Domain`].
+pub fn check_domain(domain: &[f64], n: usize) -> Result<(), RefineError> {
     if domain.len() != 2 * n {
         return Err(RefineError::Domain(format!(
             "expected {} numbers (lo, hi per axis), got {}",
@@ -309,16 +333,32 @@ fn check_grid(domain: &[f64], cells: &[u32]) -> Result<(), RefineError> {
             )));
         }
     }
+    Ok(())
+}
+
+/// Step 1's check of `cells` for `n` axes: `n` numbers, each at least 1 (the vertex count is
+/// checked apart, [`grid_vertices`]).
+///
+/// # Errors
+/// [`RefineError::Cells`].
+pub fn check_cells(cells: &[u32], n: usize) -> Result<(), RefineError> {
+    if cells.len() != n {
+        return Err(RefineError::Cells(format!(
+            "expected {n} numbers (one per axis), got {}",
+            cells.len()
+        )));
+    }
     if let Some(k) = cells.iter().position(|&c| c == 0) {
         return Err(RefineError::Cells(format!(
             "axis {k}: expected at least 1 cube, got 0"
         )));
     }
-    let vertices: u128 = cells.iter().map(|&c| u128::from(c) + 1).product();
-    if vertices >= 1u128 << 32 {
-        return Err(RefineError::TooManyVertices(vertices));
-    }
     Ok(())
+}
+
+/// The grid's vertex count `Π (c_k + 1)` (ids are `u32`: below `2³²` for a grid to be built).
+pub fn grid_vertices(cells: &[u32]) -> u128 {
+    cells.iter().map(|&c| u128::from(c) + 1).product()
 }
 
 impl KuhnRefinement {

@@ -4,7 +4,7 @@
 //! dimension over the complex's sorted `k`-faces, then the control points (as `f64`, or on the
 //! `2^(−8w)` lattice as `w`-byte integers), then the weights.
 //!
-//! The decoder is the compact one (`crate::binary`), which calls [`BinaryDecoder::complex_form`]
+//! The decoder is the compact one (`crate::binary`), which calls [`BinaryDecoder::complex`]
 //! and [`BinaryDecoder::records`] at the two members that differ; the encoder writes the shared
 //! members with bincode's compact configuration, exactly as the compact writer does, and the
 //! `Records` sections by hand.
@@ -12,25 +12,26 @@
 use bincode::Encode;
 
 use crate::binary::BinaryDecoder;
+use crate::decode::Seg;
 use crate::error::{Error, Result};
 use crate::faces::FaceTable;
 use crate::model::{Model, Stage, StageKind};
 use crate::multi_index::binomial;
+use crate::refine::{self, KuhnRefinement, RefineError, Refinement};
 use crate::rules::{Location, Rule};
 
-/// The only `complexForm` of this version: `vertices` and `simplices` follow as in §7.4.1.
-const COMPLEX_FORM: u8 = 0;
+/// `complexForm` 0: `vertices` and `simplices` follow as in §7.4.1.
+const COMPLEX_LISTED: u8 = 0;
+/// `complexForm` 1: the complex by a Kuhn grid and edge bisections.
+const COMPLEX_REFINED: u8 = 1;
 /// `recordForm` 0: `faces` as in the compact encoding.
 const RECORDS_LISTED: u8 = 0;
 /// `recordForm` 1: records by masks over the complex's faces.
 const RECORDS_BY_COMPLEX: u8 = 1;
 /// The largest lattice `width` (bytes per integer).
 const MAX_WIDTH: u8 = 4;
-/// `dims` is one byte: face dimensions `k` from 0 to 7.
-const DIMS: usize = 8;
-/// The writer refuses a complex with more `k`-faces than this (a mask of 2^37 bytes or more, for
-/// a `dimension` far above 3): no file could hold it, and listing them would not end.
-const WRITER_FACE_BOUND: u64 = 1 << 40;
+/// Face dimensions of a complex whose records can be given by it (`dimension` 2 or 3): 0 to 3.
+const FACE_DIMS: usize = 4;
 
 /// The sorted `k`-faces of a complex for one `k` (spec §7.4.3): `F_k` tuples of `k + 1` ids, flat,
 /// in increasing lexicographic order, each once.
@@ -72,11 +73,13 @@ impl KFaces {
 /// The faces of a complex as the structured encoding numbers them, listed for a `k` when first
 /// asked for. The complex is `simplices` as decoded, `dimension + 1` ids per simplex (a last,
 /// incomplete group is no simplex), before any structural check: repeated ids in a simplex count
-/// once, ids out of range are ids like any other.
+/// once, ids out of range are ids like any other. Only a `dimension` of 2 or 3 has them
+/// (`recordForm` 1 is refused in the others, spec §7.4.3), so a simplex has at most 4 ids and 6
+/// faces of one dimension: listing them costs memory proportional to the input.
 pub(crate) struct ComplexFaces<'s> {
     dimension: u8,
     simplices: &'s [u32],
-    lists: [Option<KFaces>; DIMS],
+    lists: [Option<KFaces>; FACE_DIMS],
 }
 
 impl<'s> ComplexFaces<'s> {
@@ -88,104 +91,60 @@ impl<'s> ComplexFaces<'s> {
         }
     }
 
-    /// Calls `f` with each simplex's distinct ids, sorted (one buffer for all).
-    fn each_simplex(&self, mut f: impl FnMut(&[u32])) {
-        let arity = usize::from(self.dimension) + 1;
-        let mut ids = Vec::with_capacity(arity);
-        for simplex in self.simplices.chunks_exact(arity) {
-            ids.clear();
-            ids.extend_from_slice(simplex);
-            ids.sort_unstable();
-            ids.dedup();
-            f(&ids);
-        }
+    /// Whether records can be given by this complex (`dimension` 2 or 3).
+    fn has_records(&self) -> bool {
+        (2..=3).contains(&self.dimension)
     }
 
-    /// The sorted `k`-faces (`k < 8`), listed on the first call; `None` when there are more than
-    /// `limit` of them (what a mask of the bytes left could cover), found without holding more
-    /// than about twice `limit` of them: a `dimension` far above 3 gives a simplex thousands of
-    /// faces, which a hostile file must not turn into unbounded memory.
-    fn faces(&mut self, k: usize, limit: u64) -> Option<&KFaces> {
-        if self.lists[k].is_none() {
-            let list = if k < 4 {
-                self.list::<4>(k, limit)
-            } else {
-                self.list::<DIMS>(k, limit)
+    /// The sorted `k`-faces (`k ≤ dimension ≤ 3`), listed on the first call.
+    fn faces(&mut self, k: usize) -> &KFaces {
+        let (dimension, simplices) = (self.dimension, self.simplices);
+        self.lists[k].get_or_insert_with(|| list_faces(dimension, simplices, k))
+    }
+}
+
+/// The `k`-faces of the simplices (`dimension` at most 3), as tuples of 4 ids (the unused tail
+/// zero in all, so it does not change their order), sorted and each once.
+fn list_faces(dimension: u8, simplices: &[u32], k: usize) -> KFaces {
+    let len = k + 1;
+    let arity = usize::from(dimension) + 1;
+    debug_assert!(arity <= FACE_DIMS && len <= arity);
+    let mut tuples: Vec<[u32; FACE_DIMS]> = Vec::new();
+    let mut ids = Vec::with_capacity(arity);
+    for simplex in simplices.chunks_exact(arity) {
+        ids.clear();
+        ids.extend_from_slice(simplex);
+        ids.sort_unstable();
+        ids.dedup();
+        let m = ids.len();
+        if m < len {
+            continue;
+        }
+        // The combinations of `len` of the `m` positions, in lexicographic order.
+        let mut at: Vec<usize> = (0..len).collect();
+        loop {
+            let mut tuple = [0u32; FACE_DIMS];
+            for (slot, &p) in tuple.iter_mut().zip(&at) {
+                *slot = ids[p];
+            }
+            tuples.push(tuple);
+            let Some(j) = (0..len).rev().find(|&j| at[j] < m - len + j) else {
+                break;
             };
-            self.lists[k] = Some(list?);
+            at[j] += 1;
+            for i in j + 1..len {
+                at[i] = at[i - 1] + 1;
+            }
         }
-        self.lists[k].as_ref()
     }
-
-    /// Lists the `k`-faces as tuples of `W ≥ k + 1` ids (the unused tail equal in all, so it does
-    /// not change their order), sorted and each once; `None` past `limit` of them.
-    fn list<const W: usize>(&self, k: usize, limit: u64) -> Option<KFaces> {
-        let len = k + 1;
-        let limit = usize::try_from(limit).unwrap_or(usize::MAX);
-        // Sorted and deduplicated whenever the list reaches this length, so that it never holds
-        // much more than twice the limit.
-        let mut compact_at = limit.saturating_mul(2).max(1 << 16);
-        let mut tuples: Vec<[u32; W]> = Vec::new();
-        let mut over = false;
-        let mut add = |ids: &[u32]| {
-            let m = ids.len();
-            if over || m < len {
-                return;
-            }
-            if binomial(m as u64, len as u64) > limit as u64 {
-                // This simplex alone has more faces than the limit.
-                over = true;
-                return;
-            }
-            // The combinations of `len` of the `m` positions, in lexicographic order.
-            let mut at: Vec<usize> = (0..len).collect();
-            loop {
-                let mut tuple = [0u32; W];
-                for (slot, &p) in tuple.iter_mut().zip(&at) {
-                    *slot = ids[p];
-                }
-                tuples.push(tuple);
-                let Some(j) = (0..len).rev().find(|&j| at[j] < m - len + j) else {
-                    break;
-                };
-                at[j] += 1;
-                for i in j + 1..len {
-                    at[i] = at[i - 1] + 1;
-                }
-            }
-            if tuples.len() >= compact_at {
-                tuples.sort_unstable();
-                tuples.dedup();
-                over = tuples.len() > limit;
-                compact_at = compact_at.max(tuples.len().saturating_mul(2));
-            }
-        };
-        if usize::from(self.dimension) + 1 > 4 {
-            // No valid model has more than 4 ids per simplex; those that do may repeat a set of
-            // ids many times, whose faces are then listed once.
-            let mut sets: Vec<Vec<u32>> = Vec::new();
-            self.each_simplex(|ids| sets.push(ids.to_vec()));
-            sets.sort_unstable();
-            sets.dedup();
-            sets.iter().for_each(|ids| add(ids));
-        } else {
-            self.each_simplex(&mut add);
-        }
-        if over {
-            return None;
-        }
-        tuples.sort_unstable();
-        tuples.dedup();
-        if tuples.len() > limit {
-            return None;
-        }
-        Some(KFaces {
-            len,
-            ids: tuples
-                .iter()
-                .flat_map(|t| t[..len].iter().copied())
-                .collect(),
-        })
+    tuples.sort_unstable();
+    tuples.dedup();
+    KFaces {
+        len,
+        ids: tuples
+            .iter()
+            .flat_map(|t| t[..len].iter().copied())
+            .collect(),
     }
 }
 
@@ -240,34 +199,27 @@ struct ByComplex {
 }
 
 /// Whether a stage's records can be written by the complex, and how (spec §7.4.3, canonical form):
-/// they must be exactly, in order, the records of some masks, each with the counts of its face.
-fn by_complex(stage: &Stage, complex: &mut ComplexFaces, s: usize) -> Result<Option<ByComplex>> {
-    if stage.kind == StageKind::Monotonic && !stage.faces.is_empty() {
-        return Ok(None);
+/// they must be exactly, in order, the records of some masks, each with the counts of its face,
+/// and the model's `dimension` 2 or 3 (`recordForm` 1 is allowed only there).
+fn by_complex(stage: &Stage, complex: &mut ComplexFaces) -> Option<ByComplex> {
+    if !complex.has_records() || stage.kind == StageKind::Monotonic && !stage.faces.is_empty() {
+        return None;
     }
     let mut masks: Vec<(usize, Vec<u8>)> = Vec::new();
     let mut last: Option<(usize, usize)> = None;
     for record in stage.faces.iter() {
         let len = record.face.len();
-        if len == 0 || len > DIMS || len - 1 > usize::from(complex.dimension) {
-            return Ok(None);
+        if len == 0 || len - 1 > usize::from(complex.dimension) {
+            return None;
         }
         let k = len - 1;
         if last.is_some_and(|(lk, _)| k < lk) {
-            return Ok(None);
+            return None;
         }
-        let Some(list) = complex.faces(k, WRITER_FACE_BOUND) else {
-            return Err(Error::format(
-                Rule::LimitExceeded,
-                Location::pointer(format!("/stages/{s}/faces")),
-                format!("the complex has more than {WRITER_FACE_BOUND} faces of dimension {k}; their mask cannot be written"),
-            ));
-        };
-        let Some(i) = list.index_of(record.face) else {
-            return Ok(None);
-        };
+        let list = complex.faces(k);
+        let i = list.index_of(record.face)?;
         if last.is_some_and(|l| (k, i) <= l) {
-            return Ok(None);
+            return None;
         }
         let n = owned(stage.degree, k);
         let weights = if stage.kind == StageKind::Rational {
@@ -278,7 +230,7 @@ fn by_complex(stage: &Stage, complex: &mut ComplexFaces, s: usize) -> Result<Opt
         if record.points.len() as u64 != n.saturating_mul(len as u64)
             || record.weights.len() as u64 != weights
         {
-            return Ok(None);
+            return None;
         }
         if masks.last().is_none_or(|(mk, _)| *mk != k) {
             masks.push((k, vec![0; list.count().div_ceil(8)]));
@@ -305,7 +257,7 @@ fn by_complex(stage: &Stage, complex: &mut ComplexFaces, s: usize) -> Result<Opt
             break;
         }
     }
-    Ok(Some(ByComplex { dims, masks, width }))
+    Some(ByComplex { dims, masks, width })
 }
 
 /// Appends `value` in the compact encoding (bincode's standard configuration, little-endian).
@@ -322,13 +274,8 @@ fn put<T: Encode>(out: &mut Vec<u8>, value: &T) -> Result<()> {
 }
 
 /// A stage's `Records` section in its canonical form.
-fn encode_records(
-    out: &mut Vec<u8>,
-    stage: &Stage,
-    complex: &mut ComplexFaces,
-    s: usize,
-) -> Result<()> {
-    let Some(plan) = by_complex(stage, complex, s)? else {
+fn encode_records(out: &mut Vec<u8>, stage: &Stage, complex: &mut ComplexFaces) -> Result<()> {
+    let Some(plan) = by_complex(stage, complex) else {
         out.push(RECORDS_LISTED);
         return put(out, &stage.faces);
     };
@@ -364,25 +311,59 @@ fn encode_records(
 /// the model can be written (finite numbers, depth) and that its records keep their numbers.
 ///
 /// # Errors
-/// ISM-007 for a complex whose masks could not be written (a `dimension` far above 3).
+/// None but an encoder's own (the shared members are written by bincode).
 pub(crate) fn encode(model: &Model) -> Result<Vec<u8>> {
+    encode_refined(model, None).map(|(payload, _)| payload)
+}
+
+/// [`encode`], with the complex as `complexForm` 1 when `refinement` gives exactly the model's
+/// `vertices` and `simplices` (every bit, in order: [`KuhnRefinement::describes`] rebuilds them),
+/// else as `complexForm` 0. Also returns whether `complexForm` 1 was written.
+///
+/// # Errors
+/// As [`encode`].
+pub(crate) fn encode_refined(
+    model: &Model,
+    refinement: Option<&KuhnRefinement>,
+) -> Result<(Vec<u8>, bool)> {
+    let refinement = refinement.filter(|r| {
+        (2..=3).contains(&model.dimension)
+            && r.domain.len() == 2 * usize::from(model.dimension)
+            && r.describes(&model.vertices, &model.simplices)
+    });
     let mut out = Vec::new();
     put(&mut out, &model.version)?;
     put(&mut out, &model.dimension)?;
     put(&mut out, &model.metadata)?;
-    out.push(COMPLEX_FORM);
-    put(&mut out, &model.vertices)?;
-    put(&mut out, &model.simplices)?;
+    match refinement {
+        Some(r) => {
+            out.push(COMPLEX_REFINED);
+            put(&mut out, &r.domain)?;
+            put(&mut out, &r.cells)?;
+            let splits: Vec<u32> = r.splits.iter().flatten().copied().collect();
+            put(&mut out, &splits)?;
+            let mut kept = vec![0u8; r.kept.len().div_ceil(8)];
+            for (i, _) in r.kept.iter().enumerate().filter(|(_, &k)| k) {
+                kept[i / 8] |= 1 << (i % 8);
+            }
+            out.extend(kept);
+        }
+        None => {
+            out.push(COMPLEX_LISTED);
+            put(&mut out, &model.vertices)?;
+            put(&mut out, &model.simplices)?;
+        }
+    }
     put(&mut out, &model.values)?;
     put(&mut out, &model.level)?;
     let mut complex = ComplexFaces::new(model.dimension, &model.simplices);
     put(&mut out, &(model.stages.len() as u64))?;
-    for (s, stage) in model.stages.iter().enumerate() {
+    for stage in &model.stages {
         put(&mut out, &stage.kind)?;
         put(&mut out, &stage.degree)?;
         put(&mut out, &stage.direction)?;
         put(&mut out, &stage.name)?;
-        encode_records(&mut out, stage, &mut complex, s)?;
+        encode_records(&mut out, stage, &mut complex)?;
         put(&mut out, &stage.vertex_maps)?;
         put(&mut out, &stage.extras)?;
     }
@@ -390,7 +371,7 @@ pub(crate) fn encode(model: &Model) -> Result<Vec<u8>> {
     put(&mut out, &model.extensions_required)?;
     put(&mut out, &model.extensions)?;
     put(&mut out, &model.extras)?;
-    Ok(out)
+    Ok((out, refinement.is_some()))
 }
 
 /// Decodes a structured payload whose first byte is at file offset `base`. Bytes after the model
@@ -403,16 +384,133 @@ pub(crate) fn decode(payload: &[u8], base: u64, allow_trailing: bool) -> Result<
 }
 
 impl<const VARINT: bool> BinaryDecoder<'_, '_, VARINT> {
-    /// `complexForm`, read inside `vertices` (its pointer): 0 is the only form.
-    pub(crate) fn complex_form(&mut self) -> Result<()> {
+    /// The `Complex` of spec §7.4.3: `complexForm` (at `/vertices`), then `vertices` and
+    /// `simplices` as listed (form 0) or the refinement that gives them (form 1, in dimension 2
+    /// or 3 only).
+    pub(crate) fn complex(&mut self, dimension: u8) -> Result<(Vec<f64>, Vec<u32>)> {
         let at = self.at;
-        match self.u8("complexForm")? {
-            COMPLEX_FORM => Ok(()),
-            form => Err(self.fail(
-                at,
-                format!("complexForm {form}; expected 0 (vertices and simplices as listed)"),
+        let form = self.member("vertices", |d| d.u8("complexForm"))?;
+        match form {
+            COMPLEX_LISTED => Ok((
+                self.member("vertices", |d| d.f64s("vertices"))?,
+                self.member("simplices", |d| d.u32s("simplices"))?,
             )),
+            COMPLEX_REFINED if (2..=3).contains(&dimension) => {
+                self.refined_complex(usize::from(dimension))
+            }
+            _ => {
+                self.path.push(Seg::Key("vertices".into()));
+                Err(self.fail(
+                    at,
+                    if form == COMPLEX_REFINED {
+                        format!("complexForm 1 in dimension {dimension}; a refinement gives the complex only in dimension 2 or 3")
+                    } else {
+                        format!("complexForm {form}; expected 0 (vertices and simplices listed) or 1 (a refined Kuhn grid)")
+                    },
+                ))
+            }
         }
+    }
+
+    /// An ISM-007 at payload offset `at` and the current pointer.
+    fn limit(&self, at: usize, message: impl Into<String>) -> Error {
+        Error::format(
+            Rule::LimitExceeded,
+            Location {
+                pointer: Some(crate::decode::pointer_of(&self.path)),
+                offset: Some(self.base + at as u64),
+                ..Location::default()
+            },
+            message,
+        )
+    }
+
+    /// `complexForm` 1 after its byte (spec §7.4.3), checked front to back: `box` decoded then
+    /// checked, `cells` decoded then checked, the `⌈C₀ / 8⌉` bytes of the grid's `kept` bits
+    /// after `cells`, the grid's vertex count below `2³²` (ISM-007) — all at `/vertices` — then
+    /// `splits` decoded whole and its length even, each pair applied (an edge of a live slot,
+    /// the midpoint's id below `2³² − 1` (ISM-007), `⌈C / 8⌉` within the bytes after `splits`),
+    /// and `kept` — at `/simplices`. The work is bounded by the input: fewer than 8 live slots per
+    /// byte left, 16 slots in all.
+    fn refined_complex(&mut self, n: usize) -> Result<(Vec<f64>, Vec<u32>)> {
+        let mut grid = self.member("vertices", |d| {
+            let box_at = d.at;
+            let domain = d.f64s("box")?;
+            refine::check_domain(&domain, n).map_err(|e| d.fail(box_at, e.to_string()))?;
+            let cells_at = d.at;
+            let cells = d.u32s("cells")?;
+            refine::check_cells(&cells, n).map_err(|e| d.fail(cells_at, e.to_string()))?;
+            let slots = Refinement::grid_slots(&cells);
+            let kept_bytes = slots.map(|c| c.div_ceil(8));
+            if kept_bytes.is_none_or(|b| b > d.remaining() as u64) {
+                return Err(d.fail(
+                    cells_at,
+                    format!(
+                        "the grid's {} simplices need {} bytes of kept bits; only {} bytes remain",
+                        slots.map_or("more than 2^64".into(), |c| c.to_string()),
+                        kept_bytes.map_or("more than 2^61".into(), |b| b.to_string()),
+                        d.remaining()
+                    ),
+                ));
+            }
+            let vertices = refine::grid_vertices(&cells);
+            if vertices >= 1u128 << 32 {
+                return Err(d.limit(
+                    cells_at,
+                    format!("the grid has {vertices} vertices; ids are below 2^32"),
+                ));
+            }
+            Refinement::kuhn(&domain, &cells).map_err(|e| d.fail(box_at, e.to_string()))
+        })?;
+        self.member("simplices", |d| {
+            let splits_at = d.at;
+            let len = d.length(1, "splits")?;
+            let mut ids = Vec::with_capacity(len);
+            let mut pairs_at = Vec::with_capacity(len.div_ceil(2));
+            for i in 0..len {
+                if i % 2 == 0 {
+                    pairs_at.push(d.at);
+                }
+                ids.push(d.u32("splits")?);
+            }
+            if len % 2 != 0 {
+                return Err(d.fail(
+                    splits_at,
+                    format!("splits holds {len} ids; expected pairs (an even number)"),
+                ));
+            }
+            // `kept` needs ⌈C / 8⌉ of the bytes after `splits`, and C never falls.
+            let room = d.remaining() as u64;
+            for (i, (pair, &at)) in ids.chunks_exact(2).zip(&pairs_at).enumerate() {
+                grid.split(i, pair[0], pair[1]).map_err(|e| match e {
+                    RefineError::IdsExhausted { .. } => d.limit(at, e.to_string()),
+                    e => d.fail(at, e.to_string()),
+                })?;
+                if (grid.live() as u64).div_ceil(8) > room {
+                    return Err(d.fail(
+                        at,
+                        format!(
+                            "after split {i} the {} live simplices need {} bytes of kept bits; only {room} bytes follow splits",
+                            grid.live(),
+                            grid.live().div_ceil(8)
+                        ),
+                    ));
+                }
+            }
+            let kept_at = d.at;
+            let live = grid.live();
+            let bytes = d.take(live.div_ceil(8), "kept")?;
+            if live % 8 != 0 && bytes[bytes.len() - 1] >> (live % 8) != 0 {
+                let last = bytes.len() - 1;
+                return Err(d.fail(
+                    kept_at + last,
+                    format!("kept bits past the {live} live simplices are set"),
+                ));
+            }
+            let kept: Vec<bool> = (0..live).map(|i| bytes[i / 8] >> (i % 8) & 1 == 1).collect();
+            grid.model_arrays(&kept)
+                .map_err(|e| d.fail(kept_at, e.to_string()))
+        })
     }
 
     /// A stage's `Records` section, read inside `faces` (its pointer), as the stage's face table.
@@ -425,6 +523,13 @@ impl<const VARINT: bool> BinaryDecoder<'_, '_, VARINT> {
         let at = self.at;
         match self.u8("recordForm")? {
             RECORDS_LISTED => self.face_table(),
+            RECORDS_BY_COMPLEX if !complex.has_records() => Err(self.fail(
+                at,
+                format!(
+                    "recordForm 1 in dimension {}; records are given by the complex only in dimension 2 or 3",
+                    complex.dimension
+                ),
+            )),
             RECORDS_BY_COMPLEX => self.records_by_complex(complex, kind, degree),
             form => Err(self.fail(
                 at,
@@ -445,7 +550,7 @@ impl<const VARINT: bool> BinaryDecoder<'_, '_, VARINT> {
         let dims_at = self.at;
         let dims = self.u8("dims")?;
         let n = usize::from(complex.dimension);
-        if n < DIMS - 1 && dims >> (n + 1) != 0 {
+        if dims >> (n + 1) != 0 {
             return Err(self.fail(
                 dims_at,
                 format!("dims {dims:#010b} has bits above the dimension {n}"),
@@ -460,19 +565,11 @@ impl<const VARINT: bool> BinaryDecoder<'_, '_, VARINT> {
         // (k, mask bytes, records): the masks are copied (they are bytes present) so that the
         // records can be built from them after the bytes they need were checked.
         let mut masks: Vec<(usize, Vec<u8>, u64)> = Vec::new();
-        for k in (0..DIMS).filter(|k| dims >> k & 1 == 1) {
+        for k in (0..=n).filter(|k| dims >> k & 1 == 1) {
             let mask_at = self.at;
-            // More faces than the bits that remain: the mask cannot be there (found without
-            // listing them all, see `ComplexFaces::faces`).
-            let room = (self.remaining() as u64).saturating_mul(8);
-            let Some(faces) = complex.faces(k, room) else {
-                return Err(self.fail(
-                    mask_at,
-                    format!(
-                        "the mask of the {k}-faces needs more than the {room} bits that remain"
-                    ),
-                ));
-            };
+            // Listing the faces costs memory proportional to the simplices (at most 4 ids each);
+            // a mask that runs past the payload fails at its first byte.
+            let faces = complex.faces(k);
             let count = faces.count();
             let bytes = self.take(count.div_ceil(8), "a mask")?.to_vec();
             if count % 8 != 0 {

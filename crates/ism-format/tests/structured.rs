@@ -5,6 +5,7 @@
 
 use ism_format::builder::StageBuilder;
 use ism_format::io::{self, ReadOptions, WriteOptions, HEADER_LEN};
+use ism_format::refine::KuhnRefinement;
 use ism_format::{Encoding, FaceRecord, FaceTable, Model, Rule, Stage, StageKind, VertexMap};
 use proptest::prelude::*;
 
@@ -324,9 +325,9 @@ fn reader_errors_are_typed_and_located() {
         p[at] = byte;
         p
     };
-    // complexForm other than 0.
+    // complexForm other than 0 and 1.
     assert_eq!(
-        error_of(&with(COMPLEX_FORM, 1)),
+        error_of(&with(COMPLEX_FORM, 2)),
         (m, Some("/vertices".into()), at(COMPLEX_FORM))
     );
     // recordForm above 1.
@@ -387,9 +388,9 @@ fn reader_errors_are_typed_and_located() {
 }
 
 #[test]
-fn a_huge_dimension_does_not_list_its_faces() {
-    // dimension 255: one simplex of 256 distinct ids has C(256, 8) 7-faces; dims bit 7 asks for
-    // their mask, which cannot be there: at the mask, without listing them.
+fn records_by_the_complex_are_refused_outside_dimensions_2_and_3() {
+    // dimension 255: one simplex of 256 distinct ids, whose 7-faces no reader lists: recordForm 1
+    // is refused at its byte (spec §7.4.3 as amended), before dims.
     let mut p = Vec::new();
     p.extend([3, b'1', b'.', b'0', 255, 0, 0, 0, 0, 0, 0]);
     p.extend([251, 0, 1]); // simplices: 256
@@ -403,64 +404,103 @@ fn a_huge_dimension_does_not_list_its_faces() {
     p.push(0);
     p.extend(f64s(&[0.0]));
     p.extend([1, 0, 2, 0, 0]);
-    let mask = p.len() + 2;
+    let record_form = p.len();
     p.extend([1, 0x80]);
     p.extend(tail());
     let start = std::time::Instant::now();
     assert_eq!(
         error_of(&p),
-        (Rule::Malformed, Some("/stages/0/faces".into()), at(mask))
+        (
+            Rule::Malformed,
+            Some("/stages/0/faces".into()),
+            at(record_form)
+        )
     );
     assert!(start.elapsed().as_secs() < 5);
+    // Dimensions 0, 1 and 4 (an empty complex, a stage without records): at recordForm too, and
+    // recordForm 0 reads there.
+    for dimension in [0u8, 1, 4] {
+        let mut p = vec![3, b'1', b'.', b'0', dimension, 0, 0, 0, 0, 0, 0, 0];
+        p.push(0); // values
+        p.extend(f64s(&[0.0])); // level
+        p.extend([1, 0, 2, 0, 0]); // one stage
+        let record_form = p.len();
+        let mut q = p.clone();
+        p.extend([1, 0, 1]);
+        p.extend(tail());
+        assert_eq!(
+            error_of(&p),
+            (
+                Rule::Malformed,
+                Some("/stages/0/faces".into()),
+                at(record_form)
+            ),
+            "dimension {dimension}"
+        );
+        q.extend([0, 0]);
+        q.extend(tail());
+        let m = io::from_slice_with(&file_of(&q), &unchecked())
+            .unwrap()
+            .model;
+        assert_eq!(m.dimension, dimension);
+    }
 }
 
 #[test]
-fn more_faces_than_the_mask_could_cover_are_refused_at_the_mask() {
-    // dimension 15: 300 simplices of 16 ids among 64 (120 edges each, hundreds in all); the bytes
-    // after the mask's start could cover 8 bits each, fewer than the edges: at the mask.
-    let mut p = Vec::new();
-    p.extend([3, b'1', b'.', b'0', 15, 0, 0, 0, 0, 0, 0]);
-    p.extend([251]);
-    p.extend(((300 * 16) as u16).to_le_bytes());
-    for s in 0..300u32 {
-        p.extend((0..16u32).map(|j| ((s * 7 + 3 * j) % 64) as u8));
-    }
-    p.push(0);
-    p.extend(f64s(&[0.0]));
-    p.extend([1, 0, 2, 0, 0]);
+fn a_mask_past_the_payload_in_3d_is_refused_at_its_first_byte() {
+    // dimension 3: the tetrahedron 0 1 2 3 has 6 edges, one mask byte; the payload ends there.
+    let mut p = vec![3, b'1', b'.', b'0', 3, 0, 0, 0, 0, 0, 0];
+    p.extend([4, 0, 1, 2, 3]); // simplices
+    p.push(0); // values
+    p.extend(f64s(&[0.0])); // level
+    p.extend([1, 0, 2, 0, 1, 2, b'a', b'b']); // one stage, named "ab" (7 bytes at least)
     let mask = p.len() + 2;
     p.extend([1, 0b10]);
-    // A stage extras of 40 bytes: 50 bytes, 400 bits, after the mask's start.
-    p.push(40);
-    p.extend(format!("\"{}\"", "x".repeat(38)).bytes());
-    p.extend([0, 0, 0, 0, 4, b'n', b'u', b'l', b'l']);
     assert_eq!(
         error_of(&p),
         (Rule::Malformed, Some("/stages/0/faces".into()), at(mask))
     );
-    // With a mask of F_1 bits all clear, the same complex reads (F_1 counted naively).
-    let mut edges = std::collections::BTreeSet::new();
-    for s in 0..300u32 {
-        for i in 0..16u32 {
-            for j in 0..16u32 {
-                let (a, b) = ((s * 7 + 3 * i) % 64, (s * 7 + 3 * j) % 64);
-                if a < b {
-                    edges.insert((a, b));
-                }
-            }
-        }
-    }
-    assert!(edges.len() > 8 * (p.len() - mask), "the test's premise");
-    let mut q = p[..mask].to_vec();
-    q.extend(vec![0u8; edges.len().div_ceil(8)]);
-    q.push(1);
-    q.extend([
-        0, 4, b'n', b'u', b'l', b'l', 0, 0, 0, 4, b'n', b'u', b'l', b'l',
-    ]);
-    let m = io::from_slice_with(&file_of(&q), &unchecked())
+    // With the mask, edge [2,3] (the last of 6, bit 5) and its lattice point, it reads.
+    p.extend([0b10_0000, 1, 64]);
+    p.extend(tail());
+    let m = io::from_slice_with(&file_of(&p), &unchecked())
         .unwrap()
         .model;
-    assert!(m.stages[0].faces.is_empty());
+    let records = m.stages[0].faces.to_records();
+    assert_eq!(records[0].face, [2, 3]);
+    assert_eq!(records[0].points, [0.75, 0.25]);
+}
+
+#[test]
+fn the_writer_lists_records_outside_dimensions_2_and_3() {
+    // An edge record on the complex's own edge, with the counts of its degree: recordForm 1 in
+    // 2D, recordForm 0 (listed) in 1D and 4D, and a stage without records too.
+    for (dimension, simplex) in [(1u8, vec![0u32, 1]), (4, vec![0, 1, 2, 3, 4])] {
+        let mut m = Model::new(dimension);
+        m.simplices = simplex;
+        m.stages = vec![
+            bezier(&[0, 1], &[0.5, 0.5]),
+            StageBuilder::monotonic(2).build(),
+        ];
+        let payload = io::encode_payload(&m, Encoding::Structured, false).unwrap();
+        let stage = 4 + 1 + 4 + 1 + 1 + 1 + m.simplices.len() + 1 + 8 + 1;
+        assert_eq!(
+            &payload[stage..stage + 4],
+            [0, 2, 0, 0],
+            "dimension {dimension}"
+        );
+        // recordForm 0, one record [0,1] with two f64, no weights.
+        assert_eq!(&payload[stage + 4..stage + 8], [0, 1, 2, 0]);
+        let second = stage + 4 + 5 + 1 + 16 + 1 + 1 + 5;
+        assert_eq!(&payload[second..second + 5], [2, 2, 0, 0, 0], "{payload:?}");
+        let read = io::from_slice_with(
+            &io::to_vec(&m, Encoding::Structured, WriteOptions::default()).unwrap(),
+            &unchecked(),
+        )
+        .unwrap()
+        .model;
+        assert_eq!(read, m);
+    }
 }
 
 #[test]
@@ -675,7 +715,7 @@ proptest! {
 }
 
 /// Structured payloads to mutate: Appendix A's, the writer vector that makes every choice of the
-/// writer, and the small examples.
+/// writer, the small examples, and files whose complex is `complexForm` 1.
 fn seeds() -> Vec<Vec<u8>> {
     let spec = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../spec");
     let mut out = vec![payload_with(&APPENDIX_A_RECORDS)];
@@ -688,6 +728,14 @@ fn seeds() -> Vec<Vec<u8>> {
         "examples/stratified-3d.isms",
     ] {
         let bytes = std::fs::read(spec.join(name)).unwrap();
+        out.push(bytes[HEADER_LEN..].to_vec());
+    }
+    // complexForm 1: the unit square by hand, and two random refinements with a stage.
+    out.push(refined_square());
+    for seed in [3, 8] {
+        let r = random_refinement(seed);
+        let (bytes, refined) = io::to_vec_refined(&refined_model(&r), &r).unwrap();
+        assert!(refined);
         out.push(bytes[HEADER_LEN..].to_vec());
     }
     out
@@ -719,7 +767,7 @@ proptest! {
     /// never a panic; what reads writes back canonically to the same model.
     #[test]
     fn edited_payloads_are_read_or_refused(
-        seed in 0usize..7,
+        seed in 0usize..10,
         edits in prop::collection::vec(edit(), 1..4),
     ) {
         let mut p = seeds().swap_remove(seed);
@@ -759,5 +807,365 @@ proptest! {
                 }
             }
         }
+    }
+}
+
+/// The unit square with one cube, split on its diagonal, three of its four halves kept (the
+/// example of `refine.rs`'s test `the_unit_square_split_on_its_diagonal_by_hand`), in
+/// `complexForm` 1, byte by byte. Grid ids 0 (0,0), 1 (1,0), 2 (0,1), 3 (1,1); slots: permutation
+/// 01 → (0, 1, 3), permutation 10 (odd) → (0, 2, 3) with its last two swapped → (0, 3, 2).
+/// Splitting (0, 3) at m = 4 = (0.5, 0.5) retires both and appends (0, 1, 4), (4, 1, 3) and
+/// (0, 4, 2), (4, 3, 2); kept 1011 keeps all but (4, 1, 3): vertex 1 is still used, so no vertex
+/// is dropped and the ids stay.
+fn refined_square() -> Vec<u8> {
+    let mut p = Vec::new();
+    p.extend([3, b'1', b'.', b'0']); // 0: version "1.0"
+    p.push(2); // 4: dimension
+    p.extend([0, 0, 0, 0]); // 5: metadata, all absent
+    p.push(1); // 9: complexForm 1
+    p.push(4); // 10: box: 4 numbers
+    p.extend(f64s(&[0.0, 1.0, 0.0, 1.0])); // 11: lo0 hi0 lo1 hi1
+    p.extend([2, 1, 1]); // 43: cells: 2 numbers, 1 and 1
+    p.extend([2, 0, 3]); // 46: splits: 2 ids, the pair (0, 3)
+    p.push(0b1101); // 49: kept: live slots 0, 2, 3 (bit 1, slot (4, 1, 3), clear)
+    p.push(5); // 50: values: 5
+    p.extend(f64s(&[-1.0, 1.0, 1.0, 1.0, -0.5]));
+    p.extend(f64s(&[0.0])); // level
+    p.push(0); // stages: none
+    p.extend([0, 0, 0]); // extensionsUsed, extensionsRequired, extensions
+    p.extend([4, b'n', b'u', b'l', b'l']); // extras "null"
+    p
+}
+
+/// Payload offsets in [`refined_square`].
+const BOX: usize = 10;
+const CELLS: usize = 43;
+const SPLITS: usize = 46;
+const KEPT: usize = 49;
+
+/// The model [`refined_square`] gives, written out by hand.
+fn square_model() -> Model {
+    let mut m = Model::new(2);
+    m.vertices = vec![0.0, 0.0, 1.0, 0.0, 0.0, 1.0, 1.0, 1.0, 0.5, 0.5];
+    m.simplices = vec![0, 1, 4, 0, 4, 2, 4, 3, 2];
+    m.values = vec![-1.0, 1.0, 1.0, 1.0, -0.5];
+    m
+}
+
+fn square_refinement() -> KuhnRefinement {
+    KuhnRefinement {
+        domain: vec![0.0, 1.0, 0.0, 1.0],
+        cells: vec![1, 1],
+        splits: vec![[0, 3]],
+        kept: vec![true, false, true, true],
+    }
+}
+
+#[test]
+fn a_refined_complex_reads_as_the_construction_by_hand() {
+    let doc = io::from_slice(&file_of(&refined_square())).unwrap();
+    assert_eq!(doc.encoding, Encoding::Structured);
+    assert_eq!(doc.model, square_model());
+    // All four kept: vertex 1 used by (4, 1, 3) as well; all halves in slot order.
+    let mut p = refined_square();
+    p[KEPT] = 0b1111;
+    let m = io::from_slice_with(&file_of(&p), &unchecked())
+        .unwrap()
+        .model;
+    assert_eq!(m.simplices, [0, 1, 4, 4, 1, 3, 0, 4, 2, 4, 3, 2]);
+    // Only the last two: vertex 1 unused, the ids after it renumbered (3 → 2, 4 → 3).
+    p[KEPT] = 0b1100;
+    let m = io::from_slice_with(&file_of(&p), &unchecked())
+        .unwrap()
+        .model;
+    assert_eq!(m.vertices, [0.0, 0.0, 0.0, 1.0, 1.0, 1.0, 0.5, 0.5]);
+    assert_eq!(m.simplices, [0, 3, 1, 3, 2, 1]);
+    // None kept: an empty complex.
+    p[KEPT] = 0;
+    let m = io::from_slice_with(&file_of(&p), &unchecked())
+        .unwrap()
+        .model;
+    assert!(m.vertices.is_empty() && m.simplices.is_empty());
+}
+
+#[test]
+fn refined_complex_errors_are_typed_and_located() {
+    let m = Rule::Malformed;
+    let vertices = Some("/vertices".to_string());
+    let simplices = Some("/simplices".to_string());
+    let square = refined_square();
+    let with = |at: usize, bytes: &[u8]| {
+        let mut p = square.clone();
+        p.splice(at..at + bytes.len(), bytes.iter().copied());
+        p
+    };
+    // complexForm 1 outside dimensions 2 and 3: at the byte.
+    for dimension in [0, 1, 4] {
+        assert_eq!(
+            error_of(&with(4, &[dimension])),
+            (m, vertices.clone(), at(COMPLEX_FORM - 2))
+        );
+    }
+    // box: the wrong count, lo ≥ hi, an extent that overflows, a sum that would (2 hi is
+    // infinite), a NaN — each at the box's first byte, the checks after it is decoded whole.
+    let mut three = square[..BOX].to_vec();
+    three.push(3);
+    three.extend(f64s(&[0.0, 1.0, 0.0]));
+    three.extend(&square[CELLS..]);
+    assert_eq!(error_of(&three), (m, vertices.clone(), at(BOX)));
+    for (k, x) in [(1, 0.0), (0, -f64::MAX), (3, f64::MAX), (2, f64::NAN)] {
+        let mut p = square.clone();
+        let o = BOX + 1 + 8 * k;
+        p[o..o + 8].copy_from_slice(&x.to_le_bytes());
+        if k == 0 {
+            p[o + 8..o + 16].copy_from_slice(&f64::MAX.to_le_bytes());
+        }
+        assert_eq!(error_of(&p), (m, vertices.clone(), at(BOX)), "{k} {x}");
+    }
+    // A box that is wrong and cells that are wrong too: the box first.
+    let mut p = three.clone();
+    p[BOX + 1 + 24 + 1] = 0;
+    assert_eq!(error_of(&p), (m, vertices.clone(), at(BOX)));
+    // A box length past the payload: at its length (decoding errors before the checks).
+    assert_eq!(error_of(&with(BOX, &[250])), (m, vertices.clone(), at(BOX)));
+    // cells: one number for two axes, a zero — at the cells' first byte.
+    let mut one = square[..CELLS].to_vec();
+    one.extend([1, 1]);
+    one.extend(&square[SPLITS..]);
+    assert_eq!(error_of(&one), (m, vertices.clone(), at(CELLS)));
+    assert_eq!(
+        error_of(&with(CELLS, &[2, 0, 1])),
+        (m, vertices.clone(), at(CELLS))
+    );
+    // A cell count as a varint that is not minimal (FB 05 00 for 5): at that varint.
+    assert_eq!(
+        error_of(&with(CELLS, &[2, 0xFB, 0x05, 0x00])),
+        (m, vertices.clone(), at(CELLS + 1))
+    );
+    // The grid's kept bits: 1000 × 1000 cubes are 2 000 000 simplices, 250 000 bytes of kept
+    // bits after cells, which the payload does not hold: at cells, before any grid is built.
+    let mut big = square[..CELLS].to_vec();
+    big.extend([2, 0xFB, 0xE8, 0x03, 0xFB, 0xE8, 0x03]);
+    big.extend(&square[SPLITS..]);
+    let start = std::time::Instant::now();
+    assert_eq!(error_of(&big), (m, vertices.clone(), at(CELLS)));
+    // 2^32 − 1 cubes on both axes: a slot count past u64's kept bytes, the same error (the
+    // vertex count, 2^64, would be ISM-007, but the kept bytes come first).
+    let mut huge = square[..CELLS].to_vec();
+    huge.extend([
+        2, 0xFC, 0xFF, 0xFF, 0xFF, 0xFF, 0xFC, 0xFF, 0xFF, 0xFF, 0xFF,
+    ]);
+    huge.extend(&square[SPLITS..]);
+    assert_eq!(error_of(&huge), (m, vertices.clone(), at(CELLS)));
+    assert!(start.elapsed().as_secs() < 5);
+    // splits: an odd count, at its length — after its varints are decoded (a bad third varint
+    // is reported at that varint).
+    let mut odd = square[..SPLITS].to_vec();
+    odd.extend([3, 0, 3, 1]);
+    odd.extend(&square[KEPT..]);
+    assert_eq!(error_of(&odd), (m, simplices.clone(), at(SPLITS)));
+    odd[SPLITS + 3] = 0xFE;
+    assert_eq!(error_of(&odd), (m, simplices.clone(), at(SPLITS + 3)));
+    // A pair that is not a split of a live edge: (1, 2) is no edge of the grid, (3, 0) has
+    // a > b, (0, 9) names a vertex that does not exist — at the pair's first byte; and after a
+    // valid first pair, (0, 3) again (retired) at the second pair.
+    for pair in [[1, 2], [3, 0], [0, 9], [0, 0]] {
+        assert_eq!(
+            error_of(&with(SPLITS + 1, &pair)),
+            (m, simplices.clone(), at(SPLITS + 1)),
+            "{pair:?}"
+        );
+    }
+    let mut again = square[..SPLITS].to_vec();
+    again.extend([4, 0, 3, 0, 3]);
+    again.extend(&square[KEPT..]);
+    assert_eq!(error_of(&again), (m, simplices.clone(), at(SPLITS + 3)));
+    // The per-split bound: splits (0,3) (0,4) (0,5) (0,6) take the live slots from 2 to 4, 6,
+    // 8, 10; with one byte after splits, the fourth pair needs two: at that pair.
+    let mut fan = square[..SPLITS].to_vec();
+    fan.extend([8, 0, 3, 0, 4, 0, 5, 0, 6]);
+    fan.push(0xFF);
+    assert_eq!(error_of(&fan), (m, simplices.clone(), at(SPLITS + 7)));
+    // kept: the payload ends where it starts (no splits: the one byte after cells is the
+    // splits' length), at its first byte; a set padding bit (bit 4 of 4 live slots), at its byte.
+    let mut short = square[..SPLITS].to_vec();
+    short.push(0);
+    assert_eq!(error_of(&short), (m, simplices.clone(), at(SPLITS + 1)));
+    assert_eq!(
+        error_of(&with(KEPT, &[0b1_1101])),
+        (m, simplices.clone(), at(KEPT))
+    );
+    // Two kept bytes (10 live slots after the fan), padding in the second: at the second byte.
+    let mut fan = square[..SPLITS].to_vec();
+    fan.extend([8, 0, 3, 0, 4, 0, 5, 0, 6]);
+    let kept = fan.len();
+    fan.extend([0xFF, 0b111]);
+    fan.extend(&square[KEPT + 1..]);
+    assert_eq!(error_of(&fan), (m, simplices.clone(), at(kept + 1)));
+    fan[kept + 1] = 0b11;
+    assert!(io::from_slice_with(&file_of(&fan), &unchecked()).is_ok());
+}
+
+#[test]
+fn the_refined_writer_writes_the_bytes_by_hand_and_falls_back_to_form_0() {
+    let model = square_model();
+    let (bytes, refined) = io::to_vec_refined(&model, &square_refinement()).unwrap();
+    assert!(refined);
+    assert_eq!(bytes[12], 6, "encoding tag");
+    assert_eq!(&bytes[HEADER_LEN..], &refined_square()[..]);
+    assert_eq!(io::from_slice(&bytes).unwrap().model, model);
+    // The canonical writer writes complexForm 0, and reads back the same model.
+    let canonical = io::to_vec(&model, Encoding::Structured, WriteOptions::default()).unwrap();
+    assert_eq!(canonical[HEADER_LEN + COMPLEX_FORM - 2], 0);
+    assert_eq!(io::from_slice(&canonical).unwrap().model, model);
+    // A refinement of another complex (another kept mask, a split more, another box, a 3D
+    // grid), or a model whose vertices differ in one bit: complexForm 0, the canonical file.
+    let other = |f: &dyn Fn(&mut KuhnRefinement)| {
+        let mut r = square_refinement();
+        f(&mut r);
+        r
+    };
+    for r in [
+        other(&|r| r.kept = vec![true; 4]),
+        other(&|r| {
+            r.splits.push([0, 4]);
+            r.kept = vec![true; 6];
+        }),
+        other(&|r| r.domain[1] = 2.0),
+        other(&|r| {
+            r.domain.extend([0.0, 1.0]);
+            r.cells.push(1);
+        }),
+        other(&|r| r.splits = vec![[1, 2]]),
+    ] {
+        let (bytes, refined) = io::to_vec_refined(&model, &r).unwrap();
+        assert!(!refined, "{r:?}");
+        assert_eq!(bytes, canonical);
+    }
+    let mut moved = model.clone();
+    moved.vertices[9] = f64::from_bits(0.5f64.to_bits() + 1);
+    let (bytes, refined) = io::to_vec_refined(&moved, &square_refinement()).unwrap();
+    assert!(!refined);
+    assert_eq!(io::from_slice(&bytes).unwrap().model, moved);
+    // -0.0 is not 0.0: the refinement gives +0.0.
+    let mut signed = model.clone();
+    signed.vertices[0] = -0.0;
+    assert!(!io::to_vec_refined(&signed, &square_refinement()).unwrap().1);
+    // The atomic file writer: the same bytes, whatever the extension.
+    let dir = std::env::temp_dir().join(format!("ism-refined-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let path = dir.join("square.ismc");
+    assert!(io::write_path_refined(&model, &path, &square_refinement()).unwrap());
+    assert_eq!(
+        std::fs::read(&path).unwrap(),
+        io::to_vec_refined(&model, &square_refinement()).unwrap().0
+    );
+    assert_eq!(io::read_path(&path).unwrap().model, model);
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// A refinement of a small random grid in 2D or 3D: splits of live edges found by trying pairs
+/// (the construction refuses the others), and a random kept mask.
+fn random_refinement(seed: u64) -> KuhnRefinement {
+    use ism_format::refine::Refinement;
+    let mut state = seed.wrapping_mul(0x9e37_79b9_7f4a_7c15) | 1;
+    let mut next = |m: u64| {
+        state ^= state << 13;
+        state ^= state >> 7;
+        state ^= state << 17;
+        state % m
+    };
+    let n = 2 + next(2) as usize;
+    let cells: Vec<u32> = (0..n).map(|_| 1 + next(3) as u32).collect();
+    let domain: Vec<f64> = (0..n)
+        .flat_map(|k| [-0.3 * k as f64 - 1.0, 0.7 + k as f64 / 3.0])
+        .collect();
+    let mut r = Refinement::kuhn(&domain, &cells).unwrap();
+    let mut splits = Vec::new();
+    for _ in 0..300 {
+        let nv = r.num_vertices() as u64;
+        let a = next(nv) as u32;
+        let b = a + 1 + next(6) as u32;
+        if r.split(splits.len(), a, b).is_ok() {
+            splits.push([a, b]);
+        }
+        if splits.len() == 25 {
+            break;
+        }
+    }
+    let kept = (0..r.live()).map(|_| next(4) != 0).collect();
+    KuhnRefinement {
+        domain,
+        cells,
+        splits,
+        kept,
+    }
+}
+
+/// A model on `refinement`'s complex with a value per vertex and a stage with records by the
+/// complex.
+fn refined_model(refinement: &KuhnRefinement) -> Model {
+    let (vertices, simplices) = refinement.model_arrays().unwrap();
+    let n = refinement.cells.len();
+    let mut m = Model::new(n as u8);
+    m.values = (0..vertices.len() / n)
+        .map(|v| if v % 2 == 0 { -1.0 } else { 1.0 })
+        .collect();
+    m.vertices = vertices;
+    if let [a, b, ..] = simplices[..] {
+        let (a, b) = (a.min(b), a.max(b));
+        m.stages = vec![bezier(&[a, b], &[0.75, 0.25])];
+    }
+    m.simplices = simplices;
+    m
+}
+
+#[test]
+fn refined_files_read_as_the_model_written() {
+    let mut splits = 0;
+    for seed in 0..40 {
+        let r = random_refinement(seed);
+        splits += r.splits.len();
+        let m = refined_model(&r);
+        let (bytes, refined) = io::to_vec_refined(&m, &r).unwrap();
+        assert!(refined, "seed {seed}");
+        let read = io::from_slice(&bytes).unwrap().model;
+        assert_eq!(
+            io::encode_payload(&read, Encoding::Binary, false).unwrap(),
+            io::encode_payload(&m, Encoding::Binary, false).unwrap(),
+            "seed {seed}"
+        );
+        // Smaller than the listed complex; the canonical writer lists it.
+        let canonical = io::to_vec(&read, Encoding::Structured, WriteOptions::default()).unwrap();
+        assert!(bytes.len() < canonical.len(), "seed {seed}");
+        assert_eq!(io::from_slice(&canonical).unwrap().model, read);
+    }
+    assert!(splits > 100, "the test's premise: {splits} splits");
+}
+
+#[test]
+fn the_mutated_seeds_include_refined_complexes() {
+    // The edit-based proptest draws from all seeds; three of them are complexForm 1 files (the
+    // byte after version, dimension and an empty metadata), in 2D and 3D.
+    let seeds = seeds();
+    assert_eq!(seeds.len(), 10);
+    let refined: Vec<u8> = seeds[7..].iter().map(|p| p[4]).collect();
+    assert!(seeds[7..].iter().all(|p| p[9] == 1), "complexForm 1");
+    assert!(refined.contains(&2) && refined.contains(&3), "{refined:?}");
+}
+
+/// Writes the `complexForm` 1 seeds into the fuzz corpus of `read_structured` (named by their
+/// SHA-1 as cargo-fuzz names its inputs) when `ISM_WRITE_FUZZ_SEEDS` is set.
+#[test]
+fn refined_seeds_for_the_fuzz_corpus() {
+    let Some(dir) = std::env::var_os("ISM_WRITE_FUZZ_SEEDS") else {
+        return;
+    };
+    for (i, payload) in seeds()[7..].iter().enumerate() {
+        std::fs::write(
+            std::path::Path::new(&dir).join(format!("refined-{i}")),
+            payload,
+        )
+        .unwrap();
     }
 }
