@@ -29,7 +29,7 @@ SCHEMA = ROOT / "spec" / "schema" / "ism.schema.json"
 
 MAGIC = b"\x89ISM\r\n\x1a\n"
 HEADER_LEN = 32
-TAGS = {1: "json", 2: "msgpack", 3: "binary", 4: "compact", 5: "compressed"}
+TAGS = {1: "json", 2: "msgpack", 3: "binary", 4: "compact", 5: "compressed", 6: "structured"}
 EXPECTED_EXAMPLES = {
     "circle-linear",
     "circle-curved",
