@@ -1142,7 +1142,8 @@ impl Model {
             json_in_container: container,
         };
         let model = &self.inner;
-        let structured = encoding.or_else(|| Encoding::from_path(&path)) == Some(Encoding::Structured);
+        let structured =
+            encoding.or_else(|| Encoding::from_path(&path)) == Some(Encoding::Structured);
         let refinement = self.refinement.as_deref().filter(|_| structured);
         py.allow_threads(|| match refinement {
             Some(r) => io::write_path_refined(model, &path, r).map(|_| ()),
