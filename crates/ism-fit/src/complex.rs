@@ -48,30 +48,8 @@ impl Complex {
     /// simplex positively oriented.
     pub fn kuhn(domain: &[f64], cells: &[usize]) -> Complex {
         let dim = cells.len();
-        let lo: Vec<f64> = domain.chunks(2).map(|c| c[0]).collect();
-        let step: Vec<f64> = domain
-            .chunks(2)
-            .zip(cells)
-            .map(|(c, &r)| (c[1] - c[0]) / r as f64)
-            .collect();
-        let counts: Vec<usize> = cells.iter().map(|r| r + 1).collect();
-        let total: usize = counts.iter().product();
-        let mut points = Vec::with_capacity(total * dim);
-        for id in 0..total {
-            let mut rest = id;
-            for k in 0..dim {
-                let i = rest % counts[k];
-                rest /= counts[k];
-                // Interior grid lines computed from the index (no accumulated rounding); the last
-                // line is the box edge itself.
-                let x = if i == cells[k] {
-                    domain[2 * k + 1]
-                } else {
-                    lo[k] + i as f64 * step[k]
-                };
-                points.push(x);
-            }
-        }
+        // The grid points of the structured encoding's construction (spec §7.4.3), bit for bit.
+        let points = ism_format::refine::grid_points(domain, cells);
         let mut complex = Complex {
             dim,
             points,

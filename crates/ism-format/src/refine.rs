@@ -113,26 +113,8 @@ impl Refinement {
     pub fn kuhn(domain: &[f64], cells: &[u32]) -> Result<Refinement, RefineError> {
         let n = cells.len();
         check_grid(domain, cells)?;
-        let counts: Vec<usize> = cells.iter().map(|&c| c as usize + 1).collect();
-        let total: usize = counts.iter().product();
-        let mut points = Vec::with_capacity(total * n);
-        for id in 0..total {
-            let mut rest = id;
-            for k in 0..n {
-                let i = rest % counts[k];
-                rest /= counts[k];
-                let (lo, hi) = (domain[2 * k], domain[2 * k + 1]);
-                // The spec's order of operations: the step, then the product, then the sum; the
-                // last grid line is the box's edge itself.
-                let x = if i == cells[k] as usize {
-                    hi
-                } else {
-                    lo + i as f64 * ((hi - lo) / f64::from(cells[k]))
-                };
-                points.push(x);
-            }
-        }
         let grid: Vec<usize> = cells.iter().map(|&c| c as usize).collect();
+        let points = grid_points(domain, &grid);
         let mut out = Refinement {
             n,
             points,
@@ -294,6 +276,33 @@ impl Refinement {
             .collect();
         Ok((vertices, simplices))
     }
+}
+
+/// The points of the grid of `domain` (`lo, hi` per axis) with `cells[k]` cubes along axis `k`,
+/// flat, ids axis 0 fastest (spec §7.4.3 step 2): `lo + i · ((hi − lo) / c)` in that order of
+/// operations (the quotient, the product, the sum), and `hi` itself on the last line — no
+/// accumulated rounding, and the same bits wherever the grid is built (the fitter's complex
+/// starts from these points too, so the file's construction is its own).
+pub fn grid_points(domain: &[f64], cells: &[usize]) -> Vec<f64> {
+    let n = cells.len();
+    let counts: Vec<usize> = cells.iter().map(|&c| c + 1).collect();
+    let total: usize = counts.iter().product();
+    let mut points = Vec::with_capacity(total * n);
+    for id in 0..total {
+        let mut rest = id;
+        for k in 0..n {
+            let i = rest % counts[k];
+            rest /= counts[k];
+            let (lo, hi) = (domain[2 * k], domain[2 * k + 1]);
+            let x = if i == cells[k] {
+                hi
+            } else {
+                lo + i as f64 * ((hi - lo) / cells[k] as f64)
+            };
+            points.push(x);
+        }
+    }
+    points
 }
 
 fn check_grid(domain: &[f64], cells: &[u32]) -> Result<(), RefineError> {
