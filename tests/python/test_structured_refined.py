@@ -14,7 +14,7 @@ the reader and writer written from the spec alone:
     present (a split sequence that would grow quadratically stops at the ⌈C/8⌉ rule, measured with tracemalloc);
     100k splits in seconds;
 (e) differential: the Rust `ism` reads the same files to the same model (skipped when the binary is absent, set
-    ISM_BIN; skipped, saying so, while it refuses complexForm 1 as an unknown form).
+    ISM_BIN).
 """
 
 from __future__ import annotations
@@ -35,6 +35,7 @@ from pathlib import Path
 import pytest
 
 import ismpy
+from test_structured import adapter, differences_from_the_reference
 
 ROOT = Path(__file__).resolve().parents[2]
 HEADER_LEN = ismpy.HEADER_LEN
@@ -733,19 +734,8 @@ def test_the_reference_reads_form_1_to_the_same_model(tmp_path):
         source.write_bytes(data)
         target = tmp_path / f"{name}.ismb"
         done = subprocess.run([binary, "convert", str(source), str(target)], capture_output=True, text=True, timeout=120)
-        said = done.stdout + done.stderr
-        if done.returncode != 0 and "complexForm" in said and f"byte {HEADER_LEN + 9}" in said:
-            # Refused at the complexForm byte itself: a reader of complexForm 0 only.
-            pytest.skip(f"the reference does not read complexForm 1 yet: {(done.stdout + done.stderr).strip()[:300]}")
         assert done.returncode == 0, done.stdout + done.stderr
         assert target.read_bytes() == ismpy.write(ismpy.read(data), "binary"), name
-
-
-def adapter() -> str:
-    path = os.environ.get("ISM_CONFORMANCE_ADAPTER") or str(ROOT / "target" / "debug" / "ism-conformance-adapter")
-    if not Path(path).is_file():
-        pytest.skip(f"the reference's conformance adapter is absent ({path}): build it with `cargo build -p ism-conformance` or set ISM_CONFORMANCE_ADAPTER")
-    return path
 
 
 def form_1_reader_cases() -> dict:
@@ -776,29 +766,7 @@ def form_1_reader_cases() -> dict:
 
 
 def test_form_1_reader_cases_are_what_the_reference_reports(tmp_path):
-    binary = adapter()
-    cases = form_1_reader_cases()
-    files = []
-    for name, data in cases.items():
-        (tmp_path / f"{name}.isms").write_bytes(data)
-        files.append(tmp_path / f"{name}.isms")
-    done = subprocess.run([binary, "read", *map(str, files)], capture_output=True, text=True, timeout=300)
-    lines = done.stdout.splitlines()
-    assert len(lines) == len(files), done.stderr[-2000:]
-    first = json.loads(lines[0])
-    if first.get("location") == {"pointer": "/vertices", "offset": HEADER_LEN + 9}:
-        pytest.skip(f"the reference's adapter does not read complexForm 1 yet: {first}")
-    differ = []
-    for (name, data), line in zip(cases.items(), lines):
-        reference = json.loads(line)
-        reference.pop("message", None)
-        try:
-            ismpy.read(data)
-            ours = {"ok": True}
-        except ismpy.IsmError as e:
-            ours = {"rule": e.rule, "location": e.location}
-        if reference != ours:
-            differ.append(f"{name}: reference {reference}, ismpy {ours}")
+    differ = differences_from_the_reference(form_1_reader_cases(), tmp_path)
     assert not differ, "\n".join(differ)
 
 
@@ -854,28 +822,7 @@ def test_a_box_whose_midpoints_could_overflow_is_refused_at_box():
 
 
 def test_mutated_form_1_files_read_alike(tmp_path):
-    binary = adapter()
-    files = []
-    probe = tmp_path / "probe.isms"
-    probe.write_bytes(ismpy.container(EXAMPLE_2D, 6))
-    done = subprocess.run([binary, "read", str(probe)], capture_output=True, text=True, timeout=60)
-    if json.loads(done.stdout.splitlines()[0]).get("location") == {"pointer": "/vertices", "offset": HEADER_LEN + 9}:
-        pytest.skip("the reference's adapter does not read complexForm 1 yet")
-    for i, data in enumerate(mutated_form_1_files(1500)):
-        (tmp_path / f"{i}.isms").write_bytes(data)
-        files.append((tmp_path / f"{i}.isms", data))
-    done = subprocess.run([binary, "read", *[str(f) for f, _ in files]], capture_output=True, text=True, timeout=600)
-    lines = done.stdout.splitlines()
-    assert len(lines) == len(files), done.stderr[-2000:]
-    differ = []
-    for (f, data), line in zip(files, lines):
-        reference = json.loads(line)
-        reference.pop("message", None)
-        try:
-            ismpy.read(data)
-            ours = {"ok": True}
-        except ismpy.IsmError as e:
-            ours = {"rule": e.rule, "location": e.location}
-        if reference != ours:
-            differ.append(f"{f.name}: reference {reference}, ismpy {ours}")
-    assert not differ, f"{len(differ)} of {len(files)} differ:\n" + "\n".join(differ[:10])
+    # Every mutated form-1 file: accepted by both, or the same first rule at the same location.
+    named = {f"mutant {i}": data for i, data in enumerate(mutated_form_1_files(1500))}
+    differ = differences_from_the_reference(named, tmp_path)
+    assert not differ, f"{len(differ)} of {len(named)} differ:\n" + "\n".join(differ[:10])
