@@ -894,28 +894,32 @@ def test_reader_cases_are_what_the_reference_reports(tmp_path):
     assert not differ, "\n".join(differ)
 
 
-def mutated_files(count: int, seed: int = 17) -> list[bytes]:
-    """Structured files of the examples with bytes changed, cut or inserted in the payload (the container
-    rewrapped, so that the payload's decoding is what is compared)."""
+def mutants(seeds: list, count: int, seed: int) -> list[bytes]:
+    """`count` structured files from `seeds` with bytes changed (often to varint prefixes and small values),
+    the payload cut or bytes inserted; the container rewrapped, so that the payload's decoding is exercised."""
     import random
 
     rnd = random.Random(seed)
-    seeds = [ismpy.write(ismpy.read((EXAMPLES / f"{name}.ism.json").read_bytes()), "structured") for name in example_names()]
-    seeds += list(reader_cases().values())
     out = []
     for _ in range(count):
         payload = bytearray(rnd.choice(seeds)[HEADER_LEN:])
         op = rnd.random()
-        if op < 0.4:
+        if op < 0.45:
             for _ in range(rnd.randint(1, 3)):
-                payload[rnd.randrange(len(payload))] = rnd.choice([0, 1, 2, 3, 4, 5, 7, 8, 0x80, 0xFF, rnd.randrange(256)])
-        elif op < 0.7:
+                payload[rnd.randrange(len(payload))] = rnd.choice([0, 1, 2, 3, 4, 5, 7, 8, 0x7F, 0x80, 0xFB, 0xFF, rnd.randrange(256)])
+        elif op < 0.72:
             del payload[rnd.randrange(len(payload) + 1) :]
         else:
             at = rnd.randrange(len(payload) + 1)
             payload[at:at] = bytes(rnd.randrange(256) for _ in range(rnd.randint(1, 4)))
         out.append(ismpy.container(bytes(payload), 6))
     return out
+
+
+def mutated_files(count: int, seed: int = 17) -> list[bytes]:
+    """Mutants of the examples' structured files and of the reader cases."""
+    seeds = [ismpy.write(ismpy.read((EXAMPLES / f"{name}.ism.json").read_bytes()), "structured") for name in example_names()]
+    return mutants(seeds + list(reader_cases().values()), count, seed)
 
 
 def test_mutated_structured_files_read_alike(tmp_path):

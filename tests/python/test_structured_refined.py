@@ -35,7 +35,7 @@ from pathlib import Path
 import pytest
 
 import ismpy
-from test_structured import adapter, differences_from_the_reference
+from test_structured import adapter, differences_from_the_reference, mutants
 
 ROOT = Path(__file__).resolve().parents[2]
 HEADER_LEN = ismpy.HEADER_LEN
@@ -771,24 +771,9 @@ def test_form_1_reader_cases_are_what_the_reference_reports(tmp_path):
 
 
 def mutated_form_1_files(count: int, seed: int = 29) -> list[bytes]:
-    """Form-1 files of the cases above with bytes changed, cut or inserted in the payload (the container
-    rewrapped, so that the payload's decoding is what is exercised)."""
-    rnd = random.Random(seed)
+    """Mutants of the form-1 cases above (not the three large ones)."""
     seeds = [data for name, data in form_1_reader_cases().items() if name not in ("quadratic-bound", "kept-bytes-present", "kept-bytes-missing")]
-    out = []
-    for _ in range(count):
-        payload = bytearray(rnd.choice(seeds)[HEADER_LEN:])
-        op = rnd.random()
-        if op < 0.5:
-            for _ in range(rnd.randint(1, 3)):
-                payload[rnd.randrange(len(payload))] = rnd.choice([0, 1, 2, 3, 4, 5, 7, 8, 0x7F, 0x80, 0xFB, 0xFF, rnd.randrange(256)])
-        elif op < 0.75:
-            del payload[rnd.randrange(len(payload) + 1) :]
-        else:
-            at = rnd.randrange(len(payload) + 1)
-            payload[at:at] = bytes(rnd.randrange(256) for _ in range(rnd.randint(1, 4)))
-        out.append(ismpy.container(bytes(payload), 6))
-    return out
+    return mutants(seeds, count, seed)
 
 
 def test_mutated_form_1_files_read_or_fail_with_a_rule():
