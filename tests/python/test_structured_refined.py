@@ -35,7 +35,7 @@ from pathlib import Path
 import pytest
 
 import ismpy
-from test_structured import adapter, differences_from_the_reference, mutants
+from test_structured import differences_from_the_reference, mutants
 
 ROOT = Path(__file__).resolve().parents[2]
 HEADER_LEN = ismpy.HEADER_LEN
