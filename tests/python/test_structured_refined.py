@@ -35,21 +35,10 @@ from pathlib import Path
 import pytest
 
 import ismpy
-from test_structured import differences_from_the_reference, mutants
+from test_structured import Payload, differences_from_the_reference, expect, mutants, varint
 
 ROOT = Path(__file__).resolve().parents[2]
 HEADER_LEN = ismpy.HEADER_LEN
-
-
-def varint(n: int) -> bytes:
-    """A minimal varint (§7.4.1)."""
-    if n <= 250:
-        return bytes([n])
-    if n < 1 << 16:
-        return b"\xfb" + struct.pack("<H", n)
-    if n < 1 << 32:
-        return b"\xfc" + struct.pack("<I", n)
-    return b"\xfd" + struct.pack("<Q", n)
 
 
 def f64s(xs) -> bytes:
@@ -68,22 +57,6 @@ def mask(bits) -> bytes:
     return bytes(out)
 
 
-class Payload:
-    """A structured payload assembled part by part; `at[label]` is the file offset of a part."""
-
-    def __init__(self):
-        self.b = bytearray()
-        self.at = {}
-
-    def add(self, label: str, data: bytes) -> "Payload":
-        self.at[label] = HEADER_LEN + len(self.b)
-        self.b += data
-        return self
-
-    def file(self) -> bytes:
-        return ismpy.container(bytes(self.b), 6)
-
-
 def refined(n: int, box, cells, splits, kept: bytes, values=None, tail: bool = True, stages: bytes = b"\0", splits_bytes: bytes | None = None) -> Payload:
     """A payload with complexForm 1: `splits` a flat list of ids (or `splits_bytes` as they are)."""
     p = Payload()
@@ -95,13 +68,6 @@ def refined(n: int, box, cells, splits, kept: bytes, values=None, tail: bool = T
         p.add("values", f64s(values or [])).add("level", struct.pack("<d", 0.0)).add("stages", stages)
         p.add("model tail", b"\0\0\0\x04null")
     return p
-
-
-def expect(data: bytes, pointer: str, offset: int, rule: str = "ISM-006"):
-    with pytest.raises(ismpy.IsmError) as error:
-        ismpy.read(data)
-    assert (error.value.rule, error.value.location) == (rule, {"pointer": pointer, "offset": offset}), str(error.value)
-    return error.value
 
 
 def bits(xs) -> bytes:

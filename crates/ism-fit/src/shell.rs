@@ -27,20 +27,20 @@ use ism_format::faces::FaceTable;
 use ism_format::indexed::simplex_faces;
 use ism_format::model::Model;
 
-/// How many vertices of each simplex are inside (`f < c`): [`shell`] keeps those with at least
-/// one, unless none has (then it keeps every simplex).
-fn inside_counts(model: &Model) -> Vec<usize> {
-    let c = model.level;
-    let inside = |v: u32| model.values.get(v as usize).is_some_and(|&f| f < c);
-    model
-        .simplex_iter()
+/// How many vertices of each simplex (`m` ids each in `simplices`) are inside (`f < c`):
+/// [`shell`] keeps those with at least one, unless none has (then it keeps every simplex).
+fn inside_counts(simplices: &[u32], m: usize, values: &[f64], c: f64) -> Vec<usize> {
+    let inside = |v: u32| values.get(v as usize).is_some_and(|&f| f < c);
+    simplices
+        .chunks_exact(m)
         .map(|s| s.iter().filter(|&&v| inside(v)).count())
         .collect()
 }
 
-/// Which simplices of `model` [`shell`] keeps, in order.
-pub fn kept_simplices(model: &Model) -> Vec<bool> {
-    let counts = inside_counts(model);
+/// Which simplices [`shell`] keeps, in order, of a model with these `simplices` (`m` ids each),
+/// vertex `values` and level `c` — without building the model.
+pub fn kept_simplices(simplices: &[u32], m: usize, values: &[f64], c: f64) -> Vec<bool> {
+    let counts = inside_counts(simplices, m, values, c);
     let any = counts.iter().any(|&k| k > 0);
     counts.iter().map(|&k| k > 0 || !any).collect()
 }
@@ -51,7 +51,8 @@ pub fn shell(model: &Model) -> Model {
     let m = model.dim() + 1;
     let mut kept: Vec<u32> = Vec::with_capacity(model.simplices.len());
     let mut crossed_faces: HashSet<Vec<u32>> = HashSet::new();
-    for (s, ins) in model.simplex_iter().zip(inside_counts(model)) {
+    let counts = inside_counts(&model.simplices, m, &model.values, model.level);
+    for (s, ins) in model.simplex_iter().zip(counts) {
         if ins == 0 {
             continue;
         }

@@ -1402,7 +1402,10 @@ impl Fitted {
     /// (spec `ism-format.md` §7.4.3, `complexForm` 1): what `ism fit` writes into a `.isms`
     /// instead of the coordinates and ids. `None` for a complex not refined from a grid.
     pub fn refinement(&self) -> Option<ism_format::refine::KuhnRefinement> {
-        let kept = crate::shell::kept_simplices(&self.full_model(""));
+        // The written model's level is 0 (`model_of`) and its simplices the live cells in order.
+        let cells = self.complex.compact_cells();
+        let m = self.complex.dim() + 1;
+        let kept = crate::shell::kept_simplices(&cells, m, &self.values, 0.0);
         self.complex.refinement(kept)
     }
 
