@@ -19,7 +19,10 @@ fn after_help() -> String {
 }
 
 const AFTER_HELP: &str = "\
-Vertices where g is exactly 0 get the value +1e-12·max|g| (they count as outside).
+A vertex's value is g/|∇g| (g where ∇g vanishes), at least 1e-3 of the tolerance in magnitude;
+where g is exactly 0 it is positive (the vertex counts as outside). The fitted shape keeps that
+distance from every vertex: where the target passes through one, the crossings of its edges would
+otherwise meet there.
 
 The map is the stratified Bézier scheme (one solitary point per edge, triangle and tetrahedron,
 softmax-parametrized), stored as parametric stages. --rational adds a degree-2 rational stage with

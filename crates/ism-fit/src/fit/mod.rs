@@ -271,10 +271,10 @@ pub const MIN_TOLERANCE_FRACTION: f64 = 1e-12;
 /// `∇g` vanishes to higher order, as at the heart curve's (±1, 0)).
 const BRACKET_ABOVE: f64 = 0.25;
 
-/// Relative size of the value given to a vertex where `g` is exactly 0: the format needs
-/// `f ≠ c`, and a tiny positive value keeps the crossing (numerically) at that vertex. Such a
-/// vertex is treated as outside; this is deterministic and documented in the CLI help.
-pub const ZERO_NUDGE: f64 = 1e-12;
+/// Below this fraction of `max |g|` on the initial grid a value of `g` found by bisection counts as
+/// a zero whatever the edge's ends say ([`Fitter::root_is_a_zero`]): a zero of high order, where
+/// the ends' values are tiny too and rounding orders them arbitrarily.
+pub const ROOT_ZERO_FRACTION: f64 = 1e-12;
 
 /// Barycentric slack of [`Fitter::contains`] and of the box test of the Plantinga–Vegter split
 /// (`simplex_test`): a point on a shared facet belongs to both cells (refining both is harmless),
@@ -297,15 +297,42 @@ pub const TWO_SIDED_ROUNDS: usize = 10;
 /// (`Fitter::refine_misses`) instead of aiming ever lower.
 pub const GOAL_FLOOR: f64 = 0.25;
 
+/// Distance, as a fraction of the tolerance (or of a thousandth of the domain's diagonal where that
+/// is smaller: a tolerance beyond it binds nothing, and the clearance must stay far below the
+/// cells' size), that the fit keeps between its shape and every vertex of the complex ([`vertex_value`], [`Fitter::edge_crossing`]). Where the target passes through a
+/// grid vertex (the thin ellipsoid `x²/0.81 + y²/0.09 + z²/0.0036 = 1` at its pole `(0, 0.3, 0)`,
+/// where `g` rounds to 1.1e-16) the crossings of every edge at that vertex sat within 1e-17 of it
+/// and of each other, and the export had 48 triangles of no area there (the round trip failed).
+/// Kept this far apart they are distinct to ~10 significant digits; the shape moves by at most
+/// this, which the fit's own measure sees like any other error.
+pub const VERTEX_CLEARANCE: f64 = 1e-3;
+
+/// The distance a fit with `options` keeps between its shape and the vertices: [`VERTEX_CLEARANCE`]
+/// of the tolerance or of a thousandth of the domain's diagonal, whichever is smaller.
+pub fn vertex_clearance(options: &FitOptions) -> f64 {
+    VERTEX_CLEARANCE * options.tolerance.min(1e-3 * diagonal(&options.domain))
+}
+
+/// The length of the diagonal of `domain` (`[lo, hi]` per axis).
+fn diagonal(domain: &[f64]) -> f64 {
+    domain
+        .chunks(2)
+        .map(|c| (c[1] - c[0]).powi(2))
+        .sum::<f64>()
+        .sqrt()
+}
+
 /// `f(v)` for a vertex at `p`: the first-order signed distance `g(p)/|∇g(p)|` (just `g(p)` where
-/// the gradient vanishes or is not finite), or `+ZERO_NUDGE · scale` where that is 0. Only the
-/// signs fix the complex's crossings, but the values also place the linear patch's corner on
-/// each crossing edge (`t* = f_a/(f_a − f_b)`): on a first-order distance it lies next to `g`'s
-/// root where the shape is smooth, so many crossing edges need no record of their own (see
-/// [`Fitter::prune`]). With `g` itself (a quartic for the torus) the corner is off by about the
-/// tolerance on almost every edge. Sphere preset at 2e-3: 113,000 → 95,524 bytes, torus
-/// 420,255 → 292,311 (BENCHMARKS.md, issue 17).
-pub fn vertex_value(g: &dyn ImplicitFunction, p: &[f64], scale: f64) -> f64 {
+/// the gradient vanishes or is not finite), at least `clearance` in magnitude (`+clearance` where
+/// `g` is 0: such a vertex is treated as outside; deterministic and documented in the CLI help).
+/// Only the signs fix the complex's crossings, but the values also place the linear patch's
+/// corner on each crossing edge (`t* = f_a/(f_a − f_b)`): on a first-order distance it lies next
+/// to `g`'s root where the shape is smooth, so many crossing edges need no record of their own
+/// (see [`Fitter::prune`]). With `g` itself (a quartic for the torus) the corner is off by about
+/// the tolerance on almost every edge. Sphere preset at 2e-3: 113,000 → 95,524 bytes, torus
+/// 420,255 → 292,311 (BENCHMARKS.md, issue 17). The floor keeps the corners apart where the shape
+/// passes through a vertex ([`VERTEX_CLEARANCE`]).
+pub fn vertex_value(g: &dyn ImplicitFunction, p: &[f64], clearance: f64) -> f64 {
     let mut grad = [0.0; 3];
     let n = g.dim();
     let v = g.gradient(p, &mut grad[..n]);
@@ -315,8 +342,14 @@ pub fn vertex_value(g: &dyn ImplicitFunction, p: &[f64], scale: f64) -> f64 {
     } else {
         v
     };
-    if v == 0.0 || !v.is_finite() {
-        ZERO_NUDGE * scale.max(f64::MIN_POSITIVE)
+    let clearance = clearance.max(f64::MIN_POSITIVE);
+    if !v.is_finite() || v.abs() < clearance {
+        // 0 (either sign) counts as outside; so does NaN, which the caller reports.
+        if v < 0.0 {
+            -clearance
+        } else {
+            clearance
+        }
     } else {
         v
     }
@@ -334,6 +367,9 @@ struct Fitter<'a> {
     roots: HashMap<EdgeKey, (f64, f64)>,
     rational: bool,
     scale: f64,
+    /// [`VERTEX_CLEARANCE`] times the tolerance: the least distance kept between the shape and a
+    /// vertex.
+    clearance: f64,
     /// The domain's diagonal: how far a distance bound searches.
     reach: f64,
     bisections: usize,
@@ -392,12 +428,8 @@ impl<'a> Fitter<'a> {
             roots: HashMap::new(),
             rational: options.rational,
             scale,
-            reach: options
-                .domain
-                .chunks(2)
-                .map(|c| (c[1] - c[0]).powi(2))
-                .sum::<f64>()
-                .sqrt(),
+            clearance: vertex_clearance(options),
+            reach: diagonal(&options.domain),
             bisections: 0,
             trouble: None,
             errors: [HashMap::new(), HashMap::new()],
@@ -530,7 +562,7 @@ impl Fitter<'_> {
                     value: raw,
                 });
             }
-            let x = vertex_value(self.g, &p, self.scale);
+            let x = vertex_value(self.g, &p, self.clearance);
             self.values.push(x);
         }
     }
@@ -555,8 +587,8 @@ impl Fitter<'_> {
     /// it maps the patch corner onto it ([`place_crossing`]).
     fn init_crossing_edge(&mut self, e: EdgeKey) {
         if !self.roots.contains_key(&e) {
-            let found = self.edge_root(e);
-            if let Err(trouble) = self.root_is_a_zero(e, found.1) {
+            let (found, zero) = self.edge_crossing(e);
+            if let Err(trouble) = zero {
                 self.trouble.get_or_insert(trouble);
             }
             self.roots.insert(e, found);
@@ -564,7 +596,27 @@ impl Fitter<'_> {
         place_crossing(&self.roots, &self.weights, &mut self.map, e);
     }
 
-    /// `(t*, root)` of a sign-changing edge, both as the weight of its second vertex.
+    /// `(t*, root)` of a sign-changing edge, both as the weight of its second vertex, with the root
+    /// at least [`VERTEX_CLEARANCE`] of the tolerance from either end (where the target passes
+    /// through a vertex, the roots of all its edges would otherwise meet there), and whether the
+    /// sign change bisection found is a zero of `g` ([`Fitter::root_is_a_zero`], judged where it
+    /// was found).
+    pub(super) fn edge_crossing(&self, e: EdgeKey) -> ((f64, f64), Result<(), FitError>) {
+        let (t, root) = self.edge_root(e);
+        let zero = self.root_is_a_zero(e, root);
+        let (pa, pb) = (self.complex.point(e.0), self.complex.point(e.1));
+        let length = pa
+            .iter()
+            .zip(pb)
+            .map(|(a, b)| (b - a) * (b - a))
+            .sum::<f64>()
+            .sqrt();
+        let margin = (self.clearance / length).min(0.5);
+        ((t, root.clamp(margin, 1.0 - margin)), zero)
+    }
+
+    /// `(t*, root)` of a sign-changing edge, both as the weight of its second vertex: the root by
+    /// bisection of `g` along the edge.
     fn edge_root(&self, e: EdgeKey) -> (f64, f64) {
         let (fa, fb) = (self.values[e.0 as usize], self.values[e.1 as usize]);
         let t = fa / (fa - fb);
@@ -612,7 +664,7 @@ impl Fitter<'_> {
         // Tiny values (a zero of high order) are a zero whatever the ends say: the ends' values
         // are then tiny too, and rounding orders them arbitrarily.
         let ends = self.g.value(&pa).abs().max(self.g.value(&pb).abs());
-        if v.abs() > ends && v.abs() > ZERO_NUDGE * self.scale {
+        if v.abs() > ends && v.abs() > ROOT_ZERO_FRACTION * self.scale {
             return Err(FitError::NoRoot {
                 from: pa,
                 to: pb,
@@ -1462,9 +1514,10 @@ pub fn linear_baseline(
 /// `(simplices, stored numbers, max |g|/|∇g|)` of the linear isocomplex of `g` on `complex`.
 pub fn linear_error(g: &dyn ImplicitFunction, complex: &Complex) -> (usize, usize, f64) {
     let n = complex.dim();
-    let scale = 1.0;
+    // The linear isocomplex as it is: no clearance but the least that makes an exact zero
+    // positive.
     let values: Vec<f64> = (0..complex.num_vertices() as u32)
-        .map(|v| vertex_value(g, complex.point(v), scale))
+        .map(|v| vertex_value(g, complex.point(v), f64::MIN_POSITIVE))
         .collect();
     let cells = complex.live_cells();
     let max = cells

@@ -373,8 +373,8 @@ impl Fitter<'_> {
                 })
                 .map(|f| {
                     let e = (f[0], f[1]);
-                    let found = fitter.edge_root(e);
-                    (e, found, fitter.root_is_a_zero(e, found.1))
+                    let (found, zero) = fitter.edge_crossing(e);
+                    (e, found, zero)
                 })
                 .collect()
         };
