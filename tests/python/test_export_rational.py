@@ -21,8 +21,9 @@ O = {F = 0}, with F and its gradient from `ism query` (a direct evaluation of F)
 of `tools/bench_export_error.py` (damped Newton from mesh points onto O, an upper bound of their
 distance; exact point-to-triangle distances from points that `ism sample --surface` puts on O).
 The exporter checks its tolerance at test points and does not bound it, so the assertion is a
-regression guard with a stated margin, not the contract: 1.15 x the tolerance at 1e-3 (0.99 x
-measured; 1.30 x before session 31), 1.65 x at 1e-4 (1.52 x; 1.87 x before session 31).
+regression guard with a stated margin, not the contract: 0.95 x the tolerance at 1e-3 (0.89 x
+measured since each edge's ends' normals also predict its bend, session 33; 0.99 x before it, 1.30 x
+before session 31), 1.65 x at 1e-4 (1.52 x; 1.87 x before session 31).
 """
 
 from __future__ import annotations
@@ -56,9 +57,9 @@ def bench():
 @pytest.mark.parametrize(
     ("tolerance", "margin"),
     [
-        # Measured 0.99 x (mesh -> O) and 0.85 x (O -> mesh) at session 31; 1.30 x before it, 3.29 x
-        # before session 30.
-        (1e-3, 1.15),
+        # Measured 0.89 x (mesh -> O) and 0.75 x (O -> mesh) at session 33; 0.99 x before it (the
+        # normals' prediction), 1.30 x before session 31, 3.29 x before session 30.
+        (1e-3, 0.95),
         # Measured 1.52 x and 0.76 x at session 31; 1.87 x before (the depth limit on long edges).
         (1e-4, 1.65),
     ],
