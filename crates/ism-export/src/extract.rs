@@ -2836,13 +2836,6 @@ mod tests {
     use super::*;
     use ism_format::IndexedModel;
 
-    /// Where [`test_edge`] accepts a surface edge without its quarter points
-    /// ([`QUARTER_PREDICTED_FRACTION`]), the full three-point test must not have split it: ground truth
-    /// is the midpoint and the quarter points placed exactly (`surface_point`, the vertices'
-    /// inversion) and measured from the chord, on every 3D example at two tolerances, over each
-    /// patch edge cut into 1, 2, 4 and 8 pieces. Fails on the torus example (whose quarter points
-    /// decide 48 of its edges at 1e-3) with the prediction's bound loosened to 4 × the threshold;
-    /// also checks that the skip was taken (not a vacuous pass).
     /// [`sagitta_from_normals`] against closed forms: chords of a circle of radius `R` (sagitta
     /// `R(1 − cos(θ/2))`, to second order in the angle), of the cubic graph `y = c·x(1 − x)(1 − 2x)`
     /// (an S-bend: the prediction is exact, `max |y| = c/(6√3)`), and the same circle's chord with
@@ -2901,6 +2894,9 @@ mod tests {
         assert!(sagitta_from_normals(&a, &b).is_some_and(|h| h > 0.2));
     }
 
+    /// The aims at the middle of an edge and of a triangle ([`aim_at_half`], [`aim_at_centroid`])
+    /// land exactly on it where the map is piecewise linear through the points known, which is
+    /// what their inversion assumes (random edges and triangles, 2000 each).
     #[test]
     fn aims_hit_the_middle_of_piecewise_linear_maps() {
         // Ground truth: piecewise-linear maps evaluated forward, where the aims' linear inversion
@@ -3086,6 +3082,13 @@ mod tests {
         }
     }
 
+    /// Where [`test_edge`] accepts a surface edge without its quarter points
+    /// ([`QUARTER_PREDICTED_FRACTION`]), the full three-point test must not have split it: ground truth
+    /// is the midpoint and the quarter points placed exactly (`surface_point`, the vertices'
+    /// inversion) and measured from the chord, on every 3D example at two tolerances, over each
+    /// patch edge cut into 1, 2, 4 and 8 pieces. Fails on the torus example (whose quarter points
+    /// decide 48 of its edges at 1e-3) with the prediction's bound loosened to 4 × the threshold;
+    /// also checks that the skip was taken (not a vacuous pass).
     #[test]
     fn skipped_quarter_points_would_not_have_split() {
         let (mut skipped, mut tested) = (0, 0);
