@@ -272,7 +272,7 @@ pub const MIN_TOLERANCE_FRACTION: f64 = 1e-12;
 const BRACKET_ABOVE: f64 = 0.25;
 
 /// Below this fraction of `max |g|` on the initial grid a value of `g` found by bisection counts as
-/// a zero whatever the edge's ends say ([`Fitter::root_is_a_zero`]): a zero of high order, where
+/// a zero whatever the edge's ends say (`Fitter::root_is_a_zero`): a zero of high order, where
 /// the ends' values are tiny too and rounding orders them arbitrarily.
 pub const ROOT_ZERO_FRACTION: f64 = 1e-12;
 
@@ -299,12 +299,14 @@ pub const GOAL_FLOOR: f64 = 0.25;
 
 /// Distance, as a fraction of the tolerance (or of a thousandth of the domain's diagonal where that
 /// is smaller: a tolerance beyond it binds nothing, and the clearance must stay far below the
-/// cells' size), that the fit keeps between its shape and every vertex of the complex ([`vertex_value`], [`Fitter::edge_crossing`]). Where the target passes through a
-/// grid vertex (the thin ellipsoid `x²/0.81 + y²/0.09 + z²/0.0036 = 1` at its pole `(0, 0.3, 0)`,
-/// where `g` rounds to 1.1e-16) the crossings of every edge at that vertex sat within 1e-17 of it
-/// and of each other, and the export had 48 triangles of no area there (the round trip failed).
-/// Kept this far apart they are distinct to ~10 significant digits; the shape moves by at most
-/// this, which the fit's own measure sees like any other error.
+/// cells' size), that the fit keeps between its shape and every vertex of the complex
+/// ([`vertex_clearance`], used by [`vertex_value`] and `Fitter::edge_crossing`). Where the target
+/// passes through a grid vertex (the thin ellipsoid `x²/0.81 + y²/0.09 + z²/0.0036 = 1` at its
+/// pole `(0, 0.3, 0)`, where `g` rounds to 1.1e-16) the crossings of every edge at that vertex sat
+/// within 1e-17 of it and of each other, and the export had 48 triangles of no area there (the
+/// round trip failed). Kept this far apart (2e-7 at that fit's tolerance 2e-4, on coordinates
+/// of 0.3) they stay distinct even in a glTF export's f32; the shape moves by at most this, which
+/// the fit's own measure sees like any other error.
 pub const VERTEX_CLEARANCE: f64 = 1e-3;
 
 /// The distance a fit with `options` keeps between its shape and the vertices: [`VERTEX_CLEARANCE`]
@@ -328,7 +330,7 @@ fn diagonal(domain: &[f64]) -> f64 {
 /// Only the signs fix the complex's crossings, but the values also place the linear patch's
 /// corner on each crossing edge (`t* = f_a/(f_a − f_b)`): on a first-order distance it lies next
 /// to `g`'s root where the shape is smooth, so many crossing edges need no record of their own
-/// (see [`Fitter::prune`]). With `g` itself (a quartic for the torus) the corner is off by about
+/// (see `Fitter::prune`). With `g` itself (a quartic for the torus) the corner is off by about
 /// the tolerance on almost every edge. Sphere preset at 2e-3: 113,000 → 95,524 bytes, torus
 /// 420,255 → 292,311 (BENCHMARKS.md, issue 17). The floor keeps the corners apart where the shape
 /// passes through a vertex ([`VERTEX_CLEARANCE`]).
@@ -367,7 +369,7 @@ struct Fitter<'a> {
     roots: HashMap<EdgeKey, (f64, f64)>,
     rational: bool,
     scale: f64,
-    /// [`VERTEX_CLEARANCE`] times the tolerance: the least distance kept between the shape and a
+    /// [`vertex_clearance`] of the options: the least distance kept between the shape and a
     /// vertex.
     clearance: f64,
     /// The domain's diagonal: how far a distance bound searches.
@@ -597,7 +599,7 @@ impl Fitter<'_> {
     }
 
     /// `(t*, root)` of a sign-changing edge, both as the weight of its second vertex, with the root
-    /// at least [`VERTEX_CLEARANCE`] of the tolerance from either end (where the target passes
+    /// at least the clearance ([`vertex_clearance`]) from either end (where the target passes
     /// through a vertex, the roots of all its edges would otherwise meet there), and whether the
     /// sign change bisection found is a zero of `g` ([`Fitter::root_is_a_zero`], judged where it
     /// was found).
