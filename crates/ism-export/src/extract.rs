@@ -40,7 +40,7 @@
 //! too. A patch edge on a facet (and a 2D curve segment) is also checked near its ends where the
 //! ends' tangents predict a bend (`END_PROBES`): no triangle's interior test sees such an edge's
 //! curve, which lies on the patches' common boundary. And an edge whose test points pass is still
-//! split when its ends' normals predict a bend beyond the threshold (`sagitta_from_normals`): the
+//! split when its ends' normals predict a bend beyond the threshold (`bends_beyond`): the
 //! normals are exact wherever the test points land. (Test points are samples, not a bound: a
 //! stage that bends the shape between all of them still goes unseen.)
 //!
@@ -582,52 +582,9 @@ fn perpendicular(v: [f64; 3], d: [f64; 3]) -> f64 {
     }
 }
 
-/// How far the curve between two points of `O` departs from their chord, predicted from their unit
-/// normals: the cubic `h(s)` over the chord (length `L`) that is 0 at both ends with the slopes the
-/// normals give there, `h′ = −(n·d̂)/(n·m)` (`d̂` the chord's direction, `m` the normals' mean
-/// perpendicular to it), `h(xL) = L·x(1 − x)(p(1 − x) − q·x)`, maximised in closed form: `L²κ/8` on a
-/// circle of curvature `κ` to second order, exact on any cubic. Only the normals' components along
-/// the chord count (a twist across it is not a departure). `None` where a normal is missing (a
-/// vanishing gradient) or the normals turn by a right angle or more against their mean.
-///
-/// A second opinion beside the test points ([`test_edge`]): those sit at fixed parameters, and a
-/// stage with a very uneven parameter speed bunches them where the curve is nearly straight; the
-/// ends' normals are exact wherever the points land. On the fitted rational torus preset at 1e-4
-/// a facet edge 0.053 long between two patch corners left the curve 1.17 × the tolerance off its
-/// chord with every test point within the threshold; the normals predicted 1.36 ×. Both normals
-/// must be the simplex's own: `O` is only continuous across a facet, and a point placed by the
-/// neighbour carries the neighbour's normal — [`adopt`] replaces it with the simplex's, and for a
-/// parametric map `SurfaceBuilder::split` clears it (no prediction at that point). With the
-/// neighbours' normals the torus example at 1e-3 had 6.4 × the triangles for the same error.
-fn sagitta_from_normals(a: &SurfacePoint, b: &SurfacePoint) -> Option<f64> {
-    let d = sub3(b.p, a.p);
-    let len = norm(d);
-    if len == 0.0 || a.normal == [0.0; 3] || b.normal == [0.0; 3] {
-        return None;
-    }
-    let dh = [d[0] / len, d[1] / len, d[2] / len];
-    let sum = [
-        a.normal[0] + b.normal[0],
-        a.normal[1] + b.normal[1],
-        a.normal[2] + b.normal[2],
-    ];
-    let along = dot3(sum, dh);
-    let m = [
-        sum[0] - along * dh[0],
-        sum[1] - along * dh[1],
-        sum[2] - along * dh[2],
-    ];
-    let mlen = norm(m);
-    if mlen == 0.0 {
-        return None;
-    }
-    let m = [m[0] / mlen, m[1] / mlen, m[2] / mlen];
-    let (na, nb) = (dot3(a.normal, m), dot3(b.normal, m));
-    if na <= 0.0 || nb <= 0.0 || !(na.is_finite() && nb.is_finite()) {
-        return None;
-    }
-    let p = -dot3(a.normal, dh) / na;
-    let q = -dot3(b.normal, dh) / nb;
+/// `max |g(x)|` over `0 ≤ x ≤ 1` of the cubic `g(x) = x(1 − x)(p(1 − x) − q x)`
+/// ([`bends_beyond`]).
+fn cubic_peak(p: f64, q: f64) -> f64 {
     // g(x) = x(1 − x)(p(1 − x) − q x) = p x − (2p + q) x² + (p + q) x³, extreme where
     // 3(p + q) x² − 2(2p + q) x + p = 0.
     let g = |x: f64| x * (1.0 - x) * (p * (1.0 - x) - q * x);
@@ -638,6 +595,7 @@ fn sagitta_from_normals(a: &SurfacePoint, b: &SurfacePoint) -> Option<f64> {
             best = best.max(g(x).abs());
         }
     };
+    // A quadratic term below rounding of the others: the equation is linear.
     if qa.abs() > 1e-12 * (qb.abs() + qc.abs()) {
         let disc = qb * qb - 4.0 * qa * qc;
         if disc >= 0.0 {
@@ -648,19 +606,18 @@ fn sagitta_from_normals(a: &SurfacePoint, b: &SurfacePoint) -> Option<f64> {
     } else if qb != 0.0 {
         consider(-qc / qb);
     }
-    Some(len * best)
+    best
 }
 
-/// Whether [`sagitta_from_normals`] exceeds `tol`, first by a bound without square roots: with
-/// `m′` the normals' sum less its part along the chord `d`, the prediction is `|m′|·max|g̃|` for
-/// the cubic `g̃` of slopes `p̃ = −(n_a·d)/(n_a·m′)`, `q̃ = −(n_b·d)/(n_b·m′)`, and
-/// `|g̃| ≤ 4/27 (|p̃| + |q̃|)` (`x(1 − x)²` and `x²(1 − x)` peak at 4/27). Most edges pass the
-/// bound: computing the prediction for every tested edge cost ~15 % of a fitted torus' extraction.
-fn bends_beyond(a: &SurfacePoint, b: &SurfacePoint, tol: f64) -> bool {
+/// The slopes of [`bends_beyond`]' cubic without square roots: `(|m′|², p̃, q̃)` with `m′`
+/// the normals' sum less its part along the chord `d = b − a`, `p̃ = −(n_a·d)/(n_a·m′)`,
+/// `q̃ = −(n_b·d)/(n_b·m′)`. The slopes over the unit chord and unit `m` are `p̃·|m′|/L`,
+/// `q̃·|m′|/L`, and the cubic is linear in them, so the prediction is `|m′|·max|g(p̃, q̃)|`.
+fn normal_slopes(a: &SurfacePoint, b: &SurfacePoint) -> Option<(f64, f64, f64)> {
     let d = sub3(b.p, a.p);
     let dd = dot3(d, d);
     if dd == 0.0 || !dd.is_finite() || a.normal == [0.0; 3] || b.normal == [0.0; 3] {
-        return false;
+        return None;
     }
     let sum = [
         a.normal[0] + b.normal[0],
@@ -674,14 +631,39 @@ fn bends_beyond(a: &SurfacePoint, b: &SurfacePoint, tol: f64) -> bool {
         sum[2] - along * d[2],
     ];
     let (ea, eb) = (dot3(a.normal, m), dot3(b.normal, m));
-    if !(ea > 0.0 && eb > 0.0) {
-        return false;
+    if !(ea > 0.0 && eb > 0.0 && ea.is_finite() && eb.is_finite()) {
+        return None;
     }
-    let bound = 4.0 / 27.0 * ((dot3(a.normal, d) / ea).abs() + (dot3(b.normal, d) / eb).abs());
-    if dot3(m, m) * bound * bound <= tol * tol {
+    Some((dot3(m, m), -dot3(a.normal, d) / ea, -dot3(b.normal, d) / eb))
+}
+
+/// Whether the curve between two points of `O` departs from their chord by more than `tol`, as
+/// predicted from their unit normals: the cubic `h(s)` over the chord (length `L`) that is 0 at
+/// both ends with the slopes the normals give there, `h′ = −(n·d̂)/(n·m)` (`d̂` the chord's
+/// direction, `m` the normals' mean perpendicular to it), `h(xL) = L·x(1 − x)(p(1 − x) − q·x)`,
+/// maximised in closed form ([`cubic_peak`]): `L²κ/8` on a circle of curvature `κ` to second
+/// order, exact on any cubic. Only the normals' components along the chord count (a twist across
+/// it is not a departure). No prediction (`false`) where a normal is missing (a vanishing
+/// gradient) or the normals turn by a right angle or more against their mean.
+/// A bound first, compared squared: `|g| ≤ 4/27 (|p̃| + |q̃|)` (`x(1 − x)²` and `x²(1 − x)` peak at
+/// 4/27; [`normal_slopes`]); most edges pass it, and computing the prediction for every tested edge
+/// cost ~15 % of a fitted torus' extraction.
+///
+/// A second opinion beside the test points ([`test_edge`]): those sit at fixed parameters, and a
+/// stage with a very uneven parameter speed bunches them where the curve is nearly straight; the
+/// ends' normals are exact wherever the points land. On the fitted rational torus preset at 1e-4
+/// a facet edge 0.053 long between two patch corners left the curve 1.17 × the tolerance off its
+/// chord with every test point within the threshold; the normals predicted 1.36 ×. Both normals
+/// must be the simplex's own: `O` is only continuous across a facet, and a point placed by the
+/// neighbour carries the neighbour's normal — [`adopt`] replaces it with the simplex's, and for a
+/// parametric map `SurfaceBuilder::split` clears it (no prediction at that point). With the
+/// neighbours' normals the torus example at 1e-3 had 6.4 × the triangles for the same error.
+fn bends_beyond(a: &SurfacePoint, b: &SurfacePoint, tol: f64) -> bool {
+    let Some((mm, p, q)) = normal_slopes(a, b) else {
         return false;
-    }
-    sagitta_from_normals(a, b).is_some_and(|h| h > tol)
+    };
+    let bound = 4.0 / 27.0 * (p.abs() + q.abs());
+    mm * bound * bound > tol * tol && mm.sqrt() * cubic_peak(p, q) > tol
 }
 
 /// Fraction of the tolerance that patch edges are held to, so that what lies between the measured
@@ -1168,7 +1150,7 @@ type Probed = (Bary, [f64; 3]);
 /// point, or a patch corner on a shared K-edge) a start for `s`'s inversions: its preimage moved
 /// into `s`'s local coordinates (a point of the shared face, whose preimage lies on it: faces map
 /// to themselves), and `DX⁻¹` and the normal taken from `s`'s map (the owner's differ across the
-/// face: `O` is only continuous there, and [`sagitta_from_normals`] reads the normal on `s`'s
+/// face: `O` is only continuous there, and [`bends_beyond`] reads the normal on `s`'s
 /// side). Its position is untouched; the mesh keeps the owner's position and normal (`merge` keeps
 /// a key's first vertex, the owner's). Only maps with an implicit stage use the preimage data.
 fn adopt(eval: &ModelEval, s: usize, owner: usize, point: &mut SurfacePoint) {
@@ -1298,7 +1280,7 @@ fn test_edge(
         0.0
     };
     let off_centre = aimed > tol;
-    // The ends' normals predict a bend the test points may not see ([`sagitta_from_normals`];
+    // The ends' normals predict a bend the test points may not see ([`bends_beyond`];
     // only asked where the midpoint would not split the edge anyway).
     let bent = middle <= tol && !off_centre && bends_beyond(a, b, tol);
     if eval.dim() == 3
@@ -2836,12 +2818,16 @@ mod tests {
     use super::*;
     use ism_format::IndexedModel;
 
-    /// [`sagitta_from_normals`] against closed forms: chords of a circle of radius `R` (sagitta
+    /// [`bends_beyond`] against closed forms: chords of a circle of radius `R` (sagitta
     /// `R(1 − cos(θ/2))`, to second order in the angle), of the cubic graph `y = c·x(1 − x)(1 − 2x)`
     /// (an S-bend: the prediction is exact, `max |y| = c/(6√3)`), and the same circle's chord with
     /// the normals twisted about the chord (not a departure: the same answer).
     #[test]
     fn normals_predict_the_sagitta_of_circles_and_cubics() {
+        // The prediction `bends_beyond` compares with the threshold.
+        let sagitta_from_normals = |a: &SurfacePoint, b: &SurfacePoint| {
+            normal_slopes(a, b).map(|(mm, p, q)| mm.sqrt() * cubic_peak(p, q))
+        };
         let point = |p: [f64; 3], n: [f64; 3]| {
             let len = norm(n);
             let mut q = finish_point([0.0; MAX_VARS], p, n, None);

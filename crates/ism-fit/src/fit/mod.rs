@@ -545,7 +545,11 @@ impl Fitter<'_> {
     }
 
     fn longest_edge_length(&self, c: u32) -> f64 {
-        let (a, b) = self.complex.longest_edge(c);
+        self.edge_length(self.complex.longest_edge(c))
+    }
+
+    /// The length of the edge from vertex `a` to vertex `b`.
+    fn edge_length(&self, (a, b): EdgeKey) -> f64 {
         let (pa, pb) = (self.complex.point(a), self.complex.point(b));
         pa.iter()
             .zip(pb)
@@ -606,14 +610,7 @@ impl Fitter<'_> {
     pub(super) fn edge_crossing(&self, e: EdgeKey) -> ((f64, f64), Result<(), FitError>) {
         let (t, root) = self.edge_root(e);
         let zero = self.root_is_a_zero(e, root);
-        let (pa, pb) = (self.complex.point(e.0), self.complex.point(e.1));
-        let length = pa
-            .iter()
-            .zip(pb)
-            .map(|(a, b)| (b - a) * (b - a))
-            .sum::<f64>()
-            .sqrt();
-        let margin = (self.clearance / length).min(0.5);
+        let margin = (self.clearance / self.edge_length(e)).min(0.5);
         ((t, root.clamp(margin, 1.0 - margin)), zero)
     }
 
