@@ -1946,10 +1946,12 @@ impl SurfaceBuilder<'_> {
                 if fe.owner as usize != self.s {
                     adopt(self.eval, self.s, fe.owner as usize, &mut point);
                     if !needs_start(self.eval, self.s) {
-                        // A parametric map has no preimage to adopt, and evaluating its own normal
-                        // here cost a fifth of a fitted torus' extraction at 1e-4: the edges at
-                        // this point go without the normals' prediction instead (the mesh keeps
-                        // the owner's normal).
+                        // A parametric map has no preimage to adopt; evaluating its own normal
+                        // here (a second placement of the point) cost ~3 % of a fitted torus'
+                        // extraction at 1e-4 for an error within 0.01 × the tolerance on the five
+                        // models measured (BENCHMARKS, issue 19, session 33): the edges here go
+                        // without the normals' prediction instead (the mesh keeps the owner's
+                        // normal).
                         point.normal = [0.0; 3];
                     }
                 }
