@@ -1131,13 +1131,18 @@ fn prepare(
 /// order), `level` the level `c`, and `samples` points of the shape as `(u, exact J)` (e.g. the
 /// sampler's lattice), which only steer refinement: a leaf is split while its bound exceeds the
 /// largest sample inside its box by more than [`TIGHTNESS`], worst ratio first, within the budget.
+/// Once every leaf's bound is finite (cells with an uncertified determinant are always split,
+/// worst first), refinement goes on only while the largest bound then exceeds the largest sample
+/// by more than `min_excess` (units of `J`): the caller's estimate of the excess below which
+/// refinement costs more than the candidates it would save (`0.0`: as the ratio alone decides).
+/// Fewer splits leave the bound looser, never uncertified.
 pub fn chain_bound(
     map: &LocalMap,
     inv_edges: &Mat,
     values: &[f64],
     level: f64,
     samples: &[([f64; 4], f64)],
-    max_splits: usize,
+    (max_splits, min_excess): (usize, f64),
 ) -> Option<Result<ChainBound, String>> {
     let stages = map.stages();
     let m = map.vars();
@@ -1212,13 +1217,25 @@ pub fn chain_bound(
         inside.max(chain.centroid_j(cell))
     };
     let ratio = |bound: f64, b: &UBox, cell: &Cell| bound / local(b, cell);
+    // First what certification needs (cells whose bound is not finite: the determinant not yet
+    // certified, worst first as always); then, once every bound is finite, tightening only when
+    // the largest bound exceeds the samples by more than `min_excess`. With the threshold passed
+    // (or 0) the splits are the ones the ratio alone would make.
+    let best = samples.iter().map(|s| s.1).fold(0.0f64, f64::max);
+    let mut tighten = None;
     let mut cells = vec![(ratio(b, &ubox, &root), b, ubox, root)];
     let mut splits = 0;
     while let Some(worst) = (0..cells.len()).max_by(|&i, &j| cells[i].0.total_cmp(&cells[j].0)) {
-        if cells[worst].0 * TIGHTNESS <= 1.0
-            || splits >= max_splits
-            || cells[worst].3.depth >= MAX_DEPTH
-        {
+        if tighten.is_none() && cells.iter().all(|c| c.1.is_finite()) {
+            let top = cells.iter().map(|c| c.1).fold(0.0f64, f64::max);
+            tighten = Some(top - best > min_excess);
+        }
+        let tight = match tighten {
+            None => false,
+            Some(false) => true,
+            Some(true) => cells[worst].0 * TIGHTNESS <= 1.0,
+        };
+        if tight || splits >= max_splits || cells[worst].3.depth >= MAX_DEPTH {
             break;
         }
         let (_, _, _, cell) = cells.swap_remove(worst);
@@ -1466,7 +1483,8 @@ mod tests {
             let ids = model.simplex(s);
             let inv = eval.inv_edges(s);
             let values: Vec<f64> = ids.iter().map(|&v| model.values[v as usize]).collect();
-            let Some(Ok(chain)) = chain_bound(map, &inv, &values, model.level, &[], splits) else {
+            let Some(Ok(chain)) = chain_bound(map, &inv, &values, model.level, &[], (splits, 0.0))
+            else {
                 panic!("simplex {s}: no chain bound");
             };
             let lin = (0..n)
@@ -1709,6 +1727,14 @@ mod tests {
             [0.0; 4],
             [0.0; 4],
         ];
-        assert!(chain_bound(eval.local_map(s), &id, &[-1.0, 1.0, 1.0], 0.0, &[], 8).is_none());
+        assert!(chain_bound(
+            eval.local_map(s),
+            &id,
+            &[-1.0, 1.0, 1.0],
+            0.0,
+            &[],
+            (8, 0.0)
+        )
+        .is_none());
     }
 }

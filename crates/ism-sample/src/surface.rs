@@ -268,6 +268,19 @@ const LEAF_EXCESS: f64 = 1.0 / 3.0;
 /// fitted torus 6.61 / 4.17 / 4.78 vs 5.70 s; at `N = 2·10⁵` 1.30 / 0.94 / 0.72 vs 0.82 and
 /// 2.59 / 1.95 / 2.11 vs 2.19.
 const SPLIT_PAYS: f64 = 40.0;
+/// An implicit chain's refinement ([`crate::chain::chain_bound`]: up to [`FIRST_SPLITS`]
+/// bisections, each restricting every polynomial of the first stage and bounding the whole chain)
+/// is started only when the patch's root bound wastes more than this times the all-parametric
+/// leaves' threshold (`A_patch (B_root − J_max)` against `leaf_excess`); likewise the per-stage
+/// bound, and the second pass ([`SECOND_SPLITS`]) only for a patch whose excess exceeds it times
+/// the budgets' ratio. Without it every patch spent its budget whatever the samples asked: on
+/// the 1 M-tet model 48 splits per crossed simplex were 1.1 ms of its 1.15 ms of setup, and
+/// `ism sample --surface 1` cost 27.5 CPU-s (now 12.2); on the sphere example 0.735 CPU-s
+/// (now 0.024). Scanned (whole `ism sample --surface N -j 1`, CPU, session 34): 0.05 / 0.2 / 1
+/// / 5 / 20 — 1 was never the slowest beyond noise, from N = 10⁴ (sphere example 0.88 s at 0.2,
+/// 0.29 s at 1) to 10⁶ (within 3 % of the best on the sphere, stratified-3d and 1 M-tet models;
+/// 20 lost 5–11 % there: too few splits). BENCHMARKS.md (issue 19, session 34).
+const CHAIN_EXCESS_SHARE: f64 = 1.0;
 /// A patch gets the second pass when its excess is above this share of the whole bounded area.
 const REFINE_SHARE: f64 = 0.005;
 /// At most this many patches get the second pass (bounds the table's cost).
@@ -421,6 +434,11 @@ fn build_patch(
                     level: model.level,
                     samples: &samples,
                     max_splits,
+                    min_excess: if area > 0.0 {
+                        CHAIN_EXCESS_SHARE * leaf_excess / area
+                    } else {
+                        f64::INFINITY
+                    },
                 },
                 &tris,
                 count,
@@ -507,6 +525,9 @@ struct ImplicitInputs<'a> {
     level: f64,
     samples: &'a [([f64; 4], f64)],
     max_splits: usize,
+    /// The root bound's excess over the samples (units of `J`) below which neither the chain
+    /// nor the per-stage bound is refined ([`CHAIN_EXCESS_SHARE`]).
+    min_excess: f64,
 }
 
 /// Region bounds from the chain bound's leaves, with the per-stage bound where the chain has
@@ -524,10 +545,11 @@ fn implicit_region_bounds(
         level,
         samples,
         max_splits,
+        min_excess,
     } = input;
     let n = map.vars() - 1;
     let best_sample = samples.iter().map(|s| s.1).fold(0.0, f64::max);
-    let chain = match chain_bound(map, inv, values, level, samples, max_splits) {
+    let chain = match chain_bound(map, inv, values, level, samples, (max_splits, min_excess)) {
         Some(Ok(c)) => Some(c),
         _ => None,
     };
@@ -535,6 +557,9 @@ fn implicit_region_bounds(
     // missing, infinite, or not tight within its budget.
     let per_stage = match &chain {
         Some(c) if c.top() * TIGHTNESS <= best_sample => f64::INFINITY,
+        // A finite chain bound whose refinement would not pay: the per-stage bound (its own
+        // bisection, as costly) would not either.
+        Some(c) if c.top().is_finite() && c.top() - best_sample <= min_excess => f64::INFINITY,
         _ => surface_area_element_bound(map, edges, values, level).or_else(|err| {
             if chain.is_some() {
                 Ok(f64::INFINITY)
@@ -606,7 +631,12 @@ impl SurfaceTable {
         let excess: Vec<f64> = patches.iter().map(PatchEntry::excess).collect();
         let total: f64 = patches.iter().map(PatchEntry::bounded_area).sum();
         let mut worst: Vec<usize> = (0..patches.len())
-            .filter(|&i| patches[i].guessed && excess[i] > REFINE_SHARE * total)
+            .filter(|&i| {
+                patches[i].guessed
+                    && excess[i] > REFINE_SHARE * total
+                    && excess[i]
+                        > CHAIN_EXCESS_SHARE * leaf_excess * (SECOND_SPLITS / FIRST_SPLITS) as f64
+            })
             .collect();
         worst.sort_by(|&a, &b| excess[b].total_cmp(&excess[a]).then(a.cmp(&b)));
         worst.truncate(REFINE_COUNT);
@@ -1880,6 +1910,68 @@ mod tests {
                     }
                 }
             }
+        }
+    }
+
+    /// Implicit chains ([`CHAIN_EXCESS_SHARE`]): a table sized for one sample keeps every
+    /// patch's root bound (no chain or per-stage refinement, no second pass), so it bounds more
+    /// area than the table for a million samples; both stay certified — the exact `J` at the
+    /// corners and centroid of every region (the kernel's own Newton inverse and Jacobian, not
+    /// the table's enclosures) is below the region's bound — on the implicit examples, the
+    /// torus' extreme weights included.
+    #[test]
+    fn implicit_chains_refine_only_for_enough_samples_and_stay_certified() {
+        for name in ["stratified-3d", "sphere", "torus"] {
+            let path = format!(
+                "{}/../../spec/examples/{name}.ism.json",
+                env!("CARGO_MANIFEST_DIR")
+            );
+            let model = ism_format::io::read_path(path).unwrap().model;
+            let eval = ModelEval::new(&model).unwrap();
+            let n = model.dim();
+            let table = |e| {
+                SurfaceTable::with_expected_samples(&eval, Weighting::CurvedArea, Some(e)).unwrap()
+            };
+            let (one, many) = (table(1), table(1_000_000));
+            assert!(
+                one.patches.iter().all(|p| p.guessed),
+                "{name}: implicit chains"
+            );
+            assert!(
+                one.bounded_area > many.bounded_area,
+                "{name}: the root bounds ({}) are looser than the refined ones ({})",
+                one.bounded_area,
+                many.bounded_area
+            );
+            let mut checked = 0;
+            for t in [&one, &many] {
+                for p in &t.patches {
+                    let s = p.simplex as usize;
+                    let map = eval.local_map(s);
+                    for r in &p.regions {
+                        let mut centroid = [0.0; MAX_VARS];
+                        for (k, c) in centroid.iter_mut().enumerate() {
+                            *c = (r.u[0][k] + r.u[1][k] + r.u[2][k]) / 3.0;
+                        }
+                        for u in [r.u[0], r.u[1], r.u[2], centroid] {
+                            let inv = map.inverse(&u);
+                            assert!(inv.converged, "{name}: simplex {s}: no preimage of {u:?}");
+                            let (_, jac) = map.jacobian(&inv.w);
+                            let jac = jac.unwrap();
+                            let grad = eval.gradient_from_jacobian(s, &jac);
+                            let det = linalg::det(n, &jac);
+                            let j = norm(&grad[..n]) / (p.linear_gradient * det);
+                            assert!(
+                                j <= r.bound * (1.0 + 1e-9),
+                                "{name}: simplex {s}: J {j} > bound {}",
+                                r.bound
+                            );
+                            checked += 1;
+                        }
+                    }
+                }
+            }
+            assert!(checked > 100, "{name}: {checked} points");
         }
     }
 
