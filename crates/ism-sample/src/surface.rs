@@ -274,12 +274,12 @@ const SPLIT_PAYS: f64 = 40.0;
 /// leaves' threshold (`A_patch (B_root − J_max)` against `leaf_excess`); likewise the per-stage
 /// bound, and the second pass ([`SECOND_SPLITS`]) only for a patch whose excess exceeds it times
 /// the budgets' ratio. Without it every patch spent its budget whatever the samples asked: on
-/// the 1 M-tet model 48 splits per crossed simplex were 1.1 ms of its 1.15 ms of setup, and
-/// `ism sample --surface 1` cost 27.5 CPU-s (now 12.2); on the sphere example 0.735 CPU-s
-/// (now 0.024). Scanned (whole `ism sample --surface N -j 1`, CPU, session 34): 0.05 / 0.2 / 1
-/// / 5 / 20 — 1 was never the slowest beyond noise, from N = 10⁴ (sphere example 0.88 s at 0.2,
-/// 0.29 s at 1) to 10⁶ (within 3 % of the best on the sphere, stratified-3d and 1 M-tet models;
-/// 20 lost 5–11 % there: too few splits). BENCHMARKS.md (issue 19, session 34).
+/// the 1 M-tet model `ism sample --surface 1` cost 29.3 CPU-s (now 8.1, with the chain split
+/// only until its bound is finite), the sphere example 0.74 (now 0.024). Scanned (whole `ism
+/// sample --surface N -j 1`, CPU, session 34): 0.05 / 0.2 / 1 / 5 / 20 — 1 was never the
+/// slowest beyond noise, from N = 10⁴ (sphere example 0.88 s at 0.2, 0.29 s at 1) to 10⁶
+/// (within 6 % of the best on the sphere, stratified-3d and 1 M-tet models; 20 lost 4–15 %
+/// there: too few splits). BENCHMARKS.md (issue 19, session 34).
 const CHAIN_EXCESS_SHARE: f64 = 1.0;
 /// A patch gets the second pass when its excess is above this share of the whole bounded area.
 const REFINE_SHARE: f64 = 0.005;
