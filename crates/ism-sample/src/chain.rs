@@ -19,11 +19,11 @@
 //!   stage is restricted to the cell exactly, the others as above, and
 //!   `J = |E⁻ᵀ cof(DY) Δf| / |∇F_lin|` with `cof(DY) = cof(DY_0) ⋯ cof(DY_{m−1})` (the cofactor
 //!   matrix `det(A) A⁻ᵀ` is multiplicative), so no determinant bound is needed at all.
-//!   When the restricted stage fits a [`Flat`] record and every later stage is a polynomial,
+//!   When the restricted stage fits a `Flat` record and every later stage is a polynomial,
 //!   the factors are also carried as affine functions of the cell's coordinates with certified
-//!   remainders ([`crate::affine`]): the later stages are then bounded on the image itself, not
+//!   remainders (`crate::affine`): the later stages are then bounded on the image itself, not
 //!   on a box around it, and the products keep their correlation, so the slack is second order
-//!   in the cell size. Below [`AFFINE_ALONE_DEPTH`] bisections that bound is used alone, above
+//!   in the cell size. Below `AFFINE_ALONE_DEPTH` bisections that bound is used alone, above
 //!   it the smaller of the two.
 //!
 //! Cells are bisected (longest edge) worst first, where "worst" is the ratio of a cell's bound to

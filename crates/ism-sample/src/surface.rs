@@ -595,7 +595,7 @@ impl SurfaceTable {
 
     /// [`SurfaceTable::new`] for about `expected` samples in all: an all-parametric patch's
     /// leaf is bisected only while the sampling mass its bound wastes exceeds
-    /// [`SPLIT_PAYS`] times the total linear area over `expected`, i.e. while the candidates the
+    /// `SPLIT_PAYS` times the total linear area over `expected`, i.e. while the candidates the
     /// split saves on `expected` samples cost more than the split. Few samples get the root
     /// bounds alone (the cheapest certified table); many get tighter bounds than the fixed
     /// threshold gives. `None`: the fixed threshold of [`SurfaceTable::new`]. The table, hence
@@ -755,7 +755,7 @@ impl SurfaceTable {
 
     /// `count` accepted samples, each handed to `each` with the generator (which it may use
     /// between samples). Equal in distribution to `count` calls of [`SurfaceTable::draw`]: on
-    /// tables with `pick_ahead` the candidates' slots are drawn [`PICK_AHEAD`] at a time (the
+    /// tables with `pick_ahead` the candidates' slots are drawn `PICK_AHEAD` at a time (the
     /// same alias pick, its uniforms taken from the stream in a different order), so the bits
     /// for a seed differ from `draw`'s there; they never depend on the thread count. Picks left
     /// over after the last sample are dropped: they are independent of every candidate's
