@@ -29,9 +29,10 @@
 //! Cells are bisected (longest edge) worst first, where "worst" is the ratio of a cell's bound to
 //! the exact `J` at the caller's sample points of the shape inside the cell's `u`-box, until every
 //! ratio is within [`TIGHTNESS`] or the budget is spent — past the cells whose bound is not yet
-//! finite, only when the caller's threshold says the tighter bound pays ([`chain_bound`]). The leaves keep their `u`-boxes, so a
-//! caller can bound `J` over any region of the linear patch by the leaves whose boxes meet it
-//! ([`ChainBound::over`]). Every step is an enclosure, so the results are certified.
+//! finite, only when the caller's threshold says the tighter bound pays ([`chain_bound`]). The
+//! leaves keep their `u`-boxes, so a caller can bound `J` over any region of the linear patch by
+//! the leaves whose boxes meet it ([`ChainBound::over`]). Every step is an enclosure, so the
+//! results are certified.
 
 use ism_format::Direction;
 use ism_geom::interval::Interval;
