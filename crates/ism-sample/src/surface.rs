@@ -596,10 +596,11 @@ impl SurfaceTable {
     /// [`SurfaceTable::new`] for about `expected` samples in all: an all-parametric patch's
     /// leaf is bisected only while the sampling mass its bound wastes exceeds
     /// `SPLIT_PAYS` times the total linear area over `expected`, i.e. while the candidates the
-    /// split saves on `expected` samples cost more than the split. Few samples get the root
-    /// bounds alone (the cheapest certified table); many get tighter bounds than the fixed
-    /// threshold gives. `None`: the fixed threshold of [`SurfaceTable::new`]. The table, hence
-    /// the output for a seed, depends on `expected` but never on the thread count.
+    /// split saves on `expected` samples cost more than the split; an implicit chain is
+    /// tightened past its first finite bound only on the same test (`CHAIN_EXCESS_SHARE`). Few
+    /// samples get the root bounds alone (the cheapest certified table); many get tighter bounds
+    /// than the fixed threshold gives. `None`: the fixed threshold of [`SurfaceTable::new`]. The
+    /// table, hence the output for a seed, depends on `expected` but never on the thread count.
     ///
     /// # Errors
     /// As [`SurfaceTable::new`].
