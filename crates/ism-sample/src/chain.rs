@@ -1124,6 +1124,13 @@ fn prepare(
     Ok((linear, polys))
 }
 
+/// Whether a certified bound `top` of `J` exceeds the largest exact sample `best` by more than
+/// `min_excess`: the caller's test that tightening it pays ([`chain_bound`]; the table applies
+/// the same test to the per-stage bound).
+pub(crate) fn tightening_pays(top: f64, best: f64, min_excess: f64) -> bool {
+    top - best > min_excess
+}
+
 /// Certified bound of the area element `J` on the shape in one simplex, for a chain whose stages
 /// are all implicit or all parametric; `None` for a mixed chain (use [`crate::bound`]), and
 /// `Some(Err)` when a stage cannot be bounded at all (a denominator not positive). Leaves whose
@@ -1230,7 +1237,7 @@ pub fn chain_bound(
     while let Some(worst) = (0..cells.len()).max_by(|&i, &j| cells[i].0.total_cmp(&cells[j].0)) {
         if tighten.is_none() && cells.iter().all(|c| c.1.is_finite()) {
             let top = cells.iter().map(|c| c.1).fold(0.0f64, f64::max);
-            tighten = Some(top - best > min_excess);
+            tighten = Some(tightening_pays(top, best, min_excess));
         }
         let tight = match tighten {
             None => false,

@@ -20,7 +20,7 @@ use rand::Rng;
 use rayon::prelude::*;
 
 use crate::bound::surface_area_element_bound;
-use crate::chain::{chain_bound, parametric_leaves, TIGHTNESS};
+use crate::chain::{chain_bound, parametric_leaves, tightening_pays, TIGHTNESS};
 use crate::error::{Result, SampleError};
 
 /// Required closeness of a surface sample to `O`, relative to the model size: `|F − c| / |∇F|`
@@ -559,7 +559,9 @@ fn implicit_region_bounds(
         Some(c) if c.top() * TIGHTNESS <= best_sample => f64::INFINITY,
         // A finite chain bound whose refinement would not pay: the per-stage bound (its own
         // bisection, as costly) would not either.
-        Some(c) if c.top().is_finite() && c.top() - best_sample <= min_excess => f64::INFINITY,
+        Some(c) if c.top().is_finite() && !tightening_pays(c.top(), best_sample, min_excess) => {
+            f64::INFINITY
+        }
         _ => surface_area_element_bound(map, edges, values, level).or_else(|err| {
             if chain.is_some() {
                 Ok(f64::INFINITY)
