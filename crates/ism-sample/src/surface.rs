@@ -638,7 +638,8 @@ impl SurfaceTable {
                 patches[i].guessed
                     && excess[i] > REFINE_SHARE * total
                     && excess[i]
-                        > CHAIN_EXCESS_SHARE * leaf_excess * (SECOND_SPLITS / FIRST_SPLITS) as f64
+                        > CHAIN_EXCESS_SHARE * leaf_excess * SECOND_SPLITS as f64
+                            / FIRST_SPLITS as f64
             })
             .collect();
         worst.sort_by(|&a, &b| excess[b].total_cmp(&excess[a]).then(a.cmp(&b)));
