@@ -173,13 +173,15 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             } else {
                 "segments"
             };
-            // Edges the refinement had to leave while their chordal test (¾ of the tolerance)
-            // failed (`--max-depth`): the export may be farther from the shape than asked there,
-            // so say so.
+            // Edges the refinement had to leave while their chordal test failed (`--max-depth`):
+            // the export may be farther from the shape than asked there, so say so — and that the
+            // test holds edges to a fraction of the tolerance (failing it is not yet exceeding it).
             let limited = match summary["depth_limited_edges"].as_u64() {
                 Some(n) if n > 0 => format!(
-                    ", {n} edge{} at the depth limit (--max-depth) still failing the chordal test",
-                    if n == 1 { "" } else { "s" }
+                    ", {n} edge{} at the depth limit (--max-depth) still failing the chordal test \
+                     (which holds edges to {} of --tolerance)",
+                    if n == 1 { "" } else { "s" },
+                    ism_export::extract::EDGE_FRACTION
                 ),
                 _ => String::new(),
             };

@@ -243,7 +243,8 @@ fn edges_left_at_the_depth_limit_are_reported() {
     let line = String::from_utf8_lossy(&o.stderr);
     assert!(
         line.contains(&format!(
-            ", {n} edge{} at the depth limit (--max-depth) still failing the chordal test",
+            ", {n} edge{} at the depth limit (--max-depth) still failing the chordal test \
+             (which holds edges to 0.75 of --tolerance)",
             if n == 1 { "" } else { "s" }
         )),
         "{line}"
