@@ -1573,8 +1573,8 @@ mod tests {
         ism_format::io::read_path(path).unwrap().model
     }
 
-    /// Two triangles with a parametric stage (so the chain is all parametric).
-    fn parametric_square() -> Model {
+    /// The unit square as two triangles sharing the diagonal 0–2, with one stage.
+    fn square(stage: ism_format::Stage) -> Model {
         ModelBuilder::new(2)
             .vertex(&[0.0, 0.0], -1.0)
             .vertex(&[1.0, 0.0], 1.0)
@@ -1582,15 +1582,20 @@ mod tests {
             .vertex(&[0.0, 1.0], 1.0)
             .simplex(&[0, 1, 2])
             .simplex(&[0, 2, 3])
-            .stage(
-                StageBuilder::bezier(3)
-                    .face(&[0, 2], &[0.6, 0.4, 0.3, 0.7], &[])
-                    .face(&[0, 1, 2], &[0.2, 0.5, 0.3], &[])
-                    .parametric()
-                    .build(),
-            )
+            .stage(stage)
             .build()
             .unwrap()
+    }
+
+    /// Two triangles with a parametric stage (so the chain is all parametric).
+    fn parametric_square() -> Model {
+        square(
+            StageBuilder::bezier(3)
+                .face(&[0, 2], &[0.6, 0.4, 0.3, 0.7], &[])
+                .face(&[0, 1, 2], &[0.2, 0.5, 0.3], &[])
+                .parametric()
+                .build(),
+        )
     }
 
     /// The barycentric points of the whole simplex with `m` coordinates on a lattice of `k`
@@ -1659,20 +1664,11 @@ mod tests {
         // The outer inner control points of a quartic edge moved past its middle one (0.9 and
         // 0.1 of the way, where 0.25 and 0.75 are natural) fold the stage: the edge's
         // parameter runs backwards around its midpoint.
-        let folded = ModelBuilder::new(2)
-            .vertex(&[0.0, 0.0], -1.0)
-            .vertex(&[1.0, 0.0], 1.0)
-            .vertex(&[1.0, 1.0], 1.0)
-            .vertex(&[0.0, 1.0], 1.0)
-            .simplex(&[0, 1, 2])
-            .simplex(&[0, 2, 3])
-            .stage(
-                StageBuilder::bezier(4)
-                    .face(&[0, 2], &[0.1, 0.9, 0.5, 0.5, 0.9, 0.1], &[])
-                    .build(),
-            )
-            .build()
-            .unwrap();
+        let folded = square(
+            StageBuilder::bezier(4)
+                .face(&[0, 2], &[0.1, 0.9, 0.5, 0.5, 0.9, 0.1], &[])
+                .build(),
+        );
         let eval = ModelEval::new(&folded).unwrap();
         for s in 0..2 {
             let stage = &eval.local_map(s).stages()[0];
