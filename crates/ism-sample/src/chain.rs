@@ -662,12 +662,6 @@ struct Chain<'a> {
     /// Stages in processing order after the first (implicit: stages 1.., parametric: stored
     /// stages m−2 down to 0), unrestricted; the last implicit one carries `F − c`.
     rest: Vec<Restricted>,
-    /// Per later stage, a certified lower bound of its `det DX` on its whole simplex
-    /// ([`det_floor`]), computed the first time it is asked for.
-    floors: Vec<std::cell::OnceCell<f64>>,
-    /// Whether [`Chain::bound`] falls back on the floors where a cell's own determinant
-    /// enclosure is not positive ([`chain_bound`] asks at the root only).
-    floors_on: std::cell::Cell<bool>,
     /// Derivative bounds of the later stages for the affine bound ([`Chain::affine_bound`]);
     /// `None` unless the chain is all parametric and every later stage a polynomial it covers.
     affine: Option<Vec<AffineStage>>,
@@ -790,17 +784,17 @@ impl First {
 
 impl Chain<'_> {
     /// A lower bound of later stage `k`'s `det DX` on a cell's image: `cell`, the enclosure from
-    /// the cell's Jacobian ranges, when it is positive or the floors are off; else the stage's
+    /// the cell's Jacobian ranges, when it is positive or `floors` is off; else the stage's
     /// floor on its whole simplex ([`det_floor`]), which holds on every image (they lie in that
     /// simplex). The interval determinant of the ranges loses the entries' dependence: on the
     /// torus example's quadratic stage it was negative at the root of 100 of 488 patches whose
     /// determinant is bounded away from 0, so their bound stayed infinite until bisections
     /// shrank the ranges (up to the whole budget, then the per-stage bound on top).
-    fn det_lo_rest(&self, k: usize, cell: f64) -> f64 {
-        if cell > 0.0 || !self.floors_on.get() {
+    fn det_lo_rest(&self, k: usize, cell: f64, floors: bool) -> f64 {
+        if cell > 0.0 || !floors {
             return cell;
         }
-        let floor = *self.floors[k].get_or_init(|| det_floor(&self.rest[k], self.n));
+        let floor = det_floor(&self.rest[k], self.n);
         if floor > 0.0 {
             floor
         } else {
@@ -811,11 +805,13 @@ impl Chain<'_> {
     /// Certified bound of `J` over the parts of `cell` the shape can reach, or `None` when it
     /// cannot reach the cell at all.
     fn bound(&self, cell: &Cell) -> Option<(f64, UBox)> {
-        self.bound_with(cell, true)
+        self.bound_with(cell, true, false)
     }
 
     /// [`Chain::bound`]; `affine = false` leaves out the affine bound (the interval bound alone).
-    fn bound_with(&self, cell: &Cell, affine: bool) -> Option<(f64, UBox)> {
+    /// `floors`: where a later stage's determinant enclosure is not positive, fall back on its
+    /// floor on the whole simplex ([`Chain::det_lo_rest`]; [`chain_bound`] asks at the root only).
+    fn bound_with(&self, cell: &Cell, affine: bool, floors: bool) -> Option<(f64, UBox)> {
         let n = self.n;
         let m = n + 1;
         if self.layout == Layout::Parametric {
@@ -875,7 +871,7 @@ impl Chain<'_> {
                     // A parametric chain needs no determinant (cofactors, below).
                     Some((_, next, jac)) if parametric => (next, jac, 1.0),
                     Some((_, next, jac)) => {
-                        let det = self.det_lo_rest(k, interval_det(n, &jac).lo);
+                        let det = self.det_lo_rest(k, interval_det(n, &jac).lo, floors);
                         (next, jac, det)
                     }
                     None => {
@@ -884,7 +880,7 @@ impl Chain<'_> {
                             return None;
                         }
                         let (next, jac) = here.ranges(n);
-                        let det = self.det_lo_rest(k, here.det_lo(n, &jac));
+                        let det = self.det_lo_rest(k, here.det_lo(n, &jac), floors);
                         (next, jac, det)
                     }
                 };
@@ -1291,8 +1287,6 @@ pub fn chain_bound(
         map,
         layout,
         n,
-        floors: vec![std::cell::OnceCell::new(); rest.len()],
-        floors_on: std::cell::Cell::new(false),
         rest,
         affine: None,
         inv_edges,
@@ -1337,10 +1331,7 @@ pub fn chain_bound(
     // looser than the bisected cells' own enclosures, and taken into the splits it made the
     // torus example's tables 1.6× costlier to draw from at N = 10³ (measured, session 35).
     if !b.is_finite() {
-        chain.floors_on.set(true);
-        let floored = chain.bound(&root);
-        chain.floors_on.set(false);
-        if let Some((fb, fbox)) = floored {
+        if let Some((fb, fbox)) = chain.bound_with(&root, true, true) {
             if fb.is_finite() && !tightening_pays(fb, best, min_excess) {
                 return Some(Ok(ChainBound {
                     leaves: vec![(fb, fbox)],
@@ -1400,8 +1391,6 @@ fn parametric_chain<'a>(
         map,
         layout: Layout::Parametric,
         n,
-        floors: vec![std::cell::OnceCell::new(); rest.len()],
-        floors_on: std::cell::Cell::new(false),
         rest,
         affine,
         inv_edges,
@@ -1926,7 +1915,7 @@ mod tests {
                         panic!("{name}: the first stage fits a flat record");
                     };
                     let affine = chain.affine_bound(flat, stages).unwrap();
-                    let interval = chain.bound_with(&cell, false).unwrap().0;
+                    let interval = chain.bound_with(&cell, false, false).unwrap().0;
                     sum_affine[depth] += affine;
                     sum_interval[depth] += interval;
                     for exact in exact_area_elements(&eval, s, lin, &cell.vertices, 8) {

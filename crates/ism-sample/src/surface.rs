@@ -272,10 +272,12 @@ const SPLIT_PAYS: f64 = 40.0;
 /// bisections, each restricting every polynomial of the first stage and bounding the whole chain)
 /// goes past the splits that make its bound finite only when the patch's bound then wastes more
 /// than this times the all-parametric leaves' threshold (`A_patch (B − J_max)` against
-/// `leaf_excess`); likewise the per-stage bound, and the second pass ([`SECOND_SPLITS`]) only for a patch whose excess exceeds it times
-/// the budgets' ratio. Without it every patch spent its budget whatever the samples asked: on
-/// the 1 M-tet model `ism sample --surface 1` cost 29.3 CPU-s (now 8.1, with the chain split
-/// only until its bound is finite), the sphere example 0.74 (now 0.024). Scanned (whole `ism
+/// `leaf_excess`); likewise the per-stage bound, and the second pass ([`SECOND_SPLITS`]) only
+/// for a patch whose excess exceeds it times the budgets' ratio. Without it every patch spent
+/// its budget whatever the samples asked: on the 1 M-tet model `ism sample --surface 1` cost
+/// 29.3 CPU-s (8.1 with the chain split only until its bound is finite, 3.6 once an uncertified
+/// root retries with the later stages' determinant floors), the sphere example 0.74 (now
+/// 0.025). Scanned (whole `ism
 /// sample --surface N -j 1`, CPU, session 34): 0.05 / 0.2 / 1 / 5 / 20 — 1 was never the
 /// slowest beyond noise, from N = 10⁴ (sphere example 0.88 s at 0.2, 0.29 s at 1) to 10⁶
 /// (within 6 % of the best on the sphere, stratified-3d and 1 M-tet models; 20 lost 4–15 %
@@ -1919,8 +1921,8 @@ mod tests {
 
     /// Implicit chains ([`CHAIN_EXCESS_SHARE`]): a table sized for one sample keeps each
     /// patch's chain bound as soon as it is finite (no tightening, no per-stage bound, no second
-    /// pass), so it bounds more area than the table for a million samples; both stay certified — the exact `J` at the
-    /// corners and centroid of every region (the kernel's own Newton inverse and Jacobian, not
+    /// pass), so it bounds more area than the table for a million samples; both stay certified —
+    /// the exact `J` at the corners and centroid of every region (the kernel's own Newton inverse and Jacobian, not
     /// the table's enclosures) is below the region's bound — on the implicit examples, the
     /// torus' extreme weights included.
     #[test]
