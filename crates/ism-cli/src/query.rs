@@ -69,8 +69,11 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         "points",
     );
     sampler = sampler.progress(move |done| counter.set(done));
+    // The calling thread is one of the pool's threads (`-j 1` starts none), as in `ism sample`:
+    // the parallel loop starts here instead of being handed to a worker and waited for.
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(args.out.threads.count())
+        .use_current_thread()
         .build()?;
     pool.install(|| {
         write_output(args.out.output.as_deref(), format, |sink| {

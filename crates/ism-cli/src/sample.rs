@@ -215,8 +215,13 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
         // The table refines its bounds as far as `total` samples pay for it.
         sampler = sampler.expected_surface_samples(total);
     }
+    // The calling thread is one of the pool's threads (`-j 1` starts none): the sampler's
+    // writer runs queued chunks itself while it waits (`rayon::yield_now`), so it needs no
+    // worker of its own, and handing the work to one and waiting cost 3-7 % of a small model's
+    // `--surface 1` (issue 19, session 36).
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(args.out.threads.count())
+        .use_current_thread()
         .build()?;
     if matches!(job, Job::Surface(_) | Job::NearSurface(..)) {
         progress.phase("measuring the curved area of every patch of the shape");

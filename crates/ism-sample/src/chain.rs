@@ -1227,8 +1227,8 @@ pub(crate) fn tightening_pays(top: f64, best: f64, min_excess: f64) -> bool {
 /// determinant was not certified within the budget carry an infinite bound.
 ///
 /// `inv_edges` is the inverse of the simplex's edge matrix, `values` the vertex values (stored
-/// order), `level` the level `c`, and `samples` points of the shape as `(u, exact J)` (e.g. the
-/// sampler's lattice), which only steer refinement: a leaf is split while its bound exceeds the
+/// order), `level` the level `c`, and `samples` gives points of the shape as `(u, exact J)` (e.g.
+/// the sampler's lattice; called only when a decision needs them), which only steer refinement: a leaf is split while its bound exceeds the
 /// largest sample inside its box by more than [`TIGHTNESS`], worst ratio first, within the budget.
 /// Once every leaf's bound is finite (cells with an uncertified determinant are always split,
 /// worst first), refinement goes on only while the largest bound then exceeds the largest sample
@@ -1238,12 +1238,12 @@ pub(crate) fn tightening_pays(top: f64, best: f64, min_excess: f64) -> bool {
 /// determinant bounded below on its whole simplex (`det_floor`): that root bound, when finite
 /// and not worth tightening by the same test, is the answer (one leaf).
 /// Fewer splits leave the bound looser, never uncertified.
-pub fn chain_bound(
+pub fn chain_bound<'s>(
     map: &LocalMap,
     inv_edges: &Mat,
     values: &[f64],
     level: f64,
-    samples: &[([f64; 4], f64)],
+    samples: &dyn Fn() -> &'s [([f64; 4], f64)],
     (max_splits, min_excess): (usize, f64),
 ) -> Option<Result<ChainBound, String>> {
     let stages = map.stages();
@@ -1311,7 +1311,7 @@ pub fn chain_bound(
     // The size of J on a cell: the largest sample of the shape inside its box, or J at its
     // centroid when it is larger (small cells rarely hold a sample).
     let local = |b: &UBox, cell: &Cell| -> f64 {
-        let inside = samples
+        let inside = samples()
             .iter()
             .filter(|(u, _)| (0..m).all(|i| b[i].lo <= u[i] && u[i] <= b[i].hi))
             .map(|s| s.1)
@@ -1323,7 +1323,19 @@ pub fn chain_bound(
     // certified, worst first as always); then, once every bound is finite, tightening only when
     // the largest bound exceeds the samples by more than `min_excess`. With the threshold passed
     // (or 0) the splits are the ones the ratio alone would make.
-    let best = samples.iter().map(|s| s.1).fold(0.0f64, f64::max);
+    let best = || samples().iter().map(|s| s.1).fold(0.0f64, f64::max);
+    // Whether a finite bound is worth tightening, asking for the samples only when it can matter:
+    // their `J` is not negative, so a bound whose excess over 0 does not pay never does.
+    let pays = |top: f64| {
+        tightening_pays(top, 0.0, min_excess) && tightening_pays(top, best(), min_excess)
+    };
+    // A root bound already finite and not worth tightening is the answer (what the loop below
+    // would return at once; the root's ratio and the samples are not needed for it).
+    if b.is_finite() && !pays(b.max(0.0)) {
+        return Some(Ok(ChainBound {
+            leaves: vec![(b, ubox)],
+        }));
+    }
     // A root whose determinant enclosure is not positive: with the later stages' floors its bound
     // may be finite at once, and when even that bound is not worth tightening it is the cheapest
     // certified answer (44 of stratified-3d's 114 patches, each bisected before any finite bound).
@@ -1332,7 +1344,7 @@ pub fn chain_bound(
     // torus example's tables 1.6× costlier to draw from at N = 10³ (measured, session 35).
     if !b.is_finite() {
         if let Some((fb, fbox)) = chain.bound_with(&root, true, true) {
-            if fb.is_finite() && !tightening_pays(fb, best, min_excess) {
+            if fb.is_finite() && !pays(fb) {
                 return Some(Ok(ChainBound {
                     leaves: vec![(fb, fbox)],
                 }));
@@ -1345,7 +1357,7 @@ pub fn chain_bound(
     while let Some(worst) = (0..cells.len()).max_by(|&i, &j| cells[i].0.total_cmp(&cells[j].0)) {
         if tighten.is_none() && cells.iter().all(|c| c.1.is_finite()) {
             let top = cells.iter().map(|c| c.1).fold(0.0f64, f64::max);
-            tighten = Some(tightening_pays(top, best, min_excess));
+            tighten = Some(pays(top));
         }
         let tight = match tighten {
             None => false,
@@ -1698,9 +1710,14 @@ mod tests {
             let ids = model.simplex(s);
             let inv = eval.inv_edges(s);
             let values: Vec<f64> = ids.iter().map(|&v| model.values[v as usize]).collect();
-            let Some(Ok(chain)) =
-                chain_bound(map, &inv, &values, model.level, &[], (splits, min_excess))
-            else {
+            let Some(Ok(chain)) = chain_bound(
+                map,
+                &inv,
+                &values,
+                model.level,
+                &|| &[],
+                (splits, min_excess),
+            ) else {
                 panic!("simplex {s}: no chain bound");
             };
             patches += 1;
@@ -1967,7 +1984,7 @@ mod tests {
             &id,
             &[-1.0, 1.0, 1.0],
             0.0,
-            &[],
+            &|| &[],
             (8, 0.0)
         )
         .is_none());

@@ -14,6 +14,9 @@
 //!    (`L` the diagonal of the model's bounding box) and polished by Newton steps along `∇F`
 //!    inside its simplex if needed.
 
+use std::cell::OnceCell;
+use std::sync::OnceLock;
+
 use ism_format::Model;
 use ism_geom::{linalg, Bary, Mat, ModelEval, Solved, MAX_VARS};
 use rand::Rng;
@@ -70,9 +73,18 @@ pub struct PatchEntry {
     linear_gradient: f64,
     /// Whether the regions carry Newton starts (no: no stage, or all-parametric maps).
     guessed: bool,
+    /// The patch's triangles (`triangles` of them; the segment's ends in the first for a
+    /// segment), which the lattice subdivides.
+    tris: [[Bary; 3]; 2],
+    /// The lattice points `u` with their preimages `X⁻¹(u)` (`u` itself unless `guessed`),
+    /// computed on first use ([`PatchEntry::lattice`]): 15 or 30 solves through every stage per
+    /// patch, which the regions' bounds do not need and a table for few samples mostly never
+    /// reads (a third of stratified-3d's `--surface 1` setup when built with every patch).
+    lattice: OnceLock<Vec<(Bary, Bary)>>,
     /// Mean exact `J` at the lattice points: an estimate of the curved area per linear area
-    /// (implicit and mixed chains only, 0 otherwise: only their second pass reads it).
-    sample_mean: f64,
+    /// (implicit and mixed chains only: only their second pass reads it), computed on first use
+    /// ([`PatchEntry::sample_mean`]).
+    sample_mean: OnceLock<f64>,
     /// The stages of an all-parametric Bézier map as identity plus their moved control points, in
     /// processing order (last stored first); empty when the kernel's dense evaluation is used.
     sparse: Vec<SparseStage>,
@@ -83,9 +95,9 @@ pub struct PatchEntry {
 struct RegionEntry {
     /// Corners, barycentric `u`.
     u: [Bary; 3],
-    /// Preimages `X⁻¹(u)` at the corners (precomputed on the lattice): linear interpolation in
-    /// them starts Newton close to the solution. Unused unless the patch is `guessed`.
-    g: [Bary; 3],
+    /// Indices in the patch's lattice of the corners, whose preimages `X⁻¹(u)` start Newton
+    /// close to the solution by linear interpolation. Unused unless the patch is `guessed`.
+    g: [u16; 3],
     /// Share of the patch's area.
     fraction: f64,
     /// Certified bound of the area element on the region.
@@ -353,34 +365,23 @@ fn build_patch(
         .all(|st| st.direction() == ism_format::Direction::Parametric);
     // All-parametric maps are evaluated directly ([`ism_geom::LocalMap::param_solve`]): their
     // lattice needs no preimages (an all-parametric `inverse` also pays a Newton solve per stage
-    // for its residual).
-    let lattice = lattice_guesses(map, &tris, count, !parametric);
+    // for its residual). Computed only when read: by the samples below, or by the first draw.
+    let lattice = OnceLock::new();
     let uncertified = |(stage, reason)| SampleError::Uncertified {
         simplex: s,
         stage,
         reason,
     };
     // Exact J at the lattice preimages (points of the shape): where the certified
-    // refinement should come close.
+    // refinement should come close. Computed only if a decision needs them.
     let lin = norm(&g[..n]);
     let compute_samples = || -> Vec<([f64; 4], f64)> {
-        lattice
-            .iter()
-            .filter_map(|(u, w)| {
-                let (x, j) = match map.param_solve(u) {
-                    Some(solved) => (solved.x, solved.jacobian),
-                    None => {
-                        let (x, j) = map.jacobian(w);
-                        (x, j?)
-                    }
-                };
-                // Only converged preimages are points of the shape.
-                let off = (0..=n).map(|i| (x[i] - u[i]).abs()).fold(0.0, f64::max);
-                let grad = eval.gradient_from_jacobian(s, &j);
-                let det = linalg::det(n, &j);
-                (det > 0.0 && off <= INVERSE_RESIDUAL).then(|| (*u, norm(&grad[..n]) / (lin * det)))
-            })
-            .collect()
+        lattice_samples(
+            eval,
+            s,
+            lattice.get_or_init(|| lattice_guesses(map, &tris, count, !parametric)),
+            lin,
+        )
     };
     // Shares of the patch's area per root: the triangles, or the segment.
     let root_shares: Vec<f64> = match count {
@@ -404,7 +405,7 @@ fn build_patch(
         (LEAF_SPLITS, leaf_excess / area),
     );
     // Mean exact J at the lattice: only the second pass of implicit chains reads it.
-    let mut sample_mean = 0.0;
+    let sample_mean = OnceLock::new();
     let regions: Vec<RegionEntry> = match leaves {
         // All-parametric maps: the leaves of the adaptive refinement, bounded directly (exact
         // restriction), are the regions.
@@ -418,15 +419,15 @@ fn build_patch(
                 }
                 RegionEntry {
                     u,
-                    g: u,
+                    g: [0; 3],
                     fraction: root_shares[leaf.root] * leaf.fraction,
                     bound: leaf.bound,
                 }
             })
             .collect(),
         None => {
-            let samples = compute_samples();
-            sample_mean = samples.iter().map(|s| s.1).sum::<f64>() / samples.len().max(1) as f64;
+            let taken = OnceCell::new();
+            let samples = || -> &[([f64; 4], f64)] { taken.get_or_init(compute_samples) };
             let bounds = implicit_region_bounds(
                 ImplicitInputs {
                     map,
@@ -446,7 +447,10 @@ fn build_patch(
                 count,
             )
             .map_err(uncertified)?;
-            lattice_regions(&tris, count, first_fraction, &lattice, &bounds)
+            if let Some(samples) = taken.get() {
+                let _ = sample_mean.set(mean_j(samples));
+            }
+            lattice_regions(&tris, count, first_fraction, &bounds)
         }
     };
     let bound = regions.iter().map(|r| r.bound).fold(0.0, f64::max);
@@ -466,6 +470,8 @@ fn build_patch(
         // Newton starts: not needed without stages or with all-parametric maps (direct
         // evaluation).
         guessed: !parametric && !map.stages().is_empty(),
+        tris,
+        lattice,
         sample_mean,
         sparse: if parametric {
             map.stages()
@@ -496,7 +502,7 @@ fn stage_free_patch(
     let regions = (0..usize::from(count.max(1)))
         .map(|t| RegionEntry {
             u: tris[t],
-            g: tris[t],
+            g: [0; 3],
             fraction: if t == 0 {
                 first_fraction
             } else {
@@ -513,7 +519,9 @@ fn stage_free_patch(
         regions,
         linear_gradient: norm(gradient),
         guessed: false,
-        sample_mean: 1.0,
+        tris: *tris,
+        lattice: OnceLock::new(),
+        sample_mean: OnceLock::from(1.0),
         sparse: Vec::new(),
     }
 }
@@ -525,7 +533,9 @@ struct ImplicitInputs<'a> {
     inv: &'a Mat,
     values: &'a [f64],
     level: f64,
-    samples: &'a [([f64; 4], f64)],
+    /// Points of the shape as `(u, exact J)`, taken on first call: only a decision they can
+    /// change asks for them.
+    samples: &'a dyn Fn() -> &'a [([f64; 4], f64)],
     max_splits: usize,
     /// The chain bound's excess over the samples (units of `J`), once finite, below which
     /// neither the chain nor the per-stage bound is tightened ([`CHAIN_EXCESS_SHARE`]).
@@ -550,7 +560,7 @@ fn implicit_region_bounds(
         min_excess,
     } = input;
     let n = map.vars() - 1;
-    let best_sample = samples.iter().map(|s| s.1).fold(0.0, f64::max);
+    let best_sample = || samples().iter().map(|s| s.1).fold(0.0, f64::max);
     let chain = match chain_bound(map, inv, values, level, samples, (max_splits, min_excess)) {
         Some(Ok(c)) => Some(c),
         _ => None,
@@ -558,10 +568,14 @@ fn implicit_region_bounds(
     // The per-stage bound is certified too; it is needed where the chain's is
     // missing, infinite, or not tight within its budget.
     let per_stage = match &chain {
-        Some(c) if c.top() * TIGHTNESS <= best_sample => f64::INFINITY,
         // A finite chain bound whose refinement would not pay: the per-stage bound (its own
-        // bisection, as costly) would not either.
-        Some(c) if c.top().is_finite() && !tightening_pays(c.top(), best_sample, min_excess) => {
+        // bisection, as costly) would not either. The samples' `J` is not negative, so a bound
+        // whose excess over 0 does not pay needs no samples to say so.
+        Some(c) if c.top().is_finite() && !tightening_pays(c.top(), 0.0, min_excess) => {
+            f64::INFINITY
+        }
+        Some(c) if c.top() * TIGHTNESS <= best_sample() => f64::INFINITY,
+        Some(c) if c.top().is_finite() && !tightening_pays(c.top(), best_sample(), min_excess) => {
             f64::INFINITY
         }
         _ => surface_area_element_bound(map, edges, values, level).or_else(|err| {
@@ -633,18 +647,21 @@ impl SurfaceTable {
         // table-wide threshold already): the patches whose bounds waste the most (bounded minus
         // sampled curved area) get a larger refinement budget. Chosen from the first pass's
         // figures in a fixed order, so the table is the same whatever the thread count.
-        let excess: Vec<f64> = patches.iter().map(PatchEntry::excess).collect();
         let total: f64 = patches.iter().map(PatchEntry::bounded_area).sum();
-        let mut worst: Vec<usize> = (0..patches.len())
-            .filter(|&i| {
-                patches[i].guessed
-                    && excess[i] > REFINE_SHARE * total
-                    && excess[i]
-                        > CHAIN_EXCESS_SHARE * leaf_excess * SECOND_SPLITS as f64
-                            / FIRST_SPLITS as f64
-            })
+        let threshold =
+            CHAIN_EXCESS_SHARE * leaf_excess * SECOND_SPLITS as f64 / FIRST_SPLITS as f64;
+        let worth = |excess: f64| excess > REFINE_SHARE * total && excess > threshold;
+        // The excess needs the lattice's samples; it is never above the bounded area, so a patch
+        // whose bounded area is not worth it is out without them.
+        let excess: Vec<Option<f64>> = patches
+            .par_iter()
+            .map(|p| (p.guessed && worth(p.bounded_area())).then(|| p.excess(eval)))
             .collect();
-        worst.sort_by(|&a, &b| excess[b].total_cmp(&excess[a]).then(a.cmp(&b)));
+        let mut worst: Vec<usize> = (0..patches.len())
+            .filter(|&i| excess[i].is_some_and(worth))
+            .collect();
+        let excess = |i: usize| excess[i].unwrap_or(0.0);
+        worst.sort_by(|&a, &b| excess(b).total_cmp(&excess(a)).then(a.cmp(&b)));
         worst.truncate(REFINE_COUNT);
         let refined: Vec<(usize, PatchEntry)> = worst
             .par_iter()
@@ -851,8 +868,8 @@ impl SurfaceTable {
             }
             let (patch, region) = (&self.patches[slot.patch as usize], slot.region as usize);
             let s = patch.simplex as usize;
-            let (u, guess) = patch.propose(region, rng);
             let map = eval.local_map(s);
+            let (u, guess) = patch.propose(region, map, rng);
             if !patch.guessed && !map.stages().is_empty() {
                 // All-parametric: no Newton and no inverse (see `param_adjugate`).
                 let (w, adj, det_dy) = param_adjugate(map, &u, &patch.sparse);
@@ -1400,36 +1417,66 @@ fn lattice_guesses(
     count: u8,
     preimages: bool,
 ) -> Vec<(Bary, Bary)> {
-    let solve = |u: &Bary| if preimages { map.inverse(u).w } else { *u };
-    let l = GUESS_LEVEL as f64;
-    let mut out = Vec::with_capacity(LATTICE_POINTS * usize::from(count.max(1)));
+    // Only a starting guess: an unconverged preimage costs iterations, not accuracy.
+    let solve = |u: Bary| (u, if preimages { map.inverse(&u).w } else { u });
     if count == 0 {
-        let [a, b, _] = tris[0];
-        for i in 0..=GUESS_LEVEL {
-            let t = i as f64 / l;
-            let mut u = [0.0; MAX_VARS];
-            for k in 0..MAX_VARS {
-                u[k] = (1.0 - t) * a[k] + t * b[k];
-            }
-            out.push((u, solve(&u)));
-        }
-        return out;
+        return (0..=GUESS_LEVEL)
+            .map(|i| solve(segment_point(&tris[0], i)))
+            .collect();
     }
+    let mut out = Vec::with_capacity(LATTICE_POINTS * usize::from(count));
     for tri in tris.iter().take(usize::from(count)) {
         for i in 0..=GUESS_LEVEL {
             for j in 0..=GUESS_LEVEL - i {
-                let (lb, lc) = (i as f64 / l, j as f64 / l);
-                let la = 1.0 - lb - lc;
-                let mut u = [0.0; MAX_VARS];
-                for k in 0..MAX_VARS {
-                    u[k] = la * tri[0][k] + lb * tri[1][k] + lc * tri[2][k];
-                }
-                // Only a starting guess: an unconverged preimage costs iterations, not accuracy.
-                out.push((u, solve(&u)));
+                out.push(solve(lattice_u(tri, (i, j))));
             }
         }
     }
     out
+}
+
+/// Lattice point `i` (`0..=GUESS_LEVEL`) of a segment patch, whose ends are `tri[0]`, `tri[1]`.
+fn segment_point(tri: &[Bary; 3], i: usize) -> Bary {
+    let t = i as f64 / GUESS_LEVEL as f64;
+    let mut u = [0.0; MAX_VARS];
+    for k in 0..MAX_VARS {
+        u[k] = (1.0 - t) * tri[0][k] + t * tri[1][k];
+    }
+    u
+}
+
+/// `(u, exact J)` at the lattice points whose preimage converged (points of the shape): J from
+/// the stage Jacobians there, `lin` being `|∇F_lin|`.
+fn lattice_samples(
+    eval: &ModelEval,
+    s: usize,
+    lattice: &[(Bary, Bary)],
+    lin: f64,
+) -> Vec<([f64; 4], f64)> {
+    let map = eval.local_map(s);
+    let n = map.vars() - 1;
+    lattice
+        .iter()
+        .filter_map(|(u, w)| {
+            let (x, j) = match map.param_solve(u) {
+                Some(solved) => (solved.x, solved.jacobian),
+                None => {
+                    let (x, j) = map.jacobian(w);
+                    (x, j?)
+                }
+            };
+            // Only converged preimages are points of the shape.
+            let off = (0..=n).map(|i| (x[i] - u[i]).abs()).fold(0.0, f64::max);
+            let grad = eval.gradient_from_jacobian(s, &j);
+            let det = linalg::det(n, &j);
+            (det > 0.0 && off <= INVERSE_RESIDUAL).then(|| (*u, norm(&grad[..n]) / (lin * det)))
+        })
+        .collect()
+}
+
+/// The mean of the samples' `J` (0 without samples).
+fn mean_j(samples: &[([f64; 4], f64)]) -> f64 {
+    samples.iter().map(|s| s.1).sum::<f64>() / samples.len().max(1) as f64
 }
 
 /// The `GUESS_LEVEL²` sub-triangles of the lattice of a triangle, as lattice coordinates
@@ -1512,23 +1559,23 @@ fn regions(tris: &[[Bary; 3]; 2], count: u8) -> Vec<(Bary, Bary)> {
         .collect()
 }
 
-/// The fixed regions of an implicit chain's patch, in [`regions`] order, with the lattice
-/// preimages at their corners and their bounds.
+/// The fixed regions of an implicit chain's patch, in [`regions`] order, with the indices of
+/// their corners in the lattice ([`lattice_guesses`]) and their bounds.
 fn lattice_regions(
     tris: &[[Bary; 3]; 2],
     count: u8,
     first_fraction: f64,
-    lattice: &[(Bary, Bary)],
     bounds: &[f64],
 ) -> Vec<RegionEntry> {
     if count == 0 {
         let share = 1.0 / GUESS_LEVEL as f64;
         return (0..GUESS_LEVEL)
             .map(|k| {
-                let (a, b) = (lattice[k], lattice[k + 1]);
+                let (a, b) = (segment_point(&tris[0], k), segment_point(&tris[0], k + 1));
+                // The lattice's `u` is computed the same way: the same bits.
                 RegionEntry {
-                    u: [a.0, b.0, b.0],
-                    g: [a.1, b.1, b.1],
+                    u: [a, b, b],
+                    g: [k as u16, k as u16 + 1, k as u16 + 1],
                     fraction: share,
                     bound: bounds[k],
                 }
@@ -1545,10 +1592,11 @@ fn lattice_regions(
         };
         for v in sub_triangles() {
             let mut u = [[0.0; MAX_VARS]; 3];
-            let mut g = [[0.0; MAX_VARS]; 3];
+            let mut g = [0u16; 3];
             for (k, &c) in v.iter().enumerate() {
                 u[k] = lattice_u(tri, c);
-                g[k] = lattice[t * LATTICE_POINTS + lattice_index(c.0, c.1)].1;
+                // At most `2 · LATTICE_POINTS` (30) entries.
+                g[k] = (t * LATTICE_POINTS + lattice_index(c.0, c.1)) as u16;
             }
             out.push(RegionEntry {
                 u,
@@ -1571,8 +1619,25 @@ impl PatchEntry {
     }
 
     /// Bounded area minus the sampled estimate of the curved area: what loose bounds cost here.
-    fn excess(&self) -> f64 {
-        (self.bounded_area() - self.linear_area * self.sample_mean).max(0.0)
+    /// Never above [`PatchEntry::bounded_area`] (the estimate is not negative).
+    fn excess(&self, eval: &ModelEval) -> f64 {
+        (self.bounded_area() - self.linear_area * self.sample_mean(eval)).max(0.0)
+    }
+
+    /// Mean exact `J` at the lattice points (computed on first use).
+    fn sample_mean(&self, eval: &ModelEval) -> f64 {
+        *self.sample_mean.get_or_init(|| {
+            let s = self.simplex as usize;
+            let lattice = self.lattice(eval.local_map(s));
+            mean_j(&lattice_samples(eval, s, lattice, self.linear_gradient))
+        })
+    }
+
+    /// The lattice points with their preimages (computed on first use; `map` is the patch's
+    /// local map).
+    fn lattice(&self, map: &ism_geom::LocalMap) -> &[(Bary, Bary)] {
+        self.lattice
+            .get_or_init(|| lattice_guesses(map, &self.tris, self.triangles, self.guessed))
     }
 
     /// Number of regions a sample is drawn from.
@@ -1582,15 +1647,20 @@ impl PatchEntry {
 
     /// `u` uniform (by point-space area; `W` is affine so barycentric area is proportional) on
     /// region `region` of the patch, and the preimage guess interpolated linearly in the
-    /// preimages at the region's corners.
-    fn propose(&self, region: usize, rng: &mut impl Rng) -> (Bary, Bary) {
+    /// preimages at the region's corners (`map`: the patch's local map).
+    fn propose(&self, region: usize, map: &ism_geom::LocalMap, rng: &mut impl Rng) -> (Bary, Bary) {
         let r = &self.regions[region];
         let weights = region_weights(self.triangles, rng);
         let u = region_point(&r.u, &weights, self.triangles);
         if !self.guessed {
             return (u, u);
         }
-        let g = region_point(&r.g, &weights, self.triangles);
+        let lattice = self.lattice(map);
+        let g = region_point(
+            &r.g.map(|k| lattice[usize::from(k)].1),
+            &weights,
+            self.triangles,
+        );
         (u, g)
     }
 }
@@ -1771,6 +1841,58 @@ mod tests {
                     assert_eq!(point_bits(x), point_bits(y), "{name} {weighting:?}");
                 }
             }
+        }
+    }
+
+    /// The lattice of Newton starts is computed when first read: a table for one sample leaves
+    /// most implicit patches without it (their bounds do not need it), and drawing fills those
+    /// of the patches it draws from. The draws are the same bits as from the same table with every
+    /// lattice filled beforehand (the eager table of earlier versions), in 2D and 3D.
+    #[test]
+    fn lattices_are_computed_on_first_use_and_draw_the_same_bits() {
+        use rand::SeedableRng;
+        for (name, sized) in [("stratified-3d", 1), ("torus", 1), ("circle-curved", 1)] {
+            let path = format!(
+                "{}/../../spec/examples/{name}.ism.json",
+                env!("CARGO_MANIFEST_DIR")
+            );
+            let model = ism_format::io::read_path(path).unwrap().model;
+            let eval = ModelEval::new(&model).unwrap();
+            let lazy =
+                SurfaceTable::with_expected_samples(&eval, Weighting::CurvedArea, Some(sized))
+                    .unwrap();
+            assert!(
+                lazy.patches.iter().all(|p| p.guessed),
+                "{name}: implicit chains"
+            );
+            let filled = |t: &SurfaceTable| {
+                t.patches
+                    .iter()
+                    .filter(|p| p.lattice.get().is_some())
+                    .count()
+            };
+            let before = filled(&lazy);
+            assert!(
+                2 * before < lazy.len(),
+                "{name}: {before} of {} lattices computed for one sample",
+                lazy.len()
+            );
+            let eager = lazy.clone();
+            for p in &eager.patches {
+                p.lattice(eval.local_map(p.simplex as usize));
+            }
+            let draw = |t: &SurfaceTable| {
+                let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(5);
+                (0..200)
+                    .map(|_| point_bits(&t.draw(&eval, &mut rng).unwrap()))
+                    .collect::<Vec<_>>()
+            };
+            assert_eq!(draw(&lazy), draw(&eager), "{name}");
+            let after = filled(&lazy);
+            assert!(
+                before < after,
+                "{name}: {before} lattices before drawing, {after} after"
+            );
         }
     }
 
