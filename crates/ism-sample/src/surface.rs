@@ -297,8 +297,21 @@ const SPLIT_PAYS: f64 = 40.0;
 const CHAIN_EXCESS_SHARE: f64 = 1.0;
 /// A patch gets the second pass when its excess is above this share of the whole bounded area.
 const REFINE_SHARE: f64 = 0.005;
-/// At most this many patches get the second pass (bounds the table's cost).
+/// At most this many patches get the second pass per round (bounds the table's cost).
 const REFINE_COUNT: usize = 24;
+/// Rounds of the second pass at most: each picks the worst of what the last left. One round was
+/// all before session 36: on the torus example (bounds of its three-stage chains 20-100× the
+/// curved area on some patches) the first round's threshold, relative to the whole bounded area,
+/// left the next-worst patches unrefined, and they then held most of the table. Scanned (whole
+/// `ism sample torus.ismb --surface N -j 1`, CPU, best of 2): 4 rounds against 1, N = 10² / 10³ /
+/// 3·10³ / 10⁴ / 3·10⁴: 0.99 / 0.99 / 0.83 / 0.58 / 0.42×; 8 rounds gave the same.
+const REFINE_ROUNDS: usize = 4;
+/// The later rounds' threshold over the first's: a patch chosen later wastes less, and its
+/// refinement (the same budget) saves fewer candidates. Scanned with 4 rounds on the torus example
+/// (as above, CPU over one round's): factor 1 / 4 / 16 at N = 10² 1.12 / 1.00 / 0.99, at 3·10³
+/// 1.08 / 0.90 / 0.83, at 10⁴ 0.63 / 0.58 / 0.58; 16 / 64 at 10³ 0.99 / 1.02, at 3·10⁴ 0.42 /
+/// 0.49. The sphere and stratified-3d examples at 3·10³: the same CPU with each.
+const LATER_ROUNDS_FACTOR: f64 = 16.0;
 
 /// Point-space area (length in 2D) of a linear patch, as [`build_patch`] computes it.
 fn patch_area(eval: &ModelEval, s: usize, patch: &ism_geom::Patch) -> f64 {
@@ -646,33 +659,50 @@ impl SurfaceTable {
         // Second pass (implicit and mixed chains; all-parametric patches are refined by the
         // table-wide threshold already): the patches whose bounds waste the most (bounded minus
         // sampled curved area) get a larger refinement budget. Chosen from the first pass's
-        // figures in a fixed order, so the table is the same whatever the thread count.
-        let total: f64 = patches.iter().map(PatchEntry::bounded_area).sum();
+        // figures in a fixed order, so the table is the same whatever the thread count. In rounds:
+        // once the worst are refined the whole bounded area shrinks, and the patches that waste
+        // the most of what is left are chosen the same way (each patch at most once).
         let threshold =
             CHAIN_EXCESS_SHARE * leaf_excess * SECOND_SPLITS as f64 / FIRST_SPLITS as f64;
-        let worth = |excess: f64| excess > REFINE_SHARE * total && excess > threshold;
-        // The excess needs the lattice's samples; it is never above the bounded area, so a patch
-        // whose bounded area is not worth it is out without them.
-        let excess: Vec<Option<f64>> = patches
-            .par_iter()
-            .map(|p| (p.guessed && worth(p.bounded_area())).then(|| p.excess(eval)))
-            .collect();
-        let mut worst: Vec<usize> = (0..patches.len())
-            .filter(|&i| excess[i].is_some_and(worth))
-            .collect();
-        let excess = |i: usize| excess[i].unwrap_or(0.0);
-        worst.sort_by(|&a, &b| excess(b).total_cmp(&excess(a)).then(a.cmp(&b)));
-        worst.truncate(REFINE_COUNT);
-        let refined: Vec<(usize, PatchEntry)> = worst
-            .par_iter()
-            .map(|&i| {
-                let (s, patch) = &crossed[i];
-                build_patch(eval, *s, patch, SECOND_SPLITS, leaf_excess).map(|p| (i, p))
-            })
-            .collect::<Result<Vec<_>>>()?;
-        for (i, p) in refined {
-            if p.bounded_area() < patches[i].bounded_area() {
-                patches[i] = p;
+        let mut refined_once = vec![false; patches.len()];
+        for round in 0..REFINE_ROUNDS {
+            let total: f64 = patches.iter().map(PatchEntry::bounded_area).sum();
+            let threshold = if round > 0 {
+                threshold * LATER_ROUNDS_FACTOR
+            } else {
+                threshold
+            };
+            let worth = |excess: f64| excess > REFINE_SHARE * total && excess > threshold;
+            // The excess needs the lattice's samples; it is never above the bounded area, so a
+            // patch whose bounded area is not worth it is out without them.
+            let excess: Vec<Option<f64>> = patches
+                .par_iter()
+                .zip(&refined_once)
+                .map(|(p, &once)| {
+                    (p.guessed && !once && worth(p.bounded_area())).then(|| p.excess(eval))
+                })
+                .collect();
+            let mut worst: Vec<usize> = (0..patches.len())
+                .filter(|&i| excess[i].is_some_and(worth))
+                .collect();
+            if worst.is_empty() {
+                break;
+            }
+            let excess = |i: usize| excess[i].unwrap_or(0.0);
+            worst.sort_by(|&a, &b| excess(b).total_cmp(&excess(a)).then(a.cmp(&b)));
+            worst.truncate(REFINE_COUNT);
+            let refined: Vec<(usize, PatchEntry)> = worst
+                .par_iter()
+                .map(|&i| {
+                    let (s, patch) = &crossed[i];
+                    build_patch(eval, *s, patch, SECOND_SPLITS, leaf_excess).map(|p| (i, p))
+                })
+                .collect::<Result<Vec<_>>>()?;
+            for (i, p) in refined {
+                refined_once[i] = true;
+                if p.bounded_area() < patches[i].bounded_area() {
+                    patches[i] = p;
+                }
             }
         }
 
