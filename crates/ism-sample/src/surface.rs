@@ -640,6 +640,16 @@ impl SurfaceTable {
         weighting: Weighting,
         expected: Option<u64>,
     ) -> Result<SurfaceTable> {
+        Self::build(eval, weighting, expected, REFINE_ROUNDS)
+    }
+
+    /// [`SurfaceTable::with_expected_samples`] with at most `rounds` rounds of the second pass.
+    fn build(
+        eval: &ModelEval,
+        weighting: Weighting,
+        expected: Option<u64>,
+        rounds: usize,
+    ) -> Result<SurfaceTable> {
         let model = eval.model();
         let crossed: Vec<(usize, ism_geom::Patch)> = (0..eval.num_simplices())
             .into_par_iter()
@@ -665,7 +675,7 @@ impl SurfaceTable {
         let threshold =
             CHAIN_EXCESS_SHARE * leaf_excess * SECOND_SPLITS as f64 / FIRST_SPLITS as f64;
         let mut refined_once = vec![false; patches.len()];
-        for round in 0..REFINE_ROUNDS {
+        for round in 0..rounds {
             let total: f64 = patches.iter().map(PatchEntry::bounded_area).sum();
             let threshold = if round > 0 {
                 threshold * LATER_ROUNDS_FACTOR
@@ -2086,7 +2096,6 @@ mod tests {
             );
             let model = ism_format::io::read_path(path).unwrap().model;
             let eval = ModelEval::new(&model).unwrap();
-            let n = model.dim();
             let table = |e| {
                 SurfaceTable::with_expected_samples(&eval, Weighting::CurvedArea, Some(e)).unwrap()
             };
@@ -2101,36 +2110,72 @@ mod tests {
                 one.bounded_area,
                 many.bounded_area
             );
-            let mut checked = 0;
-            for t in [&one, &many] {
-                for p in &t.patches {
-                    let s = p.simplex as usize;
-                    let map = eval.local_map(s);
-                    for r in &p.regions {
-                        let mut centroid = [0.0; MAX_VARS];
-                        for (k, c) in centroid.iter_mut().enumerate() {
-                            *c = (r.u[0][k] + r.u[1][k] + r.u[2][k]) / 3.0;
-                        }
-                        for u in [r.u[0], r.u[1], r.u[2], centroid] {
-                            let inv = map.inverse(&u);
-                            assert!(inv.converged, "{name}: simplex {s}: no preimage of {u:?}");
-                            let (_, jac) = map.jacobian(&inv.w);
-                            let jac = jac.unwrap();
-                            let grad = eval.gradient_from_jacobian(s, &jac);
-                            let det = linalg::det(n, &jac);
-                            let j = norm(&grad[..n]) / (p.linear_gradient * det);
-                            assert!(
-                                j <= r.bound * (1.0 + 1e-12),
-                                "{name}: simplex {s}: J {j} > bound {}",
-                                r.bound
-                            );
-                            checked += 1;
-                        }
-                    }
-                }
-            }
+            let checked =
+                assert_certified(name, &eval, &one) + assert_certified(name, &eval, &many);
             assert!(checked > 100, "{name}: {checked} points");
         }
+    }
+
+    /// Checks that every region's bound is at least the exact `J` (the kernel's Newton inverse
+    /// and Jacobian, not the table's enclosures) at the region's corners and centroid, and
+    /// returns the number of points checked.
+    fn assert_certified(name: &str, eval: &ModelEval, table: &SurfaceTable) -> usize {
+        let n = eval.dim();
+        let mut checked = 0;
+        for p in &table.patches {
+            let s = p.simplex as usize;
+            let map = eval.local_map(s);
+            for r in &p.regions {
+                let mut centroid = [0.0; MAX_VARS];
+                for (k, c) in centroid.iter_mut().enumerate() {
+                    *c = (r.u[0][k] + r.u[1][k] + r.u[2][k]) / 3.0;
+                }
+                for u in [r.u[0], r.u[1], r.u[2], centroid] {
+                    let inv = map.inverse(&u);
+                    assert!(inv.converged, "{name}: simplex {s}: no preimage of {u:?}");
+                    let (_, jac) = map.jacobian(&inv.w);
+                    let jac = jac.unwrap();
+                    let grad = eval.gradient_from_jacobian(s, &jac);
+                    let det = linalg::det(n, &jac);
+                    let j = norm(&grad[..n]) / (p.linear_gradient * det);
+                    assert!(
+                        j <= r.bound * (1.0 + 1e-12),
+                        "{name}: simplex {s}: J {j} > bound {}",
+                        r.bound
+                    );
+                    checked += 1;
+                }
+            }
+        }
+        checked
+    }
+
+    /// The second pass in rounds: on the torus example, whose first round leaves next-worst
+    /// patches holding most of the bounded area, the table for 10⁴ samples bounds far less area
+    /// than one round's (measured: 649 against 1,762) and stays certified.
+    #[test]
+    fn later_rounds_of_the_second_pass_tighten_the_torus_table() {
+        let path = format!(
+            "{}/../../spec/examples/torus.ism.json",
+            env!("CARGO_MANIFEST_DIR")
+        );
+        let model = ism_format::io::read_path(path).unwrap().model;
+        let eval = ModelEval::new(&model).unwrap();
+        let build = |rounds| {
+            SurfaceTable::build(&eval, Weighting::CurvedArea, Some(10_000), rounds).unwrap()
+        };
+        let (one, all) = (build(1), build(REFINE_ROUNDS));
+        eprintln!(
+            "torus, 10^4 samples: bounded area {} with one round, {} with {REFINE_ROUNDS}",
+            one.bounded_area, all.bounded_area
+        );
+        assert!(
+            all.bounded_area < 0.5 * one.bounded_area,
+            "rounds: {} against one round's {}",
+            all.bounded_area,
+            one.bounded_area
+        );
+        assert!(assert_certified("torus", &eval, &all) > 100);
     }
 
     /// The sparse form of a Bézier stage gives the kernel's value and reduced Jacobian (its

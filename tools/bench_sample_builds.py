@@ -1,0 +1,85 @@
+"""Two builds of `ism` side by side on `ism sample --surface N`: the CPU a change costs or saves.
+
+For each MODEL:N, runs `BIN sample MODEL --surface N -j 1 -q --seed SEED -o out.npy` with the old and
+the new binary alternately, REPEAT times each, and keeps the least CPU time of each (user + system of
+the child, `resource.getrusage(RUSAGE_CHILDREN)` before and after: the machine is shared, so wall
+time is noisy and the best of alternated runs is the fairest figure). Prints a Markdown table — CPU
+seconds old and new, their ratio, the new CPU per simplex of the model for N = 1 (the setup: read,
+evaluator, certified table, one sample) and whether the two outputs are the same bytes (a change
+that keeps the tables must keep them) — and the load average before and after.
+
+Usage: python3 tools/bench_sample_builds.py --old OLD_ISM --new NEW_ISM [--repeat 3] [--seed 3]
+           MODEL:N [MODEL:N ...]
+  e.g. an old build from a worktree:
+    git worktree add /tmp/old <rev> && CARGO_TARGET_DIR=/tmp/oldtarget cargo build --release -p ism-cli
+    python3 tools/bench_sample_builds.py --old /tmp/oldtarget/release/ism \\
+        --new target/release/ism spec/examples/torus.ismb:1 spec/examples/torus.ismb:10000
+"""
+
+from __future__ import annotations
+
+import argparse
+import filecmp
+import json
+import os
+import resource
+import subprocess
+import tempfile
+import time
+
+
+def child_cpu(cmd: list[str]) -> float:
+    """User + system CPU seconds of one run of `cmd` (which must succeed)."""
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+
+
+def simplices(ism: str, model: str) -> int | None:
+    """The model's top simplex count from `ism info --json` (None if it does not say)."""
+    out = subprocess.run([ism, "info", model, "--json"], capture_output=True, text=True)
+    if out.returncode != 0:
+        return None
+    info = json.loads(out.stdout)
+    count = info.get("simplices", info.get("num_simplices"))
+    return count if isinstance(count, int) else None
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--old", required=True, help="the old `ism` binary")
+    ap.add_argument("--new", required=True, help="the new `ism` binary")
+    ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--seed", default="3")
+    ap.add_argument("cases", nargs="+", metavar="MODEL:N")
+    args = ap.parse_args()
+    bins = {"old": args.old, "new": args.new}
+    stamp = lambda: f"load {tuple(round(x, 2) for x in os.getloadavg())} at {time.strftime('%H:%M:%S', time.gmtime())} UTC"
+    print(stamp())
+    print("| model | N | old CPU s | new CPU s | new / old | new µs per simplex (N = 1) | same bytes |")
+    print("| --- | --- | --- | --- | --- | --- | --- |")
+    with tempfile.TemporaryDirectory() as tmp:
+        for case in args.cases:
+            model, n = case.rsplit(":", 1)
+            best: dict[str, float] = {}
+            out = {k: os.path.join(tmp, f"{k}.npy") for k in bins}
+            for _ in range(args.repeat):
+                for k, ism in bins.items():
+                    cmd = [ism, "sample", model, "--surface", n, "-j", "1", "-q", "--seed", args.seed, "-o", out[k]]
+                    best[k] = min(best.get(k, float("inf")), child_cpu(cmd))
+            same = filecmp.cmp(out["old"], out["new"], shallow=False)
+            per = ""
+            if n == "1":
+                count = simplices(args.new, model)
+                per = f"{best['new'] / count * 1e6:.1f}" if count else "?"
+            print(
+                f"| {os.path.basename(model)} | {n} | {best['old']:.4f} | {best['new']:.4f} | "
+                f"{best['new'] / best['old']:.3f} | {per} | {'yes' if same else 'no'} |",
+                flush=True,
+            )
+    print(stamp())
+
+
+if __name__ == "__main__":
+    main()
