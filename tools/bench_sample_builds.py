@@ -1,12 +1,13 @@
-"""Two builds of `ism` side by side on `ism sample --surface N`: the CPU a change costs or saves.
+"""Two builds of `ism` side by side on `ism sample --surface N`: what a change costs or saves.
 
-For each MODEL:N, runs `BIN sample MODEL --surface N -j 1 -q --seed SEED -o out.npy` with the old and
-the new binary alternately, REPEAT times each, and keeps the least CPU time of each (user + system of
-the child, `resource.getrusage(RUSAGE_CHILDREN)` before and after: the machine is shared, so wall
-time is noisy and the best of alternated runs is the fairest figure). Prints a Markdown table — CPU
-seconds old and new, their ratio, the new CPU per simplex of the model for N = 1 (the setup: read,
-evaluator, certified table, one sample) and whether the two outputs are the same bytes (a change
-that keeps the tables must keep them) — and the load average before and after.
+For each MODEL:N, runs `BIN sample MODEL --surface N -j 1 -q --seed SEED -o out.npy` with the
+old and the new binary alternately, REPEAT times each, and keeps the least CPU time of each
+(user + system of the child, `resource.getrusage(RUSAGE_CHILDREN)` before and after: the machine
+is shared, so wall time is noisy and the best of alternated runs is the fairest figure). Prints a
+Markdown table — CPU seconds old and new, their ratio, the new CPU per simplex of the model for
+N = 1 (the setup: read, evaluator, certified table, one sample) and whether the two outputs are
+the same bytes (a change that keeps the tables must keep them) — and the load average before and
+after.
 
 Usage: python3 tools/bench_sample_builds.py --old OLD_ISM --new NEW_ISM [--repeat 3] [--seed 3]
            MODEL:N [MODEL:N ...]
@@ -47,7 +48,9 @@ def simplices(ism: str, model: str) -> int | None:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     ap.add_argument("--old", required=True, help="the old `ism` binary")
     ap.add_argument("--new", required=True, help="the new `ism` binary")
     ap.add_argument("--repeat", type=int, default=3)
@@ -55,9 +58,16 @@ def main() -> None:
     ap.add_argument("cases", nargs="+", metavar="MODEL:N")
     args = ap.parse_args()
     bins = {"old": args.old, "new": args.new}
-    stamp = lambda: f"load {tuple(round(x, 2) for x in os.getloadavg())} at {time.strftime('%H:%M:%S', time.gmtime())} UTC"
+
+    def stamp() -> str:
+        load = tuple(round(x, 2) for x in os.getloadavg())
+        return f"load {load} at {time.strftime('%H:%M:%S', time.gmtime())} UTC"
+
     print(stamp())
-    print("| model | N | old CPU s | new CPU s | new / old | new µs per simplex (N = 1) | same bytes |")
+    print(
+        "| model | N | old CPU s | new CPU s | new / old | new µs per simplex (N = 1) "
+        "| same bytes |"
+    )
     print("| --- | --- | --- | --- | --- | --- | --- |")
     with tempfile.TemporaryDirectory() as tmp:
         for case in args.cases:
@@ -66,7 +76,8 @@ def main() -> None:
             out = {k: os.path.join(tmp, f"{k}.npy") for k in bins}
             for _ in range(args.repeat):
                 for k, ism in bins.items():
-                    cmd = [ism, "sample", model, "--surface", n, "-j", "1", "-q", "--seed", args.seed, "-o", out[k]]
+                    cmd = [ism, "sample", model, "--surface", n, "-j", "1", "-q"]
+                    cmd += ["--seed", args.seed, "-o", out[k]]
                     best[k] = min(best.get(k, float("inf")), child_cpu(cmd))
             same = filecmp.cmp(out["old"], out["new"], shallow=False)
             per = ""

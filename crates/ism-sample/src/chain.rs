@@ -1228,8 +1228,9 @@ pub(crate) fn tightening_pays(top: f64, best: f64, min_excess: f64) -> bool {
 ///
 /// `inv_edges` is the inverse of the simplex's edge matrix, `values` the vertex values (stored
 /// order), `level` the level `c`, and `samples` gives points of the shape as `(u, exact J)` (e.g.
-/// the sampler's lattice; called only when a decision needs them), which only steer refinement: a leaf is split while its bound exceeds the
-/// largest sample inside its box by more than [`TIGHTNESS`], worst ratio first, within the budget.
+/// the sampler's lattice; called only when a decision needs them), which only steer refinement:
+/// a leaf is split while its bound exceeds the largest sample inside its box by more than
+/// [`TIGHTNESS`], worst ratio first, within the budget.
 /// Once every leaf's bound is finite (cells with an uncertified determinant are always split,
 /// worst first), refinement goes on only while the largest bound then exceeds the largest sample
 /// by more than `min_excess` (units of `J`): the caller's estimate of the excess below which

@@ -300,11 +300,12 @@ const REFINE_SHARE: f64 = 0.005;
 /// At most this many patches get the second pass per round (bounds the table's cost).
 const REFINE_COUNT: usize = 24;
 /// Rounds of the second pass at most: each picks the worst of what the last left. One round was
-/// all before session 36: on the torus example (bounds of its three-stage chains 20-100× the
-/// curved area on some patches) the first round's threshold, relative to the whole bounded area,
-/// left the next-worst patches unrefined, and they then held most of the table. Scanned (whole
-/// `ism sample torus.ismb --surface N -j 1`, CPU, best of 2): 4 rounds against 1, N = 10² / 10³ /
-/// 3·10³ / 10⁴ / 3·10⁴: 0.99 / 0.99 / 0.83 / 0.58 / 0.42×; 8 rounds gave the same.
+/// all before session 36: on the torus example (bounded areas of its three-stage chains up to
+/// 10⁵ × the curved area's estimate on some patches) the first round's threshold, relative to
+/// the whole bounded area, left the next-worst patches unrefined, and they then held most of the
+/// table. Scanned (whole `ism sample torus.ismb --surface N -j 1`, CPU, best of 2): 4 rounds
+/// against 1, N = 10² / 10³ / 3·10³ / 10⁴ / 3·10⁴: 0.99 / 0.99 / 0.83 / 0.58 / 0.42×; 8 rounds
+/// gave the same.
 const REFINE_ROUNDS: usize = 4;
 /// The later rounds' threshold over the first's: a patch chosen later wastes less, and its
 /// refinement (the same budget) saves fewer candidates. Scanned with 4 rounds on the torus example
