@@ -1828,6 +1828,15 @@ mod tests {
         out
     }
 
+    /// The spec example `name` (its JSON encoding).
+    fn example(name: &str) -> ism_format::Model {
+        let path = format!(
+            "{}/../../spec/examples/{name}.ism.json",
+            env!("CARGO_MANIFEST_DIR")
+        );
+        ism_format::io::read_path(path).unwrap().model
+    }
+
     /// Every bit of a sample: position, normal, value and simplex.
     fn point_bits(p: &SurfacePoint) -> Vec<u64> {
         let mut v: Vec<u64> = p.p.iter().chain(&p.normal).map(|x| x.to_bits()).collect();
@@ -1852,11 +1861,7 @@ mod tests {
             ("quadratic-edges", Some(10_000)),
             ("quadratic-edges", None),
         ] {
-            let path = format!(
-                "{}/../../spec/examples/{name}.ism.json",
-                env!("CARGO_MANIFEST_DIR")
-            );
-            let mut model = ism_format::io::read_path(path).unwrap().model;
+            let mut model = example(name);
             for stage in &mut model.stages {
                 stage.direction = Direction::Parametric;
             }
@@ -1893,11 +1898,7 @@ mod tests {
     fn lattices_are_computed_on_first_use_and_draw_the_same_bits() {
         use rand::SeedableRng;
         for (name, sized) in [("stratified-3d", 1), ("torus", 1), ("circle-curved", 1)] {
-            let path = format!(
-                "{}/../../spec/examples/{name}.ism.json",
-                env!("CARGO_MANIFEST_DIR")
-            );
-            let model = ism_format::io::read_path(path).unwrap().model;
+            let model = example(name);
             let eval = ModelEval::new(&model).unwrap();
             let lazy =
                 SurfaceTable::with_expected_samples(&eval, Weighting::CurvedArea, Some(sized))
@@ -1941,11 +1942,7 @@ mod tests {
     /// contain vertex `keep`: the simplices without that vertex have no stage at all (as fitted
     /// models leave the simplices no control point moves).
     fn partly_stage_free(keep: u32) -> ism_format::Model {
-        let path = format!(
-            "{}/../../spec/examples/stratified-3d.ism.json",
-            env!("CARGO_MANIFEST_DIR")
-        );
-        let mut model = ism_format::io::read_path(path).unwrap().model;
+        let mut model = example("stratified-3d");
         for stage in &mut model.stages {
             stage.direction = Direction::Parametric;
             stage
@@ -2026,11 +2023,7 @@ mod tests {
 
     /// A vertex of the first crossed simplex of `stratified-3d`.
     fn model_vertex_of_a_crossed_simplex() -> u32 {
-        let path = format!(
-            "{}/../../spec/examples/stratified-3d.ism.json",
-            env!("CARGO_MANIFEST_DIR")
-        );
-        let model = ism_format::io::read_path(path).unwrap().model;
+        let model = example("stratified-3d");
         let eval = ModelEval::new(&model).unwrap();
         let s = (0..model.num_simplices())
             .find(|&s| eval.patch(s).is_some())
@@ -2040,11 +2033,7 @@ mod tests {
 
     #[test]
     fn a_table_sized_for_more_samples_is_tighter() {
-        let path = format!(
-            "{}/../../spec/examples/stratified-3d.ism.json",
-            env!("CARGO_MANIFEST_DIR")
-        );
-        let mut model = ism_format::io::read_path(path).unwrap().model;
+        let mut model = example("stratified-3d");
         for stage in &mut model.stages {
             stage.direction = Direction::Parametric;
         }
@@ -2091,11 +2080,7 @@ mod tests {
     #[test]
     fn implicit_chains_refine_only_for_enough_samples_and_stay_certified() {
         for name in ["stratified-3d", "sphere", "torus"] {
-            let path = format!(
-                "{}/../../spec/examples/{name}.ism.json",
-                env!("CARGO_MANIFEST_DIR")
-            );
-            let model = ism_format::io::read_path(path).unwrap().model;
+            let model = example(name);
             let eval = ModelEval::new(&model).unwrap();
             let table = |e| {
                 SurfaceTable::with_expected_samples(&eval, Weighting::CurvedArea, Some(e)).unwrap()
@@ -2156,11 +2141,7 @@ mod tests {
     /// than one round's (measured: 649 against 1,762) and stays certified.
     #[test]
     fn later_rounds_of_the_second_pass_tighten_the_torus_table() {
-        let path = format!(
-            "{}/../../spec/examples/torus.ism.json",
-            env!("CARGO_MANIFEST_DIR")
-        );
-        let model = ism_format::io::read_path(path).unwrap().model;
+        let model = example("torus");
         let eval = ModelEval::new(&model).unwrap();
         let build = |rounds| {
             SurfaceTable::build(&eval, Weighting::CurvedArea, Some(10_000), rounds).unwrap()
@@ -2191,11 +2172,7 @@ mod tests {
             "cubic-face-point",
             "two-stage",
         ] {
-            let path = format!(
-                "{}/../../spec/examples/{name}.ism.json",
-                env!("CARGO_MANIFEST_DIR")
-            );
-            let model = ism_format::io::read_path(path).unwrap().model;
+            let model = example(name);
             let eval = ModelEval::new(&model).unwrap();
             let m = model.dim() + 1;
             for s in 0..model.num_simplices() {
@@ -2346,11 +2323,7 @@ mod tests {
     fn adjugate_route_equals_the_inverse_route() {
         let mut checked = 0;
         for name in ["stratified-3d", "quadratic-edges", "rational-degree5"] {
-            let path = format!(
-                "{}/../../spec/examples/{name}.ism.json",
-                env!("CARGO_MANIFEST_DIR")
-            );
-            let mut model = ism_format::io::read_path(path).unwrap().model;
+            let mut model = example(name);
             for stage in &mut model.stages {
                 stage.direction = Direction::Parametric;
             }
