@@ -79,7 +79,8 @@ pub struct PatchEntry {
     /// The lattice points `u` with their preimages `X⁻¹(u)` (`u` itself unless `guessed`),
     /// computed on first use ([`PatchEntry::lattice`]): 15 or 30 solves through every stage per
     /// patch, which the regions' bounds do not need and a table for few samples mostly never
-    /// reads (a third of stratified-3d's `--surface 1` setup when built with every patch).
+    /// reads (16–33 % of the spec examples' first pass for `--surface 1` when built for every
+    /// patch).
     lattice: OnceLock<Vec<(Bary, Bary)>>,
     /// Mean exact `J` at the lattice points: an estimate of the curved area per linear area
     /// (implicit and mixed chains only: only their second pass reads it), computed on first use
@@ -669,8 +670,8 @@ impl SurfaceTable {
             .collect::<Result<Vec<_>>>()?;
         // Second pass (implicit and mixed chains; all-parametric patches are refined by the
         // table-wide threshold already): the patches whose bounds waste the most (bounded minus
-        // sampled curved area) get a larger refinement budget. Chosen from the first pass's
-        // figures in a fixed order, so the table is the same whatever the thread count. In rounds:
+        // sampled curved area) get a larger refinement budget. Chosen from the figures so far in
+        // a fixed order, so the table is the same whatever the thread count. In rounds:
         // once the worst are refined the whole bounded area shrinks, and the patches that waste
         // the most of what is left are chosen the same way (each patch at most once).
         let threshold =
