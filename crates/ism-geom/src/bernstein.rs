@@ -1056,6 +1056,39 @@ mod tests {
         }
     }
 
+    /// Products on both sides of the cached plans' degree limit (`PRODUCT_DEGREE`: looked-up
+    /// ranks below, summed indices above) equal the product of the factors' values (de
+    /// Casteljau evaluation, independent of the product's index arithmetic), in 1 to 4 variables.
+    #[test]
+    fn products_inside_and_past_the_cached_plans_agree_with_evaluation() {
+        let limit = PRODUCT_DEGREE as u32;
+        let degrees = [
+            (0, 5),
+            (1, limit),
+            (limit, 1),
+            (4, 9),
+            (limit + 1, 2),
+            (2, limit + 1),
+        ];
+        for m in 1..=4 {
+            for (k, &(da, db)) in degrees.iter().enumerate() {
+                let p = sample(m, da, 7 + k as u64);
+                let q = sample(m, db, 19 + k as u64);
+                let pq = p.mul(&q);
+                assert_eq!(pq.degree(), da + db);
+                for w in &W {
+                    let total: f64 = w[..m].iter().sum();
+                    let w: Vec<f64> = w[..m].iter().map(|x| x / total).collect();
+                    let (got, want) = (pq.eval(&w), p.eval(&w) * q.eval(&w));
+                    assert!(
+                        (got - want).abs() <= 1e-12 * (1.0 + want.abs()),
+                        "m={m} degrees {da}+{db}: {got} against {want}"
+                    );
+                }
+            }
+        }
+    }
+
     #[test]
     fn restriction_by_replacement_matches_the_blossom() {
         for m in 2..=4 {
