@@ -150,9 +150,11 @@ impl std::ops::Deref for ShapeRef {
     }
 }
 
-/// Highest factor degree whose product plans ([`product_ranks`]) are cached: the certified bounds'
-/// products (determinants of stage Jacobians, powers of denominators) multiply factors of degree
-/// at most `3 (d − 1)` for stages of degree `d ≤ 4`, the examples' and fits' stages.
+/// Highest factor degree whose product plans ([`product_ranks`]) are cached: the determinants of
+/// stage Jacobians in the certified bounds multiply factors of degree `d − 1` and `2 (d − 1)` for
+/// a polynomial stage of degree `d` (6 for the examples' quartics), a rational stage's numerators
+/// `d − 1` and `d`, and its denominator's powers `2d` by `2d`; higher products take the summing
+/// path.
 const PRODUCT_DEGREE: usize = 12;
 
 static PRODUCTS: [[[OnceLock<Vec<u32>>; PRODUCT_DEGREE + 1]; PRODUCT_DEGREE + 1]; 5] =
