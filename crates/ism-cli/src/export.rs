@@ -176,12 +176,16 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             // Edges the refinement had to leave while their chordal test failed (`--max-depth`):
             // the export may be farther from the shape than asked there, so say so — and that the
             // test holds edges to a fraction of the tolerance (failing it is not yet exceeding it).
+            // With how far they were measured from the shape (a sample of each such edge, not a
+            // bound: `ExtractReport::depth_limited_error`).
             let limited = match summary["depth_limited_edges"].as_u64() {
                 Some(n) if n > 0 => format!(
                     ", {n} edge{} at the depth limit (--max-depth) still failing the chordal test \
-                     (which holds edges to {} of --tolerance)",
+                     (which holds edges to {} of --tolerance; measured up to {:.3e} from the shape \
+                     there)",
                     if n == 1 { "" } else { "s" },
-                    ism_export::extract::EDGE_FRACTION
+                    ism_export::extract::EDGE_FRACTION,
+                    summary["depth_limited_error"].as_f64().unwrap_or(f64::NAN)
                 ),
                 _ => String::new(),
             };

@@ -342,6 +342,7 @@ pub fn surface_summary(mesh: &Mesh, extract: Option<&ExtractReport>) -> serde_js
         "inversions": extract.map(|r| r.inversions),
         "max_inverse_residual": extract.map(|r| r.max_residual),
         "depth_limited_edges": extract.map(|r| r.depth_limited_edges),
+        "depth_limited_error": extract.map(|r| r.depth_limited_error),
     })
 }
 

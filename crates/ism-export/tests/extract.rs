@@ -153,6 +153,7 @@ fn sphere_and_torus_are_closed_with_euler_two_and_zero_and_meet_the_tolerance() 
             assert!(t.is_closed_oriented_manifold(), "{name} {tol}: {t:?}");
             assert_eq!((t.components, t.euler_characteristic), (1, euler), "{name}");
             assert_eq!(report.depth_limited_edges, 0, "{name} {tol}");
+            assert_eq!(report.depth_limited_error, 0.0, "{name} {tol}");
             let chord = worst_chord(&eval, &mesh);
             // The criterion bounds the distance from the chord to the mapped parameter midpoint,
             // which is on O; the Newton estimate of the distance to O can only be smaller, up to
