@@ -82,6 +82,13 @@ pub struct PatchEntry {
     /// reads (16–33 % of the spec examples' first pass for `--surface 1` when built for every
     /// patch).
     lattice: OnceLock<Vec<(Bary, Bary)>>,
+    /// The lattice's preimages one point at a time, for the draws' Newton starts while the whole
+    /// lattice is not computed ([`PatchEntry::start`]): a candidate needs the three of its
+    /// region's corners, and a table for few samples draws a few candidates from many patches
+    /// (filling whole lattices was 19 % of stratified-3d's `--surface 1`). Each point is the
+    /// same pure function of `u` as in the whole lattice, so the starts, hence the draws, are
+    /// the same bits whichever holds them.
+    starts: OnceLock<Box<[OnceLock<Bary>]>>,
     /// Mean exact `J` at the lattice points: an estimate of the curved area per linear area
     /// (implicit and mixed chains only: only their second pass reads it), computed on first use
     /// ([`PatchEntry::sample_mean`]).
@@ -487,6 +494,7 @@ fn build_patch(
         guessed: !parametric && !map.stages().is_empty(),
         tris,
         lattice,
+        starts: OnceLock::new(),
         sample_mean,
         sparse: if parametric {
             map.stages()
@@ -536,6 +544,7 @@ fn stage_free_patch(
         guessed: false,
         tris: *tris,
         lattice: OnceLock::new(),
+        starts: OnceLock::new(),
         sample_mean: OnceLock::from(1.0),
         sparse: Vec::new(),
     }
@@ -1460,21 +1469,35 @@ fn lattice_guesses(
     preimages: bool,
 ) -> Vec<(Bary, Bary)> {
     // Only a starting guess: an unconverged preimage costs iterations, not accuracy.
-    let solve = |u: Bary| (u, if preimages { map.inverse(&u).w } else { u });
+    (0..lattice_len(count))
+        .map(|k| {
+            let u = lattice_point(tris, count, k);
+            (u, if preimages { map.inverse(&u).w } else { u })
+        })
+        .collect()
+}
+
+/// Number of lattice points of a patch of `count` triangles (0: a segment).
+fn lattice_len(count: u8) -> usize {
     if count == 0 {
-        return (0..=GUESS_LEVEL)
-            .map(|i| solve(segment_point(&tris[0], i)))
-            .collect();
+        GUESS_LEVEL + 1
+    } else {
+        LATTICE_POINTS * usize::from(count)
     }
-    let mut out = Vec::with_capacity(LATTICE_POINTS * usize::from(count));
-    for tri in tris.iter().take(usize::from(count)) {
-        for i in 0..=GUESS_LEVEL {
-            for j in 0..=GUESS_LEVEL - i {
-                out.push(solve(lattice_u(tri, (i, j))));
-            }
-        }
+}
+
+/// Lattice point `k` of a patch of `count` triangles `tris` (0: the segment `tris[0][0..2]`), in
+/// the order of [`lattice_guesses`] (triangle by triangle, [`lattice_index`] within each).
+fn lattice_point(tris: &[[Bary; 3]; 2], count: u8, k: usize) -> Bary {
+    if count == 0 {
+        return segment_point(&tris[0], k);
     }
-    out
+    let (t, r) = (k / LATTICE_POINTS, k % LATTICE_POINTS);
+    let i = (0..=GUESS_LEVEL)
+        .rev()
+        .find(|&i| lattice_index(i, 0) <= r)
+        .expect("lattice_index(0, 0) = 0");
+    lattice_u(&tris[t], (i, r - lattice_index(i, 0)))
 }
 
 /// Lattice point `i` (`0..=GUESS_LEVEL`) of a segment patch, whose ends are `tri[0]`, `tri[1]`.
@@ -1682,6 +1705,20 @@ impl PatchEntry {
             .get_or_init(|| lattice_guesses(map, &self.tris, self.triangles, self.guessed))
     }
 
+    /// The preimage of lattice point `k` (a `guessed` patch's): from the whole lattice when it
+    /// is computed, else computed alone and kept ([`PatchEntry::starts`]).
+    fn start(&self, map: &ism_geom::LocalMap, k: usize) -> Bary {
+        if let Some(lattice) = self.lattice.get() {
+            return lattice[k].1;
+        }
+        let starts = self.starts.get_or_init(|| {
+            (0..lattice_len(self.triangles))
+                .map(|_| OnceLock::new())
+                .collect()
+        });
+        *starts[k].get_or_init(|| map.inverse(&lattice_point(&self.tris, self.triangles, k)).w)
+    }
+
     /// Number of regions a sample is drawn from.
     pub fn regions(&self) -> usize {
         self.regions.len()
@@ -1697,9 +1734,8 @@ impl PatchEntry {
         if !self.guessed {
             return (u, u);
         }
-        let lattice = self.lattice(map);
         let g = region_point(
-            &r.g.map(|k| lattice[usize::from(k)].1),
+            &r.g.map(|k| self.start(map, usize::from(k))),
             &weights,
             self.triangles,
         );
@@ -1892,9 +1928,10 @@ mod tests {
     }
 
     /// The lattice of Newton starts is computed when first read: a table for one sample leaves
-    /// most implicit patches without it (their bounds do not need it), and drawing fills those
-    /// of the patches it draws from. The draws are the same bits as from the same table with every
-    /// lattice filled beforehand (the eager table of earlier versions), in 2D and 3D.
+    /// most implicit patches without it (their bounds do not need it), and drawing computes the
+    /// points its candidates start from ([`PatchEntry::start`]) in the patches it draws from. The
+    /// draws are the same bits as from the same table with every lattice filled beforehand (the
+    /// eager table of earlier versions), in 2D and 3D.
     #[test]
     fn lattices_are_computed_on_first_use_and_draw_the_same_bits() {
         use rand::SeedableRng;
@@ -1908,10 +1945,16 @@ mod tests {
                 lazy.patches.iter().all(|p| p.guessed),
                 "{name}: implicit chains"
             );
+            // Patches with preimages computed: the whole lattice, or some of its points.
             let filled = |t: &SurfaceTable| {
                 t.patches
                     .iter()
-                    .filter(|p| p.lattice.get().is_some())
+                    .filter(|p| {
+                        p.lattice.get().is_some()
+                            || p.starts
+                                .get()
+                                .is_some_and(|s| s.iter().any(|x| x.get().is_some()))
+                    })
                     .count()
             };
             let before = filled(&lazy);
