@@ -1468,13 +1468,26 @@ fn lattice_guesses(
     count: u8,
     preimages: bool,
 ) -> Vec<(Bary, Bary)> {
-    // Only a starting guess: an unconverged preimage costs iterations, not accuracy.
     (0..lattice_len(count))
         .map(|k| {
             let u = lattice_point(tris, count, k);
-            (u, if preimages { map.inverse(&u).w } else { u })
+            (
+                u,
+                if preimages {
+                    lattice_preimage(map, &u)
+                } else {
+                    u
+                },
+            )
         })
         .collect()
+}
+
+/// The preimage kept for lattice point `u`, in the whole lattice ([`lattice_guesses`]) and
+/// point by point ([`PatchEntry::start`]) alike, so both give the draws the same bits. Only a
+/// starting guess: an unconverged preimage costs iterations, not accuracy.
+fn lattice_preimage(map: &ism_geom::LocalMap, u: &Bary) -> Bary {
+    map.inverse(u).w
 }
 
 /// Number of lattice points of a patch of `count` triangles (0: a segment).
@@ -1716,7 +1729,8 @@ impl PatchEntry {
                 .map(|_| OnceLock::new())
                 .collect()
         });
-        *starts[k].get_or_init(|| map.inverse(&lattice_point(&self.tris, self.triangles, k)).w)
+        *starts[k]
+            .get_or_init(|| lattice_preimage(map, &lattice_point(&self.tris, self.triangles, k)))
     }
 
     /// Number of regions a sample is drawn from.
