@@ -44,6 +44,11 @@ def ism_run(ism: str, model: str, n: int, out: Path, threads: int, repeat: int) 
     """Best CPU and best wall time of `ism sample MODEL --surface n -j threads`."""
     best_cpu = best_wall = float("inf")
     for _ in range(repeat):
+        # A fresh path every run: replacing the previous run's output frees its pages inside the
+        # rename, serially, at the end of the timed command (60 MB at 10^6 samples: ~60 ms of wall
+        # time, which cut the 2-thread ratio of a fitted torus from 1.89x to 1.74x, session 38).
+        # That is the kernel releasing the old file, not the sampler.
+        out.unlink(missing_ok=True)
         before = child_cpu()
         t = time.perf_counter()
         subprocess.run(
