@@ -1213,6 +1213,29 @@ pub(crate) fn tightening_pays(top: f64, best: f64, min_excess: f64) -> bool {
     top - best > min_excess
 }
 
+/// How far [`chain_bound`] refines.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Budget {
+    /// Most bisections in all.
+    pub splits: usize,
+    /// Most bisections while some leaf's bound is still not finite (its determinant not
+    /// certified): refinement stops there, leaving such leaves to the caller's other bounds.
+    pub uncertified: usize,
+    /// The excess over the samples (units of `J`) below which a finite bound is not tightened.
+    pub min_excess: f64,
+}
+
+impl Budget {
+    /// `splits` bisections in all, every one of them available to certification.
+    pub fn new(splits: usize, min_excess: f64) -> Budget {
+        Budget {
+            splits,
+            uncertified: splits,
+            min_excess,
+        }
+    }
+}
+
 /// Certified bound of the area element `J` on the shape in one simplex, for a chain whose stages
 /// are all implicit or all parametric; `None` for a mixed chain (use [`crate::bound`]), and
 /// `Some(Err)` when a stage cannot be bounded at all (a denominator not positive). Leaves whose
@@ -1224,9 +1247,10 @@ pub(crate) fn tightening_pays(top: f64, best: f64, min_excess: f64) -> bool {
 /// a leaf is split while its bound exceeds the largest sample inside its box by more than
 /// [`TIGHTNESS`], worst ratio first, within the budget.
 /// Once every leaf's bound is finite (cells with an uncertified determinant are always split,
-/// worst first), refinement goes on only while the largest bound then exceeds the largest sample
-/// by more than `min_excess` (units of `J`): the caller's estimate of the excess below which
-/// refinement costs more than the candidates it would save (`0.0`: as the ratio alone decides).
+/// worst first, for at most `budget.uncertified` splits), refinement goes on only while the
+/// largest bound then exceeds the largest sample by more than `budget.min_excess` (units of `J`):
+/// the caller's estimate of the excess below which refinement costs more than the candidates it
+/// would save (`0.0`: as the ratio alone decides).
 /// A root whose determinant is not certified gets one more try first, with each later stage's
 /// determinant bounded below on its whole simplex (`det_floor`): that root bound, when finite
 /// and not worth tightening by the same test, is the answer (one leaf).
@@ -1237,8 +1261,13 @@ pub fn chain_bound<'s>(
     values: &[f64],
     level: f64,
     samples: &dyn Fn() -> &'s [([f64; 4], f64)],
-    (max_splits, min_excess): (usize, f64),
+    budget: Budget,
 ) -> Option<Result<ChainBound, String>> {
+    let Budget {
+        splits: max_splits,
+        uncertified: max_uncertified,
+        min_excess,
+    } = budget;
     let stages = map.stages();
     let m = map.vars();
     if stages.is_empty() {
@@ -1356,8 +1385,14 @@ pub fn chain_bound<'s>(
     // the 66 patches the stored root does not, and 26 are bisected, against 48 when it was tried
     // only on infinite roots: 0.83× the CPU of the whole `--surface 1`, session 38).
     if let Some(fused) = fused_projective(map) {
-        if let Some(Ok(f)) = chain_bound(&fused, inv_edges, values, level, samples, (0, min_excess))
-        {
+        if let Some(Ok(f)) = chain_bound(
+            &fused,
+            inv_edges,
+            values,
+            level,
+            samples,
+            Budget::new(0, min_excess),
+        ) {
             if f.leaves.len() == 1 && f.top().is_finite() && !pays(f.top()) {
                 return Some(Ok(f));
             }
@@ -1376,7 +1411,9 @@ pub fn chain_bound<'s>(
             Some(false) => true,
             Some(true) => cells[worst].0 * TIGHTNESS <= 1.0,
         };
-        if tight || splits >= max_splits || cells[worst].3.depth >= MAX_DEPTH {
+        // Splits spent while some leaf is uncertified count against their own cap as well.
+        let uncertified = tighten.is_none() && splits >= max_uncertified;
+        if tight || uncertified || splits >= max_splits || cells[worst].3.depth >= MAX_DEPTH {
             break;
         }
         let (_, _, _, cell) = cells.swap_remove(worst);
@@ -1766,18 +1803,14 @@ mod tests {
     }
 
     /// [`check`] with a refinement threshold; returns `(patches, patches bounded by one leaf)`.
-    fn check_with(model: &Model, budget: (usize, f64)) -> (usize, usize) {
-        check_bounds(model, false, budget).0
+    fn check_with(model: &Model, (splits, min_excess): (usize, f64)) -> (usize, usize) {
+        check_bounds(model, false, Budget::new(splits, min_excess)).0
     }
 
     /// [`check_with`] with the chain bound taken on the map with its projective stage fused
     /// ([`fused_projective`]) when `fused` (exact `J` still from the stored, unfused map); also
     /// returns the sum over patches of the largest leaf bound.
-    fn check_bounds(
-        model: &Model,
-        fused: bool,
-        (splits, min_excess): (usize, f64),
-    ) -> ((usize, usize), f64) {
+    fn check_bounds(model: &Model, fused: bool, budget: Budget) -> ((usize, usize), f64) {
         let (mut patches, mut single, mut tops) = (0, 0, 0.0);
         let eval = ModelEval::new(model).unwrap();
         let n = model.dim();
@@ -1795,7 +1828,7 @@ mod tests {
                 &values,
                 model.level,
                 &|| &[],
-                (splits, min_excess),
+                budget,
             ) else {
                 panic!("simplex {s}: no chain bound");
             };
@@ -1831,6 +1864,55 @@ mod tests {
         ((patches, single), tops)
     }
 
+    /// `Budget::uncertified` caps the splits spent while a leaf is uncertified: a patch left with
+    /// an infinite leaf has at most that many splits' leaves, and the finite leaves still bound
+    /// the exact `J` ([`check_bounds`]). stratified-3d's later stages are not certified by the
+    /// root's ranges on many patches, so the cap is reached there.
+    #[test]
+    fn the_uncertified_cap_stops_certification_and_keeps_the_bounds() {
+        let model = example("stratified-3d");
+        let cap = Budget {
+            splits: 48,
+            uncertified: 2,
+            min_excess: 0.0,
+        };
+        check_bounds(&model, false, cap);
+        let eval = ModelEval::new(&model).unwrap();
+        let (mut capped, mut uncapped_leaves) = (0, 0);
+        for s in 0..model.num_simplices() {
+            if eval.patch(s).is_none() {
+                continue;
+            }
+            let map = eval.local_map(s);
+            let inv = eval.inv_edges(s);
+            let values: Vec<f64> = model
+                .simplex(s)
+                .iter()
+                .map(|&v| model.values[v as usize])
+                .collect();
+            let bound = |budget| {
+                let samples = || -> &[([f64; 4], f64)] { &[] };
+                match chain_bound(map, &inv, &values, model.level, &samples, budget) {
+                    Some(Ok(c)) => c,
+                    other => panic!("simplex {s}: {:?}", other.map(|r| r.err())),
+                }
+            };
+            let c = bound(cap);
+            if c.leaves.iter().any(|l| !l.0.is_finite()) {
+                capped += 1;
+                // Each split replaces a leaf by at most two.
+                assert!(c.leaves.len() <= cap.uncertified + 1, "simplex {s}");
+                uncapped_leaves += bound(Budget::new(48, 0.0)).leaves.len();
+            }
+        }
+        // The cap was reached, and without it those patches were split further.
+        assert!(capped > 0);
+        assert!(
+            uncapped_leaves > capped * (cap.uncertified + 1),
+            "{uncapped_leaves}"
+        );
+    }
+
     #[test]
     fn chain_bounds_dominate_the_area_element_on_the_shape() {
         check(&example("circle-curved"), 64);
@@ -1863,11 +1945,13 @@ mod tests {
     #[test]
     fn fused_roots_bound_the_stored_maps_shape() {
         for name in ["torus", "sphere"] {
-            let ((patches, single), fused) = check_bounds(&example(name), true, (0, f64::INFINITY));
+            let ((patches, single), fused) =
+                check_bounds(&example(name), true, Budget::new(0, f64::INFINITY));
             assert_eq!(single, patches, "{name}");
             assert!(fused.is_finite(), "{name}: {fused}");
             if name == "torus" {
-                let ((_, _), floored) = check_bounds(&example(name), false, (48, f64::INFINITY));
+                let ((_, _), floored) =
+                    check_bounds(&example(name), false, Budget::new(48, f64::INFINITY));
                 assert!(
                     fused * 2.0 < floored,
                     "{name}: fused roots sum to {fused}, floored roots to {floored}"
@@ -2086,7 +2170,7 @@ mod tests {
             &[-1.0, 1.0, 1.0],
             0.0,
             &|| &[],
-            (8, 0.0)
+            Budget::new(8, 0.0)
         )
         .is_none());
     }
