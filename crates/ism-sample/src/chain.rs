@@ -1363,7 +1363,10 @@ pub fn chain_bound<'s>(
     // certified answer (44 of stratified-3d's 114 patches, each bisected before any finite bound).
     // Otherwise the refinement below runs as without floors: a floor bounds the whole simplex,
     // looser than the bisected cells' own enclosures, and taken into the splits it made the
-    // torus example's tables 1.6× costlier to draw from at N = 10³ (measured, session 35).
+    // torus example's tables 1.6× costlier to draw from at N = 10³ (measured, session 35). The
+    // same happened with the later stage's determinant polynomial restricted to each cell's image
+    // (1.6× at N = 10³, 3.5× at 10⁴; session 38): a cell certified early keeps a wide `u`-box, and
+    // its bound then covers every region of the patch, where an uncertified cell is split first.
     if !b.is_finite() {
         if let Some((fb, fbox)) = chain.bound_with(&root, true, true) {
             if fb.is_finite() && !pays(fb) {
@@ -1381,9 +1384,9 @@ pub fn chain_bound<'s>(
     // splits cost more than the stored chain's (numerators of degree `2d`; bisecting it whenever
     // its root is finite took 1.10× the CPU of `--surface 1` on the torus example), so only the
     // root is tried — whether the stored root's bound is infinite or finite but worth tightening:
-    // the fused root is often tighter than both (at N = 1 on the torus example it answers 40 of
-    // the 66 patches the stored root does not, and 26 are bisected, against 48 when it was tried
-    // only on infinite roots: 0.83× the CPU of the whole `--surface 1`, session 38).
+    // at N = 1 on the torus example 462 of its 488 patches are then answered at the root and 26
+    // bisected, against 440 and 48 when it was tried on infinite roots only (0.83–0.84× the CPU
+    // of the whole `--surface 1`, session 38).
     if let Some(fused) = fused_projective(map) {
         if let Some(Ok(f)) = chain_bound(
             &fused,

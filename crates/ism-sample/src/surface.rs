@@ -273,8 +273,9 @@ const FIRST_SPLITS: usize = 48;
 /// uncertified leaves each; then the per-stage bound on top): those splits were a quarter of a
 /// one-sample run's CPU. Capped at 12, they leave the same leaves to the per-stage bound, and the
 /// second pass still refines the patches that waste the most with its whole budget. Measured
-/// (whole `ism sample --surface N -j 1`, CPU, session 38): torus example N = 1 / 10² / 10³ /
-/// 10⁴ 0.91 / 0.97 / 1.00 / 0.98×, stratified-3d N = 10³ 0.86× (with 24: 0.94× at N = 1).
+/// (whole `ism sample --surface N -j 1`, CPU, best of 9, session 38): torus example N = 1 / 10² /
+/// 10³ / 10⁴ 0.90 / 0.97 / 0.96 / 0.98×, stratified-3d N = 10³ 0.88×, the sphere example the
+/// same bytes (a cap of 24 gave 0.94× at N = 1 on the torus, in a scratch build).
 const FIRST_UNCERTIFIED: usize = FIRST_SPLITS / 4;
 /// Refinement budget of the second pass.
 const SECOND_SPLITS: usize = 2048;
