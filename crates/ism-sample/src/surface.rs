@@ -268,15 +268,17 @@ fn cross_norm(a: &[f64; 3], b: &[f64; 3]) -> f64 {
 /// Refinement budget per patch in the first pass (see [`crate::chain`]).
 const FIRST_SPLITS: usize = 48;
 /// Most of [`FIRST_SPLITS`] an implicit chain spends while some leaf's determinant is not yet
-/// certified. On the torus example every patch whose stored root was not certified (and whose
-/// fused root did not pay) was still not certified after all 48 splits (16 patches, with 1 to 12
-/// uncertified leaves each; then the per-stage bound on top): those splits were a quarter of a
-/// one-sample run's CPU. Capped at 12, they leave the same leaves to the per-stage bound, and the
-/// second pass still refines the patches that waste the most with its whole budget. Measured
-/// (whole `ism sample --surface N -j 1`, CPU, best of 9, session 38): torus example N = 1 / 10² /
-/// 10³ / 10⁴ 0.90 / 0.97 / 0.96 / 0.98×, stratified-3d N = 10³ 0.88×, the sphere example the
-/// same bytes (a cap of 24 gave 0.94× at N = 1 on the torus, in a scratch build).
-const FIRST_UNCERTIFIED: usize = FIRST_SPLITS / 4;
+/// certified: none. A root that neither the stored chain, its floors nor the fused map certifies
+/// ([`chain_bound`]) is left to the per-stage bound in the first pass, and to the second pass's
+/// whole budget if it then wastes the most. On the torus example every such root was still not
+/// certified after all 48 splits (16 patches, 1 to 12 uncertified leaves each), and the wide
+/// `u`-boxes of those leaves meet every region, which therefore took the per-stage bound anyway:
+/// the splits were a quarter of a one-sample run's CPU and changed no region's bound. Measured
+/// (whole `ism sample --surface N -j 1`, CPU, session 38): 12 splits against 48 gave torus example
+/// N = 1 / 10² / 10³ / 10⁴ 0.90 / 0.97 / 0.96 / 0.98× (best of 9); none against 12 gave 0.97× at
+/// N = 1 and the same bytes at N = 1 to 10⁴ on the torus, sphere, stratified-3d, two-stage and
+/// rational-degree5 examples and the 1 M-tet model (its N = 10⁵ 0.88×; best of 3 under load).
+const FIRST_UNCERTIFIED: usize = 0;
 /// Refinement budget of the second pass.
 const SECOND_SPLITS: usize = 2048;
 /// Most bisections of one all-parametric patch (the leaves are the regions drawn from): a cap
@@ -595,7 +597,7 @@ fn implicit_region_bounds(
     } = input;
     let n = map.vars() - 1;
     let best_sample = || samples().iter().map(|s| s.1).fold(0.0, f64::max);
-    // The first pass gives certification a quarter of its budget (see `FIRST_UNCERTIFIED`); the
+    // The first pass gives certification none of its budget (see `FIRST_UNCERTIFIED`); the
     // second pass, for the patches that waste the most, all of it.
     let uncertified = if max_splits <= FIRST_SPLITS {
         FIRST_UNCERTIFIED
