@@ -273,11 +273,12 @@ const FIRST_SPLITS: usize = 48;
 /// whole budget if it then wastes the most. On the torus example every such root was still not
 /// certified after all 48 splits (16 patches, 1 to 12 uncertified leaves each), and the wide
 /// `u`-boxes of those leaves meet every region, which therefore took the per-stage bound anyway:
-/// the splits were a quarter of a one-sample run's CPU and changed no region's bound. Measured
-/// (whole `ism sample --surface N -j 1`, CPU, session 38): 12 splits against 48 gave torus example
-/// N = 1 / 10² / 10³ / 10⁴ 0.90 / 0.97 / 0.96 / 0.98× (best of 9); none against 12 gave 0.97× at
-/// N = 1 and the same bytes at N = 1 to 10⁴ on the torus, sphere, stratified-3d, two-stage and
-/// rational-degree5 examples and the 1 M-tet model (its N = 10⁵ 0.88×; best of 3 under load).
+/// the splits were a quarter of the patches' work in a one-sample run and changed no region's
+/// bound. Measured (whole `ism sample --surface N -j 1`, CPU, session 38): 12 splits against 48
+/// gave torus example N = 1 / 10² / 10³ / 10⁴ 0.90 / 0.97 / 0.96 / 0.98× (best of 9); none against
+/// 12 gave 0.97× at N = 1 and the same bytes at N = 1 to 10⁴ on the torus, sphere, stratified-3d,
+/// two-stage and rational-degree5 examples and the 1 M-tet model (its N = 10⁵ 0.88×; best of 3
+/// under load).
 const FIRST_UNCERTIFIED: usize = 0;
 /// Refinement budget of the second pass.
 const SECOND_SPLITS: usize = 2048;
