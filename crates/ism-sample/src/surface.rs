@@ -610,10 +610,11 @@ fn implicit_region_bounds(
         uncertified,
         min_excess,
     };
-    let chain = match chain_bound(map, inv, values, level, samples, budget) {
+    let chain_with = |budget| match chain_bound(map, inv, values, level, samples, budget) {
         Some(Ok(c)) => Some(c),
         _ => None,
     };
+    let mut chain = chain_with(budget);
     // The per-stage bound is certified too; it is needed where the chain's is
     // missing, infinite, or not tight within its budget.
     let per_stage = match &chain {
@@ -621,19 +622,29 @@ fn implicit_region_bounds(
         // bisection, as costly) would not either. The samples' `J` is not negative, so a bound
         // whose excess over 0 does not pay needs no samples to say so.
         Some(c) if c.top().is_finite() && !tightening_pays(c.top(), 0.0, min_excess) => {
-            f64::INFINITY
+            Ok(f64::INFINITY)
         }
-        Some(c) if c.top() * TIGHTNESS <= best_sample() => f64::INFINITY,
+        Some(c) if c.top() * TIGHTNESS <= best_sample() => Ok(f64::INFINITY),
         Some(c) if c.top().is_finite() && !tightening_pays(c.top(), best_sample(), min_excess) => {
+            Ok(f64::INFINITY)
+        }
+        _ => surface_area_element_bound(map, edges, values, level),
+    };
+    let per_stage = match per_stage {
+        Ok(b) => b,
+        Err(err) => {
+            // The cap on certification saves splits; it never makes a patch unsampleable: with
+            // the per-stage bound failed, the chain gets its whole budget, as without the cap.
+            if budget.uncertified < budget.splits
+                && chain.as_ref().is_some_and(|c| !c.top().is_finite())
+            {
+                chain = chain_with(Budget::new(max_splits, min_excess));
+            }
+            if chain.is_none() {
+                return Err(err);
+            }
             f64::INFINITY
         }
-        _ => surface_area_element_bound(map, edges, values, level).or_else(|err| {
-            if chain.is_some() {
-                Ok(f64::INFINITY)
-            } else {
-                Err(err)
-            }
-        })?,
     };
     let region_bounds: Vec<f64> = regions(tris, count)
         .iter()
