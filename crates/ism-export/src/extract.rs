@@ -1305,6 +1305,58 @@ fn test_edge(
     ends: bool,
     counters: &mut Counters,
 ) -> Result<EdgeTest> {
+    let test = decide_edge(
+        eval,
+        s,
+        (ua, a),
+        (ub, b),
+        um,
+        tol,
+        known_mid,
+        ends,
+        OnSplit::Place,
+        counters,
+    )?;
+    match test {
+        Some(test) => Ok(test),
+        // Only `OnSplit::Stop` returns `None`.
+        None => unreachable!("decide_edge places a split edge's points under OnSplit::Place"),
+    }
+}
+
+/// What [`decide_edge`] does once it knows that an edge splits.
+#[derive(Clone, Copy, PartialEq, Eq)]
+enum OnSplit {
+    /// Place the midpoint and the quarter points: the refinement's halves are tested with them.
+    Place,
+    /// Return `None` at once: the coarsening only asks whether a new edge would stay unsplit, and
+    /// most of the edges it asks about fail their first test point.
+    Stop,
+}
+
+/// [`test_edge`]'s decision, shared with the coarsening ([`SurfaceBuilder::edge_within`]) so that
+/// a collapse's new edge passes exactly the tests a leaf's edge passes. `None` (only with
+/// [`OnSplit::Stop`]) when the edge would split; the tests after the first that splits it are
+/// then not run, which changes no decision (a split is final whatever follows).
+#[allow(clippy::too_many_arguments)]
+fn decide_edge(
+    eval: &ModelEval,
+    s: usize,
+    (ua, a): (&Bary, &SurfacePoint),
+    (ub, b): (&Bary, &SurfacePoint),
+    um: &Bary,
+    tol: f64,
+    known_mid: Option<Probed>,
+    ends: bool,
+    on_split: OnSplit,
+    counters: &mut Counters,
+) -> Result<Option<EdgeTest>> {
+    let stop = on_split == OnSplit::Stop;
+    // A bend the ends' normals predict splits the edge whatever its test points show (`bent`
+    // below), and needs no test point: asked first when only the decision matters.
+    if stop && bends_beyond(a, b, tol) {
+        return Ok(None);
+    }
     let (pa, pb) = (a.p, b.p);
     let (curve, mean) = edge_guides(eval, s, (ua, a), (ub, b));
     let half = curve.at(0.5);
@@ -1313,6 +1365,9 @@ fn test_edge(
         None => probe(eval, s, um, &half, mean.as_ref(), tol, counters)?,
     };
     let middle = chord_error(pa, pb, pm);
+    if stop && middle > tol {
+        return Ok(None);
+    }
     let aimed = if middle <= tol && !covers_chord(pa, pb, pm) {
         edge_off_centre_error(
             eval,
@@ -1330,7 +1385,11 @@ fn test_edge(
     let off_centre = aimed > tol;
     // The ends' normals predict a bend the test points may not see ([`bends_beyond`];
     // only asked where the midpoint would not split the edge anyway).
-    let bent = middle <= tol && !off_centre && bends_beyond(a, b, tol);
+    // (`Stop` asked it first.)
+    let bent = !stop && middle <= tol && !off_centre && bends_beyond(a, b, tol);
+    if stop && (off_centre || bent) {
+        return Ok(None);
+    }
     if eval.dim() == 3
         && middle <= tol
         && !off_centre
@@ -1360,10 +1419,10 @@ fn test_edge(
             tol,
             counters,
         )? {
-            return Ok(EdgeTest {
+            return Ok(Some(EdgeTest {
                 split: None,
                 quarters: None,
-            });
+            }));
         }
     }
     let mut split = middle > tol || off_centre || bent;
@@ -1373,6 +1432,9 @@ fn test_edge(
         let guess = curve.at_with_middle(t, &wm, &half);
         quarters[k] = probe(eval, s, &u, &guess, mean.as_ref(), tol, counters)?;
         split = split || chord_error(pa, pb, quarters[k].1) > tol;
+        if stop && split {
+            return Ok(None);
+        }
         if !split && k == 1 {
             if stretches_within(
                 eval,
@@ -1385,19 +1447,22 @@ fn test_edge(
                 tol,
                 counters,
             )? {
-                return Ok(EdgeTest {
+                return Ok(Some(EdgeTest {
                     split: None,
                     quarters: None,
-                });
+                }));
+            }
+            if stop {
+                return Ok(None);
             }
             split = true;
         }
     }
     // Only a midpoint that becomes a vertex is placed exactly, from the test point's preimage.
-    Ok(EdgeTest {
+    Ok(Some(EdgeTest {
         split: Some(surface_point(eval, s, um, Some(&wm), counters)?),
         quarters: Some(quarters),
-    })
+    }))
 }
 
 /// The refinement of the patch edge on one facet, decided by the facet's owner.
@@ -1853,6 +1918,10 @@ struct Coarse {
     /// The star's triangles that a collapse rewrites, with their new corners.
     changes: Vec<(u32, [u32; 3])>,
     remap: Vec<u32>,
+    /// The corners of the collapse target's live triangles (its neighbours, and itself).
+    joined: Vec<u32>,
+    /// The edge tests run in this patch ([`SurfaceBuilder::edge_within`]).
+    edges: HashMap<(u32, u32), bool>,
 }
 
 impl Coarse {
@@ -1870,6 +1939,7 @@ impl Coarse {
         }
         self.alive.clear();
         self.alive.resize(nt, true);
+        self.edges.clear();
     }
 
     /// Fills `ring` and `nbrs` for vertex `v`.
@@ -2212,68 +2282,41 @@ impl SurfaceBuilder<'_> {
         Ok(self.centroid(v)?.2 <= EDGE_FRACTION * self.options.tolerance)
     }
 
-    /// Whether the mapped points at ½, ¼ and ¾ of the edge between local vertices `a` and `b`, and
-    /// those placed into its gaps ([`GAP`]), lie within `tol` of its chord (the refinement's edge
-    /// test, stopping at the first miss).
-    fn edge_within(&mut self, a: u32, b: u32, tol: f64) -> Result<bool> {
+    /// Whether the edge between local vertices `a` and `b` passes the refinement's edge test
+    /// ([`decide_edge`] with `tol`, no end check: a collapse's new edge lies inside the patch),
+    /// stopping at the first test that would split it. The answer depends on the two vertices
+    /// alone, which the coarsening never moves, so it is kept in `edges` for the patch: a third of
+    /// the new edges the collapses try were tried before (fitted sphere at 1e-4).
+    fn edge_within(
+        &mut self,
+        edges: &mut HashMap<(u32, u32), bool>,
+        a: u32,
+        b: u32,
+        tol: f64,
+    ) -> Result<bool> {
+        // One direction for both orders, so a cached answer is the one a fresh test would give.
+        let (a, b) = (a.min(b), a.max(b));
+        if let Some(&within) = edges.get(&(a, b)) {
+            return Ok(within);
+        }
         let (ua, ub) = (self.scratch.us[a as usize], self.scratch.us[b as usize]);
         let points = &self.scratch.points;
         let (pa, pb) = (&points[a as usize], &points[b as usize]);
-        let (curve, mean) = edge_guides(self.eval, self.s, (&ua, pa), (&ub, pb));
-        let half = curve.at(0.5);
-        let (wm, pm) = probe(
-            self.eval,
-            self.s,
-            &lerp(&ua, &ub, 0.5),
-            &half,
-            mean.as_ref(),
-            tol,
-            &mut self.counters,
-        )?;
-        if chord_error(pa.p, pb.p, pm) > tol
-            || !covers_chord(pa.p, pb.p, pm)
-                && edge_off_centre_error(
-                    self.eval,
-                    self.s,
-                    (&ua, pa),
-                    (&ub, pb),
-                    (&curve, &half, mean.as_ref()),
-                    (&wm, pm),
-                    tol,
-                    &mut self.counters,
-                )? > tol
-        {
-            return Ok(false);
-        }
-        let mut quarters = [[0.0; 3]; 2];
-        for (k, t) in [0.25, 0.75].into_iter().enumerate() {
-            let guess = curve.at_with_middle(t, &wm, &half);
-            let (_, q) = probe(
-                self.eval,
-                self.s,
-                &lerp(&ua, &ub, t),
-                &guess,
-                mean.as_ref(),
-                tol,
-                &mut self.counters,
-            )?;
-            if chord_error(pa.p, pb.p, q) > tol {
-                return Ok(false);
-            }
-            quarters[k] = q;
-        }
-        // A new edge of a collapse lies inside the patch: no end check (as in refinement).
-        stretches_within(
+        let within = decide_edge(
             self.eval,
             self.s,
             (&ua, pa),
             (&ub, pb),
-            (&curve, &half, &wm, mean.as_ref()),
-            &[(0.25, quarters[0]), (0.5, pm), (0.75, quarters[1])],
-            false,
+            &lerp(&ua, &ub, 0.5),
             tol,
+            None,
+            false,
+            OnSplit::Stop,
             &mut self.counters,
-        )
+        )?
+        .is_some_and(|test| test.split.is_none());
+        edges.insert((a, b), within);
+        Ok(within)
     }
 
     /// Coarsens the refined patch (module doc, **Coarsening**): each vertex inside the patch, the
@@ -2400,16 +2443,28 @@ impl SurfaceBuilder<'_> {
             }
             c.changes.push((t, new));
         }
-        // The new edges: from the target to the star's vertices it was not joined to.
+        // The new edges: from the target to the star's vertices it was not joined to. The
+        // target's live triangles are gathered once (and its list rid of the dead ones, which
+        // collapses into it leave behind): scanning the whole list for each star vertex was a
+        // third of the coarsening's own CPU.
+        let Coarse {
+            incident,
+            alive,
+            joined,
+            ..
+        } = c;
+        let around = &mut incident[target as usize];
+        around.retain(|&t| alive[t as usize]);
+        joined.clear();
+        for &t in around.iter() {
+            joined.extend_from_slice(&cell_of(&self.scratch.cells, t));
+        }
         for xi in 0..c.nbrs.len() {
             let x = c.nbrs[xi];
-            if x == target {
+            if x == target || c.joined.contains(&x) {
                 continue;
             }
-            let joined = c.incident[target as usize]
-                .iter()
-                .any(|&t| c.alive[t as usize] && cell_of(&self.scratch.cells, t).contains(&x));
-            if !joined && !self.edge_within(target, x, tol)? {
+            if !self.edge_within(&mut c.edges, target, x, tol)? {
                 return Ok(false);
             }
         }
