@@ -150,7 +150,7 @@ class Model:
         progress: _Steps = None,
     ) -> ValidationReport: ...
     def extract_surface(
-        self, tolerance: float = 1e-3, *, max_depth: int = 8, linear: bool = False, coarsen: bool = False, threads: int = 0,
+        self, tolerance: float = 1e-3, *, max_depth: int = 8, linear: bool = False, coarsen: Optional[bool] = None, threads: int = 0,
         progress: _Steps = None
     ) -> Surface: ...
     def export(
@@ -161,7 +161,7 @@ class Model:
         max_depth: int = 8,
         linear: bool = False,
         volume: bool = False,
-        coarsen: bool = False,
+        coarsen: Optional[bool] = None,
         threads: int = 0,
         progress: _Steps = None,
     ) -> Dict[str, Any]: ...

@@ -174,18 +174,26 @@ def test_extract_surface_matches_the_exported_mesh(name, tmp_path):
 
 @pytest.mark.parametrize("name", ["sphere", "torus", "stratified-3d"])
 def test_coarsened_surface_is_the_cli_s_and_keeps_the_shape(name, tmp_path):
-    """``coarsen=True`` / ``ism export --coarsen``: the same mesh from both, fewer triangles than the
-    refined export, a closed surface with the refined export's topology (trimesh's own count), and
-    every vertex still on F = c (query, not the exporter)."""
+    """The default surface is coarsened (``coarsen=None`` = ``coarsen=True`` = ``ism export`` =
+    ``ism export --coarsen``): the same mesh from all, fewer triangles than the refined export
+    (``coarsen=False`` = ``--no-coarsen``), a closed surface with the refined export's topology
+    (trimesh's own count), and every vertex still on F = c (query, not the exporter)."""
     import trimesh
 
     path = EXAMPLES / (name + ".ismb")
     m = ism.read(path)
-    fine = m.extract_surface(1e-4)
-    s = m.extract_surface(1e-4, coarsen=True)
+    fine = m.extract_surface(1e-4, coarsen=False)
+    s = m.extract_surface(1e-4)
+    assert np.array_equal(m.extract_surface(1e-4, coarsen=True).cells, s.cells)
     out = tmp_path / "c.obj"
     summary = json.loads(cli("export", path, out, "--tolerance", "1e-4", "--coarsen", "--json", "--quiet").stdout)
     assert py_bytes_equal(m, tmp_path, out)
+    default = tmp_path / "d.obj"
+    cli("export", path, default, "--tolerance", "1e-4", "--quiet")
+    assert default.read_bytes() == out.read_bytes()
+    refined = tmp_path / "r.obj"
+    fine_summary = json.loads(cli("export", path, refined, "--tolerance", "1e-4", "--no-coarsen", "--json", "--quiet").stdout)
+    assert fine_summary["cells"] == len(fine.cells)
     assert s.report["cells"] == summary["cells"] == len(s.cells) < len(fine.cells)
     for key in ("components", "euler_characteristic", "boundary_edges"):
         assert s.report[key] == fine.report[key] == summary[key], key
@@ -201,7 +209,7 @@ def test_coarsened_surface_is_the_cli_s_and_keeps_the_shape(name, tmp_path):
 
 def py_bytes_equal(m, tmp_path, cli_out):
     py_out = tmp_path / "py.obj"
-    m.export(py_out, tolerance=1e-4, coarsen=True)
+    m.export(py_out, tolerance=1e-4)
     return py_out.read_bytes() == cli_out.read_bytes()
 
 

@@ -43,7 +43,9 @@ fn curve_export_writes_obj_lines_and_reports_a_closed_curve() {
     assert!(text.lines().filter(|l| l.starts_with("v ")).count() > 8);
 }
 
-/// `--coarsen`: fewer triangles, the refined export's topology, closed; refused with `--linear`.
+/// The default export is coarsened (the same as `--coarsen`): fewer triangles than
+/// `--no-coarsen`, the refined export's topology, closed; `--coarsen` is refused with `--linear`
+/// and with `--no-coarsen`.
 #[test]
 fn coarsened_export_has_fewer_triangles_and_the_same_topology() {
     let dir = tempfile::tempdir().unwrap();
@@ -55,7 +57,11 @@ fn coarsened_export_has_fewer_triangles_and_the_same_topology() {
         assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
         serde_json::from_slice::<serde_json::Value>(&o.stdout).unwrap()
     };
-    let (fine, coarse) = (run(&[]), run(&["--coarsen"]));
+    let (fine, coarse) = (run(&["--no-coarsen"]), run(&[]));
+    let mut explicit = run(&["--coarsen"]);
+    // Everything but the timing.
+    explicit["extract_seconds"] = coarse["extract_seconds"].clone();
+    assert_eq!(explicit, coarse);
     assert!(coarse["cells"].as_u64().unwrap() < fine["cells"].as_u64().unwrap());
     for key in ["components", "euler_characteristic", "boundary_edges"] {
         assert_eq!(coarse[key], fine[key], "{key}");
@@ -65,6 +71,12 @@ fn coarsened_export_has_fewer_triangles_and_the_same_topology() {
         &example("torus.ism.json"),
         &dir.path().join("l.obj"),
         &["--coarsen", "--linear"],
+    );
+    assert_eq!(o.status.code(), Some(2));
+    let o = export(
+        &example("torus.ism.json"),
+        &dir.path().join("c.obj"),
+        &["--coarsen", "--no-coarsen"],
     );
     assert_eq!(o.status.code(), Some(2));
 }

@@ -70,11 +70,15 @@ pub struct ExportOptions {
     pub volume: bool,
     /// The volume field's tolerance; `None`: [`default_field_tolerance`] of `tolerance`.
     pub field_tolerance: Option<f64>,
-    /// After refinement, collapse vertices inside patches where the coarser mesh still passes the
-    /// refinement's own tests ([`crate::extract::extract_coarsened`]): 0.6–0.8× the triangles at
-    /// the same true error, for 1.1–1.5× the CPU (BENCHMARKS.md, issue 19, session 20). Curved
-    /// surface exports only.
-    pub coarsen: bool,
+    /// Whether the curved surface is coarsened after refinement: vertices inside patches
+    /// collapsed where the coarser mesh still passes the refinement's own tests
+    /// ([`crate::extract::extract_coarsened`]), 0.6–0.8× the triangles at the same true error
+    /// for 1.1–1.5× the CPU (BENCHMARKS.md, issue 19). `None` (the default): yes — at equal true
+    /// error the refined mesh alone has more triangles than marching cubes on a smooth closed
+    /// shape (1.35× on the fitted sphere), the coarsened one fewer. `Some(false)`: the
+    /// refinement's mesh (the cheaper export). Linear and volume exports have no refinement to
+    /// coarsen: `Some(true)` with them is refused.
+    pub coarsen: Option<bool>,
 }
 
 impl Default for ExportOptions {
@@ -86,7 +90,7 @@ impl Default for ExportOptions {
             linear: false,
             volume: false,
             field_tolerance: None,
-            coarsen: false,
+            coarsen: None,
         }
     }
 }
@@ -154,7 +158,7 @@ pub fn check(options: &ExportOptions, format: Option<ExportFormat>) -> Result<()
     if options.volume && options.linear {
         return bad("linear and volume exclude each other".into());
     }
-    if options.coarsen && (options.volume || options.linear) {
+    if options.coarsen == Some(true) && (options.volume || options.linear) {
         return bad(
             "coarsening applies to the curved surface only, not to linear or volume".into(),
         );
@@ -218,7 +222,7 @@ pub fn build(
         tolerance: options.tolerance,
         max_depth: options.max_depth,
     };
-    let (mesh, report) = if options.coarsen {
+    let (mesh, report) = if options.coarsen.unwrap_or(true) {
         extract_coarsened_with_progress(&eval, &extract_options, progress)?
     } else {
         extract_with_progress(&eval, &extract_options, progress)?
