@@ -3293,6 +3293,91 @@ mod tests {
         assert!(skipped > 1000 && skipped < tested, "{skipped} of {tested}");
     }
 
+    /// The coarsening's question about a new edge ([`decide_edge`] with [`OnSplit::Stop`]) gets
+    /// the refinement's answer ([`test_edge`]: unsplit or split) on every 3D example at two
+    /// tolerances, over patch edges and the diagonals across patches (the edges a collapse makes
+    /// lie inside a patch) cut into 1, 2, 4 and 8 pieces, with at most the refinement's test points
+    /// — and fewer on some split edges (it stops at the first failing test: not a vacuous pass).
+    #[test]
+    fn stopping_at_the_first_failing_test_keeps_the_refinements_decision() {
+        let (mut compared, mut split, mut saved) = (0, 0, 0);
+        for (name, model) in ism_examples::named::all_examples() {
+            if model.dim() != 3 {
+                continue;
+            }
+            let indexed = IndexedModel::new(model).unwrap();
+            let eval = ModelEval::for_extraction(&indexed).unwrap();
+            let mut c = Counters::default();
+            let mut exact =
+                |s: usize, u: &Bary| surface_point(&eval, s, u, Some(u), &mut c).unwrap();
+            for tolerance in [1e-2, 1e-3] {
+                let tol = EDGE_FRACTION * tolerance;
+                for s in 0..eval.num_simplices() {
+                    let Some(patch) = eval.patch(s) else { continue };
+                    let k = patch.corners.len();
+                    for j in 0..k {
+                        for step in 1..k {
+                            let (u0, u1) = (patch.corners[j].u, patch.corners[(j + step) % k].u);
+                            for pieces in [1, 2, 4, 8] {
+                                for i in 0..pieces {
+                                    let t = |x: usize| x as f64 / pieces as f64;
+                                    let (ua, ub) = (lerp(&u0, &u1, t(i)), lerp(&u0, &u1, t(i + 1)));
+                                    let (a, b) = (exact(s, &ua), exact(s, &ub));
+                                    let um = lerp(&ua, &ub, 0.5);
+                                    let (mut placed, mut stopped) =
+                                        (Counters::default(), Counters::default());
+                                    let test = test_edge(
+                                        &eval,
+                                        s,
+                                        (&ua, &a),
+                                        (&ub, &b),
+                                        &um,
+                                        tol,
+                                        None,
+                                        false,
+                                        &mut placed,
+                                    )
+                                    .unwrap();
+                                    let decided = decide_edge(
+                                        &eval,
+                                        s,
+                                        (&ua, &a),
+                                        (&ub, &b),
+                                        &um,
+                                        tol,
+                                        None,
+                                        false,
+                                        OnSplit::Stop,
+                                        &mut stopped,
+                                    )
+                                    .unwrap();
+                                    let unsplit = decided.is_some_and(|d| d.split.is_none());
+                                    assert_eq!(
+                                        unsplit,
+                                        test.split.is_none(),
+                                        "{name} at {tolerance}: simplex {s} corners {j}+{step} \
+                                         piece {i}/{pieces}"
+                                    );
+                                    assert!(stopped.inversions <= placed.inversions);
+                                    compared += 1;
+                                    if !unsplit {
+                                        split += 1;
+                                        saved +=
+                                            usize::from(stopped.inversions < placed.inversions);
+                                    }
+                                }
+                            }
+                        }
+                    }
+                }
+            }
+        }
+        assert!(
+            split > 100 && split < compared && saved > 100,
+            "{split} split of {compared}, {saved} with fewer test points"
+        );
+    }
+
     /// A patch corner on a K-edge shared with an earlier simplex is adopted from that simplex's
     /// exact point instead of being inverted again: its preimage, moved into this simplex's
     /// coordinates, must be the one this simplex's own inversion finds (faces map to themselves),
