@@ -55,11 +55,13 @@
 //! the mesh conforming splits edges that were within it: on a fitted sphere at 1e-3 only a third
 //! of the final edges were above half the threshold. So after refinement each vertex inside a
 //! patch (never one on its boundary, which the neighbours share) is collapsed into a neighbour
-//! when every edge and triangle the collapse makes passes the same tests as the leaves (points at
-//! ½, ¼, ¾ of each new edge within ¾ of the tolerance of its chord; each new triangle's mapped
-//! centroid within ¾ of it of its plane) and every triangle of its star stays positively oriented
-//! in the patch's parameter plane (so the patch stays a triangulated disc: no fold, the same
-//! topology) and in space.
+//! when every edge and triangle the collapse makes passes the same tests as the leaves (each new
+//! edge the refinement's whole edge test, the one function `decide_edge`; each new triangle's
+//! mapped centroid within ¾ of the tolerance of its plane) and every triangle of its star stays
+//! positively oriented in the patch's parameter plane (so the patch stays a triangulated disc: no
+//! fold, the same topology) and in space. `ism export` coarsens by default: at equal true error
+//! the refined mesh alone has more triangles than marching cubes on a fitted sphere, the coarsened
+//! one fewer (BENCHMARKS.md, issue 19, session 39).
 //!
 //! **Topology.** Each patch is triangulated as a disc (or a segment in 2D) whose boundary is shared
 //! with its neighbours, and `X` is a face-preserving homeomorphism, so the result has the
@@ -1513,7 +1515,8 @@ fn facet_of(ids: &[u32], e1: [usize; 2], e2: [usize; 2]) -> [u32; 3] {
     }
 }
 
-/// Extracts `O` from a model evaluator.
+/// Extracts `O` from a model evaluator: the refined mesh (`ism export --no-coarsen`;
+/// [`extract_coarsened`] for the default export's fewer triangles).
 ///
 /// 3D models give a triangle mesh, 2D models a polyline; other dimensions are refused.
 ///
@@ -1548,7 +1551,8 @@ pub fn extract_with_progress(
 }
 
 /// [`extract`], then each patch coarsened (module doc, **Coarsening**): fewer triangles for the
-/// same tolerance, at the cost of more test points. Curves (2D) are not coarsened.
+/// same tolerance, at the cost of more test points. Curves (2D) are not coarsened. What `ism
+/// export` writes by default ([`crate::export::ExportOptions::coarsen`]).
 ///
 /// # Errors
 /// As [`extract`].
