@@ -3227,6 +3227,54 @@ mod tests {
         }
     }
 
+    /// An edge piece handed to a test by [`for_each_patch_piece`]: the example's name, the
+    /// tolerance, the evaluator, the simplex and the piece's ends (parameters, exact points).
+    type Piece<'a> = (
+        &'a str,
+        f64,
+        &'a ModelEval,
+        usize,
+        (&'a Bary, &'a SurfacePoint),
+        (&'a Bary, &'a SurfacePoint),
+    );
+
+    /// Calls `f` on every piece (each cut into 1, 2, 4 and 8) of every patch edge — with
+    /// `diagonals`, of every chord between two corners of the patch, the edges a collapse can
+    /// make — of every crossed simplex of every 3D example, at tolerances 1e-2 and 1e-3; the
+    /// pieces' ends placed exactly (`surface_point`, the vertices' inversion).
+    fn for_each_patch_piece(diagonals: bool, mut f: impl FnMut(Piece<'_>)) {
+        for (name, model) in ism_examples::named::all_examples() {
+            if model.dim() != 3 {
+                continue;
+            }
+            let indexed = IndexedModel::new(model).unwrap();
+            let eval = ModelEval::for_extraction(&indexed).unwrap();
+            let mut c = Counters::default();
+            let mut exact =
+                |s: usize, u: &Bary| surface_point(&eval, s, u, Some(u), &mut c).unwrap();
+            for tolerance in [1e-2, 1e-3] {
+                for s in 0..eval.num_simplices() {
+                    let Some(patch) = eval.patch(s) else { continue };
+                    let k = patch.corners.len();
+                    let steps = if diagonals { k - 1 } else { 1 };
+                    for j in 0..k {
+                        for step in 1..=steps {
+                            let (u0, u1) = (patch.corners[j].u, patch.corners[(j + step) % k].u);
+                            for pieces in [1, 2, 4, 8] {
+                                for i in 0..pieces {
+                                    let t = |x: usize| x as f64 / pieces as f64;
+                                    let (ua, ub) = (lerp(&u0, &u1, t(i)), lerp(&u0, &u1, t(i + 1)));
+                                    let (a, b) = (exact(s, &ua), exact(s, &ub));
+                                    f((name, tolerance, &eval, s, (&ua, &a), (&ub, &b)));
+                                }
+                            }
+                        }
+                    }
+                }
+            }
+        }
+    }
+
     /// Where [`test_edge`] accepts a surface edge without its quarter points
     /// ([`QUARTER_PREDICTED_FRACTION`]), the full three-point test must not have split it: ground truth
     /// is the midpoint and the quarter points placed exactly (`surface_point`, the vertices'
@@ -3237,145 +3285,95 @@ mod tests {
     #[test]
     fn skipped_quarter_points_would_not_have_split() {
         let (mut skipped, mut tested) = (0, 0);
-        for (name, model) in ism_examples::named::all_examples() {
-            if model.dim() != 3 {
-                continue;
+        for_each_patch_piece(false, |(name, tolerance, eval, s, (ua, a), (ub, b))| {
+            let tol = EDGE_FRACTION * tolerance;
+            let um = lerp(ua, ub, 0.5);
+            let mut counters = Counters::default();
+            let test = test_edge(
+                eval,
+                s,
+                (ua, a),
+                (ub, b),
+                &um,
+                tol,
+                None,
+                false,
+                &mut counters,
+            )
+            .unwrap();
+            tested += 1;
+            // The midpoint alone was placed: the quarters were skipped.
+            if test.split.is_some() || counters.inversions != 1 {
+                return;
             }
-            let indexed = IndexedModel::new(model).unwrap();
-            let eval = ModelEval::for_extraction(&indexed).unwrap();
-            let mut c = Counters::default();
-            let mut exact =
-                |s: usize, u: &Bary| surface_point(&eval, s, u, Some(u), &mut c).unwrap();
-            for tolerance in [1e-2, 1e-3] {
-                let tol = EDGE_FRACTION * tolerance;
-                for s in 0..eval.num_simplices() {
-                    let Some(patch) = eval.patch(s) else { continue };
-                    let k = patch.corners.len();
-                    for j in 0..k {
-                        let (u0, u1) = (patch.corners[j].u, patch.corners[(j + 1) % k].u);
-                        for pieces in [1, 2, 4, 8] {
-                            for i in 0..pieces {
-                                let t = |x: usize| x as f64 / pieces as f64;
-                                let (ua, ub) = (lerp(&u0, &u1, t(i)), lerp(&u0, &u1, t(i + 1)));
-                                let (a, b) = (exact(s, &ua), exact(s, &ub));
-                                let um = lerp(&ua, &ub, 0.5);
-                                let mut counters = Counters::default();
-                                let test = test_edge(
-                                    &eval,
-                                    s,
-                                    (&ua, &a),
-                                    (&ub, &b),
-                                    &um,
-                                    tol,
-                                    None,
-                                    false,
-                                    &mut counters,
-                                )
-                                .unwrap();
-                                tested += 1;
-                                // The midpoint alone was placed: the quarters were skipped.
-                                if test.split.is_some() || counters.inversions != 1 {
-                                    continue;
-                                }
-                                skipped += 1;
-                                for q in [0.25, 0.5, 0.75] {
-                                    let p = exact(s, &lerp(&ua, &ub, q)).p;
-                                    let e = chord_error(a.p, b.p, p);
-                                    assert!(
-                                        e <= tol,
-                                        "{name} at {tolerance}: simplex {s} edge {j} piece \
-                                         {i}/{pieces}: skipped test point {q} is {e} from \
-                                         the chord (threshold {tol})"
-                                    );
-                                }
-                            }
-                        }
-                    }
-                }
+            skipped += 1;
+            for q in [0.25, 0.5, 0.75] {
+                let mut c = Counters::default();
+                let p = surface_point(eval, s, &lerp(ua, ub, q), Some(&lerp(ua, ub, q)), &mut c)
+                    .unwrap()
+                    .p;
+                let e = chord_error(a.p, b.p, p);
+                assert!(
+                    e <= tol,
+                    "{name} at {tolerance}: simplex {s}: skipped test point {q} is {e} from the \
+                     chord (threshold {tol})"
+                );
             }
-        }
+        });
         assert!(skipped > 1000 && skipped < tested, "{skipped} of {tested}");
     }
 
     /// The coarsening's question about a new edge ([`decide_edge`] with [`OnSplit::Stop`]) gets
     /// the refinement's answer ([`test_edge`]: unsplit or split) on every 3D example at two
-    /// tolerances, over patch edges and the diagonals across patches (the edges a collapse makes
-    /// lie inside a patch) cut into 1, 2, 4 and 8 pieces, with at most the refinement's test points
-    /// — and fewer on some split edges (it stops at the first failing test: not a vacuous pass).
+    /// tolerances, over patch edges and the chords between patch corners (the edges a collapse
+    /// makes lie inside a patch) cut into 1, 2, 4 and 8 pieces, with at most the refinement's test
+    /// points — and fewer on some split edges (it stops at the first failing test: not a vacuous
+    /// pass). Fails without the normals' bend asked first.
     #[test]
     fn stopping_at_the_first_failing_test_keeps_the_refinements_decision() {
         let (mut compared, mut split, mut saved) = (0, 0, 0);
-        for (name, model) in ism_examples::named::all_examples() {
-            if model.dim() != 3 {
-                continue;
+        for_each_patch_piece(true, |(name, tolerance, eval, s, (ua, a), (ub, b))| {
+            let tol = EDGE_FRACTION * tolerance;
+            let um = lerp(ua, ub, 0.5);
+            let (mut placed, mut stopped) = (Counters::default(), Counters::default());
+            let test = test_edge(
+                eval,
+                s,
+                (ua, a),
+                (ub, b),
+                &um,
+                tol,
+                None,
+                false,
+                &mut placed,
+            )
+            .unwrap();
+            let decided = decide_edge(
+                eval,
+                s,
+                (ua, a),
+                (ub, b),
+                &um,
+                tol,
+                None,
+                false,
+                OnSplit::Stop,
+                &mut stopped,
+            )
+            .unwrap();
+            let unsplit = decided.is_some_and(|d| d.split.is_none());
+            assert_eq!(
+                unsplit,
+                test.split.is_none(),
+                "{name} at {tolerance}: simplex {s}, {ua:?} to {ub:?}"
+            );
+            assert!(stopped.inversions <= placed.inversions);
+            compared += 1;
+            if !unsplit {
+                split += 1;
+                saved += usize::from(stopped.inversions < placed.inversions);
             }
-            let indexed = IndexedModel::new(model).unwrap();
-            let eval = ModelEval::for_extraction(&indexed).unwrap();
-            let mut c = Counters::default();
-            let mut exact =
-                |s: usize, u: &Bary| surface_point(&eval, s, u, Some(u), &mut c).unwrap();
-            for tolerance in [1e-2, 1e-3] {
-                let tol = EDGE_FRACTION * tolerance;
-                for s in 0..eval.num_simplices() {
-                    let Some(patch) = eval.patch(s) else { continue };
-                    let k = patch.corners.len();
-                    for j in 0..k {
-                        for step in 1..k {
-                            let (u0, u1) = (patch.corners[j].u, patch.corners[(j + step) % k].u);
-                            for pieces in [1, 2, 4, 8] {
-                                for i in 0..pieces {
-                                    let t = |x: usize| x as f64 / pieces as f64;
-                                    let (ua, ub) = (lerp(&u0, &u1, t(i)), lerp(&u0, &u1, t(i + 1)));
-                                    let (a, b) = (exact(s, &ua), exact(s, &ub));
-                                    let um = lerp(&ua, &ub, 0.5);
-                                    let (mut placed, mut stopped) =
-                                        (Counters::default(), Counters::default());
-                                    let test = test_edge(
-                                        &eval,
-                                        s,
-                                        (&ua, &a),
-                                        (&ub, &b),
-                                        &um,
-                                        tol,
-                                        None,
-                                        false,
-                                        &mut placed,
-                                    )
-                                    .unwrap();
-                                    let decided = decide_edge(
-                                        &eval,
-                                        s,
-                                        (&ua, &a),
-                                        (&ub, &b),
-                                        &um,
-                                        tol,
-                                        None,
-                                        false,
-                                        OnSplit::Stop,
-                                        &mut stopped,
-                                    )
-                                    .unwrap();
-                                    let unsplit = decided.is_some_and(|d| d.split.is_none());
-                                    assert_eq!(
-                                        unsplit,
-                                        test.split.is_none(),
-                                        "{name} at {tolerance}: simplex {s} corners {j}+{step} \
-                                         piece {i}/{pieces}"
-                                    );
-                                    assert!(stopped.inversions <= placed.inversions);
-                                    compared += 1;
-                                    if !unsplit {
-                                        split += 1;
-                                        saved +=
-                                            usize::from(stopped.inversions < placed.inversions);
-                                    }
-                                }
-                            }
-                        }
-                    }
-                }
-            }
-        }
+        });
         assert!(
             split > 100 && split < compared && saved > 100,
             "{split} split of {compared}, {saved} with fewer test points"
