@@ -515,6 +515,21 @@ impl Bernstein {
         }
     }
 
+    /// `self += s · other` in place: bit-identical to `self.add(&other.scale(s))` (each
+    /// coefficient `a + s·b`, the product rounded first) without its two allocations.
+    ///
+    /// # Panics
+    /// If the shapes differ.
+    pub fn add_scaled(&mut self, other: &Bernstein, s: f64) {
+        assert!(
+            self.m == other.m && self.degree == other.degree,
+            "Bernstein::add_scaled: shapes differ"
+        );
+        for (a, b) in self.coeffs.iter_mut().zip(&other.coeffs) {
+            *a += s * b;
+        }
+    }
+
     /// `s · p`.
     pub fn scale(&self, s: f64) -> Bernstein {
         Bernstein {
@@ -913,6 +928,32 @@ mod tests {
         [0.7, 0.1, 0.15, 0.05],
         [0.25, 0.25, 0.25, 0.25],
     ];
+
+    /// `add_scaled` in place equals `add(&scale)` bit for bit (the callers rely on it: the
+    /// sampler's tables must not change), for scales of ±1, a power of two and two inexact ones,
+    /// and evaluates to `p + s·q` (ground truth: the power form at three points).
+    #[test]
+    fn add_scaled_equals_add_of_scale() {
+        for (m, d) in [(2, 3), (3, 2), (4, 5)] {
+            for (k, s) in [1.0, -1.0, 0.5, -0.3, 1.0 / 3.0].into_iter().enumerate() {
+                let (p, q) = (sample(m, d, 11 + k as u64), sample(m, d, 97 + k as u64));
+                let want = p.add(&q.scale(s));
+                let mut got = p.clone();
+                got.add_scaled(&q, s);
+                let bits =
+                    |b: &Bernstein| b.coeffs().iter().map(|c| c.to_bits()).collect::<Vec<_>>();
+                assert_eq!(bits(&got), bits(&want), "m {m} d {d} s {s}");
+                for w in &W {
+                    let w = &w[..m];
+                    let exact = power_eval(&p, w) + s * power_eval(&q, w);
+                    assert!(
+                        (power_eval(&got, w) - exact).abs() < 1e-12,
+                        "m {m} d {d} s {s}"
+                    );
+                }
+            }
+        }
+    }
 
     /// The face restriction's prefix-tree walk against one de Casteljau chain per coefficient
     /// (the definition): equal bit for bit.

@@ -22,6 +22,8 @@
 //! the range of `Q`. A stage stored in the parametric direction (`S = X_k⁻¹`) uses
 //! `‖S⁻¹‖ ≤ ‖S‖^{n−1}/det S` and `det X_k = 1/det S`.
 
+use std::borrow::Borrow;
+
 use ism_format::{Direction, StageKind};
 use ism_geom::{linalg, Bernstein, LocalMap, LocalStage, Mat, MAX_VARS};
 
@@ -229,20 +231,24 @@ fn surface_stage_factor(
     // to one).
     let mut nf = p[0].scale(values[0]);
     for (pi, &fi) in p.iter().zip(values).skip(1) {
-        nf = nf.add(&pi.scale(fi));
+        nf.add_scaled(pi, fi);
     }
     let cross = match &q {
         None => nf.add(&Bernstein::constant(m, nf.degree(), -level)),
-        Some(q) => nf.add(&q.scale(-level)),
+        Some(q) => {
+            let mut cross = nf.clone();
+            cross.add_scaled(q, -level);
+            cross
+        }
     };
     // ∂F/∂w_l = (∂N Q − N ∂Q)/Q², numerators elevated to the degree of Q².
     let dw: Vec<Bernstein> = (1..m)
         .map(|l| match (&q, &q2) {
-            (Some(q), Some(q2)) => nf
-                .derivative(l)
-                .mul(q)
-                .add(&nf.mul(&q.derivative(l)).scale(-1.0))
-                .elevate_to(q2.degree()),
+            (Some(q), Some(q2)) => {
+                let mut d = nf.derivative(l).mul(q);
+                d.add_scaled(&nf.mul(&q.derivative(l)), -1.0);
+                d.elevate_to(q2.degree())
+            }
             _ => nf.derivative(l),
         })
         .collect();
@@ -251,7 +257,7 @@ fn surface_stage_factor(
         .map(|x| {
             let mut acc = dw[0].scale(inv_edges[0][x]);
             for (l, g) in dw.iter().enumerate().skip(1) {
-                acc = acc.add(&g.scale(inv_edges[l][x]));
+                acc.add_scaled(g, inv_edges[l][x]);
             }
             acc
         })
@@ -469,10 +475,11 @@ fn jacobian_polys(stage: &LocalStage) -> Result<JacobianPolys, String> {
         let row = (1..m)
             .map(|l| match &q {
                 None => pi.derivative(l),
-                Some(q) => pi
-                    .derivative(l)
-                    .mul(q)
-                    .add(&pi.mul(&q.derivative(l)).scale(-1.0)),
+                Some(q) => {
+                    let mut e = pi.derivative(l).mul(q);
+                    e.add_scaled(&pi.mul(&q.derivative(l)), -1.0);
+                    e
+                }
             })
             .collect();
         num.push(row);
@@ -629,22 +636,27 @@ fn component(m: usize, d: u32, coeffs: impl Iterator<Item = f64>) -> Bernstein {
 }
 
 /// `det` of an `n × n` matrix of Bernstein polynomials of equal degree (`n ≤ 3`), as a polynomial.
-pub(crate) fn det_poly(a: &[Vec<Bernstein>]) -> Bernstein {
+pub(crate) fn det_poly<T: Borrow<Bernstein>>(a: &[Vec<T>]) -> Bernstein {
+    // The products, then the signed sums in place (`add_scaled`: the same roundings as
+    // `x.add(&y.scale(-1.0))`, without the two allocations per term).
+    let e = |i: usize, j: usize| a[i][j].borrow();
     match a.len() {
-        1 => a[0][0].clone(),
-        2 => a[0][0]
-            .mul(&a[1][1])
-            .add(&a[0][1].mul(&a[1][0]).scale(-1.0)),
+        1 => e(0, 0).clone(),
+        2 => {
+            let mut d = e(0, 0).mul(e(1, 1));
+            d.add_scaled(&e(0, 1).mul(e(1, 0)), -1.0);
+            d
+        }
         _ => {
             let minor = |c0: usize, c1: usize| {
-                a[1][c0]
-                    .mul(&a[2][c1])
-                    .add(&a[1][c1].mul(&a[2][c0]).scale(-1.0))
+                let mut m = e(1, c0).mul(e(2, c1));
+                m.add_scaled(&e(1, c1).mul(e(2, c0)), -1.0);
+                m
             };
-            a[0][0]
-                .mul(&minor(1, 2))
-                .add(&a[0][1].mul(&minor(0, 2)).scale(-1.0))
-                .add(&a[0][2].mul(&minor(0, 1)))
+            let mut d = e(0, 0).mul(&minor(1, 2));
+            d.add_scaled(&e(0, 1).mul(&minor(0, 2)), -1.0);
+            d.add_scaled(&e(0, 2).mul(&minor(0, 1)), 1.0);
+            d
         }
     }
 }
@@ -686,22 +698,24 @@ pub(crate) fn det_over_denominator(
         _ => {
             let mut acc: Option<Bernstein> = None;
             for c in 0..=n {
-                let minor: Vec<Vec<Bernstein>> = bordered[1..]
+                // The minor's entries borrowed, not copied.
+                let minor: Vec<Vec<&Bernstein>> = bordered[1..]
                     .iter()
                     .map(|r| {
                         r.iter()
                             .enumerate()
                             .filter(|&(k, _)| k != c)
-                            .map(|(_, e)| e.clone())
+                            .map(|(_, e)| e)
                             .collect()
                     })
                     .collect();
                 let term = bordered[0][c].mul(&det_poly(&minor));
-                let term = if c % 2 == 1 { term.scale(-1.0) } else { term };
-                acc = Some(match acc {
-                    None => term,
-                    Some(a) => a.add(&term),
-                });
+                let sign = if c % 2 == 1 { -1.0 } else { 1.0 };
+                match &mut acc {
+                    // `scale(-1.0)` is exact: the first term (c = 0) is taken as it is.
+                    None => acc = Some(term),
+                    Some(a) => a.add_scaled(&term, sign),
+                }
             }
             acc.expect("n + 1 ≥ 1 terms")
         }

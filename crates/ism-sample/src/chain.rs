@@ -175,9 +175,9 @@ impl Restricted {
                         row.iter()
                             .enumerate()
                             .map(|(l, d)| {
-                                d.mul(q)
-                                    .add(&p[i + 1].mul(&dq[l]).scale(-1.0))
-                                    .elevate_to(q2.degree())
+                                let mut e = d.mul(q);
+                                e.add_scaled(&p[i + 1].mul(&dq[l]), -1.0);
+                                e.elevate_to(q2.degree())
                             })
                             .collect()
                     })
@@ -194,11 +194,14 @@ impl Restricted {
         let cross = values.map(|(f, c)| {
             let mut nf = p[0].scale(f[0]);
             for (pi, &fi) in p.iter().zip(f).skip(1) {
-                nf = nf.add(&pi.scale(fi));
+                nf.add_scaled(pi, fi);
             }
             match &q {
                 None => nf.add(&Bernstein::constant(m, nf.degree(), -c)),
-                Some(q) => nf.add(&q.scale(-c)),
+                Some(q) => {
+                    nf.add_scaled(q, -c);
+                    nf
+                }
             }
         });
         Restricted {
