@@ -498,21 +498,10 @@ impl Bernstein {
     /// # Panics
     /// If the shapes differ.
     pub fn add(&self, other: &Bernstein) -> Bernstein {
-        assert!(
-            self.m == other.m && self.degree == other.degree,
-            "Bernstein::add: shapes differ"
-        );
-        let coeffs = self
-            .coeffs
-            .iter()
-            .zip(&other.coeffs)
-            .map(|(a, b)| a + b)
-            .collect();
-        Bernstein {
-            m: self.m,
-            degree: self.degree,
-            coeffs,
-        }
+        // `1 · b` is exact: the same sums as `a + b`.
+        let mut sum = self.clone();
+        sum.add_scaled(other, 1.0);
+        sum
     }
 
     /// `self += s · other` in place: bit-identical to `self.add(&other.scale(s))` (each
@@ -523,7 +512,7 @@ impl Bernstein {
     pub fn add_scaled(&mut self, other: &Bernstein, s: f64) {
         assert!(
             self.m == other.m && self.degree == other.degree,
-            "Bernstein::add_scaled: shapes differ"
+            "Bernstein::add_scaled (or add): shapes differ"
         );
         for (a, b) in self.coeffs.iter_mut().zip(&other.coeffs) {
             *a += s * b;
