@@ -1,4 +1,5 @@
-"""Two builds of `ism` side by side on `ism sample --surface N`: what a change costs or saves.
+"""Two builds of `ism` side by side on `ism sample --surface N` (or, with `--command export`, on
+`ism export --tolerance T`): what a change costs or saves.
 
 For each MODEL:N, runs `BIN sample MODEL --surface N -j 1 -q --seed SEED -o out.npy` with the
 old and the new binary alternately, REPEAT times each, and keeps the least CPU time of each
@@ -9,8 +10,12 @@ N = 1 (the setup: read, evaluator, certified table, one sample) and whether the 
 the same bytes (a change that keeps the tables must keep them) — and the load average before and
 after.
 
+With `--command export` each case is MODEL:T and the runs are `BIN export MODEL out.obj
+--tolerance T -j 1 -q --json`; the table then gives each build's triangles (from `--json`) and
+the new build's triangles per CPU-second instead of the per-simplex setup.
+
 Usage: python3 tools/bench_sample_builds.py --old OLD_ISM --new NEW_ISM [--repeat 3] [--seed 3]
-           MODEL:N [MODEL:N ...]
+           [--command sample|export] MODEL:N|MODEL:T [...]
   e.g. an old build from a worktree:
     git worktree add /tmp/old <rev> && CARGO_TARGET_DIR=/tmp/oldtarget cargo build --release -p ism-cli
     python3 tools/bench_sample_builds.py --old /tmp/oldtarget/release/ism \\
@@ -29,12 +34,14 @@ import tempfile
 import time
 
 
-def child_cpu(cmd: list[str]) -> float:
-    """User + system CPU seconds of one run of `cmd` (which must succeed)."""
+def child_cpu(cmd: list[str]) -> tuple[float, str]:
+    """User + system CPU seconds of one run of `cmd` (which must succeed), and its stdout."""
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
-    subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    out = subprocess.run(
+        cmd, check=True, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True
+    )
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
-    return (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+    return (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime), out.stdout
 
 
 def simplices(ism: str, model: str) -> int | None:
@@ -55,6 +62,7 @@ def main() -> None:
     ap.add_argument("--new", required=True, help="the new `ism` binary")
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--seed", default="3")
+    ap.add_argument("--command", choices=["sample", "export"], default="sample")
     ap.add_argument("cases", nargs="+", metavar="MODEL:N")
     args = ap.parse_args()
     bins = {"old": args.old, "new": args.new}
@@ -64,31 +72,52 @@ def main() -> None:
         return f"load {load} at {time.strftime('%H:%M:%S', time.gmtime())} UTC"
 
     print(stamp())
-    print(
-        "| model | N | old CPU s | new CPU s | new / old | new µs per simplex (N = 1) "
-        "| same bytes |"
-    )
-    print("| --- | --- | --- | --- | --- | --- | --- |")
+    export = args.command == "export"
+    if export:
+        print(
+            "| model | T | old CPU s | new CPU s | new / old | old triangles | new triangles "
+            "| new triangles per CPU-s | same bytes |"
+        )
+        print("| --- | --- | --- | --- | --- | --- | --- | --- | --- |")
+    else:
+        print(
+            "| model | N | old CPU s | new CPU s | new / old | new µs per simplex (N = 1) "
+            "| same bytes |"
+        )
+        print("| --- | --- | --- | --- | --- | --- | --- |")
     with tempfile.TemporaryDirectory() as tmp:
         for case in args.cases:
             model, n = case.rsplit(":", 1)
             best: dict[str, float] = {}
-            out = {k: os.path.join(tmp, f"{k}.npy") for k in bins}
+            stdout: dict[str, str] = {}
+            out = {k: os.path.join(tmp, f"{k}.{'obj' if export else 'npy'}") for k in bins}
             for _ in range(args.repeat):
                 for k, ism in bins.items():
-                    cmd = [ism, "sample", model, "--surface", n, "-j", "1", "-q"]
-                    cmd += ["--seed", args.seed, "-o", out[k]]
-                    best[k] = min(best.get(k, float("inf")), child_cpu(cmd))
+                    if export:
+                        cmd = [ism, "export", model, out[k], "--tolerance", n]
+                        cmd += ["-j", "1", "-q", "--json"]
+                    else:
+                        cmd = [ism, "sample", model, "--surface", n, "-j", "1", "-q"]
+                        cmd += ["--seed", args.seed, "-o", out[k]]
+                    cpu, stdout[k] = child_cpu(cmd)
+                    best[k] = min(best.get(k, float("inf")), cpu)
             same = filecmp.cmp(out["old"], out["new"], shallow=False)
+            ratio = best["new"] / best["old"]
+            head = f"| {os.path.basename(model)} | {n} | {best['old']:.4f} | {best['new']:.4f} | {ratio:.3f}"
+            if export:
+                tri = {k: json.loads(v)["cells"] for k, v in stdout.items()}
+                rate = tri["new"] / best["new"] if best["new"] > 0 else float("inf")
+                print(
+                    f"{head} | {tri['old']} | {tri['new']} | {rate / 1e3:.0f}k "
+                    f"| {'yes' if same else 'no'} |",
+                    flush=True,
+                )
+                continue
             per = ""
             if n == "1":
                 count = simplices(args.new, model)
                 per = f"{best['new'] / count * 1e6:.1f}" if count else "?"
-            print(
-                f"| {os.path.basename(model)} | {n} | {best['old']:.4f} | {best['new']:.4f} | "
-                f"{best['new'] / best['old']:.3f} | {per} | {'yes' if same else 'no'} |",
-                flush=True,
-            )
+            print(f"{head} | {per} | {'yes' if same else 'no'} |", flush=True)
     print(stamp())
 
 
