@@ -14,15 +14,28 @@
 //! (a degree-4 stage with one control point per tetrahedron, zero on every facet), so that no
 //! patch edge on a facet shows the bump — the case edge tests alone cannot see.
 
-use ism_examples::{kuhn_grid_3d, stratum_stage, Aabb};
+use ism_examples::{
+    kuhn_grid_3d, monotonic_stage, quadratic_edge_stage, rational_fixed_points_stage,
+    seeded_weights, stratified_stages, stratum_stage, Aabb,
+};
 use ism_export::extract::{extract, extract_coarsened, ExtractOptions};
+use ism_export::marching::marching;
 use ism_export::mesh::Mesh;
 use ism_format::Direction;
 use ism_geom::{ModelEval, MAX_VARS};
 
-/// Distance from `p` to a point of `O` reached by Newton along `∇F` (`None`: left the complex or
-/// did not converge).
-fn distance_to_shape(eval: &ModelEval, p: [f64; 3], scale: f64) -> Option<f64> {
+/// Distance from `p` to a point of `O` reached by Newton along `∇F`; where Newton stalls (`F` is
+/// only continuous across a facet: on it the gradient of one side can point uphill on the
+/// other), the nearest sign change of `F − c` along `−∇F`, the mesh cell's normal `normal` (both
+/// ways) and the six axis directions, bisected to a point of `O` ([`bracket`]). Either way the
+/// displacement to a point of `O`: an upper bound of the distance. `None`: left the complex, or
+/// no sign change within 0.5.
+fn distance_to_shape(
+    eval: &ModelEval,
+    p: [f64; 3],
+    scale: f64,
+    normal: Option<[f64; 3]>,
+) -> Option<f64> {
     let n = eval.dim();
     let c = eval.model().level;
     let mut q = p;
@@ -31,7 +44,7 @@ fn distance_to_shape(eval: &ModelEval, p: [f64; 3], scale: f64) -> Option<f64> {
         let g = eval.gradient(&q[..n])?;
         let g2: f64 = g.iter().map(|x| x * x).sum();
         if g2 == 0.0 || !g2.is_finite() {
-            return None;
+            break;
         }
         if f.abs() / g2.sqrt() < 1e-13 * scale {
             return Some((0..3).map(|k| (q[k] - p[k]).powi(2)).sum::<f64>().sqrt());
@@ -40,7 +53,74 @@ fn distance_to_shape(eval: &ModelEval, p: [f64; 3], scale: f64) -> Option<f64> {
             q[k] -= f * g[k] / g2;
         }
     }
-    None
+    bracket(eval, p, normal)
+}
+
+/// The nearest point of `O` found by a sign change of `F − c` along `−sign(F − c) ∇F`, `±normal`
+/// and the six axis directions from `p` (steps doubling from 1e-9 to 0.5, then bisection; `F` is
+/// continuous, so a sign change holds a point of `O`): its distance from `p`.
+fn bracket(eval: &ModelEval, p: [f64; 3], normal: Option<[f64; 3]>) -> Option<f64> {
+    let n = eval.dim();
+    let c = eval.model().level;
+    let at = |d: [f64; 3], t: f64| [0, 1, 2].map(|k| p[k] + t * d[k]);
+    let value = |x: [f64; 3]| eval.value(&x[..n]).map(|v| v - c);
+    let f0 = value(p)?;
+    if f0 == 0.0 {
+        return Some(0.0);
+    }
+    let g = eval.gradient(&p[..n])?;
+    let norm = g.iter().map(|x| x * x).sum::<f64>().sqrt();
+    let mut dirs = Vec::new();
+    if norm > 0.0 && norm.is_finite() {
+        dirs.push([0, 1, 2].map(|k| {
+            if k < n {
+                -f0.signum() * g[k] / norm
+            } else {
+                0.0
+            }
+        }));
+    }
+    if let Some(m) = normal {
+        let len = dot(m, m).sqrt();
+        if len > 0.0 {
+            dirs.push(m.map(|x| x / len));
+            dirs.push(m.map(|x| -x / len));
+        }
+    }
+    for k in 0..n {
+        for s in [1.0, -1.0] {
+            let mut d = [0.0; 3];
+            d[k] = s;
+            dirs.push(d);
+        }
+    }
+    let mut best: Option<f64> = None;
+    for d in dirs {
+        let (mut lo, mut t) = (0.0, 1e-9);
+        while t <= 0.5 {
+            match value(at(d, t)) {
+                Some(f) if f.signum() != f0.signum() => {
+                    let mut hi = t;
+                    for _ in 0..60 {
+                        let mid = 0.5 * (lo + hi);
+                        match value(at(d, mid)) {
+                            Some(fm) if fm.signum() == f0.signum() => lo = mid,
+                            Some(_) => hi = mid,
+                            None => return best,
+                        }
+                    }
+                    best = Some(best.map_or(hi, |b: f64| b.min(hi)));
+                    break;
+                }
+                Some(_) => {
+                    lo = t;
+                    t *= 2.0;
+                }
+                None => break,
+            }
+        }
+    }
+    best
 }
 
 fn sub(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
@@ -170,7 +250,17 @@ fn exact_points(eval: &ModelEval, per_side: usize) -> Vec<(usize, [f64; 3])> {
                 }
             }
         }
-        for u in us {
+        for mut u in us {
+            // The corners lie on K-edges (exact zeros); their combinations leave rounding dust
+            // (~1e-18) where those zeros should be, which puts the point a hair inside the
+            // simplex instead of on its face: the kernel's inverse can then stop a few percent
+            // above its tolerance (seen on random models below: residuals 1.02e-12 and 1.05e-12,
+            // reported unconverged — session 40's note). The dust is not part of the shape.
+            for x in u.iter_mut() {
+                if x.abs() < 1e-15 {
+                    *x = 0.0;
+                }
+            }
             let q = eval.param_point(s, &u);
             assert!(q.inverse.converged, "simplex {s}: {:?}", q.inverse);
             out.push((s, q.p));
@@ -179,8 +269,10 @@ fn exact_points(eval: &ModelEval, per_side: usize) -> Vec<(usize, [f64; 3])> {
     out
 }
 
-/// `(mesh → O, O → mesh)`: the largest distances measured as in the module doc.
-fn two_sided(eval: &ModelEval, mesh: &Mesh, scale: f64) -> (f64, f64) {
+/// `(mesh → O, O → mesh)`: the largest distances measured as in the module doc. A probe's
+/// Newton displacement above `tighten` is also measured by [`bracket`] and the smaller kept (both
+/// reach points of `O`: Newton's can land on a farther one where `∇F` turns).
+fn two_sided(eval: &ModelEval, mesh: &Mesh, scale: f64, tighten: f64) -> (f64, f64) {
     let arity = mesh.primitive.arity();
     let mut by_simplex: Vec<Vec<usize>> = vec![Vec::new(); eval.num_simplices()];
     for (i, &s) in mesh.cell_simplex.iter().enumerate() {
@@ -195,9 +287,22 @@ fn two_sided(eval: &ModelEval, mesh: &Mesh, scale: f64) -> (f64, f64) {
     let mut m2o = 0.0f64;
     let (mut lost, mut total) = (0usize, 0usize);
     for i in 0..mesh.num_cells() {
-        for p in probes(&corners(i)) {
+        let c = corners(i);
+        let normal = (arity == 3).then(|| {
+            let (u, v) = (sub(c[1], c[0]), sub(c[2], c[0]));
+            [
+                u[1] * v[2] - u[2] * v[1],
+                u[2] * v[0] - u[0] * v[2],
+                u[0] * v[1] - u[1] * v[0],
+            ]
+        });
+        for p in probes(&c) {
             total += 1;
-            match distance_to_shape(eval, p, scale) {
+            match distance_to_shape(eval, p, scale, normal) {
+                Some(d) if d > tighten => {
+                    let b = bracket(eval, p, normal).unwrap_or(f64::INFINITY);
+                    m2o = m2o.max(d.min(b));
+                }
                 Some(d) => m2o = m2o.max(d),
                 None => lost += 1,
             }
@@ -226,9 +331,13 @@ fn two_sided(eval: &ModelEval, mesh: &Mesh, scale: f64) -> (f64, f64) {
     (m2o, o2m)
 }
 
-/// Checks the refined and the coarsened extraction ([`extract_coarsened`]).
-fn check(name: &str, model: &ism_format::Model, tolerances: &[f64]) {
+/// Checks the refined and the coarsened extraction ([`extract_coarsened`]): with the linear
+/// isocomplex's components and Euler characteristic (marching tetrahedra, [`marching`]), closed
+/// where it is closed, every triangle facing `F > c`'s side consistently and none degenerate; and,
+/// when `within` is true, within the tolerance both ways (else the error is only printed).
+fn check(name: &str, model: &ism_format::Model, tolerances: &[f64], within: bool) {
     let eval = ModelEval::new(model).unwrap();
+    let linear = marching(model).unwrap().topology();
     for (&tolerance, coarsened) in tolerances.iter().flat_map(|t| [(t, false), (t, true)]) {
         let options = ExtractOptions {
             tolerance,
@@ -240,8 +349,27 @@ fn check(name: &str, model: &ism_format::Model, tolerances: &[f64]) {
             extract(&eval, &options)
         }
         .unwrap();
-        let (m2o, o2m) = two_sided(&eval, &mesh, 1.0);
+        let (m2o, o2m) = two_sided(&eval, &mesh, 1.0, 0.5 * tolerance);
         let name = format!("{name}{}", if coarsened { " (coarsened)" } else { "" });
+        let t = mesh.topology();
+        assert_eq!(
+            (t.components, t.euler_characteristic, t.boundary_edges),
+            (
+                linear.components,
+                linear.euler_characteristic,
+                linear.boundary_edges
+            ),
+            "{name} T {tolerance:e}: topology"
+        );
+        assert_eq!(
+            (
+                t.non_manifold_edges,
+                t.orientation_conflicts,
+                t.degenerate_cells
+            ),
+            (0, 0, 0),
+            "{name} T {tolerance:e}"
+        );
         eprintln!(
             "{name} T {tolerance:e}: {} cells, {} depth-limited, mesh→O {:.3} T, O→mesh {:.3} T",
             mesh.num_cells(),
@@ -250,7 +378,7 @@ fn check(name: &str, model: &ism_format::Model, tolerances: &[f64]) {
             o2m / tolerance
         );
         assert!(
-            m2o <= tolerance && o2m <= tolerance,
+            !within || (m2o <= tolerance && o2m <= tolerance),
             "{name} T {tolerance:e}: mesh→O {m2o:e}, O→mesh {o2m:e}"
         );
     }
@@ -259,7 +387,7 @@ fn check(name: &str, model: &ism_format::Model, tolerances: &[f64]) {
 #[test]
 fn every_example_is_within_the_tolerance_of_its_exact_shape() {
     for (name, model) in ism_examples::named::all_examples() {
-        check(name, &model, &[1e-2, 1e-3]);
+        check(name, &model, &[1e-2, 1e-3], true);
     }
 }
 
@@ -281,7 +409,68 @@ fn bumps_inside_the_tetrahedra_are_within_the_tolerance() {
     for (name, g) in [("plane", plane as fn(&[f64]) -> f64), ("sphere", sphere)] {
         for direction in [Direction::Parametric, Direction::Implicit] {
             let model = interior_bump_model(g, direction);
-            check(&format!("{name} {direction:?}"), &model, &[1e-2, 2e-3]);
+            check(
+                &format!("{name} {direction:?}"),
+                &model,
+                &[1e-2, 2e-3],
+                true,
+            );
+        }
+    }
+}
+
+/// Shapes and stages not written for any example: a random ellipsoid (centre, radii, and so which
+/// grid vertices it separates) in a Kuhn grid of random resolution, under one of four random
+/// stage chains (the stratified scheme, a quadratic edge stage, a monotonic stage, a rational
+/// stage with random weights; parametric or implicit), exported refined and coarsened: the
+/// topology is checked as on the examples ([`check`]). The true error is measured and printed but
+/// not held to the tolerance here: over ~600 such cases most were within 0.65–1.0 T, but a
+/// parametric degree-3 monotonic stage of amplitude 0.66 left facet edges up to 9.6 T from `O`
+/// (and a rational one 1.01 T) while their test points passed — an open defect of the edge test
+/// (issue 19, session 40's note; the cases are in `true_error.proptest-regressions`).
+mod unseen {
+    use super::*;
+    use proptest::prelude::*;
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(12))]
+        #[test]
+        fn random_shapes_and_stages_are_within_the_tolerance(
+            centre in prop::array::uniform3(-0.2f64..0.2),
+            radii in prop::array::uniform3(0.35f64..0.75),
+            cells in 2usize..5,
+            chain in 0usize..4,
+            implicit in any::<bool>(),
+            seed in 0u64..1_000_000,
+            amplitude in 0.1f64..0.8,
+        ) {
+            let g = move |p: &[f64]| {
+                (0..3).map(|k| ((p[k] - centre[k]) / radii[k]).powi(2)).sum::<f64>() - 1.0
+            };
+            let mut model = kuhn_grid_3d(cells, cells, cells, Aabb::cube(-1.0, 1.0), g).unwrap();
+            let mut stages = match chain {
+                0 => stratified_stages(&model, seed, amplitude),
+                1 => vec![quadratic_edge_stage(&model, seed, amplitude)],
+                2 => vec![monotonic_stage(&model, 3, seed, amplitude)],
+                _ => vec![rational_fixed_points_stage(
+                    &model,
+                    3,
+                    seeded_weights(seed, 2.0 * amplitude),
+                )],
+            };
+            for stage in &mut stages {
+                stage.direction = if implicit {
+                    Direction::Implicit
+                } else {
+                    Direction::Parametric
+                };
+            }
+            model.stages = stages;
+            let name = format!(
+                "ellipsoid {centre:?} {radii:?}, {cells}³ cells, chain {chain}, implicit {implicit}, \
+                 seed {seed}, amplitude {amplitude}"
+            );
+            check(&name, &model, &[5e-3], false);
         }
     }
 }
