@@ -27,7 +27,7 @@ use ism_geom::{ModelEval, MAX_VARS};
 /// Distance from `p` to a point of `O` reached by Newton along `∇F`; where Newton stalls (`F` is
 /// only continuous across a facet: on it the gradient of one side can point uphill on the
 /// other), the nearest sign change of `F − c` along `−∇F`, the mesh cell's normal `normal` (both
-/// ways) and the six axis directions, bisected to a point of `O` ([`bracket`]). Either way the
+/// ways) and 26 fixed directions, bisected to a point of `O` ([`bracket`]). Either way the
 /// displacement to a point of `O`: an upper bound of the distance. `None`: left the complex, or
 /// no sign change within 0.5.
 fn distance_to_shape(
@@ -57,7 +57,7 @@ fn distance_to_shape(
 }
 
 /// The nearest point of `O` found by a sign change of `F − c` along `−sign(F − c) ∇F`, `±normal`
-/// and the six axis directions from `p` (steps doubling from 1e-9 to 0.5, then bisection; `F` is
+/// and 26 fixed directions from `p` (steps doubling from 1e-9 to 0.5, then bisection; `F` is
 /// continuous, so a sign change holds a point of `O`): its distance from `p`.
 fn bracket(eval: &ModelEval, p: [f64; 3], normal: Option<[f64; 3]>) -> Option<f64> {
     let n = eval.dim();
@@ -87,11 +87,18 @@ fn bracket(eval: &ModelEval, p: [f64; 3], normal: Option<[f64; 3]>) -> Option<f6
             dirs.push(m.map(|x| -x / len));
         }
     }
-    for k in 0..n {
-        for s in [1.0, -1.0] {
-            let mut d = [0.0; 3];
-            d[k] = s;
-            dirs.push(d);
+    // The 26 directions to a cube's faces, edges and corners (the 3D ones; the 8 of a square in
+    // 2D): where `O` has a crease on a facet, neither side's `∇F` points at its nearest part.
+    for i in -1i32..=1 {
+        for j in -1i32..=1 {
+            for k in -1i32..=1 {
+                let d = [i, j, k].map(f64::from);
+                if (n < 3 && k != 0) || d == [0.0; 3] {
+                    continue;
+                }
+                let len = dot(d, d).sqrt();
+                dirs.push(d.map(|x| x / len));
+            }
         }
     }
     let mut best: Option<f64> = None;
@@ -333,9 +340,9 @@ fn two_sided(eval: &ModelEval, mesh: &Mesh, scale: f64, tighten: f64) -> (f64, f
 
 /// Checks the refined and the coarsened extraction ([`extract_coarsened`]): with the linear
 /// isocomplex's components and Euler characteristic (marching tetrahedra, [`marching`]), closed
-/// where it is closed, every triangle facing `F > c`'s side consistently and none degenerate; and,
-/// when `within` is true, within the tolerance both ways (else the error is only printed).
-fn check(name: &str, model: &ism_format::Model, tolerances: &[f64], within: bool) {
+/// where it is closed, every triangle facing `F > c`'s side consistently and none degenerate; and
+/// within the tolerance both ways.
+fn check(name: &str, model: &ism_format::Model, tolerances: &[f64]) {
     let eval = ModelEval::new(model).unwrap();
     let linear = marching(model).unwrap().topology();
     for (&tolerance, coarsened) in tolerances.iter().flat_map(|t| [(t, false), (t, true)]) {
@@ -378,7 +385,7 @@ fn check(name: &str, model: &ism_format::Model, tolerances: &[f64], within: bool
             o2m / tolerance
         );
         assert!(
-            !within || (m2o <= tolerance && o2m <= tolerance),
+            m2o <= tolerance && o2m <= tolerance,
             "{name} T {tolerance:e}: mesh→O {m2o:e}, O→mesh {o2m:e}"
         );
     }
@@ -387,7 +394,7 @@ fn check(name: &str, model: &ism_format::Model, tolerances: &[f64], within: bool
 #[test]
 fn every_example_is_within_the_tolerance_of_its_exact_shape() {
     for (name, model) in ism_examples::named::all_examples() {
-        check(name, &model, &[1e-2, 1e-3], true);
+        check(name, &model, &[1e-2, 1e-3]);
     }
 }
 
@@ -409,12 +416,7 @@ fn bumps_inside_the_tetrahedra_are_within_the_tolerance() {
     for (name, g) in [("plane", plane as fn(&[f64]) -> f64), ("sphere", sphere)] {
         for direction in [Direction::Parametric, Direction::Implicit] {
             let model = interior_bump_model(g, direction);
-            check(
-                &format!("{name} {direction:?}"),
-                &model,
-                &[1e-2, 2e-3],
-                true,
-            );
+            check(&format!("{name} {direction:?}"), &model, &[1e-2, 2e-3]);
         }
     }
 }
@@ -422,12 +424,11 @@ fn bumps_inside_the_tetrahedra_are_within_the_tolerance() {
 /// Shapes and stages not written for any example: a random ellipsoid (centre, radii, and so which
 /// grid vertices it separates) in a Kuhn grid of random resolution, under one of four random
 /// stage chains (the stratified scheme, a quadratic edge stage, a monotonic stage, a rational
-/// stage with random weights; parametric or implicit), exported refined and coarsened: the
-/// topology is checked as on the examples ([`check`]). The true error is measured and printed but
-/// not held to the tolerance here: over ~600 such cases most were within 0.65–1.0 T, but a
-/// parametric degree-3 monotonic stage of amplitude 0.66 left facet edges up to 9.6 T from `O`
-/// (and a rational one 1.01 T) while their test points passed — an open defect of the edge test
-/// (issue 19, session 40's note; the cases are in `true_error.proptest-regressions`).
+/// stage with random weights; parametric or implicit), exported refined and coarsened and checked
+/// as the examples are ([`check`]). Over 305 such cases (610 exports, `PROPTEST_CASES=300`) the
+/// largest true error was 0.88 T. (Measured with Newton and the six axes alone, creases of `O` on
+/// facets read up to 9.6 T where a grid search around the probe finds 0.73 T: hence [`bracket`]'s
+/// 26 directions; the cases are kept in `true_error.proptest-regressions`.)
 mod unseen {
     use super::*;
     use proptest::prelude::*;
@@ -470,7 +471,7 @@ mod unseen {
                 "ellipsoid {centre:?} {radii:?}, {cells}³ cells, chain {chain}, implicit {implicit}, \
                  seed {seed}, amplitude {amplitude}"
             );
-            check(&name, &model, &[5e-3], false);
+            check(&name, &model, &[5e-3]);
         }
     }
 }
