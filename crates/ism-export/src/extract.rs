@@ -2986,6 +2986,15 @@ mod tests {
     use super::*;
     use ism_format::IndexedModel;
 
+    /// Every 3D named example, indexed.
+    fn indexed_3d_examples() -> Vec<(&'static str, IndexedModel)> {
+        ism_examples::named::all_examples()
+            .into_iter()
+            .filter(|(_, model)| model.dim() == 3)
+            .map(|(name, model)| (name, IndexedModel::new(model).unwrap()))
+            .collect()
+    }
+
     /// Set by [`coarsening_trusts_the_refinements_splits`] alone: the coarsening then tests the
     /// edges the refinement split instead of taking its answer.
     pub(super) static SPLITS_RETESTED: std::sync::atomic::AtomicBool =
@@ -3001,11 +3010,7 @@ mod tests {
     fn coarsening_trusts_the_refinements_splits() {
         use std::sync::atomic::Ordering;
         let mut compared = 0;
-        for (name, model) in ism_examples::named::all_examples() {
-            if model.dim() != 3 {
-                continue;
-            }
-            let indexed = IndexedModel::new(model).unwrap();
+        for (name, indexed) in indexed_3d_examples() {
             let eval = ModelEval::for_extraction(&indexed).unwrap();
             for tolerance in [1e-2, 1e-3, 1e-4] {
                 let options = ExtractOptions {
@@ -3328,11 +3333,7 @@ mod tests {
     /// make — of every crossed simplex of every 3D example, at tolerances 1e-2 and 1e-3; the
     /// pieces' ends placed exactly (`surface_point`, the vertices' inversion).
     fn for_each_patch_piece(diagonals: bool, mut f: impl FnMut(Piece<'_>)) {
-        for (name, model) in ism_examples::named::all_examples() {
-            if model.dim() != 3 {
-                continue;
-            }
-            let indexed = IndexedModel::new(model).unwrap();
+        for (name, indexed) in indexed_3d_examples() {
             let eval = ModelEval::for_extraction(&indexed).unwrap();
             let mut c = Counters::default();
             let mut exact =
@@ -3475,11 +3476,7 @@ mod tests {
     #[test]
     fn adopted_corners_equal_each_simplexs_own_inversion() {
         let mut compared = 0;
-        for (name, model) in ism_examples::named::all_examples() {
-            if model.dim() != 3 {
-                continue;
-            }
-            let indexed = IndexedModel::new(model).unwrap();
+        for (name, indexed) in indexed_3d_examples() {
             let eval = ModelEval::for_extraction(&indexed).unwrap();
             let ids = |s: usize| eval.model().simplex(s).to_vec();
             let mut first: HashMap<(u32, u32), (usize, SurfacePoint)> = HashMap::default();

@@ -411,6 +411,41 @@ fn bumps_inside_the_tetrahedra_are_within_the_tolerance() {
     }
 }
 
+/// The ellipsoid with `centre` and `radii` in a Kuhn grid of `cells`³ cells over [−1, 1]³, under
+/// stage chain `chain` (0: the stratified scheme, 1: a quadratic edge stage, 2: a degree-3
+/// monotonic stage, 3: a degree-3 rational stage with weights in `[e^−2a, e^2a)`) of `seed` and
+/// amplitude `a`, every stage stored in `direction`.
+fn ellipsoid_model(
+    centre: [f64; 3],
+    radii: [f64; 3],
+    cells: usize,
+    (chain, seed, amplitude): (usize, u64, f64),
+    direction: Direction,
+) -> ism_format::Model {
+    let g = move |p: &[f64]| {
+        (0..3)
+            .map(|k| ((p[k] - centre[k]) / radii[k]).powi(2))
+            .sum::<f64>()
+            - 1.0
+    };
+    let mut model = kuhn_grid_3d(cells, cells, cells, Aabb::cube(-1.0, 1.0), g).unwrap();
+    let mut stages = match chain {
+        0 => stratified_stages(&model, seed, amplitude),
+        1 => vec![quadratic_edge_stage(&model, seed, amplitude)],
+        2 => vec![monotonic_stage(&model, 3, seed, amplitude)],
+        _ => vec![rational_fixed_points_stage(
+            &model,
+            3,
+            seeded_weights(seed, 2.0 * amplitude),
+        )],
+    };
+    for stage in &mut stages {
+        stage.direction = direction;
+    }
+    model.stages = stages;
+    model
+}
+
 /// The kernel's inverse of a valid model converges a hair off a face too: points whose zero
 /// coordinates carry rounding dust (1e-18 to 1e-17, as combinations of patch corners leave them)
 /// were reported unconverged with residuals 1.02e-12 (an implicit stratified chain: Newton
@@ -419,55 +454,49 @@ fn bumps_inside_the_tetrahedra_are_within_the_tolerance() {
 /// parametric one is the direct evaluation of its stored map.
 #[test]
 fn inverses_converge_a_hair_off_a_face() {
-    let ellipsoid = |centre: [f64; 3], radii: [f64; 3]| {
-        move |p: &[f64]| {
-            (0..3)
-                .map(|k| ((p[k] - centre[k]) / radii[k]).powi(2))
-                .sum::<f64>()
-                - 1.0
-        }
-    };
-    // (model, simplex, u)
-    let mut cases = Vec::new();
-    let g = ellipsoid(
-        [
-            -0.1276567178341267,
-            0.09682262512334074,
-            -0.015111358639539874,
-        ],
-        [0.7190345560138629, 0.5252541463986321, 0.7210102310441657],
-    );
-    let mut model = kuhn_grid_3d(4, 4, 4, Aabb::cube(-1.0, 1.0), g).unwrap();
-    model.stages = stratified_stages(&model, 925938, 0.5785714904013828);
-    for stage in &mut model.stages {
-        stage.direction = Direction::Implicit;
-    }
-    let u = [
-        2.5433823874019057e-17,
-        0.08763188682309542,
-        0.8585276671089502,
-        0.05384044606795442,
+    // (model, simplex, u): the random models' cases 0 and 1.
+    let cases = [
+        (
+            ellipsoid_model(
+                [
+                    -0.1276567178341267,
+                    0.09682262512334074,
+                    -0.015111358639539874,
+                ],
+                [0.7190345560138629, 0.5252541463986321, 0.7210102310441657],
+                4,
+                (0, 925938, 0.5785714904013828),
+                Direction::Implicit,
+            ),
+            150,
+            [
+                2.5433823874019057e-17,
+                0.08763188682309542,
+                0.8585276671089502,
+                0.05384044606795442,
+            ],
+        ),
+        (
+            ellipsoid_model(
+                [
+                    0.005516138444483284,
+                    -0.16197592880326966,
+                    -0.12980717598032984,
+                ],
+                [0.7268974762052922, 0.398920074921128, 0.7247128346288918],
+                3,
+                (1, 433910, 0.40293097606401346),
+                Direction::Parametric,
+            ),
+            123,
+            [
+                2.0055066559716716e-18,
+                0.9410089179446486,
+                0.008394895661456674,
+                0.0505961863938947,
+            ],
+        ),
     ];
-    cases.push((model, 150, u));
-    let g = ellipsoid(
-        [
-            0.005516138444483284,
-            -0.16197592880326966,
-            -0.12980717598032984,
-        ],
-        [0.7268974762052922, 0.398920074921128, 0.7247128346288918],
-    );
-    let mut model = kuhn_grid_3d(3, 3, 3, Aabb::cube(-1.0, 1.0), g).unwrap();
-    let mut stage = quadratic_edge_stage(&model, 433910, 0.40293097606401346);
-    stage.direction = Direction::Parametric;
-    model.stages = vec![stage];
-    let u = [
-        2.0055066559716716e-18,
-        0.9410089179446486,
-        0.008394895661456674,
-        0.0505961863938947,
-    ];
-    cases.push((model, 123, u));
     for (i, (model, s, u)) in cases.into_iter().enumerate() {
         let eval = ModelEval::new(&model).unwrap();
         let mut bary = [0.0; MAX_VARS];
@@ -507,28 +536,8 @@ mod unseen {
             seed in 0u64..1_000_000,
             amplitude in 0.1f64..0.8,
         ) {
-            let g = move |p: &[f64]| {
-                (0..3).map(|k| ((p[k] - centre[k]) / radii[k]).powi(2)).sum::<f64>() - 1.0
-            };
-            let mut model = kuhn_grid_3d(cells, cells, cells, Aabb::cube(-1.0, 1.0), g).unwrap();
-            let mut stages = match chain {
-                0 => stratified_stages(&model, seed, amplitude),
-                1 => vec![quadratic_edge_stage(&model, seed, amplitude)],
-                2 => vec![monotonic_stage(&model, 3, seed, amplitude)],
-                _ => vec![rational_fixed_points_stage(
-                    &model,
-                    3,
-                    seeded_weights(seed, 2.0 * amplitude),
-                )],
-            };
-            for stage in &mut stages {
-                stage.direction = if implicit {
-                    Direction::Implicit
-                } else {
-                    Direction::Parametric
-                };
-            }
-            model.stages = stages;
+            let direction = if implicit { Direction::Implicit } else { Direction::Parametric };
+            let model = ellipsoid_model(centre, radii, cells, (chain, seed, amplitude), direction);
             let name = format!(
                 "ellipsoid {centre:?} {radii:?}, {cells}³ cells, chain {chain}, implicit {implicit}, \
                  seed {seed}, amplitude {amplitude}"
