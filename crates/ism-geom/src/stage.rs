@@ -63,7 +63,7 @@ macro_rules! dispatch_degree {
 
 /// Acceptance threshold of the inverse for a well-scaled stage: max-norm of `X(w) − u`. Values
 /// are barycentric coordinates of order 1, so this is about 5 000 ulps — far below any geometric
-/// tolerance of the format. Newton itself iterates to [`NEWTON_TARGET`] (much tighter), so that a
+/// tolerance of the format. Newton itself iterates to `NEWTON_TARGET` (much tighter), so that a
 /// result is never accepted at the threshold's edge, where a re-evaluation of `X(w)` with other
 /// rounding (value-only instead of value-and-Jacobian) lands on the other side of it: that was
 /// "stage inversion did not converge … (residual 1.0000056e-12)" on valid rational models
@@ -105,7 +105,7 @@ fn rounding_scale(m: usize, w: &Bary, h: &Mat) -> f64 {
 }
 
 /// The residual accepted as converged for a stage of rounding scale `scale` (see
-/// [`rounding_scale`]): [`INVERSE_TOLERANCE`] for a well-scaled stage, `ACCEPT_ULPS · ε · scale`
+/// `rounding_scale`): [`INVERSE_TOLERANCE`] for a well-scaled stage, `ACCEPT_ULPS · ε · scale`
 /// when that is larger (a stage with a Jacobian of 10⁴ cannot be evaluated more accurately than
 /// ~10⁴ ulps at any floating-point `w`, so demanding 1e-12 there would fail on valid models).
 /// Non-finite scales give the plain tolerance (NaN never passes).
@@ -159,7 +159,8 @@ pub struct InverseResult {
     /// Max-norm of `X(w) − u` at the returned `w` (after projecting `u` onto the simplex).
     pub residual: f64,
     /// `residual ≤` [`acceptance_tolerance`] of the point (`INVERSE_TOLERANCE` for a well-scaled
-    /// stage), and, for a map, every stage converged.
+    /// stage), and, for a map, every stage converged; for a map of parametric stages only (a
+    /// direct evaluation, exact to rounding), a finite preimage.
     pub converged: bool,
 }
 
@@ -1862,13 +1863,13 @@ impl LocalMap {
 
     /// The same map with each implicit projective stage (monotonic of degree 1, `g_i(t) = a_i t`)
     /// that is followed by an implicit Bézier or rational stage merged into it as one rational
-    /// stage ([`LocalStage::fuse_projective`]): the spec examples' "vertex weights, then level
+    /// stage (`LocalStage::fuse_projective`): the spec examples' "vertex weights, then level
     /// crossings" pair. One evaluation instead of two and no chain-rule product per Jacobian;
     /// equal to the original map up to rounding (not bit for bit), so callers that must
     /// reproduce the unfused bits keep the unfused map.
     ///
     /// Also evaluates each Bézier stage whose net mostly is the identity's as the identity plus
-    /// its few deviating terms ([`LocalStage::sparsify`]; equal up to rounding as well).
+    /// its few deviating terms (`LocalStage::sparsify`; equal up to rounding as well).
     pub fn fused(self) -> LocalMap {
         let mut stages = Vec::with_capacity(self.stages.len());
         let mut it = self.stages.into_iter().peekable();
