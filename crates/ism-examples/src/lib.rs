@@ -27,12 +27,14 @@
 mod faces;
 mod grid;
 pub mod named;
+mod shapes;
 mod stages;
 pub mod vectors;
 pub mod writer_vectors;
 
 pub use faces::{faces_of_dimension, FaceRng};
 pub use grid::{kuhn_grid_2d, kuhn_grid_3d, set_values, Aabb, VALUE_NUDGE};
+pub use shapes::{ellipsoid_model, ELLIPSOID_CHAINS};
 pub use stages::{
     cubic_face_point_stage, level_crossing_stage, level_crossing_stages, monotonic_stage,
     quadratic_edge_stage, rational_fixed_points_stage, seeded_weights, solitary_point,
