@@ -82,13 +82,14 @@ pub const ROUNDING_ALLOWANCE_ULPS: f64 = 1024.0;
 /// `2p + 2`, about two sample points per interval between interpolation nodes, where `G − F` is
 /// zero, so each peak between them is sampled near its top. Measured on random models (test
 /// `random_models_are_within_the_reported_bound`, two seeded runs of 150 models, 97 and 67
-/// estimates; the first also with 3D parametric models of 3 cells a side): with `p + 4`, the lattice before, the sampled `|G − F|` exceeded 5 and 1 of them, by
-/// up to 1.43× and 1.002× (an unseeded run: 6 of 84, up to 1.61×); with `2p + 2`, none, at most
-/// 0.97× and 0.90×. It costs up to 2.4× the samples (degree 6 in 3D: 680 for 286; the same lattice
-/// at `p = 2`). Still an estimate, not a bound, and still low on smooth fitted models: on the fitted
-/// sphere preset (`ism fit --preset sphere`) it reads 9.13e-4 on the unrefined degree-6 cells (`p +
-/// 4`: 5.80e-4) and accepts them at the default tolerance 9.86e-4, where a lattice of degree
-/// `4p + 1` finds more than that tolerance there (and took 123 CPU-s instead of 3).
+/// estimates; the first also with 3D parametric models of 3 cells a side): with `p + 4`, the
+/// lattice before, the sampled `|G − F|` exceeded 5 and 1 of them, by up to 1.43× and 1.002× (an
+/// unseeded run: 6 of 84, up to 1.61×); with `2p + 2`, none, at most 0.97× and 0.90×. It costs up
+/// to 2.4× the samples (degree 6 in 3D: 680 for 286; the same lattice at `p = 2`). Still an
+/// estimate, not a bound, and still low on smooth fitted models: on the fitted sphere preset (`ism
+/// fit --preset sphere`) it reads 9.13e-4 on the unrefined degree-6 cells (`p + 4`: 5.80e-4) and
+/// accepts them at the default field tolerance 9.86e-4, where a lattice of degree `4p + 1` finds
+/// more than that tolerance there (and took 123 CPU-s instead of 3).
 pub const fn estimate_lattice_degree(p: u32) -> u32 {
     2 * p + 2
 }
@@ -977,77 +978,75 @@ mod tests {
             .stages
             .iter()
             .any(|s| s.direction == Direction::Parametric);
-        {
-            let model = IndexedModel::new(model).unwrap();
-            let eval = ModelEval::from_indexed(&model).unwrap();
-            let tol = default_field_tolerance(&eval, 1e-3);
-            let (grid, report) = volume_grid(
-                &eval,
-                &VolumeOptions {
-                    field_tolerance: tol,
-                },
-            )
-            .unwrap_or_else(|e| panic!("{name}: {e}"));
-            assert!(report.bound.is_finite(), "{name}: {report:?}");
-            let ArrayValues::Float(f) = &grid.point_data[0].values else {
-                panic!("F is float")
+        let model = IndexedModel::new(model).unwrap();
+        let eval = ModelEval::from_indexed(&model).unwrap();
+        let tol = default_field_tolerance(&eval, 1e-3);
+        let (grid, report) = volume_grid(
+            &eval,
+            &VolumeOptions {
+                field_tolerance: tol,
+            },
+        )
+        .unwrap_or_else(|e| panic!("{name}: {e}"));
+        assert!(report.bound.is_finite(), "{name}: {report:?}");
+        let ArrayValues::Float(f) = &grid.point_data[0].values else {
+            panic!("F is float")
+        };
+        let ArrayValues::Int(parent) = &grid.cell_data[0].values else {
+            panic!("SourceSimplex is int")
+        };
+        let m = n + 1;
+        let mut seed = 12345u64;
+        let mut rnd = || {
+            seed = seed
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (seed >> 11) as f64 / (1u64 << 53) as f64
+        };
+        let mut worst = 0.0f64;
+        for c in (0..grid.num_cells()).step_by(5) {
+            let start = if c == 0 {
+                0
+            } else {
+                grid.offsets[c - 1] as usize
             };
-            let ArrayValues::Int(parent) = &grid.cell_data[0].values else {
-                panic!("SourceSimplex is int")
-            };
-            let m = n + 1;
-            let mut seed = 12345u64;
-            let mut rnd = || {
-                seed = seed
-                    .wrapping_mul(6364136223846793005)
-                    .wrapping_add(1442695040888963407);
-                (seed >> 11) as f64 / (1u64 << 53) as f64
-            };
-            let mut worst = 0.0f64;
-            for c in (0..grid.num_cells()).step_by(5) {
-                let start = if c == 0 {
-                    0
-                } else {
-                    grid.offsets[c - 1] as usize
-                };
-                let conn = &grid.connectivity[start..grid.offsets[c] as usize];
-                let coeffs: Vec<f64> = conn.iter().map(|&i| f[i as usize]).collect();
-                // Corner points of the cell (VTK order: vertices first) in the parent simplex.
-                let s = parent[c] as usize;
-                let corners: Vec<[f64; 3]> =
-                    conn[..m].iter().map(|&i| grid.points[i as usize]).collect();
-                for _ in 0..4 {
-                    let mut l: Vec<f64> = (0..m).map(|_| rnd() + 1e-3).collect();
-                    let t: f64 = l.iter().sum();
-                    l.iter_mut().for_each(|x| *x /= t);
-                    let mut p = [0.0; 3];
-                    for (i, c) in corners.iter().enumerate() {
-                        for x in 0..n {
-                            p[x] += l[i] * c[x];
-                        }
+            let conn = &grid.connectivity[start..grid.offsets[c] as usize];
+            let coeffs: Vec<f64> = conn.iter().map(|&i| f[i as usize]).collect();
+            // Corner points of the cell (VTK order: vertices first) in the parent simplex.
+            let s = parent[c] as usize;
+            let corners: Vec<[f64; 3]> =
+                conn[..m].iter().map(|&i| grid.points[i as usize]).collect();
+            for _ in 0..4 {
+                let mut l: Vec<f64> = (0..m).map(|_| rnd() + 1e-3).collect();
+                let t: f64 = l.iter().sum();
+                l.iter_mut().for_each(|x| *x /= t);
+                let mut p = [0.0; 3];
+                for (i, c) in corners.iter().enumerate() {
+                    for x in 0..n {
+                        p[x] += l[i] * c[x];
                     }
-                    let w = eval.barycentric(s, &p);
-                    let w = ism_geom::stage::project(m, &w);
-                    let g = eval_cell(n, report.degree, &coeffs, &l);
-                    worst = worst.max((g - eval.value_at(s, &w)).abs());
                 }
+                let w = eval.barycentric(s, &p);
+                let w = ism_geom::stage::project(m, &w);
+                let g = eval_cell(n, report.degree, &coeffs, &l);
+                worst = worst.max((g - eval.value_at(s, &w)).abs());
             }
-            assert!(
-                !(parametric && report.certified),
-                "{name}: a parametric stage has no exact rational form, yet certified: {report:?}"
-            );
-            assert!(report.bound <= report.global_bound, "{name}: {report:?}");
-            assert_eq!(report.met, report.bound <= report.tolerance, "{name}");
-            if !report.certified && !estimates {
-                return;
-            }
-            // Points are recomputed through the physical coordinates: allow their rounding.
-            assert!(
-                worst <= report.global_bound * (1.0 + 1e-9) + 1e-12,
-                "{name}: sampled {worst:e} above the bound {:e}",
-                report.global_bound
-            );
         }
+        assert!(
+            !(parametric && report.certified),
+            "{name}: a parametric stage has no exact rational form, yet certified: {report:?}"
+        );
+        assert!(report.bound <= report.global_bound, "{name}: {report:?}");
+        assert_eq!(report.met, report.bound <= report.tolerance, "{name}");
+        if !report.certified && !estimates {
+            return;
+        }
+        // Points are recomputed through the physical coordinates: allow their rounding.
+        assert!(
+            worst <= report.global_bound * (1.0 + 1e-9) + 1e-12,
+            "{name}: sampled {worst:e} above the bound {:e}",
+            report.global_bound
+        );
     }
 
     #[test]
