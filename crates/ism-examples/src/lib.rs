@@ -83,6 +83,16 @@ pub enum Error {
         /// The operating system's error.
         error: std::io::Error,
     },
+    /// [`ellipsoid_model`]'s centre and radii do not give one dimension of 2 or 3.
+    #[error(
+        "ellipsoid with {centre} centre coordinates and {radii} radii; expected 2 or 3 of each"
+    )]
+    ShapeDimension {
+        /// Coordinates of the centre given.
+        centre: usize,
+        /// Radii given.
+        radii: usize,
+    },
     /// The implicit function returned NaN or ±∞.
     #[error("implicit function is {value} at vertex {vertex}; expected a finite number")]
     NonFiniteValue {

@@ -24,13 +24,15 @@ pub const ELLIPSOID_CHAINS: usize = 4;
 ///
 /// Every chain is a diffeomorphism for any seed and amplitude the generators accept, so the model
 /// is valid. A dimension other than 2 or 3, or `radii` of another length than `centre`, is
-/// [`Error::NoCells`] (on the first axis the grid would lack).
+/// [`Error::ShapeDimension`].
 ///
 /// ```
 /// use ism_examples::ellipsoid_model;
 /// use ism_format::Direction;
 /// let m = ellipsoid_model(&[0.1, 0.0, -0.1], &[0.6, 0.5, 0.4], 2, (3, 7, 0.5), Direction::Implicit)?;
 /// assert_eq!((m.dim(), m.num_simplices(), m.stages.len()), (3, 48, 1));
+/// let flat = ellipsoid_model(&[0.0; 3], &[0.5; 2], 2, (0, 1, 0.5), Direction::Implicit);
+/// assert!(matches!(flat, Err(ism_examples::Error::ShapeDimension { centre: 3, radii: 2 })));
 /// # Ok::<(), ism_examples::Error>(())
 /// ```
 pub fn ellipsoid_model(
@@ -41,9 +43,10 @@ pub fn ellipsoid_model(
     direction: Direction,
 ) -> Result<Model, Error> {
     let n = centre.len();
-    if radii.len() != n {
-        return Err(Error::NoCells {
-            axis: radii.len().min(n),
+    if radii.len() != n || !(2..=3).contains(&n) {
+        return Err(Error::ShapeDimension {
+            centre: n,
+            radii: radii.len(),
         });
     }
     let (centre, radii) = (centre.to_vec(), radii.to_vec());
@@ -56,7 +59,7 @@ pub fn ellipsoid_model(
     let mut model = match n {
         2 => kuhn_grid_2d(cells, cells, Aabb::cube(-1.0, 1.0), g)?,
         3 => kuhn_grid_3d(cells, cells, cells, Aabb::cube(-1.0, 1.0), g)?,
-        _ => return Err(Error::NoCells { axis: n.min(3) }),
+        _ => unreachable!("the dimension was checked above"),
     };
     let mut stages = match chain % ELLIPSOID_CHAINS {
         0 => stratified_stages(&model, seed, amplitude),

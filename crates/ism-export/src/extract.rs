@@ -3329,10 +3329,6 @@ mod tests {
         (&'a Bary, &'a SurfacePoint),
     );
 
-    /// Calls `f` on every piece (each cut into 1, 2, 4 and 8) of every patch edge — with
-    /// `diagonals`, of every chord between two corners of the patch, the edges a collapse can
-    /// make — of every crossed simplex of every 3D example, at tolerances 1e-2 and 1e-3; the
-    /// pieces' ends placed exactly (`surface_point`, the vertices' inversion).
     /// The refinement's test ([`test_edge`]) of the piece from `a` (at `ua`) to `b` (at `ub`):
     /// threshold `tol`, midpoint in parameter, no known test points, no end check.
     fn refinement_test(
@@ -3347,6 +3343,10 @@ mod tests {
         test_edge(eval, s, (ua, a), (ub, b), &um, tol, None, false, counters).unwrap()
     }
 
+    /// Calls `f` on every piece (each cut into 1, 2, 4 and 8) of every patch edge — with
+    /// `diagonals`, of every chord between two corners of the patch, the edges a collapse can
+    /// make — of every crossed simplex of every 3D example, at tolerances 1e-2 and 1e-3; the
+    /// pieces' ends placed exactly (`surface_point`, the vertices' inversion).
     fn for_each_patch_piece(diagonals: bool, mut f: impl FnMut(Piece<'_>)) {
         for (name, indexed) in indexed_3d_examples() {
             let eval = ModelEval::for_extraction(&indexed).unwrap();
