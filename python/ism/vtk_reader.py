@@ -349,14 +349,16 @@ def exact_bezier_grid(model: Any) -> vtkUnstructuredGrid:
 
 def volume_grid(model: Any, tolerance: float) -> vtkUnstructuredGrid:
     """The complex with ``F`` as VTK Bézier cells: :func:`exact_bezier_grid` when the stage
-    composition is one (rational) Bézier map per simplex, else :func:`approximate_bezier_grid`.
+    composition is one (rational) Bézier map per simplex, else :func:`library_bezier_grid` (exact
+    too for parametric stages followed by implicit ones).
     The cell data ``HigherOrderDegrees`` gives every cell's degree."""
     try:
         grid = exact_bezier_grid(model)
     except _NotExact as why:
-        grid = approximate_bezier_grid(model, tolerance)
-        note = grid.GetFieldData().GetAbstractArray("FieldNote")
-        note.SetValue(0, f"approximate ({why} is not one Bézier map per simplex): " + note.GetValue(0))
+        grid = library_bezier_grid(model, tolerance)
+        if grid.GetFieldData().GetAbstractArray("FieldRepresentation").GetValue(0) != "exact":
+            note = grid.GetFieldData().GetAbstractArray("FieldNote")
+            note.SetValue(0, f"approximate ({why} is not one Bézier map per simplex): " + note.GetValue(0))
     degree = int(grid.GetFieldData().GetArray("Degree").GetValue(0))
     grid.GetCellData().SetHigherOrderDegrees(
         _array(np.full((grid.GetNumberOfCells(), 3), degree, dtype=np.int32), "HigherOrderDegrees")
@@ -365,18 +367,20 @@ def volume_grid(model: Any, tolerance: float) -> vtkUnstructuredGrid:
     return grid
 
 
-def approximate_bezier_grid(model: Any, tolerance: float) -> vtkUnstructuredGrid:
-    """The complex with ``F`` as polynomial VTK Bézier cells approximating ``F``.
+def library_bezier_grid(model: Any, tolerance: float) -> vtkUnstructuredGrid:
+    """The complex with ``F`` as the library's VTK Bézier cells (``ism export --volume``,
+    ``ism_export::volume``, reached through ``Model.export(volume=True)``).
 
-    The cells are those of the library's volume exporter (``ism export --volume``,
-    ``ism_export::volume``, reached through ``Model.export(volume=True)``): each simplex, red-refined
-    ``k`` times, carries the degree-``p`` polynomial interpolant of ``F`` on linear geometry, with
-    ``(p, k)`` chosen so the certified bound on ``|F_vtk − F|`` meets ``tolerance · median |∇F|``
-    (the library's default field tolerance; contouring then moves the surface by about
-    ``tolerance``). The field data says what was written: ``FieldErrorBound`` (on the cells the
-    level may cross), ``FieldErrorBoundEverywhere``, ``FieldErrorCertified`` (0 when the model has a
-    parametric stage: the bound is then a dense-sample estimate), ``FieldTolerance``, ``Degree``,
-    ``RefinementLevels``, ``FieldNote``.
+    When every simplex's stages are parametric ones followed by implicit ones (every fitted model),
+    the cells are *exact*: isoparametric (rational) Bézier cells whose geometry is the model's own
+    parametrisation and whose field is ``F`` on it (``FieldRepresentation = "exact"``, the bound
+    covers rounding). Otherwise each simplex, red-refined ``k`` times, carries the degree-``p``
+    polynomial interpolant of ``F`` on linear geometry, with ``(p, k)`` chosen so the bound on
+    ``|F_vtk − F|`` meets ``tolerance · median |∇F|`` (the library's default field tolerance;
+    contouring then moves the surface by about ``tolerance``): certified for all-implicit models,
+    a dense-sample estimate otherwise (``FieldErrorCertified = 0``). The field data says what was
+    written: ``FieldErrorBound`` (on the cells the level may cross), ``FieldErrorBoundEverywhere``,
+    ``FieldErrorCertified``, ``FieldTolerance``, ``Degree``, ``RefinementLevels``, ``FieldNote``.
     """
     with tempfile.TemporaryDirectory(prefix="ism-vtk-") as d:
         path = os.path.join(d, "volume.vtu")
@@ -386,7 +390,7 @@ def approximate_bezier_grid(model: Any, tolerance: float) -> vtkUnstructuredGrid
         reader.Update()
         grid = vtkUnstructuredGrid()
         grid.DeepCopy(reader.GetOutput())
-    _string_field(grid, "FieldRepresentation", "approximate")
+    _string_field(grid, "FieldRepresentation", "exact" if summary["field_exact"] else "approximate")
     _double_field(grid, "FieldErrorBound", summary["field_error_bound"])
     _double_field(grid, "FieldErrorBoundEverywhere", summary["field_error_bound_everywhere"])
     _int_field(grid, "FieldErrorCertified", bool(summary["field_error_certified"]))

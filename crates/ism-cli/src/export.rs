@@ -28,7 +28,9 @@ and red refinement are raised until max |F_vtk − F| is below --field-tolerance
 surface tolerance times the median |∇F| of the linear interpolant on the crossed simplices, so
 contouring F moves the surface by about --tolerance); the bound is printed and in --json,
 certified (Bernstein bound of the exact rational form) when every stage is implicit, otherwise
-marked as an estimate.
+marked as an estimate. A model whose parametric stages come before its implicit ones (every
+fitted model) is written exactly instead: curved cells on the model's own parametrisation
+carrying F itself (field_exact: true in --json).
 
 Examples:
   ism export spec/examples/sphere.ism.json sphere.glb --tolerance 1e-3

@@ -119,6 +119,8 @@ fn volume_export_states_its_field_error() {
         assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
         let r: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
         assert_eq!(r["field_error_certified"], certified, "{model}: {r}");
+        // Not parametric stages before implicit ones: interpolated, not exact.
+        assert_eq!(r["field_exact"], false, "{model}: {r}");
         assert_eq!(r["field_tolerance"], 1e-4, "{model}: {r}");
         let bound = r["field_error_bound"].as_f64().unwrap();
         assert!(bound <= 1e-4, "{model}: {r}");

@@ -268,6 +268,7 @@ impl Exported {
                 "field_error_bound": report.bound,
                 "field_error_bound_everywhere": report.global_bound,
                 "field_error_certified": report.certified,
+                "field_exact": report.exact,
                 "field_tolerance": report.tolerance,
                 "field_tolerance_met": report.met,
                 "field_note": report.note,

@@ -1,8 +1,8 @@
 //! The complex itself with `F` as a higher-order field: VTK Bézier triangles (type 76) or
-//! tetrahedra (type 78), for ParaView or the Python `vtk` package to contour — with a stated,
-//! certified bound on how far the written field is from `F`.
+//! tetrahedra (type 78), for ParaView or the Python `vtk` package to contour — `F` itself where the
+//! stages allow it, else with a stated bound on how far the written field is from `F`.
 //!
-//! **What is written.** Every top simplex is cut into `4^k` (2D) or `8^k` (3D) sub-simplices by `k`
+//! **What is written** (but see the parametric models below). Every top simplex is cut into `4^k` (2D) or `8^k` (3D) sub-simplices by `k`
 //! levels of red refinement (edge midpoints; the refinement of a face does not depend on the cell,
 //! so neighbouring cells stay conforming), and on each sub-simplex `F` is replaced by its
 //! degree-`p` polynomial interpolant `G` at the lattice points (linear geometry, control point
@@ -38,12 +38,17 @@
 //! error cannot move the contour; the tolerance is compared with the bound over the other cells
 //! (the ones the level may cross), and the bound over all cells is reported beside it.
 //!
-//! **Models with a parametric stage** (`X⁻¹` stored): `F` is not a ratio of polynomials of `w`,
-//! so the bound is an *estimate*: the largest `|G − F|` at a dense lattice of sample points
-//! ([`estimate_lattice_degree`]) of every sub-simplex, reported with `certified: false` — never
-//! presented as a certificate. The same is done when the composed degree `E` exceeds
-//! [`MAX_COMPOSED_DEGREE`] (exact products would cost more than they are worth). An estimate can
-//! be low between its lattice points (measured there).
+//! **Models with a parametric stage** (`X⁻¹` stored): `F` is not a ratio of polynomials of `w`.
+//! When on every simplex the parametric stages come before the implicit ones (every model `ism
+//! fit` writes: all parametric), `F` is written *exactly* instead (`volume/exact.rs`): one isoparametric
+//! (rational) Bézier cell per simplex whose geometry is the model's own parametrisation and whose
+//! field is `F` on it (`exact: true`, the bound covers rounding only; the degree is the composed
+//! one, at most [`MAX_EXACT_DEGREE`]). Otherwise (an implicit stage before a parametric one, or a
+//! higher degree) the bound is an *estimate*: the largest `|G − F|` at a dense lattice of sample
+//! points ([`estimate_lattice_degree`]) of every sub-simplex, reported with `certified: false` —
+//! never presented as a certificate. The same is done when an all-implicit model's composed degree
+//! `E` exceeds [`MAX_COMPOSED_DEGREE`] (exact products would cost more than they are worth). An
+//! estimate can be low between its lattice points (measured there).
 
 use std::collections::HashMap;
 
@@ -56,6 +61,9 @@ use crate::vtk::{
     cell_type, vtk_local_multi_indices, ArrayValues, Attribute, DataArray, UnstructuredGrid,
 };
 use crate::{Error, Result};
+
+mod exact;
+pub use exact::MAX_EXACT_DEGREE;
 
 /// Highest interpolation degree tried (84 control points per tetrahedron at 6).
 pub const MAX_DEGREE: u32 = 6;
@@ -155,6 +163,9 @@ pub struct VolumeReport {
     pub tolerance: f64,
     /// Whether `bound` is a certified (conservative) bound; `false`: estimated from samples.
     pub certified: bool,
+    /// Whether the cells are `F` itself (isoparametric cells on the model's parametrisation,
+    /// `bound` then covers rounding only) rather than an interpolant on linear cells.
+    pub exact: bool,
     /// `bound ≤ tolerance`.
     pub met: bool,
     /// One line on the method, for the user.
@@ -717,6 +728,12 @@ pub fn volume_grid_with_progress(
         .map(|s| cell_field(model, eval.local_map(s), model.simplex(s)))
         .collect();
     let certified = !fields.iter().any(|f| matches!(f, CellField::Sampled));
+    // Where the interpolant could only be estimated, `F` itself may be writable (`exact`).
+    if !certified {
+        if let Some(done) = exact::exact_grid(eval, tol, progress)? {
+            return Ok(done);
+        }
+    }
     // Candidates by written size; the first whose bound meets the tolerance wins.
     let mut candidates: Vec<(usize, u32, u32)> = (0..=MAX_LEVEL)
         .flat_map(|k| {
@@ -793,6 +810,7 @@ pub fn volume_grid_with_progress(
         global_bound: global,
         tolerance: tol,
         certified,
+        exact: false,
         met: bound <= tol,
         note: format!(
             "degree-{p} Bézier cells, {k} level(s) of red refinement; max |F_vtk − F| ≤ {bound:.3e} on the cells the level may cross (≤ {global:.3e} everywhere; elsewhere F − c and F_vtk − c are certified to keep one sign) ({sampled_note})"
@@ -892,24 +910,11 @@ mod tests {
     use super::*;
     use ism_format::IndexedModel;
 
-    fn eval_cell(n: usize, d: u32, coeffs: &[f64], w: &[f64]) -> f64 {
-        let order = vtk_local_multi_indices(n, d);
-        order
-            .chunks(n + 1)
-            .zip(coeffs)
-            .map(|(i, c)| {
-                c * multinomial(i)
-                    * i.iter()
-                        .zip(w)
-                        .map(|(&e, &x)| x.powi(e as i32))
-                        .product::<f64>()
-            })
-            .sum()
-    }
-
     /// The certified bound holds: at random points of every fifth written cell, `|G − F|` (F from
     /// the model evaluator, G from the written coefficients in VTK order) is at most the reported
-    /// bound — for every example, including rational and monotonic stages.
+    /// bound — for every example, including rational and monotonic stages; and for every example
+    /// with its stages made parametric (each stored map is a diffeomorphism either way), whose
+    /// exact cells are checked by the evaluator's Newton inversion of those stages.
     #[test]
     fn written_field_is_within_the_reported_bound() {
         for (name, model) in ism_examples::named::all_examples() {
@@ -917,7 +922,12 @@ mod tests {
             if n != 2 && n != 3 {
                 continue;
             }
+            let mut parametric = model.clone();
+            for stage in &mut parametric.stages {
+                stage.direction = Direction::Parametric;
+            }
             assert_within_bound(name, model, true);
+            assert_within_bound(&format!("{name}, parametric"), parametric, true);
         }
     }
 
@@ -942,11 +952,9 @@ mod tests {
             amplitude in 0.1f64..0.8,
         ) {
             let n = if three { 3 } else { 2 };
-            // 3D grids of 2 cells a side, implicit: where no pair meets the tolerance the search
-            // fits every pair, and parametric 3D models (sampled `F`, an inversion per lattice
-            // point) took 20–40 s on 48 tetrahedra, 62 s on 162. 2D grids twice as fine as drawn.
+            // 3D grids of 2 cells a side: where no pair meets the tolerance the search fits every
+            // pair (implicit chains). 2D grids twice as fine as drawn.
             let cells = if three { 2 } else { 2 * cells };
-            let implicit = implicit || three;
             let direction = if implicit {
                 ism_format::Direction::Implicit
             } else {
@@ -978,6 +986,14 @@ mod tests {
             .stages
             .iter()
             .any(|s| s.direction == Direction::Parametric);
+        // Parametric stages only, of a composed degree an exact cell takes even with weights
+        // (`E_x + 1`): the exact cells are written, whatever each simplex's chain.
+        let exact_expected = parametric
+            && model
+                .stages
+                .iter()
+                .all(|s| s.direction == Direction::Parametric)
+            && model.stages.iter().map(|s| s.degree).product::<u32>() < MAX_EXACT_DEGREE;
         let model = IndexedModel::new(model).unwrap();
         let eval = ModelEval::from_indexed(&model).unwrap();
         let tol = default_field_tolerance(&eval, 1e-3);
@@ -996,6 +1012,16 @@ mod tests {
             panic!("SourceSimplex is int")
         };
         let m = n + 1;
+        // Weights of rational cells (exact grids only; 1 otherwise).
+        let weight = grid
+            .point_data
+            .iter()
+            .find(|a| a.attribute == Attribute::RationalWeights)
+            .map(|a| match &a.values {
+                ArrayValues::Float(w) => w.clone(),
+                ArrayValues::Int(_) => panic!("weights are float"),
+            });
+        let order = vtk_local_multi_indices(n, report.degree);
         let mut seed = 12345u64;
         let mut rnd = || {
             seed = seed
@@ -1011,29 +1037,42 @@ mod tests {
                 grid.offsets[c - 1] as usize
             };
             let conn = &grid.connectivity[start..grid.offsets[c] as usize];
-            let coeffs: Vec<f64> = conn.iter().map(|&i| f[i as usize]).collect();
-            // Corner points of the cell (VTK order: vertices first) in the parent simplex.
             let s = parent[c] as usize;
-            let corners: Vec<[f64; 3]> =
-                conn[..m].iter().map(|&i| grid.points[i as usize]).collect();
             for _ in 0..4 {
                 let mut l: Vec<f64> = (0..m).map(|_| rnd() + 1e-3).collect();
                 let t: f64 = l.iter().sum();
                 l.iter_mut().for_each(|x| *x /= t);
-                let mut p = [0.0; 3];
-                for (i, c) in corners.iter().enumerate() {
-                    for x in 0..n {
-                        p[x] += l[i] * c[x];
+                // The cell's point and value at parameter `l`, by its own (rational) Bernstein
+                // basis in VTK's point order: linear geometry has its control points on the
+                // lattice, so this is the interpolant's point too.
+                let (mut den, mut g, mut p) = (0.0, 0.0, [0.0; 3]);
+                for (i, &id) in order.chunks(m).zip(conn) {
+                    let id = id as usize;
+                    let b = multinomial(i)
+                        * i.iter()
+                            .zip(&l)
+                            .map(|(&e, &x)| x.powi(e as i32))
+                            .product::<f64>()
+                        * weight.as_ref().map_or(1.0, |w| w[id]);
+                    den += b;
+                    g += b * f[id];
+                    for (px, cx) in p.iter_mut().zip(&grid.points[id]).take(n) {
+                        *px += b * cx;
                     }
                 }
+                g /= den;
+                p.iter_mut().for_each(|x| *x /= den);
                 let w = eval.barycentric(s, &p);
                 let w = ism_geom::stage::project(m, &w);
-                let g = eval_cell(n, report.degree, &coeffs, &l);
                 worst = worst.max((g - eval.value_at(s, &w)).abs());
             }
         }
         assert!(
-            !(parametric && report.certified),
+            !exact_expected || report.exact,
+            "{name}: parametric stages of a low degree only, yet not written exactly: {report:?}"
+        );
+        assert!(
+            !(parametric && report.certified && !report.exact),
             "{name}: a parametric stage has no exact rational form, yet certified: {report:?}"
         );
         assert!(report.bound <= report.global_bound, "{name}: {report:?}");
