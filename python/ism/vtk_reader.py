@@ -24,7 +24,7 @@ The output is a ``vtkMultiBlockDataSet`` of two blocks (block names in the metad
    and ``SourceSimplex`` as cell data; contouring ``F`` at the level gives the shape. How the
    field relates to the model's ``F`` is in the field data (see :func:`volume_grid`):
    ``FieldRepresentation`` (``"exact"`` or ``"approximate"``), ``FieldErrorBound`` (largest
-   ``|F_vtk − F|`` over the cells the level may cross; 0 when exact), ``FieldErrorCertified``
+   ``|F_vtk − F|`` over the cells the level may cross; rounding only when exact), ``FieldErrorCertified``
    (1: a conservative bound, 0: an estimate) and ``FieldNote``.
 
 Both blocks also carry the field data ``Level`` (the model's ``c``) and ``ModelName``.
@@ -39,8 +39,7 @@ from __future__ import annotations
 
 import os
 import tempfile
-from math import comb
-from typing import Any, Dict, List, Optional, Tuple
+from typing import Any, List, Optional, Tuple
 
 import numpy as np
 from vtkmodules.util import numpy_support
@@ -54,12 +53,8 @@ from vtkmodules.vtkCommonCore import (
     vtkStringArray,
 )
 from vtkmodules.vtkCommonDataModel import (
-    VTK_BEZIER_TETRAHEDRON,
-    VTK_BEZIER_TRIANGLE,
     vtkCellArray,
     vtkCompositeDataSet,
-    vtkHigherOrderTetra,
-    vtkHigherOrderTriangle,
     vtkMultiBlockDataSet,
     vtkPolyData,
     vtkUnstructuredGrid,
@@ -163,202 +158,11 @@ def surface_polydata(model: Any, tolerance: float) -> vtkPolyData:
     return pd
 
 
-def _multi_indices(m: int, d: int) -> List[Tuple[int, ...]]:
-    """All multi-indices of degree ``d`` in ``m`` variables in the canonical order of the format
-    (spec/ism-format.md §4.3: lexicographically decreasing)."""
-    if m == 1:
-        return [(d,)]
-    return [(a,) + rest for a in range(d, -1, -1) for rest in _multi_indices(m - 1, d - a)]
-
-
-def _vtk_local_order(n: int, degree: int) -> List[Tuple[int, ...]]:
-    """The local multi-indices (ISM local vertex order) of the points of a VTK Bézier triangle or
-    tetrahedron of ``degree``, in VTK's point order — asked from VTK itself
-    (``vtkHigherOrderTriangle/Tetra.BarycentricIndex``). VTK's barycentric index puts the
-    cell's first vertex last, hence the rotation."""
-    cls = vtkHigherOrderTriangle if n == 2 else vtkHigherOrderTetra
-    count = comb(degree + n, n)
-    out = []
-    for i in range(count):
-        b = [0] * (n + 1)
-        cls.BarycentricIndex(i, b, degree)
-        out.append((b[n],) + tuple(b[:n]))
-    return out
-
-
-class _NotExact(Exception):
-    """The model's stage composition is not one (rational) Bézier cell per simplex."""
-
-
-def _single_cell_form(model: Any) -> Tuple[int, Optional[int], Optional[int]]:
-    """``(d, monotonic, net)``: the stage indices of the compositions this module writes exactly —
-    an optional degree-1 monotonic stage then an optional implicit Bézier or rational stage of
-    degree ``d`` (``d = 1`` and no net: the linear interpolant). Raises :class:`_NotExact`
-    otherwise."""
-    stages = list(model.stages)
-    monotonic = net = None
-    i = 0
-    if i < len(stages) and stages[i].kind == "monotonic" and stages[i].degree == 1 and stages[i].direction == "implicit":
-        monotonic = i
-        i += 1
-    if i < len(stages) and stages[i].kind in ("bezier", "rational") and stages[i].direction == "implicit":
-        net = i
-        i += 1
-    if i != len(stages):
-        raise _NotExact(
-            "stages " + " ∘ ".join(f"{s.kind}({s.degree}, {s.direction})" for s in reversed(stages))
-        )
-    return (stages[net].degree if net is not None else 1), monotonic, net
-
-
-def exact_bezier_grid(model: Any) -> vtkUnstructuredGrid:
-    """The complex with ``F`` as VTK Bézier cells that are *exactly* ``F`` (no approximation), for
-    models whose composed map on each simplex is one (rational) Bézier map: no stages (linear
-    ``F``), an implicit Bézier or rational stage of degree ``d``, optionally preceded by a
-    degree-1 monotonic stage. Raises :class:`_NotExact` for other compositions.
-
-    Why it is exact. A degree-1 monotonic stage is ``Y(w)_i = a_i w_i / Σ a_j w_j`` (``a_i`` the
-    vertex's coefficient ``a₁``); composed with a Bézier net ``b_I`` of degree ``d`` (``Σ a·w`` to the
-    power ``d`` is ``Σ a^I B_I(w)``) it is the rational map with weights ``Q_I = q_I a^I``
-    (``q_I`` the rational stage's weights, 1 for a Bézier stage). Then
-    ``F = Σ_I Q_I c_I B_I / Σ_I Q_I B_I`` with ``c_I = Σ_i f(s_i) b_I[i]``.
-
-    * All ``Q_I = 1``: ``F`` is the degree-``d`` polynomial with Bernstein coefficients ``c_I`` on
-      the linear simplex — a VTK Bézier cell of degree ``d`` with control points at ``I/d``.
-    * Otherwise a VTK *rational* Bézier cell interpolates geometry and field with the same rational
-      basis, so the linear geometry must be written rationally too: ``x(w) = (Σ w_i V_i) W / W`` with
-      ``W = Σ Q_I B_I``, degree ``d + 1``. By degree elevation (``w_i B_I^d = (I_i+1)/(d+1)
-      B^{d+1}_{I+e_i}``) the cell of degree ``d + 1`` has weights
-      ``q'_J = Σ_i J_i/(d+1) · Q_{J−e_i}``, field ``F_J = Σ_i J_i/(d+1) · Q_{J−e_i} c_{J−e_i} / q'_J``
-      and control points ``P_J = Σ_i J_i/(d+1) · Q_{J−e_i} V_i / q'_J`` (all positive weights).
-
-    Each control point depends only on the face that owns it (its key: the sorted pairs
-    (vertex id, exponent)), so neighbouring cells share it and the field is continuous.
-    """
-    n = model.dimension
-    if n not in (2, 3):
-        raise _NotExact(f"dimension {n}")
-    d, monotonic, net = _single_cell_form(model)
-    vertices = np.asarray(model.vertices, dtype=np.float64)
-    values = np.asarray(model.values, dtype=np.float64)
-    simplices = np.asarray(model.simplices, dtype=np.int64)
-    a = np.ones(len(vertices))
-    if monotonic is not None:
-        coeffs = model.stage_tables(monotonic)["coefficients"]
-        a = np.asarray(coeffs[:, 1], dtype=np.float64)
-    tables = model.stage_tables(net) if net is not None else None
-    rational = tables is not None and model.stages[net].kind == "rational"
-    face_row = [
-        {tuple(sorted(int(x) for x in row)): r for r, row in enumerate(model.faces(k))}
-        for k in range(min(n, d - 1) + 1)
-    ] if tables is not None else []
-    owned_rank: Dict[Tuple[int, Tuple[int, ...]], Dict[Tuple[int, ...], int]] = {}
-
-    def owned_index(m: int, exps: Tuple[int, ...]) -> int:
-        table = owned_rank.setdefault((m, (d,)), {})
-        if not table:
-            for r, j in enumerate(_multi_indices(m, d - m)):
-                table[j] = r
-        return table[tuple(e - 1 for e in exps)]
-
-    base: Dict[Tuple[Tuple[int, int], ...], Tuple[float, float]] = {}
-
-    def coefficient(key: Tuple[Tuple[int, int], ...]) -> Tuple[float, float]:
-        """``(c_I, Q_I)`` of the degree-``d`` multi-index whose support/exponents are ``key``."""
-        got = base.get(key)
-        if got is not None:
-            return got
-        ids = tuple(v for v, _ in key)
-        exps = tuple(e for _, e in key)
-        k = len(key) - 1
-        if tables is None:
-            c = sum(values[v] * e for v, e in key) / d
-            q = 1.0
-        else:
-            row = face_row[k][ids]
-            o = owned_index(k + 1, exps)
-            pts = tables["points"][k][row, o * (k + 1) : (o + 1) * (k + 1)]
-            c = float(np.dot(values[list(ids)], pts))
-            q = float(tables["weights"][k][row, o]) if rational else 1.0
-        for v, e in key:
-            q *= a[v] ** e
-        base[key] = (c, q)
-        return c, q
-
-    weighted = rational or bool(np.any(a != 1.0))
-    degree = d + 1 if weighted else d
-    order = _vtk_local_order(n, degree)
-    point_of: Dict[Tuple[Tuple[int, int], ...], int] = {}
-    pts_out: List[np.ndarray] = []
-    f_out: List[float] = []
-    w_out: List[float] = []
-    conn = np.empty((len(simplices), len(order)), dtype=np.int64)
-    for s, ids in enumerate(simplices):
-        for li, exps in enumerate(order):
-            key = tuple(sorted((int(ids[i]), e) for i, e in enumerate(exps) if e > 0))
-            pid = point_of.get(key)
-            if pid is None:
-                if weighted:
-                    qs, ns, xs = 0.0, 0.0, np.zeros(n)
-                    for j, (v, e) in enumerate(key):
-                        lower = key[:j] + (((v, e - 1),) if e > 1 else ()) + key[j + 1 :]
-                        c, q = coefficient(lower)
-                        t = e / degree * q
-                        qs += t
-                        ns += t * c
-                        xs += t * vertices[v]
-                    pts_out.append(xs / qs)
-                    f_out.append(ns / qs)
-                    w_out.append(qs)
-                else:
-                    c, _ = coefficient(key)
-                    pts_out.append(sum(e / d * vertices[v] for v, e in key))
-                    f_out.append(c)
-                pid = len(f_out) - 1
-                point_of[key] = pid
-            conn[s, li] = pid
-    grid = vtkUnstructuredGrid()
-    p = vtkPoints()
-    p.SetData(_array(_xyz(np.array(pts_out).reshape(-1, n)), "Points"))
-    grid.SetPoints(p)
-    offsets = np.arange(0, conn.size + 1, conn.shape[1], dtype=np.int64)
-    ca = vtkCellArray()
-    ca.SetData(
-        numpy_support.numpy_to_vtkIdTypeArray(offsets, deep=True),
-        numpy_support.numpy_to_vtkIdTypeArray(conn.ravel(), deep=True),
-    )
-    grid.SetCells(VTK_BEZIER_TRIANGLE if n == 2 else VTK_BEZIER_TETRAHEDRON, ca)
-    grid.GetPointData().AddArray(_array(np.array(f_out), "F"))
-    if weighted:
-        grid.GetPointData().SetRationalWeights(_array(np.array(w_out), "RationalWeights"))
-    grid.GetCellData().AddArray(_array(np.arange(len(simplices), dtype=np.int64), "SourceSimplex"))
-    _string_field(grid, "FieldRepresentation", "exact")
-    for name, value in (("FieldErrorBound", 0.0), ("FieldErrorBoundEverywhere", 0.0)):
-        _double_field(grid, name, value)
-    _int_field(grid, "FieldErrorCertified", 1)
-    _int_field(grid, "Degree", degree)
-    _int_field(grid, "RefinementLevels", 0)
-    kind = "rational " if weighted else ""
-    _string_field(
-        grid,
-        "FieldNote",
-        f"exact: one {kind}Bézier cell of degree {degree} per simplex (F_vtk = F up to rounding)",
-    )
-    return grid
-
-
 def volume_grid(model: Any, tolerance: float) -> vtkUnstructuredGrid:
-    """The complex with ``F`` as VTK Bézier cells: :func:`exact_bezier_grid` when the stage
-    composition is one (rational) Bézier map per simplex, else :func:`library_bezier_grid` (exact
-    too for parametric stages followed by implicit ones).
-    The cell data ``HigherOrderDegrees`` gives every cell's degree."""
-    try:
-        grid = exact_bezier_grid(model)
-    except _NotExact as why:
-        grid = library_bezier_grid(model, tolerance)
-        if grid.GetFieldData().GetAbstractArray("FieldRepresentation").GetValue(0) != "exact":
-            note = grid.GetFieldData().GetAbstractArray("FieldNote")
-            note.SetValue(0, f"approximate ({why} is not one Bézier map per simplex): " + note.GetValue(0))
+    """The complex with ``F`` as VTK Bézier cells, written by the library (:func:`library_bezier_grid`:
+    exact cells wherever the stages allow them, else an interpolant with its bound). The cell data
+    ``HigherOrderDegrees`` gives every cell's degree."""
+    grid = library_bezier_grid(model, tolerance)
     degree = int(grid.GetFieldData().GetArray("Degree").GetValue(0))
     grid.GetCellData().SetHigherOrderDegrees(
         _array(np.full((grid.GetNumberOfCells(), 3), degree, dtype=np.int32), "HigherOrderDegrees")
@@ -371,15 +175,16 @@ def library_bezier_grid(model: Any, tolerance: float) -> vtkUnstructuredGrid:
     """The complex with ``F`` as the library's VTK Bézier cells (``ism export --volume``,
     ``ism_export::volume``, reached through ``Model.export(volume=True)``).
 
-    When every simplex's stages are parametric ones followed by implicit ones (every fitted model),
-    the cells are *exact*: isoparametric (rational) Bézier cells whose geometry is the model's own
-    parametrisation and whose field is ``F`` on it (``FieldRepresentation = "exact"``, the bound
-    covers rounding). Otherwise each simplex, red-refined ``k`` times, carries the degree-``p``
-    polynomial interpolant of ``F`` on linear geometry, with ``(p, k)`` chosen so the bound on
-    ``|F_vtk − F|`` meets ``tolerance · median |∇F|`` (the library's default field tolerance;
-    contouring then moves the surface by about ``tolerance``): certified for all-implicit models,
-    a dense-sample estimate otherwise (``FieldErrorCertified = 0``). The field data says what was
-    written: ``FieldErrorBound`` (on the cells the level may cross), ``FieldErrorBoundEverywhere``,
+    Wherever the stages allow it — parametric stages (if any) before implicit ones, composed degree
+    at most 12: every example but ``two-stage`` and ``stratified-3d``, every fitted model — the
+    cells are *exact*: (rational) Bézier cells whose geometry is the model's own parametrisation
+    and whose field is ``F`` on it (``FieldRepresentation = "exact"``, the bound covers rounding).
+    Otherwise each simplex, red-refined ``k`` times, carries the degree-``p`` polynomial
+    interpolant of ``F`` on linear geometry, with ``(p, k)`` chosen so the bound on ``|F_vtk − F|``
+    meets ``tolerance · median |∇F|`` (the library's default field tolerance; contouring then
+    moves the surface by about ``tolerance``): certified for all-implicit models, a dense-sample
+    estimate otherwise (``FieldErrorCertified = 0``). The field data says what was written:
+    ``FieldErrorBound`` (on the cells the level may cross), ``FieldErrorBoundEverywhere``,
     ``FieldErrorCertified``, ``FieldTolerance``, ``Degree``, ``RefinementLevels``, ``FieldNote``.
     """
     with tempfile.TemporaryDirectory(prefix="ism-vtk-") as d:

@@ -23,14 +23,15 @@ middle where those land off it, points in stretches of an edge that the paramete
 fast, and points near the ends of patch edges on facets where the ends' tangents predict a
 bend), not bounded: a stage that bends the shape between them (seen on --rational fits whose
 weights reach the fitter's limits) can leave the mesh farther away. --volume
-(.vtk/.vtu) writes the complex itself with F as a Bézier field instead of the surface: degree
-and red refinement are raised until max |F_vtk − F| is below --field-tolerance (default: the
-surface tolerance times the median |∇F| of the linear interpolant on the crossed simplices, so
-contouring F moves the surface by about --tolerance); the bound is printed and in --json,
-certified (Bernstein bound of the exact rational form) when every stage is implicit, otherwise
-marked as an estimate. A model whose parametric stages come before its implicit ones (every
-fitted model) is written exactly instead: curved cells on the model's own parametrisation
-carrying F itself (field_exact: true in --json).
+(.vtk/.vtu) writes the complex itself with F as a Bézier field instead of the surface: F itself
+wherever the stages allow it (parametric stages, if any, before implicit ones, composed degree at
+most 12: every example but two, every fitted model), as curved (rational) cells on the model's own
+parametrisation (field_exact: true in --json, a rounding-level bound); otherwise degree and red
+refinement of an interpolant are raised until max |F_vtk − F| is below --field-tolerance
+(default: the surface tolerance times the median |∇F| of the linear interpolant on the crossed
+simplices, so contouring F moves the surface by about --tolerance), the bound certified
+(Bernstein bound of the exact rational form) when every stage is implicit, otherwise marked as an
+estimate. The bound is printed and in --json.
 
 Examples:
   ism export spec/examples/sphere.ism.json sphere.glb --tolerance 1e-3

@@ -200,8 +200,14 @@ pub fn build(
                 default_field_tolerance(&eval, options.tolerance)
             }
         };
-        let (grid, report) =
-            volume_grid_with_progress(&eval, &VolumeOptions { field_tolerance }, progress)?;
+        let (grid, report) = volume_grid_with_progress(
+            &eval,
+            &VolumeOptions {
+                field_tolerance,
+                interpolate: false,
+            },
+            progress,
+        )?;
         return Ok(Exported::Volume { grid, report });
     }
     if options.linear {

@@ -12,13 +12,13 @@
 //! values `N_F·D_x / ω` (Bernstein coefficients) has point `x(v)` and value `F(x(v))` for every
 //! `v` — `F` itself, with no interpolation error. When every stage is a Bézier map (no rational or
 //! monotonic stage) both denominators are `(Σ v)^E ≡ 1` and the cell is polynomial of degree
-//! `max(E_x, E_F)`. A stage that is the identity on a simplex is left out there (its projective
-//! form would only elevate the degree).
+//! `max(E_x, E_F)`. Every stage with data anywhere is composed on every simplex, identity there or
+//! not (see [`chain`]), so all cells have one degree.
 //!
-//! **Continuity.** Every cell is elevated to the grid's largest degree, and a control point is
-//! keyed by the face that owns it (global vertex ids and exponents), so neighbours share it. The
-//! stages keep faces in place and are stored face-locally, so both neighbours' coefficients on a
-//! shared face are the same numbers up to rounding; the first cell's are written.
+//! **Continuity.** A control point is keyed by the face that owns it (global vertex ids and
+//! exponents), so neighbours share it. The stages keep faces in place and are stored face-locally,
+//! and both neighbours compose the same chain, so their coefficients on a shared face are the same
+//! numbers up to rounding; the first cell's are written.
 //!
 //! **What is reported.** Per cell, the written weights, values and points differ from the cell's
 //! own coefficients only by that sharing and by rounding: with `ω'`, `φ'` written and `ω`, `ωφ`
@@ -31,9 +31,9 @@
 
 use std::collections::HashMap;
 
-use ism_format::progress::Progress;
+use ism_format::progress::{Cancelled, Progress};
 use ism_format::{multi_index, Direction, Model, StageKind};
-use ism_geom::{Bernstein, LocalMap, LocalStage, ModelEval};
+use ism_geom::{Bernstein, LocalStage, ModelEval};
 use rayon::prelude::*;
 
 use super::{apply_stage, coordinates, sum, VolumeReport, PHASE, ROUNDING_ALLOWANCE_ULPS};
@@ -58,10 +58,6 @@ struct ExactCell {
 }
 
 impl ExactCell {
-    fn degree(&self) -> u32 {
-        self.field.degree()
-    }
-
     fn elevate_to(self, e: u32) -> ExactCell {
         ExactCell {
             weight: self.weight.map(|w| w.elevate_to(e)),
@@ -83,30 +79,11 @@ fn compose<'a>(m: usize, stages: impl Iterator<Item = &'a LocalStage>) -> (Vec<B
     (x, rational)
 }
 
-/// The exact cell of simplex `ids` under `map`, or `None` when its chain is not parametric stages
-/// then implicit ones or its degree exceeds [`MAX_EXACT_DEGREE`].
-fn exact_cell(model: &Model, map: &LocalMap, ids: &[u32]) -> Option<ExactCell> {
-    let m = map.vars();
+/// The exact cell of simplex `ids` under its `stages` (every stage of the chain, identity or not,
+/// in application order), whose first `j` are parametric and the rest implicit, of degree `e`.
+fn exact_cell(model: &Model, stages: &[LocalStage], j: usize, e: u32, ids: &[u32]) -> ExactCell {
+    let m = model.dim() + 1;
     let n = m - 1;
-    let stages = map.stages();
-    let j = stages
-        .iter()
-        .take_while(|s| s.direction() == Direction::Parametric)
-        .count();
-    if stages[j..]
-        .iter()
-        .any(|s| s.direction() != Direction::Implicit)
-    {
-        return None;
-    }
-    let degree_of = |s: &[LocalStage]| s.iter().map(|s| u64::from(s.degree())).product::<u64>();
-    let (ex, ef) = (degree_of(&stages[..j]), degree_of(&stages[j..]));
-    let any_rational = stages.iter().any(|s| s.kind() != StageKind::Bezier);
-    let e = if any_rational { ex + ef } else { ex.max(ef) };
-    if e > u64::from(MAX_EXACT_DEGREE) {
-        return None;
-    }
-    let e = e as u32;
     // w(v) = Y_0(⋯Y_{j−1}(v)): the last parametric stage is applied first.
     let (x, rx) = compose(m, stages[..j].iter().rev());
     let (y, rf) = compose(m, stages[j..].iter());
@@ -115,14 +92,12 @@ fn exact_cell(model: &Model, map: &LocalMap, ids: &[u32]) -> Option<ExactCell> {
         .collect();
     let nf = sum((0..m).map(|i| y[i].scale(model.values[ids[i] as usize]))).expect("m ≥ 2");
     if !(rx || rf) {
-        return Some(
-            ExactCell {
-                weight: None,
-                position,
-                field: nf,
-            }
-            .elevate_to(e),
-        );
+        return ExactCell {
+            weight: None,
+            position,
+            field: nf,
+        }
+        .elevate_to(e);
     }
     // Multiplying by a denominator that is identically 1 (`(Σ v)^E` in the Bernstein basis)
     // is a degree elevation.
@@ -137,11 +112,45 @@ fn exact_cell(model: &Model, map: &LocalMap, ids: &[u32]) -> Option<ExactCell> {
         (Some(a), None) | (None, Some(a)) => a.elevate_to(e),
         (None, None) => unreachable!("one of them is rational"),
     };
-    Some(ExactCell {
+    ExactCell {
         weight: Some(weight),
         position: position.iter().map(|p| times(p, &df)).collect(),
         field: times(&nf, &dx),
-    })
+    }
+}
+
+/// The stages an exact cell composes — every stage with a record or vertex map anywhere (a stage
+/// without any is the identity everywhere) — with the number of leading parametric ones and the
+/// cells' degree, or `None` when an implicit stage comes before a parametric one or the degree
+/// exceeds [`MAX_EXACT_DEGREE`].
+///
+/// A stage that is the identity on some simplices only is still composed there: a rational
+/// representation is unique only up to a common factor, and leaving out an identity Bézier stage
+/// after a rational one drops the factor `D^(d−1)` on one side of a face and not on the other
+/// (measured: the examples' neighbours then disagreed by 0.1–0.25 in their shared weights).
+fn chain(model: &Model) -> Option<(Vec<usize>, usize, u32)> {
+    let active: Vec<usize> = (0..model.stages.len())
+        .filter(|&i| {
+            let s = &model.stages[i];
+            !s.faces.is_empty() || !s.vertex_maps.is_empty()
+        })
+        .collect();
+    let parametric = |i: &usize| model.stages[*i].direction == Direction::Parametric;
+    let j = active.iter().take_while(|i| parametric(i)).count();
+    if active[j..].iter().any(parametric) {
+        return None;
+    }
+    let degree_of = |s: &[usize]| {
+        s.iter()
+            .map(|&i| u64::from(model.stages[i].degree))
+            .product::<u64>()
+    };
+    let (ex, ef) = (degree_of(&active[..j]), degree_of(&active[j..]));
+    let any_rational = active
+        .iter()
+        .any(|&i| model.stages[i].kind != StageKind::Bezier);
+    let e = if any_rational { ex + ef } else { ex.max(ef) };
+    (e <= u64::from(MAX_EXACT_DEGREE)).then_some((active, j, e as u32))
 }
 
 /// The complex as exact (rational) Bézier cells (module doc), or `None` when some simplex's chain
@@ -158,27 +167,25 @@ pub(super) fn exact_grid(
     let n = model.dim();
     let m = n + 1;
     let ns = model.num_simplices();
+    let Some((active, j, degree)) = chain(model) else {
+        return Ok(None);
+    };
     let counter = progress.phase(PHASE, ns as u64);
-    let cells: Option<Vec<ExactCell>> = (0..ns)
+    let cells: Vec<ExactCell> = (0..ns)
         .into_par_iter()
         .map(|s| {
             if counter.is_cancelled() {
-                return None;
+                return Err(crate::Error::Cancelled(Cancelled));
             }
             counter.add(1);
-            exact_cell(model, eval.local_map(s), model.simplex(s))
+            let stages = active
+                .iter()
+                .map(|&i| LocalStage::from_indexed(eval.indexed(), i, s))
+                .collect::<std::result::Result<Vec<_>, _>>()?;
+            Ok(exact_cell(model, &stages, j, degree, model.simplex(s)))
         })
-        .collect();
-    progress.check()?;
-    let Some(cells) = cells else {
-        return Ok(None);
-    };
-    let degree = cells.iter().map(ExactCell::degree).max().unwrap_or(1);
+        .collect::<Result<_>>()?;
     let rational = cells.iter().any(|c| c.weight.is_some());
-    let cells: Vec<ExactCell> = cells
-        .into_par_iter()
-        .map(|c| c.elevate_to(degree))
-        .collect();
 
     let local_order = vtk_local_multi_indices(n, degree);
     let rank_of: Vec<usize> = local_order.chunks(m).map(multi_index::rank).collect();
@@ -292,9 +299,15 @@ pub(super) fn exact_grid(
         certified: true,
         exact: true,
         met: field_bound <= tolerance,
-        note: format!(
-            "EXACT: one {kind}Bézier cell of degree {degree} per simplex, its geometry the model's own parametrisation x(v) (the parametric stages) and its field F(x(v)) (the implicit stages on f̂); max |F_vtk − F| ≤ {field_bound:.3e} at every parameter and the points within {point_bound:.3e} of x(v) (rounding and shared control points, certified)"
-        ),
+        note: if j == 0 {
+            format!(
+                "EXACT: one {kind}Bézier cell of degree {degree} per simplex, F itself (the stages composed) on the straight simplex; max |F_vtk − F| ≤ {field_bound:.3e} (rounding and shared control points, certified)"
+            )
+        } else {
+            format!(
+                "EXACT: one {kind}Bézier cell of degree {degree} per simplex, its geometry the model's own parametrisation x(v) (the parametric stages) and its field F(x(v)) (the implicit stages on f̂); max |F_vtk − F| ≤ {field_bound:.3e} at every parameter and the points within {point_bound:.3e} of x(v) (rounding and shared control points, certified)"
+            )
+        },
     };
     Ok(Some((grid, report)))
 }

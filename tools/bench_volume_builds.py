@@ -1,0 +1,112 @@
+"""Two builds of `ism` side by side on `ism export --volume`: CPU, size, and the *true* field error.
+
+For each MODEL, runs `BIN export MODEL out.vtu --volume -j 1 -q --json` with the old and the new
+binary alternately, REPEAT times each, and keeps the least CPU time of each (user + system of the
+child, `resource.getrusage(RUSAGE_CHILDREN)`; the machine is shared, so the best of alternated runs
+is the fairest figure) and the wall time of that run. From `--json`: cells, control points, degree,
+refinement levels, the reported bound, whether it is certified, exact, and meets the tolerance.
+
+Then the error each output really has, measured by the consumer: with the Python `vtk` package, at
+`--points` random parameters of random cells, VTK's own evaluation of the written cell
+(`vtkCell.EvaluateLocation`: the physical point and the weights of the cell's (rational) basis,
+curved geometry included) gives a point and an interpolated F; `ism query` (the model's evaluator,
+which inverts parametric stages by Newton) gives the model's F at that point. The largest
+difference is the measured `max |F_vtk − F|` — independent of how either build computed its cells.
+
+Usage: .venv/bin/python tools/bench_volume_builds.py --old OLD_ISM --new NEW_ISM [--repeat 3]
+           [--points 1500] MODEL [...]
+  e.g. an old build from a worktree:
+    git worktree add /tmp/old <rev> && CARGO_TARGET_DIR=/tmp/oldtarget cargo build --release -p ism-cli
+    ism fit --preset sphere -o fs.ismb -q
+    .venv/bin/python tools/bench_volume_builds.py --old /tmp/oldtarget/release/ism \\
+        --new target/release/ism spec/examples/torus.ismb fs.ismb
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import subprocess
+import tempfile
+import time
+
+import numpy as np
+
+
+def child_cpu(cmd: list[str]) -> tuple[float, float, str]:
+    """User + system CPU seconds and wall seconds of one run of `cmd` (which must succeed), and
+    its stdout."""
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    start = time.perf_counter()
+    out = subprocess.run(cmd, check=True, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    wall = time.perf_counter() - start
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime), wall, out.stdout
+
+
+def true_error(ism: str, model: str, vtu: str, points: int, seed: int = 1) -> float:
+    """Largest |F_vtk − F| at `points` random parameters of random cells of `vtu` (module doc)."""
+    import vtk
+
+    reader = vtk.vtkXMLUnstructuredGridReader()
+    reader.SetFileName(vtu)
+    reader.Update()
+    grid = reader.GetOutput()
+    values = grid.GetPointData().GetArray("F")
+    three = grid.GetCellType(0) == vtk.VTK_BEZIER_TETRAHEDRON
+    rng = np.random.default_rng(seed)
+    xs, fs = [], []
+    for c in rng.integers(0, grid.GetNumberOfCells(), size=points):
+        cell = grid.GetCell(int(c))
+        count = cell.GetNumberOfPoints()
+        b = rng.dirichlet(np.ones(4 if three else 3))
+        x, w = [0.0, 0.0, 0.0], [0.0] * count
+        cell.EvaluateLocation(vtk.reference(0), list(b[1:]) + ([] if three else [0.0]), x, w)
+        xs.append(x if three else x[:2])
+        fs.append(sum(w[i] * values.GetValue(cell.GetPointId(i)) for i in range(count)))
+    with tempfile.TemporaryDirectory() as d:
+        path = os.path.join(d, "points.csv")
+        np.savetxt(path, np.array(xs), delimiter=",")
+        out = subprocess.run([ism, "query", model, path, "-q", "--format", "csv"], check=True,
+                             capture_output=True, text=True).stdout
+    column = 4 if three else 3  # x y [z] simplex f …
+    f = np.array([float(line.split(",")[column]) for line in out.splitlines()[1:]])
+    return float(np.max(np.abs(f - np.array(fs))))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--old", required=True)
+    ap.add_argument("--new", required=True)
+    ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--points", type=int, default=1500)
+    ap.add_argument("models", nargs="+")
+    args = ap.parse_args()
+    print(f"load before: {os.getloadavg()[0]:.2f}")
+    print("| model | build | CPU s | wall s | cells | control points | bytes | degree, levels | reported bound |"
+          " certified | exact | met | measured max \\|F_vtk − F\\| |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    with tempfile.TemporaryDirectory() as d:
+        for model in args.models:
+            best: dict[str, tuple[float, float, dict]] = {}
+            for _ in range(args.repeat):
+                for name, ism in (("old", args.old), ("new", args.new)):
+                    out = os.path.join(d, name + ".vtu")
+                    cpu, wall, text = child_cpu([ism, "export", model, out, "--volume", "-j", "1", "-q", "--json"])
+                    if name not in best or cpu < best[name][0]:
+                        best[name] = (cpu, wall, json.loads(text))
+            for name, ism in (("old", args.old), ("new", args.new)):
+                out = os.path.join(d, name + ".vtu")
+                cpu, wall, s = best[name]
+                err = true_error(args.new, model, out, args.points)
+                print(f"| {os.path.basename(model)} | {name} | {cpu:.3f} | {wall:.3f} | {s['cells']:,} |"
+                      f" {s['control_points']:,} | {os.path.getsize(out):,} | {s['degree']}, {s['refinement_levels']} |"
+                      f" {s['field_error_bound']:.2e} | {s['field_error_certified']} | {s.get('field_exact', False)} |"
+                      f" {s['field_tolerance_met']} | {err:.1e} |")
+    print(f"load after: {os.getloadavg()[0]:.2f}")
+
+
+if __name__ == "__main__":
+    main()
