@@ -898,19 +898,39 @@ fn assemble(
         grid.push_cell(ctype, conn);
         parents.push(cell.parent as i64);
     }
+    attach_arrays(&mut grid, values, None, parents);
+    (grid, bound, global)
+}
+
+/// The arrays of every volume grid: point data `F` (the active scalars) and, for rational cells,
+/// their weights (the active `RationalWeights`: VTK honours them only so declared); cell data
+/// `SourceSimplex` (each cell's top simplex).
+fn attach_arrays(
+    grid: &mut UnstructuredGrid,
+    f: Vec<f64>,
+    weights: Option<Vec<f64>>,
+    parents: Vec<i64>,
+) {
     grid.point_data.push(DataArray {
         name: "F".into(),
         components: 1,
-        values: ArrayValues::Float(values),
+        values: ArrayValues::Float(f),
         attribute: Attribute::Scalars,
     });
+    if let Some(w) = weights {
+        grid.point_data.push(DataArray {
+            name: "RationalWeights".into(),
+            components: 1,
+            values: ArrayValues::Float(w),
+            attribute: Attribute::RationalWeights,
+        });
+    }
     grid.cell_data.push(DataArray {
         name: "SourceSimplex".into(),
         components: 1,
         values: ArrayValues::Int(parents),
         attribute: Attribute::None,
     });
-    (grid, bound, global)
 }
 
 #[cfg(test)]

@@ -1,6 +1,7 @@
-//! Exact volume cells: models whose stages on every simplex are parametric ones followed by
-//! implicit ones — every model `ism fit` writes (all parametric) — as isoparametric (rational)
-//! Bézier cells whose geometry is the model's own parametrisation and whose field is `F` on it.
+//! Exact volume cells: models whose parametric stages (if any) come before their implicit ones —
+//! every model `ism fit` writes (all parametric), every all-implicit one — as isoparametric
+//! (rational) Bézier cells whose geometry is the model's own parametrisation (the straight simplex
+//! without parametric stages) and whose field is `F` on it.
 //!
 //! **Why it is exact.** With stages `0 … j−1` parametric (`X_k = Y_k⁻¹`) and `j …` implicit
 //! (`X_k = Y_k`), put `v = X_{j−1} ∘ ⋯ ∘ X_0 (w)`. Then `w = Y_0(Y_1(⋯Y_{j−1}(v)⋯))` and
@@ -36,14 +37,14 @@ use ism_format::{multi_index, Direction, Model, StageKind};
 use ism_geom::{Bernstein, LocalStage, ModelEval};
 use rayon::prelude::*;
 
-use super::{apply_stage, coordinates, sum, VolumeReport, PHASE, ROUNDING_ALLOWANCE_ULPS};
-use crate::vtk::{
-    cell_type, vtk_local_multi_indices, ArrayValues, Attribute, DataArray, UnstructuredGrid,
+use super::{
+    apply_stage, attach_arrays, coordinates, sum, VolumeReport, PHASE, ROUNDING_ALLOWANCE_ULPS,
 };
+use crate::vtk::{cell_type, vtk_local_multi_indices, UnstructuredGrid};
 use crate::Result;
 
 /// Highest degree of an exact cell. A degree-`E` tetrahedron has `C(E + 3, 3)` control points
-/// (455 at 12); the fitted presets need 6 (a quadratic edge stratum after a cubic face stratum),
+/// (455 at 12); the fitted presets need 6 (a quadratic edge stratum and a cubic face stratum),
 /// the same bound as the certificate's [`super::MAX_COMPOSED_DEGREE`] for the products' cost.
 pub const MAX_EXACT_DEGREE: u32 = 12;
 
@@ -267,26 +268,12 @@ pub(super) fn exact_grid(
         point_bound = point_bound.max(p);
         grid.push_cell(ctype, conn);
     }
-    grid.point_data.push(DataArray {
-        name: "F".into(),
-        components: 1,
-        values: ArrayValues::Float(values),
-        attribute: Attribute::Scalars,
-    });
-    if rational {
-        grid.point_data.push(DataArray {
-            name: "RationalWeights".into(),
-            components: 1,
-            values: ArrayValues::Float(weights),
-            attribute: Attribute::RationalWeights,
-        });
-    }
-    grid.cell_data.push(DataArray {
-        name: "SourceSimplex".into(),
-        components: 1,
-        values: ArrayValues::Int((0..ns as i64).collect()),
-        attribute: Attribute::None,
-    });
+    attach_arrays(
+        &mut grid,
+        values,
+        rational.then_some(weights),
+        (0..ns as i64).collect(),
+    );
     let kind = if rational { "rational " } else { "" };
     let report = VolumeReport {
         degree,
