@@ -1009,8 +1009,9 @@ mod tests {
             amplitude in 0.1f64..0.8,
         ) {
             let n = if three { 3 } else { 2 };
-            // 3D grids of 2 cells a side: where no pair meets the tolerance the search fits every
-            // pair (implicit chains). 2D grids twice as fine as drawn.
+            // 3D grids of 2 cells a side: where no pair meets the tolerance the interpolant's
+            // search fits every pair (the interpolated runs, and the 3D stratified chain, of
+            // degree 24, which no exact cell takes). 2D grids twice as fine as drawn.
             let cells = if three { 2 } else { 2 * cells };
             let direction = if implicit {
                 ism_format::Direction::Implicit
