@@ -372,6 +372,13 @@ fn multinomial(i: &[u32]) -> f64 {
     c
 }
 
+/// The degree of stages of these degrees composed, saturating: a file may hold any number of
+/// stages of degree up to 16, and sixteen of degree 16 wrap a `u64` product to 0 (which would pass
+/// every degree limit).
+fn composed_degree(degrees: impl Iterator<Item = u32>) -> u64 {
+    degrees.fold(1, |e, d| e.saturating_mul(u64::from(d)))
+}
+
 /// `F` on simplex `s` as `N_F / D` when every stage is implicit and `E ≤ MAX_COMPOSED_DEGREE`.
 fn cell_field(model: &Model, map: &LocalMap, ids: &[u32]) -> CellField {
     let m = map.vars();
@@ -382,7 +389,7 @@ fn cell_field(model: &Model, map: &LocalMap, ids: &[u32]) -> CellField {
     if map.stages().is_empty() {
         return CellField::Linear(f);
     }
-    let degree: u64 = map.stages().iter().map(|s| u64::from(s.degree())).product();
+    let degree = composed_degree(map.stages().iter().map(LocalStage::degree));
     if degree > u64::from(MAX_COMPOSED_DEGREE)
         || map
             .stages()
@@ -1203,6 +1210,15 @@ mod tests {
                 assert_eq!(chosen, interpolated, "power {power}");
             }
         }
+    }
+
+    #[test]
+    fn composed_degrees_saturate() {
+        assert_eq!(composed_degree([2, 3, 4].into_iter()), 24);
+        assert_eq!(composed_degree(std::iter::empty()), 1);
+        // 16^16 = 2^64: a wrapping product would read 0 and pass every degree limit.
+        assert_eq!(composed_degree(std::iter::repeat_n(16, 16)), u64::MAX);
+        assert_eq!(composed_degree(std::iter::repeat_n(2, 70)), u64::MAX);
     }
 
     #[test]

@@ -38,7 +38,8 @@ use ism_geom::{Bernstein, LocalStage, ModelEval};
 use rayon::prelude::*;
 
 use super::{
-    apply_stage, attach_arrays, coordinates, sum, VolumeReport, PHASE, ROUNDING_ALLOWANCE_ULPS,
+    apply_stage, attach_arrays, composed_degree, coordinates, sum, VolumeReport, PHASE,
+    ROUNDING_ALLOWANCE_ULPS,
 };
 use crate::vtk::{cell_type, vtk_local_multi_indices, UnstructuredGrid};
 use crate::Result;
@@ -141,16 +142,16 @@ fn chain(model: &Model) -> Option<(Vec<usize>, usize, u32)> {
     if active[j..].iter().any(parametric) {
         return None;
     }
-    let degree_of = |s: &[usize]| {
-        s.iter()
-            .map(|&i| u64::from(model.stages[i].degree))
-            .product::<u64>()
-    };
+    let degree_of = |s: &[usize]| composed_degree(s.iter().map(|&i| model.stages[i].degree));
     let (ex, ef) = (degree_of(&active[..j]), degree_of(&active[j..]));
     let any_rational = active
         .iter()
         .any(|&i| model.stages[i].kind != StageKind::Bezier);
-    let e = if any_rational { ex + ef } else { ex.max(ef) };
+    let e = if any_rational {
+        ex.saturating_add(ef)
+    } else {
+        ex.max(ef)
+    };
     (e <= u64::from(MAX_EXACT_DEGREE)).then_some((active, j, e as u32))
 }
 
