@@ -286,8 +286,7 @@ def test_volume_contours_to_the_models_topology_near_its_surface(tmp_path, model
     level in VTK gives the surface export's components (and, for curves, its Euler characteristic:
     VTK's tessellation of Bézier tetrahedra is not conforming across cells, so a 3D contour's V − E + F
     is not the surface's), within a small distance of it; the stated bound meets the tolerance."""
-    # The refined surface (not coarsened): the distance below is to its nearest vertex, an upper
-    # bound that the refinement's denser vertices keep tight.
+    # The refined surface (not coarsened), a close reference for the distance below.
     surface = export(model, tmp_path / "s.obj", "--tolerance", "1e-4", "--max-depth", "12", "--no-coarsen")
     vol = export(model, tmp_path / "v.vtu", "--volume", "--tolerance", str(TOLERANCE))
     assert vol["field_tolerance_met"], vol
