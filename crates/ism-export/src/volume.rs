@@ -575,6 +575,7 @@ fn certify(num: &Bernstein, d: &Bernstein, allowance: f64, target: f64, depth: u
 #[allow(clippy::too_many_arguments)]
 fn fit_sub(
     eval: &ModelEval,
+    map: &LocalMap,
     field: &CellField,
     s: usize,
     m: usize,
@@ -590,7 +591,7 @@ fn fit_sub(
     let bary = |j: &[u32]| to_bary(&lattice_numerators(corners, j), scale, m);
     let value = |w: &[f64; MAX_VARS]| match field {
         CellField::Linear(f) => (0..m).map(|i| f[i] * w[i]).sum::<f64>(),
-        _ => eval.value_at(s, w),
+        _ => eval.value_from_coordinates(s, &map.eval(w)),
     };
     let values: Vec<f64> = t
         .canonical
@@ -678,7 +679,7 @@ fn fit_sub(
                 for i in 0..m {
                     local[i] = f64::from(j[i]) / f64::from(q);
                 }
-                let diff = (g.eval(&local[..m]) - eval.value_at(s, &w)).abs();
+                let diff = (g.eval(&local[..m]) - value(&w)).abs();
                 worst = if diff.is_nan() {
                     f64::INFINITY
                 } else {
@@ -772,7 +773,9 @@ fn interpolated_grid(
     let ns = model.num_simplices();
     let fields: Vec<CellField> = (0..ns)
         .into_par_iter()
-        .map(|s| cell_field(model, eval.local_map(s), model.simplex(s)))
+        // Each map built, used and dropped ([`ModelEval::local_map_transient`]): the evaluator's
+        // cache would hold every simplex's map at once.
+        .map(|s| cell_field(model, &eval.local_map_transient(s), model.simplex(s)))
         .collect();
     let certified = !fields.iter().any(|f| matches!(f, CellField::Sampled));
     // Candidates by written size; the first whose bound meets the tolerance wins.
@@ -808,9 +811,11 @@ fn interpolated_grid(
                 if live {
                     counter.add(1);
                 }
+                // Built per simplex and candidate and dropped after its sub-cells (see `fields`).
+                let map = eval.local_map_transient(s);
                 subs.iter().take_while(move |_| live).map(move |c| {
                     let (coeffs, bound, side) =
-                        fit_sub(eval, field, s, m, k, c, tables, tol, model.level);
+                        fit_sub(eval, &map, field, s, m, k, c, tables, tol, model.level);
                     SubCell {
                         parent: s,
                         corners: c.clone(),

@@ -7,6 +7,7 @@
 //! Local maps are built lazily, once per simplex, and cached: a million-simplex model with a few
 //! curved cells costs memory only for the cells actually evaluated.
 
+use std::borrow::Cow;
 use std::sync::OnceLock;
 
 use ism_format::{IndexedModel, Model};
@@ -303,14 +304,32 @@ impl ModelEval {
             assert!(s < self.num_simplices(), "simplex {s} out of range");
             return IDENTITY[m].get_or_init(|| LocalMap::from_stages(m, Vec::new()));
         }
-        self.maps[s].get_or_init(|| {
-            let map = if self.fused {
-                LocalMap::from_indexed_fused(&self.model, s)
-            } else {
-                LocalMap::from_indexed(&self.model, s)
-            };
-            map.expect("an indexed model's stage tables are complete")
-        })
+        self.maps[s].get_or_init(|| self.build_local_map(s))
+    }
+
+    /// Simplex `s`'s local map as [`ModelEval::local_map`] caches it (fused or not).
+    fn build_local_map(&self, s: usize) -> LocalMap {
+        let map = if self.fused {
+            LocalMap::from_indexed_fused(&self.model, s)
+        } else {
+            LocalMap::from_indexed(&self.model, s)
+        };
+        map.expect("an indexed model's stage tables are complete")
+    }
+
+    /// The local map of simplex `s` without keeping it: the cached one when
+    /// [`ModelEval::local_map`] built it already, else the same map built afresh and dropped
+    /// with the returned value. For a pass that visits every simplex of a large model once (the
+    /// volume export): [`ModelEval::local_map`] keeps every map it builds, and on the 1 M-tet
+    /// model (three stages) the volume export peaked at 3.8 GB with the cache and 1.0 GB without.
+    pub fn local_map_transient(&self, s: usize) -> Cow<'_, LocalMap> {
+        if self.maps.is_empty() {
+            return Cow::Borrowed(self.local_map(s));
+        }
+        if let Some(map) = self.maps[s].get() {
+            return Cow::Borrowed(map);
+        }
+        Cow::Owned(self.build_local_map(s))
     }
 
     /// Unclamped barycentric coordinates of `p` (first `n` entries used) w.r.t. simplex `s`.

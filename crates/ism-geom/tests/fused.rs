@@ -152,3 +152,44 @@ fn fused_local_maps_equal_the_unfused_maps_fused() {
         }
     }
 }
+
+/// `ModelEval::local_map_transient` builds the very map `local_map` caches (fused for the
+/// exporter's evaluator, unfused otherwise) without caching it, and lends the cached one once
+/// there is one.
+#[test]
+fn transient_local_maps_are_the_cached_maps_uncached() {
+    use ism_geom::ModelEval;
+    use std::borrow::Cow;
+    for n in 2..=3usize {
+        let mut rng = Rng(0x7a5e_0000 + n as u64);
+        let base = common::kuhn(n, 2, &mut rng);
+        for (what, stages) in sequences(&base, &mut rng) {
+            let mut model = base.clone();
+            model.stages = stages;
+            let indexed = IndexedModel::new(model.clone()).expect("a valid model");
+            for (route, eval) in [
+                ("plain", ModelEval::from_indexed(&indexed).unwrap()),
+                ("extraction", ModelEval::for_extraction(&indexed).unwrap()),
+            ] {
+                for s in 0..model.num_simplices() {
+                    let first = eval.local_map_transient(s);
+                    let again = eval.local_map_transient(s);
+                    assert!(
+                        matches!((&first, &again), (Cow::Owned(_), Cow::Owned(_))),
+                        "{what}, {route}, simplex {s}: a transient map was cached"
+                    );
+                    let cached = eval.local_map(s);
+                    assert_eq!(
+                        format!("{first:?}"),
+                        format!("{cached:?}"),
+                        "{what}, {route}"
+                    );
+                    assert!(
+                        matches!(eval.local_map_transient(s), Cow::Borrowed(m) if std::ptr::eq(m, cached)),
+                        "{what}, {route}, simplex {s}: the cached map is not lent"
+                    );
+                }
+            }
+        }
+    }
+}
