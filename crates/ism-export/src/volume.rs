@@ -19,6 +19,10 @@
 //! vertex ids and exact dyadic barycentric numerators), so the field is continuous. `(p, k)` is the
 //! cheapest pair (fewest control points) whose certified bound meets the field tolerance; if none
 //! of the pairs tried meets it, the one with the smallest bound is written and the bound says so.
+//! Pairs that would write more than [`MAX_CONTROL_POINTS`] are not tried. When the shape crosses
+//! few simplices ([`SCREENED`]), a pair is first fitted on those alone: their cells are among the
+//! ones the tolerance applies to, so a bound over the tolerance there refuses the pair without
+//! fitting every simplex (the result is the same).
 //!
 //! **The certificate (all-implicit models).** With every stage implicit, `F` on a simplex is a
 //! ratio of polynomials: writing a stage projectively, `x ↦ (P(x), Q(x))` with `P` homogeneous of
@@ -57,7 +61,7 @@
 use std::collections::HashMap;
 
 use ism_format::progress::Progress;
-use ism_format::{multi_index, Direction, Model, StageKind};
+use ism_format::{multi_index, Direction, Model, StageKind, Topology};
 use ism_geom::{Bernstein, LocalMap, LocalStage, ModelEval, MAX_VARS};
 use rayon::prelude::*;
 
@@ -80,9 +84,13 @@ pub const MAX_LEVEL: u32 = 3;
 /// back to an estimate.
 pub const MAX_COMPOSED_DEGREE: u32 = 12;
 
-/// Most control points the search may write (sum over cells), so a tight tolerance on a big model
-/// ends in "not met, best bound" instead of an unbounded file.
-pub const MAX_CONTROL_POINTS: usize = 4_000_000;
+/// Most control points a candidate `(p, k)` of the search may write (a point shared by cells
+/// counted once: `Σ_d f_d · C(p·2^k − 1, d)` over the complex's `f_d` faces of dimension `d`), so a tight tolerance on a big model ends in "not met, best
+/// bound" instead of an unbounded file: 16 M points, a ~1.6 GB `.vtu` (ASCII). The 1 M-tet model
+/// of BENCHMARKS.md (`ism-make-examples --large 1000000`) meets its default tolerance at degree 4
+/// with 11.4 M points (a 1.15 GB file). The cap was 4 M points counted per cell, 3–7× the points
+/// written: it stopped that model at degree 2, 8× over its tolerance.
+pub const MAX_CONTROL_POINTS: usize = 16_000_000;
 
 /// Rounding allowance of the certificate, in ulps of the magnitudes involved: the coefficients
 /// come from `O(E + p)` levels of products and sums of non-negative combinations, each rounding by
@@ -179,6 +187,30 @@ pub struct VolumeReport {
     pub met: bool,
     /// One line on the method, for the user.
     pub note: String,
+}
+
+/// Control points written for degree `p` after `k` levels of red refinement: every point of the
+/// `q = p·2^k` lattice of every top simplex, a shared one once — `Σ_d f_d · C(q − 1, d)` over
+/// the complex's `f_d` faces of dimension `d` (`C(q − 1, d)` lattice points lie inside a
+/// `d`-face). Red refinement's children are unimodular in the `2^k` lattice, so their degree-`p`
+/// lattices cover the parent's `q` lattice exactly (test
+/// `written_points_count_the_assembled_grid`). Saturates instead of wrapping.
+fn written_points(topology: &Topology, n: usize, p: u32, k: u32) -> usize {
+    let q = u64::from(p) << k;
+    (0..=n)
+        .map(|d| {
+            // C(q − 1, d), exact while it fits (each partial product is a binomial times a
+            // factorial); `None` past u128.
+            let inside = (0..d as u64).try_fold(1u128, |c, i| {
+                Some(c.checked_mul(u128::from((q - 1).saturating_sub(i)))? / u128::from(i + 1))
+            });
+            inside.map_or(u128::MAX, |c| {
+                c.saturating_mul(topology.num_faces(d) as u128)
+            })
+        })
+        .fold(0u128, u128::saturating_add)
+        .try_into()
+        .unwrap_or(usize::MAX)
 }
 
 /// `F` on one simplex, in the form the certificate needs.
@@ -716,11 +748,23 @@ pub fn volume_grid(
 }
 
 /// The phase [`volume_grid_with_progress`] reports, once per (degree, refinement) candidate it
-/// tries, counted in simplices.
+/// fits on every simplex, counted in simplices.
 pub const PHASE: &str = "fitting the Bézier field of F per simplex";
 
-/// [`volume_grid`] with a progress and cancel hook (phase [`PHASE`]); a cancelled hook stops the
-/// fit within one simplex per worker thread.
+/// The phase of a candidate's screen (its fit on the crossed simplices only, [`SCREENED`]),
+/// counted in simplices.
+pub const SCREEN_PHASE: &str = "screening a Bézier field candidate on the crossed simplices";
+
+/// Largest fraction of the simplices crossed by the shape for which a candidate is first fitted
+/// on those alone (its screen). Their cells are among those the tolerance applies to, so a screen
+/// over the tolerance refuses the candidate at a fraction of a whole fit (the 1 M-tet model:
+/// degrees 2 and 3 refused on its crossed simplices before degree 4 met, BENCHMARKS.md); a
+/// candidate that passes is then fitted whole, so the screen costs that fraction again. A
+/// quarter keeps that cost below the saving of one refusal.
+pub const SCREENED: f64 = 0.25;
+
+/// [`volume_grid`] with a progress and cancel hook (phases [`PHASE`] and [`SCREEN_PHASE`]); a
+/// cancelled hook stops the fit within one simplex per worker thread.
 ///
 /// # Errors
 /// As [`volume_grid`]; [`Error::Cancelled`] when `progress` was cancelled.
@@ -767,6 +811,18 @@ fn interpolated_grid(
     tol: f64,
     progress: &Progress,
 ) -> Result<(UnstructuredGrid, VolumeReport)> {
+    interpolated_search(eval, tol, progress, SCREENED)
+}
+
+/// [`interpolated_grid`], its candidates screened on the crossed simplices when those are at most
+/// `screened` of all ([`SCREENED`]; 0: never, 1: always). The same result whatever `screened`
+/// (test `screened_search_writes_what_the_whole_search_writes`).
+fn interpolated_search(
+    eval: &ModelEval,
+    tol: f64,
+    progress: &Progress,
+    screened: f64,
+) -> Result<(UnstructuredGrid, VolumeReport)> {
     let model = eval.model();
     let n = model.dim();
     let m = n + 1;
@@ -788,59 +844,69 @@ fn interpolated_grid(
         })
         .collect();
     candidates.sort_unstable();
-    let mut best: Option<(f64, u32, u32, Vec<SubCell>)> = None;
-    for &(size, p, k) in &candidates {
-        if size.saturating_mul(ns) > MAX_CONTROL_POINTS && best.is_some() {
-            break;
+    let topology = eval.indexed().topology();
+    // The screen's simplices: the crossed ones, when they are few enough to pay ([`SCREENED`]).
+    let crossed: Vec<usize> = (0..ns)
+        .into_par_iter()
+        .filter(|&s| eval.patch(s).is_some())
+        .collect();
+    let screen = (crossed.len() as f64) <= screened * ns as f64;
+    let all: Vec<usize> = (0..ns).collect();
+    let fit = |(p, k): (u32, u32), parents: &[usize], phase: &'static str| {
+        fit_candidate(eval, &fields, p, k, parents, tol, progress, phase)
+    };
+    // Best so far: (bound, candidate index, p, k, cells); the smallest bound wins, then the
+    // earliest candidate.
+    let mut best: Option<(f64, usize, u32, u32, Vec<SubCell>)> = None;
+    // Candidates the screen refused, with the screen's bound (a lower bound of their own).
+    let mut refused: Vec<(f64, usize)> = Vec::new();
+    let mut met = false;
+    for (i, &(_, p, k)) in candidates.iter().enumerate() {
+        // The written count is not monotonic in the candidates' order (by points per cell): a
+        // later candidate may still fit. The first candidate is tried whatever its size.
+        let first = best.is_none() && refused.is_empty();
+        if written_points(topology, n, p, k) > MAX_CONTROL_POINTS && !first {
+            continue;
         }
-        let tables = DegreeTables {
-            p,
-            canonical: multi_index::all(m, p),
-            inv: inverse_collocation(m, p)?,
-            dense: multi_index::all(m, estimate_lattice_degree(p)),
-        };
-        let subs = sub_simplices(n, k);
-        let counter = progress.phase(PHASE, ns as u64);
-        let cells: Vec<SubCell> = (0..ns)
-            .into_par_iter()
-            .flat_map_iter(|s| {
-                let field = &fields[s];
-                let tables = &tables;
-                // Once cancelled, the remaining simplices yield nothing (checked below).
-                let live = !counter.is_cancelled();
-                if live {
-                    counter.add(1);
-                }
-                // Built per simplex and candidate and dropped after its sub-cells (see `fields`).
-                let map = eval.local_map_transient(s);
-                subs.iter().take_while(move |_| live).map(move |c| {
-                    let (coeffs, bound, side) =
-                        fit_sub(eval, &map, field, s, m, k, c, tables, tol, model.level);
-                    SubCell {
-                        parent: s,
-                        corners: c.clone(),
-                        coeffs,
-                        bound,
-                        side,
-                    }
-                })
-            })
-            .collect();
-        progress.check()?;
-        let bound = cells
-            .iter()
-            .filter(|c| !c.away(c.coeffs.iter().copied(), model.level))
-            .map(|c| c.bound)
-            .fold(0.0, f64::max);
-        let better = best.as_ref().is_none_or(|b| bound < b.0);
-        if better {
-            best = Some((bound, p, k, cells));
+        if screen {
+            let (lower, _) = fit((p, k), &crossed, SCREEN_PHASE)?;
+            if lower > tol {
+                refused.push((lower, i));
+                continue;
+            }
+        }
+        let (bound, cells) = fit((p, k), &all, PHASE)?;
+        if best.as_ref().is_none_or(|b| bound < b.0) {
+            best = Some((bound, i, p, k, cells));
         }
         if bound <= tol {
+            met = true;
             break;
         }
     }
-    let (_, p, k, cells) = best.expect("at least one candidate");
+    if !met {
+        // None meets the tolerance: the smallest bound of every candidate tried is written, as
+        // without the screen. A refused candidate's bound is at least its screen's, so they are
+        // fitted whole in the order of their screens only while one could still win.
+        refused.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+        for (lower, i) in refused {
+            if best
+                .as_ref()
+                .is_some_and(|b| lower > b.0 || (lower == b.0 && i > b.1))
+            {
+                break;
+            }
+            let (_, p, k) = candidates[i];
+            let (bound, cells) = fit((p, k), &all, PHASE)?;
+            if best
+                .as_ref()
+                .is_none_or(|b| bound < b.0 || (bound == b.0 && i < b.1))
+            {
+                best = Some((bound, i, p, k, cells));
+            }
+        }
+    }
+    let (_, _, p, k, cells) = best.expect("at least one candidate");
     let (grid, bound, global) = assemble(model, n, p, k, &cells);
     let sampled_note = if certified {
         "certified: Bernstein bound of (G·D − N_F)/D per cell (F = N_F/D exactly, all stages implicit)"
@@ -863,6 +929,64 @@ fn interpolated_grid(
         ),
     };
     Ok((grid, report))
+}
+
+/// Fits candidate `(p, k)` on the sub-cells of `parents` (progress phase `phase`): the sub-cells
+/// and the largest bound of those the level may cross by their own coefficients (the number the
+/// search compares with the tolerance; assembly can only raise it).
+#[allow(clippy::too_many_arguments)]
+fn fit_candidate(
+    eval: &ModelEval,
+    fields: &[CellField],
+    p: u32,
+    k: u32,
+    parents: &[usize],
+    tol: f64,
+    progress: &Progress,
+    phase: &'static str,
+) -> Result<(f64, Vec<SubCell>)> {
+    let model = eval.model();
+    let m = model.dim() + 1;
+    let tables = DegreeTables {
+        p,
+        canonical: multi_index::all(m, p),
+        inv: inverse_collocation(m, p)?,
+        dense: multi_index::all(m, estimate_lattice_degree(p)),
+    };
+    let subs = sub_simplices(m - 1, k);
+    let counter = progress.phase(phase, parents.len() as u64);
+    let cells: Vec<SubCell> = parents
+        .par_iter()
+        .flat_map_iter(|&s| {
+            let field = &fields[s];
+            let tables = &tables;
+            // Once cancelled, the remaining simplices yield nothing (checked below).
+            let live = !counter.is_cancelled();
+            if live {
+                counter.add(1);
+            }
+            // Built per simplex and candidate and dropped after its sub-cells (see `fields`).
+            let map = eval.local_map_transient(s);
+            subs.iter().take_while(move |_| live).map(move |c| {
+                let (coeffs, bound, side) =
+                    fit_sub(eval, &map, field, s, m, k, c, tables, tol, model.level);
+                SubCell {
+                    parent: s,
+                    corners: c.clone(),
+                    coeffs,
+                    bound,
+                    side,
+                }
+            })
+        })
+        .collect();
+    progress.check()?;
+    let bound = cells
+        .iter()
+        .filter(|c| !c.away(c.coeffs.iter().copied(), model.level))
+        .map(|c| c.bound)
+        .fold(0.0, f64::max);
+    Ok((bound, cells))
 }
 
 /// Writes the cells with shared control points; returns the grid and the final bound (each
@@ -1215,6 +1339,113 @@ mod tests {
                 assert_eq!(chosen, interpolated, "power {power}");
             }
         }
+    }
+
+    /// [`written_points`] (from the face counts) is the number of points [`assemble`] writes
+    /// (deduplicated by their exact keys) for every example, 2D and 3D, at every degree unrefined
+    /// and the lower ones after one and two levels; and it saturates instead of wrapping.
+    #[test]
+    fn written_points_count_the_assembled_grid() {
+        for (name, model) in ism_examples::named::all_examples() {
+            let n = model.dim();
+            if n != 2 && n != 3 {
+                continue;
+            }
+            let m = n + 1;
+            let indexed = IndexedModel::new(model.clone()).unwrap();
+            // Every degree unrefined; fewer refined (debug-build time: the grids grow as 8^k).
+            for (k, top) in [(0, MAX_DEGREE), (1, 4), (2, 2)] {
+                let subs = sub_simplices(n, k);
+                for p in 2..=top {
+                    let count = multi_index::count(m, p);
+                    let cells: Vec<SubCell> = (0..model.num_simplices())
+                        .flat_map(|s| {
+                            subs.iter().map(move |c| SubCell {
+                                parent: s,
+                                corners: c.clone(),
+                                coeffs: vec![0.0; count],
+                                bound: 0.0,
+                                side: 0,
+                            })
+                        })
+                        .collect();
+                    let (grid, _, _) = assemble(&model, n, p, k, &cells);
+                    assert_eq!(
+                        written_points(indexed.topology(), n, p, k),
+                        grid.points.len(),
+                        "{name}: p = {p}, k = {k}"
+                    );
+                }
+            }
+        }
+        let model = ism_examples::named::all_examples()
+            .into_iter()
+            .find(|(_, m)| m.dim() == 3)
+            .unwrap()
+            .1;
+        let indexed = IndexedModel::new(model).unwrap();
+        assert_eq!(
+            written_points(indexed.topology(), 3, u32::MAX, 31),
+            usize::MAX
+        );
+    }
+
+    /// The screen changes no result: never screened, always screened (whatever the crossed
+    /// fraction) and screened by [`SCREENED`], the search writes the same grid and report — on
+    /// the examples whose interpolant is written (composed degree 24; an implicit stage before a
+    /// parametric one) and a larger stratified model where [`SCREENED`] screens, at tolerances
+    /// met by a later candidate, met by the first, and (the 2D one) met by none: the refused
+    /// candidates are then fitted whole while one could still have the smallest bound.
+    #[test]
+    fn screened_search_writes_what_the_whole_search_writes() {
+        let mut models: Vec<(String, Model, bool)> = ism_examples::named::all_examples()
+            .into_iter()
+            .filter(|(name, _)| ["stratified-3d", "two-stage"].contains(name))
+            // Met by none only on the 2D one: the 3D searches through every candidate take
+            // minutes in a debug build.
+            .map(|(name, m)| (name.to_string(), m, name == "two-stage"))
+            .collect();
+        models.push((
+            "large, 8³ cubes".into(),
+            ism_examples::large_stratified_model(6 * 8 * 8 * 8),
+            false,
+        ));
+        assert_eq!(models.len(), 3);
+        let mut screened = 0;
+        for (name, model, unmet) in models {
+            let indexed = IndexedModel::new(model).unwrap();
+            let eval = ModelEval::from_indexed(&indexed).unwrap();
+            let ns = eval.num_simplices() as f64;
+            let crossed = (0..eval.num_simplices())
+                .filter(|&s| eval.patch(s).is_some())
+                .count() as f64;
+            screened += usize::from(crossed <= SCREENED * ns);
+            let base = default_field_tolerance(&eval, 1e-3);
+            let mut tolerances = vec![base, base * 1e3];
+            if unmet {
+                tolerances.push(base * 1e-9);
+            }
+            for tol in tolerances {
+                let search = |fraction| {
+                    let (grid, report) =
+                        interpolated_search(&eval, tol, &Progress::none(), fraction).unwrap();
+                    let mut bytes = Vec::new();
+                    grid.write_vtu(&mut bytes).unwrap();
+                    (bytes, report)
+                };
+                let whole = search(0.0);
+                assert!(tol >= base || !whole.1.met, "{name}: met at {tol}");
+                for fraction in [1.0, SCREENED] {
+                    let other = search(fraction);
+                    assert_eq!(whole.1, other.1, "{name}, tolerance {tol}, {fraction}");
+                    assert!(
+                        whole.0 == other.0,
+                        "{name}, tolerance {tol}, {fraction}: grids differ"
+                    );
+                }
+            }
+        }
+        assert!(screened >= 1, "no model screened by SCREENED");
     }
 
     #[test]

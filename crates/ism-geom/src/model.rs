@@ -4,8 +4,10 @@
 //! Point location uses a uniform grid of the simplices' bounding boxes, falling back to an R*-tree
 //! (`rstar`) on strongly graded meshes (see `spatial.rs` for why).
 //!
-//! Local maps are built lazily, once per simplex, and cached: a million-simplex model with a few
-//! curved cells costs memory only for the cells actually evaluated.
+//! Local maps are built lazily, once per simplex, and cached ([`ModelEval::local_map`]): a
+//! million-simplex model with a few curved cells costs memory only for the cells actually
+//! evaluated. A pass that visits every simplex once takes them uncached instead
+//! ([`ModelEval::local_map_transient`]), so its memory does not grow with the model.
 
 use std::borrow::Cow;
 use std::sync::OnceLock;
