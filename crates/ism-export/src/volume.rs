@@ -1393,14 +1393,16 @@ mod tests {
     /// The screen changes no result: never screened, always screened (whatever the crossed
     /// fraction) and screened by [`SCREENED`], the search writes the same grid and report — on
     /// the examples whose interpolant is written (composed degree 24; an implicit stage before a
-    /// parametric one) and a larger stratified model where [`SCREENED`] screens, at tolerances
+    /// parametric one), the sphere example's interpolant (all stages implicit: the certified
+    /// bound, with cells certified away from the level) and a larger stratified model where
+    /// [`SCREENED`] screens, at tolerances
     /// met by a later candidate, met by the first, and (the 2D one) met by none: the refused
     /// candidates are then fitted whole while one could still have the smallest bound.
     #[test]
     fn screened_search_writes_what_the_whole_search_writes() {
         let mut models: Vec<(String, Model, bool)> = ism_examples::named::all_examples()
             .into_iter()
-            .filter(|(name, _)| ["stratified-3d", "two-stage"].contains(name))
+            .filter(|(name, _)| ["stratified-3d", "two-stage", "sphere"].contains(name))
             // Met by none only on the 2D one: the 3D searches through every candidate take
             // minutes in a debug build.
             .map(|(name, m)| (name.to_string(), m, name == "two-stage"))
@@ -1410,7 +1412,7 @@ mod tests {
             ism_examples::large_stratified_model(6 * 8 * 8 * 8),
             false,
         ));
-        assert_eq!(models.len(), 3);
+        assert_eq!(models.len(), 4);
         let mut screened = 0;
         for (name, model, unmet) in models {
             let indexed = IndexedModel::new(model).unwrap();
