@@ -15,10 +15,11 @@
 //! sub-simplices by `k` levels of red refinement (edge midpoints; the refinement of a face does not
 //! depend on the cell, so neighbouring cells stay conforming), and on each sub-simplex `F` is
 //! replaced by its degree-`p` polynomial interpolant `G` at the lattice points (linear geometry,
-//! control point `J/p`). Control points on shared faces are shared (keyed by the parent's global
-//! vertex ids and exact dyadic barycentric numerators), so the field is continuous. `(p, k)` is the
-//! cheapest pair (fewest control points) whose certified bound meets the field tolerance; if none
-//! of the pairs tried meets it, the one with the smallest bound is written and the bound says so.
+//! control point `J/p`). Control points on shared faces are shared (identified by the face of the
+//! parent that carries them and their exact dyadic barycentric numerators there, `PointIds`), so
+//! the field is continuous. `(p, k)` is the cheapest pair (fewest control points) whose certified
+//! bound meets the field tolerance; if none of the pairs tried meets it, the one with the
+//! smallest bound is written and the bound says so.
 //! Pairs that would write more than [`MAX_CONTROL_POINTS`] are not tried. When the shape crosses
 //! few simplices ([`SCREENED`]), a pair is first fitted on those alone: their cells are among the
 //! ones the tolerance applies to, so a bound over the tolerance there refuses the pair without
@@ -57,8 +58,6 @@
 //! `certified: false` — never presented as a certificate. The same is done when an all-implicit
 //! model's composed degree `E` exceeds [`MAX_COMPOSED_DEGREE`] (exact products would cost more
 //! than they are worth). An estimate can be low between its lattice points (measured there).
-
-use std::collections::HashMap;
 
 use ism_format::progress::Progress;
 use ism_format::{multi_index, Direction, Model, StageKind, Topology};
@@ -198,19 +197,108 @@ pub struct VolumeReport {
 fn written_points(topology: &Topology, n: usize, p: u32, k: u32) -> usize {
     let q = u64::from(p) << k;
     (0..=n)
-        .map(|d| {
-            // C(q − 1, d), exact while it fits (each partial product is a binomial times a
-            // factorial); `None` past u128.
-            let inside = (0..d as u64).try_fold(1u128, |c, i| {
-                Some(c.checked_mul(u128::from((q - 1).saturating_sub(i)))? / u128::from(i + 1))
-            });
-            inside.map_or(u128::MAX, |c| {
-                c.saturating_mul(topology.num_faces(d) as u128)
-            })
-        })
+        .map(|d| inside_points(q, d).saturating_mul(topology.num_faces(d) as u128))
         .fold(0u128, u128::saturating_add)
         .try_into()
         .unwrap_or(usize::MAX)
+}
+
+/// `C(q − 1, d)`: the points of the degree-`q` lattice inside a `d`-face (0 for `q ≤ d`);
+/// exact while it fits (each partial product is a binomial times a factorial), else `u128::MAX`.
+fn inside_points(q: u64, d: usize) -> u128 {
+    (0..d as u64)
+        .try_fold(1u128, |c, i| {
+            Some(c.checked_mul(u128::from(q.saturating_sub(1 + i)))? / u128::from(i + 1))
+        })
+        .unwrap_or(u128::MAX)
+}
+
+/// The ids of the control points an assembly writes, by their place in the lattice of the face
+/// that carries them: a point of a cell's degree-`q` lattice (numerators over `q` of the parent
+/// simplex's barycentric coordinates) lies inside the face spanned by its nonzero numerators, and
+/// is one of that face's `C(q − 1, d)` interior points — ranked by its numerators less one, in the
+/// face's vertices by ascending global id, so every cell sharing the face finds the same slot.
+/// One `u64` per slot, assigned in the order the points are first met (the order a map keyed by
+/// the sorted (global vertex, numerator) pairs gave, so the same ids): the map held a key vector
+/// per point, ~100 bytes each on the 1 M-tet model's 11.4 M points.
+pub(crate) struct PointIds<'a> {
+    model: &'a Model,
+    topology: &'a Topology,
+    q: u32,
+    /// Per face dimension: the first slot and the slots per face.
+    base: [usize; MAX_VARS],
+    inside: [usize; MAX_VARS],
+    ids: Vec<u64>,
+    /// The face ids of `parent`'s faces by local mask ([`Topology::faces_by_mask`]).
+    parent: Option<usize>,
+    faces: [ism_format::FaceId; 16],
+}
+
+impl<'a> PointIds<'a> {
+    /// No point yet, for the degree-`q` lattices of `model`'s simplices (`topology` its faces).
+    pub(crate) fn new(model: &'a Model, topology: &'a Topology, q: u32) -> PointIds<'a> {
+        let n = model.dim();
+        let (mut base, mut inside) = ([0usize; MAX_VARS], [0usize; MAX_VARS]);
+        let mut total = 0usize;
+        for d in 0..=n {
+            // Small: q is at most MAX_DEGREE · 2^MAX_LEVEL or MAX_EXACT_DEGREE.
+            inside[d] = usize::try_from(inside_points(u64::from(q), d)).unwrap_or(usize::MAX);
+            base[d] = total;
+            total = total.saturating_add(topology.face_slots(d).saturating_mul(inside[d]));
+        }
+        PointIds {
+            model,
+            topology,
+            q,
+            base,
+            inside,
+            ids: vec![u64::MAX; total],
+            parent: None,
+            faces: [ism_format::FaceId { dim: 0, index: 0 }; 16],
+        }
+    }
+
+    /// The slot of the point with numerators `num` (over `q`, summing to `q`) of simplex
+    /// `parent`: its id is `self.ids[slot]` (`u64::MAX` until one is given).
+    pub(crate) fn slot(&mut self, parent: usize, num: &[u32]) -> usize {
+        if self.parent != Some(parent) {
+            self.faces = self.topology.faces_by_mask(self.model, parent);
+            self.parent = Some(parent);
+        }
+        let ids = self.model.simplex(parent);
+        let mut support = [(0u32, 0u32); MAX_VARS];
+        let (mut len, mut mask) = (0, 0usize);
+        for (i, &a) in num.iter().enumerate().take(ids.len()) {
+            if a > 0 {
+                support[len] = (ids[i], a - 1);
+                len += 1;
+                mask |= 1 << i;
+            }
+        }
+        support[..len].sort_unstable();
+        let mut shifted = [0u32; MAX_VARS];
+        for (x, &(_, a)) in shifted.iter_mut().zip(&support[..len]) {
+            *x = a;
+        }
+        debug_assert_eq!(
+            shifted[..len].iter().sum::<u32>() + len as u32,
+            self.q,
+            "numerators over q"
+        );
+        let face = self.faces[mask];
+        let d = usize::from(face.dim);
+        self.base[d] + face.index as usize * self.inside[d] + multi_index::rank(&shifted[..len])
+    }
+
+    /// The id stored for `slot`, if any.
+    pub(crate) fn get(&self, slot: usize) -> Option<u64> {
+        Some(self.ids[slot]).filter(|&id| id != u64::MAX)
+    }
+
+    /// Gives `slot` the id `id`.
+    pub(crate) fn set(&mut self, slot: usize, id: u64) {
+        self.ids[slot] = id;
+    }
 }
 
 /// `F` on one simplex, in the form the certificate needs.
@@ -907,7 +995,7 @@ fn interpolated_search(
         }
     }
     let (_, _, p, k, cells) = best.expect("at least one candidate");
-    let (grid, bound, global) = assemble(model, n, p, k, &cells);
+    let (grid, bound, global) = assemble(model, topology, n, p, k, &cells);
     let sampled_note = if certified {
         "certified: Bernstein bound of (G·D − N_F)/D per cell (F = N_F/D exactly, all stages implicit)"
     } else {
@@ -993,6 +1081,7 @@ fn fit_candidate(
 /// cell's own bound plus the largest change its shared coefficients received).
 fn assemble(
     model: &Model,
+    topology: &Topology,
     n: usize,
     p: u32,
     k: u32,
@@ -1009,7 +1098,7 @@ fn assemble(
     let denom = f64::from(p) * f64::from(1u32 << k);
     let mut grid = UnstructuredGrid::default();
     let mut values: Vec<f64> = Vec::new();
-    let mut index: HashMap<Vec<(u32, u32)>, u64> = HashMap::new();
+    let mut index = PointIds::new(model, topology, p << k);
     let mut parents: Vec<i64> = Vec::with_capacity(cells.len());
     let mut bound = 0.0f64;
     let mut global = 0.0f64;
@@ -1019,14 +1108,10 @@ fn assemble(
         let mut delta = 0.0f64;
         for (j, &rank) in local_order.chunks(m).zip(&rank_of) {
             let num = lattice_numerators(&cell.corners, j);
-            let mut key: Vec<(u32, u32)> = (0..m)
-                .filter(|&i| num[i] > 0)
-                .map(|i| (ids[i], num[i]))
-                .collect();
-            key.sort_unstable();
+            let slot = index.slot(cell.parent, &num[..m]);
             let own = cell.coeffs[rank];
-            let id = match index.get(&key) {
-                Some(&id) => {
+            let id = match index.get(slot) {
+                Some(id) => {
                     delta = delta.max((values[id as usize] - own).abs());
                     id
                 }
@@ -1041,7 +1126,7 @@ fn assemble(
                     grid.points.push(pt);
                     values.push(own);
                     let id = (grid.points.len() - 1) as u64;
-                    index.insert(key, id);
+                    index.set(slot, id);
                     id
                 }
             };
@@ -1099,6 +1184,7 @@ fn attach_arrays(
 mod tests {
     use super::*;
     use ism_format::IndexedModel;
+    use std::collections::HashMap;
 
     /// The certified bound holds: at random points of every fifth written cell, `|G − F|` (F from
     /// the model evaluator, G the written cell's value at the same parameter, its point mapped
@@ -1369,7 +1455,7 @@ mod tests {
                             })
                         })
                         .collect();
-                    let (grid, _, _) = assemble(&model, n, p, k, &cells);
+                    let (grid, _, _) = assemble(&model, indexed.topology(), n, p, k, &cells);
                     assert_eq!(
                         written_points(indexed.topology(), n, p, k),
                         grid.points.len(),
@@ -1448,6 +1534,41 @@ mod tests {
             }
         }
         assert!(screened >= 1, "no model screened by SCREENED");
+    }
+
+    /// Two lattice points get the same [`PointIds`] slot exactly when they are the same point of
+    /// the complex — the same global vertices with the same numerators (the key the assembly
+    /// hashed before) — on every 2D and 3D example at several degrees, and every slot is within
+    /// the table.
+    #[test]
+    fn point_slots_are_the_points_of_the_complex() {
+        for (name, model) in ism_examples::named::all_examples() {
+            let n = model.dim();
+            if n != 2 && n != 3 {
+                continue;
+            }
+            let m = n + 1;
+            let indexed = IndexedModel::new(model.clone()).unwrap();
+            for q in [1, 2, 3, 5] {
+                let mut ids = PointIds::new(&model, indexed.topology(), q);
+                let mut by_key: HashMap<Vec<(u32, u32)>, usize> = HashMap::new();
+                let mut by_slot: HashMap<usize, Vec<(u32, u32)>> = HashMap::new();
+                for s in 0..model.num_simplices() {
+                    let vertices = model.simplex(s);
+                    for j in multi_index::all(m, q).chunks_exact(m) {
+                        let slot = ids.slot(s, j);
+                        assert!(slot < ids.ids.len(), "{name}: slot out of range");
+                        let mut key: Vec<(u32, u32)> = (0..m)
+                            .filter(|&i| j[i] > 0)
+                            .map(|i| (vertices[i], j[i]))
+                            .collect();
+                        key.sort_unstable();
+                        assert_eq!(*by_key.entry(key.clone()).or_insert(slot), slot, "{name}");
+                        assert_eq!(*by_slot.entry(slot).or_insert(key.clone()), key, "{name}");
+                    }
+                }
+            }
+        }
     }
 
     #[test]

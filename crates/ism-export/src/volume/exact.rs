@@ -16,8 +16,9 @@
 //! `max(E_x, E_F)`. Every stage with data anywhere is composed on every simplex, identity there or
 //! not (see [`chain`]), so all cells have one degree.
 //!
-//! **Continuity.** A control point is keyed by the face that owns it (global vertex ids and
-//! exponents), so neighbours share it. The stages keep faces in place and are stored face-locally,
+//! **Continuity.** A control point is identified by the face that owns it and its exponents there
+//! (`super::PointIds`: the face's id and the exponents' rank in the face's global vertex order),
+//! so neighbours share it. The stages keep faces in place and are stored face-locally,
 //! and both neighbours compose the same chain, so their coefficients on a shared face are the same
 //! numbers up to rounding; the first cell's are written.
 //!
@@ -30,15 +31,13 @@
 //! [`MAX_EXACT_DEGREE`] makes [`exact_grid`] decline (`None`): the caller falls back to
 //! interpolated cells.
 
-use std::collections::HashMap;
-
 use ism_format::progress::{Cancelled, Progress};
 use ism_format::{multi_index, Direction, Model, StageKind};
 use ism_geom::{Bernstein, LocalStage, ModelEval};
 use rayon::prelude::*;
 
 use super::{
-    apply_stage, attach_arrays, composed_degree, coordinates, sum, VolumeReport, PHASE,
+    apply_stage, attach_arrays, composed_degree, coordinates, sum, PointIds, VolumeReport, PHASE,
     ROUNDING_ALLOWANCE_ULPS,
 };
 use crate::vtk::{cell_type, vtk_local_multi_indices, UnstructuredGrid};
@@ -198,11 +197,10 @@ pub(super) fn exact_grid(
     };
     let mut grid = UnstructuredGrid::default();
     let (mut values, mut weights) = (Vec::new(), Vec::new());
-    let mut index: HashMap<Vec<(u32, u32)>, u64> = HashMap::new();
+    let mut index = PointIds::new(model, eval.indexed().topology(), degree);
     let (mut field_bound, mut point_bound) = (0.0f64, 0.0f64);
     let allowance = ROUNDING_ALLOWANCE_ULPS * f64::EPSILON * f64::from(degree + 1);
     for (s, cell) in cells.iter().enumerate() {
-        let ids = model.simplex(s);
         let mut conn = Vec::with_capacity(rank_of.len());
         // Largest differences of the written (ω', ω'φ', ω'P') from the cell's own, and the
         // magnitudes the bound and the allowance scale with.
@@ -210,11 +208,7 @@ pub(super) fn exact_grid(
         let (mut min_w, mut max_w) = (f64::INFINITY, 0.0f64);
         let (mut max_f, mut max_p, mut max_wf, mut max_wp) = (0.0f64, 0.0f64, 0.0f64, 0.0f64);
         for (j, &rank) in local_order.chunks(m).zip(&rank_of) {
-            let mut key: Vec<(u32, u32)> = (0..m)
-                .filter(|&i| j[i] > 0)
-                .map(|i| (ids[i], j[i]))
-                .collect();
-            key.sort_unstable();
+            let slot = index.slot(s, j);
             let w = cell.weight.as_ref().map_or(1.0, |w| w.coeffs()[rank]);
             let wf = cell.field.coeffs()[rank];
             let mut wp = [0.0; 3];
@@ -227,8 +221,8 @@ pub(super) fn exact_grid(
                 max_p = max_p.max((v / w).abs());
                 max_wp = max_wp.max(v.abs());
             }
-            let id = match index.get(&key) {
-                Some(&id) => id,
+            let id = match index.get(slot) {
+                Some(id) => id,
                 None => {
                     let mut pt = [0.0; 3];
                     for c in 0..n {
@@ -238,7 +232,7 @@ pub(super) fn exact_grid(
                     values.push(wf / w);
                     weights.push(w);
                     let id = (grid.points.len() - 1) as u64;
-                    index.insert(key, id);
+                    index.set(slot, id);
                     id
                 }
             };
