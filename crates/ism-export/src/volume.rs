@@ -84,11 +84,12 @@ pub const MAX_LEVEL: u32 = 3;
 pub const MAX_COMPOSED_DEGREE: u32 = 12;
 
 /// Most control points a candidate `(p, k)` of the search may write (a point shared by cells
-/// counted once: `Σ_d f_d · C(p·2^k − 1, d)` over the complex's `f_d` faces of dimension `d`), so a tight tolerance on a big model ends in "not met, best
-/// bound" instead of an unbounded file: 16 M points, a ~1.6 GB `.vtu` (ASCII). The 1 M-tet model
-/// of BENCHMARKS.md (`ism-make-examples --large 1000000`) meets its default tolerance at degree 4
-/// with 11.4 M points (a 1.15 GB file). The cap was 4 M points counted per cell, 3–7× the points
-/// written: it stopped that model at degree 2, 8× over its tolerance.
+/// counted once: `Σ_d f_d · C(p·2^k − 1, d)` over the complex's `f_d` faces of dimension `d`), so
+/// a tight tolerance on a big model ends in "not met, best bound" instead of an unbounded file:
+/// 16 M points, a ~1.6 GB `.vtu` (ASCII). The 1 M-tet model of BENCHMARKS.md (`ism-make-examples
+/// --large 1000000`) meets its default tolerance at degree 4 with 11.4 M points (a 1.15 GB file).
+/// The cap was 4 M points counted per cell, 3–7× the points written: it stopped that model at
+/// degree 2, 8× over its tolerance.
 pub const MAX_CONTROL_POINTS: usize = 16_000_000;
 
 /// Rounding allowance of the certificate, in ulps of the magnitudes involved: the coefficients
@@ -847,8 +848,9 @@ pub const SCREEN_PHASE: &str = "screening a Bézier field candidate on the cross
 /// on those alone (its screen). Their cells are among those the tolerance applies to, so a screen
 /// over the tolerance refuses the candidate at a fraction of a whole fit (the 1 M-tet model:
 /// degrees 2 and 3 refused on its crossed simplices before degree 4 met, BENCHMARKS.md); a
-/// candidate that passes is then fitted whole, so the screen costs that fraction again. A
-/// quarter keeps that cost below the saving of one refusal.
+/// candidate that passes is then fitted whole, so its screen is spent for nothing. A quarter: a
+/// passed screen wastes at most a quarter of a whole fit, a refused one saves at least three
+/// quarters of one.
 pub const SCREENED: f64 = 0.25;
 
 /// [`volume_grid`] with a progress and cancel hook (phases [`PHASE`] and [`SCREEN_PHASE`]); a

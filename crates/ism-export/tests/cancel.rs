@@ -74,8 +74,8 @@ fn a_cancelled_volume_export_stops_and_writes_nothing() {
     assert!(!out.exists());
     let seen = seen.lock().unwrap().clone();
     let counted: Vec<_> = seen.iter().filter(|s| s.2 > 0).collect();
-    // The first candidate's first phase: its screen on the crossed simplices (this model's are
-    // fewer than a quarter) or, without one, its fit on every simplex.
+    // The first candidate's first phase: its screen on the crossed simplices when those are at
+    // most a quarter of all (`SCREENED`), else its fit on every simplex.
     assert_eq!(counted.len(), 1, "{seen:?}");
     let crossed = (0..model.num_simplices())
         .filter(|&s| {

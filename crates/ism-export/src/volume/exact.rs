@@ -18,9 +18,9 @@
 //!
 //! **Continuity.** A control point is identified by the face that owns it and its exponents there
 //! (`super::PointIds`: the face's id and the exponents' rank in the face's global vertex order),
-//! so neighbours share it. The stages keep faces in place and are stored face-locally,
-//! and both neighbours compose the same chain, so their coefficients on a shared face are the same
-//! numbers up to rounding; the first cell's are written.
+//! so neighbours share it. The stages keep faces in place and are stored face-locally, and both
+//! neighbours compose the same chain, so their coefficients on a shared face are the same numbers
+//! up to rounding; the first cell's are written.
 //!
 //! **What is reported.** Per cell, the written weights, values and points differ from the cell's
 //! own coefficients only by that sharing and by rounding: with `ω'`, `φ'` written and `ω`, `ωφ`
