@@ -1429,18 +1429,23 @@ mod tests {
         }
     }
 
+    /// Every 2D and 3D example (the dimensions the volume export writes), indexed.
+    fn indexed_examples() -> Vec<(&'static str, Model, IndexedModel)> {
+        ism_examples::named::all_examples()
+            .into_iter()
+            .filter(|(_, model)| matches!(model.dim(), 2 | 3))
+            .map(|(name, model)| (name, model.clone(), IndexedModel::new(model).unwrap()))
+            .collect()
+    }
+
     /// [`written_points`] (from the face counts) is the number of points [`assemble`] writes
     /// (deduplicated by their exact keys) for every example, 2D and 3D, at every degree unrefined
     /// and the lower ones after one and two levels; and it saturates instead of wrapping.
     #[test]
     fn written_points_count_the_assembled_grid() {
-        for (name, model) in ism_examples::named::all_examples() {
+        for (name, model, indexed) in indexed_examples() {
             let n = model.dim();
-            if n != 2 && n != 3 {
-                continue;
-            }
             let m = n + 1;
-            let indexed = IndexedModel::new(model.clone()).unwrap();
             // Every degree unrefined; fewer refined (debug-build time: the grids grow as 8^k).
             for (k, top) in [(0, MAX_DEGREE), (1, 4), (2, 2)] {
                 let subs = sub_simplices(n, k);
@@ -1544,13 +1549,8 @@ mod tests {
     /// the table.
     #[test]
     fn point_slots_are_the_points_of_the_complex() {
-        for (name, model) in ism_examples::named::all_examples() {
-            let n = model.dim();
-            if n != 2 && n != 3 {
-                continue;
-            }
-            let m = n + 1;
-            let indexed = IndexedModel::new(model.clone()).unwrap();
+        for (name, model, indexed) in indexed_examples() {
+            let m = model.dim() + 1;
             for q in [1, 2, 3, 5] {
                 let mut ids = PointIds::new(&model, indexed.topology(), q);
                 let mut by_key: HashMap<Vec<(u32, u32)>, usize> = HashMap::new();
