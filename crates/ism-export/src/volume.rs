@@ -1439,7 +1439,8 @@ mod tests {
     }
 
     /// [`written_points`] (from the face counts) is the number of points [`assemble`] writes
-    /// (deduplicated by their exact keys) for every example, 2D and 3D, at every degree unrefined
+    /// (deduplicated by their [`PointIds`] slots, which `point_slots_are_the_points_of_the_complex`
+    /// checks against their exact keys) for every example, 2D and 3D, at every degree unrefined
     /// and the lower ones after one and two levels; and it saturates instead of wrapping.
     #[test]
     fn written_points_count_the_assembled_grid() {
