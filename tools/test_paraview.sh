@@ -27,14 +27,35 @@ wheel=$(ls target/wheels/ism-*.whl)
 .venv/bin/python -m pip install --disable-pip-version-check --quiet --no-deps --target "$site" "$wheel"
 # ParaView 5.11 needs inspect.getargspec (gone in Python 3.11) before it loads any Python plugin.
 cp paraview/sitecustomize.py "$site/"
+# Runs "$@" (an `xvfb-run` command), up to twice more while it fails because the virtual X server
+# refused the render window's connection ("bad X server connection"): the environment's fault, not
+# the test's. Seen in session 44 on the shared 2-core machine in two of three runs of this step (in
+# CI and by hand), each time after every check of the reader had passed, as ParaView opened its
+# render window; the next attempt on a fresh server passed. Any other failure stands.
+retry_on_x_fault() {
+  local log attempt
+  log=$(mktemp)
+  for attempt in 1 2 3; do
+    if "$@" 2>&1 | tee "$log"; then
+      rm -f "$log"
+      return 0
+    fi
+    if ! grep -q "bad X server connection" "$log" || [ "$attempt" = 3 ]; then
+      rm -f "$log"
+      return 1
+    fi
+    echo "== the virtual X server refused the connection (attempt $attempt): again on a fresh one"
+  done
+}
 echo "== ParaView: load paraview/ism_reader_plugin.py, open spec/examples/torus.ismb, screenshot"
-PYTHONPATH="$PWD/$site" xvfb-run -a pvpython paraview/test_paraview.py \
+retry_on_x_fault xvfb-run -a env PYTHONPATH="$PWD/$site" pvpython paraview/test_paraview.py \
   paraview/ism_reader_plugin.py spec/examples/torus.ismb target/paraview-torus.png
 echo "== ParaView GUI application (paraview --script, under xvfb): load the plugin, open spec/examples/sphere.ismb"
 result=target/paraview-gui.json
 rm -f "$result"
-PYTHONPATH="$PWD/$site" ISM_PV_PLUGIN="$PWD/paraview/ism_reader_plugin.py" ISM_PV_FILE="$PWD/spec/examples/sphere.ismb" \
-  ISM_PV_RESULT="$PWD/$result" timeout 300 xvfb-run -a paraview --script="$PWD/paraview/test_paraview_gui.py" --exit
+retry_on_x_fault env PYTHONPATH="$PWD/$site" ISM_PV_PLUGIN="$PWD/paraview/ism_reader_plugin.py" \
+  ISM_PV_FILE="$PWD/spec/examples/sphere.ismb" ISM_PV_RESULT="$PWD/$result" \
+  timeout 300 xvfb-run -a paraview --script="$PWD/paraview/test_paraview_gui.py" --exit
 # The sphere at the reader's default tolerance: the library's surface triangles (counted by the ism
 # package in .venv, outside ParaView) + one Bézier cell per tetrahedron.
 .venv/bin/python - "$result" "$PWD/spec/examples/sphere.ismb" <<'PY'
