@@ -14,6 +14,9 @@ Then the error each output really has, measured by the consumer: with the Python
 curved geometry included) gives a point and an interpolated F; `ism query` (the model's evaluator,
 which inverts parametric stages by Newton) gives the model's F at that point. The largest
 difference is the measured `max |F_vtk − F|` — independent of how either build computed its cells.
+Also the CPU VTK's reader takes for each file, and whether VTK reads the same arrays (points,
+cells, every point and cell array, bit for bit) from the new file as from the old one: the check
+that a change of encoding changed no value.
 
 Usage: .venv/bin/python tools/bench_volume_builds.py --old OLD_ISM --new NEW_ISM [--repeat 3]
            [--points 1500] MODEL [...]
@@ -51,13 +54,37 @@ def child_cpu(cmd: list[str]) -> tuple[float, float, int, str]:
     return usage.ru_utime + usage.ru_stime, wall, usage.ru_maxrss, text
 
 
-def true_error(ism: str, model: str, vtu: str, points: int, seed: int = 1) -> float:
-    """Largest |F_vtk − F| at `points` random parameters of random cells of `vtu` (module doc)."""
+def vtk_arrays(grid) -> str:
+    """A digest of every array VTK read from a grid (points, cells, point and cell data), so two
+    files can be compared as VTK sees them, whatever their encoding."""
+    import hashlib
+
+    import vtk
+    from vtk.util.numpy_support import vtk_to_numpy
+
+    h = hashlib.sha256()
+    arrays = [grid.GetPoints().GetData(), grid.GetCells().GetConnectivityArray(),
+              grid.GetCells().GetOffsetsArray(), grid.GetCellTypesArray()]
+    for data in (grid.GetPointData(), grid.GetCellData()):
+        arrays += [data.GetArray(i) for i in range(data.GetNumberOfArrays())]
+    for a in arrays:
+        h.update(str(a.GetName()).encode())
+        h.update(np.ascontiguousarray(vtk_to_numpy(a)).astype(np.float64 if a.GetDataType() in
+                 (vtk.VTK_FLOAT, vtk.VTK_DOUBLE) else np.int64).tobytes())
+    return h.hexdigest()
+
+
+def true_error(ism: str, model: str, vtu: str, points: int, seed: int = 1) -> tuple[float, float, str]:
+    """Largest |F_vtk − F| at `points` random parameters of random cells of `vtu` (module doc),
+    the CPU seconds VTK's reader took for the file (`vtkXMLUnstructuredGridReader.Update`, this
+    process), and the digest of what it read ([`vtk_arrays`])."""
     import vtk
 
     reader = vtk.vtkXMLUnstructuredGridReader()
     reader.SetFileName(vtu)
+    start = time.process_time()
     reader.Update()
+    read_cpu = time.process_time() - start
     grid = reader.GetOutput()
     values = grid.GetPointData().GetArray("F")
     three = grid.GetCellType(0) == vtk.VTK_BEZIER_TETRAHEDRON
@@ -78,7 +105,7 @@ def true_error(ism: str, model: str, vtu: str, points: int, seed: int = 1) -> fl
                              capture_output=True, text=True).stdout
     column = 4 if three else 3  # x y [z] simplex f …
     f = np.array([float(line.split(",")[column]) for line in out.splitlines()[1:]])
-    return float(np.max(np.abs(f - np.array(fs))))
+    return float(np.max(np.abs(f - np.array(fs)))), read_cpu, vtk_arrays(grid)
 
 
 def main() -> None:
@@ -91,8 +118,9 @@ def main() -> None:
     args = ap.parse_args()
     print(f"load before: {os.getloadavg()[0]:.2f}")
     print("| model | build | CPU s | wall s | peak RSS KiB | cells | control points | bytes | degree, levels |"
-          " reported bound | certified | exact | met | measured max \\|F_vtk − F\\| |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+          " reported bound | certified | exact | met | measured max \\|F_vtk − F\\| | VTK read CPU s |"
+          " VTK reads the old build's arrays |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     with tempfile.TemporaryDirectory() as d:
         for model in args.models:
             best: dict[str, tuple[float, float, dict]] = {}
@@ -105,14 +133,16 @@ def main() -> None:
                     peak[name] = max(peak[name], rss)
                     if name not in best or cpu < best[name][0]:
                         best[name] = (cpu, wall, json.loads(text))
+            digest = {}
             for name, ism in (("old", args.old), ("new", args.new)):
                 out = os.path.join(d, name + ".vtu")
                 cpu, wall, s = best[name]
-                err = true_error(args.new, model, out, args.points)
+                err, read_cpu, digest[name] = true_error(args.new, model, out, args.points)
                 print(f"| {os.path.basename(model)} | {name} | {cpu:.3f} | {wall:.3f} | {peak[name]:,} | {s['cells']:,} |"
                       f" {s['control_points']:,} | {os.path.getsize(out):,} | {s['degree']}, {s['refinement_levels']} |"
                       f" {s['field_error_bound']:.2e} | {s['field_error_certified']} | {s.get('field_exact', False)} |"
-                      f" {s['field_tolerance_met']} | {err:.1e} |")
+                      f" {s['field_tolerance_met']} | {err:.1e} | {read_cpu:.2f} |"
+                      f" {'yes' if digest[name] == digest['old'] else 'no'} |")
     print(f"load after: {os.getloadavg()[0]:.2f}")
 
 

@@ -86,8 +86,9 @@ pub const MAX_COMPOSED_DEGREE: u32 = 12;
 /// Most control points a candidate `(p, k)` of the search may write (a point shared by cells
 /// counted once: `Σ_d f_d · C(p·2^k − 1, d)` over the complex's `f_d` faces of dimension `d`), so
 /// a tight tolerance on a big model ends in "not met, best bound" instead of an unbounded file:
-/// 16 M points, a ~1.6 GB `.vtu` (ASCII). The 1 M-tet model of BENCHMARKS.md (`ism-make-examples
-/// --large 1000000`) meets its default tolerance at degree 4 with 11.4 M points (a 1.15 GB file).
+/// 16 M points. The 1 M-tet model of BENCHMARKS.md (`ism-make-examples --large 1000000`) meets its
+/// default tolerance at degree 4 with 11.4 M points (a 1.15 GB `.vtu` with ASCII arrays, 0.68 GB
+/// binary as written since session 45).
 /// The cap was 4 M points counted per cell, 3–7× the points written: it stopped that model at
 /// degree 2, 8× over its tolerance.
 pub const MAX_CONTROL_POINTS: usize = 16_000_000;
