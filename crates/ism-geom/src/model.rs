@@ -7,9 +7,14 @@
 //! Local maps are built lazily, once per simplex, and cached ([`ModelEval::local_map`]): a
 //! million-simplex model with a few curved cells costs memory only for the cells actually
 //! evaluated. A pass that visits every simplex once takes them uncached instead
-//! ([`ModelEval::local_map_transient`]), so its memory does not grow with the model.
+//! ([`ModelEval::local_map_transient`]), so its memory does not grow with the model. Point
+//! evaluations ([`ModelEval::value_at`], [`ModelEval::gradient_at`] and what calls them: `query`,
+//! volume sampling) cache maps only while the cache holds less than its budget
+//! ([`MAP_CACHE_BUDGET`], [`ModelEval::with_map_cache_budget`]); past it they build the map, use
+//! it and drop it — the same map, so the same bits.
 
 use std::borrow::Cow;
+use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::OnceLock;
 
 use ism_format::{IndexedModel, Model};
@@ -26,6 +31,14 @@ use crate::{Bary, Mat, MAX_VARS};
 /// so points exactly on a shared face come out as `±` a few ulps; this admits them on both sides
 /// and is far below any meaningful distance in a unit-scaled model.
 pub const LOCATE_TOLERANCE: f64 = 1e-10;
+
+/// Default bytes of local maps an evaluator's point evaluations keep cached
+/// ([`ModelEval::with_map_cache_budget`]): 1 GiB. A map of the 1 M-tet model of BENCHMARKS.md
+/// (three stages) holds ~2.7 KB, so `ism sample --volume 2000000` on it, which meets 86 % of its
+/// simplices, cached 2.3 GB of maps and peaked at 2.9 GB; with the budget a point past it pays a
+/// map build instead (BENCHMARKS.md, issue 19, session 45). Models up to ~300 k such simplices
+/// stay wholly cached.
+pub const MAP_CACHE_BUDGET: usize = 1 << 30;
 
 /// A located point: the top simplex and the barycentric coordinates there (clamped to `≥ 0`,
 /// summing to 1).
@@ -80,6 +93,10 @@ pub struct ModelEval {
     index: OnceLock<SpatialIndex>,
     /// Whether the local maps are built [`LocalMap::fused`] ([`ModelEval::for_extraction`]).
     fused: bool,
+    /// Heap bytes of the maps cached in `maps` so far ([`LocalMap::heap_bytes`]).
+    cached_bytes: AtomicUsize,
+    /// Above `cached_bytes` of this, point evaluations stop caching ([`MAP_CACHE_BUDGET`]).
+    cache_budget: usize,
 }
 
 impl std::fmt::Debug for ModelEval {
@@ -198,6 +215,8 @@ impl Tables {
             maps: self.maps,
             index: self.index,
             fused: false,
+            cached_bytes: AtomicUsize::new(0),
+            cache_budget: MAP_CACHE_BUDGET,
         }
     }
 }
@@ -306,7 +325,43 @@ impl ModelEval {
             assert!(s < self.num_simplices(), "simplex {s} out of range");
             return IDENTITY[m].get_or_init(|| LocalMap::from_stages(m, Vec::new()));
         }
-        self.maps[s].get_or_init(|| self.build_local_map(s))
+        self.maps[s].get_or_init(|| {
+            let map = self.build_local_map(s);
+            self.cached_bytes
+                .fetch_add(map.heap_bytes(), Ordering::Relaxed);
+            map
+        })
+    }
+
+    /// `f` applied to simplex `s`'s local map: the cached one, or cached now while the cache holds
+    /// less than its budget ([`ModelEval::with_map_cache_budget`]), else one built for this call
+    /// and dropped after it — the same map ([`ModelEval::local_map_transient`]), so `f` sees the
+    /// same bits either way. For point evaluations, which may visit any number of simplices.
+    ///
+    /// # Panics
+    /// If `s` is out of range.
+    pub fn with_local_map<R>(&self, s: usize, f: impl FnOnce(&LocalMap) -> R) -> R {
+        if self.maps.is_empty() || self.cached_bytes.load(Ordering::Relaxed) < self.cache_budget {
+            return f(self.local_map(s));
+        }
+        f(&self.local_map_transient(s))
+    }
+
+    /// This evaluator with at most about `bytes` of local maps cached by point evaluations
+    /// ([`ModelEval::with_local_map`]; default [`MAP_CACHE_BUDGET`]): past it a point evaluation
+    /// builds its simplex's map and drops it. The cache may exceed it by the maps being built
+    /// when it is reached (one per thread), and by the maps [`ModelEval::local_map`] keeps for
+    /// callers that hold them (the surface sampler's table, the exporter), which it counts.
+    /// Values never depend on it.
+    #[must_use]
+    pub fn with_map_cache_budget(mut self, bytes: usize) -> ModelEval {
+        self.cache_budget = bytes;
+        self
+    }
+
+    /// Heap bytes of the local maps cached so far ([`LocalMap::heap_bytes`]).
+    pub fn cached_map_bytes(&self) -> usize {
+        self.cached_bytes.load(Ordering::Relaxed)
     }
 
     /// Simplex `s`'s local map as [`ModelEval::local_map`] caches it (fused or not).
@@ -410,14 +465,24 @@ impl ModelEval {
 
     /// `F` at barycentric `w` of simplex `s`: `Σ f(v_i) X(w)_i`.
     pub fn value_at(&self, s: usize, w: &Bary) -> f64 {
-        self.value_from_coordinates(s, &self.local_map(s).eval(w))
+        self.with_local_map(s, |map| self.value_from_coordinates(s, &map.eval(w)))
     }
 
     /// `∇F` (first `n` entries) at barycentric `w` of simplex `s`, by the chain rule through the
     /// stages; `None` where a parametric stage's stored Jacobian is singular.
     pub fn gradient_at(&self, s: usize, w: &Bary) -> Option<[f64; 3]> {
-        let (_, j) = self.local_map(s).jacobian(w);
+        let (_, j) = self.with_local_map(s, |map| map.jacobian(w));
         Some(self.gradient_from_jacobian(s, &j?))
+    }
+
+    /// [`ModelEval::value_at`] and [`ModelEval::gradient_at`] together, the map taken once (built
+    /// once when it is not cached).
+    pub fn value_and_gradient_at(&self, s: usize, w: &Bary) -> (f64, Option<[f64; 3]>) {
+        let (x, (_, j)) = self.with_local_map(s, |map| (map.eval(w), map.jacobian(w)));
+        (
+            self.value_from_coordinates(s, &x),
+            j.map(|j| self.gradient_from_jacobian(s, &j)),
+        )
     }
 
     /// `∇F` (first `n` entries) in simplex `s` from the reduced Jacobian `DX` of its map at the

@@ -293,6 +293,20 @@ struct SparseTerm {
 }
 
 impl LocalStage {
+    /// Bytes this stage holds on the heap (its tables' capacities), for a cache's budget.
+    pub fn heap_bytes(&self) -> usize {
+        use std::mem::size_of;
+        self.points.capacity() * size_of::<Bary>()
+            + self.weights.capacity() * size_of::<f64>()
+            + self.weighted.capacity() * size_of::<Bary>()
+            + (self.mono.capacity() + self.mono_scaled.capacity() + self.mono_deriv.capacity())
+                * size_of::<f64>()
+            + self
+                .sparse
+                .as_ref()
+                .map_or(0, |t| t.capacity() * size_of::<SparseTerm>())
+    }
+
     /// Builds stage `stage_index` of `model` on top simplex `simplex_index`.
     ///
     /// Indexes the stage's records on every call (O(records)); to build many simplices index the
@@ -1899,6 +1913,17 @@ impl LocalMap {
     /// The non-identity stages, in application order.
     pub fn stages(&self) -> &[LocalStage] {
         &self.stages
+    }
+
+    /// Bytes this map holds on the heap (its stages and their tables), for a cache's budget
+    /// ([`crate::ModelEval::with_map_cache_budget`]).
+    pub fn heap_bytes(&self) -> usize {
+        self.stages.capacity() * std::mem::size_of::<LocalStage>()
+            + self
+                .stages
+                .iter()
+                .map(LocalStage::heap_bytes)
+                .sum::<usize>()
     }
 
     /// Number of barycentric coordinates.

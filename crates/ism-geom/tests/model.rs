@@ -341,3 +341,43 @@ proptest! {
         prop_assert!(curved > 0, "the random models have curved simplices");
     }
 }
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 12, ..ProptestConfig::default() })]
+
+    /// The map cache's budget changes no value: evaluators caching everything, nothing, and a
+    /// budget met part way give the same bits for `F`, `∇F` and the two together at random
+    /// points of every simplex; with no budget point evaluations cache nothing, and a budget is
+    /// exceeded by at most the one map built when it was reached (one thread here).
+    #[test]
+    fn map_cache_budget_changes_no_value(seed in any::<u64>(), n in 2usize..=3) {
+        let (model, mut rng) = random_model(n, seed);
+        let all = ModelEval::new(&model).unwrap();
+        let none = ModelEval::new(&model).unwrap().with_map_cache_budget(0);
+        let one_map = all.local_map_transient(0).heap_bytes();
+        prop_assert!(one_map > 0);
+        let part_budget = 3 * one_map;
+        let part = ModelEval::new(&model).unwrap().with_map_cache_budget(part_budget);
+        let bits = |g: Option<[f64; 3]>| g.map(|g| g.map(f64::to_bits));
+        for s in 0..model.num_simplices() {
+            let mut w = [0.0; 4];
+            w[..=n].copy_from_slice(&rng.open_simplex(n + 1, 0.0));
+            let f = all.value_at(s, &w);
+            let g = all.gradient_at(s, &w);
+            for e in [&none, &part] {
+                prop_assert_eq!(e.value_at(s, &w).to_bits(), f.to_bits());
+                prop_assert_eq!(bits(e.gradient_at(s, &w)), bits(g));
+                let (f2, g2) = e.value_and_gradient_at(s, &w);
+                prop_assert_eq!((f2.to_bits(), bits(g2)), (f.to_bits(), bits(g)));
+            }
+        }
+        prop_assert_eq!(none.cached_map_bytes(), 0);
+        prop_assert!(part.cached_map_bytes() >= part_budget.min(all.cached_map_bytes()));
+        // Every map of these models is about as large as the first one.
+        prop_assert!(part.cached_map_bytes() < part_budget + 4 * one_map);
+        prop_assert!(all.cached_map_bytes() > part.cached_map_bytes());
+        // `local_map` keeps what it builds whatever the budget (its callers hold the map).
+        let held = none.local_map(0).heap_bytes();
+        prop_assert_eq!(none.cached_map_bytes(), held);
+    }
+}

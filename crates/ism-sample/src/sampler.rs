@@ -452,11 +452,8 @@ impl Sampler {
                         let located = self.eval.locate(p);
                         match located {
                             Some(l) => {
-                                let f = self.eval.value_at(l.simplex, &l.w);
-                                let g = self
-                                    .eval
-                                    .gradient_at(l.simplex, &l.w)
-                                    .unwrap_or([f64::NAN; 3]);
+                                let (f, g) = self.eval.value_and_gradient_at(l.simplex, &l.w);
+                                let g = g.unwrap_or([f64::NAN; 3]);
                                 block.simplices.push(l.simplex as i32);
                                 block.values.push(f);
                                 block.signs.push(if f < level {
