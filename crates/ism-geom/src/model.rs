@@ -33,11 +33,11 @@ use crate::{Bary, Mat, MAX_VARS};
 pub const LOCATE_TOLERANCE: f64 = 1e-10;
 
 /// Default bytes of local maps an evaluator's point evaluations keep cached
-/// ([`ModelEval::with_map_cache_budget`]): 1 GiB. A map of the 1 M-tet model of BENCHMARKS.md
-/// (three stages) holds ~2.7 KB, so `ism sample --volume 2000000` on it, which meets 86 % of its
-/// simplices, cached 2.3 GB of maps and peaked at 2.9 GB; with the budget a point past it pays a
-/// map build instead (BENCHMARKS.md, issue 19, session 45). Models up to ~300 k such simplices
-/// stay wholly cached.
+/// ([`ModelEval::with_map_cache_budget`]): 1 GiB. `ism sample --volume 2000000` on the 1 M-tet
+/// model of BENCHMARKS.md (three Bézier stages) meets ~0.9 M of its simplices and, caching every
+/// map, grew by 2.3 GB (~2.6 KB a map) to a 2.9 GB peak; with the budget it peaks at 1.6 GB for the
+/// same CPU and output (a map build costs about what the page faults of caching it did;
+/// BENCHMARKS.md, issue 19, session 45). Models up to ~400 k such simplices stay wholly cached.
 pub const MAP_CACHE_BUDGET: usize = 1 << 30;
 
 /// A located point: the top simplex and the barycentric coordinates there (clamped to `≥ 0`,
