@@ -9,8 +9,8 @@ use ism_export::export::{self, ExportOptions, Exported};
 use ism_export::format::ExportFormat;
 
 const AFTER_HELP: &str = "\
-The output format follows the extension: .obj, .gltf, .glb, .vtk (legacy ASCII), .vtu (XML, binary
-arrays appended raw, as VTK writes it).
+The output format follows the extension: .obj, .gltf, .glb, .vtk (legacy ASCII), .vtu (XML; its
+arrays binary: appended raw, uncompressed).
 3D models give triangle meshes, 2D models polylines (OBJ `l`, glTF LINES, VTK lines). Each
 patch of the linear isocomplex is refined until the chordal error is below --tolerance (model
 units) or an edge is halved --max-depth times and its chord is within twice the tolerance or

@@ -153,8 +153,10 @@ impl UnstructuredGrid {
 
     /// Writes the XML `.vtu` form: every data array binary, in one raw `AppendedData` section
     /// (`format="appended"`, `encoding="raw"`, little-endian, `UInt64` size headers, uncompressed)
-    /// — the layout `vtkXMLUnstructuredGridWriter` writes by default, read by VTK, ParaView, meshio
-    /// and [`crate::import`]. Binary values are the stored bits, so the file is 3–4× smaller than
+    /// — what `vtkXMLUnstructuredGridWriter` writes in its default appended mode with
+    /// `EncodeAppendedDataOff()` and no compressor (its default base64-encodes and zlib-compresses
+    /// them: smaller, slower to write and read); read by VTK, ParaView, meshio and
+    /// [`crate::import`]. Binary values are the stored bits, so the file is 3–4× smaller than
     /// their decimal text and is written without formatting a number (BENCHMARKS.md, issue 19,
     /// session 45); the legacy `.vtk` form stays ASCII for readers who want text.
     ///
