@@ -37,7 +37,8 @@ pub const LOCATE_TOLERANCE: f64 = 1e-10;
 /// model of BENCHMARKS.md (three Bézier stages) meets ~0.9 M of its simplices and, caching every
 /// map, grew by 2.3 GB (~2.6 KB a map) to a 2.9 GB peak; with the budget it peaks at 1.6 GB for the
 /// same CPU and output (a map build costs about what the page faults of caching it did;
-/// BENCHMARKS.md, issue 19, session 45). Models up to ~400 k such simplices stay wholly cached.
+/// BENCHMARKS.md, issue 19, session 45). At ~2.6 KB a map, 1 GiB holds ~400 k of them (arithmetic, not
+/// measured: the budget counts [`LocalMap::heap_bytes`], which leaves out the allocator's overhead).
 pub const MAP_CACHE_BUDGET: usize = 1 << 30;
 
 /// A located point: the top simplex and the barycentric coordinates there (clamped to `≥ 0`,
