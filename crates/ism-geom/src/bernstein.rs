@@ -17,11 +17,107 @@ use crate::error::{GeomError, Result};
 use crate::tables::multinomial;
 
 /// A Bernstein polynomial of degree `d` in `m` barycentric variables.
-#[derive(Clone, Debug, PartialEq)]
+#[derive(Debug, PartialEq)]
 pub struct Bernstein {
     m: usize,
     degree: u32,
     coeffs: Vec<f64>,
+}
+
+/// Highest degree whose coefficient buffers a thread recycles ([`recycled`]).
+const POOL_DEGREE: usize = 16;
+/// Most buffers one thread keeps per shape: a bisection's children hold a few dozen
+/// polynomials of one shape at a time.
+const POOL_DEPTH: usize = 64;
+
+thread_local! {
+    /// Coefficient buffers of this thread's dropped polynomials, per shape `(m, d)` at
+    /// `m · (POOL_DEGREE + 1) + d`. The certified bounds build and drop ~160 k small polynomials
+    /// for the torus example's sampler table alone; the system allocator served those in ~290
+    /// instructions a pair (callgrind, session 46: a quarter of the table's instructions), most of
+    /// its blocks being past its own per-thread cache (7 blocks per size, none above 1 KB).
+    static POOL: std::cell::RefCell<Vec<Vec<Vec<f64>>>> =
+        const { std::cell::RefCell::new(Vec::new()) };
+}
+
+/// The pool slot of shape `(m, d)`, when recycled.
+#[inline]
+fn pool_slot(m: usize, d: u32) -> Option<usize> {
+    (m <= 4 && d as usize <= POOL_DEGREE).then_some(m * (POOL_DEGREE + 1) + d as usize)
+}
+
+/// A buffer of a dropped polynomial of shape `(m, d)` from this thread's pool, stale
+/// coefficients and all (`count(m, d)` of them: every polynomial has exactly as many); `None`
+/// when there is none (or the shape is not pooled).
+#[inline]
+fn recycled(m: usize, d: u32) -> Option<Vec<f64>> {
+    let slot = pool_slot(m, d)?;
+    POOL.try_with(|p| p.try_borrow_mut().ok()?.get_mut(slot)?.pop())
+        .ok()?
+}
+
+/// `count(m, d)` zeros, in a recycled buffer when there is one.
+#[inline]
+fn zeros(m: usize, d: u32) -> Vec<f64> {
+    match recycled(m, d) {
+        Some(mut v) => {
+            v.fill(0.0);
+            v
+        }
+        None => vec![0.0; multi_index::count(m, d)],
+    }
+}
+
+/// The coefficients `values` yields, in a recycled buffer when there is one.
+#[inline]
+fn collected(m: usize, d: u32, values: impl Iterator<Item = f64>) -> Vec<f64> {
+    let mut v = recycled(m, d).unwrap_or_default();
+    v.clear();
+    v.extend(values);
+    v
+}
+
+impl Clone for Bernstein {
+    fn clone(&self) -> Bernstein {
+        let coeffs = match recycled(self.m, self.degree) {
+            Some(mut v) => {
+                v.clear();
+                v.extend_from_slice(&self.coeffs);
+                v
+            }
+            None => self.coeffs.clone(),
+        };
+        Bernstein {
+            m: self.m,
+            degree: self.degree,
+            coeffs,
+        }
+    }
+}
+
+impl Drop for Bernstein {
+    /// The coefficient buffer goes back to this thread's pool (a bounded number per shape of
+    /// degree ≤ 16 in at most 4 variables), else to the allocator.
+    fn drop(&mut self) {
+        let Some(slot) = pool_slot(self.m, self.degree) else {
+            return;
+        };
+        if self.coeffs.capacity() == 0 {
+            return;
+        }
+        let v = std::mem::take(&mut self.coeffs);
+        let _ = POOL.try_with(|p| {
+            if let Ok(mut p) = p.try_borrow_mut() {
+                if p.is_empty() {
+                    p.resize_with(5 * (POOL_DEGREE + 1), Vec::new);
+                }
+                let shelf = &mut p[slot];
+                if shelf.len() < POOL_DEPTH {
+                    shelf.push(v);
+                }
+            }
+        });
+    }
 }
 
 /// Highest degree whose index tables are cached for the life of the process. Products in the
@@ -142,6 +238,7 @@ enum ShapeRef {
 
 impl std::ops::Deref for ShapeRef {
     type Target = Shape;
+    #[inline]
     fn deref(&self) -> &Shape {
         match self {
             ShapeRef::Cached(s) => s,
@@ -187,7 +284,74 @@ fn product_ranks(m: usize, da: u32, db: u32) -> Option<&'static [u32]> {
     Some(plan)
 }
 
+/// Highest degree whose elevation and edge-split plans are cached ([`elevation_plan`],
+/// [`split_plan`]): the sampler's polynomials reach degree `(n + 1) d` (a rational stage's
+/// determinant denominator, 16 for a quartic in 3D); higher degrees compute their ranks per call.
+const PLAN_DEGREE: usize = 32;
+
+/// The terms of one elevation step from degree `d` in `m` variables: for the `r`-th index `J` of
+/// degree `d + 1` and each `k`, entry `r · m + k` holds `(J_k / (d + 1), rank of J − e_k)`, the
+/// factor `0.0` where `J_k = 0` (no term). The factor is the same single division
+/// [`Bernstein::elevate_general`] makes, so both give the same bits.
+fn elevation_plan(m: usize, d: u32) -> Option<&'static [(f64, u32)]> {
+    type Plan = OnceLock<Vec<(f64, u32)>>;
+    static PLANS: [[Plan; PLAN_DEGREE + 1]; 5] =
+        [const { [const { OnceLock::new() }; PLAN_DEGREE + 1] }; 5];
+    if m == 0 || m > 4 || d as usize >= PLAN_DEGREE {
+        return None;
+    }
+    let plan = PLANS[m][d as usize].get_or_init(|| {
+        let (lower, upper) = (shape(m, d), shape(m, d + 1));
+        let mut plan = vec![(0.0, 0u32); upper.multinom.len() * m];
+        // `up` lists `K + e_k` for every degree-`d` index `K`: inverted, it gives `J − e_k`.
+        for (r, ups) in lower.up.chunks_exact(m).enumerate() {
+            for (k, &j) in ups.iter().enumerate() {
+                let jk = upper.all[j * m + k];
+                plan[j * m + k] = (f64::from(jk) / f64::from(d + 1), r as u32);
+            }
+        }
+        plan
+    });
+    Some(plan)
+}
+
+/// The lines of [`Bernstein::split_edge`] for degree `d`, `m` variables and the edge `(a, b)`:
+/// for each index `I` with `I_b = 0`, in canonical order, the ranks of `I − k e_a + k e_b`,
+/// `k = 0..=I_a` (the line's length is `I_a + 1`), one after the other. Each index lies on
+/// exactly one line, so the plan has as many entries as coefficients.
+fn split_plan(m: usize, d: u32, a: usize, b: usize) -> Option<&'static [u32]> {
+    /// Per edge `(a, b)`.
+    type Plans = [[OnceLock<Vec<u32>>; 4]; 4];
+    static PLANS: [[Plans; PLAN_DEGREE + 1]; 5] =
+        [const { [const { [const { [const { OnceLock::new() }; 4] }; 4] }; PLAN_DEGREE + 1] }; 5];
+    if m > 4 || a >= m || b >= m || a == b || d as usize > PLAN_DEGREE {
+        return None;
+    }
+    let plan = PLANS[m][d as usize][a][b].get_or_init(|| {
+        let sh = shape(m, d);
+        let mut plan = Vec::with_capacity(sh.multinom.len());
+        let mut idx = [0u32; 4];
+        for i in sh.all.chunks_exact(m) {
+            if i[b] != 0 {
+                continue;
+            }
+            let l = i[a];
+            idx[..m].copy_from_slice(i);
+            for k in 0..=l {
+                idx[a] = l - k;
+                idx[b] = k;
+                plan.push(sh.rank(&idx[..m], d) as u32);
+            }
+        }
+        plan
+    });
+    Some(plan)
+}
+
 /// The tables of `(m, d)`: cached for `m ≤ 4`, `d ≤ CACHED_DEGREE`, built on the spot otherwise.
+/// Inlined: the cached path is a bounds test and a load, and every operation asks for one to
+/// three shapes (a call each was 3 % of the sampler's setup).
+#[inline]
 fn shape(m: usize, d: u32) -> ShapeRef {
     if m <= 4 && (d as usize) <= CACHED_DEGREE {
         ShapeRef::Cached(SHAPES[m][d as usize].get_or_init(|| Shape::build(m, d)))
@@ -337,8 +501,8 @@ impl Bernstein {
     }
 
     /// Consumes into the coefficient vector.
-    pub fn into_coeffs(self) -> Vec<f64> {
-        self.coeffs
+    pub fn into_coeffs(mut self) -> Vec<f64> {
+        std::mem::take(&mut self.coeffs)
     }
 
     /// The exact value at vertex `i`: the coefficient of `d·e_i`.
@@ -436,9 +600,12 @@ impl Bernstein {
         let t = self.degree - 1;
         let up = &shape(m, t).up;
         let d = f64::from(self.degree);
-        let coeffs = (0..multi_index::count(m, t))
-            .map(|r| d * (self.coeffs[up[r * m + a]] - self.coeffs[up[r * m + b]]))
-            .collect();
+        let coeffs = collected(
+            m,
+            t,
+            (0..multi_index::count(m, t))
+                .map(|r| d * (self.coeffs[up[r * m + a]] - self.coeffs[up[r * m + b]])),
+        );
         Bernstein {
             m,
             degree: t,
@@ -454,7 +621,7 @@ impl Bernstein {
         assert_eq!(self.m, other.m, "Bernstein::mul: variable counts differ");
         let m = self.m;
         let d = self.degree + other.degree;
-        let mut out = vec![0.0; multi_index::count(m, d)];
+        let mut out = zeros(m, d);
         let (sa, sb, sd) = (shape(m, self.degree), shape(m, other.degree), shape(m, d));
         let term = |out: &mut [f64], ca: f64, j: usize, r: usize| {
             out[r] += ca * sb.multinom[j] / sd.multinom[r] * other.coeffs[j];
@@ -467,8 +634,10 @@ impl Bernstein {
                     continue;
                 }
                 let ca = sa.multinom[i] * self.coeffs[i];
-                for (j, &r) in row.iter().enumerate() {
-                    term(&mut out, ca, j, r as usize);
+                // `term`'s arithmetic with `b`'s entries walked alongside the ranks.
+                for ((&r, &mb), &cb) in row.iter().zip(&sb.multinom).zip(&other.coeffs) {
+                    let r = r as usize;
+                    out[r] += ca * mb / sd.multinom[r] * cb;
                 }
             }
         } else {
@@ -524,12 +693,41 @@ impl Bernstein {
         Bernstein {
             m: self.m,
             degree: self.degree,
-            coeffs: self.coeffs.iter().map(|c| s * c).collect(),
+            coeffs: collected(self.m, self.degree, self.coeffs.iter().map(|c| s * c)),
         }
     }
 
     /// Degree elevation by one: `c'_I = Σ_i I_i/(d+1) · c_{I − e_i}`.
     pub fn elevate(&self) -> Bernstein {
+        let m = self.m;
+        let d1 = self.degree + 1;
+        let Some(plan) = elevation_plan(m, self.degree) else {
+            return self.elevate_general();
+        };
+        // The same terms in the same order as `elevate_general`, with `J − e_k`'s rank and the
+        // factor `J_k / (d + 1)` looked up (a rank per term was most of the elevation's cost).
+        let coeffs = collected(
+            m,
+            d1,
+            plan.chunks_exact(m).map(|terms| {
+                let mut s = 0.0;
+                for &(factor, r) in terms {
+                    if factor != 0.0 {
+                        s += factor * self.coeffs[r as usize];
+                    }
+                }
+                s
+            }),
+        );
+        Bernstein {
+            m,
+            degree: d1,
+            coeffs,
+        }
+    }
+
+    /// [`Bernstein::elevate`] with every rank computed (shapes beyond the cached plans).
+    fn elevate_general(&self) -> Bernstein {
         let m = self.m;
         let d1 = self.degree + 1;
         let mut idx = vec![0u32; m];
@@ -559,7 +757,10 @@ impl Bernstein {
 
     /// Elevated to degree `target ≥ d` (unchanged when equal).
     pub fn elevate_to(&self, target: u32) -> Bernstein {
-        let mut p = self.clone();
+        if self.degree >= target {
+            return self.clone();
+        }
+        let mut p = self.elevate();
         while p.degree < target {
             p = p.elevate();
         }
@@ -591,12 +792,15 @@ impl Bernstein {
                 let up = &shape(m, d - t as u32 - 1).up;
                 casteljau_into(m, up, &done[offsets[t]..], r, &mut rest[..len]);
             }
-            plan.gather
-                .iter()
-                .skip(a)
-                .step_by(m)
-                .map(|&g| levels[g as usize])
-                .collect()
+            collected(
+                m,
+                d,
+                plan.gather
+                    .iter()
+                    .skip(a)
+                    .step_by(m)
+                    .map(|&g| levels[g as usize]),
+            )
         };
         let coeffs = SCRATCH.with(|scratch| match scratch.try_borrow_mut() {
             Ok(mut buf) => fill(&mut buf),
@@ -659,9 +863,8 @@ impl Bernstein {
         }
         let d = self.degree;
         let sh = shape(m, d);
-        let count = self.coeffs.len();
-        let mut left = vec![0.0; count];
-        let mut right = vec![0.0; count];
+        let mut left = zeros(m, d);
+        let mut right = zeros(m, d);
         let len = d as usize + 1;
         // The line and its ranks on the stack up to degree 63 (every polynomial the kernel and
         // the sampler's area elements form): the sampler splits ~26 polynomials per leaf, and two
@@ -676,9 +879,32 @@ impl Bernstein {
             ranks_heap.resize(len, 0);
             (&mut line_heap, &mut ranks_heap)
         };
-        let mut idx = [0u32; 4];
         // The lower-indexed variable's term comes first in `replace_vertex`'s sums.
         let a_first = a < b;
+        if let Some(plan) = split_plan(m, d, a, b) {
+            // The same lines in the same order as below, their ranks looked up (a rank per
+            // coefficient was a third of the split's cost).
+            let mut rest = plan;
+            while let Some(&first) = rest.first() {
+                let l = sh.all[first as usize * m + a] as usize;
+                let (ranks, tail) = rest.split_at(l + 1);
+                for (x, &r) in line.iter_mut().zip(ranks) {
+                    *x = self.coeffs[r as usize];
+                }
+                halve_line(&mut line[..=l], a_first, |level, lo, hi| {
+                    left[ranks[level] as usize] = lo;
+                    right[ranks[l - level] as usize] = hi;
+                });
+                rest = tail;
+            }
+            let child = |coeffs| Bernstein {
+                m,
+                degree: d,
+                coeffs,
+            };
+            return (child(left), child(right));
+        }
+        let mut idx = [0u32; 4];
         for i in sh.all.chunks_exact(m) {
             if i[b] != 0 {
                 continue;
@@ -986,9 +1212,11 @@ mod tests {
     #[test]
     fn edge_split_equals_vertex_replacement_bit_for_bit() {
         for m in 2..=4 {
-            // 63 and 64 on either side of split_edge's stack buffer (64 entries), 70 on the heap.
+            // 63 and 64 on either side of split_edge's stack buffer (64 entries), 70 on the heap;
+            // the last cached split plan's degree and the next (`PLAN_DEGREE`).
             let high: &[u32] = if m == 2 { &[63, 64, 70] } else { &[] };
-            for d in (0..=9).chain(high.iter().copied()) {
+            let plan = PLAN_DEGREE as u32;
+            for d in (0..=9).chain([plan, plan + 1]).chain(high.iter().copied()) {
                 let p = sample(m, d, 31 + u64::from(d) + 100 * m as u64);
                 for a in 0..m {
                     for b in 0..m {
@@ -1055,6 +1283,92 @@ mod tests {
                 }
                 let centre = vec![1.0 / m as f64; m];
                 assert!(p.range().contains(p.eval(&centre)));
+            }
+        }
+    }
+
+    /// Recycled coefficient buffers (the thread's pool) hold a dropped polynomial's stale
+    /// values: none may reach a result. Every operation that takes a recycled buffer, run after
+    /// the pool is filled with NaN buffers of every pooled shape, gives the bits it gives on a
+    /// fresh thread (empty pool).
+    #[test]
+    fn recycled_buffers_never_leak_stale_values() {
+        fn ops() -> Vec<Vec<u64>> {
+            let bits = |c: &[f64]| c.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+            let mut out = Vec::new();
+            for m in 1..=4 {
+                for d in 0..=6 {
+                    let p = sample(m, d, 11 + u64::from(d) + 10 * m as u64);
+                    let q = sample(m, 2, 3);
+                    let mut res = vec![
+                        p.mul(&q),
+                        q.mul(&p),
+                        p.elevate(),
+                        p.elevate_to(d + 3),
+                        p.scale(-1.5),
+                        p.clone(),
+                        p.add(&p),
+                    ];
+                    if d > 0 {
+                        res.push(p.derivative(m - 1));
+                    }
+                    if m >= 2 {
+                        let (l, r) = p.split_edge(0, m - 1);
+                        res.extend([l, r]);
+                        let mut w = vec![0.0; m];
+                        w[0] = 0.3;
+                        w[m - 1] = 0.7;
+                        res.push(p.replace_vertex(0, &w));
+                    }
+                    out.extend(res.iter().map(|b| bits(b.coeffs())));
+                }
+            }
+            out
+        }
+        let fresh = std::thread::spawn(ops).join().expect("fresh thread");
+        let stale = std::thread::spawn(|| {
+            let junk: Vec<Bernstein> = (1..=4)
+                .flat_map(|m| {
+                    (0..=POOL_DEGREE as u32).flat_map(move |d| {
+                        (0..POOL_DEPTH).map(move |_| Bernstein::constant(m, d, f64::NAN))
+                    })
+                })
+                .collect();
+            drop(junk);
+            // The pool is full: one more is freed, not kept.
+            drop(Bernstein::constant(2, 1, f64::NAN));
+            ops()
+        })
+        .join()
+        .expect("stale thread");
+        assert_eq!(fresh, stale);
+    }
+
+    /// One elevation step through the cached plan (`elevation_plan`) against the ranks computed
+    /// per term (`elevate_general`, the reference): the same bits, for every shape up to one
+    /// past the plans' limit, with zero, negative, infinite and NaN coefficients (a zero factor
+    /// must skip its term, as the reference does, and never form `0 · ∞`).
+    #[test]
+    fn elevation_plan_equals_the_general_elevation_bit_for_bit() {
+        let bits = |c: &[f64]| c.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+        for m in 1..=4 {
+            for d in (0..=6).chain([PLAN_DEGREE as u32 - 1, PLAN_DEGREE as u32]) {
+                let mut p = sample(m, d, 5 + u64::from(d) + 40 * m as u64);
+                let specials = [0.0, -0.0, f64::INFINITY, f64::NAN, -3.5];
+                for (c, &x) in p.coeffs.iter_mut().zip(specials.iter().cycle()).step_by(3) {
+                    *c = x;
+                }
+                let want = p.elevate_general();
+                let got = p.elevate();
+                assert_eq!(got.degree(), d + 1);
+                assert_eq!(bits(got.coeffs()), bits(want.coeffs()), "m={m} d={d}");
+                let far = p.elevate_to(d + 3);
+                let mut step = want;
+                for _ in 0..2 {
+                    step = step.elevate_general();
+                }
+                assert_eq!(bits(far.coeffs()), bits(step.coeffs()), "m={m} d={d} + 3");
+                assert_eq!(bits(p.elevate_to(d).coeffs()), bits(p.coeffs()));
             }
         }
     }
