@@ -1455,7 +1455,6 @@ impl LocalStage {
         }
     }
 
-    /// Damped Newton on the stored map (see [`newton_solve`]).
     /// The inverse of a degree-1 monotonic stage on the face `sup`, in closed form: `g_i(t) =
     /// a_i t` (`a₀ = 0`, spec §5.4), so `S(w)_i = a_i w_i / Σ_j a_j w_j` is projective and
     /// `w_i = (u_i / a_i) / Σ_j u_j / a_j`. Newton's start ([`LocalStage::invert_stored_with`]):
@@ -1489,6 +1488,7 @@ impl LocalStage {
         Some(w)
     }
 
+    /// Damped Newton on the stored map (see [`newton_solve`]).
     #[allow(clippy::too_many_arguments)]
     fn newton(
         &self,
