@@ -1236,6 +1236,7 @@ struct EdgeTest {
 /// The starts of an edge's inversions: the preimage curve between its ends and the ends' mean
 /// inverse Jacobian. Both only serve maps with an implicit stage (module `probe`); otherwise the
 /// curve carries the ends' preimages alone and there is no matrix.
+#[inline(always)]
 fn edge_guides(
     eval: &ModelEval,
     s: usize,
@@ -1296,6 +1297,7 @@ fn quarters_predicted_within(
 /// the midpoint only, `rational-degree5` kept curve segments 1.21 × and 1.17 × the tolerance from
 /// the curve — `tools/bench_export_error.py`; a bump like `t²(1 − t)²` is invisible to the ends.)
 #[allow(clippy::too_many_arguments)]
+#[inline(always)]
 fn test_edge(
     eval: &ModelEval,
     s: usize,
