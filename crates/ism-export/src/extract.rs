@@ -1941,8 +1941,8 @@ struct Coarse {
     /// The star vertices whose new edge to the collapse target has no known answer yet.
     fresh: Vec<u32>,
     /// Per local vertex, the ends of the edge the refinement split at it (`NO_PARENT` for the
-    /// others): collapsing it into either end would make that edge again, whose answer is the
-    /// refinement's failure ([`SurfaceBuilder::known_edge`]).
+    /// others): while both ends are in its star, collapsing it into either would make that edge
+    /// again, whose answer is the refinement's failure ([`SurfaceBuilder::known_edge`]).
     parent: Vec<(u32, u32)>,
 }
 
