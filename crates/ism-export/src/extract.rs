@@ -1926,10 +1926,9 @@ struct Coarse {
     fan: Vec<FanTriangle>,
     /// `nbrs` with their squared distances to the vertex, for the nearest-first order.
     order: Vec<(f64, u32)>,
-    /// The star's triangles that a collapse rewrites, with their new corners.
-    changes: Vec<(u32, [u32; 3])>,
-    /// Per entry of `changes`, its triangle's spatial normal before the collapse.
-    old_normals: Vec<[f64; 3]>,
+    /// The star's triangles that a collapse rewrites, with their new corners and their spatial
+    /// normals before it.
+    changes: Vec<(u32, [u32; 3], [f64; 3])>,
     remap: Vec<u32>,
     /// Per local vertex, the last attempt (`stamp`) whose target it is a corner of a live
     /// triangle with (the target's neighbours, and itself): one look-up per star vertex where a
@@ -2510,7 +2509,6 @@ impl SurfaceBuilder<'_> {
             return Ok(false);
         }
         c.changes.clear();
-        c.old_normals.clear();
         // The parameter-plane orientation of every new triangle first: it refuses most of the
         // attempts that fail before the edge tests (fitted torus at 1e-4: 104,517 of 139,767),
         // without the spatial normals. The checks are a conjunction, so their order changes no
@@ -2523,8 +2521,7 @@ impl SurfaceBuilder<'_> {
             if dot3(param_area(&self.scratch.us, new), nref) <= floor {
                 return Ok(false);
             }
-            c.changes.push((f.t, new));
-            c.old_normals.push(f.normal);
+            c.changes.push((f.t, new, f.normal));
         }
         // Then no triangle may flip in space; and the removed vertex is a point of the surface,
         // and the new triangles must pass within the leaves' threshold of it as of any test
@@ -2535,7 +2532,7 @@ impl SurfaceBuilder<'_> {
         // session 40).
         let pv = self.scratch.points[v as usize].p;
         let mut near = false;
-        for (&(_, new), &old_normal) in c.changes.iter().zip(&c.old_normals) {
+        for &(_, new, old_normal) in &c.changes {
             let [a, b, d] = new.map(|i| self.scratch.points[i as usize].p);
             let n = cross3(sub3(b, a), sub3(d, a));
             if dot3(n, old_normal) <= 0.0 {
@@ -2603,7 +2600,7 @@ impl SurfaceBuilder<'_> {
                 c.alive[f.t as usize] = false;
             }
         }
-        for &(t, new) in &c.changes {
+        for &(t, new, _) in &c.changes {
             self.scratch.cells[3 * t as usize..3 * t as usize + 3].copy_from_slice(&new);
             c.incident[target as usize].push(t);
         }
