@@ -40,7 +40,7 @@ use ism_geom::{linalg, Bernstein, LocalMap, LocalStage, Mat, Restriction};
 
 use crate::affine::{Affine, AFFINE_DEGREE};
 use crate::bound::{
-    det_over_denominator, linear_gradient_norm, quotient_range, stage_components,
+    det_over_denominator, fused_projective, linear_gradient_norm, quotient_range, stage_components,
     BOUND_ROUNDING_MARGIN,
 };
 use crate::flat::Flat;
@@ -1437,13 +1437,6 @@ pub fn chain_bound<'s>(
     // Leaves may still carry an infinite bound (det not certified within the budget): callers
     // combine with the per-stage bound there.
     Some(Ok(result))
-}
-
-/// `map` with each implicit projective stage fused into the next ([`LocalMap::fused`]), when
-/// that leaves fewer stages; `None` when nothing fuses.
-fn fused_projective(map: &LocalMap) -> Option<LocalMap> {
-    let fused = map.clone().fused();
-    (fused.stages().len() < map.stages().len()).then_some(fused)
 }
 
 /// The chain of an all-parametric map and its first stage (the last stored), unrestricted.

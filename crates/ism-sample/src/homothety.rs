@@ -157,8 +157,8 @@ impl Homothety {
     }
 
     /// Re-targets the buffers to degree `d` in `m` variables and the simplex `{w ≥ lo}`, as
-    /// [`Homothety::new`] would build them (without clearing the levels: every entry read is
-    /// written first). `false` when the degree has no plan; the buffer is then unchanged.
+    /// `Homothety::new` (a test constructor) would build them (without clearing the levels: every
+    /// entry read is written first). `false` when the degree has no plan; the buffer is then unchanged.
     pub(crate) fn set(&mut self, m: usize, d: u32, lo: &[f64]) -> bool {
         if d as usize > MAX_DEGREE || m == 0 || m > MAX_VARS {
             return false;
