@@ -76,7 +76,7 @@ pub fn area_element_bound(map: &LocalMap, edges: &Mat) -> Result<f64, (usize, St
 /// Most bisections spent on the last stage's surface-restricted bound: the level set is a
 /// hypersurface, so halving the cell size roughly doubles (2D) or quadruples (3D) the cells that
 /// cross it; 96 reaches cells of about 1/8 of the simplex around a typical patch.
-const MAX_SURFACE_SPLITS: usize = 96;
+pub(crate) const MAX_SURFACE_SPLITS: usize = 96;
 
 /// Bound of the area element `J` on the part of a simplex where the shape lies: like
 /// [`area_element_bound`], except that the last stage (when stored in the implicit direction)
@@ -90,14 +90,16 @@ pub fn surface_area_element_bound(
     values: &[f64],
     level: f64,
 ) -> Result<f64, (usize, String)> {
-    surface_bound(map, edges, values, level, true)
+    surface_bound(map, edges, values, level, None)
 }
 
 /// [`surface_area_element_bound`] of `map` with each implicit projective stage fused into the
 /// implicit net after it ([`LocalMap::fused`]: the spec examples' "vertex weights, then level
 /// crossings" pair as one rational stage), its last stage restricted to the surface alone (no
-/// whole-simplex factor); `None` when nothing fuses or that bound is not finite, and the caller
-/// keeps the stored map's.
+/// whole-simplex factor) in at most `max_splits` bisections, and only while the bound's excess
+/// over the largest value seen (in units of `J`) is above `min_excess` (the chain bound's test,
+/// `tightening_pays`; 0: refined until tight or out of splits); `None` when
+/// nothing fuses or that bound is not finite, and the caller keeps the stored map's.
 ///
 /// The stored pair's factors are bounded apart — the projective stage's over the whole simplex,
 /// where its determinant (a power of `Σ a_j w_j`) spans the ratio of the extreme scales — so
@@ -116,9 +118,11 @@ pub fn fused_surface_area_element_bound(
     edges: &Mat,
     values: &[f64],
     level: f64,
+    max_splits: usize,
+    min_excess: f64,
 ) -> Option<f64> {
     let fused = fused_projective(map)?;
-    surface_bound(&fused, edges, values, level, false)
+    surface_bound(&fused, edges, values, level, Some((max_splits, min_excess)))
         .ok()
         .filter(|b| b.is_finite())
 }
@@ -130,14 +134,15 @@ pub(crate) fn fused_projective(map: &LocalMap) -> Option<LocalMap> {
     (fused.stages().len() < map.stages().len()).then_some(fused)
 }
 
-/// [`surface_area_element_bound`], the last stage's whole-simplex factor formed as well only when
-/// `whole_last`.
+/// [`surface_area_element_bound`] (`restricted_only: None`), or with the last stage's factor
+/// restricted to the surface alone: `Some((max_splits, min_excess))` as
+/// [`fused_surface_area_element_bound`] takes them.
 fn surface_bound(
     map: &LocalMap,
     edges: &Mat,
     values: &[f64],
     level: f64,
-    whole_last: bool,
+    restricted_only: Option<(usize, f64)>,
 ) -> Result<f64, (usize, String)> {
     let stages = map.stages();
     let Some(last) = stages.last() else {
@@ -153,13 +158,18 @@ fn surface_bound(
         bound *= stage_bound(stage, edges, &inv).map_err(|e| (k, e))?.factor;
     }
     let k = stages.len() - 1;
-    let restricted = surface_stage_factor(last, &inv, values, level).map_err(|e| (k, e))?;
+    let (splits, enough) = match restricted_only {
+        // The last factor's excess counts `bound` times in `J`'s.
+        Some((splits, min_excess)) => (splits, min_excess / bound),
+        None => (MAX_SURFACE_SPLITS, 0.0),
+    };
+    let restricted =
+        surface_stage_factor(last, &inv, values, level, splits, enough).map_err(|e| (k, e))?;
     // Both factors are certified; the restricted one is usually far smaller, but its vector-norm
     // bound (componentwise maxima) can lose to the whole-simplex one on nearly affine stages.
-    bound *= if whole_last {
-        restricted.min(stage_bound(last, edges, &inv).map_err(|e| (k, e))?.factor)
-    } else {
-        restricted
+    bound *= match restricted_only {
+        None => restricted.min(stage_bound(last, edges, &inv).map_err(|e| (k, e))?.factor),
+        Some(_) => restricted,
     };
     if !bound.is_finite() {
         return Err((0, format!("area-element bound is {bound}")));
@@ -266,12 +276,16 @@ impl SurfaceCell {
 }
 
 /// The last stage's factor `sup |E⁻ᵀ DXᵀ Δf| / (|∇F_lin| det DX)` over the cells its level set
-/// crosses (see [`surface_area_element_bound`]).
+/// crosses (see [`surface_area_element_bound`]), the worst cell bisected until the bound is within
+/// `DET_TIGHTNESS` of the largest value seen or above it by at most `enough` (0: below
+/// `DET_TIGHTNESS` already stops it), or `max_splits` are spent.
 fn surface_stage_factor(
     stage: &LocalStage,
     inv_edges: &Mat,
     values: &[f64],
     level: f64,
+    max_splits: usize,
+    enough: f64,
 ) -> Result<f64, String> {
     let m = stage.vars();
     let n = m - 1;
@@ -336,7 +350,8 @@ fn surface_stage_factor(
         };
         let top = cells[worst].0;
         if top * DET_TIGHTNESS <= estimate
-            || splits >= MAX_SURFACE_SPLITS
+            || (top.is_finite() && top - estimate <= enough)
+            || splits >= max_splits
             || cells[worst].1.depth >= MAX_DEPTH
         {
             break top;
@@ -918,8 +933,14 @@ mod tests {
                 let inv = linalg::inverse(n, &e).unwrap();
                 let ids = model.simplex(s);
                 let values: Vec<f64> = ids.iter().map(|&v| model.values[v as usize]).collect();
-                let Some(bound) = fused_surface_area_element_bound(map, &e, &values, model.level)
-                else {
+                let Some(bound) = fused_surface_area_element_bound(
+                    map,
+                    &e,
+                    &values,
+                    model.level,
+                    MAX_SURFACE_SPLITS,
+                    0.0,
+                ) else {
                     continue;
                 };
                 patches += 1;
