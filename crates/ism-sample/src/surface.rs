@@ -2256,7 +2256,7 @@ mod tests {
     /// The second pass in rounds: on the torus example, whose first round leaves next-worst
     /// patches holding much of the bounded area, the table for 10⁵ samples bounds less area than
     /// one round's and stays certified. Measured: 272.6 against 322.8 (at 10⁴ samples the rounds
-    /// found nothing left worth refining, 323.4 both; before the fused per-stage bound,
+    /// found nothing left worth refining, 324.8 both; before the fused per-stage bound,
     /// [`fused_surface_area_element_bound`], 649 against 1,762 at 10⁴).
     #[test]
     fn later_rounds_of_the_second_pass_tighten_the_torus_table() {
