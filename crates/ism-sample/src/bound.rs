@@ -905,6 +905,15 @@ mod tests {
             .unwrap()
     }
 
+    /// A spec example (`spec/examples/NAME.ism.json`).
+    fn example(name: &str) -> ism_format::Model {
+        let path = format!(
+            "{}/../../spec/examples/{name}.ism.json",
+            env!("CARGO_MANIFEST_DIR")
+        );
+        ism_format::io::read_path(path).unwrap().model
+    }
+
     fn edges(model: &ism_format::Model, s: usize) -> Mat {
         ism_geom::model::edge_matrix(model, model.simplex(s))
     }
@@ -918,11 +927,7 @@ mod tests {
     fn fused_bound_dominates_the_stored_maps_area_element() {
         const LEVEL: usize = 6;
         for (name, fused_patches) in [("torus", 400), ("sphere", 300), ("circle-curved", 10)] {
-            let path = format!(
-                "{}/../../spec/examples/{name}.ism.json",
-                env!("CARGO_MANIFEST_DIR")
-            );
-            let model = ism_format::io::read_path(path).unwrap().model;
+            let model = example(name);
             let eval = ism_geom::ModelEval::new(&model).unwrap();
             let n = model.dim();
             let (mut patches, mut points, mut fused_sum, mut stored_sum) = (0, 0, 0.0, 0.0);
@@ -1004,11 +1009,7 @@ mod tests {
     fn projective_stages_take_the_closed_form_determinant() {
         let mut closed = 0;
         for name in ["torus", "sphere", "circle-curved"] {
-            let path = format!(
-                "{}/../../spec/examples/{name}.ism.json",
-                env!("CARGO_MANIFEST_DIR")
-            );
-            let model = ism_format::io::read_path(path).unwrap().model;
+            let model = example(name);
             let eval = ism_geom::ModelEval::new(&model).unwrap();
             let n = model.dim();
             let m = n + 1;
