@@ -42,10 +42,12 @@ Examples:
   ism export spec/examples/sphere.ism.json sphere-linear.obj --linear
   ism export spec/examples/sphere.ism.json sphere-volume.vtu --volume
 
-Exit status: 0 on success; 2 for an unreadable model, bad arguments, a failed write, or a
+Exit status: 0 on success; 2 for an unreadable model, bad arguments, a failed write, a
 numerical failure (a stage inversion that does not converge: the point and residual are printed;
-`ism validate` tells whether the model itself is valid). Export never exits 1: it does not decide
-validity.";
+`ism validate` tells whether the model itself is valid), or stages that fold at a point the export
+places (their Jacobian determinant clearly negative: the point and the determinant are printed;
+such a model is not valid, and its refinement would not end). Export never exits 1: it does not
+certify validity.";
 
 /// Arguments of `ism export`.
 #[derive(clap::Args)]

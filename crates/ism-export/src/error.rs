@@ -33,6 +33,22 @@ pub enum Error {
         /// Final residual `|X(w) − u|`.
         residual: f64,
     },
+    /// The stages fold at a vertex the export placed: their Jacobian determinant there is clearly
+    /// negative ([`crate::extract::FOLD_DETERMINANT`]), so the model is not valid (a valid
+    /// model's is positive everywhere) and its shape has no mesh to export.
+    #[error(
+        "simplex {simplex}: the stages fold at u = {u:?} (Jacobian determinant {determinant:.3} \
+         relative to its entries; a valid model's is positive everywhere): the model is not \
+         valid there, run `ism validate` on it"
+    )]
+    Fold {
+        /// Top simplex id.
+        simplex: usize,
+        /// The point of the linear patch, barycentric in the simplex's stored vertex order.
+        u: Vec<f64>,
+        /// `det J / Π_k Σ_l |J_kl|` at the point (in `[−1, 0)`).
+        determinant: f64,
+    },
     /// The mesh has more vertices or cells than the target format can index.
     #[error("mesh too large for {format}: {what}")]
     TooLarge {

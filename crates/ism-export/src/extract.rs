@@ -125,10 +125,100 @@ fn may_split(level: u32, a: [f64; 3], b: [f64; 3], size: f64, options: &ExtractO
 /// export without a degenerate cell at 1e-3 and 1e-4.
 pub const ESCAPE_SEPARATION: f64 = 1e-3;
 
-/// Whether `p` lies farther than [`ESCAPE_SEPARATION`] tolerances from each of `points`.
+/// Whether `p` lies farther than [`ESCAPE_SEPARATION`] tolerances from each of `points`: the
+/// definition, one scan. The refinement asks [`NearIndex::apart`], which gives the same answer
+/// from the points near `p` only.
 fn apart(points: &[SurfacePoint], p: [f64; 3], tolerance: f64) -> bool {
     let min2 = (ESCAPE_SEPARATION * tolerance).powi(2);
     points.iter().all(|q| dist2(q.p, p) > min2)
+}
+
+/// Largest `|x| / cell` of a coordinate the index buckets: far below `i64`'s range (no overflow
+/// at the neighbours' ids) and where `f64` still resolves a hundredth of a cell, so that rounding
+/// cannot move a point within the separation of `p` out of the cubes next to `p`'s. Past it the
+/// index answers by the scan.
+const NEAR_MAX_CELLS: f64 = (1u64 << 44) as f64;
+
+/// The patch's vertices bucketed by position in cubes twice the separation of [`apart`] wide, so
+/// that a point within the separation of `p` lies in one of the 27 cubes around `p`'s (half a
+/// cube of margin for rounding). [`apart`] scanned every vertex of the patch for each split past
+/// `max_depth`: quadratic in such splits, which a folded (invalid) model makes by the ten
+/// thousand — `spec/vectors/validate/quartic-fold-3d.ism.json` exported at 1e-3 in 15 s (74 % of
+/// it in the scan) and did not finish at 3e-4 in 300 s. Points are indexed lazily, when a
+/// question comes, so an export that never splits past `max_depth` never builds it.
+#[derive(Default)]
+struct NearIndex {
+    /// Cube width (0: nothing indexed yet).
+    cell: f64,
+    /// The patch's first `indexed` points are in `buckets`.
+    indexed: usize,
+    /// A point could not be bucketed (not finite, or beyond [`NEAR_MAX_CELLS`]): scan instead.
+    scan: bool,
+    buckets: HashMap<[i64; 3], Vec<u32>>,
+}
+
+impl NearIndex {
+    fn clear(&mut self) {
+        self.cell = 0.0;
+        self.indexed = 0;
+        self.scan = false;
+        self.buckets.clear();
+    }
+
+    /// The cube of `p`, `None` when it cannot be bucketed.
+    fn key(&self, p: [f64; 3]) -> Option<[i64; 3]> {
+        let mut key = [0i64; 3];
+        for k in 0..3 {
+            let x = p[k] / self.cell;
+            // NaN fails the comparison too.
+            if x.abs() >= NEAR_MAX_CELLS || x.is_nan() {
+                return None;
+            }
+            key[k] = x.floor() as i64;
+        }
+        Some(key)
+    }
+
+    /// [`apart`]`(points, p, tolerance)`, looking only at the points in the cubes around `p`.
+    /// `points` are the patch's points, of which only new ones are appended between questions
+    /// (anything else, or another tolerance, rebuilds the index).
+    fn apart(&mut self, points: &[SurfacePoint], p: [f64; 3], tolerance: f64) -> bool {
+        let separation = ESCAPE_SEPARATION * tolerance;
+        let cell = 2.0 * separation;
+        if self.indexed > points.len() || self.cell != cell {
+            self.clear();
+            self.cell = cell;
+        }
+        self.scan |= cell.is_nan() || cell <= 0.0 || cell.is_infinite();
+        while !self.scan && self.indexed < points.len() {
+            match self.key(points[self.indexed].p) {
+                Some(key) => self
+                    .buckets
+                    .entry(key)
+                    .or_default()
+                    .push(self.indexed as u32),
+                None => self.scan = true,
+            }
+            self.indexed += 1;
+        }
+        let Some(at) = (if self.scan { None } else { self.key(p) }) else {
+            return apart(points, p, tolerance);
+        };
+        let min2 = separation.powi(2);
+        for dx in -1..=1 {
+            for dy in -1..=1 {
+                for dz in -1..=1 {
+                    let key = [at[0] + dx, at[1] + dy, at[2] + dz];
+                    if let Some(ids) = self.buckets.get(&key) {
+                        if ids.iter().any(|&i| dist2(points[i as usize].p, p) <= min2) {
+                            return false;
+                        }
+                    }
+                }
+            }
+        }
+        true
+    }
 }
 
 /// Options of [`extract`].
@@ -287,6 +377,50 @@ impl Counters {
     }
 }
 
+/// How negative the Jacobian determinant of a simplex's map may be at a vertex the export places,
+/// relative to the size of its entries (`det J / Π_k Σ_l |J_kl|`, which lies in `[−1, 1]`),
+/// before the export stops there ([`Error::Fold`]). A valid model's stages are orientation
+/// preserving diffeomorphisms: `det DX > 0` on the whole closed simplex (`ism validate` certifies
+/// it), and rounding moves this ratio by ~10⁻¹⁵ at a converged point. A fold (an invalid model)
+/// is orientation-reversed on the far sheet by order one: on the spec's fold vectors the vertices
+/// reach −0.84 (`quartic-fold-3d`) and −0.88 (`fig2-quartic-fold-2d`), while every example, the
+/// fitted presets and the rational ellipsoid stay above +3·10⁻⁵ (BENCHMARKS.md, issue 19, session
+/// 49). Going on past a fold is what made such a model's refinement explode: Newton lands on
+/// either sheet, so halving an edge never shortens its chord, and the escape past `max_depth`
+/// ([`DEPTH_ESCAPE`]) halves it up to [`MAX_DEPTH_LIMIT`] times (`quartic-fold-3d` at 1e-4: over
+/// 300 CPU-s and 5 GB before this check).
+pub const FOLD_DETERMINANT: f64 = 1e-3;
+
+/// `det j` relative to its entries' size, for `j = DX` or `DX⁻¹` (the same sign); `n × n`.
+fn relative_determinant(n: usize, j: &Mat) -> f64 {
+    let size: f64 = (0..n)
+        .map(|k| (0..n).map(|l| j[k][l].abs()).sum::<f64>())
+        .product();
+    linalg::det(n, j) / size
+}
+
+/// The placed vertex at `u` in simplex `s`, unless the map's Jacobian `j` (`DX` or `DX⁻¹`) there
+/// shows a fold ([`FOLD_DETERMINANT`]).
+fn unfolded(
+    eval: &ModelEval,
+    s: usize,
+    u: &Bary,
+    j: Option<&Mat>,
+    point: SurfacePoint,
+) -> Result<SurfacePoint> {
+    if let Some(j) = j {
+        let ratio = relative_determinant(eval.dim(), j);
+        if ratio < -FOLD_DETERMINANT {
+            return Err(Error::Fold {
+                simplex: s,
+                u: u[..eval.dim() + 1].to_vec(),
+                determinant: ratio,
+            });
+        }
+    }
+    Ok(point)
+}
+
 /// Maps `u ∈ θ_σ` to `O` and evaluates the outward normal there.
 ///
 /// The cheapest exact route first: a map whose stages are all parametric is evaluated directly
@@ -327,7 +461,7 @@ fn surface_point(
         let p = eval.point(s, &w);
         if let Some(dx) = linalg::inverse(n, &dy).filter(|_| p.iter().all(|x| x.is_finite())) {
             let g = eval.gradient_from_jacobian(s, &dx);
-            return Ok(finish_point(w, p, g, Some(dy)));
+            return unfolded(eval, s, u, Some(&dy), finish_point(w, p, g, Some(dy)));
         }
     }
     let fast = if stages.is_empty() {
@@ -340,12 +474,8 @@ fn surface_point(
         if p.iter().all(|x| x.is_finite()) {
             counters.max_residual = counters.max_residual.max(solved.residual);
             let g = eval.gradient_from_jacobian(s, &solved.jacobian);
-            return Ok(finish_point(
-                solved.w,
-                p,
-                g,
-                linalg::inverse(n, &solved.jacobian),
-            ));
+            let point = finish_point(solved.w, p, g, linalg::inverse(n, &solved.jacobian));
+            return unfolded(eval, s, u, Some(&solved.jacobian), point);
         }
     }
     let q = eval.param_point(s, u);
@@ -361,12 +491,13 @@ fn surface_point(
     let g = jacobian
         .map(|j| eval.gradient_from_jacobian(s, &j))
         .unwrap_or([0.0; 3]);
-    Ok(finish_point(
+    let point = finish_point(
         q.w,
         q.p,
         g,
         jacobian.and_then(|j| linalg::inverse(eval.dim(), &j)),
-    ))
+    );
+    unfolded(eval, s, u, jacobian.as_ref(), point)
 }
 
 /// How accurately a test point (one that is only measured, never a vertex) is placed, as a
@@ -1910,6 +2041,8 @@ struct Scratch {
     known: HashMap<(u32, u32), Probed>,
     /// The coarsening's working state.
     coarse: Coarse,
+    /// `points` bucketed for the separation test of splits past `max_depth`.
+    near: NearIndex,
 }
 
 /// The working state of [`SurfaceBuilder::coarsen`] (kept per worker like [`Scratch`]).
@@ -2057,6 +2190,7 @@ impl Scratch {
         self.local.clear();
         self.interior.clear();
         self.known.clear();
+        self.near.clear();
     }
 }
 
@@ -2152,7 +2286,11 @@ impl SurfaceBuilder<'_> {
                     (Some(pm), Some([q0, q1]))
                         if level < self.options.max_depth
                             || may_split(level, pa, pb, self.size, self.options)
-                                && apart(points, pm.p, self.options.tolerance) =>
+                                && self.scratch.near.apart(
+                                    points,
+                                    pm.p,
+                                    self.options.tolerance,
+                                ) =>
                     {
                         let m = self.interior_vertex(um, pm);
                         self.scratch.known.insert((pair.0, m), q0);
@@ -3070,6 +3208,119 @@ mod tests {
             .filter(|(_, model)| model.dim() == 3)
             .map(|(name, model)| (name, IndexedModel::new(model).unwrap()))
             .collect()
+    }
+
+    /// [`NearIndex::apart`] gives the scan's answer ([`apart`], the definition) on points
+    /// appended between questions as the refinement appends them: points a few separations
+    /// (1e-6 at tolerance 1e-3) from one of a few centres, some on or a rounding step off the
+    /// cubes' boundaries (multiples of 2e-6) and exactly the separation apart (not apart: the
+    /// test is strict), far points, and a non-finite point (the scan's answer, never apart, from
+    /// then on). Also across a smaller point set and another tolerance (the index rebuilds). Both
+    /// answers occur many times (counted).
+    #[test]
+    fn near_index_answers_as_the_scan() {
+        use proptest::prelude::*;
+        use std::sync::atomic::{AtomicUsize, Ordering};
+        static ANSWERS: [AtomicUsize; 2] = [AtomicUsize::new(0), AtomicUsize::new(0)];
+        let at = |p: [f64; 3]| finish_point([0.0; MAX_VARS], p, [1.0, 0.0, 0.0], None);
+        let centre = prop_oneof![
+            Just(0.0),
+            Just(2e-6),
+            Just(2e-6 * (1.0 - f64::EPSILON)),
+            Just(-4e-6),
+            Just(0.37),
+        ];
+        let offset =
+            (-4i32..=4, 0usize..3).prop_map(|(k, f)| f64::from(k) * [2.5e-7, 5e-7, 1e-6][f]);
+        let coordinate = (centre, offset).prop_map(|(c, o)| c + o);
+        let point = [coordinate.clone(), coordinate.clone(), coordinate];
+        let config = ProptestConfig::with_cases(128);
+        proptest!(config, |(batches in proptest::collection::vec(
+            (proptest::collection::vec(point.clone(), 0..40), proptest::collection::vec(point.clone(), 1..20)),
+            1..6,
+        ))| {
+            let mut index = NearIndex::default();
+            let mut points = Vec::new();
+            for (added, asked) in &batches {
+                points.extend(added.iter().map(|&p| at(p)));
+                for &p in asked {
+                    let scan = apart(&points, p, 1e-3);
+                    prop_assert_eq!(index.apart(&points, p, 1e-3), scan);
+                    ANSWERS[usize::from(scan)].fetch_add(1, Ordering::Relaxed);
+                    // A point asked about is often the next one made (as the refinement does).
+                    points.push(at(p));
+                }
+            }
+            // Fewer points and another tolerance: rebuilt, still the scan's answer.
+            points.truncate(points.len() / 2);
+            for (_, asked) in &batches {
+                for &p in asked {
+                    prop_assert_eq!(index.apart(&points, p, 2e-3), apart(&points, p, 2e-3));
+                }
+            }
+            points.push(at([f64::NAN, 0.0, 0.0]));
+            for (_, asked) in &batches {
+                for &p in asked {
+                    prop_assert_eq!(index.apart(&points, p, 2e-3), apart(&points, p, 2e-3));
+                }
+            }
+        });
+        let [near, far] = [0, 1].map(|i| ANSWERS[i].load(Ordering::Relaxed));
+        assert!(
+            near > 100 && far > 100,
+            "not apart {near} times, apart {far} times"
+        );
+        // Coordinates past NEAR_MAX_CELLS cubes: answered by the scan.
+        let points = [at([0.0; 3]), at([1e9, 0.0, 0.0])];
+        let mut index = NearIndex::default();
+        for p in [
+            [1e9, 0.0, 5e-7],
+            [1e9, 0.0, 2e-6],
+            [0.0, 1e-7, 0.0],
+            [0.5, 0.0, 0.0],
+        ] {
+            assert_eq!(index.apart(&points, p, 1e-3), apart(&points, p, 1e-3));
+        }
+        assert!(index.scan);
+    }
+
+    /// An invalid model whose stages fold stops at the first vertex placed on the far sheet
+    /// ([`FOLD_DETERMINANT`]), in 3D and 2D, at a tolerance where the 3D one ran over 300 CPU-s
+    /// and 5 GB before the check; the error names the simplex, the point and the determinant.
+    /// Ground truth that these models fold: `ism validate` (the validator's vectors expect them
+    /// invalid, `spec/vectors/validate/*.expect.json`). Every valid model exports (the examples'
+    /// tests here and the fitted ones in `ism-cli`'s tests): no false alarm there.
+    #[test]
+    fn folded_models_stop_at_the_fold() {
+        let spec =
+            std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../spec/vectors/validate");
+        for name in ["quartic-fold-3d.ism.json", "fig2-quartic-fold-2d.ism.json"] {
+            let model = ism_format::io::read_path(spec.join(name)).unwrap().model;
+            let indexed = IndexedModel::new(model).unwrap();
+            let eval = ModelEval::for_extraction(&indexed).unwrap();
+            let options = ExtractOptions {
+                tolerance: 1e-4,
+                max_depth: 8,
+            };
+            match extract_coarsened(&eval, &options) {
+                Err(Error::Fold {
+                    simplex,
+                    u,
+                    determinant,
+                }) => {
+                    assert!(simplex < indexed.num_simplices(), "{name}");
+                    assert_eq!(u.len(), eval.dim() + 1, "{name}");
+                    assert!(
+                        (-1.0..-FOLD_DETERMINANT).contains(&determinant),
+                        "{name}: {determinant}"
+                    );
+                }
+                other => panic!(
+                    "{name}: expected a fold, got {:?}",
+                    other.map(|(m, _)| m.num_cells())
+                ),
+            }
+        }
     }
 
     /// Set by [`coarsening_trusts_the_refinements_splits`] alone: the coarsening then tests the
