@@ -7,10 +7,11 @@ use std::time::Instant;
 use anyhow::Context;
 use ism_export::export::{self, ExportOptions, Exported};
 use ism_export::format::ExportFormat;
+use ism_export::vtk::VtuCompression;
 
 const AFTER_HELP: &str = "\
 The output format follows the extension: .obj, .gltf, .glb, .vtk (legacy ASCII), .vtu (XML; its
-arrays binary: appended raw, uncompressed).
+arrays binary: appended raw, uncompressed, or zlib-compressed with --compress).
 3D models give triangle meshes, 2D models polylines (OBJ `l`, glTF LINES, VTK lines). Each
 patch of the linear isocomplex is refined until the chordal error is below --tolerance (model
 units) or an edge is halved --max-depth times and its chord is within twice the tolerance or
@@ -84,6 +85,10 @@ pub struct Args {
     /// 0.65–0.9× the CPU.
     #[arg(long)]
     no_coarsen: bool,
+    /// Compress the .vtu's arrays with zlib, block by block as VTK's XML writers do by default
+    /// (vtkZLibDataCompressor): a smaller file, more CPU to write and read.
+    #[arg(long)]
+    compress: bool,
     #[command(flatten)]
     threads: crate::args::Threads,
     /// No progress display.
@@ -104,6 +109,12 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
             args.output.display()
         )
     })?;
+    if args.compress && format != ExportFormat::Vtu {
+        anyhow::bail!(
+            "--compress needs a .vtu output, not .{}",
+            format.extension()
+        );
+    }
     if args.volume && !format.supports_volume() {
         anyhow::bail!(
             "--volume needs a VTK output (.vtk or .vtu), not .{}",
@@ -155,8 +166,13 @@ pub fn run(args: Args) -> anyhow::Result<ExitCode> {
     let extract_seconds = start.elapsed().as_secs_f64();
     progress.phase(format!("writing {}", args.output.display()));
     ism_format::io::write_atomic(&args.output, |w| {
+        let compression = if args.compress {
+            VtuCompression::Zlib
+        } else {
+            VtuCompression::None
+        };
         built
-            .write(format, name.as_deref(), w)
+            .write_with(format, name.as_deref(), compression, w)
             .map_err(std::io::Error::other)
     })
     .map_err(|e| crate::args::cannot_write(&args.output, &e))?;

@@ -155,8 +155,13 @@ fn volume_export_states_its_field_error() {
 #[test]
 fn bad_arguments_and_unreadable_input_exit_with_2_and_leave_no_file() {
     let dir = tempfile::tempdir().unwrap();
-    let cases: [(PathBuf, PathBuf, &[&str]); 3] = [
+    let cases: [(PathBuf, PathBuf, &[&str]); 4] = [
         (example("sphere.ism.json"), dir.path().join("x.stl"), &[]),
+        (
+            example("sphere.ism.json"),
+            dir.path().join("z.obj"),
+            &["--compress"],
+        ),
         (
             example("sphere.ism.json"),
             dir.path().join("x.obj"),

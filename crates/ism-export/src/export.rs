@@ -46,14 +46,14 @@ use crate::extract::{
     extract_coarsened_with_progress, extract_with_progress, ExtractOptions, ExtractReport,
     MAX_DEPTH_LIMIT,
 };
-use crate::format::{write_mesh, ExportFormat};
+use crate::format::{write_mesh_with, ExportFormat};
 use crate::marching::marching;
 use crate::mesh::Mesh;
 use crate::volume::{
     check_dimension, default_field_tolerance, volume_grid_with_progress, VolumeOptions,
     VolumeReport,
 };
-use crate::vtk::UnstructuredGrid;
+use crate::vtk::{UnstructuredGrid, VtuCompression};
 use crate::{Error, Result};
 
 /// The options of `ism export`.
@@ -246,10 +246,25 @@ impl Exported {
     /// # Errors
     /// Whatever the writer reports; [`Error::Unsupported`] for a volume in a non-VTK format.
     pub fn write<W: Write>(&self, format: ExportFormat, name: Option<&str>, out: W) -> Result<()> {
+        self.write_with(format, name, VtuCompression::None, out)
+    }
+
+    /// [`Self::write`], a `.vtu`'s arrays stored as `compression` says
+    /// ([`crate::vtk::UnstructuredGrid::write_vtu_with`]; the other formats ignore it).
+    ///
+    /// # Errors
+    /// As [`Self::write`].
+    pub fn write_with<W: Write>(
+        &self,
+        format: ExportFormat,
+        name: Option<&str>,
+        compression: VtuCompression,
+        out: W,
+    ) -> Result<()> {
         match self {
-            Exported::Surface { mesh, .. } => write_mesh(mesh, format, name, out),
+            Exported::Surface { mesh, .. } => write_mesh_with(mesh, format, name, compression, out),
             Exported::Volume { grid, .. } => match format {
-                ExportFormat::Vtu => grid.write_vtu(out),
+                ExportFormat::Vtu => grid.write_vtu_with(out, compression),
                 ExportFormat::VtkLegacy => grid.write_legacy(name.unwrap_or("ISM volume"), out),
                 f => Err(Error::Unsupported(format!(
                     "volume needs a VTK output (.vtk or .vtu), not .{}",

@@ -6,7 +6,7 @@ use std::path::Path;
 use crate::gltf::{write_gltf, GltfContainer};
 use crate::mesh::Mesh;
 use crate::obj::write_obj;
-use crate::vtk::UnstructuredGrid;
+use crate::vtk::{UnstructuredGrid, VtuCompression};
 use crate::Result;
 
 /// A mesh output format.
@@ -76,6 +76,21 @@ pub fn write_mesh<W: Write>(
     name: Option<&str>,
     out: W,
 ) -> Result<()> {
+    write_mesh_with(mesh, format, name, VtuCompression::None, out)
+}
+
+/// [`write_mesh`], a `.vtu`'s arrays stored as `compression` says
+/// ([`UnstructuredGrid::write_vtu_with`]; the other formats ignore it).
+///
+/// # Errors
+/// As [`write_mesh`].
+pub fn write_mesh_with<W: Write>(
+    mesh: &Mesh,
+    format: ExportFormat,
+    name: Option<&str>,
+    compression: VtuCompression,
+    out: W,
+) -> Result<()> {
     match format {
         ExportFormat::Obj => write_obj(mesh, name, out),
         ExportFormat::Gltf => write_gltf(mesh, name, GltfContainer::Text, out),
@@ -83,7 +98,7 @@ pub fn write_mesh<W: Write>(
         ExportFormat::VtkLegacy => {
             UnstructuredGrid::from_mesh(mesh).write_legacy(name.unwrap_or("ISM export"), out)
         }
-        ExportFormat::Vtu => UnstructuredGrid::from_mesh(mesh).write_vtu(out),
+        ExportFormat::Vtu => UnstructuredGrid::from_mesh(mesh).write_vtu_with(out, compression),
     }
 }
 

@@ -25,6 +25,20 @@ pub mod cell_type {
     pub const BEZIER_TETRAHEDRON: u8 = 78;
 }
 
+/// How [`UnstructuredGrid::write_vtu_with`] stores the arrays of a `.vtu`.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum VtuCompression {
+    /// Raw bytes (the default: the fastest to write and to read).
+    #[default]
+    None,
+    /// zlib (`vtkZLibDataCompressor`, zlib's default level 6), block by block as VTK writes it
+    /// (VTK's XML writers compress with zlib by default).
+    Zlib,
+}
+
+/// Uncompressed size of a compressed `.vtu` array's blocks: `vtkXMLWriter`'s default, 32 KiB.
+pub const VTU_BLOCK: usize = 1 << 15;
+
 /// Values of a data array: floating point or integer.
 #[derive(Clone, Debug, PartialEq)]
 pub enum ArrayValues {
@@ -159,30 +173,68 @@ impl UnstructuredGrid {
     /// [`crate::import`]. Binary values are the stored bits, written without formatting a number:
     /// 0.57–0.76× the bytes of the decimal text, and VTK reads the 1 M-tet model's volume file with
     /// 58× less CPU (BENCHMARKS.md, issue 19, session 45); the legacy `.vtk` form stays ASCII for
-    /// readers who want text.
+    /// readers who want text. [`Self::write_vtu_with`] compresses the arrays.
     ///
     /// # Errors
     /// [`crate::Error::Io`] when the writer fails.
-    pub fn write_vtu<W: Write>(&self, mut out: W) -> Result<()> {
-        // Every array in file order; each one's offset is the bytes before it in the section
-        // (its 8-byte size header and its values).
+    pub fn write_vtu<W: Write>(&self, out: W) -> Result<()> {
+        self.write_vtu_with(out, VtuCompression::None)
+    }
+
+    /// [`Self::write_vtu`], the arrays stored as `compression` says: with
+    /// [`VtuCompression::Zlib`] each array is cut in [`VTU_BLOCK`]-byte blocks compressed
+    /// separately (in parallel) behind VTK's compression header (`compressor=
+    /// "vtkZLibDataCompressor"`, `UInt64` header words: block count, block size, last block's
+    /// size (0 when full), each block's compressed size), as `vtkXMLWriter` writes them and
+    /// [`crate::import`], VTK, ParaView and meshio read them.
+    ///
+    /// # Errors
+    /// [`crate::Error::Io`] when the writer fails.
+    pub fn write_vtu_with<W: Write>(&self, mut out: W, compression: VtuCompression) -> Result<()> {
+        // Every array in file order: point data, cell data, points, connectivity, offsets, types.
+        let payloads: Vec<Payload<'_>> = self
+            .point_data
+            .iter()
+            .chain(&self.cell_data)
+            .map(Payload::of)
+            .chain([
+                Payload::Points(&self.points),
+                Payload::Unsigned(&self.connectivity),
+                Payload::Unsigned(&self.offsets),
+                Payload::Bytes(&self.types),
+            ])
+            .collect();
+        let compressed: Option<Vec<Vec<u8>>> = match compression {
+            VtuCompression::None => None,
+            VtuCompression::Zlib => Some(
+                payloads
+                    .iter()
+                    .map(Payload::zlib)
+                    .collect::<std::io::Result<_>>()?,
+            ),
+        };
+        // Each array's offset is the bytes before it in the section (size headers included).
+        let mut offsets = Vec::with_capacity(payloads.len());
         let mut offset = 0u64;
-        let point_data = Payload::place_all(&self.point_data, &mut offset);
-        let cell_data = Payload::place_all(&self.cell_data, &mut offset);
-        let [points, connectivity, offsets, types] = [
-            Payload::Points(&self.points),
-            Payload::Unsigned(&self.connectivity),
-            Payload::Unsigned(&self.offsets),
-            Payload::Bytes(&self.types),
-        ]
-        .map(|p| p.place(&mut offset));
-        let (at_points, at_connectivity, at_offsets, at_types) =
-            (points.1, connectivity.1, offsets.1, types.1);
+        for (i, p) in payloads.iter().enumerate() {
+            offsets.push(offset);
+            offset += match &compressed {
+                Some(c) => c[i].len() as u64,
+                None => 8 + p.bytes(),
+            };
+        }
+        let (np, nc) = (self.point_data.len(), self.cell_data.len());
+        let [at_points, at_connectivity, at_offsets, at_types] =
+            [0, 1, 2, 3].map(|k| offsets[np + nc + k]);
+        let compressor = match compression {
+            VtuCompression::None => "",
+            VtuCompression::Zlib => r#" compressor="vtkZLibDataCompressor""#,
+        };
 
         writeln!(out, r#"<?xml version="1.0"?>"#)?;
         writeln!(
             out,
-            r#"<VTKFile type="UnstructuredGrid" version="1.0" byte_order="LittleEndian" header_type="UInt64">"#
+            r#"<VTKFile type="UnstructuredGrid" version="1.0" byte_order="LittleEndian" header_type="UInt64"{compressor}>"#
         )?;
         writeln!(out, "  <UnstructuredGrid>")?;
         writeln!(
@@ -191,8 +243,8 @@ impl UnstructuredGrid {
             self.points.len(),
             self.num_cells()
         )?;
-        write_vtu_data(&mut out, "PointData", &self.point_data, &point_data)?;
-        write_vtu_data(&mut out, "CellData", &self.cell_data, &cell_data)?;
+        write_vtu_data(&mut out, "PointData", &self.point_data, &offsets[..np])?;
+        write_vtu_data(&mut out, "CellData", &self.cell_data, &offsets[np..np + nc])?;
         writeln!(out, "      <Points>")?;
         writeln!(
             out,
@@ -216,11 +268,11 @@ impl UnstructuredGrid {
         writeln!(out, "    </Piece>")?;
         writeln!(out, "  </UnstructuredGrid>")?;
         write!(out, "  <AppendedData encoding=\"raw\">\n   _")?;
-        for (p, _) in point_data.iter().chain(&cell_data) {
-            p.write(&mut out)?;
-        }
-        for (p, _) in [points, connectivity, offsets, types] {
-            p.write(&mut out)?;
+        for (i, p) in payloads.iter().enumerate() {
+            match &compressed {
+                Some(c) => out.write_all(&c[i])?,
+                None => p.write(&mut out)?,
+            }
         }
         writeln!(out, "\n  </AppendedData>")?;
         writeln!(out, "</VTKFile>")?;
@@ -320,7 +372,7 @@ fn write_vtu_data<W: Write>(
     out: &mut W,
     section: &str,
     arrays: &[DataArray],
-    at: &[(Payload<'_>, u64)],
+    at: &[u64],
 ) -> std::io::Result<()> {
     let mut decl = String::new();
     for a in arrays {
@@ -333,7 +385,7 @@ fn write_vtu_data<W: Write>(
         decl.push_str(&format!(r#" {key}="{}""#, xml_escape(&a.name)));
     }
     writeln!(out, "      <{section}{decl}>")?;
-    for (a, (_, offset)) in arrays.iter().zip(at) {
+    for (a, offset) in arrays.iter().zip(at) {
         let ty = match a.values {
             ArrayValues::Float(_) => "Float64",
             ArrayValues::Int(_) => "Int64",
@@ -372,20 +424,38 @@ impl<'a> Payload<'a> {
         }
     }
 
-    /// This payload and its offset in the appended section, `offset` moved past it (its size
-    /// header and its values).
-    fn place(self, offset: &mut u64) -> (Payload<'a>, u64) {
-        let at = *offset;
-        *offset += 8 + self.bytes();
-        (self, at)
-    }
-
-    /// [`Payload::place`] for each of `arrays` in order.
-    fn place_all(arrays: &'a [DataArray], offset: &mut u64) -> Vec<(Payload<'a>, u64)> {
-        arrays
-            .iter()
-            .map(|a| Payload::of(a).place(offset))
-            .collect()
+    /// The array as a compressed appended array: VTK's zlib header (`UInt64` words) and the
+    /// [`VTU_BLOCK`]-byte blocks of its values, each compressed on its own (in parallel).
+    fn zlib(&self) -> std::io::Result<Vec<u8>> {
+        use rayon::prelude::*;
+        let mut raw = Vec::with_capacity(8 + self.bytes() as usize);
+        self.write(&mut raw)?;
+        let raw = &raw[8..];
+        let blocks: Vec<Vec<u8>> = raw
+            .par_chunks(VTU_BLOCK)
+            .map(|block| {
+                let mut e =
+                    flate2::write::ZlibEncoder::new(Vec::new(), flate2::Compression::default());
+                e.write_all(block)?;
+                e.finish()
+            })
+            .collect::<std::io::Result<_>>()?;
+        let words = [
+            blocks.len() as u64,
+            VTU_BLOCK as u64,
+            (raw.len() % VTU_BLOCK) as u64,
+        ]
+        .into_iter()
+        .chain(blocks.iter().map(|b| b.len() as u64));
+        let mut out =
+            Vec::with_capacity(8 * (3 + blocks.len()) + blocks.iter().map(Vec::len).sum::<usize>());
+        for w in words {
+            out.extend_from_slice(&w.to_le_bytes());
+        }
+        for b in &blocks {
+            out.extend_from_slice(b);
+        }
+        Ok(out)
     }
 
     /// The values' size in bytes (the array's header word).
@@ -706,6 +776,100 @@ mod tests {
             .unwrap();
         assert_eq!(pd.attribute("Normals"), Some("Normals"));
         assert_eq!(pd.attribute("Scalars"), Some("GradientNorm"));
+    }
+
+    /// A compressed `.vtu` holds the uncompressed one's arrays: every array's section, taken
+    /// apart by the offsets in its XML and VTK's header words and inflated block by block here
+    /// (flate2's decoder, not the writer), is the raw file's section for the same array, byte
+    /// for byte — on arrays of several blocks with a partial last one (the points), of exactly
+    /// eight blocks (the types: last block size 0). The importer reads
+    /// both files to the same mesh.
+    #[test]
+    fn compressed_vtu_arrays_inflate_to_the_raw_ones() {
+        use std::io::Read;
+        let mut g = UnstructuredGrid::default();
+        let n = 5000;
+        g.points = (0..n)
+            .map(|i| {
+                let t = i as f64 * 0.01;
+                [t.cos(), t.sin(), t * 1e-3]
+            })
+            .collect();
+        let cells = 8 * VTU_BLOCK;
+        for c in 0..cells {
+            let a = (c % (n - 2)) as u64;
+            g.push_cell(cell_type::TRIANGLE, [a, a + 1, a + 2]);
+        }
+        g.point_data.push(DataArray {
+            name: "F".into(),
+            components: 1,
+            values: ArrayValues::Float(g.points.iter().map(|p| p[0] - 0.25).collect()),
+            attribute: Attribute::Scalars,
+        });
+        g.cell_data.push(DataArray {
+            name: "Few".into(),
+            components: 1,
+            values: ArrayValues::Int((0..cells as i64).map(|c| c % 3).collect()),
+            attribute: Attribute::None,
+        });
+        let (mut raw_file, mut zlib_file) = (Vec::new(), Vec::new());
+        g.write_vtu(&mut raw_file).unwrap();
+        g.write_vtu_with(&mut zlib_file, VtuCompression::Zlib)
+            .unwrap();
+        let (raw_text, raw) = split_vtu(&raw_file);
+        let (zlib_text, zlib) = split_vtu(&zlib_file);
+        let offsets = |text: &str| -> Vec<usize> {
+            let doc = roxmltree::Document::parse(text).unwrap();
+            doc.descendants()
+                .filter(|n| n.has_tag_name("DataArray"))
+                .map(|n| n.attribute("offset").unwrap().parse().unwrap())
+                .collect()
+        };
+        assert!(zlib_text.contains(r#"compressor="vtkZLibDataCompressor""#));
+        assert!(!raw_text.contains("compressor"));
+        let (raw_at, zlib_at) = (offsets(&raw_text), offsets(&zlib_text));
+        assert_eq!(raw_at.len(), 6);
+        let word = |b: &[u8], i: usize| {
+            u64::from_le_bytes(b[8 * i..8 * i + 8].try_into().unwrap()) as usize
+        };
+        let mut last_sizes = Vec::new();
+        for (k, (&r, &z)) in raw_at.iter().zip(&zlib_at).enumerate() {
+            let size = word(&raw[r..], 0);
+            let values = &raw[r + 8..r + 8 + size];
+            let section = &zlib[z..];
+            let (blocks, block, last) = (word(section, 0), word(section, 1), word(section, 2));
+            assert_eq!(block, VTU_BLOCK);
+            assert_eq!(blocks, size.div_ceil(VTU_BLOCK), "array {k}");
+            assert_eq!(last, size % VTU_BLOCK, "array {k}");
+            last_sizes.push((blocks, last));
+            let mut inflated = Vec::new();
+            let mut at = 8 * (3 + blocks);
+            for b in 0..blocks {
+                let c = word(section, 3 + b);
+                flate2::read::ZlibDecoder::new(&section[at..at + c])
+                    .read_to_end(&mut inflated)
+                    .unwrap();
+                at += c;
+            }
+            assert_eq!(inflated, values, "array {k}");
+            // The next array starts where this one's blocks end.
+            if let Some(&next) = zlib_at.get(k + 1) {
+                assert_eq!(z + at, next);
+            } else {
+                assert_eq!(z + at, zlib.len());
+            }
+        }
+        // Points: several blocks, a partial last; types: exactly eight full ones; a short one.
+        assert!(last_sizes.contains(&(8, 0)));
+        assert!(last_sizes.iter().any(|&(b, l)| b > 1 && l > 0));
+        assert!(zlib_file.len() < raw_file.len() / 2);
+        let read = |bytes: &[u8]| {
+            crate::import::read_mesh(bytes, crate::import::ImportFormat::Vtu).unwrap()
+        };
+        let (a, b) = (read(&raw_file), read(&zlib_file));
+        assert_eq!(a.points, b.points);
+        assert_eq!(a.triangles, b.triangles);
+        assert_eq!(a.fields, b.fields);
     }
 
     /// A `.vtu` as its XML (with an empty `AppendedData` element) and the raw bytes after `_`.
