@@ -162,6 +162,7 @@ class Model:
         linear: bool = False,
         volume: bool = False,
         coarsen: Optional[bool] = None,
+        compress: bool = False,
         threads: int = 0,
         progress: _Steps = None,
     ) -> Dict[str, Any]: ...

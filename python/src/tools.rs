@@ -347,10 +347,11 @@ impl Model {
 
     /// Writes the shape to ``path`` as ``ism export`` does: the format follows the extension
     /// (.obj, .gltf, .glb, .vtk, .vtu); ``linear`` writes the linear isocomplex, ``volume`` the
-    /// complex with F as a Bézier field (VTK only), ``coarsen`` as :meth:`extract_surface`.
+    /// complex with F as a Bézier field (VTK only), ``coarsen`` as :meth:`extract_surface`,
+    /// ``compress`` zlib-compresses a .vtu's arrays (``ism export --compress``; .vtu only).
     /// Returns the summary of ``ism export --json`` (without its timings).
     /// ``progress(phase, done, total)`` as :meth:`extract_surface`.
-    #[pyo3(signature = (path, *, tolerance = 1e-3, max_depth = 8, linear = false, volume = false, coarsen = None, threads = 0, progress = None))]
+    #[pyo3(signature = (path, *, tolerance = 1e-3, max_depth = 8, linear = false, volume = false, coarsen = None, compress = false, threads = 0, progress = None))]
     #[allow(clippy::too_many_arguments)]
     fn export<'py>(
         &self,
@@ -361,6 +362,7 @@ impl Model {
         linear: bool,
         volume: bool,
         coarsen: Option<bool>,
+        compress: bool,
         threads: usize,
         progress: Option<&Bound<'py, PyAny>>,
     ) -> PyResult<Bound<'py, PyAny>> {
@@ -370,6 +372,17 @@ impl Model {
                 path.display()
             ))
         })?;
+        if compress && format != ExportFormat::Vtu {
+            return Err(PyValueError::new_err(format!(
+                "compress needs a .vtu output, not .{}",
+                format.extension()
+            )));
+        }
+        let compression = if compress {
+            ism_export::vtk::VtuCompression::Zlib
+        } else {
+            ism_export::vtk::VtuCompression::None
+        };
         let options = export_options(tolerance, max_depth, linear, volume, coarsen, Some(format))?;
         let model = self.inner.clone();
         let name = self.inner.metadata.name.clone();
@@ -380,8 +393,10 @@ impl Model {
             export_build(&model, &options, control)
         })?
         .map_err(|e| export_error(py, &e))?;
-        py.allow_threads(|| ism_export::export::write_path(&built, format, name.as_deref(), &path))
-            .map_err(|e| export_error(py, &e))?;
+        py.allow_threads(|| {
+            ism_export::export::write_path_with(&built, format, name.as_deref(), compression, &path)
+        })
+        .map_err(|e| export_error(py, &e))?;
         json_dict(py, &built.summary(&path, format))
     }
 

@@ -144,6 +144,18 @@ def test_export_is_byte_identical_to_the_cli(name, ext, tmp_path):
         cli("export", path, tmp_path / ("cv" + ext), "--volume", "--quiet")
         m.export(tmp_path / ("pv" + ext), volume=True)
         assert (tmp_path / ("pv" + ext)).read_bytes() == (tmp_path / ("cv" + ext)).read_bytes()
+    if ext == ".vtu":
+        # zlib-compressed arrays (`--compress`): the same bytes as the CLI's, surface and volume.
+        for extra, kwargs in ([], {}), (["--volume"], {"volume": True}):
+            cli("export", path, tmp_path / "cz.vtu", "--compress", "--quiet", *extra)
+            m.export(tmp_path / "pz.vtu", compress=True, **kwargs)
+            packed = (tmp_path / "pz.vtu").read_bytes()
+            assert packed == (tmp_path / "cz.vtu").read_bytes(), extra
+            assert b'compressor="vtkZLibDataCompressor"' in packed[:400]
+    else:
+        with pytest.raises(ValueError, match="compress needs a .vtu output"):
+            m.export(tmp_path / ("nz" + ext), compress=True)
+        assert not (tmp_path / ("nz" + ext)).exists()
 
 
 @pytest.mark.parametrize("name", ["sphere", "torus", "circle-curved", "stratified-3d"])

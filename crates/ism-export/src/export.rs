@@ -340,8 +340,24 @@ pub fn write_path(
     name: Option<&str>,
     path: &Path,
 ) -> Result<()> {
+    write_path_with(built, format, name, VtuCompression::None, path)
+}
+
+/// [`write_path`], a `.vtu`'s arrays stored as `compression` says ([`Exported::write_with`]).
+///
+/// # Errors
+/// As [`write_path`].
+pub fn write_path_with(
+    built: &Exported,
+    format: ExportFormat,
+    name: Option<&str>,
+    compression: VtuCompression,
+    path: &Path,
+) -> Result<()> {
     ism_format::io::write_atomic(path, |w| {
-        built.write(format, name, w).map_err(std::io::Error::other)
+        built
+            .write_with(format, name, compression, w)
+            .map_err(std::io::Error::other)
     })
     .map_err(|source| Error::Io {
         path: Some(path.to_path_buf()),
