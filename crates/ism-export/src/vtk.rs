@@ -31,13 +31,19 @@ pub enum VtuCompression {
     /// Raw bytes (the default: the fastest to write and to read).
     #[default]
     None,
-    /// zlib (`vtkZLibDataCompressor`, zlib's default level 6), block by block as VTK writes it
+    /// zlib (`vtkZLibDataCompressor`) at [`VTU_ZLIB_LEVEL`], block by block as VTK writes it
     /// (VTK's XML writers compress with zlib by default).
     Zlib,
 }
 
 /// Uncompressed size of a compressed `.vtu` array's blocks: `vtkXMLWriter`'s default, 32 KiB.
 pub const VTU_BLOCK: usize = 1 << 15;
+
+/// zlib level of [`VtuCompression::Zlib`]: VTK's default (`vtkZLibDataCompressor`'s
+/// `CompressionLevel` 5). On the fitted torus's volume file (10.5 MB raw, zlib of 32 KiB blocks,
+/// 2026-12-07): level 1 3.25×, level 5 3.52×, level 6 (zlib's default) 3.57× smaller, for 0.09 /
+/// 0.17 / 0.32 CPU-s (BENCHMARKS.md, issue 19, session 49).
+pub const VTU_ZLIB_LEVEL: u32 = 5;
 
 /// Values of a data array: floating point or integer.
 #[derive(Clone, Debug, PartialEq)]
@@ -434,8 +440,10 @@ impl<'a> Payload<'a> {
         let blocks: Vec<Vec<u8>> = raw
             .par_chunks(VTU_BLOCK)
             .map(|block| {
-                let mut e =
-                    flate2::write::ZlibEncoder::new(Vec::new(), flate2::Compression::default());
+                let mut e = flate2::write::ZlibEncoder::new(
+                    Vec::new(),
+                    flate2::Compression::new(VTU_ZLIB_LEVEL),
+                );
                 e.write_all(block)?;
                 e.finish()
             })
