@@ -39,8 +39,8 @@ pub enum VtuCompression {
 /// Uncompressed size of a compressed `.vtu` array's blocks: `vtkXMLWriter`'s default, 32 KiB.
 pub const VTU_BLOCK: usize = 1 << 15;
 
-/// zlib level of [`VtuCompression::Zlib`]: VTK's default (`vtkZLibDataCompressor`'s
-/// `CompressionLevel` 5). On the fitted torus's volume file (10.5 MB raw, zlib of 32 KiB blocks,
+/// zlib level of [`VtuCompression::Zlib`]: VTK's default (`vtkXMLWriter`'s `CompressionLevel`, 5
+/// in VTK 9.7, whose writers also default to zlib and 32 KiB blocks). On the fitted torus's volume file (10.5 MB raw, zlib of 32 KiB blocks,
 /// 2026-12-07): level 1 3.25×, level 5 3.52×, level 6 (zlib's default) 3.57× smaller, for 0.09 /
 /// 0.17 / 0.32 CPU-s (BENCHMARKS.md, issue 19, session 49).
 pub const VTU_ZLIB_LEVEL: u32 = 5;
