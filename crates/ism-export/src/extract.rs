@@ -381,7 +381,8 @@ impl Counters {
 /// relative to the size of its entries (`det J / Π_k Σ_l |J_kl|`, which lies in `[−1, 1]`),
 /// before the export stops there ([`Error::Fold`]). A valid model's stages are orientation
 /// preserving diffeomorphisms: `det DX > 0` on the whole closed simplex (`ism validate` certifies
-/// it), and rounding moves this ratio by ~10⁻¹⁵ at a converged point. A fold (an invalid model)
+/// it), and at a converged point rounding moves this ratio by a few units of `f64::EPSILON` (a
+/// determinant of entries accurate to about that), far below the threshold. A fold (an invalid model)
 /// is orientation-reversed on the far sheet by order one: on the spec's fold vectors the vertices
 /// reach −0.84 (`quartic-fold-3d`) and −0.88 (`fig2-quartic-fold-2d`), while every example, the
 /// fitted presets and the rational ellipsoid stay above +3·10⁻⁵ (BENCHMARKS.md, issue 19, session

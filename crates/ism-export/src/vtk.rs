@@ -867,7 +867,7 @@ mod tests {
                 assert_eq!(z + at, zlib.len());
             }
         }
-        // Points: several blocks, a partial last; types: exactly eight full ones; a short one.
+        // Points: several blocks, a partial last; types: exactly eight full ones.
         assert!(last_sizes.contains(&(8, 0)));
         assert!(last_sizes.iter().any(|&(b, l)| b > 1 && l > 0));
         assert!(zlib_file.len() < raw_file.len() / 2);
