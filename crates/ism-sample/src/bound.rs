@@ -25,7 +25,7 @@
 use std::borrow::Borrow;
 
 use ism_format::{Direction, StageKind};
-use ism_geom::{linalg, Bernstein, LocalMap, LocalStage, Mat, MAX_VARS};
+use ism_geom::{linalg, Bary, Bernstein, LocalMap, LocalStage, Mat, MAX_VARS};
 
 /// Relative margin added to a bound for floating-point rounding in the Bernstein products, norms and
 /// determinants that produce it: these are sums of at most a few thousand products of numbers of
@@ -90,7 +90,7 @@ pub fn surface_area_element_bound(
     values: &[f64],
     level: f64,
 ) -> Result<f64, (usize, String)> {
-    surface_bound(map, edges, values, level, None)
+    surface_bound(map, edges, values, level, None).map(|b| b.top)
 }
 
 /// [`surface_area_element_bound`] of `map` with each implicit projective stage fused into the
@@ -120,11 +120,68 @@ pub fn fused_surface_area_element_bound(
     level: f64,
     max_splits: usize,
     min_excess: f64,
-) -> Option<f64> {
+) -> Option<CellBounds> {
     let fused = fused_projective(map)?;
     surface_bound(&fused, edges, values, level, Some((max_splits, min_excess)))
         .ok()
-        .filter(|b| b.is_finite())
+        .filter(|b| b.top.is_finite())
+}
+
+/// Slack of the box comparisons in [`CellBounds::over`]: above the residual the sampler accepts
+/// of its inverse (`1e-9` in `u`), so the cell holding the preimage `J` is evaluated at is counted
+/// for the region its `u` was drawn from, even where that preimage maps just outside it.
+pub const CELL_BOX_SLACK: f64 = 1e-8;
+
+/// A leaf cell of the surface-restricted bound: the box of `u` it maps into and its bound.
+type LeafCell = (Bary, Bary, f64);
+
+/// A certified bound of the area element `J` on the shape in one simplex, with the bisection
+/// cells it came from: per cell, a box of the parameter points `u = X(w)` of the cell (the last
+/// stage's components' ranges) and the cell's own bound. A part of the patch (a sampler region)
+/// takes the largest bound of the cells whose box meets its own ([`CellBounds::over`]): every
+/// point of the shape over that part lies in such a cell, so that is certified too, and far below
+/// the whole simplex's where `J` peaks in one corner (a projective stage with weights far apart).
+#[derive(Clone, Debug)]
+pub struct CellBounds {
+    top: f64,
+    /// `(lo, hi, bound)` per leaf cell (the first `vars` coordinates of the boxes used); empty
+    /// when the boxes could not be formed (a denominator with a coefficient ≤ 0).
+    cells: Vec<LeafCell>,
+    vars: usize,
+}
+
+impl CellBounds {
+    /// A bound `top` over the whole simplex, without cells.
+    pub(crate) fn whole(top: f64, vars: usize) -> CellBounds {
+        CellBounds {
+            top,
+            cells: Vec::new(),
+            vars,
+        }
+    }
+
+    /// The bound over the whole simplex (the largest cell's).
+    pub fn top(&self) -> f64 {
+        self.top
+    }
+
+    /// The bound over the shape's points whose parameter `u` lies in the box `[lo, hi]`
+    /// (barycentric coordinates): the largest bound of the cells whose box meets it, and
+    /// [`CellBounds::top`] when none does (a box that holds points of the shape always meets
+    /// one; rounding at a box's edge must not give it less than the whole bound).
+    pub fn over(&self, lo: &[f64], hi: &[f64]) -> f64 {
+        let mut best: Option<f64> = None;
+        for (clo, chi, b) in &self.cells {
+            if (0..self.vars)
+                .all(|k| clo[k] <= hi[k] + CELL_BOX_SLACK && chi[k] >= lo[k] - CELL_BOX_SLACK)
+            {
+                // NaN is never a pass: such a cell bounds nothing.
+                let b = if b.is_nan() { f64::INFINITY } else { *b };
+                best = Some(best.map_or(b, |x: f64| x.max(b)));
+            }
+        }
+        best.unwrap_or(self.top)
+    }
 }
 
 /// `map` with each implicit projective stage fused into the next ([`LocalMap::fused`]), when
@@ -143,15 +200,16 @@ fn surface_bound(
     values: &[f64],
     level: f64,
     restricted_only: Option<(usize, f64)>,
-) -> Result<f64, (usize, String)> {
+) -> Result<CellBounds, (usize, String)> {
+    let n = map.vars() - 1;
+    let whole = |top: f64| CellBounds::whole(top, n + 1);
     let stages = map.stages();
     let Some(last) = stages.last() else {
-        return Ok(1.0);
+        return Ok(whole(1.0));
     };
     if last.direction() == Direction::Parametric {
-        return area_element_bound(map, edges);
+        return area_element_bound(map, edges).map(whole);
     }
-    let n = map.vars() - 1;
     let inv = linalg::inverse(n, edges).ok_or((0, "degenerate simplex".to_string()))?;
     let mut bound = 1.0;
     for (k, stage) in stages[..stages.len() - 1].iter().enumerate() {
@@ -163,18 +221,35 @@ fn surface_bound(
         Some((splits, min_excess)) => (splits, min_excess / bound),
         None => (MAX_SURFACE_SPLITS, 0.0),
     };
-    let restricted =
-        surface_stage_factor(last, &inv, values, level, splits, enough).map_err(|e| (k, e))?;
+    let (restricted, leaves) = surface_stage_factor(
+        last,
+        &inv,
+        values,
+        level,
+        splits,
+        enough,
+        restricted_only.is_some(),
+    )
+    .map_err(|e| (k, e))?;
     // Both factors are certified; the restricted one is usually far smaller, but its vector-norm
     // bound (componentwise maxima) can lose to the whole-simplex one on nearly affine stages.
-    bound *= match restricted_only {
-        None => restricted.min(stage_bound(last, edges, &inv).map_err(|e| (k, e))?.factor),
-        Some(_) => restricted,
-    };
-    if !bound.is_finite() {
-        return Err((0, format!("area-element bound is {bound}")));
+    let top = bound
+        * match restricted_only {
+            None => restricted.min(stage_bound(last, edges, &inv).map_err(|e| (k, e))?.factor),
+            Some(_) => restricted,
+        };
+    if !top.is_finite() {
+        return Err((0, format!("area-element bound is {top}")));
     }
-    Ok(bound * (1.0 + BOUND_ROUNDING_MARGIN))
+    let scale = bound * (1.0 + BOUND_ROUNDING_MARGIN);
+    Ok(CellBounds {
+        top: top * (1.0 + BOUND_ROUNDING_MARGIN),
+        cells: leaves
+            .into_iter()
+            .map(|(lo, hi, b)| (lo, hi, b * scale))
+            .collect(),
+        vars: n + 1,
+    })
 }
 
 /// A cell of the surface-restricted bound: `F − c` (times `Q`), the components of
@@ -186,6 +261,10 @@ struct SurfaceCell {
     q2: Option<Bernstein>,
     det: Bernstein,
     q2n: Option<Bernstein>,
+    /// The stage's components `P_i` and denominator `Q` restricted to the cell, for the box of
+    /// `u` the cell maps into (empty when not asked for: [`CellBounds`]).
+    comps: Vec<Bernstein>,
+    q: Option<Bernstein>,
     depth: u32,
 }
 
@@ -208,6 +287,12 @@ impl SurfaceCell {
         let (q0, q1) = halve_opt(&self.q2);
         let (d0, d1) = halve(&self.det);
         let (n0, n1) = halve_opt(&self.q2n);
+        let (p0, p1): (Vec<_>, Vec<_>) = self.comps.iter().map(halve).unzip();
+        let (qa, qb) = if self.comps.is_empty() {
+            (None, None)
+        } else {
+            halve_opt(&self.q)
+        };
         let depth = self.depth + 1;
         (
             SurfaceCell {
@@ -216,6 +301,8 @@ impl SurfaceCell {
                 q2: q0,
                 det: d0,
                 q2n: n0,
+                comps: p0,
+                q: qa,
                 depth,
             },
             SurfaceCell {
@@ -224,9 +311,21 @@ impl SurfaceCell {
                 q2: q1,
                 det: d1,
                 q2n: n1,
+                comps: p1,
+                q: qb,
                 depth,
             },
         )
+    }
+
+    /// The box of `u = X(w)` over the cell: each component's quotient range.
+    fn u_box(&self) -> (Bary, Bary) {
+        let mut lo = [0.0; MAX_VARS];
+        let mut hi = [0.0; MAX_VARS];
+        for (k, p) in self.comps.iter().enumerate() {
+            (lo[k], hi[k]) = quotient_range(p, self.q.as_ref());
+        }
+        (lo, hi)
     }
 
     /// Whether the level set can meet the cell: `F − c` (times `Q > 0`) has coefficients of both
@@ -286,7 +385,8 @@ fn surface_stage_factor(
     level: f64,
     max_splits: usize,
     enough: f64,
-) -> Result<f64, String> {
+    with_cells: bool,
+) -> Result<(f64, Vec<LeafCell>), String> {
     let m = stage.vars();
     let n = m - 1;
     let JacobianPolys {
@@ -328,20 +428,28 @@ fn surface_stage_factor(
         })
         .collect();
     let linear = linear_gradient_norm(inv_edges, &values[..m])?;
+    // The boxes need `Q > 0` coefficientwise (`quotient_range`); a rational stage's weights are
+    // positive, so this only fails on input the validator refuses.
+    let boxes = with_cells
+        && q.as_ref()
+            .is_none_or(|q| q.min_coeff().is_finite() && q.min_coeff() > 0.0);
     let root = SurfaceCell {
         cross,
         grad,
         q2,
         det,
         q2n,
+        comps: if boxes { p } else { Vec::new() },
+        q: if boxes { q } else { None },
         depth: 0,
     };
     if !root.crosses() {
         // No surface in this simplex: nothing is ever sampled here.
-        return Ok(0.0);
+        return Ok((0.0, Vec::new()));
     }
     let (bound, mut estimate) = root.factor(m, linear);
-    let mut cells: Vec<(f64, SurfaceCell)> = vec![(bound, root)];
+    // Per cell: its bound, the value at its vertices, the cell.
+    let mut cells: Vec<(f64, f64, SurfaceCell)> = vec![(bound, estimate, root)];
     let mut splits = 0;
     let factor = loop {
         let Some(worst) = (0..cells.len()).max_by(|&i, &j| cells[i].0.total_cmp(&cells[j].0))
@@ -352,17 +460,17 @@ fn surface_stage_factor(
         if top * DET_TIGHTNESS <= estimate
             || (top.is_finite() && top - estimate <= enough)
             || splits >= max_splits
-            || cells[worst].1.depth >= MAX_DEPTH
+            || cells[worst].2.depth >= MAX_DEPTH
         {
             break top;
         }
-        let (_, cell) = cells.swap_remove(worst);
+        let (_, _, cell) = cells.swap_remove(worst);
         let (a, b) = cell.split(m);
         for child in [a, b] {
             if child.crosses() {
                 let (bound, est) = child.factor(m, linear);
                 estimate = estimate.max(est);
-                cells.push((bound, child));
+                cells.push((bound, est, child));
             }
         }
         splits += 1;
@@ -372,7 +480,62 @@ fn surface_stage_factor(
             "Jacobian determinant not certified positive near the surface after {splits} bisections"
         ));
     }
-    Ok(factor)
+    if !boxes {
+        return Ok((factor, Vec::new()));
+    }
+    // The whole bound is settled; the cells' own bounds go on to their parts of the patch
+    // ([`CellBounds`]): the rest of the budget on the cells loosest in bounded area.
+    refine_cells(&mut cells, m, linear, max_splits, enough);
+    let leaves = cells
+        .iter()
+        .map(|(b, _, cell)| {
+            let (lo, hi) = cell.u_box();
+            (lo, hi, *b)
+        })
+        .collect();
+    Ok((factor, leaves))
+}
+
+/// The second round of [`surface_stage_factor`] for [`CellBounds`], once the whole bound is
+/// settled: every cell (not only the worst) is bisected while its bound is loose against its own
+/// vertex values — above them by more than `DET_TIGHTNESS` and, times the share of the patch the
+/// cell holds, by more than `enough` — the loosest in that bounded area first, for at most
+/// `max_splits` bisections. Bisecting never raises a bound (a part's Bernstein coefficients are
+/// convex combinations of the whole's), so no part of the patch gets a larger one than before.
+fn refine_cells(
+    cells: &mut Vec<(f64, f64, SurfaceCell)>,
+    m: usize,
+    linear: f64,
+    max_splits: usize,
+    enough: f64,
+) {
+    // The share of the patch a cell `depth` bisections deep holds: its volume is `2^-depth` of
+    // the simplex's, and the shape in it a hypersurface, so about `2^(-depth (n-1)/n)`.
+    let n = (m - 1) as f64;
+    let share = |depth: u32| (-(f64::from(depth)) * (n - 1.0) / n).exp2();
+    let excess = |b: f64, e: f64, depth: u32| (b - e) * share(depth);
+    let loose = |&(b, e, ref cell): &(f64, f64, SurfaceCell)| {
+        b * DET_TIGHTNESS > e && excess(b, e, cell.depth) > enough && cell.depth < MAX_DEPTH
+    };
+    for _ in 0..max_splits {
+        let Some(worst) = (0..cells.len())
+            .filter(|&i| loose(&cells[i]))
+            .max_by(|&i, &j| {
+                let x = |k: usize| excess(cells[k].0, cells[k].1, cells[k].2.depth);
+                x(i).total_cmp(&x(j))
+            })
+        else {
+            break;
+        };
+        let (_, _, cell) = cells.swap_remove(worst);
+        let (a, b) = cell.split(m);
+        for child in [a, b] {
+            if child.crosses() {
+                let (bound, est) = child.factor(m, linear);
+                cells.push((bound, est, child));
+            }
+        }
+    }
 }
 
 /// `|∇F_lin|` on a simplex from the inverse edge matrix and the vertex values (stored order):
@@ -890,7 +1053,6 @@ pub fn spectral_norm_bound(n: usize, a: &Mat) -> f64 {
 mod tests {
     use super::*;
     use ism_format::builder::{ModelBuilder, StageBuilder};
-    use ism_geom::Bary;
 
     fn two_triangles(stage: ism_format::Stage) -> ism_format::Model {
         ModelBuilder::new(2)
@@ -931,6 +1093,7 @@ mod tests {
             let eval = ism_geom::ModelEval::new(&model).unwrap();
             let n = model.dim();
             let (mut patches, mut points, mut fused_sum, mut stored_sum) = (0, 0, 0.0, 0.0);
+            let (mut local_sum, mut whole_sum) = (0.0, 0.0);
             for s in 0..model.num_simplices() {
                 let Some(patch) = eval.patch(s) else { continue };
                 let map = eval.local_map(s);
@@ -938,7 +1101,7 @@ mod tests {
                 let inv = linalg::inverse(n, &e).unwrap();
                 let ids = model.simplex(s);
                 let values: Vec<f64> = ids.iter().map(|&v| model.values[v as usize]).collect();
-                let Some(bound) = fused_surface_area_element_bound(
+                let Some(cells) = fused_surface_area_element_bound(
                     map,
                     &e,
                     &values,
@@ -948,6 +1111,7 @@ mod tests {
                 ) else {
                     continue;
                 };
+                let bound = cells.top();
                 patches += 1;
                 fused_sum += bound;
                 stored_sum += surface_area_element_bound(map, &e, &values, model.level).unwrap();
@@ -980,6 +1144,16 @@ mod tests {
                                 j <= bound,
                                 "{name}: simplex {s}: J {j} above the fused bound {bound}"
                             );
+                            // And below the bound of the cells whose box holds the point's `u`
+                            // (what a region of the sampler takes, `CellBounds::over`).
+                            let local = cells.over(&u[..=n], &u[..=n]);
+                            assert!(
+                                j <= local && local <= bound,
+                                "{name}: simplex {s}: J {j} above its cells' bound {local} \
+                                 (whole {bound})"
+                            );
+                            local_sum += local;
+                            whole_sum += bound;
                             points += 1;
                         }
                     }
@@ -987,9 +1161,16 @@ mod tests {
             }
             eprintln!(
                 "{name}: {patches} fused patches, {points} points; bounds summed: fused \
-                 {fused_sum:.4e}, stored {stored_sum:.4e}"
+                 {fused_sum:.4e}, stored {stored_sum:.4e}; at the points: their cells' \
+                 {local_sum:.4e}, the whole {whole_sum:.4e}"
             );
             assert!(patches >= fused_patches, "{name}: {patches} patches fuse");
+            // The cells localise: at the points, their cells' bounds sum to less than the
+            // whole simplices' (else `CellBounds` would add nothing).
+            assert!(
+                local_sum < 0.9 * whole_sum,
+                "{name}: cells {local_sum} against whole {whole_sum}"
+            );
             if name == "torus" {
                 assert!(
                     fused_sum < 0.2 * stored_sum,
