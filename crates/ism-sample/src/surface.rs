@@ -2411,9 +2411,8 @@ mod tests {
 
     /// The second pass in rounds: on the torus example the table for 10⁵ samples (fixed regions,
     /// no parts) bounds no more area with all rounds than with one, and stays certified. Measured
-    /// before the per-cell bounds ([`CellBounds`]): 272.6 against 322.8; since, 177.3 against
-    /// 178.1 (the first round's cells leave little to the later ones; with parts, the default
-    /// table, 97.43 both).
+    /// before the per-cell bounds ([`CellBounds`]): 272.6 against 322.8; since, 103.5 both (the
+    /// first round's cells leave nothing worth a later round on this model).
     #[test]
     fn later_rounds_of_the_second_pass_never_loosen_the_torus_table() {
         let model = example("torus");
