@@ -1,10 +1,12 @@
 //! Points on the shape `O`, uniform by true curved area (length in 2D).
 //!
 //! 1. Per top simplex σ crossed by the level, the linear patch `θ_σ` (segment, triangle or quad),
-//!    cut into regions `r` (16 equal sub-triangles per triangle, 4 sub-segments per segment), each
-//!    with its point-space area `A_r` and a certified bound `B_r ≥ J` of the area element of the
-//!    parametric map `θ_σ → O ∩ σ` over it ([`crate::chain`]; [`crate::bound`] for chains mixing
-//!    implicit and parametric stages).
+//!    cut into regions `r` (16 equal sub-triangles per triangle, 4 sub-segments per segment, and
+//!    for many samples their parts where the bounds localise: [`split_regions`]; the adaptive
+//!    leaves of all-parametric maps), each with its point-space area `A_r` and a certified bound
+//!    `B_r ≥ J` of the area element of the parametric map `θ_σ → O ∩ σ` over it
+//!    ([`crate::chain`]; [`crate::bound`] for chains mixing implicit and parametric stages, and
+//!    per bisection cell for a fused projective pair: [`crate::bound::CellBounds`]).
 //! 2. Choose a region with probability `A_r B_r / Σ A B`, `u` uniform on it, solve `w = X⁻¹(u)`
 //!    (Newton from a lattice of precomputed preimages, or directly for parametric maps),
 //!    `p = W(w)`, and accept with probability `J(u) / B_r`. The accepted points have density
@@ -70,8 +72,9 @@ pub struct PatchEntry {
     pub bound: f64,
     /// The regions a sample is drawn from, each with its certified bound of the area element:
     /// for implicit chains the `GUESS_LEVEL²` sub-triangles of each triangle (the
-    /// `GUESS_LEVEL` sub-segments of a segment); for all-parametric ones the leaves of the
-    /// adaptive refinement ([`crate::chain::parametric_leaves`]).
+    /// `GUESS_LEVEL` sub-segments of a segment) or their parts ([`split_regions`]); for
+    /// all-parametric ones the leaves of the adaptive refinement
+    /// ([`crate::chain::parametric_leaves`]).
     regions: Vec<RegionEntry>,
     /// `|∇F_lin|` on this simplex.
     linear_gradient: f64,
