@@ -2,7 +2,7 @@
 //!
 //! 1. Per top simplex σ crossed by the level, the linear patch `θ_σ` (segment, triangle or quad),
 //!    cut into regions `r` (16 equal sub-triangles per triangle, 4 sub-segments per segment, and
-//!    for many samples their parts where the bounds localise: [`split_regions`]; the adaptive
+//!    for many samples their parts where the bounds localise: see `split_regions`; the adaptive
 //!    leaves of all-parametric maps), each with its point-space area `A_r` and a certified bound
 //!    `B_r ≥ J` of the area element of the parametric map `θ_σ → O ∩ σ` over it
 //!    ([`crate::chain`]; [`crate::bound`] for chains mixing implicit and parametric stages, and
