@@ -615,8 +615,9 @@ struct ImplicitInputs<'a> {
     min_excess: f64,
 }
 
-/// Region bounds from the chain bound's leaves, with the per-stage bound where the chain has
-/// none or is not tight within its budget (both are certified, so their minimum is).
+/// The bounds an implicit chain's patch takes its regions' from ([`RegionBounder`]): the chain
+/// bound's leaves, with the per-stage bound where the chain has none or is not tight within its
+/// budget (both are certified, so their minimum is).
 fn implicit_region_bounds(
     input: ImplicitInputs<'_>,
 ) -> std::result::Result<RegionBounder, (usize, String)> {
