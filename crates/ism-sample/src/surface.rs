@@ -1709,17 +1709,6 @@ fn lattice_u(tri: &[Bary; 3], (i, j): (usize, usize)) -> Bary {
 /// Bounding boxes (in `u`) of the regions of a patch: sub-triangles of each triangle, or
 /// sub-segments of a segment.
 fn regions(tris: &[[Bary; 3]; 2], count: u8) -> Vec<(Bary, Bary)> {
-    let boxed = |pts: &[Bary]| {
-        let mut lo = [f64::INFINITY; MAX_VARS];
-        let mut hi = [f64::NEG_INFINITY; MAX_VARS];
-        for p in pts {
-            for k in 0..MAX_VARS {
-                lo[k] = lo[k].min(p[k]);
-                hi[k] = hi[k].max(p[k]);
-            }
-        }
-        (lo, hi)
-    };
     if count == 0 {
         let [a, b, _] = tris[0];
         let l = GUESS_LEVEL as f64;
@@ -1732,7 +1721,7 @@ fn regions(tris: &[[Bary; 3]; 2], count: u8) -> Vec<(Bary, Bary)> {
                     }
                     u
                 };
-                boxed(&[at(k as f64 / l), at((k + 1) as f64 / l)])
+                bary_box(&[at(k as f64 / l), at((k + 1) as f64 / l)])
             })
             .collect();
     }
@@ -1740,7 +1729,7 @@ fn regions(tris: &[[Bary; 3]; 2], count: u8) -> Vec<(Bary, Bary)> {
         .take(usize::from(count))
         .flat_map(|tri| {
             sub_triangles().iter().map(|v| {
-                boxed(&[
+                bary_box(&[
                     lattice_u(tri, v[0]),
                     lattice_u(tri, v[1]),
                     lattice_u(tri, v[2]),
@@ -1830,9 +1819,14 @@ fn split_regions(
 
 /// The box of a region's corners (two for a segment).
 fn corner_box(u: &[Bary; 3], triangles: u8) -> (Bary, Bary) {
+    bary_box(&u[..if triangles == 0 { 2 } else { 3 }])
+}
+
+/// The coordinatewise box of barycentric points.
+fn bary_box(pts: &[Bary]) -> (Bary, Bary) {
     let mut lo = [f64::INFINITY; MAX_VARS];
     let mut hi = [f64::NEG_INFINITY; MAX_VARS];
-    for p in u.iter().take(if triangles == 0 { 2 } else { 3 }) {
+    for p in pts {
         for k in 0..MAX_VARS {
             lo[k] = lo[k].min(p[k]);
             hi[k] = hi[k].max(p[k]);

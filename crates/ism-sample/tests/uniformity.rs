@@ -441,7 +441,7 @@ fn projective_examples_are_sampled_uniformly() {
             env!("CARGO_MANIFEST_DIR")
         );
         let model = ism_format::io::read_path(path).unwrap().model;
-        // The one-sample table of the torus draws ~10³ candidates per sample (minutes here).
+        // The one-sample table of the torus draws ~10³ candidates per sample (over a minute here).
         let tables: &[Option<u64>] = if name == "torus" {
             &[Some(count)]
         } else {
