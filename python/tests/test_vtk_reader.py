@@ -47,10 +47,11 @@ ENCODINGS = [".ismb", ".ismc", ".isms", ".ism.json", ".ism.msgpack"]
 #: at most 12).
 EXACT = ["circle-linear", "quadratic-edges", "cubic-face-point", "rational-degree5", "circle-curved", "sphere", "torus", "monotonic"]
 #: The others that the library's volume exporter approximates, with a bound (certified or not).
-#: Value: whether the bound is certified (False: an implicit stage before a parametric one, or a
-#: composed degree above the exporter's MAX_COMPOSED_DEGREE = 12 — stratified-3d's is 4·3·2 = 24 —
-#: give a sampled estimate).
-APPROXIMATE = {"two-stage": False, "stratified-3d": False}
+#: Value: whether the bound is certified (True: every stage implicit and the composed degree at
+#: most the exporter's MAX_COMPOSED_DEGREE = 24 — stratified-3d's is 4·3·2 = 24 —, a Bernstein
+#: bound of the exact rational form; False: an implicit stage before a parametric one gives a
+#: sampled estimate).
+APPROXIMATE = {"two-stage": False, "stratified-3d": True}
 
 #: Agreement of VTK's interpolation of an exact cell with the library's F: both evaluate the same
 #: rational function in double precision (different formulas), so they differ by rounding only —
@@ -349,7 +350,9 @@ def test_approximate_cells_stay_within_the_reported_bound(name):
     assert field(vol, "FieldErrorCertified") == int(APPROXIMATE[name])
     bound = field(vol, "FieldErrorBoundEverywhere")
     assert 0.0 < field(vol, "FieldErrorBound") <= bound
-    assert "ESTIMATED" in field(vol, "FieldNote")
+    note = field(vol, "FieldNote")
+    assert ("ESTIMATED" in note) != APPROXIMATE[name], note
+    assert ("certified: Bernstein bound" in note) == APPROXIMATE[name], note
     xs, fs = sample_cells(vol, model)
     err = np.max(np.abs(model.query(xs)["f"] - fs))
     assert 0.0 < err <= bound

@@ -32,8 +32,9 @@ parametrisation (field_exact: true in --json, a rounding-level bound); otherwise
 refinement of an interpolant are raised until max |F_vtk − F| is below --field-tolerance
 (default: the surface tolerance times the median |∇F| of the linear interpolant on the crossed
 simplices, so contouring F moves the surface by about --tolerance), the bound certified
-(Bernstein bound of the exact rational form) when every stage is implicit, otherwise marked as an
-estimate. The bound is printed and in --json.
+(Bernstein bound of the exact rational form) when every stage is implicit and the composed degree
+is at most 24 (above 12 only on models small enough for their exact forms), otherwise marked as
+an estimate. The bound is printed and in --json.
 
 Examples:
   ism export spec/examples/sphere.ism.json sphere.glb --tolerance 1e-3

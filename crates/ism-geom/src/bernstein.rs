@@ -417,6 +417,21 @@ pub struct Restriction {
 }
 
 impl Restriction {
+    /// How much restricting a degree-`d` polynomial with this plan can grow its coefficients'
+    /// magnitude, and the rounding of each de Casteljau step before it: each replacement is `d`
+    /// steps with the weights `λ` (the new vertex in the current simplex's coordinates), and a
+    /// step scales by at most `Σ |λ_i|` — 1 when the new vertex is inside the current simplex (a
+    /// convex combination), more when it is outside (the interior children of a red refinement,
+    /// where `λ` holds a `−1` after the first replacements: 3ᵈ). The product over the
+    /// replacements.
+    pub fn amplification(&self, d: u32) -> f64 {
+        let exponent = i32::try_from(d).unwrap_or(i32::MAX);
+        self.points
+            .iter()
+            .map(|lam| lam.iter().map(|x| x.abs()).sum::<f64>().powi(exponent))
+            .product()
+    }
+
     /// The plan for the sub-simplex with barycentric `vertices`; `None` when a replacement would be
     /// degenerate (a new vertex's coordinate on the vertex it replaces is not clearly positive) or
     /// there are more than `MAX_VARS` variables.
