@@ -182,8 +182,9 @@ def library_bezier_grid(model: Any, tolerance: float) -> vtkUnstructuredGrid:
     Otherwise each simplex, red-refined ``k`` times, carries the degree-``p`` polynomial
     interpolant of ``F`` on linear geometry, with ``(p, k)`` chosen so the bound on ``|F_vtk − F|``
     meets ``tolerance · median |∇F|`` (the library's default field tolerance; contouring then
-    moves the surface by about ``tolerance``): certified for all-implicit models, a dense-sample
-    estimate otherwise (``FieldErrorCertified = 0``). The field data says what was written:
+    moves the surface by about ``tolerance``): certified for all-implicit models of composed degree
+    at most 24 (above 12 only on models small enough for their exact forms; ``stratified-3d``'s is
+    24), a dense-sample estimate otherwise (``FieldErrorCertified = 0``). The field data says what was written:
     ``FieldErrorBound`` (on the cells the level may cross), ``FieldErrorBoundEverywhere``,
     ``FieldErrorCertified``, ``FieldTolerance``, ``Degree``, ``RefinementLevels``, ``FieldNote``.
     """
