@@ -1026,7 +1026,14 @@ fn interpolated_grid(
 ) -> Result<(UnstructuredGrid, VolumeReport)> {
     let cap = certified_degree_cap(eval.model());
     let found = interpolated_search(eval, tol, progress, SCREENED, true, cap)?;
-    if found.1.met || !found.1.certified || cap <= ALWAYS_CERTIFIED_DEGREE {
+    // Only a chain above `ALWAYS_CERTIFIED_DEGREE` has an estimate's search that differs: below
+    // it the second search would repeat the first.
+    let top = composed_degree(eval.model().stages.iter().map(|s| s.degree));
+    if found.1.met
+        || !found.1.certified
+        || cap <= ALWAYS_CERTIFIED_DEGREE
+        || top <= u64::from(ALWAYS_CERTIFIED_DEGREE)
+    {
         return Ok(found);
     }
     // A chain above `ALWAYS_CERTIFIED_DEGREE` whose certificate does not reach the tolerance
