@@ -86,7 +86,7 @@ pub const MAX_LEVEL: u32 = 3;
 /// edge, face and interior strata (degrees 4 · 3 · 2, `stratified-3d`), whose estimate had
 /// claimed a tolerance the field did not meet (module doc). The cost grows fast with `E` (2 925
 /// coefficients per polynomial at 24 in 3D, products `O(count(E)²)`, each bisection of the
-/// certificate `O(E · count(E))`): `stratified-3d`'s certified search takes ~0.5 CPU-s where its
+/// certificate `O(E · count(E))`): `stratified-3d`'s certified search takes 0.59 CPU-s where its
 /// estimate took 0.04 (BENCHMARKS.md, issue 19, session 51).
 pub const MAX_COMPOSED_DEGREE: u32 = 24;
 
@@ -546,7 +546,7 @@ pub const ALWAYS_CERTIFIED_DEGREE: u32 = 12;
 /// exact rational forms of a chain of composed degree `E` above [`ALWAYS_CERTIFIED_DEGREE`] may
 /// hold: the search keeps every simplex's `N_F` and `D` (two polynomials of 2 925 coefficients at
 /// degree 24 in 3D), and certifying one costs ~3.5 ms (`stratified-3d`, 162 tetrahedra: 0.56 s
-/// on one thread). 8 M coefficients are 128 MB and about 10 CPU-s (2,700 tetrahedra at degree
+/// on one thread). 8 M coefficients are 128 MB and, at that rate (not measured), ~10 CPU-s (2,700 tetrahedra at degree
 /// 24); the 1 M-tet model of BENCHMARKS.md (degree 24, 1,053,696 tetrahedra) would need 49 GB, so
 /// a larger model keeps the estimate, and says so.
 pub const CERTIFIED_COEFFICIENTS: u64 = 8_000_000;
